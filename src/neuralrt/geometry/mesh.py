@@ -1,0 +1,243 @@
+"""Triangle meshes: loading with trimesh, validation, and the data the intersectors need.
+
+A `Mesh` holds numpy arrays (the CPU-side source data): Embree builds from them and neural
+models are trained against them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import MeshError
+
+__all__ = ["Mesh", "MeshMaterial", "load_mesh", "srgb_to_linear"]
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] to linear."""
+    c = np.asarray(c, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+@dataclass
+class MeshMaterial:
+    """A material as the mesh file describes it: a name, a linear base colour, an optional texture."""
+
+    name: str = "default"
+    base_color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))  # linear RGB
+    texture: np.ndarray | None = None  # [H, W, 3] linear float32, row 0 = top (v = 1)
+
+
+@dataclass
+class Mesh:
+    """An indexed triangle mesh with optional shading normals, UVs, colours and materials."""
+
+    vertices: np.ndarray  # [V, 3] float32
+    faces: np.ndarray  # [F, 3] int32
+    vertex_normals: np.ndarray | None = None  # [V, 3] float32, unit (smooth shading)
+    uvs: np.ndarray | None = None  # [V, 2] float32
+    vertex_colors: np.ndarray | None = None  # [V, 3] float32 linear
+    face_material_ids: np.ndarray | None = None  # [F] int32 into `materials`
+    materials: list[MeshMaterial] = field(default_factory=lambda: [MeshMaterial()])
+    name: str = "mesh"
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int32)
+        validate_arrays(self.vertices, self.faces, self.name)
+        if self.face_material_ids is None:
+            self.face_material_ids = np.zeros(len(self.faces), np.int32)
+        self.face_material_ids = np.ascontiguousarray(self.face_material_ids, dtype=np.int32)
+        if not self.materials:
+            self.materials = [MeshMaterial()]
+        if self.vertex_normals is None:
+            self.vertex_normals = smooth_vertex_normals(self.vertices, self.faces)
+        self.vertex_normals = np.ascontiguousarray(self.vertex_normals, dtype=np.float32)
+        if self.uvs is not None:
+            self.uvs = np.ascontiguousarray(self.uvs, dtype=np.float32)
+        if self.vertex_colors is not None:
+            self.vertex_colors = np.ascontiguousarray(self.vertex_colors, dtype=np.float32)
+
+    @property
+    def num_triangles(self) -> int:
+        return int(len(self.faces))
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices.min(0), self.vertices.max(0)
+
+    def triangles(self) -> np.ndarray:
+        """[F, 3, 3] float32 vertex positions per triangle."""
+        return self.vertices[self.faces]
+
+    def face_normals(self) -> np.ndarray:
+        """[F, 3] unit geometric normals (zero for degenerate triangles)."""
+        tri = self.triangles().astype(np.float64)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return (n / np.where(length > 0, length, 1)).astype(np.float32)
+
+    def face_areas(self) -> np.ndarray:
+        tri = self.triangles().astype(np.float64)
+        return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+    def content_hash(self) -> str:
+        """SHA-256 of the geometry and attributes: identifies the source of a trained model."""
+        h = hashlib.sha256()
+        for arr in (self.vertices, self.faces, self.face_material_ids, self.vertex_normals, self.uvs, self.vertex_colors):
+            h.update(b"|" if arr is None else np.ascontiguousarray(arr).tobytes())
+        for m in self.materials:
+            h.update(m.name.encode() + np.asarray(m.base_color, np.float32).tobytes())
+            if m.texture is not None:
+                h.update(np.ascontiguousarray(m.texture).tobytes())
+        return h.hexdigest()
+
+    def nbytes(self) -> int:
+        """Bytes of the vertex and index buffers as a renderer stores them (positions + indices)."""
+        return int(self.vertices.nbytes + self.faces.nbytes)
+
+    def subdivided(self, iterations: int = 1) -> "Mesh":
+        """Loop subdivision (trimesh), keeping one material per face; UVs/colours are dropped."""
+        import trimesh
+
+        tm = trimesh.Trimesh(self.vertices, self.faces, process=False)
+        mat = self.face_material_ids
+        for _ in range(iterations):
+            tm = tm.subdivide_loop(iterations=1)
+            mat = np.repeat(mat, 4)
+        return Mesh(tm.vertices, tm.faces, face_material_ids=mat, materials=self.materials,
+                    name=f"{self.name}-loop{iterations}")
+
+
+def validate_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
+    """Raise `MeshError` naming ``name`` for empty, non-finite or badly indexed meshes."""
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"{name}: vertices must have shape [V, 3], got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise MeshError(f"{name}: faces must be triangles with shape [F, 3], got {faces.shape}")
+    if len(vertices) == 0 or len(faces) == 0:
+        raise MeshError(f"{name}: mesh is empty ({len(vertices)} vertices, {len(faces)} triangles)")
+    if not np.isfinite(vertices).all():
+        bad = int((~np.isfinite(vertices)).any(1).sum())
+        raise MeshError(f"{name}: {bad} vertices have NaN or Inf coordinates")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(
+            f"{name}: face indices out of range [0, {len(vertices) - 1}] (found {faces.min()}..{faces.max()})"
+        )
+    tri = vertices[faces].astype(np.float64)
+    areas = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (areas > 0).any():
+        raise MeshError(f"{name}: mesh is degenerate (all {len(faces)} triangles have zero area)")
+
+
+def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals; vertices of only degenerate faces get +z."""
+    tri = vertices[faces].astype(np.float64)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    vn = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.where(length > 0, vn / np.where(length > 0, length, 1), [0.0, 0.0, 1.0])
+    return vn.astype(np.float32)
+
+
+# --- loading --------------------------------------------------------------------------------
+
+
+def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+    """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual."""
+    uv = colors = None
+    material = MeshMaterial(name=fallback_name)
+    kind = getattr(visual, "kind", None)
+    if kind == "texture":
+        mat = visual.material
+        uv = None if visual.uv is None else np.asarray(visual.uv, np.float32)
+        if hasattr(mat, "to_simple"):  # PBR -> simple (diffuse + image)
+            mat = mat.to_simple()
+        material.name = getattr(mat, "name", None) or fallback_name
+        diffuse = getattr(mat, "diffuse", None)
+        if diffuse is not None:
+            material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
+        image = getattr(mat, "image", None)
+        if image is not None and uv is not None:
+            material.texture = srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
+            material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
+    elif kind == "vertex":
+        colors = srgb_to_linear(np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0)
+    elif kind == "face":
+        fc = np.asarray(visual.face_colors, np.float32)[:, :3] / 255.0
+        if np.allclose(fc, fc[0]):
+            material.base_color = srgb_to_linear(fc[0])
+    return material, uv, colors
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB).
+
+    Multi-part files are merged into one mesh; each part's material becomes one entry of
+    ``materials`` and its faces get that ``face_material_ids``. Errors name the file.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: mesh file not found")
+    try:
+        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    if isinstance(loaded, trimesh.Scene):
+        parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+    elif isinstance(loaded, trimesh.Trimesh):
+        parts = [loaded]
+    else:
+        parts = []
+    parts = [p for p in parts if len(p.faces)]
+    if not parts:
+        raise MeshError(f"{path}: file contains no triangles")
+
+    verts, faces, normals, uvs, colors, mat_ids, materials = [], [], [], [], [], [], []
+    names: dict[str, int] = {}
+    offset = 0
+    any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
+    any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts)
+    for i, part in enumerate(parts):
+        v = np.asarray(part.vertices, np.float32)
+        f = np.asarray(part.faces, np.int64)
+        try:
+            validate_arrays(v, f.astype(np.int32) if f.size else f.reshape(-1, 3).astype(np.int32), str(path))
+        except MeshError:
+            if len(parts) == 1:
+                raise
+            continue
+        material, uv, col = _material_from_visual(part.visual, f"material{i}")
+        key = material.name
+        if key not in names or materials[names[key]].texture is not None:
+            names[key] = len(materials)
+            materials.append(material)
+        mat_ids.append(np.full(len(f), names[key], np.int32))
+        verts.append(v)
+        faces.append(f + offset)
+        # trimesh returns the file's normals when present, else smooth ones it computes
+        vn = np.asarray(part.vertex_normals, np.float32)
+        normals.append(vn if vn is not None and vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f))
+        uvs.append(uv if uv is not None and len(uv) == len(v) else np.zeros((len(v), 2), np.float32))
+        colors.append(col if col is not None and len(col) == len(v) else np.ones((len(v), 3), np.float32))
+        offset += len(v)
+    if not verts:
+        raise MeshError(f"{path}: no valid triangle part in file")
+    return Mesh(
+        vertices=np.concatenate(verts),
+        faces=np.concatenate(faces).astype(np.int32),
+        vertex_normals=np.concatenate(normals),
+        uvs=np.concatenate(uvs) if any_uv else None,
+        vertex_colors=np.concatenate(colors) if any_color else None,
+        face_material_ids=np.concatenate(mat_ids),
+        materials=materials,
+        name=path.stem,
+    )
