@@ -1,0 +1,250 @@
+"""Image files: linear HDR EXR, tone-mapped sRGB PNG, and reading EXR / PNG / JPG / Radiance .hdr.
+
+Every array here is ``[H, W, 3]`` float32 *linear* RGB, row 0 at the top. Writes are atomic
+(a temporary file in the same folder, then ``os.replace``), so a crash never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ImageError
+
+__all__ = ["write_exr", "write_png", "write_hdr", "read_image", "linear_to_srgb", "srgb_to_linear", "tone_map"]
+
+
+# --- transfer functions ------------------------------------------------------------------------
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] to sRGB-encoded [0, 1] (IEC 61966-2-1 piecewise curve)."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded [0, 1] to linear."""
+    c = np.asarray(c, np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def tone_map(linear_rgb: np.ndarray, exposure: float = 0.0, operator: str = "clamp") -> np.ndarray:
+    """Scale by ``2**exposure`` then map to [0, 1]: ``"clamp"`` (default) or ``"reinhard"`` (x / (1 + x))."""
+    x = np.maximum(np.nan_to_num(np.asarray(linear_rgb, np.float32), nan=0.0, posinf=1e4), 0.0) * np.float32(2.0**exposure)
+    if operator == "reinhard":
+        return x / (1.0 + x)
+    if operator == "clamp":
+        return np.clip(x, 0.0, 1.0)
+    raise ValueError(f"unknown tone map operator {operator!r} (use 'clamp' or 'reinhard')")
+
+
+# --- helpers -----------------------------------------------------------------------------------
+
+
+def _as_rgb(image: np.ndarray, path: Path) -> np.ndarray:
+    """Accept [H, W], [H, W, 1], [H, W, 3] or [H, W, 4] (alpha dropped); return contiguous float32 RGB."""
+    a = np.asarray(image, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4) or a.shape[0] == 0 or a.shape[1] == 0:
+        raise ImageError(f"{path}: image must have shape [H, W, 3], got {tuple(np.shape(image))}")
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    return np.ascontiguousarray(a[..., :3])
+
+
+def _atomic_write(path: Path, write_to) -> None:
+    """Call ``write_to(tmp_path)`` then rename over ``path`` (same folder, so the rename is atomic)."""
+    path = Path(path)
+    if not path.parent.exists():
+        raise ImageError(f"{path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write_to(tmp)
+        os.replace(tmp, path)
+    except ImageError:
+        raise
+    except Exception as exc:
+        raise ImageError(f"{path}: cannot write image ({type(exc).__name__}: {exc})") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+# --- writing -----------------------------------------------------------------------------------
+
+
+def write_exr(path: str | Path, rgb: np.ndarray, half: bool = False) -> None:
+    """Write linear RGB as an OpenEXR file (float32 by default, ``half=True`` for float16; ZIP)."""
+    import OpenEXR
+
+    path = Path(path)
+    rgb = _as_rgb(rgb, path)
+    pixels = rgb.astype(np.float16) if half else rgb
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+    def write(tmp: str) -> None:
+        with OpenEXR.File(header, {"RGB": np.ascontiguousarray(pixels)}) as f:
+            f.write(tmp)
+
+    _atomic_write(path, write)
+
+
+def write_png(path: str | Path, linear_rgb: np.ndarray, exposure: float = 0.0, tone: str = "clamp") -> None:
+    """Write linear RGB as an 8-bit sRGB PNG: ``2**exposure`` scale, tone map (`tone_map`), sRGB curve."""
+    from PIL import Image
+
+    path = Path(path)
+    rgb = _as_rgb(linear_rgb, path)
+    encoded = np.round(linear_to_srgb(tone_map(rgb, exposure, tone)) * 255.0).astype(np.uint8)
+    _atomic_write(path, lambda tmp: Image.fromarray(encoded, "RGB").save(tmp, format="PNG"))
+
+
+def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
+    """Write linear RGB as an uncompressed Radiance RGBE (.hdr) file."""
+    path = Path(path)
+    rgb = np.maximum(_as_rgb(rgb, path), 0.0)
+    h, w = rgb.shape[:2]
+    peak = rgb.max(axis=2)
+    mantissa, exponent = np.frexp(peak)  # peak = mantissa * 2**exponent, mantissa in [0.5, 1)
+    scale = np.where(peak > 1e-32, mantissa * 256.0 / np.where(peak > 1e-32, peak, 1.0), 0.0)
+    rgbe = np.zeros((h, w, 4), np.uint8)
+    rgbe[..., :3] = np.clip(rgb * scale[..., None], 0, 255).astype(np.uint8)
+    rgbe[..., 3] = np.where(peak > 1e-32, np.clip(exponent + 128, 0, 255), 0).astype(np.uint8)
+    header = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n".encode("ascii")
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            f.write(header + rgbe.tobytes())
+
+    _atomic_write(path, write)
+
+
+# --- reading -----------------------------------------------------------------------------------
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read ``[H, W, 3]`` float32 linear RGB from EXR, Radiance .hdr, or PNG/JPG (sRGB decoded).
+
+    Grey images are replicated to 3 channels and alpha is dropped. Errors name the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".exr":
+            return _read_exr(path)
+        if suffix in (".hdr", ".pic"):
+            return _read_hdr(path)
+        return _read_ldr(path)
+    except ImageError:
+        raise
+    except Exception as exc:
+        raise ImageError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        channels = f.channels()
+        if "RGB" in channels:
+            rgb = np.asarray(channels["RGB"].pixels, np.float32)
+        elif "RGBA" in channels:
+            rgb = np.asarray(channels["RGBA"].pixels, np.float32)[..., :3]
+        elif all(c in channels for c in "RGB"):
+            rgb = np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], -1)
+        elif "Y" in channels:
+            rgb = np.asarray(channels["Y"].pixels, np.float32)
+        else:
+            raise ImageError(f"{path}: EXR has no RGB or Y channels (found {sorted(channels)})")
+    return _as_rgb(rgb, path)
+
+
+def _read_ldr(path: Path) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+            bits16 = im.mode in ("I;16", "I;16B", "I")
+            arr = np.asarray(im.convert("I") if bits16 else im.convert("RGB"), np.float32)
+    except UnidentifiedImageError:
+        raise ImageError(f"{path}: not a recognised image format") from None
+    arr = arr / (65535.0 if bits16 else 255.0)
+    return srgb_to_linear(_as_rgb(arr, path))
+
+
+_HDR_SIZE = re.compile(rb"^([-+])Y (\d+) ([-+])X (\d+)$")
+
+
+def _read_hdr(path: Path) -> np.ndarray:
+    """Radiance RGBE reader: flat and new-style run-length-encoded scanlines, -Y/+Y, +X/-X orders."""
+    data = path.read_bytes()
+    if not (data.startswith(b"#?RADIANCE") or data.startswith(b"#?RGBE")):
+        raise ImageError(f"{path}: not a Radiance .hdr file (missing #?RADIANCE header)")
+    pos = data.find(b"\n\n")
+    if pos < 0:
+        raise ImageError(f"{path}: truncated .hdr header")
+    header = data[:pos].split(b"\n")
+    for line in header:
+        if line.startswith(b"FORMAT=") and line.strip() != b"FORMAT=32-bit_rle_rgbe":
+            raise ImageError(f"{path}: unsupported .hdr format {line[7:].decode(errors='replace')} (need 32-bit_rle_rgbe)")
+    end = data.find(b"\n", pos + 2)
+    m = _HDR_SIZE.match(data[pos + 2 : end].strip())
+    if end < 0 or m is None:
+        raise ImageError(f"{path}: bad .hdr resolution line")
+    h, w = int(m.group(2)), int(m.group(4))
+    buf = np.frombuffer(data, np.uint8, offset=end + 1)
+    rgbe = _decode_rgbe(buf, h, w, path)
+    exponent = rgbe[..., 3].astype(np.int32)
+    scale = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0).astype(np.float32)  # 2**(e-128) / 256
+    rgb = (rgbe[..., :3].astype(np.float32) + 0.5) * scale[..., None]
+    if m.group(1) == b"+":
+        rgb = rgb[::-1]
+    if m.group(3) == b"-":
+        rgb = rgb[:, ::-1]
+    return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def _decode_rgbe(buf: np.ndarray, h: int, w: int, path: Path) -> np.ndarray:
+    out = np.empty((h, w, 4), np.uint8)
+    # Flat file (no RLE): exactly h*w*4 bytes, or scanlines too short/long for RLE.
+    if w < 8 or w > 0x7FFF or len(buf) < 4 or not (buf[0] == 2 and buf[1] == 2 and buf[2] < 128):
+        if len(buf) < h * w * 4:
+            raise ImageError(f"{path}: truncated .hdr pixel data")
+        return buf[: h * w * 4].reshape(h, w, 4).copy()
+    pos = 0
+    data = buf.tobytes()
+    for y in range(h):  # per scanline and per run: the format is sequential, not per ray
+        if pos + 4 > len(data) or data[pos] != 2 or data[pos + 1] != 2 or (data[pos + 2] << 8 | data[pos + 3]) != w:
+            raise ImageError(f"{path}: corrupt run-length scanline {y}")
+        pos += 4
+        for c in range(4):
+            x = 0
+            row = out[y, :, c]
+            while x < w:
+                if pos >= len(data):
+                    raise ImageError(f"{path}: truncated .hdr pixel data")
+                count = data[pos]
+                pos += 1
+                if count > 128:
+                    count -= 128
+                    if x + count > w or pos >= len(data):
+                        raise ImageError(f"{path}: corrupt run in scanline {y}")
+                    row[x : x + count] = data[pos]
+                    pos += 1
+                else:
+                    if count == 0 or x + count > w or pos + count > len(data):
+                        raise ImageError(f"{path}: corrupt run in scanline {y}")
+                    row[x : x + count] = np.frombuffer(data, np.uint8, count, pos)
+                    pos += count
+                x += count
+    return out

@@ -1,0 +1,104 @@
+"""Image I/O: EXR / PNG / HDR round trips, sRGB curve, atomic writes, one-line errors."""
+
+import numpy as np
+import pytest
+
+from neuralrt.errors import ImageError
+from neuralrt.io.images import linear_to_srgb, read_image, srgb_to_linear, write_exr, write_hdr, write_png
+
+
+def _hdr_image(h=5, w=9):
+    rng = np.random.default_rng(1)
+    return (rng.random((h, w, 3)) * np.logspace(-2, 2, w)[None, :, None]).astype(np.float32)
+
+
+def test_exr_round_trip_is_exact(tmp_path):
+    img = _hdr_image()
+    write_exr(tmp_path / "a.exr", img)
+    np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), img)
+
+
+def test_exr_half_round_trip(tmp_path):
+    img = _hdr_image()
+    write_exr(tmp_path / "h.exr", img, half=True)
+    np.testing.assert_allclose(read_image(tmp_path / "h.exr"), img, rtol=1e-3, atol=1e-4)
+
+
+def test_png_round_trip_within_quantisation(tmp_path):
+    img = np.random.default_rng(2).random((6, 7, 3)).astype(np.float32)
+    write_png(tmp_path / "a.png", img)
+    back = read_image(tmp_path / "a.png")
+    # 8-bit sRGB steps are at most 1/255 in encoded space.
+    np.testing.assert_allclose(linear_to_srgb(back), linear_to_srgb(img), atol=0.5 / 255 + 1e-6)
+
+
+def test_png_exposure_and_clamp(tmp_path):
+    img = np.full((2, 2, 3), 0.25, np.float32)
+    write_png(tmp_path / "e.png", img, exposure=1.0)  # 0.25 * 2 = 0.5
+    np.testing.assert_allclose(read_image(tmp_path / "e.png"), 0.5, atol=3e-3)
+    write_png(tmp_path / "c.png", img * 100)
+    np.testing.assert_allclose(read_image(tmp_path / "c.png"), 1.0)
+
+
+def test_srgb_curve_inverse():
+    x = np.linspace(0, 1, 101, dtype=np.float32)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-6)
+    assert linear_to_srgb(np.float32(0.5)) == pytest.approx(0.7353569, abs=1e-6)
+
+
+def test_hdr_flat_round_trip_within_rgbe_precision(tmp_path):
+    img = _hdr_image()
+    write_hdr(tmp_path / "a.hdr", img)
+    back = read_image(tmp_path / "a.hdr")
+    # RGBE keeps 8 mantissa bits relative to the brightest channel of each pixel.
+    assert (np.abs(back - img) <= img.max(-1, keepdims=True) / 128).all()
+
+
+def _write_rle_hdr(path, rgbe):
+    """A new-style run-length-encoded RGBE file (one repeat run + literal runs per channel)."""
+    h, w, _ = rgbe.shape
+    out = bytearray(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + f"-Y {h} +X {w}\n".encode())
+    for y in range(h):
+        out += bytes([2, 2, w >> 8, w & 255])
+        for c in range(4):
+            row = rgbe[y, :, c]
+            out += bytes([128 + 4, row[0]])  # a run of 4 equal values
+            rest = row[4:]
+            for i in range(0, len(rest), 128):
+                chunk = rest[i : i + 128]
+                out += bytes([len(chunk)]) + chunk.tobytes()
+    path.write_bytes(bytes(out))
+
+
+def test_hdr_rle_decoding(tmp_path):
+    rng = np.random.default_rng(3)
+    rgbe = rng.integers(1, 255, (3, 20, 4), dtype=np.uint8)
+    rgbe[..., 3] = rng.integers(120, 136, (3, 20))
+    rgbe[:, :4] = rgbe[:, :1]  # the first 4 pixels form a run
+    _write_rle_hdr(tmp_path / "r.hdr", rgbe)
+    back = read_image(tmp_path / "r.hdr")
+    expected = (rgbe[..., :3] + 0.5) * np.ldexp(1.0, rgbe[..., 3].astype(np.int32) - 136)[..., None]
+    np.testing.assert_allclose(back, expected, rtol=1e-6)
+
+
+def test_errors_name_the_file(tmp_path):
+    with pytest.raises(ImageError, match="missing.exr: image file not found"):
+        read_image(tmp_path / "missing.exr")
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(ImageError, match="bad.png"):
+        read_image(bad)
+    bad_hdr = tmp_path / "bad.hdr"
+    bad_hdr.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 4\n\x00")
+    with pytest.raises(ImageError, match="bad.hdr: truncated"):
+        read_image(bad_hdr)
+    with pytest.raises(ImageError, match="does not exist"):
+        write_exr(tmp_path / "nope" / "x.exr", np.zeros((2, 2, 3)))
+    with pytest.raises(ImageError, match=r"shape \[H, W, 3\]"):
+        write_png(tmp_path / "x.png", np.zeros((2, 2, 5)))
+
+
+def test_writes_are_atomic_and_leave_no_temporaries(tmp_path):
+    write_exr(tmp_path / "a.exr", np.ones((2, 2, 3)))
+    write_png(tmp_path / "a.png", np.ones((2, 2, 3)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
