@@ -49,8 +49,10 @@ class MeshBLAS:
         t_min = rays.t_min.detach().cpu().numpy().astype(np.float32, copy=False)
         t_max = rays.t_max.detach().cpu().numpy().astype(np.float32, copy=False)
         # Embree always starts at tnear = 0: move the origin to t_min instead.
-        shifted = np.where(valid[:, None], o + np.where(np.isfinite(t_min), t_min, 0)[:, None] * d, 0).astype(np.float32)
+        # Invalid rays become harmless placeholders (reported as misses below).
         direction = np.where(valid[:, None], d, [1.0, 0.0, 0.0]).astype(np.float32)
+        start = np.where(valid & np.isfinite(t_min), t_min, 0).astype(np.float32)
+        shifted = np.where(valid[:, None], o, 0).astype(np.float32) + start[:, None] * direction
         tfar = np.where(valid, np.minimum(t_max - t_min, _EMBREE_TFAR_MAX), -1.0).astype(np.float32)
         tfar = np.where(valid & ~np.isfinite(tfar), _EMBREE_TFAR_MAX, tfar).astype(np.float32)
         return np.ascontiguousarray(shifted), np.ascontiguousarray(direction), np.ascontiguousarray(tfar), valid, t_min
