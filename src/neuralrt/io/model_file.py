@@ -1,0 +1,158 @@
+"""The `.nrt` model file: named arrays in safetensors plus a JSON header, written atomically.
+
+Layout: a plain safetensors file whose ``__metadata__`` holds one key, ``"neuralrt"``, a JSON
+object with at least ``format_version``, ``method`` and ``arrays_sha256`` (a SHA-256 over every
+array's name, dtype, shape and bytes, so flipped bits in the data are caught; safetensors itself
+only checks the header). Methods add their own keys (config, bounds, materials, training record,
+source-mesh hash). Reading never executes code: safetensors parses a JSON header and raw bytes.
+
+Every problem with a file raises `ModelFileError` with one line naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import ModelFileError
+
+__all__ = ["FORMAT_VERSION", "METADATA_KEY", "ModelFile", "read_model_file", "read_header", "write_model_file", "arrays_digest"]
+
+FORMAT_VERSION = 1
+METADATA_KEY = "neuralrt"
+
+
+@dataclass
+class ModelFile:
+    """What a `.nrt` file holds: its JSON header and its named CPU tensors."""
+
+    header: dict
+    arrays: dict[str, Tensor]
+
+    @property
+    def method(self) -> str:
+        return str(self.header["method"])
+
+
+def arrays_digest(arrays: dict[str, Tensor]) -> str:
+    """SHA-256 over (name, dtype, shape, bytes) of every array, in name order."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        t = arrays[name].detach().cpu().contiguous()
+        h.update(f"{name}|{str(t.dtype)}|{tuple(t.shape)}|".encode())
+        # View as bytes: works for every dtype, bf16 included (numpy has no bf16).
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays: dict[str, Tensor]) -> Path:
+    """Write ``arrays`` and ``header`` (plus format version, method, digest) atomically to ``path``.
+
+    The file is written to a temporary sibling, flushed to disk, then renamed over ``path``: a
+    crash leaves either the old file or the new one, never a half-written model.
+    """
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    arrays = {k: v.detach().cpu().contiguous() for k, v in arrays.items()}
+    full_header = {**header, "format_version": FORMAT_VERSION, "method": method, "arrays_sha256": arrays_digest(arrays)}
+    metadata = {METADATA_KEY: json.dumps(full_header, sort_keys=True)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        save_file(arrays, tmp, metadata=metadata)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _open(path: Path):
+    from safetensors import safe_open
+
+    if not path.exists():
+        raise ModelFileError(f"{path}: model file not found")
+    if not path.is_file():
+        raise ModelFileError(f"{path}: not a file")
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        prefix = f.read(8)
+    if len(prefix) < 8:
+        raise ModelFileError(f"{path}: truncated model file ({size} bytes, too short for a header)")
+    header_len = int(np.frombuffer(prefix, dtype="<u8")[0])
+    if header_len > size - 8:
+        if header_len > 100_000_000:
+            raise ModelFileError(f"{path}: not a neuralrt model file (no safetensors header)")
+        raise ModelFileError(f"{path}: truncated model file (header says {header_len} bytes, file has {size - 8})")
+    try:
+        return safe_open(str(path), framework="pt", device="cpu")
+    except Exception as exc:  # safetensors raises its own error types; report them as one line
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if "incomplete" in msg.lower() or "buffer" in msg.lower():
+            raise ModelFileError(f"{path}: truncated model file ({msg})") from None
+        raise ModelFileError(f"{path}: corrupted or not a neuralrt model file ({msg})") from None
+
+
+def _parse_header(path: Path, handle) -> dict:
+    meta = handle.metadata() or {}
+    if METADATA_KEY not in meta:
+        raise ModelFileError(f"{path}: not a neuralrt model file (safetensors without a '{METADATA_KEY}' header)")
+    try:
+        header = json.loads(meta[METADATA_KEY])
+    except json.JSONDecodeError as exc:
+        raise ModelFileError(f"{path}: corrupted header (invalid JSON: {exc.msg} at char {exc.pos})") from None
+    if not isinstance(header, dict):
+        raise ModelFileError(f"{path}: corrupted header (not a JSON object)")
+    for key in ("format_version", "method", "arrays_sha256"):
+        if key not in header:
+            raise ModelFileError(f"{path}: corrupted header (missing '{key}')")
+    version = header["format_version"]
+    if not isinstance(version, int) or version < 1:
+        raise ModelFileError(f"{path}: corrupted header (format_version {version!r})")
+    if version > FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path}: written by a newer neuralrt (format version {version}; this version reads up to "
+            f"{FORMAT_VERSION}): upgrade neuralrt"
+        )
+    return header
+
+
+def _check_method(path: Path, header: dict, method: str | None) -> None:
+    if method is not None and header["method"] != method:
+        raise ModelFileError(f"{path}: this is a '{header['method']}' model, expected '{method}'")
+
+
+def read_header(path: str | os.PathLike, method: str | None = None) -> dict:
+    """The JSON header only (cheap: arrays are not read or verified)."""
+    path = Path(path)
+    header = _parse_header(path, _open(path))
+    _check_method(path, header, method)
+    return header
+
+
+def read_model_file(path: str | os.PathLike, method: str | None = None) -> ModelFile:
+    """Read and verify a model file; with ``method``, reject files of another method."""
+    path = Path(path)
+    handle = _open(path)
+    header = _parse_header(path, handle)
+    _check_method(path, header, method)
+    try:
+        arrays = {k: handle.get_tensor(k) for k in handle.keys()}
+    except Exception as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ModelFileError(f"{path}: corrupted array data ({msg})") from None
+    if arrays_digest(arrays) != header["arrays_sha256"]:
+        raise ModelFileError(f"{path}: corrupted array data (checksum mismatch)")
+    return ModelFile(header, arrays)

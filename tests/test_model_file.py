@@ -1,0 +1,102 @@
+"""The .nrt container: round trip, atomic writes, and one-line errors for bad files."""
+
+import json
+import struct
+
+import pytest
+import torch
+
+from neuralrt.errors import ModelFileError
+from neuralrt.io.model_file import FORMAT_VERSION, read_header, read_model_file, write_model_file
+
+
+def _arrays():
+    g = torch.Generator().manual_seed(1)
+    return {
+        "mlp.weight": torch.randn(16, 8, generator=g).half(),
+        "table": torch.rand(2, 32, 3, generator=g),
+        "bits": torch.randint(0, 255, (64,), dtype=torch.uint8, generator=g),
+    }
+
+
+@pytest.fixture
+def model_path(tmp_path):
+    path = tmp_path / "m.nrt"
+    write_model_file(path, "lsnif", {"config": {"a": 1}, "bounds": [[0, 0, 0], [1, 2, 3]]}, _arrays())
+    return path
+
+
+def test_round_trip_bit_exact(model_path):
+    f = read_model_file(model_path, method="lsnif")
+    ref = _arrays()
+    assert set(f.arrays) == set(ref)
+    for k, v in ref.items():
+        assert f.arrays[k].dtype == v.dtype and torch.equal(f.arrays[k], v)
+    assert f.header["config"] == {"a": 1}
+    assert f.header["format_version"] == FORMAT_VERSION and f.method == "lsnif"
+    assert read_header(model_path)["bounds"] == [[0, 0, 0], [1, 2, 3]]
+
+
+def test_atomic_write_leaves_no_temporaries(model_path):
+    write_model_file(model_path, "lsnif", {}, _arrays())  # overwrite in place
+    assert [p.name for p in model_path.parent.iterdir()] == ["m.nrt"]
+
+
+def _error(path, method=None) -> str:
+    with pytest.raises(ModelFileError) as info:
+        read_model_file(path, method=method)
+    msg = str(info.value)
+    assert "\n" not in msg and str(path) in msg
+    return msg
+
+
+def test_missing_file(tmp_path):
+    assert "not found" in _error(tmp_path / "nope.nrt")
+
+
+@pytest.mark.parametrize("keep", [0, 5, 40, 0.5, -10])
+def test_truncated_file(model_path, keep):
+    data = model_path.read_bytes()
+    n = keep if isinstance(keep, int) and keep >= 0 else (int(len(data) * keep) if keep > 0 else len(data) + keep)
+    model_path.write_bytes(data[:n])
+    assert "truncated" in _error(model_path)
+
+
+def test_corrupted_array_data(model_path):
+    data = bytearray(model_path.read_bytes())
+    data[-3] ^= 0xFF  # a flipped byte inside the last array
+    model_path.write_bytes(bytes(data))
+    assert "corrupted" in _error(model_path)
+
+
+def test_corrupted_header(model_path):
+    data = bytearray(model_path.read_bytes())
+    n = struct.unpack("<Q", data[:8])[0]
+    header = data[8 : 8 + n].replace(b"format_version", b"format_versioX")
+    model_path.write_bytes(bytes(data[:8] + header + data[8 + n :]))
+    assert "corrupted" in _error(model_path)
+
+
+def test_not_a_model_file(tmp_path):
+    path = tmp_path / "junk.nrt"
+    path.write_bytes(b"this is certainly not a model file at all" * 10)
+    assert "not a neuralrt model file" in _error(path)
+
+
+def test_newer_version_rejected(model_path):
+    data = model_path.read_bytes()
+    n = struct.unpack("<Q", data[:8])[0]
+    header = json.loads(data[8 : 8 + n])
+    inner = json.loads(header["__metadata__"]["neuralrt"])
+    inner["format_version"] = FORMAT_VERSION + 1
+    header["__metadata__"]["neuralrt"] = json.dumps(inner)
+    raw = json.dumps(header).encode()
+    raw += b" " * ((8 - len(raw) % 8) % 8)
+    model_path.write_bytes(struct.pack("<Q", len(raw)) + raw + data[8 + n :])
+    msg = _error(model_path)
+    assert "newer" in msg and str(FORMAT_VERSION + 1) in msg
+
+
+def test_wrong_method_rejected(model_path):
+    msg = _error(model_path, method="nbvh")
+    assert "'lsnif' model" in msg and "'nbvh'" in msg
