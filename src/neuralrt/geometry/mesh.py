@@ -13,14 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MeshError
+from ..io.images import srgb_to_linear
 
-__all__ = ["Mesh", "MeshMaterial", "load_mesh", "srgb_to_linear"]
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """sRGB-encoded values in [0, 1] to linear."""
-    c = np.asarray(c, dtype=np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+__all__ = ["Mesh", "MeshMaterial", "load_mesh"]
 
 
 @dataclass

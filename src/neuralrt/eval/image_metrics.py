@@ -1,0 +1,81 @@
+"""Image comparison: FLIP (NVIDIA's `flip-evaluator`), PSNR and relMSE, plus a FLIP heat map.
+
+Conventions (the same for every figure neuralrt reports):
+- FLIP is computed in LDR mode on the images as the PNGs show them: linear values clamped to
+  [0, 1] and sRGB-encoded. ``hdr=True`` uses HDR-FLIP on the linear values instead.
+- PSNR is over the same clamped sRGB values (peak 1).
+- relMSE is mean((test - ref)^2 / (ref^2 + 0.01)) over linear values and channels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ImageError
+from ..io.images import linear_to_srgb, read_image, tone_map
+
+__all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr"]
+
+_RELMSE_EPSILON = 1e-2
+
+
+@dataclass
+class ImageComparison:
+    flip: float
+    psnr: float
+    relmse: float
+    flip_map: np.ndarray  # [H, W, 3] magma-coloured FLIP error, sRGB-encoded in [0, 1]
+
+    def as_dict(self) -> dict:
+        return {"flip": self.flip, "psnr": self.psnr, "relmse": self.relmse}
+
+
+def _finite(image: np.ndarray) -> np.ndarray:
+    return np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=1e4, neginf=0.0)
+
+
+def psnr(reference: np.ndarray, test: np.ndarray) -> float:
+    """PSNR in dB over clamped sRGB-encoded values; inf for identical images."""
+    ref = linear_to_srgb(tone_map(reference))
+    tst = linear_to_srgb(tone_map(test))
+    mse = float(np.mean((ref.astype(np.float64) - tst) ** 2))
+    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
+
+
+def relmse(reference: np.ndarray, test: np.ndarray) -> float:
+    ref, tst = _finite(reference).astype(np.float64), _finite(test).astype(np.float64)
+    return float(np.mean((tst - ref) ** 2 / (ref**2 + _RELMSE_EPSILON)))
+
+
+def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False) -> ImageComparison:
+    """Compare two linear RGB images of the same shape."""
+    import flip_evaluator
+
+    reference, test = _finite(reference), _finite(test)
+    if reference.shape != test.shape:
+        raise ImageError(f"images differ in size: reference {reference.shape[:2]} vs test {test.shape[:2]}")
+    if hdr:
+        flip_map, mean_flip, _ = flip_evaluator.evaluate(np.maximum(reference, 0), np.maximum(test, 0), "HDR")
+    else:
+        ref_srgb = linear_to_srgb(tone_map(reference))
+        test_srgb = linear_to_srgb(tone_map(test))
+        flip_map, mean_flip, _ = flip_evaluator.evaluate(ref_srgb, test_srgb, "LDR")
+    return ImageComparison(float(mean_flip), psnr(reference, test), relmse(reference, test), np.asarray(flip_map, np.float32))
+
+
+def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> ImageComparison:
+    """Compare two image files (EXR, PNG, JPG, HDR); optionally write the FLIP heat map as PNG."""
+    result = compare_images(read_image(reference), read_image(test), hdr=hdr)
+    if heatmap is not None:
+        write_srgb_png(heatmap, result.flip_map)
+    return result
+
+
+def write_srgb_png(path: str | Path, srgb: np.ndarray) -> None:
+    """Write an already sRGB-encoded [0, 1] image (e.g. a colour-mapped heat map) as PNG."""
+    from ..io.images import srgb_to_linear, write_png
+
+    write_png(path, srgb_to_linear(np.clip(srgb, 0, 1)))
