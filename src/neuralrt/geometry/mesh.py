@@ -183,7 +183,7 @@ def load_mesh(path: str | Path) -> Mesh:
     if not path.is_file():
         raise MeshError(f"{path}: mesh file not found")
     try:
-        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+        loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if isinstance(loaded, trimesh.Scene):
