@@ -1,0 +1,155 @@
+"""BSDFs: densities integrate to the sampler's success rate, sampled pdfs match `pdf`, chi-square
+agreement of samples with the density, reciprocity and energy conservation."""
+
+import math
+
+import pytest
+import torch
+from scipy.stats import chi2
+
+from neuralrt.render.materials import MaterialKind, MaterialTable, fresnel_dielectric
+from neuralrt.render.sampling import DiscreteDistribution, cosine_hemisphere, uniform_triangle
+
+CASES = [
+    ("diffuse", MaterialKind.DIFFUSE, 0.1),
+    ("conductor-rough", MaterialKind.CONDUCTOR, 0.5),
+    ("conductor-glossy", MaterialKind.CONDUCTOR, 0.15),
+    ("plastic-rough", MaterialKind.PLASTIC, 0.4),
+    ("plastic-glossy", MaterialKind.PLASTIC, 0.15),
+]
+WO_ANGLES = [10.0, 60.0]
+
+
+def _table(kind, roughness, albedo=(0.7, 0.5, 0.3)):
+    return MaterialTable.single(kind, albedo=albedo, roughness=roughness)
+
+
+def _setup(n, wo_deg, albedo=(0.7, 0.5, 0.3)):
+    th = math.radians(wo_deg)
+    wo = torch.tensor([[math.sin(th), 0.0, math.cos(th)]]).expand(n, 3).contiguous()
+    normal = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3).contiguous()
+    return wo, normal, torch.zeros(n, dtype=torch.int64), torch.tensor([albedo]).expand(n, 3).contiguous()
+
+
+def _sphere_grid(n_cos=800, n_phi=1600):
+    """Midpoint quadrature over the sphere in (cos theta, phi): directions and the cell solid angle."""
+    c = -1 + (torch.arange(n_cos) + 0.5) * (2 / n_cos)
+    p = (torch.arange(n_phi) + 0.5) * (2 * math.pi / n_phi)
+    cc, pp = torch.meshgrid(c, p, indexing="ij")
+    s = torch.sqrt(1 - cc**2)
+    dirs = torch.stack([s * torch.cos(pp), s * torch.sin(pp), cc], -1).reshape(-1, 3)
+    return dirs, (2 / n_cos) * (2 * math.pi / n_phi)
+
+
+def _sample(table, wo, normal, mid, albedo, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    n = wo.shape[0]
+    return table.sample(mid, albedo, normal, wo, torch.rand(n, generator=g), torch.rand(n, 2, generator=g))
+
+
+@pytest.mark.parametrize("name,kind,roughness", CASES)
+@pytest.mark.parametrize("wo_deg", WO_ANGLES)
+def test_pdf_integrates_to_sampling_success_rate(name, kind, roughness, wo_deg):
+    """The density over the sphere sums to the fraction of samples that land above the surface (1 for
+    diffuse; slightly less for GGX whose mirrored microfacet directions can point below)."""
+    table = _table(kind, roughness)
+    dirs, cell = _sphere_grid()
+    wo, normal, mid, albedo = _setup(dirs.shape[0], wo_deg)
+    integral = float(table.pdf(mid, albedo, normal, wo, dirs).sum()) * cell
+    s = _sample(table, *_setup(200_000, wo_deg))
+    success = float((s.pdf > 0).float().mean())
+    assert integral == pytest.approx(success, abs=0.01)
+    assert integral <= 1.0 + 0.005
+    if kind == MaterialKind.DIFFUSE:
+        assert integral == pytest.approx(1.0, abs=2e-3)
+
+
+@pytest.mark.parametrize("name,kind,roughness", CASES)
+def test_sample_pdf_and_weight_agree_with_eval(name, kind, roughness):
+    table = _table(kind, roughness)
+    wo, normal, mid, albedo = _setup(20_000, 40.0)
+    s = _sample(table, wo, normal, mid, albedo)
+    ok = s.pdf > 0
+    f, pdf = table.eval_pdf(mid[ok], albedo[ok], normal[ok], wo[ok], s.wi[ok])
+    torch.testing.assert_close(pdf, s.pdf[ok], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(f / pdf[:, None], s.weight[ok], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(table.pdf(mid, albedo, normal, wo, s.wi)[ok], s.pdf[ok], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("name,kind,roughness", CASES)
+def test_chi_square_samples_follow_pdf(name, kind, roughness):
+    """Histogram of 200k samples over (cos theta, phi) cells vs the integrated density (Mitsuba-style)."""
+    table = _table(kind, roughness)
+    n = 200_000
+    s = _sample(table, *_setup(n, 35.0), seed=1)
+    wi = s.wi[s.pdf > 0]
+    n_cos, n_phi, sub = 10, 20, 24
+    ci = ((wi[:, 2].clamp(0, 1 - 1e-7)) * n_cos).long()
+    pi = (torch.remainder(torch.atan2(wi[:, 1], wi[:, 0]), 2 * math.pi) / (2 * math.pi) * n_phi).long().clamp(max=n_phi - 1)
+    observed = torch.bincount(ci * n_phi + pi, minlength=n_cos * n_phi).double()
+    # Expected counts: integrate the pdf over each cell with a sub x sub midpoint rule.
+    c = (torch.arange(n_cos * sub) + 0.5) / (n_cos * sub)
+    p = (torch.arange(n_phi * sub) + 0.5) / (n_phi * sub) * 2 * math.pi
+    cc, pp = torch.meshgrid(c, p, indexing="ij")
+    sn = torch.sqrt(1 - cc**2)
+    dirs = torch.stack([sn * torch.cos(pp), sn * torch.sin(pp), cc], -1).reshape(-1, 3)
+    wo, normal, mid, albedo = _setup(dirs.shape[0], 35.0)
+    dens = table.pdf(mid, albedo, normal, wo, dirs).double().reshape(n_cos, sub, n_phi, sub)
+    expected = dens.sum((1, 3)).reshape(-1) * (1 / (n_cos * sub)) * (2 * math.pi / (n_phi * sub)) * n
+    keep = expected >= 5  # pool the sparse cells (standard chi-square practice)
+    obs = torch.cat([observed[keep], observed[~keep].sum().reshape(1)])
+    exp = torch.cat([expected[keep], expected[~keep].sum().reshape(1)])
+    stat = float(((obs - exp) ** 2 / exp.clamp(min=1e-9)).sum())
+    dof = int(keep.sum())
+    p_value = chi2.sf(stat, dof)
+    assert p_value > 1e-3, f"chi2={stat:.1f} dof={dof} p={p_value:.2e}"
+
+
+@pytest.mark.parametrize("name,kind,roughness", CASES)
+def test_reciprocity(name, kind, roughness):
+    table = _table(kind, roughness)
+    g = torch.Generator().manual_seed(2)
+    n = 2000
+    a = cosine_hemisphere(torch.rand(n, 2, generator=g))
+    b = cosine_hemisphere(torch.rand(n, 2, generator=g))
+    _, normal, mid, albedo = _setup(n, 0.0)
+    f_ab = table.eval(mid, albedo, normal, a, b) / b[:, 2:3]
+    f_ba = table.eval(mid, albedo, normal, b, a) / a[:, 2:3]
+    torch.testing.assert_close(f_ab, f_ba, rtol=2e-3, atol=1e-5)
+
+
+@pytest.mark.parametrize("name,kind,roughness", CASES + [("conductor-smooth", MaterialKind.CONDUCTOR, 0.02)])
+@pytest.mark.parametrize("wo_deg", [0.0, 45.0, 80.0])
+def test_energy_at_most_one_for_white_albedo(name, kind, roughness, wo_deg):
+    """Directional albedo E[f cos / pdf] <= 1 with albedo 1 (within 4 standard errors); 1 for diffuse."""
+    table = _table(kind, roughness, albedo=(1.0, 1.0, 1.0))
+    s = _sample(table, *_setup(100_000, wo_deg, albedo=(1.0, 1.0, 1.0)), seed=3)
+    w = s.weight[:, 0].double()
+    mean, se = float(w.mean()), float(w.std() / math.sqrt(w.numel()))
+    assert mean <= 1.0 + 4 * se + 1e-4
+    if kind == MaterialKind.DIFFUSE:
+        assert mean == pytest.approx(1.0, abs=1e-5)
+    if kind == MaterialKind.CONDUCTOR and roughness <= 0.02 and wo_deg < 50:
+        assert mean > 0.97  # a near-mirror white metal loses almost nothing to masking
+
+
+def test_plastic_reflects_fresnel_at_normal_incidence_when_base_is_black():
+    """A smooth black plastic reflects F(0) = ((n-1)/(n+1))^2 = 0.04 for n = 1.5."""
+    table = MaterialTable.single(MaterialKind.PLASTIC, albedo=(0, 0, 0), roughness=0.01, ior=1.5)
+    s = _sample(table, *_setup(50_000, 0.0, albedo=(0.0, 0.0, 0.0)), seed=4)
+    assert float(s.weight[:, 0].mean()) == pytest.approx(0.04, rel=0.03)
+    assert float(fresnel_dielectric(torch.tensor([1.0]), torch.tensor([1.5]))) == pytest.approx(0.04, abs=1e-6)
+
+
+def test_discrete_distribution_and_triangle_sampling():
+    g = torch.Generator().manual_seed(5)
+    dist = DiscreteDistribution(torch.tensor([1.0, 0.0, 3.0]))
+    idx = dist.sample(torch.rand(100_000, generator=g))
+    counts = torch.bincount(idx, minlength=3).double() / idx.numel()
+    assert counts[1] == 0
+    assert float(counts[2]) == pytest.approx(0.75, abs=0.01)
+    bary = uniform_triangle(torch.rand(100_000, 2, generator=g))
+    assert (bary >= 0).all() and torch.allclose(bary.sum(-1), torch.ones(100_000))
+    assert torch.allclose(bary.mean(0), torch.full((3,), 1 / 3), atol=5e-3)  # centroid of uniform area samples
+    with pytest.raises(ValueError):
+        DiscreteDistribution(torch.zeros(3))
