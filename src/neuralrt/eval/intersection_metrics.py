@@ -1,0 +1,175 @@
+"""How well a (neural) BLAS answers rays, against exact Embree hits on the source mesh.
+
+`evaluate_model` draws held-out rays from the training distribution (a seed the training never
+uses) and reports, separately for rays from outside and rays from the surface: hit/miss accuracy,
+false positive and negative rates, |t error| relative to the box diagonal, normal angle error and
+material accuracy; then it renders primary normal and depth images of the object from orbit
+cameras, neural vs exact, and compares them with FLIP. The keys are the `neuralrt eval --json`
+interface that scripts rely on.
+
+Conventions: the exact shading normal is turned to face the ray (the model is trained that way);
+the predicted normal is compared as returned, and ``normal_backfacing_fraction`` counts predicted
+normals that point away from the ray. t errors are distances (``|dt| * |d|``) over the diagonal of
+the object's AABB.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..accel.mesh_blas import MeshBLAS
+from ..geometry.mesh import Mesh
+from ..rays import AABB, Hits, Rays
+from ..training.samplers import LSNIFRaySampler
+
+__all__ = ["evaluate_model", "ray_metrics", "orbit_cameras", "render_normal_depth", "HELD_OUT_SEED"]
+
+# Training seeds are small integers; held-out rays use a seed far from them.
+HELD_OUT_SEED = 1_000_003
+
+
+def _quantiles(x: Tensor) -> tuple[float, float]:
+    if x.numel() == 0:
+        return float("nan"), float("nan")
+    q = torch.quantile(x.double()[: 1 << 24], torch.tensor([0.5, 0.9], dtype=torch.float64))
+    return float(q[0]), float(q[1])
+
+
+def _faced(n: Tensor, d: Tensor) -> Tensor:
+    return torch.where(((n * d).sum(-1) > 0)[:, None], -n, n)
+
+
+def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
+    """Hit/miss, distance, normal and material errors of ``pred`` against ``truth`` for ``rays``."""
+    ph, th = pred.hit.cpu(), truth.hit.cpu()
+    n = len(th)
+    pos, neg = int(th.sum()), int((~th).sum())
+    both = ph & th
+    d = rays.directions.cpu()
+    dist_err = ((pred.t.cpu() - truth.t.cpu()).abs() * d.norm(dim=-1))[both] / diagonal
+    n_pred = torch.nn.functional.normalize(pred.normal.cpu()[both], dim=-1)
+    n_true = _faced(torch.nn.functional.normalize(truth.normal.cpu()[both], dim=-1), d[both])
+    cos = (n_pred * n_true).sum(-1).clamp(-1, 1)
+    angle = torch.rad2deg(torch.acos(cos))
+    t_med, t_p90 = _quantiles(dist_err)
+    a_med, a_p90 = _quantiles(angle)
+    mat_ok = (pred.material_id.cpu() == truth.material_id.cpu())[both]
+    return {
+        "rays": n,
+        "true_hit_fraction": pos / n if n else float("nan"),
+        "accuracy": float((ph == th).float().mean()) if n else float("nan"),
+        "false_positive_rate": float((ph & ~th).sum()) / neg if neg else 0.0,
+        "false_negative_rate": float((~ph & th).sum()) / pos if pos else 0.0,
+        "t_error_median": t_med,
+        "t_error_p90": t_p90,
+        "normal_error_deg_median": a_med,
+        "normal_error_deg_p90": a_p90,
+        "normal_backfacing_fraction": float(((n_pred * d[both]).sum(-1) > 0).float().mean()) if both.any() else 0.0,
+        "material_accuracy": float(mat_ok.float().mean()) if both.any() else float("nan"),
+        "albedo_error_mean": float((pred.albedo.cpu() - truth.albedo.cpu())[both].abs().mean()) if both.any() else float("nan"),
+    }
+
+
+def orbit_cameras(bounds: AABB, count: int = 4, resolution: int = 256, elevation_deg: float = 25.0, fov_y_degrees: float = 40.0):
+    """``count`` cameras on a circle around the object (y up), framing its bounding sphere."""
+    from ..render.camera import Camera
+
+    center = bounds.center.double()
+    radius = 0.5 * bounds.diagonal
+    dist = radius / math.sin(math.radians(fov_y_degrees) * 0.5) * 1.05
+    el = math.radians(elevation_deg)
+    cams = []
+    for k in range(count):
+        az = 2 * math.pi * (k + 0.125) / count
+        offset = torch.tensor([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)], dtype=torch.float64)
+        cams.append(Camera.look_at((center + dist * offset).tolist(), center.tolist(), (0.0, 1.0, 0.0), fov_y_degrees, (resolution, resolution)))
+    return cams
+
+
+def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, Hits]:
+    """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
+    idx = torch.arange(camera.num_pixels)
+    rays = camera.generate_rays(idx, torch.full((len(idx), 2), 0.5))
+    hits = blas.intersect(rays)
+    h, w = camera.height, camera.width
+    n = _faced(torch.nn.functional.normalize(hits.normal, dim=-1), rays.directions) if len(hits) else hits.normal
+    normal_img = torch.where(hits.hit[:, None], 0.5 + 0.5 * n, torch.zeros_like(n)).reshape(h, w, 3)
+    near, far = depth_range
+    depth = (1.0 - (hits.t - near) / max(far - near, 1e-12)).clamp(0, 1)
+    depth_img = torch.where(hits.hit, 0.1 + 0.9 * depth, torch.zeros_like(depth)).reshape(h, w, 1).expand(h, w, 3)
+    return normal_img.numpy().astype(np.float32), depth_img.numpy().astype(np.float32), hits
+
+
+def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None) -> dict:
+    from ..eval.image_metrics import compare_images
+    from ..io.images import srgb_to_linear, write_png
+
+    cams = orbit_cameras(bounds, cameras, resolution)
+    # Depth range from the exact hits (one range for all views, so images are comparable).
+    ranges = []
+    for cam in cams:
+        rays = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
+        h = exact.intersect(rays)
+        if h.hit.any():
+            ranges.append((float(h.t[h.hit].min()), float(h.t[h.hit].max())))
+    near = min((r[0] for r in ranges), default=0.0)
+    far = max((r[1] for r in ranges), default=1.0)
+    flips = {"normal": [], "depth": []}
+    for k, cam in enumerate(cams):
+        ref_n, ref_d, _ = render_normal_depth(exact, cam, (near, far))
+        test_n, test_d, _ = render_normal_depth(blas, cam, (near, far))
+        for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
+            # The arrays are display values: pass them as linear values whose sRGB encoding they are.
+            flips[name].append(compare_images(srgb_to_linear(ref), srgb_to_linear(test)).flip)
+            if out_dir is not None:
+                out_dir.mkdir(parents=True, exist_ok=True)
+                write_png(out_dir / f"{name}_{k}_exact.png", srgb_to_linear(ref))
+                write_png(out_dir / f"{name}_{k}_neural.png", srgb_to_linear(test))
+    return {
+        "cameras": len(cams),
+        "resolution": resolution,
+        "normal_flip": float(np.mean(flips["normal"])),
+        "depth_flip": float(np.mean(flips["depth"])),
+        "normal_flip_per_view": flips["normal"],
+        "depth_flip_per_view": flips["depth"],
+    }
+
+
+def evaluate_model(
+    model_blas,
+    mesh: Mesh,
+    rays: int = 1 << 17,
+    seed: int = HELD_OUT_SEED,
+    *,
+    images: bool = True,
+    cameras: int = 4,
+    resolution: int = 256,
+    image_dir: str | Path | None = None,
+) -> dict:
+    """Held-out metrics of ``model_blas`` on ``mesh`` (see module docstring); a JSON-able dict.
+
+    Keys: ``outside`` and ``surface`` (each from `ray_metrics`), ``images`` (``normal_flip``,
+    ``depth_flip``), and, for models with voxel features, ``features`` (how often H truncates).
+    """
+    exact = MeshBLAS(mesh)
+    box = getattr(model_blas, "box", None) or exact.bounds.inflated(0.005)
+    sampler = LSNIFRaySampler(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)))
+    batch = sampler.sample(rays)
+    pred = model_blas.intersect(batch.rays)
+    diag = exact.bounds.diagonal
+    result: dict = {"rays": rays, "seed": seed}
+    for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface)):
+        result[name] = ray_metrics(pred[sel], batch.truth[sel], batch.rays[sel], diag)
+    if hasattr(model_blas, "feature_statistics"):
+        result["features"] = {
+            name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel])
+            for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))
+        }
+    if images:
+        result["images"] = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, Path(image_dir) if image_dir else None)
+    return result

@@ -1,0 +1,45 @@
+"""Intersection metrics: exact against itself is perfect; known perturbations give known errors."""
+
+import math
+
+import pytest
+import torch
+
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.eval.intersection_metrics import evaluate_model, ray_metrics
+from neuralrt.geometry.procedural import sphere
+from neuralrt.rays import Hits, Rays
+
+
+def test_exact_against_itself_is_perfect():
+    mesh = sphere(subdivisions=2)
+    r = evaluate_model(MeshBLAS(mesh), mesh, rays=4096, cameras=2, resolution=32)
+    for group in ("outside", "surface"):
+        g = r[group]
+        assert g["accuracy"] == 1.0 and g["false_positive_rate"] == 0.0 and g["false_negative_rate"] == 0.0
+    o = r["outside"]
+    assert o["t_error_median"] == 0.0 and o["t_error_p90"] == 0.0 and o["normal_error_deg_p90"] < 1e-2
+    assert o["material_accuracy"] == 1.0 and 0.1 < o["true_hit_fraction"] < 0.9
+    assert r["images"]["normal_flip"] == 0.0 and r["images"]["depth_flip"] == 0.0
+
+
+def test_known_errors():
+    n = 4
+    rays = Rays(torch.zeros(n, 3), torch.tensor([[0.0, 0, 2.0]] * n))  # |d| = 2
+    truth = Hits.empty(n)
+    truth.hit[:] = torch.tensor([True, True, True, False])
+    truth.t[:3] = 1.0
+    truth.normal[:3] = torch.tensor([0.0, 0, 1.0])  # faces away from the ray: gets flipped to -z
+    truth.material_id[:3] = 0
+    pred = Hits.empty(n)
+    pred.hit[:] = torch.tensor([True, True, False, True])
+    pred.t[:2] = torch.tensor([1.1, 1.0])
+    pred.t[3] = 5.0
+    pred.normal[:2] = torch.tensor([[0.0, 0, -1.0], [0.0, math.sin(0.1), -math.cos(0.1)]])
+    pred.material_id[:2] = torch.tensor([0, 1])
+    m = ray_metrics(pred, truth, rays, diagonal=0.4)
+    assert m["accuracy"] == 0.5 and m["false_negative_rate"] == pytest.approx(1 / 3) and m["false_positive_rate"] == 1.0
+    # |dt| * |d| / diagonal = 0.1 * 2 / 0.4 for ray 0, 0 for ray 1: median of [0, 0.5] (linear) = 0.25.
+    assert m["t_error_median"] == pytest.approx(0.25, rel=1e-5)
+    assert m["normal_error_deg_median"] == pytest.approx(math.degrees(0.1) / 2, rel=1e-3)
+    assert m["material_accuracy"] == 0.5 and m["normal_backfacing_fraction"] == 0.0
