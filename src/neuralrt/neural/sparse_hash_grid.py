@@ -1,0 +1,354 @@
+"""Sparse multi-resolution hash grid encoding (LSNIF, Sec. 3.2).
+
+LSNIF only ever queries points on voxel faces (the boundary points of `lsnif_features`), so only
+grid vertices on voxel faces need features. A point on a face perpendicular to axis ``a`` is
+interpolated *bilinearly* from the 4 vertices of its 2D cell on that face plane (4 table reads
+instead of the 8 of a dense trilinear grid). Each level has its own hash table of ``2**17``
+entries, indexed by the instant-ngp spatial hash of the integer vertex coordinates
+``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T`` (Müller et al. 2022). A vertex shared by
+faces of different orientations (edges, corners) is the same entry, so features are continuous
+across voxel edges.
+
+Point codes follow `neuralrt.methods.lsnif_features`: ``face_axis`` 0/1/2 = on a face plane
+perpendicular to x/y/z (bilinear), 3 = a ray origin inside a voxel (trilinear from the 8
+vertices of its cell; the only reads of interior vertices), -1 = padding (zero features).
+
+Level resolutions must be multiples of the voxel resolution, so that every voxel face plane is
+a grid plane of every level (`check_resolutions`).
+
+On CPU tensors, forward and backward are fused numba kernels (parallel over rays; the backward
+scatters into one gradient table per thread, then sums them, so there are no atomics). On other
+devices the vectorized pure-torch `sparse_hash_grid_reference` runs, which is also the
+reference the tests compare the kernels against.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "SparseHashGrid",
+    "sparse_hash_grid_reference",
+    "count_stored_entries",
+    "check_resolutions",
+    "HASH_PRIMES",
+]
+
+HASH_PRIMES = (1, 2654435761, 805459861)  # instant-ngp's spatial hash
+_P0, _P1, _P2 = HASH_PRIMES
+_ORIGIN_POINT = 3
+
+
+def check_resolutions(resolutions: Sequence[int], voxel_resolution: int) -> None:
+    """Raise ValueError unless every level resolution is a positive multiple of the voxel one."""
+    bad = [r for r in resolutions if r < 1 or r % voxel_resolution]
+    if bad or voxel_resolution < 1:
+        raise ValueError(
+            f"hash grid resolutions {tuple(resolutions)} must be positive multiples of the voxel "
+            f"resolution {voxel_resolution} (voxel faces must lie on grid planes)"
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# numba kernels (CPU)
+
+
+@numba.njit(cache=True, inline="always")
+def _axis_terms(p, res, fixed, prime):
+    """Hashed coordinate terms (vertex i, vertex i + 1) and the weight of i + 1 along one axis.
+
+    The hash is ``x*P0 ^ y*P1 ^ z*P2``, so each axis contributes its own term. On the fixed
+    (face-normal) axis the point lies on a grid plane: round onto it, both terms equal, weight 0.
+    """
+    f = np.float64(p) * res
+    if fixed:
+        i = min(max(int(np.rint(f)), 0), res)
+        h = np.int64(i) * prime
+        return h, h, 0.0
+    i = min(max(int(np.floor(f)), 0), res - 1)
+    return np.int64(i) * prime, np.int64(i + 1) * prime, f - i
+
+
+@numba.njit(cache=True, inline="always")
+def _point_level(px, py, pz, code, res, mask, base, slots, weights):
+    """Fill ``slots``/``weights`` with the table rows (offset by ``base``) a point reads; returns
+    how many: 4 (bilinear on the face cell) for face points, 8 (trilinear) for origin points."""
+    x0, x1, wx = _axis_terms(px, res, code == 0, _P0)
+    y0, y1, wy = _axis_terms(py, res, code == 1, _P1)
+    z0, z1, wz = _axis_terms(pz, res, code == 2, _P2)
+    if code == _ORIGIN_POINT:
+        k = 0
+        for bz in range(2):
+            hz, fz = (z1, wz) if bz else (z0, 1.0 - wz)
+            for by in range(2):
+                hy, fy = (y1, wy) if by else (y0, 1.0 - wy)
+                for bx in range(2):
+                    hx, fx = (x1, wx) if bx else (x0, 1.0 - wx)
+                    slots[k] = base + ((hx ^ hy ^ hz) & mask)
+                    weights[k] = fx * fy * fz
+                    k += 1
+        return 8
+    # Face point: (a, u0, u1, wu, v0, v1, wv) = fixed axis term and the two in-plane axes.
+    if code == 0:
+        a, u0, u1, wu, v0, v1, wv = x0, y0, y1, wy, z0, z1, wz
+    elif code == 1:
+        a, u0, u1, wu, v0, v1, wv = y0, x0, x1, wx, z0, z1, wz
+    else:
+        a, u0, u1, wu, v0, v1, wv = z0, x0, x1, wx, y0, y1, wy
+    slots[0] = base + ((a ^ u0 ^ v0) & mask)
+    slots[1] = base + ((a ^ u1 ^ v0) & mask)
+    slots[2] = base + ((a ^ u0 ^ v1) & mask)
+    slots[3] = base + ((a ^ u1 ^ v1) & mask)
+    weights[0] = (1.0 - wu) * (1.0 - wv)
+    weights[1] = wu * (1.0 - wv)
+    weights[2] = (1.0 - wu) * wv
+    weights[3] = wu * wv
+    return 4
+
+
+@numba.njit(parallel=True, cache=True)
+def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
+    """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F]``."""
+    n_rays, n_points = axes.shape
+    n_levels = resolutions.shape[0]
+    n_feat = table.shape[1]
+    table_size = table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
+    stride = n_levels * n_feat
+    for chunk in numba.prange(n_chunks):
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8)
+        for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
+            for h in range(n_points):
+                code = axes[n, h]
+                col = h * stride
+                if code < 0 or code > _ORIGIN_POINT:
+                    for j in range(stride):
+                        out[n, col + j] = 0.0
+                    continue
+                for lvl in range(n_levels):
+                    k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code,
+                                     resolutions[lvl], mask, lvl * table_size, slots, weights)  # fmt: skip
+                    for f in range(n_feat):
+                        acc = 0.0
+                        for c in range(k):
+                            acc += weights[c] * table[slots[c], f]
+                        out[n, col + lvl * n_feat + f] = acc
+
+
+@numba.njit(parallel=True, cache=True)
+def _backward_kernel(points, axes, grad_out, resolutions, grad_tables):
+    """Scatter ``grad_out`` into ``grad_tables[chunk]`` (``[L * T, F]`` each): one private table
+    per chunk (thread), so no atomics are needed."""
+    n_rays, n_points = axes.shape
+    n_chunks = grad_tables.shape[0]
+    n_levels = resolutions.shape[0]
+    n_feat = grad_tables.shape[2]
+    table_size = grad_tables.shape[1] // n_levels
+    mask = np.int64(table_size - 1)
+    stride = n_levels * n_feat
+    for chunk in numba.prange(n_chunks):
+        grad = grad_tables[chunk]
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8)
+        for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
+            for h in range(n_points):
+                code = axes[n, h]
+                if code < 0 or code > _ORIGIN_POINT:
+                    continue
+                for lvl in range(n_levels):
+                    k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code,
+                                     resolutions[lvl], mask, lvl * table_size, slots, weights)  # fmt: skip
+                    col = h * stride + lvl * n_feat
+                    for f in range(n_feat):
+                        g = grad_out[n, col + f]
+                        for c in range(k):
+                            grad[slots[c], f] += weights[c] * g
+
+
+def _numpy(t: Tensor, dtype) -> np.ndarray:
+    return t.detach().to(dtype).contiguous().numpy()
+
+
+class _SparseHashGridFunction(torch.autograd.Function):
+    """Fused numba forward/backward; differentiable in the table only (points are data)."""
+
+    @staticmethod
+    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray):
+        pts = _numpy(points, torch.float32)
+        axes = _numpy(face_axis, torch.int8)
+        n_rays, n_points = axes.shape
+        levels, _, n_feat = table.shape
+        out = np.empty((n_rays, n_points * levels * n_feat), np.float32)
+        if n_rays:
+            n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
+            flat = _numpy(table, torch.float32).reshape(-1, n_feat)
+            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out)
+        ctx.save_for_backward(points, face_axis)
+        ctx.resolutions = resolutions
+        ctx.table_shape = tuple(table.shape)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        grad_table = None
+        if ctx.needs_input_grad[2]:
+            points, face_axis = ctx.saved_tensors
+            n_threads = max(1, min(len(points), numba.get_num_threads()))
+            levels, size, n_feat = ctx.table_shape
+            tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
+            if len(points):
+                _backward_kernel(_numpy(points, torch.float32), _numpy(face_axis, torch.int8),
+                                 _numpy(grad_out, torch.float32), ctx.resolutions, tables)  # fmt: skip
+            grad = tables[0] if n_threads == 1 else tables.sum(0)
+            grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
+        return None, None, grad_table, None
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure torch (any device): the reference, and the CUDA path.
+
+_CORNERS = torch.tensor([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])  # [8, 3]
+
+
+def sparse_hash_grid_reference(
+    points: Tensor, face_axis: Tensor, table: Tensor, resolutions: Sequence[int]
+) -> Tensor:
+    """Vectorized torch version of `SparseHashGrid.forward` (autograd through indexing)."""
+    n_rays, n_points = face_axis.shape
+    levels, table_size, n_feat = table.shape
+    p = points.reshape(-1, 3).to(table.dtype)
+    code = face_axis.reshape(-1).long()
+    valid = (code >= 0) & (code <= _ORIGIN_POINT)
+    fixed = nn.functional.one_hot(code.clamp(0, 3), 4)[:, :3].bool() & valid[:, None]  # [M, 3]
+    corners = _CORNERS.to(p.device)
+    primes = torch.tensor(HASH_PRIMES, device=p.device)
+    per_level = []
+    for lvl, res in enumerate(resolutions):
+        f = p * res
+        cell = torch.floor(f).long().clamp(0, res - 1)
+        w = f - cell
+        cell = torch.where(fixed, torch.round(f).long().clamp(0, res), cell)
+        w = torch.where(fixed, torch.zeros_like(w), w)  # face points: no weight off the plane
+        vertex = cell[:, None, :] + corners[None]  # [M, 8, 3]
+        weight = torch.where(corners[None].bool(), w[:, None, :], 1 - w[:, None, :]).prod(-1)
+        slot = (vertex[..., 0] * primes[0]) ^ (vertex[..., 1] * primes[1]) ^ (vertex[..., 2] * primes[2])
+        slot = slot & (table_size - 1)
+        feats = table[lvl][slot]  # [M, 8, F]
+        per_level.append((weight[..., None] * feats).sum(1) * valid[:, None])
+    return torch.stack(per_level, 1).reshape(n_rays, n_points * levels * n_feat)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class SparseHashGrid(nn.Module):
+    """Multi-resolution hash grid over voxel faces; features of H points concatenated per ray.
+
+    Defaults are the paper's: levels 64^3 and 128^3, 3 features per entry, ``2**17`` entries per
+    level, features initialised ``U(-1e-4, 1e-4)``.
+    """
+
+    def __init__(
+        self,
+        resolutions: Sequence[int] = (64, 128),
+        features_per_level: int = 3,
+        log2_table_size: int = 17,
+        init_scale: float = 1e-4,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if not resolutions or min(resolutions) < 1:
+            raise ValueError(f"hash grid resolutions must be positive, got {tuple(resolutions)}")
+        if features_per_level < 1 or not 1 <= log2_table_size <= 30:
+            raise ValueError(
+                f"need features_per_level >= 1 and 1 <= log2_table_size <= 30, got "
+                f"{features_per_level} and {log2_table_size}"
+            )
+        self.resolutions = tuple(int(r) for r in resolutions)
+        self.features_per_level = int(features_per_level)
+        self.log2_table_size = int(log2_table_size)
+        generator = torch.Generator().manual_seed(seed)
+        shape = (len(self.resolutions), 2**self.log2_table_size, self.features_per_level)
+        init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
+        self.table = nn.Parameter(init)  # [L, T, F]
+        self._resolutions_np = np.asarray(self.resolutions, np.int64)
+
+    def output_dim(self, max_points: int) -> int:
+        return max_points * len(self.resolutions) * self.features_per_level
+
+    def forward(self, points: Tensor, face_axis: Tensor) -> Tensor:
+        """``points [N, H, 3]`` unit-box, ``face_axis [N, H]`` -> features ``[N, H * L * F]``.
+
+        Layout is point-major: point 0 level 0 features, point 0 level 1, ..., point 1 ...;
+        padding points give zeros.
+        """
+        if points.ndim != 3 or points.shape[-1] != 3 or face_axis.shape != points.shape[:2]:
+            raise ValueError(
+                f"expected points [N, H, 3] and face_axis [N, H], got {tuple(points.shape)} and "
+                f"{tuple(face_axis.shape)}"
+            )
+        if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
+            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np)
+        return sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
+
+    def extra_repr(self) -> str:
+        return (
+            f"resolutions={self.resolutions}, features_per_level={self.features_per_level}, "
+            f"log2_table_size={self.log2_table_size}"
+        )
+
+
+def count_stored_entries(
+    occupancy: Tensor | np.ndarray, resolutions: Sequence[int] = (64, 128), log2_table_size: int = 17
+) -> dict:
+    """How many grid vertices the sparse grid actually uses, per level, vs a dense grid.
+
+    ``face_vertices``: distinct vertices on faces of occupied voxels (what face points read);
+    ``interior_vertices``: vertices strictly inside occupied voxels (read only by trilinear ray
+    origins); ``dense_vertices``: ``(R + 1)^3``; ``*_slots_used``: distinct hash-table slots those
+    vertex sets occupy in a table of ``2**log2_table_size`` entries (the rest collide).
+    """
+    occ = occupancy.detach().cpu().numpy() if isinstance(occupancy, Tensor) else np.asarray(occupancy)
+    occ = occ.astype(bool)
+    if occ.ndim != 3 or len(set(occ.shape)) != 1:
+        raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
+    voxel_res = occ.shape[0]
+    check_resolutions(resolutions, voxel_res)
+    table_size = 2**log2_table_size
+    occupied = np.argwhere(occ)
+    levels = []
+    for res in resolutions:
+        s = res // voxel_res  # grid cells per voxel edge
+        on_face = np.zeros((res + 1,) * 3, bool)
+        inside = np.zeros((res + 1,) * 3, bool)
+        for i, j, k in occupied * s:
+            for axis in range(3):
+                for plane in (0, s):
+                    sl = [slice(i, i + s + 1), slice(j, j + s + 1), slice(k, k + s + 1)]
+                    sl[axis] = (i, j, k)[axis] + plane
+                    on_face[tuple(sl)] = True
+            inside[i + 1 : i + s, j + 1 : j + s, k + 1 : k + s] = True
+
+        def slots(mask: np.ndarray) -> int:
+            v = np.argwhere(mask).astype(np.int64)
+            h = (v[:, 0] * _P0 ^ v[:, 1] * _P1 ^ v[:, 2] * _P2) & (table_size - 1)
+            return int(np.unique(h).size)
+
+        levels.append(
+            {
+                "resolution": int(res),
+                "face_vertices": int(on_face.sum()),
+                "interior_vertices": int(inside.sum()),
+                "dense_vertices": (res + 1) ** 3,
+                "table_size": table_size,
+                "face_slots_used": slots(on_face),
+                "dense_slots_used": slots(np.ones_like(on_face)),
+            }
+        )
+    return {"voxel_resolution": voxel_res, "occupied_voxels": int(len(occupied)), "levels": levels}

@@ -1,0 +1,146 @@
+"""Sparse hash grid: exact interpolation on faces, numba kernels against the torch reference."""
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt.methods.lsnif_features import featurize_rays
+from neuralrt.neural.sparse_hash_grid import (
+    HASH_PRIMES,
+    SparseHashGrid,
+    check_resolutions,
+    count_stored_entries,
+    sparse_hash_grid_reference,
+)
+
+
+def _slot(v: np.ndarray, table_size: int) -> np.ndarray:
+    v = v.astype(np.int64)
+    return (v[..., 0] * HASH_PRIMES[0] ^ v[..., 1] * HASH_PRIMES[1] ^ v[..., 2] * HASH_PRIMES[2]) & (
+        table_size - 1
+    )
+
+
+def _featurized_points(n=3000, res=16, max_points=12, seed=0):
+    rng = np.random.default_rng(seed)
+    occ = rng.uniform(size=(res,) * 3) < 0.2
+    o = np.concatenate([rng.normal(size=(n // 2, 3)) * 1.5 + 0.5, rng.uniform(size=(n - n // 2, 3))])
+    d = rng.normal(size=(n, 3))
+    f = featurize_rays(torch.tensor(o, dtype=torch.float32), torch.tensor(d, dtype=torch.float32), occ, max_points)
+    assert (f.face_axis == 3).any() and (f.face_axis == -1).any() and (f.face_axis == 0).any()
+    return f
+
+
+def test_bilinear_on_a_face_reproduces_a_linear_function():
+    grid = SparseHashGrid(resolutions=(64, 128), log2_table_size=17)
+    table = torch.randn_like(grid.table) * 100  # garbage everywhere, including off-plane vertices
+    rng = np.random.default_rng(0)
+    slope = rng.normal(size=(2, 3, 3))  # [level, feature, xyz]
+    offset = rng.normal(size=(2, 3))
+    n = 500
+    pts = np.empty((3, n, 3))
+    for axis in range(3):
+        # points on the voxel plane (axis) = 13/32, inside a small patch of the other two coordinates
+        pts[axis] = rng.uniform(0.40, 0.45, (n, 3))
+        pts[axis, :, axis] = 13 / 32
+    points = torch.tensor(pts, dtype=torch.float32).reshape(1, 3 * n, 3).repeat(1, 1, 1)
+    face_axis = torch.arange(3).repeat_interleave(n)[None].to(torch.int8)
+    for lvl, res in enumerate(grid.resolutions):
+        for axis in range(3):
+            # all vertices of the face cells that the patch touches, on the plane only
+            lo, hi = int(0.40 * res), int(0.45 * res) + 1
+            g = np.stack(np.meshgrid(*[np.arange(lo, hi + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+            g[:, axis] = 13 * res // 32
+            g = np.unique(g, axis=0)
+            slots = _slot(g, table.shape[1])
+            assert len(np.unique(slots)) == len(g)  # no collisions inside the patch
+            table[lvl, slots] = torch.tensor(g / res @ slope[lvl].T + offset[lvl], dtype=torch.float32)
+    with torch.no_grad():
+        grid.table.copy_(table)
+        out = grid(points, face_axis).reshape(3 * n, 2, 3)
+        ref = sparse_hash_grid_reference(points, face_axis, grid.table, grid.resolutions).reshape(3 * n, 2, 3)
+    expected = np.einsum("nc,lfc->nlf", points[0].double().numpy(), slope) + offset
+    np.testing.assert_allclose(out.numpy(), expected, atol=2e-5)
+    np.testing.assert_allclose(ref.numpy(), expected, atol=2e-5)
+
+
+def test_trilinear_origin_points_reproduce_a_linear_function():
+    grid = SparseHashGrid(resolutions=(32,), log2_table_size=20, features_per_level=1)
+    rng = np.random.default_rng(1)
+    slope, offset = rng.normal(size=3), 0.25
+    g = np.stack(np.meshgrid(*[np.arange(10, 16)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    slots = _slot(g, 2**20)
+    assert len(np.unique(slots)) == len(g)
+    with torch.no_grad():
+        grid.table[0, slots, 0] = torch.tensor(g / 32 @ slope + offset, dtype=torch.float32)
+    p = 10 / 32 + torch.rand(1, 400, 3) * 5 / 32
+    out = grid(p, torch.full((1, 400), 3, dtype=torch.int8))
+    np.testing.assert_allclose(out[0].detach().numpy(), p[0].double().numpy() @ slope + offset, atol=2e-5)
+
+
+def test_kernel_forward_and_backward_match_reference():
+    f = _featurized_points()
+    grid = SparseHashGrid(resolutions=(32, 64), log2_table_size=12, init_scale=1.0)  # collisions too
+    out = grid(f.points, f.face_axis)
+    ref = sparse_hash_grid_reference(f.points, f.face_axis, grid.table, grid.resolutions)
+    assert out.shape == (len(f), grid.output_dim(12)) == ref.shape
+    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
+    upstream = torch.randn_like(out)
+    (g_kernel,) = torch.autograd.grad((out * upstream).sum(), grid.table)
+    (g_ref,) = torch.autograd.grad((ref * upstream).sum(), grid.table)
+    assert g_kernel.abs().sum() > 0
+    torch.testing.assert_close(g_kernel, g_ref, atol=1e-4, rtol=1e-4)
+
+
+def test_layout_padding_and_face_vertex_count():
+    grid = SparseHashGrid(resolutions=(64, 128), init_scale=1.0)
+    points = torch.tensor([[[0.25, 0.3, 0.7], [0.1, 0.5, 0.2], [0.0, 0.0, 0.0]]])
+    face_axis = torch.tensor([[0, 1, -1]], dtype=torch.int8)
+    out = grid(points, face_axis).reshape(3, 2, 3)  # point-major, then level, then feature
+    assert (out[2] == 0).all() and (out[:2] != 0).all()
+    single = grid(points[:, 1:2], face_axis[:, 1:2]).reshape(2, 3)
+    torch.testing.assert_close(out[1], single)
+    # a face point reads exactly 4 table entries per level
+    (g,) = torch.autograd.grad(grid(points[:, :1], face_axis[:, :1]).sum(), grid.table)
+    assert ((g != 0).any(-1).sum(-1) == 4).all()
+
+
+def test_training_step_changes_only_touched_entries():
+    f = _featurized_points(n=200)
+    grid = SparseHashGrid(resolutions=(32, 64), log2_table_size=14)
+    before = grid.table.detach().clone()
+    opt = torch.optim.SGD(grid.parameters(), lr=1.0)
+    grid(f.points, f.face_axis).square().sum().backward()
+    opt.step()
+    changed = (grid.table.detach() != before).any(-1)
+    assert 0 < changed.sum() < changed.numel()
+
+
+def test_count_stored_entries_single_voxel():
+    occ = np.zeros((32, 32, 32), bool)
+    occ[3, 4, 5] = True
+    report = count_stored_entries(occ, (64, 128))
+    lv64, lv128 = report["levels"]
+    assert (lv64["face_vertices"], lv64["interior_vertices"]) == (3**3 - 1, 1)
+    assert (lv128["face_vertices"], lv128["interior_vertices"]) == (5**3 - 3**3, 3**3)
+    assert lv64["dense_vertices"] == 65**3 and lv128["table_size"] == 2**17
+    assert lv64["face_slots_used"] <= lv64["face_vertices"]
+    assert lv128["dense_slots_used"] <= 2**17
+
+
+def test_bad_configuration():
+    with pytest.raises(ValueError, match="multiples"):
+        check_resolutions((64, 100), 32)
+    with pytest.raises(ValueError, match="multiples"):
+        count_stored_entries(np.zeros((32,) * 3, bool), (48,))
+    with pytest.raises(ValueError, match=r"\[N, H, 3\]"):
+        SparseHashGrid()(torch.zeros(4, 3), torch.zeros(4, dtype=torch.int8))
+
+
+def test_runs_on_device(device):
+    f = _featurized_points(n=300).to(device)
+    grid = SparseHashGrid(resolutions=(32, 64), log2_table_size=12, init_scale=1.0).to(device)
+    out = grid(f.points, f.face_axis)
+    assert out.device == f.points.device
+    ref = sparse_hash_grid_reference(f.points.cpu(), f.face_axis.cpu(), grid.table.cpu(), grid.resolutions)
+    torch.testing.assert_close(out.cpu(), ref, atol=1e-5, rtol=1e-5)
