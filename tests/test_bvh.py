@@ -142,6 +142,18 @@ def test_coincident_centroids_and_single_triangle():
     assert one.num_nodes == 1 and one.num_leaves == 1 and one.leaf_count[0] == 1
 
 
+def test_skewed_input_builds_a_valid_deep_tree():
+    """Triangles at geometrically shrinking positions: each binned split peels off only a few."""
+    k = np.arange(400)
+    x = (0.9**k).astype(np.float32)
+    tri = np.zeros((400, 3, 3), np.float32)
+    tri[:, :, 0] = x[:, None] * np.array([1.0, 1.0001, 1.0002], np.float32)
+    tri[:, 1, 1] = tri[:, 2, 2] = 1e-3
+    bvh = build_bvh(tri)
+    _check_structure(bvh, tri, max_leaf=2)
+    assert bvh.depth() > 2 * np.log2(400)  # far deeper than a balanced tree
+
+
 def test_bad_input_is_rejected():
     with pytest.raises(MeshError, match="shape"):
         build_bvh(np.zeros((4, 3), np.float32))

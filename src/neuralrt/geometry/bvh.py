@@ -102,9 +102,11 @@ def _build_binary(tri_lo, tri_hi, max_leaf, num_bins):
     right = np.full(max_nodes, -1, np.int32)
     leaf_start = np.zeros(max_nodes, np.int32)
     leaf_count = np.zeros(max_nodes, np.int32)
-    stack_node = np.empty(128, np.int64)  # depth is bounded: every split leaves >= 1 per side
-    stack_s = np.empty(128, np.int64)
-    stack_e = np.empty(128, np.int64)
+    # Depth-first: the stack never holds more than depth + 1 <= n + 1 entries (each split leaves
+    # >= 1 triangle per side); SAH trees are ~log n deep but skewed inputs can go much deeper.
+    stack_node = np.empty(n + 2, np.int64)
+    stack_s = np.empty(n + 2, np.int64)
+    stack_e = np.empty(n + 2, np.int64)
     bin_cnt = np.zeros((3, num_bins), np.int64)
     bin_lo = np.empty((3, num_bins, 3))
     bin_hi = np.empty((3, num_bins, 3))
