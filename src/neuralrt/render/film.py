@@ -1,0 +1,87 @@
+"""Film: per-pixel sums of path radiance and AOVs, and the finished `RenderResult` with its files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["Film", "RenderResult"]
+
+
+class Film:
+    """Accumulates samples per pixel (row-major pixel index); every value is a running sum."""
+
+    def __init__(self, width: int, height: int, device="cpu"):
+        self.width, self.height = width, height
+        n = width * height
+        dev = torch.device(device)
+        self.radiance = torch.zeros(n, 3, dtype=torch.float64, device=dev)  # float64 sums: many passes stay exact
+        self.albedo = torch.zeros(n, 3, dtype=torch.float64, device=dev)
+        self.normal = torch.zeros(n, 3, dtype=torch.float64, device=dev)
+        self.depth = torch.zeros(n, dtype=torch.float64, device=dev)
+        self.count = torch.zeros(n, dtype=torch.float64, device=dev)
+
+    def add(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> None:
+        """Add one sample per entry of ``pixel`` (pixels may repeat)."""
+        self.radiance.index_add_(0, pixel, radiance.double())
+        self.albedo.index_add_(0, pixel, albedo.double())
+        self.normal.index_add_(0, pixel, normal.double())
+        self.depth.index_add_(0, pixel, depth.double())
+        self.count.index_add_(0, pixel, torch.ones_like(depth, dtype=torch.float64))
+
+    def _mean(self, total: Tensor) -> np.ndarray:
+        c = self.count.clamp(min=1).reshape(-1, *([1] * (total.ndim - 1)))
+        shape = (self.height, self.width) + tuple(total.shape[1:])
+        return (total / c).float().reshape(shape).cpu().numpy()
+
+    def result(self, spp: int, seconds: float) -> "RenderResult":
+        normal = self.normal / torch.linalg.norm(self.normal, dim=-1, keepdim=True).clamp(min=1e-12)
+        return RenderResult(image=self._mean(self.radiance), albedo=self._mean(self.albedo), normal=normal.float().reshape(self.height, self.width, 3).cpu().numpy(),
+                            depth=self._mean(self.depth), spp=spp, seconds=seconds)
+
+
+@dataclass
+class RenderResult:
+    """A finished render: linear HDR image and first-hit AOVs (pixel means), as numpy float32.
+
+    ``albedo`` is the first hit's surface albedo, ``normal`` its unit world-space shading normal
+    (turned towards the camera), ``depth`` its distance from the camera (0 where the ray escaped).
+    """
+
+    image: np.ndarray  # [H, W, 3] linear radiance
+    albedo: np.ndarray  # [H, W, 3]
+    normal: np.ndarray  # [H, W, 3]
+    depth: np.ndarray  # [H, W]
+    spp: int
+    seconds: float
+    stats: dict = field(default_factory=dict)
+
+    def save(self, path: str | Path, exposure: float = 0.0) -> list[Path]:
+        """Write ``<stem>.exr`` (linear HDR) and ``<stem>.png`` (sRGB), plus ``<stem>_albedo``,
+        ``<stem>_normal`` and ``<stem>_depth`` as EXR (exact values) and PNG (to look at).
+        Returns the paths written."""
+        from ..io.images import write_exr, write_png
+
+        path = Path(path)
+        stem = path.with_suffix("")
+        out: list[Path] = []
+
+        def both(suffix: str, linear: np.ndarray, png: np.ndarray, png_exposure: float = 0.0) -> None:
+            write_exr(f"{stem}{suffix}.exr", linear)
+            write_png(f"{stem}{suffix}.png", png, exposure=png_exposure)
+            out.extend([Path(f"{stem}{suffix}.exr"), Path(f"{stem}{suffix}.png")])
+
+        both("", self.image, self.image, exposure)
+        both("_albedo", self.albedo, self.albedo)
+        # Normals in [-1, 1] shown as colours 0.5 + 0.5 n (stored linear so the PNG shows that mapping).
+        from ..io.images import srgb_to_linear
+
+        both("_normal", self.normal, srgb_to_linear(0.5 + 0.5 * self.normal))
+        hit = self.depth > 0
+        far = float(self.depth[hit].max()) if hit.any() else 1.0
+        both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat((1.0 - self.depth / far)[..., None] * hit[..., None], 3, -1)))
+        return out

@@ -1,0 +1,298 @@
+"""Loading scenes: a file (TOML / JSON) or ``builtin:<name>[?detail=N]`` -> validated spec -> runtime `Scene`.
+
+Relative paths in a file (meshes, models, textures, environment images) resolve against the
+file's folder. Every problem is raised as a one-line `SceneError` naming the file and the key,
+e.g. ``scene.toml: objects.2.transform.scale: scale must be finite and non-zero``.
+Objects that use the same mesh (same resolved file, or same generator and parameters) share one
+`MeshBLAS` (instancing): it is loaded and built once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from pydantic import ValidationError
+
+from ..accel.mesh_blas import MeshBLAS
+from ..accel.tlas import Instance, SceneAccel
+from ..errors import NeuralRTError, SceneError
+from ..geometry.mesh import Mesh, load_mesh
+from ..render.camera import Camera
+from ..render.lights import AreaLights, Environment, LightSet, PointLights
+from ..render.materials import MaterialKind, MaterialTable
+from .schema import (
+    ConductorMaterialSpec,
+    DiffuseMaterialSpec,
+    EmissiveMaterialSpec,
+    ObjectSpec,
+    PlasticMaterialSpec,
+    SceneSpec,
+)
+from .scene import Scene, instance_ray_offsets
+
+__all__ = ["load_scene", "load_scene_spec", "build_scene", "BUILTIN_PREFIX"]
+
+BUILTIN_PREFIX = "builtin:"
+DEFAULT_MATERIAL = DiffuseMaterialSpec(name="default", albedo=(0.8, 0.8, 0.8))  # for faces nothing else names
+
+
+def load_scene(
+    path_or_builtin: str | os.PathLike,
+    device="cpu",
+    resolution: tuple[int, int] | None = None,
+    detail: int | None = None,
+) -> Scene:
+    """Load and build a scene.
+
+    ``path_or_builtin``: a ``.toml`` / ``.json`` scene file, or ``builtin:<name>`` with an optional
+    ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`). ``resolution`` (width, height)
+    overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
+    """
+    spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
+    if resolution is not None:
+        spec.camera.resolution = tuple(int(v) for v in resolution)
+    return build_scene(spec, base_dir, device=device, label=label)
+
+
+def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = None) -> tuple[SceneSpec, Path, str]:
+    """(validated spec with file paths made absolute, folder paths were relative to, label for errors)."""
+    text = str(path_or_builtin)
+    if text.startswith(BUILTIN_PREFIX):
+        from .builtins import builtin_spec
+
+        spec = builtin_spec(text[len(BUILTIN_PREFIX):], detail=detail)
+        return spec, Path.cwd(), text
+    path = Path(path_or_builtin)
+    label = path.name
+    if not path.is_file():
+        raise SceneError(f"{path}: scene file not found")
+    try:
+        raw = path.read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: cannot read scene file ({exc})") from None
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".toml":
+            data = tomllib.loads(raw)
+        elif suffix == ".json":
+            data = json.loads(raw)
+        else:
+            raise SceneError(f"{path}: unknown scene file type {suffix!r} (use .toml or .json)")
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise SceneError(f"{label}: not valid {suffix[1:].upper()}: {exc}") from None
+    spec = validate_spec(data, label)
+    return absolutize_paths(spec, path.resolve().parent), path.resolve().parent, label
+
+
+def validate_spec(data, label: str) -> SceneSpec:
+    """pydantic validation and cross-references, as one-line `SceneError`s naming ``label`` and the key."""
+    if not isinstance(data, dict):
+        raise SceneError(f"{label}: a scene must be a table/object at the top level")
+    try:
+        spec = SceneSpec.model_validate(data)
+    except ValidationError as exc:
+        errors = exc.errors()
+        first = errors[0]
+        key = ".".join(str(p) for p in first["loc"]) or "(top level)"
+        msg = first["msg"].removeprefix("Value error, ")
+        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        raise SceneError(f"{label}: {key}: {msg}{more}") from None
+    problems = spec.reference_errors()
+    if problems:
+        key, msg = problems[0]
+        more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
+        raise SceneError(f"{label}: {key}: {msg}{more}")
+    return spec
+
+
+def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
+    """A copy of ``spec`` whose relative file paths are resolved against ``base_dir``."""
+
+    def resolve(p: str | None) -> str | None:
+        return p if p is None else str((base_dir / os.path.expanduser(p)).resolve())
+
+    spec = spec.model_copy(deep=True)
+    for m in spec.materials:
+        if isinstance(m.albedo, str):
+            m.albedo = resolve(m.albedo)
+    for obj in spec.objects:
+        obj.mesh, obj.model = resolve(obj.mesh), resolve(obj.model)
+    if spec.environment is not None and spec.environment.image is not None:
+        spec.environment.image = resolve(spec.environment.image)
+    return spec
+
+
+# --- building --------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Shape:
+    """A mesh and its exact BLAS, shared by every object that uses them."""
+
+    mesh: Mesh
+    blas: MeshBLAS
+
+
+def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene") -> Scene:
+    """Runtime `Scene` from a validated spec (relative paths resolve against ``base_dir``)."""
+    spec = absolutize_paths(spec, Path(base_dir))
+    dev = torch.device(device)
+    material_specs = list(spec.materials)
+    index = {m.name: i for i, m in enumerate(material_specs)}
+    if "default" not in index:
+        index["default"] = len(material_specs)
+        material_specs.append(DEFAULT_MATERIAL)
+    materials = _material_table(material_specs, label, dev)
+
+    shapes: dict[tuple, _Shape] = {}
+    models: dict[str, object] = {}
+    instances: list[Instance] = []
+    meshes: list[Mesh | None] = []
+    for i, obj in enumerate(spec.objects):
+        key = f"objects.{i}"
+        shape = _shape_for(obj, shapes, label, key)
+        blas, camera_blas = (shape.blas if shape else None), None
+        if obj.model is not None:
+            if obj.model not in models:
+                models[obj.model] = _load_model(obj.model, label, key)
+            blas, camera_blas = models[obj.model], (shape.blas if shape else None)
+        slot_names = [m.name for m in shape.mesh.materials] if shape else list(getattr(blas, "material_names", None) or ["default"])
+        material_map = [index[_scene_material_for(obj, name, index)] for name in slot_names]
+        instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map),
+                                  name=obj.name or f"object{i}", camera_blas=camera_blas))
+        meshes.append(shape.mesh if shape else None)
+        if shape is None and bool(materials.emissive_mask[torch.tensor(material_map)].any()):
+            raise SceneError(f"{label}: {key}: an emissive object needs its mesh (area lights are sampled from triangles)")
+
+    accel = SceneAccel(instances, device=dev)
+    area = _area_lights(instances, meshes, materials, dev)
+    points = None
+    if spec.lights:
+        points = PointLights([l.position for l in spec.lights], [l.intensity for l in spec.lights], device=dev) \
+            if any(max(l.intensity) > 0 for l in spec.lights) else None
+    env = _environment(spec, label, dev)
+    cam = spec.camera
+    camera = Camera.look_at(cam.position, cam.look_at, cam.up, cam.fov, cam.resolution)
+    return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
+                 instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev)
+
+
+def _scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str:
+    """Scene material for a mesh material slot: the object's `material`, its `materials` map, the
+    scene material of the same name, else ``default``."""
+    if obj.material is not None:
+        return obj.material
+    if slot in obj.materials:
+        return obj.materials[slot]
+    return slot if slot in index else "default"
+
+
+def _shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | None:
+    if obj.mesh is not None:
+        cache_key = ("file", obj.mesh)
+    elif obj.generator is not None:
+        cache_key = ("generator", obj.generator.name, json.dumps(obj.generator.params, sort_keys=True))
+    else:
+        return None
+    if cache_key not in shapes:
+        if obj.mesh is not None:
+            try:
+                mesh = load_mesh(obj.mesh)
+            except NeuralRTError as exc:
+                raise SceneError(f"{label}: {key}.mesh: {exc}") from None
+        else:
+            mesh = _generate(obj, label, key)
+        shapes[cache_key] = _Shape(mesh, MeshBLAS(mesh))
+    return shapes[cache_key]
+
+
+def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:
+    from ..geometry import procedural
+
+    gen = obj.generator
+    if gen.name not in procedural.GENERATORS:
+        raise SceneError(f"{label}: {key}.generator.name: unknown generator {gen.name!r} (known: {', '.join(sorted(procedural.GENERATORS))})")
+    try:
+        return procedural.make_procedural(gen.name, **gen.params)
+    except (NeuralRTError, TypeError, ValueError) as exc:
+        raise SceneError(f"{label}: {key}.generator.params: {exc}") from None
+
+
+def _load_model(path: str, label: str, key: str):
+    """A trained neural model as this object's BLAS (the methods package is imported only here)."""
+    if not os.path.isfile(path):
+        raise SceneError(f"{label}: {key}.model: model file not found: {path}")
+    try:
+        from ..methods import load_model
+    except ImportError as exc:
+        raise SceneError(f"{label}: {key}.model: neural models are not available ({exc})") from None
+    try:
+        return load_model(path)
+    except NeuralRTError as exc:
+        raise SceneError(f"{label}: {key}.model: {exc}") from None
+
+
+def _material_table(specs: list, label: str, device) -> MaterialTable:
+    from ..io.images import read_image
+
+    kind, albedo, rough, ior, emission, textures = [], [], [], [], [], []
+    kinds = {DiffuseMaterialSpec: MaterialKind.DIFFUSE, ConductorMaterialSpec: MaterialKind.CONDUCTOR,
+             PlasticMaterialSpec: MaterialKind.PLASTIC, EmissiveMaterialSpec: MaterialKind.EMISSIVE}
+    for i, m in enumerate(specs):
+        kind.append(int(kinds[type(m)]))
+        if isinstance(m.albedo, str):
+            try:
+                textures.append(torch.from_numpy(read_image(m.albedo)))
+            except NeuralRTError as exc:
+                raise SceneError(f"{label}: materials.{i}.albedo: {exc}") from None
+            albedo.append((1.0, 1.0, 1.0))
+        else:
+            textures.append(None)
+            albedo.append(m.albedo)
+        rough.append(getattr(m, "roughness", 1.0))
+        ior.append(getattr(m, "ior", 1.5))
+        emission.append(getattr(m, "emission", (0.0, 0.0, 0.0)))
+    return MaterialTable(kind, albedo, rough, ior, emission, textures, [m.name for m in specs], device=device)
+
+
+def _area_lights(instances: list[Instance], meshes: list[Mesh | None], materials: MaterialTable, device) -> AreaLights | None:
+    """World-space emissive triangles of every instance (normals by the inverse transpose, like hits)."""
+    emissive = materials.emissive_mask.cpu()
+    tris, normals, emission, inst_ids, prim_ids = [], [], [], [], []
+    for i, (inst, mesh) in enumerate(zip(instances, meshes)):
+        if mesh is None:
+            continue
+        face_material = inst.material_map.cpu()[torch.from_numpy(mesh.face_material_ids).long().clamp(max=inst.material_map.numel() - 1)]
+        faces = torch.nonzero(emissive[face_material]).reshape(-1)
+        if faces.numel() == 0:
+            continue
+        obj_tris = torch.from_numpy(mesh.triangles())[faces]
+        tris.append(inst.transform.apply_points(obj_tris.reshape(-1, 3)).reshape(-1, 3, 3))
+        normals.append(inst.transform.apply_normals(torch.from_numpy(mesh.face_normals())[faces]))
+        emission.append(materials.emission.cpu()[face_material[faces]])
+        inst_ids.append(torch.full((faces.numel(),), i, dtype=torch.int64))
+        prim_ids.append(faces)
+    if not tris:
+        return None
+    counts = [m.num_triangles if m is not None else 0 for m in meshes]
+    return AreaLights(torch.cat(tris), torch.cat(normals), torch.cat(emission), torch.cat(inst_ids), torch.cat(prim_ids), counts, device=device)
+
+
+def _environment(spec: SceneSpec, label: str, device) -> Environment | None:
+    env = spec.environment
+    if env is None:
+        return None
+    if env.color is not None:
+        return Environment(color=env.color, scale=env.scale, device=device) if max(env.color) * env.scale > 0 else None
+    from ..io.images import read_image
+
+    try:
+        image = torch.from_numpy(read_image(env.image))
+    except NeuralRTError as exc:
+        raise SceneError(f"{label}: environment.image: {exc}") from None
+    return Environment(image=image, scale=env.scale, device=device)

@@ -1,0 +1,107 @@
+"""The runtime scene the integrator renders, and writing a scene spec back to a file."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..accel.tlas import SceneAccel
+from ..errors import SceneError
+from ..render.camera import Camera
+from ..render.lights import LightSet
+from ..render.materials import MaterialTable
+from .schema import RenderSettings, SceneSpec
+
+__all__ = ["Scene", "save_scene", "instance_ray_offsets"]
+
+
+@dataclass
+class Scene:
+    """Everything needed to render: camera, accelerator, materials, lights, render defaults.
+
+    ``instance_offsets[i]`` is how far (world units, along the geometric normal) a secondary ray
+    leaving instance ``i`` starts, so it does not hit the surface it leaves.
+    """
+
+    camera: Camera
+    accel: SceneAccel
+    materials: MaterialTable
+    lights: LightSet
+    instance_offsets: Tensor  # [I] float32
+    settings: RenderSettings
+    spec: SceneSpec | None = None  # what the scene was built from (paths made absolute)
+    name: str = ""
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def environment(self):
+        return self.lights.environment
+
+    def __repr__(self) -> str:
+        return (f"Scene({self.name!r}: {len(self.accel.instances)} instances, {len(self.materials)} materials, "
+                f"lights={self.lights.kinds}, {self.camera.width}x{self.camera.height})")
+
+
+def instance_ray_offsets(accel: SceneAccel) -> Tensor:
+    """Each instance's BLAS ``secondary_offset`` scaled to world units by its largest axis scale."""
+    out = []
+    for inst in accel.instances:
+        linear = inst.transform.matrix[:3, :3]
+        scale = float(torch.linalg.norm(linear, dim=0).max())
+        out.append(float(getattr(inst.blas, "secondary_offset", 1e-4)) * scale)
+    return torch.tensor(out, dtype=torch.float32, device=accel.device)
+
+
+def _relocated_paths(spec: SceneSpec, folder: Path) -> SceneSpec:
+    """A copy whose absolute file paths are rewritten relative to ``folder`` (where the file will live)."""
+
+    def rel(p: str | None) -> str | None:
+        if p is None or not os.path.isabs(p):
+            return p
+        try:
+            return os.path.relpath(p, folder)
+        except ValueError:  # another drive on Windows: keep absolute
+            return p
+
+    data = spec.model_copy(deep=True)
+    for m in data.materials:
+        if isinstance(m.albedo, str):
+            m.albedo = rel(m.albedo)
+    for obj in data.objects:
+        obj.mesh, obj.model = rel(obj.mesh), rel(obj.model)
+    if data.environment is not None and data.environment.image is not None:
+        data.environment.image = rel(data.environment.image)
+    return data
+
+
+def save_scene(spec: SceneSpec, path: str | Path) -> None:
+    """Write ``spec`` as TOML (``.toml``) or JSON (``.json``) that `load_scene` reads back to the same
+    scene; absolute file paths are written relative to the new file's folder. Atomic."""
+    import tempfile
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".json"):
+        raise SceneError(f"{path}: scene files must end in .toml or .json")
+    if not path.parent.is_dir():
+        raise SceneError(f"{path}: folder {path.parent} does not exist")
+    data = _relocated_paths(spec, path.parent.resolve()).model_dump(mode="json", exclude_none=True)
+    if suffix == ".json":
+        text = json.dumps(data, indent=2) + "\n"
+    else:
+        import tomli_w
+
+        text = tomli_w.dumps(data)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)

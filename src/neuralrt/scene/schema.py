@@ -1,0 +1,266 @@
+"""The scene file schema (TOML or JSON), validated by pydantic: every key, its meaning and default.
+
+A scene file has these sections (unknown keys are errors)::
+
+    [camera]                      # perspective pinhole camera
+    position = [0, 0, 3.9]        # eye point (world units)
+    look_at = [0, 0, 0]           # point the camera looks at
+    up = [0, 1, 0]                # up direction (+y up, right-handed)
+    fov = 40.0                    # vertical field of view, degrees
+    resolution = [256, 256]       # image width, height in pixels
+
+    [[materials]]                 # type picks the kind; each kind accepts only its own keys
+    name = "white"                # referenced by objects
+    type = "diffuse"              # diffuse | conductor | plastic | emissive
+    albedo = [0.8, 0.8, 0.8]      # linear RGB, or an image path (textured; relative to this file)
+
+    [[objects]]
+    name = "statue"
+    mesh = "meshes/statue.obj"    # a mesh file (relative to this file) ...
+    generator = { name = "statue", params = { detail = 2 } }   # ... or a procedural mesh
+    model = "statue.nrt"          # optional trained neural model of this object (see ObjectSpec)
+    material = "white"            # one scene material for all faces, or per mesh material:
+    materials = { body = "white" }  # mesh material name -> scene material name
+    transform = { translate = [0, -0.5, 0], rotate = [0, 30, 0], scale = 0.5 }
+
+    [[lights]]                    # point lights
+    position = [0, 2, 0]
+    intensity = [5, 5, 5]         # radiant intensity, W/sr
+
+    [environment]                 # distant light: a constant colour or a lat-long HDR image
+    color = [0.1, 0.1, 0.1]       # or: image = "sky.hdr" (EXR, HDR, PNG, JPG)
+    scale = 1.0
+
+    [render]                      # defaults for `render` when the caller gives none
+    spp = 16
+    max_depth = 5
+
+Emissive objects (materials of type "emissive") are the area lights.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from ..rays import Transform
+
+__all__ = [
+    "CameraSpec",
+    "TransformSpec",
+    "DiffuseMaterialSpec",
+    "ConductorMaterialSpec",
+    "PlasticMaterialSpec",
+    "EmissiveMaterialSpec",
+    "MaterialSpec",
+    "GeneratorSpec",
+    "ObjectSpec",
+    "PointLightSpec",
+    "EnvironmentSpec",
+    "RenderSettings",
+    "SceneSpec",
+]
+
+Vec3 = tuple[float, float, float]
+NonNegVec3 = tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(ge=0)], Annotated[float, Field(ge=0)]]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class CameraSpec(_Strict):
+    """Perspective camera (looks from ``position`` to ``look_at``)."""
+
+    position: Vec3 = (0.0, 0.0, 3.9)
+    look_at: Vec3 = (0.0, 0.0, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: float = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view in degrees")
+    resolution: tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]] = (256, 256)
+
+    @model_validator(mode="after")
+    def _not_degenerate(self) -> "CameraSpec":
+        fwd = [b - a for a, b in zip(self.position, self.look_at)]
+        if math.hypot(*fwd) == 0:
+            raise ValueError("camera position and look_at coincide")
+        cross = (fwd[1] * self.up[2] - fwd[2] * self.up[1], fwd[2] * self.up[0] - fwd[0] * self.up[2], fwd[0] * self.up[1] - fwd[1] * self.up[0])
+        if math.hypot(*cross) < 1e-9 * max(math.hypot(*fwd), 1e-30):
+            raise ValueError("camera up is parallel to the view direction")
+        return self
+
+
+class TransformSpec(_Strict):
+    """Object-to-world transform: ``translate @ rotate @ scale`` (scale first), or a full ``matrix``.
+
+    ``rotate`` holds Euler angles in degrees about the world x, then y, then z axis.
+    """
+
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    rotate: Vec3 = (0.0, 0.0, 0.0)
+    scale: float | Vec3 = 1.0
+    matrix: list[list[float]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces the others")
+
+    @field_validator("scale")
+    @classmethod
+    def _nonzero_scale(cls, v):
+        values = (v,) if isinstance(v, (int, float)) else v
+        if any(x == 0 or not math.isfinite(x) for x in values):
+            raise ValueError("scale must be finite and non-zero")
+        return v
+
+    @field_validator("matrix")
+    @classmethod
+    def _matrix_shape(cls, m):
+        if m is not None and (len(m) != 4 or any(len(r) != 4 for r in m)):
+            raise ValueError("matrix must be 4x4 (a list of 4 rows of 4 numbers)")
+        return m
+
+    @model_validator(mode="after")
+    def _matrix_alone(self) -> "TransformSpec":
+        if self.matrix is not None and (self.translate != (0, 0, 0) or self.rotate != (0, 0, 0) or self.scale != 1.0):
+            raise ValueError("give either matrix or translate/rotate/scale, not both")
+        return self
+
+    def to_transform(self) -> Transform:
+        if self.matrix is not None:
+            return Transform(self.matrix)
+        t = Transform.translate(self.translate)
+        r = Transform.rotate((0, 0, 1), self.rotate[2]) @ Transform.rotate((0, 1, 0), self.rotate[1]) @ Transform.rotate((1, 0, 0), self.rotate[0])
+        return t @ r @ Transform.scale(self.scale)
+
+
+Albedo = Union[NonNegVec3, str]  # linear RGB, or a texture image path
+
+
+class DiffuseMaterialSpec(_Strict):
+    """Lambertian reflector."""
+
+    type: Literal["diffuse"] = "diffuse"
+    name: str
+    albedo: Albedo = (0.8, 0.8, 0.8)
+
+
+class ConductorMaterialSpec(_Strict):
+    """Rough metal (GGX); ``albedo`` is the reflectance at normal incidence (Schlick F0)."""
+
+    type: Literal["conductor"] = "conductor"
+    name: str
+    albedo: Albedo = (0.9, 0.9, 0.9)
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha")
+
+
+class PlasticMaterialSpec(_Strict):
+    """Diffuse base (``albedo``) under a rough dielectric coat (GGX alpha ``roughness``, index ``ior``)."""
+
+    type: Literal["plastic"] = "plastic"
+    name: str
+    albedo: Albedo = (0.5, 0.5, 0.5)
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha")
+    ior: float = Field(1.5, gt=1.0, le=4.0)
+
+
+class EmissiveMaterialSpec(_Strict):
+    """Area light: emits ``emission`` (radiance) from its front face; reflects diffusely with ``albedo``."""
+
+    type: Literal["emissive"] = "emissive"
+    name: str
+    emission: NonNegVec3
+    albedo: Albedo = (0.0, 0.0, 0.0)
+
+
+MaterialSpec = Annotated[
+    Union[DiffuseMaterialSpec, ConductorMaterialSpec, PlasticMaterialSpec, EmissiveMaterialSpec],
+    Field(discriminator="type"),
+]
+
+
+class GeneratorSpec(_Strict):
+    """A procedural mesh: ``neuralrt.geometry.procedural.make_procedural(name, **params)``."""
+
+    name: str
+    params: dict[str, Union[bool, int, float, str, list[float]]] = Field(default_factory=dict)
+
+
+class ObjectSpec(_Strict):
+    """One placed object. Meshes (file or generator) used by several objects are loaded and built once.
+
+    ``model``: path of a trained neural model (.nrt) of this object; when set, the object's rays
+    are answered by the model, and if the mesh is also given the exact mesh still answers camera
+    rays (hybrid rendering).
+    """
+
+    name: str = ""
+    mesh: str | None = None
+    generator: GeneratorSpec | None = None
+    model: str | None = None
+    transform: TransformSpec = Field(default_factory=TransformSpec)
+    material: str | None = None
+    materials: dict[str, str] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "ObjectSpec":
+        if self.mesh is not None and self.generator is not None:
+            raise ValueError("give either mesh or generator, not both")
+        if self.mesh is None and self.generator is None and self.model is None:
+            raise ValueError("an object needs a mesh, a generator or a model")
+        if self.material is not None and self.materials:
+            raise ValueError("give either material or materials, not both")
+        return self
+
+
+class PointLightSpec(_Strict):
+    """Isotropic point light of radiant intensity ``intensity`` (W/sr)."""
+
+    type: Literal["point"] = "point"
+    position: Vec3
+    intensity: NonNegVec3
+
+
+class EnvironmentSpec(_Strict):
+    """Distant lighting: constant ``color`` or a lat-long ``image`` (importance sampled), times ``scale``."""
+
+    color: NonNegVec3 | None = None
+    image: str | None = None
+    scale: float = Field(1.0, ge=0.0)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "EnvironmentSpec":
+        if (self.color is None) == (self.image is None):
+            raise ValueError("give exactly one of color or image")
+        return self
+
+
+class RenderSettings(_Strict):
+    """Render defaults stored with the scene (callers may override)."""
+
+    spp: int = Field(16, gt=0)
+    max_depth: int = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
+
+
+class SceneSpec(_Strict):
+    """A whole scene file."""
+
+    camera: CameraSpec = Field(default_factory=CameraSpec)
+    materials: list[MaterialSpec] = Field(default_factory=list)
+    objects: list[ObjectSpec] = Field(min_length=1)
+    lights: list[PointLightSpec] = Field(default_factory=list)
+    environment: EnvironmentSpec | None = None
+    render: RenderSettings = Field(default_factory=RenderSettings)
+
+    def reference_errors(self) -> list[tuple[str, str]]:
+        """(key path, problem) for duplicate material names and references to unknown materials."""
+        errors: list[tuple[str, str]] = []
+        names: dict[str, int] = {}
+        for i, m in enumerate(self.materials):
+            if m.name in names:
+                errors.append((f"materials.{i}.name", f"duplicate material name {m.name!r} (also materials.{names[m.name]})"))
+            names.setdefault(m.name, i)
+        for i, obj in enumerate(self.objects):
+            if obj.material is not None and obj.material not in names:
+                errors.append((f"objects.{i}.material", f"unknown material {obj.material!r}"))
+            for slot, target in obj.materials.items():
+                if target not in names:
+                    errors.append((f"objects.{i}.materials.{slot}", f"unknown material {target!r}"))
+        return errors
