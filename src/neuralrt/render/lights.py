@@ -202,8 +202,9 @@ class Environment:
         x = (uv[:, 0] * w).long().clamp(0, w - 1)
         y = (uv[:, 1] * h).long().clamp(0, h - 1)
         pdf_uv = self.distribution.pmf[y * w + x] * (h * w)
-        sin_theta = torch.sqrt((1.0 - d[:, 1] * d[:, 1]).clamp(min=0))
-        return torch.where(sin_theta > 1e-7, pdf_uv / (2 * math.pi * math.pi * sin_theta.clamp(min=1e-7)), 0.0)
+        # sin(theta) from x and z: sqrt(1 - y^2) rounds to 0 in float32 within ~3e-4 rad of the poles.
+        sin_theta = torch.sqrt(d[:, 0] * d[:, 0] + d[:, 2] * d[:, 2])
+        return torch.where(sin_theta > 0, pdf_uv / (2 * math.pi * math.pi * sin_theta.clamp(min=1e-30)), 0.0)
 
 
 class LightSet:

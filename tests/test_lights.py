@@ -1,0 +1,124 @@
+"""Lights and camera: environment importance sampling (density integrates to one, matches its
+samples), area-light densities, hit -> light lookup, lat-long mapping, camera rays."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import chi2
+
+from neuralrt.render.camera import Camera
+from neuralrt.render.lights import AreaLights, Environment
+from neuralrt.render.sampling import luminance
+
+
+def _env_image(h=8, w=16):
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(h, w, 3, generator=g) ** 3 * 4
+    img[2, 11] = 50.0
+    return img
+
+
+def test_latlong_mapping():
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    uv = Environment.direction_to_uv(d)
+    torch.testing.assert_close(uv[0], torch.tensor([0.5, 0.5]))
+    assert float(uv[1, 1]) == pytest.approx(0.0, abs=1e-6)
+    torch.testing.assert_close(uv[2], torch.tensor([0.75, 0.5]))
+    g = torch.Generator().manual_seed(1)
+    uv = torch.rand(1000, 2, generator=g) * 0.98 + 0.01
+    torch.testing.assert_close(Environment.direction_to_uv(Environment.uv_to_direction(uv)), uv, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("kind", ["image", "constant"])
+def test_environment_pdf_integrates_to_one_and_matches_samples(kind):
+    env = Environment(image=_env_image()) if kind == "image" else Environment(color=(1, 2, 3))
+    # Midpoint quadrature over the sphere in (theta, phi): d omega = sin(theta) d theta d phi.
+    n = 800
+    th = (torch.arange(n, dtype=torch.float64) + 0.5) * (math.pi / n)
+    p = (torch.arange(2 * n, dtype=torch.float64) + 0.5) * (math.pi / n)
+    tt, pp = torch.meshgrid(th, p, indexing="ij")
+    dirs = torch.stack([torch.sin(tt) * torch.cos(pp), torch.cos(tt), torch.sin(tt) * torch.sin(pp)], -1).reshape(-1, 3)
+    integral = float((env.pdf(dirs.float()).double() * torch.sin(tt).reshape(-1)).sum()) * (math.pi / n) ** 2
+    assert integral == pytest.approx(1.0, abs=2e-3)
+    g = torch.Generator().manual_seed(2)
+    d, pdf = env.sample(torch.rand(20000, generator=g), torch.rand(20000, 2, generator=g))
+    torch.testing.assert_close(torch.linalg.norm(d, dim=-1), torch.ones(20000), atol=1e-5, rtol=0)
+    torch.testing.assert_close(pdf, env.pdf(d), rtol=1e-3, atol=1e-6)
+
+
+def test_environment_samples_follow_luminance_times_solid_angle():
+    """Chi-square: texel hit counts vs the texel probabilities (luminance x sin theta, normalised)."""
+    img = _env_image()
+    env = Environment(image=img)
+    h, w = img.shape[:2]
+    g = torch.Generator().manual_seed(3)
+    n = 100_000
+    d, _ = env.sample(torch.rand(n, generator=g), torch.rand(n, 2, generator=g))
+    uv = Environment.direction_to_uv(d)
+    texel = (uv[:, 1] * h).long().clamp(max=h - 1) * w + (uv[:, 0] * w).long().clamp(max=w - 1)
+    observed = torch.bincount(texel, minlength=h * w).double()
+    sin_theta = torch.sin((torch.arange(h) + 0.5) * math.pi / h)
+    p = (luminance(img) * sin_theta[:, None]).reshape(-1).double()
+    expected = p / p.sum() * n
+    keep = expected >= 5
+    stat = float((((observed - expected) ** 2 / expected)[keep]).sum())
+    assert chi2.sf(stat, int(keep.sum()) - 1) > 1e-3
+    # Radiance estimate of the mean: E[L / pdf] over the sphere / 4 pi equals the exact mean.
+    est = (luminance(env.radiance(d)) / env.pdf(d)).mean() / (4 * math.pi)
+    assert float(est) == pytest.approx(env.mean_radiance, rel=1e-3)
+
+
+def _two_quads():
+    """Two unit-area emitting squares (4 triangles) facing -y at y = 1 and y = 2, in instances 0 and 2."""
+    def quad(y, x0):
+        v = torch.tensor([[x0, y, 0.0], [x0 + 1, y, 0.0], [x0 + 1, y, 1.0], [x0, y, 1.0]])
+        return torch.stack([v[[0, 1, 2]], v[[0, 2, 3]]])
+    tris = torch.cat([quad(1.0, -0.5), quad(2.0, 0.5)])
+    normals = torch.tensor([[0.0, -1.0, 0.0]]).expand(4, 3)
+    emission = torch.tensor([[1.0, 1.0, 1.0]] * 2 + [[3.0, 3.0, 3.0]] * 2)
+    return AreaLights(tris, normals, emission, torch.tensor([0, 0, 2, 2]), torch.tensor([4, 5, 0, 1]), [6, 3, 2])
+
+
+def test_area_light_pdf_matches_samples_and_integrates_to_one():
+    lights = _two_quads()
+    assert lights.distribution.pmf.tolist() == pytest.approx([0.125, 0.125, 0.375, 0.375])
+    p = torch.zeros(50_000, 3)
+    g = torch.Generator().manual_seed(4)
+    idx, y, wi, pdf = lights.sample(p, torch.rand(50_000, generator=g), torch.rand(50_000, 2, generator=g))
+    dist = torch.linalg.norm(y - p, dim=-1)
+    torch.testing.assert_close(pdf, lights.pdf(idx, dist, wi), rtol=1e-5, atol=0)
+    # The solid-angle densities integrate to one: E[1 / pdf] over samples = total solid angle seen, and
+    # E_uniform-sphere[pdf] * 4 pi = 1 (both lights fully visible from the origin, no overlap in direction).
+    u = torch.rand(400_000, 2, generator=g)
+    z = 1 - 2 * u[:, 0]
+    r = torch.sqrt(1 - z * z)
+    dirs = torch.stack([r * torch.cos(2 * math.pi * u[:, 1]), z, r * torch.sin(2 * math.pi * u[:, 1])], -1)
+    # Which light (if any) each direction reaches: intersect with the planes y = 1 and y = 2.
+    dens = torch.zeros(len(dirs))
+    for k, (yy, x0) in enumerate(((1.0, -0.5), (2.0, 0.5))):
+        t = yy / dirs[:, 1]
+        q = dirs * t[:, None]
+        inside = (t > 0) & (q[:, 0] >= x0) & (q[:, 0] <= x0 + 1) & (q[:, 2] >= 0) & (q[:, 2] <= 1)
+        tri = torch.where(q[:, 0] - x0 >= q[:, 2], 2 * k, 2 * k + 1)  # triangle 0 lies below the diagonal x = z
+        d = lights.pdf(tri, t, dirs)
+        dens += torch.where(inside, d, 0.0)
+    assert float(dens.mean()) * 4 * math.pi == pytest.approx(1.0, abs=0.02)
+
+
+def test_area_light_index_from_hits():
+    lights = _two_quads()
+    inst = torch.tensor([0, 0, 2, 2, 1, 0, -1])
+    prim = torch.tensor([4, 5, 0, 1, 0, 0, -1])
+    assert lights.light_index(inst, prim).tolist() == [0, 1, 2, 3, -1, -1, -1]
+
+
+def test_camera_rays():
+    cam = Camera.look_at((0, 0, 5), (0, 0, 0), (0, 1, 0), fov_y_degrees=90, resolution=(4, 2))
+    # Pixel corners: jitter 0 at pixel 0 is the top-left image corner: tan(45) = 1 up, aspect 2 left.
+    rays = cam.generate_rays(torch.tensor([0, 7]), torch.tensor([[0.0, 0.0], [1.0, 1.0]]))
+    d = rays.directions / -rays.directions[:, 2:3]
+    torch.testing.assert_close(d, torch.tensor([[-2.0, 1.0, -1.0], [2.0, -1.0, -1.0]]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(rays.origins, torch.tensor([[0.0, 0, 5], [0.0, 0, 5]]))
+    torch.testing.assert_close(torch.linalg.norm(rays.directions, dim=-1), torch.ones(2))
