@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["compare", "info"]
+from .errors import NeuralRTError
+
+__all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
 MODEL_SUFFIXES = {".nrt"}
 SCENE_SUFFIXES = {".toml", ".json"}
@@ -55,7 +57,26 @@ def _scene_info(spec: str) -> dict:
     from .scene.loader import load_scene
 
     scene = load_scene(spec)
-    return scene.summary()
+    accel = scene.accel
+    blases = accel.unique_blases
+    triangles = sum(b.mesh.num_triangles for b in blases if hasattr(b, "mesh"))
+    instanced = sum(inst.blas.mesh.num_triangles for inst in accel.instances if hasattr(inst.blas, "mesh"))
+    memory = accel.memory_bytes()
+    return {
+        "kind": "scene",
+        "scene": spec,
+        "instances": len(accel.instances),
+        "unique_blas": len(blases),
+        "neural_instances": sum(not hasattr(inst.blas, "mesh") for inst in accel.instances),
+        "triangles_unique": triangles,
+        "triangles_instanced": instanced,
+        "materials": len(scene.materials),
+        "lights": scene.lights.kinds,
+        "resolution": [scene.camera.width, scene.camera.height],
+        "bounds": accel.bounds.tolist(),
+        "memory_bytes": memory.total,
+        "memory_parts": {k: int(v) for k, v in memory.parts.items()},
+    }
 
 
 def _model_info(path: Path) -> dict:
@@ -74,3 +95,132 @@ def _model_info(path: Path) -> dict:
         **{k: header[k] for k in ("format_version", "source_mesh_hash", "training") if k in header},
     }
 
+
+
+def list_builtins() -> list[tuple[str, str]]:
+    """(name, description) of every built-in scene, usable as ``builtin:NAME``."""
+    from .scene.builtins import list_builtins as _list
+
+    return _list()
+
+
+def render(
+    scene: str | Path,
+    output: str | Path,
+    *,
+    spp: int | None = None,
+    resolution: tuple[int, int] | None = None,
+    seed: int = 0,
+    max_depth: int | None = None,
+    primary: str = "exact",
+    detail: int | None = None,
+    device: str = "cpu",
+    progress: bool = True,
+) -> dict:
+    """Path-trace ``scene`` (file or ``builtin:NAME``) to ``output`` (EXR; PNG and AOVs beside it)."""
+    from .render.integrator import render as _render
+    from .scene.loader import load_scene
+
+    output = Path(output)
+    if output.suffix.lower() != ".exr":
+        raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
+    if not output.parent.exists():
+        output.parent.mkdir(parents=True, exist_ok=True)
+    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail)
+    try:
+        result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
+    except ValueError as exc:
+        raise NeuralRTError(str(exc)) from None
+    files = result.save(output)
+    h, w = result.image.shape[:2]
+    return {
+        "scene": str(scene),
+        "output": str(output),
+        "files": [str(f) for f in files],
+        "resolution": [w, h],
+        "spp": result.spp,
+        "seconds": result.seconds,
+        "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),
+    }
+
+
+def train(
+    mesh: str | Path,
+    output: str | Path,
+    *,
+    preset: str = "hq",
+    steps: int | None = None,
+    batch: int | None = None,
+    seed: int | None = None,
+    resume: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+) -> dict:
+    """Train an LSNIF model of ``mesh`` and write it to ``output`` (atomically).
+
+    A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
+    interrupted run from it. It is removed once the model file is written.
+    """
+    from .methods.lsnif import LSNIFConfig
+    from .training.api import train_lsnif
+
+    output = Path(output)
+    if not output.parent.exists():
+        output.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        config = LSNIFConfig.preset(preset).with_training(steps=steps, batch_size=batch, seed=seed)
+    except ValueError as exc:
+        raise NeuralRTError(str(exc).splitlines()[0]) from None
+    checkpoint = output.with_name(output.name + ".ckpt")
+    if resume and not checkpoint.is_file():
+        raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
+    model = train_lsnif(str(mesh), config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
+    model.save(output)
+    checkpoint.unlink(missing_ok=True)
+    memory = model.memory_bytes()
+    return {"model": str(output), "preset": preset, "memory_bytes": memory.total,
+            "memory_parts": dict(memory.parts), "training": model.training_record}
+
+
+def evaluate(
+    model: str | Path,
+    mesh: str | Path,
+    *,
+    rays: int = 1 << 17,
+    seed: int | None = None,
+    images: bool = True,
+    image_dir: str | Path | None = None,
+    device: str = "cpu",
+) -> dict:
+    """Held-out accuracy of a model against its mesh: rays from outside and from the surface,
+    plus normal/depth images from orbit cameras, neural vs exact, with FLIP."""
+    from .eval.intersection_metrics import HELD_OUT_SEED, evaluate_model
+    from .geometry.mesh import load_mesh
+    from .methods import load_model
+
+    blas = load_model(model, device=device)
+    source = load_mesh(mesh)
+    expected = getattr(blas, "mesh_hash", None)
+    result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
+                            images=images, image_dir=image_dir)
+    result["mesh_matches_model"] = expected is None or expected == source.content_hash()
+    return result
+
+
+def convert(scene: str | Path, output: str | Path, **options) -> dict:
+    """Train models for a scene's complex objects and write a scene that uses them
+    (see `neuralrt.scene.convert.convert_scene` for the options)."""
+    from .scene.convert import convert_scene
+
+    return convert_scene(str(scene), output, **options).as_dict()
+
+
+def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: str = "cpu", progress: bool = True,
+         **overrides) -> dict:
+    """Convert a built-in scene, render exact and hybrid, compare, and write a report folder."""
+    from dataclasses import replace
+
+    from .demo import DEMO_DEFAULT, DEMO_QUICK, run_demo
+
+    settings = replace(DEMO_QUICK if quick else DEMO_DEFAULT, **{k: v for k, v in overrides.items() if v is not None})
+    return run_demo(out_dir, quick=quick, device=device, progress=progress, settings=settings)

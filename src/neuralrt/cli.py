@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from . import __version__, api
 from .errors import NeuralRTError
@@ -36,6 +37,76 @@ def _cmd_info(args) -> None:
     _print_result(api.info(args.path), args.json)
 
 
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must look like 256x256, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise argparse.ArgumentTypeError(f"resolution must be positive, got {text!r}")
+    return w, h
+
+
+def _cmd_render(args) -> None:
+    if args.list_builtins:
+        for name, description in api.list_builtins():
+            print(f"builtin:{name:<16} {description}")
+        return
+    if args.scene is None or args.output is None:
+        raise NeuralRTError("render needs SCENE and -o OUTPUT.exr (or --list-builtins)")
+    result = api.render(args.scene, args.output, spp=args.spp, resolution=args.res, seed=args.seed,
+                        max_depth=args.max_depth, primary=args.primary, detail=args.detail, device=args.device,
+                        progress=not args.quiet)
+    _print_result(result, args.json)
+
+
+def _cmd_train(args) -> None:
+    result = api.train(args.mesh, args.output, preset=args.preset, steps=args.steps, batch=args.batch, seed=args.seed,
+                       resume=args.resume, device=args.device, progress=not args.quiet)
+    _print_result(result, args.json)
+
+
+def _cmd_eval(args) -> None:
+    result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
+                          image_dir=args.images, device=args.device)
+    if args.json:
+        _print_result(result, True)
+        return
+    for part in ("outside", "surface"):
+        print(f"{part}:")
+        _print_result(result[part], False)
+    for part in ("images", "features"):
+        if part in result:
+            print(f"{part}:")
+            _print_result(result[part], False)
+
+
+def _cmd_convert(args) -> None:
+    select = [n.strip() for n in args.select.split(",") if n.strip()] if args.select else None
+    result = api.convert(args.scene, args.output, models_dir=args.models_dir, select=select,
+                         min_triangles=args.min_triangles, preset=args.preset, group=args.group, steps=args.steps,
+                         batch=args.batch, seed=args.seed, detail=args.detail, device=args.device,
+                         progress=not args.quiet)
+    _print_result(result, args.json)
+
+
+def _cmd_demo(args) -> None:
+    report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene,
+                      preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps, detail=args.detail)
+    m, t = report["memory"], report["time"]
+    print(f"FLIP {report['flip']:.4f} (noise floor {report['flip_noise_floor']:.4f}), "
+          f"PSNR {report['psnr']:.2f} dB; neural {m['neural_bytes'] / 2**20:.2f} MiB vs BVH A "
+          f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; train {t['train_s']:.0f} s, exact {t['exact_render_s']:.1f} s, "
+          f"hybrid {t['hybrid_render_s']:.1f} s")
+    print(f"report: {Path(args.out).resolve() / 'report.md'}")
+
+
+def _add_common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
+    if json_flag:
+        p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="neuralrt",
@@ -56,6 +127,71 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("path", help="mesh file, scene file / builtin:NAME, or model file (.nrt)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("render", help="path-trace a scene to EXR + PNG (+ albedo/normal/depth AOVs)")
+    p.add_argument("scene", nargs="?", help="scene file (.toml/.json) or builtin:NAME[?detail=N]")
+    p.add_argument("-o", "--output", help="output .exr (the .png and AOVs are written beside it)")
+    p.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
+    p.add_argument("--res", type=_resolution, metavar="WxH", help="resolution (default: the scene's)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same image)")
+    p.add_argument("--max-depth", type=int, help="maximum bounces (default: the scene's)")
+    p.add_argument("--primary", choices=["exact", "neural"], default="exact",
+                   help="who answers camera rays for neural objects that keep their mesh (default: exact)")
+    p.add_argument("--detail", type=int, help="procedural mesh detail of a built-in scene")
+    p.add_argument("--list-builtins", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_common(p)
+    p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("train", help="train an LSNIF model of a mesh")
+    p.add_argument("mesh", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB)")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.nrt)")
+    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
+    p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
+    p.add_argument("--batch", type=int, help="rays per step (default: the preset's)")
+    p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_common(p)
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval", help="held-out accuracy of a model against its mesh (+ orbit images with FLIP)")
+    p.add_argument("model", help="model file (.nrt)")
+    p.add_argument("mesh", help="the mesh the model was trained on")
+    p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays (half outside, half surface)")
+    p.add_argument("--seed", type=int, help="seed of the held-out rays")
+    p.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
+    p.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
+    _add_common(p)
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("convert", help="train models for a scene's complex objects; write a scene that uses them")
+    p.add_argument("scene", help="scene file or builtin:NAME")
+    p.add_argument("-o", "--output", required=True, help="converted scene file (.toml/.json)")
+    p.add_argument("--models-dir", help="where models are written and reused (default: OUTPUT's folder/models)")
+    p.add_argument("--select", metavar="NAMES", help="comma-separated object names to convert")
+    p.add_argument("--min-triangles", type=int, help="convert objects with at least this many triangles (default: 10000)")
+    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
+    p.add_argument("--group", action="store_true", help="one model for all selected objects together")
+    p.add_argument("--steps", type=int, help="training steps per model")
+    p.add_argument("--batch", type=int, help="rays per training step")
+    p.add_argument("--seed", type=int, help="training seed")
+    p.add_argument("--detail", type=int, help="procedural mesh detail of a built-in scene")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_common(p)
+    p.set_defaults(func=_cmd_convert)
+
+    p = sub.add_parser("demo", help="convert a built-in scene, render exact and hybrid, compare, write a report")
+    p.add_argument("--out", default="neuralrt-demo", help="report folder (default: ./neuralrt-demo)")
+    p.add_argument("--quick", action="store_true", help="a ~1 minute run: small model, small image")
+    p.add_argument("--scene", help="scene to convert (default: builtin:cornell-statue)")
+    p.add_argument("--preset", choices=["hq", "lq"], help="LSNIF preset (default: hq)")
+    p.add_argument("--spp", type=int, help="samples per pixel of each render")
+    p.add_argument("--res", type=_resolution, metavar="WxH", help="render resolution")
+    p.add_argument("--steps", type=int, help="training steps")
+    p.add_argument("--detail", type=int, help="procedural mesh detail of the built-in scene")
+    _add_common(p, json_flag=False)
+    p.set_defaults(func=_cmd_demo)
 
     return parser
 

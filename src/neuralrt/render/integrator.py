@@ -45,6 +45,9 @@ class IntegratorSettings:
     rr_depth: int = 3  # Russian roulette starts after this many bounces
     rr_max_survival: float = 0.95  # survival probability cap, so no path lives forever
     max_paths: int = 1 << 18  # paths per wavefront (memory bound; several samples per pixel fit when the image is small)
+    # Who answers camera rays for objects with both a mesh and a neural model: "exact" (the mesh,
+    # standing in for the paper's rasterized G-buffer) or "neural" (the model answers every ray).
+    primary: str = "exact"
 
 
 @dataclass
@@ -179,7 +182,7 @@ class PathTracer:
         for bounce in range(self.settings.max_depth + 1):
             first = bounce == 0
             # Find closest intersections along live rays
-            hits = self.scene.accel.intersect(paths.rays, camera_rays=first)
+            hits = self.scene.accel.intersect(paths.rays, camera_rays=first and self.settings.primary == "exact")
             self.handle_escaped(paths.select(~hits.hit), radiance, first)
             paths, hits = paths.select(hits.hit), hits[hits.hit]
             if paths.sample.numel() == 0:
@@ -209,15 +212,21 @@ def render(
     progress: bool = True,
     max_paths: int = 1 << 18,
     settings: IntegratorSettings | None = None,
+    primary: str | None = None,
 ) -> RenderResult:
     """Render ``scene`` (a `neuralrt.scene.Scene`) progressively and return the pixel means.
 
     ``spp`` / ``max_depth`` default to the scene's ``render`` settings; ``resolution`` (width,
     height) overrides the camera's. Samples are taken in passes of ``k`` samples per pixel, with
     ``k * pixels <= max_paths`` paths alive at once (at least one pixel row's worth); a progress
-    bar counts samples per pixel. ``device`` defaults to the scene's.
+    bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
+    "neural") picks who answers camera rays for neural objects that keep their mesh.
     """
     settings = settings or IntegratorSettings(max_paths=max_paths)
+    if primary is not None:
+        settings.primary = primary
+    if settings.primary not in ("exact", "neural"):
+        raise ValueError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     spp = int(spp if spp is not None else scene.settings.spp)
     settings.max_depth = int(max_depth if max_depth is not None else scene.settings.max_depth)
     if spp < 1 or settings.max_depth < 1:
