@@ -8,13 +8,19 @@ import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
-from ..rays import AABB, Hits, Rays, valid_ray_mask
+from ..rays import AABB, Hits, Rays
+from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
 
 __all__ = ["MeshBLAS"]
 
-# Embree works in float32; "infinite" t_max is passed as a large finite value.
-_EMBREE_TFAR_MAX = 1e37
+# Stands in for a missing per-vertex attribute (the kernels take arrays, never None).
+_NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
+
+
+def _as_float32_numpy(x: Tensor) -> np.ndarray:
+    """A float32 CPU numpy view of ``x`` (no copy when it already is one)."""
+    return x.detach().cpu().numpy().astype(np.float32, copy=False)
 
 
 class MeshBLAS:
@@ -42,20 +48,22 @@ class MeshBLAS:
 
     # -- queries ---------------------------------------------------------------------------------
     def _embree_inputs(self, rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """float32 numpy origins (advanced to t_min), directions, tfar; valid mask; t_min."""
-        valid = valid_ray_mask(rays).cpu().numpy()
-        o = rays.origins.detach().cpu().numpy().astype(np.float32, copy=False)
-        d = rays.directions.detach().cpu().numpy().astype(np.float32, copy=False)
-        t_min = rays.t_min.detach().cpu().numpy().astype(np.float32, copy=False)
-        t_max = rays.t_max.detach().cpu().numpy().astype(np.float32, copy=False)
-        # Embree always starts at tnear = 0: move the origin to t_min instead.
-        # Invalid rays become harmless placeholders (reported as misses below).
-        direction = np.where(valid[:, None], d, [1.0, 0.0, 0.0]).astype(np.float32)
-        start = np.where(valid & np.isfinite(t_min), t_min, 0).astype(np.float32)
-        shifted = np.where(valid[:, None], o, 0).astype(np.float32) + start[:, None] * direction
-        tfar = np.where(valid, np.minimum(t_max - t_min, _EMBREE_TFAR_MAX), -1.0).astype(np.float32)
-        tfar = np.where(valid & ~np.isfinite(tfar), _EMBREE_TFAR_MAX, tfar).astype(np.float32)
-        return np.ascontiguousarray(shifted), np.ascontiguousarray(direction), np.ascontiguousarray(tfar), valid, t_min
+        """float32 numpy origins (advanced to t_min), directions, tfar; valid mask; t_min.
+
+        Invalid rays become harmless placeholders (origin 0, direction +x, tfar -1): misses.
+        """
+        o, d, t_min, t_max = (_as_float32_numpy(x) for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
+        n = len(o)
+        shifted = np.empty((n, 3), np.float32)
+        tfar = np.empty(n, np.float32)
+        valid = np.empty(n, np.bool_)
+        n_invalid = kernels.prepare_embree_rays(o, d, t_min, t_max, shifted, tfar, valid)
+        if n_invalid or not d.flags.c_contiguous:
+            # Embree gets no NaN/zero directions; valid rays keep theirs (no copy when all are).
+            direction = np.empty((n, 3), np.float32)
+            kernels.placeholder_directions(d, valid, direction)
+            d = direction
+        return shifted, d, tfar, valid, t_min
 
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
@@ -63,35 +71,27 @@ class MeshBLAS:
         if n == 0:
             return Hits.empty(0, rays.device)
         o, d, tfar, valid, t_min = self._embree_inputs(rays)
-        res = self._scene.run(o, d, dists=tfar.copy(), output=1)  # embreex writes into dists
-        prim = res["primID"].astype(np.int64)
-        hit = (prim >= 0) & valid
-        prim = np.where(hit, prim, -1)
-        t = np.where(hit, res["tfar"] + t_min, np.inf).astype(np.float32)
+        res = self._scene.run(o, d, dists=tfar, output=1)  # embreex writes the hit distance into dists
 
         m = self.mesh
-        idx = np.nonzero(hit)[0]
-        faces = m.faces[prim[idx]]
-        # Embree's (u, v) weight vertices 1 and 2 of the triangle.
-        bu, bv = res["u"][idx, None], res["v"][idx, None]
-        bw = 1.0 - bu - bv
-
-        def interp(attr: np.ndarray) -> np.ndarray:
-            return bw * attr[faces[:, 0]] + bu * attr[faces[:, 1]] + bv * attr[faces[:, 2]]
-
-        normal = np.zeros((n, 3), np.float32)
-        geo = np.zeros((n, 3), np.float32)
-        uv = np.zeros((n, 2), np.float32)
-        albedo = np.ones((n, 3), np.float32)
-        mat = np.full(n, -1, np.int64)
-        geo[idx] = self._face_normals[prim[idx]]
-        sn = interp(m.vertex_normals)
-        length = np.linalg.norm(sn, axis=1, keepdims=True)
-        normal[idx] = np.where(length > 1e-12, sn / np.maximum(length, 1e-12), geo[idx])
-        mat[idx] = m.face_material_ids[prim[idx]]
-        if m.uvs is not None:
-            uv[idx] = interp(m.uvs)
-        albedo[idx] = self._surface_albedo(mat[idx], uv[idx], interp(m.vertex_colors) if m.vertex_colors is not None else None)
+        textured = any(material.texture is not None for material in m.materials)
+        hit = np.empty(n, np.bool_)
+        t = np.empty(n, np.float32)
+        normal = np.empty((n, 3), np.float32)
+        geo = np.empty((n, 3), np.float32)
+        uv = np.empty((n, 2), np.float32)
+        albedo = np.empty((n, 3), np.float32)
+        mat = np.empty(n, np.int64)
+        prim = np.empty(n, np.int64)
+        kernels.closest_hit_attributes(
+            res["primID"], res["tfar"], res["u"], res["v"], valid, t_min,
+            m.faces, self._face_normals, m.vertex_normals, m.face_material_ids,
+            m.uvs if m.uvs is not None else _NO_ATTRIBUTE, m.vertex_colors if m.vertex_colors is not None else _NO_ATTRIBUTE,
+            self._material_albedo(), m.uvs is not None, m.vertex_colors is not None, not textured,
+            hit, t, normal, geo, uv, albedo, mat, prim,
+        )  # fmt: skip
+        if textured:
+            self._apply_textures_(albedo, hit, mat, uv, prim, res["u"], res["v"])
 
         dev = rays.device
         return Hits(
@@ -111,23 +111,35 @@ class MeshBLAS:
         if len(rays) == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
         o, d, tfar, valid, _ = self._embree_inputs(rays)
-        geom = self._scene.run(o, d, dists=tfar.copy(), query="OCCLUDED")
-        return torch.from_numpy((geom >= 0) & valid).to(rays.device)
+        geom = self._scene.run(o, d, dists=tfar, query="OCCLUDED")
+        blocked = np.empty(len(valid), np.bool_)
+        kernels.occlusion_result(geom, valid, blocked)
+        return torch.from_numpy(blocked).to(rays.device)
 
-    def _surface_albedo(self, mat: np.ndarray, uv: np.ndarray, vertex_color: np.ndarray | None) -> np.ndarray:
-        """Base colour x texture (bilinear, wrapped) x vertex colour, per hit."""
+    def _material_albedo(self) -> np.ndarray:
+        """[M, 3] float32 base colour per material (read per call: materials may be edited)."""
+        return np.stack([np.asarray(x.base_color, np.float32).reshape(3) for x in self.mesh.materials])
+
+    def _apply_textures_(self, albedo, hit, mat, uv, prim, bary_u, bary_v) -> None:
+        """Textured meshes: multiply the base colours in ``albedo`` by texture (and vertex colour)
+        at the hits, then clip, in place (the kernel left these steps to us)."""
         m = self.mesh
-        base = np.stack([np.asarray(x.base_color, np.float32) for x in m.materials])
-        albedo = base[np.clip(mat, 0, len(base) - 1)]
+        idx = np.nonzero(hit)[0]
+        hit_mat, hit_uv = mat[idx], uv[idx]
+        colour = albedo[idx]
         for k, material in enumerate(m.materials):
             if material.texture is None:
                 continue
-            sel = mat == k
+            sel = hit_mat == k
             if sel.any():
-                albedo[sel] *= sample_texture_bilinear(material.texture, uv[sel])
-        if vertex_color is not None:
-            albedo *= vertex_color
-        return np.clip(albedo, 0.0, 1.0).astype(np.float32)
+                colour[sel] *= sample_texture_bilinear(material.texture, hit_uv[sel])
+        if m.vertex_colors is not None:
+            faces = m.faces[prim[idx]]
+            bu, bv = bary_u[idx, None], bary_v[idx, None]
+            bw = 1.0 - bu - bv
+            vc = m.vertex_colors
+            colour *= bw * vc[faces[:, 0]] + bu * vc[faces[:, 1]] + bv * vc[faces[:, 2]]
+        albedo[idx] = np.clip(colour, 0.0, 1.0)
 
     # -- memory ------------------------------------------------------------------------------------
     def memory_bytes(self) -> MemoryReport:
