@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 from . import __version__, api
 from .errors import NeuralRTError
@@ -98,7 +97,6 @@ def _cmd_demo(args) -> None:
           f"PSNR {report['psnr']:.2f} dB; neural {m['neural_bytes'] / 2**20:.2f} MiB vs BVH A "
           f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; train {t['train_s']:.0f} s, exact {t['exact_render_s']:.1f} s, "
           f"hybrid {t['hybrid_render_s']:.1f} s")
-    print(f"report: {Path(args.out).resolve() / 'report.md'}")
 
 
 def _add_common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:

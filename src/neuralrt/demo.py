@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import platform
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ class DemoSettings:
     steps: int | None = None  # training steps (None: the preset's CPU default)
     batch: int | None = None  # training rays per step (None: the preset's CPU default)
     detail: int | None = None  # procedural mesh detail of the built-in scene (None: its default)
+    min_triangles: int | None = None  # objects this large become neural (None: the converter's default)
     resolution: tuple[int, int] = (256, 256)
     spp: int = 64
     max_depth: int = 4
@@ -96,6 +97,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     from .accel.classical_memory import classical_memory
     from .eval.image_metrics import compare_images, write_srgb_png
     from .io.images import linear_to_srgb, tone_map
+    from .methods import load_model
     from .render.integrator import render
     from .scene.convert import convert_scene
     from .scene.loader import load_scene
@@ -110,7 +112,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
 
     say(f"[1/4] converting {s.scene} (LSNIF {s.preset}) ...")
     conversion = convert_scene(s.scene, out / "scene_neural.toml", models_dir=out / "models", preset=s.preset,
-                               steps=s.steps, batch=s.batch, detail=s.detail, device=device, progress=progress)
+                               steps=s.steps, batch=s.batch, detail=s.detail, min_triangles=s.min_triangles,
+                               device=device, progress=progress)
 
     say("[2/4] rendering exact (two seeds, for the noise floor) and hybrid ...")
     exact_scene = load_scene(s.scene, device=device, resolution=s.resolution, detail=s.detail)
@@ -132,8 +135,6 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     say("[4/4] memory accounting ...")
     neural_bytes = bvh_a = bvh_b = triangles = 0
     for record in conversion.models:
-        from .methods import load_model
-
         neural_bytes += load_model(record.model_path).memory_bytes().total
     converted_meshes = {id(inst.camera_blas): inst.camera_blas for inst in hybrid_scene.accel.instances
                         if inst.camera_blas is not None}

@@ -1,0 +1,38 @@
+"""`neuralrt demo` end to end on a tiny configuration: every file of the report exists and is sane."""
+
+import json
+
+from PIL import Image
+
+from neuralrt.cli import main
+from neuralrt.demo import DEMO_QUICK
+
+
+def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
+    # Shrink the quick preset further so CI stays fast; the pipeline is the same.
+    import neuralrt.demo as demo
+
+    tiny = demo.DemoSettings(steps=40, batch=2048, detail=0, min_triangles=1000, resolution=(32, 24), spp=2,
+                             max_depth=2)
+    monkeypatch.setattr(demo, "DEMO_QUICK", tiny)
+    out = tmp_path / "report"
+    assert main(["demo", "--quick", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "report:" in printed and "FLIP" in printed
+
+    report = json.loads((out / "report.json").read_text())
+    for key in ("flip", "psnr", "flip_noise_floor"):
+        assert isinstance(report[key], float)
+    assert 0 <= report["flip"] <= 1
+    mem = report["memory"]
+    assert mem["neural_bytes"] > 0 and mem["bvh_a_bytes"] > 0 and mem["bvh_b_bytes"] > 0
+    t = report["time"]
+    assert t["train_s"] > 0 and t["exact_render_s"] > 0 and t["hybrid_render_s"] > 0
+    assert report["neural_objects"] == 1 and report["settings"]["resolution"] == [32, 24]
+    for name in report["images"].values():
+        assert (out / name).is_file(), name
+    for png in ("exact.png", "hybrid.png", "flip.png"):
+        assert Image.open(out / png).size == (32, 24)
+    assert Image.open(out / "side_by_side.png").size[0] == 3 * 32
+    assert "FLIP hybrid vs exact" in (out / "report.md").read_text()
+    assert DEMO_QUICK.resolution[0] >= 64  # the real quick preset is untouched
