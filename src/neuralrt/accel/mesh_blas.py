@@ -3,6 +3,10 @@ ground truth every neural model is trained against."""
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -18,9 +22,61 @@ __all__ = ["MeshBLAS"]
 _NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
 
 
-def _as_float32_numpy(x: Tensor) -> np.ndarray:
-    """A float32 CPU numpy view of ``x`` (no copy when it already is one)."""
-    return x.detach().cpu().numpy().astype(np.float32, copy=False)
+# Rays per chunk: enough to amortise a thread hand-off (~50 us), few enough to balance the
+# threads and keep a chunk's Embree results in cache for the attribute pass.
+_CHUNK_RAYS = 1 << 15
+_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (process id, workers, pool)
+
+
+def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """float32 CPU numpy views of origins, directions, t_min, t_max (no copies on CPU)."""
+    return tuple(x.detach().cpu().numpy().astype(np.float32, copy=False)
+                 for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
+
+
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """One shared pool per process (a forked child must not reuse its parent's dead threads)."""
+    global _pool
+    if _pool is None or _pool[0] != os.getpid() or _pool[1] != workers:
+        _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, thread_name_prefix="neuralrt-embree"))
+    return _pool[2]
+
+
+def _run_in_chunks(trace, n: int, threads: int | None) -> None:
+    """``trace(slice)`` over consecutive chunks of ``range(n)``, on ``threads`` threads.
+
+    Embree and our kernels release the GIL, so the chunks really run in parallel; each chunk
+    writes its own rows of the outputs, so the result does not depend on the thread count.
+    """
+    threads = max(1, numba.get_num_threads() if threads is None else int(threads))
+    chunks = [slice(s, min(n, s + _CHUNK_RAYS)) for s in range(0, n, _CHUNK_RAYS)]
+    if threads == 1 or len(chunks) == 1:
+        for chunk in chunks:
+            trace(chunk)
+        return
+    for future in [_thread_pool(threads).submit(trace, chunk) for chunk in chunks]:
+        future.result()  # re-raises a worker's exception here
+
+
+class _HitArrays:
+    """Uninitialised numpy outputs of `MeshBLAS.intersect`; the kernel fills every row."""
+
+    def __init__(self, n: int, barycentrics: bool):
+        self.hit = np.empty(n, np.bool_)
+        self.t = np.empty(n, np.float32)
+        self.normal = np.empty((n, 3), np.float32)
+        self.geo = np.empty((n, 3), np.float32)
+        self.uv = np.empty((n, 2), np.float32)
+        self.albedo = np.empty((n, 3), np.float32)
+        self.mat = np.empty(n, np.int64)
+        self.prim = np.empty(n, np.int64)
+        # Embree's (u, v), kept only where textures are applied afterwards.
+        self.bary_u = np.empty(n if barycentrics else 0, np.float32)
+        self.bary_v = np.empty(n if barycentrics else 0, np.float32)
+
+    def records(self) -> tuple[np.ndarray, ...]:
+        """The kernel's outputs, in its argument order."""
+        return self.hit, self.t, self.normal, self.geo, self.uv, self.albedo, self.mat, self.prim
 
 
 class MeshBLAS:
@@ -30,29 +86,32 @@ class MeshBLAS:
     directions, zero directions or empty intervals are reported as misses.
     """
 
-    def __init__(self, mesh: Mesh):
+    def __init__(self, mesh: Mesh, threads: int | None = None):
         from embreex import mesh_construction, rtcore_scene
 
         self.mesh = mesh
         self._scene = rtcore_scene.EmbreeScene()
         mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(mesh.triangles(), dtype=np.float32))
+        # embreex builds the BVH lazily on the first query, unsafely if several threads query at
+        # once: build it now, with one ray, on this thread.
+        self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), dists=np.zeros(1, np.float32))
         lo, hi = mesh.bounds
         self.bounds = AABB(torch.from_numpy(lo.copy()), torch.from_numpy(hi.copy()))
         # Offset for secondary rays: a few float32 ulps of the object's extent.
         self.secondary_offset = float(1e-4 * max(self.bounds.diagonal, 1e-12))
         self._face_normals = mesh.face_normals()
+        self.threads = threads  # chunks of rays traced in parallel; None: numba.get_num_threads()
         self._memory: MemoryReport | None = None
 
     def __repr__(self) -> str:
         return f"MeshBLAS({self.mesh.name!r}, {self.mesh.num_triangles} triangles)"
 
     # -- queries ---------------------------------------------------------------------------------
-    def _embree_inputs(self, rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """float32 numpy origins (advanced to t_min), directions, tfar; valid mask; t_min.
+    def _embree_inputs(self, o, d, t_min, t_max) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Embree's view of float32 numpy rays: origins advanced to t_min, directions, tfar; valid.
 
         Invalid rays become harmless placeholders (origin 0, direction +x, tfar -1): misses.
         """
-        o, d, t_min, t_max = (_as_float32_numpy(x) for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
         n = len(o)
         shifted = np.empty((n, 3), np.float32)
         tfar = np.empty(n, np.float32)
@@ -63,57 +122,64 @@ class MeshBLAS:
             direction = np.empty((n, 3), np.float32)
             kernels.placeholder_directions(d, valid, direction)
             d = direction
-        return shifted, d, tfar, valid, t_min
+        return shifted, d, tfar, valid
 
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
         n = len(rays)
         if n == 0:
             return Hits.empty(0, rays.device)
-        o, d, tfar, valid, t_min = self._embree_inputs(rays)
-        res = self._scene.run(o, d, dists=tfar, output=1)  # embreex writes the hit distance into dists
-
         m = self.mesh
+        rays_np = _rays_as_numpy(rays)
         textured = any(material.texture is not None for material in m.materials)
-        hit = np.empty(n, np.bool_)
-        t = np.empty(n, np.float32)
-        normal = np.empty((n, 3), np.float32)
-        geo = np.empty((n, 3), np.float32)
-        uv = np.empty((n, 2), np.float32)
-        albedo = np.empty((n, 3), np.float32)
-        mat = np.empty(n, np.int64)
-        prim = np.empty(n, np.int64)
-        kernels.closest_hit_attributes(
-            res["primID"], res["tfar"], res["u"], res["v"], valid, t_min,
-            m.faces, self._face_normals, m.vertex_normals, m.face_material_ids,
-            m.uvs if m.uvs is not None else _NO_ATTRIBUTE, m.vertex_colors if m.vertex_colors is not None else _NO_ATTRIBUTE,
-            self._material_albedo(), m.uvs is not None, m.vertex_colors is not None, not textured,
-            hit, t, normal, geo, uv, albedo, mat, prim,
-        )  # fmt: skip
-        if textured:
-            self._apply_textures_(albedo, hit, mat, uv, prim, res["u"], res["v"])
+        material_albedo = self._material_albedo()
+        uvs = m.uvs if m.uvs is not None else _NO_ATTRIBUTE
+        colors = m.vertex_colors if m.vertex_colors is not None else _NO_ATTRIBUTE
+        out = _HitArrays(n, barycentrics=textured)
 
+        def trace(chunk: slice) -> None:
+            o, d, t_min, t_max = (x[chunk] for x in rays_np)
+            o, d, tfar, valid = self._embree_inputs(o, d, t_min, t_max)
+            res = self._scene.run(o, d, dists=tfar, output=1)  # embreex writes the hit distance into dists
+            kernels.closest_hit_attributes(
+                res["primID"], res["tfar"], res["u"], res["v"], valid, t_min,
+                m.faces, self._face_normals, m.vertex_normals, m.face_material_ids, uvs, colors,
+                material_albedo, m.uvs is not None, m.vertex_colors is not None, not textured,
+                *(x[chunk] for x in out.records()),
+            )  # fmt: skip
+            if textured:
+                out.bary_u[chunk], out.bary_v[chunk] = res["u"], res["v"]
+
+        _run_in_chunks(trace, n, self.threads)
+        if textured:
+            self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
         dev = rays.device
         return Hits(
-            hit=torch.from_numpy(hit).to(dev),
-            t=torch.from_numpy(t).to(dev),
-            normal=torch.from_numpy(normal).to(dev),
-            geometric_normal=torch.from_numpy(geo).to(dev),
-            uv=torch.from_numpy(uv).to(dev),
-            albedo=torch.from_numpy(albedo).to(dev),
-            material_id=torch.from_numpy(mat).to(dev),
-            primitive_id=torch.from_numpy(prim).to(dev),
+            hit=torch.from_numpy(out.hit).to(dev),
+            t=torch.from_numpy(out.t).to(dev),
+            normal=torch.from_numpy(out.normal).to(dev),
+            geometric_normal=torch.from_numpy(out.geo).to(dev),
+            uv=torch.from_numpy(out.uv).to(dev),
+            albedo=torch.from_numpy(out.albedo).to(dev),
+            material_id=torch.from_numpy(out.mat).to(dev),
+            primitive_id=torch.from_numpy(out.prim).to(dev),
             instance_id=torch.full((n,), -1, dtype=torch.int64, device=dev),
         )
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any triangle lie within (t_min, t_max)?"""
-        if len(rays) == 0:
+        n = len(rays)
+        if n == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
-        o, d, tfar, valid, _ = self._embree_inputs(rays)
-        geom = self._scene.run(o, d, dists=tfar, query="OCCLUDED")
-        blocked = np.empty(len(valid), np.bool_)
-        kernels.occlusion_result(geom, valid, blocked)
+        rays_np = _rays_as_numpy(rays)
+        blocked = np.empty(n, np.bool_)
+
+        def trace(chunk: slice) -> None:
+            o, d, tfar, valid = self._embree_inputs(*(x[chunk] for x in rays_np))
+            geom = self._scene.run(o, d, dists=tfar, query="OCCLUDED")
+            kernels.occlusion_result(geom, valid, blocked[chunk])
+
+        _run_in_chunks(trace, n, self.threads)
         return torch.from_numpy(blocked).to(rays.device)
 
     def _material_albedo(self) -> np.ndarray:

@@ -3,8 +3,9 @@ clamp t_far) and one after (hit mask, t, interpolated hit attributes).
 
 `MeshBLAS` spent more time in numpy/torch glue (a dozen temporaries per ray, 2-thread torch
 validation, gathers over index arrays) than Embree spent tracing. These passes read each input
-once and write each output once, in parallel over rays. All arithmetic stays in float32 and in the
-same order as the numpy code they replace, so results are bit-identical to it.
+once and write each output once. They release the GIL: `MeshBLAS` runs them, with Embree (which
+releases it too), on chunks of rays in parallel threads. All arithmetic stays in float32 and in the
+same order as the numpy code they replaced, so results are bit-identical to it.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ EMBREE_TFAR_MAX = np.float32(1e37)
 _NORMAL_EPS = np.float32(1e-12)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(nogil=True, cache=True)
 def prepare_embree_rays(origins, directions, t_min, t_max, shifted, tfar, valid) -> int:
     """Fill ``shifted`` [N,3] (origin moved to ``t_min``; Embree always starts at t = 0), ``tfar``
     [N] (interval length, -1 for invalid rays) and ``valid`` [N]; returns the number of invalid rays.
@@ -31,7 +32,7 @@ def prepare_embree_rays(origins, directions, t_min, t_max, shifted, tfar, valid)
     """
     n = origins.shape[0]
     n_invalid = 0
-    for i in numba.prange(n):
+    for i in range(n):
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         t0, t1 = t_min[i], t_max[i]
@@ -62,24 +63,24 @@ def prepare_embree_rays(origins, directions, t_min, t_max, shifted, tfar, valid)
     return n_invalid
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(nogil=True, cache=True)
 def placeholder_directions(directions, valid, out) -> None:
     """``out`` = ``directions`` with invalid rows replaced by (1, 0, 0), so Embree never sees NaN."""
-    for i in numba.prange(directions.shape[0]):
+    for i in range(directions.shape[0]):
         if valid[i]:
             out[i, 0], out[i, 1], out[i, 2] = directions[i, 0], directions[i, 1], directions[i, 2]
         else:
             out[i, 0], out[i, 1], out[i, 2] = np.float32(1.0), np.float32(0.0), np.float32(0.0)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(nogil=True, cache=True)
 def occlusion_result(geom_id, valid, out) -> None:
     """``out`` = Embree reported a blocker (geomID >= 0) on a valid ray."""
-    for i in numba.prange(geom_id.shape[0]):
+    for i in range(geom_id.shape[0]):
         out[i] = geom_id[i] >= 0 and valid[i]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(nogil=True, cache=True)
 def closest_hit_attributes(
     prim_id, tfar, bary_u, bary_v, valid, t_min,
     faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
@@ -99,7 +100,7 @@ def closest_hit_attributes(
     n_materials = material_albedo.shape[0]
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    for i in numba.prange(n):
+    for i in range(n):
         p = prim_id[i]
         if p < 0 or not valid[i]:
             hit[i] = False

@@ -1,0 +1,130 @@
+"""MeshBLAS's fused kernels and threaded chunks against a plain numpy reference of the same query."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from neuralrt import Mesh, MeshBLAS, Rays
+from neuralrt.accel import mesh_blas
+from neuralrt.accel.mesh_blas import sample_texture_bilinear
+from neuralrt.geometry.mesh import MeshMaterial
+
+
+def reference_intersect(blas: MeshBLAS, rays: Rays) -> dict[str, np.ndarray]:
+    """Unfused numpy: validate, shift origins to t_min, one Embree call, interpolate attributes."""
+    o, d, t_min, t_max = (x.numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
+    valid = (np.isfinite(o).all(1) & np.isfinite(d).all(1) & (np.abs(d).max(1) > 0)
+             & ~np.isnan(t_min) & ~np.isnan(t_max) & (t_max > t_min))  # fmt: skip
+    direction = np.where(valid[:, None], d, [1.0, 0.0, 0.0]).astype(np.float32)
+    start = np.where(valid & np.isfinite(t_min), t_min, 0).astype(np.float32)
+    shifted = (np.where(valid[:, None], o, 0).astype(np.float32) + start[:, None] * direction).astype(np.float32)
+    tfar = np.where(valid, np.minimum(t_max - t_min, np.float32(1e37)), -1.0).astype(np.float32)
+    tfar = np.where(valid & ~np.isfinite(tfar), np.float32(1e37), tfar).astype(np.float32)
+    res = blas._scene.run(shifted, direction, dists=tfar, output=1)
+    prim = res["primID"].astype(np.int64)
+    hit = (prim >= 0) & valid
+    prim = np.where(hit, prim, -1)
+    m, idx = blas.mesh, np.nonzero(hit)[0]
+    faces = m.faces[prim[idx]]
+    bu, bv = res["u"][idx, None], res["v"][idx, None]
+    bw = 1.0 - bu - bv
+
+    def interp(attr):
+        return bw * attr[faces[:, 0]] + bu * attr[faces[:, 1]] + bv * attr[faces[:, 2]]
+
+    n = len(o)
+    out = {"hit": hit, "t": np.where(hit, res["tfar"] + t_min, np.inf).astype(np.float32), "primitive_id": prim,
+           "normal": np.zeros((n, 3), np.float32), "geometric_normal": np.zeros((n, 3), np.float32),
+           "uv": np.zeros((n, 2), np.float32), "albedo": np.ones((n, 3), np.float32),
+           "material_id": np.full(n, -1, np.int64)}  # fmt: skip
+    geo = m.face_normals()[prim[idx]]
+    out["geometric_normal"][idx] = geo
+    sn = interp(m.vertex_normals)
+    length = np.linalg.norm(sn, axis=1, keepdims=True)
+    out["normal"][idx] = np.where(length > 1e-12, sn / np.maximum(length, 1e-12), geo)
+    mat = m.face_material_ids[prim[idx]].astype(np.int64)
+    out["material_id"][idx] = mat
+    if m.uvs is not None:
+        out["uv"][idx] = interp(m.uvs)
+    base = np.stack([np.asarray(x.base_color, np.float32) for x in m.materials])
+    albedo = base[np.clip(mat, 0, len(base) - 1)]
+    for k, material in enumerate(m.materials):
+        if material.texture is not None and (mat == k).any():
+            albedo[mat == k] *= sample_texture_bilinear(material.texture, out["uv"][idx][mat == k])
+    if m.vertex_colors is not None:
+        albedo *= interp(m.vertex_colors)
+    out["albedo"][idx] = np.clip(albedo, 0, 1)
+    return out
+
+
+def _mesh(kind: str) -> Mesh:
+    rng = np.random.default_rng(5)
+    s = trimesh.creation.icosphere(subdivisions=3)
+    v, f = s.vertices, s.faces
+    textured = MeshMaterial("tex", np.array([0.8, 0.5, 1.3], np.float32), rng.uniform(size=(8, 16, 3)).astype(np.float32))
+    materials = [MeshMaterial("a", np.array([1.4, 0.2, 0.6], np.float32)), textured, MeshMaterial("b")]
+    face_mats = rng.integers(-1, 4, len(f))  # includes ids outside the table: clipped for the albedo
+    uvs = rng.uniform(-2, 2, (len(v), 2))
+    colors = rng.uniform(0, 1.5, (len(v), 3))
+    if kind == "plain":
+        return Mesh(v, f)
+    if kind == "colours":
+        return Mesh(v, f, uvs=uvs, vertex_colors=colors, face_material_ids=face_mats, materials=materials[::2])
+    normals = np.where(rng.uniform(size=(len(v), 1)) < 0.3, 0.0, s.vertex_normals)  # some vanish
+    return Mesh(v, f, vertex_normals=normals, uvs=uvs, vertex_colors=colors, face_material_ids=face_mats, materials=materials)
+
+
+def _rays(n: int, seed: int) -> Rays:
+    """Rays around a unit sphere, with every kind of invalid ray and interval spread through."""
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3)) * 1.5
+    d = rng.uniform(-1, 1, (n, 3)) - o  # towards the sphere's box
+    t_min = np.where(rng.uniform(size=n) < 0.3, rng.uniform(-1, 2, n), 0.0)
+    t_max = np.where(rng.uniform(size=n) < 0.3, rng.uniform(0, 4, n), np.inf)
+    bad = rng.permutation(n)[:700].reshape(7, 100)
+    o[bad[0], 0] = np.nan
+    d[bad[1], 1] = np.inf
+    d[bad[2]] = 0.0
+    t_min[bad[3]] = np.nan
+    t_max[bad[4]] = np.nan
+    t_min[bad[5]] = -np.inf  # valid: starts at the origin
+    t_max[bad[6]] = -1.0  # empty interval
+    return Rays(*(torch.from_numpy(np.asarray(x, np.float32)) for x in (o, d, t_min, t_max)))
+
+
+@pytest.mark.parametrize("kind", ["plain", "colours", "textured"])
+def test_intersect_bit_identical_to_numpy_reference(kind):
+    rays = _rays(3 * mesh_blas._CHUNK_RAYS + 123, seed=1)  # several chunks, a partial last one
+    blas = MeshBLAS(_mesh(kind), threads=2)
+    got, ref = blas.intersect(rays), reference_intersect(blas, rays)
+    assert 0.2 < ref["hit"].mean() < 0.8
+    for name, expected in ref.items():
+        value = getattr(got, name).numpy()
+        assert value.dtype == expected.dtype, name
+        np.testing.assert_array_equal(value, expected, err_msg=name)
+    assert (got.instance_id == -1).all()
+    assert torch.equal(blas.occluded(rays), torch.from_numpy(ref["hit"]))
+
+
+def test_thread_count_does_not_change_results():
+    mesh, rays = _mesh("colours"), _rays(2 * mesh_blas._CHUNK_RAYS + 7, seed=2)
+    one, four = MeshBLAS(mesh, threads=1), MeshBLAS(mesh, threads=4)
+    a, b = one.intersect(rays), four.intersect(rays)
+    for name in ("hit", "t", "normal", "uv", "albedo", "material_id", "primitive_id"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert torch.equal(one.occluded(rays), four.occluded(rays))
+
+
+def test_strided_inputs_match_contiguous():
+    blas = MeshBLAS(_mesh("plain"))
+    rays = _rays(5000, seed=3)
+    strided = Rays(rays.origins.t().contiguous().t(), rays.directions.t().contiguous().t(), rays.t_min, rays.t_max)
+    assert not strided.directions.is_contiguous()
+    a, b = blas.intersect(rays), blas.intersect(strided)
+    assert torch.equal(a.t, b.t) and torch.equal(a.primitive_id, b.primitive_id)
+    shared_direction = Rays(rays.origins, torch.tensor([[0.3, -0.2, 1.0]]).expand(5000, 3))  # stride 0
+    assert torch.equal(
+        blas.intersect(shared_direction).t,
+        blas.intersect(Rays(rays.origins, shared_direction.directions.contiguous())).t,
+    )
