@@ -65,30 +65,31 @@ def _axis_terms(p, res, fixed, prime):
     The hash is ``x*P0 ^ y*P1 ^ z*P2``, so each axis contributes its own term. On the fixed
     (face-normal) axis the point lies on a grid plane: round onto it, both terms equal, weight 0.
     """
-    f = np.float64(p) * res
+    f = p * np.float32(res)  # float32 throughout: exact for power-of-two resolutions, and faster
     if fixed:
         i = min(max(int(np.rint(f)), 0), res)
         h = np.int64(i) * prime
-        return h, h, 0.0
+        return h, h, np.float32(0.0)
     i = min(max(int(np.floor(f)), 0), res - 1)
-    return np.int64(i) * prime, np.int64(i + 1) * prime, f - i
+    return np.int64(i) * prime, np.int64(i + 1) * prime, f - np.float32(i)
 
 
 @numba.njit(cache=True, inline="always")
 def _point_level(px, py, pz, code, res, mask, base, slots, weights):
     """Fill ``slots``/``weights`` with the table rows (offset by ``base``) a point reads; returns
     how many: 4 (bilinear on the face cell) for face points, 8 (trilinear) for origin points."""
+    one = np.float32(1.0)
     x0, x1, wx = _axis_terms(px, res, code == 0, _P0)
     y0, y1, wy = _axis_terms(py, res, code == 1, _P1)
     z0, z1, wz = _axis_terms(pz, res, code == 2, _P2)
     if code == _ORIGIN_POINT:
         k = 0
         for bz in range(2):
-            hz, fz = (z1, wz) if bz else (z0, 1.0 - wz)
+            hz, fz = (z1, wz) if bz else (z0, one - wz)
             for by in range(2):
-                hy, fy = (y1, wy) if by else (y0, 1.0 - wy)
+                hy, fy = (y1, wy) if by else (y0, one - wy)
                 for bx in range(2):
-                    hx, fx = (x1, wx) if bx else (x0, 1.0 - wx)
+                    hx, fx = (x1, wx) if bx else (x0, one - wx)
                     slots[k] = base + ((hx ^ hy ^ hz) & mask)
                     weights[k] = fx * fy * fz
                     k += 1
@@ -104,9 +105,9 @@ def _point_level(px, py, pz, code, res, mask, base, slots, weights):
     slots[1] = base + ((a ^ u1 ^ v0) & mask)
     slots[2] = base + ((a ^ u0 ^ v1) & mask)
     slots[3] = base + ((a ^ u1 ^ v1) & mask)
-    weights[0] = (1.0 - wu) * (1.0 - wv)
-    weights[1] = wu * (1.0 - wv)
-    weights[2] = (1.0 - wu) * wv
+    weights[0] = (one - wu) * (one - wv)
+    weights[1] = wu * (one - wv)
+    weights[2] = (one - wu) * wv
     weights[3] = wu * wv
     return 4
 
@@ -122,7 +123,7 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
     stride = n_levels * n_feat
     for chunk in numba.prange(n_chunks):
         slots = np.empty(8, np.int64)
-        weights = np.empty(8)
+        weights = np.empty(8, np.float32)
         for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
             for h in range(n_points):
                 code = axes[n, h]
@@ -135,7 +136,7 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
                     k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code,
                                      resolutions[lvl], mask, lvl * table_size, slots, weights)  # fmt: skip
                     for f in range(n_feat):
-                        acc = 0.0
+                        acc = np.float32(0.0)
                         for c in range(k):
                             acc += weights[c] * table[slots[c], f]
                         out[n, col + lvl * n_feat + f] = acc
@@ -155,7 +156,7 @@ def _backward_kernel(points, axes, grad_out, resolutions, grad_tables):
     for chunk in numba.prange(n_chunks):
         grad = grad_tables[chunk]
         slots = np.empty(8, np.int64)
-        weights = np.empty(8)
+        weights = np.empty(8, np.float32)
         for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
             for h in range(n_points):
                 code = axes[n, h]
