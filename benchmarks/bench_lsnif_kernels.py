@@ -1,0 +1,134 @@
+"""Throughput of the LSNIF kernels on one training-sized batch, against Embree on the same rays.
+
+For each mesh: voxelization time; `featurize_rays` (numba DDA), `SparseHashGrid` forward, and
+forward + backward on 2^16 rays from the LSNIF training distribution (half from outside, half
+from the surface), in rays/s and as a ratio to `MeshBLAS.intersect` (Embree) on the same rays in
+the same process (the machine is shared, so ratios are steadier than absolute rates). Also the
+featurization statistics (rays crossing an occupied voxel, points per ray, truncation at H,
+surface rays whose origin is a point) and the sparse grid's stored entries vs a dense grid.
+Best of ``--repeats`` runs. Prints a table and writes benchmarks/results/lsnif_kernels.json.
+
+    python benchmarks/bench_lsnif_kernels.py [MESH ...] [--rays 65536] [--repeats 5] [--threads 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import print_table, write_results  # noqa: E402
+
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
+from neuralrt.geometry.voxelize import voxelize_triangles  # noqa: E402
+from neuralrt.methods.lsnif_features import ORIGIN_POINT, featurize_rays  # noqa: E402
+from neuralrt.neural.sparse_hash_grid import SparseHashGrid, count_stored_entries  # noqa: E402
+from neuralrt.rays import AABB  # noqa: E402
+from neuralrt.training.samplers import LSNIFRaySampler  # noqa: E402
+
+SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+COLUMNS = ["mesh", "triangles", "threads", "H", "voxelize_ms", "featurize_Mrays/s", "encode_fwd_Mrays/s",
+           "encode_fwd_bwd_Mrays/s", "embree_Mrays/s", "featurize_vs_embree", "fwd_bwd_vs_embree",
+           "active_frac", "mean_points", "truncated_frac", "surface_origin_point_frac"]
+
+
+def best_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int) -> dict:
+    lo, hi = (torch.from_numpy(b.astype(np.float32)) for b in mesh.bounds)
+    pad = 0.01 * (hi - lo).max()
+    box = AABB(lo - pad, hi + pad)  # the slightly inflated AABB the model lives in
+    ext = box.hi - box.lo
+    unit_tris = (mesh.triangles().astype(np.float64) - box.lo.double().numpy()) / ext.double().numpy()
+    voxelize_triangles(unit_tris[:8], 32)  # compile
+    t_vox = best_time(lambda: voxelize_triangles(unit_tris, 32), max(1, repeats // 2))
+    occ = voxelize_triangles(unit_tris, 32)
+
+    blas = MeshBLAS(mesh)
+    sampler = LSNIFRaySampler(blas, box, pool_size=1 << 16, seed=0)
+    batch = sampler.sample(n_rays)
+    rays = batch.rays
+    o = ((rays.origins - box.lo) / ext).contiguous()
+    d = (rays.directions / ext).contiguous()
+
+    featurize_rays(o[:8], d[:8], occ, max_points)  # compile
+    t_feat = best_time(lambda: featurize_rays(o, d, occ, max_points), repeats)
+    t_embree = best_time(lambda: blas.intersect(rays), repeats)
+    fp = featurize_rays(o, d, occ, max_points)
+
+    grid = SparseHashGrid()
+    grid(fp.points[:8], fp.face_axis[:8]).sum().backward()  # compile
+    t_fwd = best_time(lambda: grid(fp.points, fp.face_axis), repeats)
+
+    def fwd_bwd():
+        out = grid(fp.points, fp.face_axis)
+        out.backward(torch.ones_like(out))
+        grid.table.grad = None
+
+    t_fb = best_time(fwd_bwd, repeats)
+    surface = batch.from_surface
+    stored = count_stored_entries(occ, grid.resolutions)
+    return {
+        "mesh": name,
+        "triangles": int(len(mesh.faces)),
+        "H": max_points,
+        "rays": n_rays,
+        "threads": numba.get_num_threads(),
+        "voxelize_ms": 1e3 * t_vox,
+        "occupied_voxels": int(occ.sum()),
+        "featurize_Mrays/s": n_rays / t_feat / 1e6,
+        "encode_fwd_Mrays/s": n_rays / t_fwd / 1e6,
+        "encode_fwd_bwd_Mrays/s": n_rays / t_fb / 1e6,
+        "embree_Mrays/s": n_rays / t_embree / 1e6,
+        "featurize_vs_embree": t_embree / t_feat,
+        "fwd_bwd_vs_embree": t_embree / t_fb,
+        "active_frac": float((fp.count > 0).float().mean()),
+        "mean_points": float(fp.count.float().mean()),
+        "truncated_frac": float(fp.truncated.float().mean()),
+        "truncated_frac_outside": float(fp.truncated[~surface].float().mean()),
+        "truncated_frac_surface": float(fp.truncated[surface].float().mean()),
+        "surface_origin_point_frac": float((fp.face_axis[surface, 0] == ORIGIN_POINT).float().mean()),
+        "stored_entries": stored["levels"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("meshes", nargs="*", help="mesh files (default: ../shared/meshes/bunny00.off)")
+    parser.add_argument("--rays", type=int, default=1 << 16)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, nargs="+", default=[0],
+                        help="numba/torch thread counts to run (default: all cores)")
+    parser.add_argument("--max-points", type=int, default=18)
+    args = parser.parse_args()
+    paths = [Path(p) for p in args.meshes] or [SHARED_MESHES / "bunny00.off"]
+    rows = []
+    for path in paths:
+        mesh = load_mesh(path)
+        for threads in args.threads:
+            threads = threads or numba.config.NUMBA_NUM_THREADS
+            numba.set_num_threads(threads)
+            torch.set_num_threads(threads)
+            rows.append(bench_mesh(path.stem, mesh, args.rays, args.repeats, args.max_points))
+            print_table(rows[-1:], COLUMNS)
+    out = write_results("lsnif_kernels", rows)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
