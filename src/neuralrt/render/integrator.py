@@ -59,8 +59,9 @@ class _Paths:
     throughput: Tensor  # [n, 3] path throughput so far
     prev_bsdf_pdf: Tensor  # [n] solid-angle pdf of the BSDF sample that produced `rays` (MIS)
 
-    def select(self, mask: Tensor) -> "_Paths":
-        return _Paths(self.rays[mask], self.sample[mask], self.throughput[mask], self.prev_bsdf_pdf[mask])
+    def select(self, index: Tensor) -> "_Paths":
+        """The paths at ``index`` (int64 indices or a bool mask)."""
+        return _Paths(self.rays[index], self.sample[index], self.throughput[index], self.prev_bsdf_pdf[index])
 
 
 @dataclass
@@ -84,6 +85,7 @@ class PathTracer:
         self.settings = settings
         self.materials = scene.materials
         self.lights = scene.lights
+        self._has_emitters = bool(self.materials.emissive_mask.any())
 
     # -- stage: camera rays ------------------------------------------------------------------------
     def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> _Paths:
@@ -118,6 +120,8 @@ class PathTracer:
 
     # -- stage: emission at hits -----------------------------------------------------------------------
     def emission_at_hits(self, paths: _Paths, hits: Hits, sh: _Shading, radiance: Tensor, first: bool) -> None:
+        if not self._has_emitters:
+            return
         le = self.materials.emission_of(hits.material_id) * sh.front[:, None]
         emits = le.amax(-1) > 0
         if not emits.any():
@@ -183,8 +187,9 @@ class PathTracer:
             first = bounce == 0
             # Find closest intersections along live rays
             hits = self.scene.accel.intersect(paths.rays, camera_rays=first and self.settings.primary == "exact")
-            self.handle_escaped(paths.select(~hits.hit), radiance, first)
-            paths, hits = paths.select(hits.hit), hits[hits.hit]
+            self.handle_escaped(paths.select(torch.nonzero(~hits.hit).reshape(-1)), radiance, first)
+            hit_idx = torch.nonzero(hits.hit).reshape(-1)  # index once, gather every field with it
+            paths, hits = paths.select(hit_idx), hits[hit_idx]
             if paths.sample.numel() == 0:
                 break
             sh = self.shading(paths, hits)
