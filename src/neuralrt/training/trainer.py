@@ -1,0 +1,187 @@
+"""The training loop shared by neural intersectors: Adam, progress bar, checkpoints, resume.
+
+A model plugs in by offering ``training_step(rays, truth) -> StepResult`` (loss plus hit/miss
+counts); a sampler by offering ``sample(n) -> TrainingBatch`` and ``state_dict``/
+``load_state_dict``. Checkpoints are `.nrt` files (method ``"checkpoint"``) holding the model's
+state, Adam's moments, the step, the RNG states and the sampler's surface pool, written
+atomically, so an interrupted run resumes where its last checkpoint left it, bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..errors import ModelFileError
+from ..io.model_file import read_model_file, write_model_file
+
+__all__ = ["TrainingRecord", "train_model", "CHECKPOINT_METHOD"]
+
+CHECKPOINT_METHOD = "checkpoint"
+
+
+@dataclass
+class TrainingRecord:
+    """What a training run did; stored in the model file's header."""
+
+    steps: int = 0
+    batch_size: int = 0
+    seconds: float = 0.0  # wall time spent in steps (summed over resumed sessions)
+    rays: int = 0  # rays drawn in total
+    network_rays: int = 0  # of those, rays that reached the network
+    rays_per_second: float = 0.0
+    final_loss: float = float("nan")  # mean over the last `window` steps
+    final_losses: dict = field(default_factory=dict)
+    hit_accuracy: float = float("nan")  # running hit/miss accuracy over the last `window` steps
+    truncated_fraction: float = float("nan")  # rays with more voxel-boundary points than H
+    resumed_from: int | None = None
+    window: int = 50
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class _Running:
+    """Means over the last ``window`` steps (for the progress bar and the record)."""
+
+    def __init__(self, window: int):
+        self.window, self.items = window, []
+
+    def add(self, **values) -> None:
+        self.items.append(values)
+        del self.items[: -self.window]
+
+    def mean(self, key: str) -> float:
+        vals = [v[key] for v in self.items if key in v]
+        return float(sum(vals) / len(vals)) if vals else float("nan")
+
+    def ratio(self, num: str, den: str) -> float:
+        d = sum(v[den] for v in self.items)
+        return float(sum(v[num] for v in self.items) / d) if d else float("nan")
+
+
+def _optimizer_arrays(opt: torch.optim.Optimizer) -> tuple[dict, dict[str, torch.Tensor]]:
+    state = opt.state_dict()
+    arrays, meta = {}, {"param_groups": state["param_groups"], "params": []}
+    for pid, s in state["state"].items():
+        meta["params"].append(pid)
+        for k, v in s.items():
+            arrays[f"adam.{pid}.{k}"] = torch.as_tensor(v).detach().cpu().clone()
+    return meta, arrays
+
+
+def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, torch.Tensor], device) -> None:
+    state = {}
+    for pid in meta["params"]:
+        prefix = f"adam.{pid}."
+        state[pid] = {k[len(prefix):]: v.to(device) if v.ndim else v for k, v in arrays.items() if k.startswith(prefix)}
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict) -> None:
+    sampler_meta, sampler_arrays = sampler.state_dict()
+    opt_meta, opt_arrays = _optimizer_arrays(opt)
+    arrays = {f"model.{k}": v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    arrays.update({f"sampler.{k}": v for k, v in sampler_arrays.items()})
+    arrays.update(opt_arrays)
+    arrays["torch_rng"] = torch.get_rng_state()
+    header = {"step": step, "identity": identity, "sampler": sampler_meta, "optimizer": opt_meta, "record": record.as_dict()}
+    write_model_file(path, CHECKPOINT_METHOD, header, arrays)
+
+
+def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) -> tuple[int, TrainingRecord]:
+    f = read_model_file(path, method=CHECKPOINT_METHOD)
+    if f.header.get("identity") != identity:
+        raise ModelFileError(f"{path}: checkpoint belongs to another run (different mesh or config); delete it or drop --resume")
+    state = {k[len("model."):]: v for k, v in f.arrays.items() if k.startswith("model.")}
+    dev = next(model.parameters()).device
+    model.load_state_dict({k: v.to(dev) for k, v in state.items()})
+    _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
+    sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
+    torch.set_rng_state(f.arrays["torch_rng"])
+    return int(f.header["step"]), TrainingRecord(**f.header["record"])
+
+
+def train_model(
+    model: nn.Module,
+    sampler,
+    *,
+    steps: int,
+    batch_size: int,
+    learning_rate: float,
+    adam_betas: tuple[float, float] = (0.9, 0.999),
+    adam_eps: float = 1e-8,
+    lr_decay_final: float = 1.0,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 200,
+    resume: bool = False,
+    identity: dict | None = None,
+    progress: bool = True,
+    description: str = "train",
+) -> TrainingRecord:
+    """Optimise ``model`` for ``steps`` batches from ``sampler``; returns the `TrainingRecord`.
+
+    With ``checkpoint``, state is saved every ``checkpoint_every`` steps and at the end; with
+    ``resume`` too, a run restarts from that file (which must come from the same ``identity``,
+    e.g. mesh hash and config). The learning rate decays exponentially to ``lr_decay_final``
+    times its start over the run (1 = constant).
+    """
+    from tqdm.auto import tqdm
+
+    opt = torch.optim.Adam(model.parameters(), lr=learning_rate, betas=tuple(adam_betas), eps=adam_eps)
+    gamma = lr_decay_final ** (1.0 / max(steps, 1))
+    identity = identity or {}
+    ckpt = Path(checkpoint) if checkpoint is not None else None
+    start, record = 0, TrainingRecord(batch_size=batch_size)
+    if ckpt is not None and resume and ckpt.exists():
+        start, record = load_checkpoint(ckpt, model, opt, sampler, identity)
+        record.resumed_from = start
+    running = _Running(record.window)
+    model.train()
+    bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
+    step = start
+    try:
+        for step in range(start, steps):
+            for g in opt.param_groups:
+                g["lr"] = learning_rate * gamma**step
+            t0 = time.perf_counter()
+            batch = sampler.sample(batch_size)
+            result = model.training_step(batch.rays, batch.truth)
+            opt.zero_grad(set_to_none=True)
+            result.loss.backward()
+            opt.step()
+            dt = time.perf_counter() - t0
+            record.seconds += dt
+            record.rays += result.count
+            record.network_rays += result.network_rays
+            running.add(loss=result.loss.item(), correct=result.correct, count=result.count,
+                        truncated=result.truncated, **{f"loss_{k}": v for k, v in result.parts.items()})
+            bar.update(1)
+            if progress and (step % 10 == 0 or step == steps - 1):
+                bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
+                                rays_s=f"{result.count / max(dt, 1e-9):.3g}")
+            if ckpt is not None and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
+                _finish(record, running, step + 1)
+                save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity)
+    finally:
+        bar.close()
+    _finish(record, running, steps if steps > start else start)
+    if ckpt is not None:
+        save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
+    model.eval()
+    return record
+
+
+def _finish(record: TrainingRecord, running: _Running, steps: int) -> None:
+    record.steps = steps
+    record.rays_per_second = record.rays / record.seconds if record.seconds > 0 else 0.0
+    record.final_loss = running.mean("loss")
+    keys = sorted({k for item in running.items for k in item if k.startswith("loss_")})
+    record.final_losses = {k[len("loss_"):]: running.mean(k) for k in keys}
+    record.hit_accuracy = running.ratio("correct", "count")
+    record.truncated_fraction = running.ratio("truncated", "count")
