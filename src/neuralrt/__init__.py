@@ -8,4 +8,26 @@ from .rays import AABB, Hits, Rays, Transform
 
 __version__ = "0.1.0"
 
-__all__ = ["AABB", "BLAS", "Hits", "Mesh", "MeshBLAS", "MemoryReport", "NeuralRTError", "Rays", "Transform", "load_mesh"]
+# Heavier parts (numba kernels, the training loop) load on first use.
+_LAZY = {
+    "load_model": ("neuralrt.methods", "load_model"),
+    "train_lsnif": ("neuralrt.training.api", "train_lsnif"),
+    "LSNIFModel": ("neuralrt.methods.lsnif", "LSNIFModel"),
+    "LSNIFBLAS": ("neuralrt.methods.lsnif", "LSNIFBLAS"),
+    "LSNIFConfig": ("neuralrt.methods.lsnif_config", "LSNIFConfig"),
+    "load_scene": ("neuralrt.scene.loader", "load_scene"),
+    "render": ("neuralrt.render.integrator", "render"),
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'neuralrt' has no attribute {name!r}")
+
+
+__all__ = ["AABB", "BLAS", "Hits", "Mesh", "MeshBLAS", "MemoryReport", "NeuralRTError", "Rays", "Transform",
+           "load_mesh", *_LAZY]
