@@ -158,16 +158,19 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
         shape = _shape_for(obj, shapes, label, key)
         blas, camera_blas = (shape.blas if shape else None), None
         if obj.model is not None:
+            if _uses_emissive(obj, shape, index, materials):
+                # Area lights are sampled from triangles, and MIS needs the triangle a BSDF ray hit.
+                raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
             if obj.model not in models:
                 models[obj.model] = _load_model(obj.model, label, key)
             blas, camera_blas = models[obj.model], (shape.blas if shape else None)
         slot_names = [m.name for m in shape.mesh.materials] if shape else list(getattr(blas, "material_names", None) or ["default"])
         material_map = [index[_scene_material_for(obj, name, index)] for name in slot_names]
+        if shape is None and bool(materials.emissive_mask[torch.tensor(material_map)].any()):
+            raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if shape else None)
-        if shape is None and bool(materials.emissive_mask[torch.tensor(material_map)].any()):
-            raise SceneError(f"{label}: {key}: an emissive object needs its mesh (area lights are sampled from triangles)")
 
     accel = SceneAccel(instances, device=dev)
     area = _area_lights(instances, meshes, materials, dev)
@@ -180,6 +183,13 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     camera = Camera.look_at(cam.position, cam.look_at, cam.up, cam.fov, cam.resolution)
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
                  instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev)
+
+
+def _uses_emissive(obj: ObjectSpec, shape: _Shape | None, index: dict[str, int], materials: MaterialTable) -> bool:
+    """Whether any of the object's faces get an emissive scene material (known before a model loads)."""
+    slots = [m.name for m in shape.mesh.materials] if shape else ["default"]
+    names = {_scene_material_for(obj, slot, index) for slot in slots}
+    return any(bool(materials.emissive_mask[index[n]]) for n in names)
 
 
 def _scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str:
