@@ -80,21 +80,24 @@ def _scene_info(spec: str) -> dict:
 
 
 def _model_info(path: Path) -> dict:
+    from .io.model_file import read_header
     from .methods import load_model
 
-    model = load_model(path)
-    report = model.memory_bytes()
-    header = getattr(model, "header", {}) or {}
+    header = read_header(path)
+    report = load_model(path).memory_bytes()
+    training = header.get("training") or {}
     return {
         "kind": "model",
         "path": str(path),
-        "method": header.get("method", type(model).__name__),
+        "method": header["method"],
+        "format_version": header["format_version"],
         "memory_bytes": report.total,
         "memory_parts": {k: int(v) for k, v in report.parts.items()},
-        "bounds": model.bounds.tolist(),
-        **{k: header[k] for k in ("format_version", "source_mesh_hash", "training") if k in header},
+        "bounds": header.get("bounds"),
+        "mesh_name": header.get("mesh_name"),
+        "mesh_sha256": header.get("mesh_sha256"),
+        "training": {k: training[k] for k in ("steps", "rays", "seconds", "hit_accuracy") if k in training},
     }
-
 
 
 def list_builtins() -> list[tuple[str, str]]:
