@@ -99,6 +99,15 @@ def _cmd_demo(args) -> None:
           f"hybrid {t['hybrid_render_s']:.1f} s")
 
 
+def _add_training(p: argparse.ArgumentParser) -> None:
+    """Options shared by everything that trains LSNIF models."""
+    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
+    p.add_argument("--steps", type=int, help="training steps per model (default: the preset's)")
+    p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
+    p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
 def _add_common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
     if json_flag:
@@ -144,12 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train an LSNIF model of a mesh")
     p.add_argument("mesh", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB)")
     p.add_argument("-o", "--output", required=True, help="model file to write (.nrt)")
-    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
-    p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
-    p.add_argument("--batch", type=int, help="rays per step (default: the preset's)")
-    p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_training(p)
     _add_common(p)
     p.set_defaults(func=_cmd_train)
 
@@ -169,13 +174,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models-dir", help="where models are written and reused (default: OUTPUT's folder/models)")
     p.add_argument("--select", metavar="NAMES", help="comma-separated object names to convert")
     p.add_argument("--min-triangles", type=int, help="convert objects with at least this many triangles (default: 10000)")
-    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
     p.add_argument("--group", action="store_true", help="one model for all selected objects together")
-    p.add_argument("--steps", type=int, help="training steps per model")
-    p.add_argument("--batch", type=int, help="rays per training step")
-    p.add_argument("--seed", type=int, help="training seed")
     p.add_argument("--detail", type=int, help="procedural mesh detail of a built-in scene")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_training(p)
     _add_common(p)
     p.set_defaults(func=_cmd_convert)
 
