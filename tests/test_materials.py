@@ -153,3 +153,23 @@ def test_discrete_distribution_and_triangle_sampling():
     assert torch.allclose(bary.mean(0), torch.full((3,), 1 / 3), atol=5e-3)  # centroid of uniform area samples
     with pytest.raises(ValueError):
         DiscreteDistribution(torch.zeros(3))
+
+
+def test_mixed_batch_equals_single_material_batches():
+    """One table, rows of every kind interleaved: each row matches a table holding only its material."""
+    specs = [(MaterialKind.DIFFUSE, 0.1), (MaterialKind.CONDUCTOR, 0.3), (MaterialKind.PLASTIC, 0.2), (MaterialKind.EMISSIVE, 0.1)]
+    table = MaterialTable([int(k) for k, _ in specs], [(0.7, 0.5, 0.3)] * 4, [r for _, r in specs], [1.5] * 4, [(0, 0, 0)] * 3 + [(1, 1, 1)])
+    n = 4000
+    g = torch.Generator().manual_seed(6)
+    mid = torch.randint(0, 4, (n,), generator=g)
+    wo, normal, _, albedo = _setup(n, 50.0)
+    u_lobe, u_dir = torch.rand(n, generator=g), torch.rand(n, 2, generator=g)
+    s = table.sample(mid, albedo, normal, wo, u_lobe, u_dir)
+    for k, (kind, rough) in enumerate(specs):
+        sel = mid == k
+        single = _table(kind, rough)
+        zero = torch.zeros(int(sel.sum()), dtype=torch.int64)
+        ref = single.sample(zero, albedo[sel], normal[sel], wo[sel], u_lobe[sel], u_dir[sel])
+        torch.testing.assert_close(s.wi[sel], ref.wi)
+        torch.testing.assert_close(s.weight[sel], ref.weight)
+        torch.testing.assert_close(table.pdf(mid, albedo, normal, wo, s.wi)[sel], single.pdf(zero, albedo[sel], normal[sel], wo[sel], ref.wi))

@@ -123,31 +123,44 @@ class MaterialTable:
         return self.kind[mid], self.roughness[mid], self.ior[mid]
 
     def _lobes(self, kind: Tensor, alpha: Tensor, ior: Tensor, albedo: Tensor, lo: Tensor, li: Tensor):
-        """Local-frame f*cos [N, 3] and pdf [N] for directions ``lo`` (out) and ``li`` (in)."""
+        """Local-frame f*cos [N, 3] and pdf [N] for directions ``lo`` (out) and ``li`` (in).
+
+        Diffuse rows take a short path; the GGX terms are computed only for glossy rows (conductor,
+        plastic), which keeps the op count low in mostly-diffuse scenes.
+        """
         cos_o, cos_i = lo[:, 2], li[:, 2]
         valid = (cos_o > 0) & (cos_i > 0)
+        cos_i_pos = cos_i.clamp(min=0)
+        is_diffuse = (kind == MaterialKind.DIFFUSE) | (kind == MaterialKind.EMISSIVE)
+        value = albedo * (is_diffuse * cos_i_pos / math.pi)[:, None]
+        pdf = torch.where(is_diffuse, cos_i_pos / math.pi, 0.0)
+        glossy = torch.nonzero(~is_diffuse).reshape(-1)
+        if glossy.numel():
+            g_value, g_pdf = self._glossy_lobes(kind[glossy], alpha[glossy], ior[glossy], albedo[glossy], lo[glossy], li[glossy])
+            value = value.index_copy(0, glossy, g_value)
+            pdf = pdf.index_copy(0, glossy, g_pdf)
+        return torch.where(valid[:, None], value, 0.0), torch.where(valid, pdf, 0.0)
+
+    def _glossy_lobes(self, kind: Tensor, alpha: Tensor, ior: Tensor, albedo: Tensor, lo: Tensor, li: Tensor):
+        """`_lobes` for conductor and plastic rows (validity is applied by the caller)."""
+        cos_o, cos_i = lo[:, 2], li[:, 2]
         h = torch.nn.functional.normalize(lo + li, dim=-1)
         o_dot_h = (lo * h).sum(-1).clamp(min=0)
         d = ggx_d(h[:, 2], alpha)
         g2 = 1.0 / (1.0 + ggx_lambda(lo, alpha) + ggx_lambda(li, alpha))
         safe_cos_o = cos_o.clamp(min=1e-8)
         micro = d * g2 / (4.0 * safe_cos_o)  # D G / (4 cos_o): the microfacet f*cos without Fresnel
-        is_diffuse = (kind == MaterialKind.DIFFUSE) | (kind == MaterialKind.EMISSIVE)
         is_conductor = kind == MaterialKind.CONDUCTOR
-        is_plastic = kind == MaterialKind.PLASTIC
-
         f_conductor = schlick(albedo, o_dot_h)  # [N, 3]
         f_coat = fresnel_dielectric(o_dot_h, ior)[:, None]
-        spec = torch.where(is_conductor[:, None], f_conductor, torch.where(is_plastic[:, None], f_coat, 0.0)) * micro[:, None]
+        spec = torch.where(is_conductor[:, None], f_conductor, f_coat) * micro[:, None]
+        # Plastic base: refracted in and out of the coat.
         transmit = (1.0 - fresnel_dielectric(cos_i, ior)) * (1.0 - fresnel_dielectric(cos_o, ior))
-        diffuse_weight = torch.where(is_diffuse, 1.0, torch.where(is_plastic, transmit, 0.0))
-        diffuse = albedo * (diffuse_weight * cos_i.clamp(min=0) / math.pi)[:, None]
-        value = torch.where(valid[:, None], spec + diffuse, 0.0)
-
+        diffuse = albedo * (torch.where(is_conductor, 0.0, transmit) * cos_i.clamp(min=0) / math.pi)[:, None]
         p_coat = self._coat_probability(kind, ior, albedo, cos_o)
         pdf_spec = ggx_g1(lo, alpha) * d / (4.0 * safe_cos_o)  # visible-normal density mapped to wi
         pdf = p_coat * pdf_spec + (1.0 - p_coat) * cos_i.clamp(min=0) / math.pi
-        return value, torch.where(valid, pdf, 0.0)
+        return spec + diffuse, pdf
 
     @staticmethod
     def _coat_probability(kind: Tensor, ior: Tensor, albedo: Tensor, cos_o: Tensor) -> Tensor:
@@ -180,12 +193,15 @@ class MaterialTable:
         kind, alpha, ior = self._params(material_id)
         t, b = orthonormal_basis(n)
         lo = to_local(wo, t, b, n)
-        p_coat = self._coat_probability(kind, ior, albedo, lo[:, 2])
-        hm = ggx_sample_visible_normal(lo, alpha, u_dir)
-        li_spec = 2.0 * (lo * hm).sum(-1, keepdim=True) * hm - lo  # mirror wo about the microfacet normal
-        li_diffuse = cosine_hemisphere(u_dir)
-        li = torch.where((u_lobe < p_coat)[:, None], li_spec, li_diffuse)
-        li = torch.nn.functional.normalize(li, dim=-1)
+        li = cosine_hemisphere(u_dir)
+        glossy = torch.nonzero((kind == MaterialKind.CONDUCTOR) | (kind == MaterialKind.PLASTIC)).reshape(-1)
+        if glossy.numel():  # coat / metal rows may take the GGX lobe instead
+            lo_g = lo[glossy]
+            p_coat = self._coat_probability(kind[glossy], ior[glossy], albedo[glossy], lo_g[:, 2])
+            hm = ggx_sample_visible_normal(lo_g, alpha[glossy], u_dir[glossy])
+            li_spec = 2.0 * (lo_g * hm).sum(-1, keepdim=True) * hm - lo_g  # mirror wo about the microfacet normal
+            chosen = torch.where((u_lobe[glossy] < p_coat)[:, None], li_spec, li[glossy])
+            li = li.index_copy(0, glossy, torch.nn.functional.normalize(chosen, dim=-1))
         value, pdf = self._lobes(kind, alpha, ior, albedo, lo, li)
         ok = pdf > 0
         weight = torch.where(ok[:, None], value / torch.where(ok, pdf, 1.0)[:, None], 0.0)
