@@ -37,7 +37,8 @@ from neuralrt.training.samplers import LSNIFRaySampler  # noqa: E402
 SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 COLUMNS = ["mesh", "triangles", "threads", "H", "voxelize_ms", "featurize_Mrays/s", "encode_fwd_Mrays/s",
            "encode_fwd_bwd_Mrays/s", "embree_Mrays/s", "featurize_vs_embree", "fwd_bwd_vs_embree",
-           "active_frac", "mean_points", "truncated_frac", "surface_origin_point_frac"]
+           "active_frac", "mean_points", "truncated_frac", "hit_past_last_point_frac_of_hits",
+           "hits_without_points"]
 
 
 def best_time(fn, repeats: int) -> float:
@@ -82,6 +83,12 @@ def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int
 
     t_fb = best_time(fwd_bwd, repeats)
     surface = batch.from_surface
+    # Pitfall 4/6 checks against Embree's hits (unit-box t equals object-space t: d was scaled too).
+    hit = batch.truth.hit
+    last = (fp.count.long() - 1).clamp(min=0)
+    last_point = fp.points[torch.arange(n_rays), last]
+    t_last = ((last_point - o) * d).sum(-1) / (d * d).sum(-1)
+    hit_past_last = hit & fp.truncated & (batch.truth.t > t_last)
     stored = count_stored_entries(occ, grid.resolutions)
     return {
         "mesh": name,
@@ -102,6 +109,9 @@ def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int
         "truncated_frac": float(fp.truncated.float().mean()),
         "truncated_frac_outside": float(fp.truncated[~surface].float().mean()),
         "truncated_frac_surface": float(fp.truncated[surface].float().mean()),
+        "hits_without_points": int((hit & (fp.count == 0)).sum()),  # must be 0 (certain misses)
+        "hit_frac": float(hit.float().mean()),
+        "hit_past_last_point_frac_of_hits": float(hit_past_last.sum() / hit.sum().clamp(min=1)),
         "surface_origin_point_frac": float((fp.face_axis[surface, 0] == ORIGIN_POINT).float().mean()),
         "stored_entries": stored["levels"],
     }
