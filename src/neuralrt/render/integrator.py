@@ -123,16 +123,18 @@ class PathTracer:
         if not self._has_emitters:
             return
         le = self.materials.emission_of(hits.material_id) * sh.front[:, None]
-        emits = le.amax(-1) > 0
-        if not emits.any():
+        idx = torch.nonzero(le.amax(-1) > 0).reshape(-1)  # only rows that see emission
+        if idx.numel() == 0:
             return
+        le = le[idx]
         if first:
-            w = torch.ones_like(hits.t)
+            w = torch.ones_like(le[:, 0])
         else:
-            light = self.lights.area.light_index(hits.instance_id, hits.primitive_id) if self.lights.area is not None else torch.full_like(hits.instance_id, -1)
-            light_pdf = self.lights.area_pdf(light, hits.t, paths.rays.directions)
-            w = power_heuristic(paths.prev_bsdf_pdf, light_pdf)
-        radiance.index_add_(0, paths.sample[emits], (paths.throughput * le * w[:, None])[emits])
+            light = self.lights.area.light_index(hits.instance_id[idx], hits.primitive_id[idx]) if self.lights.area is not None \
+                else torch.full_like(idx, -1)
+            light_pdf = self.lights.area_pdf(light, hits.t[idx], paths.rays.directions[idx])
+            w = power_heuristic(paths.prev_bsdf_pdf[idx], light_pdf)
+        radiance.index_add_(0, paths.sample[idx], paths.throughput[idx] * le * w[:, None])
 
     # -- stage: next-event estimation -------------------------------------------------------------------
     def sample_lights(self, paths: _Paths, hits: Hits, sh: _Shading, radiance: Tensor, g: torch.Generator) -> None:

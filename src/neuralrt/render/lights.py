@@ -55,6 +55,7 @@ class AreaLights:
         e2 = self.triangles[:, 2] - self.triangles[:, 0]
         self.area = 0.5 * torch.linalg.norm(torch.linalg.cross(e1, e2), dim=-1)
         self.distribution = DiscreteDistribution(self.area * luminance(self.emission)).to(dev)
+        self._area_pdf = self.distribution.pmf / self.area.clamp(min=1e-30)  # [L] density per unit area
         # (instance, primitive) -> light index, only for instances that hold emitters.
         inst = instance_ids.long().to(dev)
         counts = torch.tensor(instance_face_counts, dtype=torch.int64, device=dev)
@@ -96,8 +97,7 @@ class AreaLights:
     def pdf(self, idx: Tensor, distance: Tensor, wi: Tensor) -> Tensor:
         """Solid-angle density of reaching light ``idx`` along ``wi`` at ``distance`` (0 on its back)."""
         cos_l = -(wi * self.normals[idx]).sum(-1)
-        pdf_area = self.distribution.pmf[idx] / self.area[idx].clamp(min=1e-30)
-        return torch.where(cos_l > 0, pdf_area * distance * distance / cos_l.clamp(min=1e-12), 0.0)
+        return torch.where(cos_l > 0, self._area_pdf[idx] * distance * distance / cos_l.clamp(min=1e-12), 0.0)
 
 
 class PointLights:
@@ -225,35 +225,37 @@ class LightSet:
 
     def sample(self, p: Tensor, u: Tensor) -> LightSample:
         """One light sample per shading point ``p`` [N, 3]; ``u`` [N, 4] uniforms."""
-        n, dev = p.shape[0], p.device
-        kind = torch.clamp((u[:, 0] * len(self.kinds)).long(), max=len(self.kinds) - 1)
+        kinds = len(self.kinds)
+        kind = torch.clamp((u[:, 0] * kinds).long(), max=kinds - 1)
         # Reuse u[:, 0] within the chosen kind's interval so the streams stay independent.
-        u_sel = (u[:, 0] * len(self.kinds) - kind.float()).clamp(0, 1 - 1e-7)
-        u2 = u[:, 1:3]
-        wi = torch.zeros(n, 3, device=dev)
-        dist = torch.full((n,), float("inf"), device=dev)
-        radiance = torch.zeros(n, 3, device=dev)
-        pdf = torch.zeros(n, device=dev)
-        delta = torch.zeros(n, dtype=torch.bool, device=dev)
-        pk = self.kind_probability
+        u_sel = (u[:, 0] * kinds - kind.float()).clamp(0, 1 - 1e-7)
+        if kinds == 1:
+            return self._sample_kind(self.kinds[0], p, u_sel, u[:, 1:3])
+        n, dev = p.shape[0], p.device
+        out = LightSample(torch.zeros(n, 3, device=dev), torch.full((n,), float("inf"), device=dev),
+                          torch.zeros(n, 3, device=dev), torch.zeros(n, device=dev), torch.zeros(n, dtype=torch.bool, device=dev))
         for k, name in enumerate(self.kinds):  # a handful of kinds, each batched over its rays
-            sel = kind == k
-            if not sel.any():
+            idx = torch.nonzero(kind == k).reshape(-1)
+            if idx.numel() == 0:
                 continue
-            if name == "area":
-                idx, y, w, pa = self.area.sample(p[sel], u_sel[sel], u2[sel])
-                wi[sel], dist[sel] = w, torch.linalg.norm(y - p[sel], dim=-1)
-                front = -(w * self.area.normals[idx]).sum(-1) > 0
-                radiance[sel] = self.area.emission[idx] * front[:, None]
-                pdf[sel] = pa * pk
-            elif name == "point":
-                w, d, li, pmf = self.points.sample(p[sel], u_sel[sel])
-                wi[sel], dist[sel], radiance[sel], pdf[sel] = w, d, li, pmf * pk
-                delta[sel] = True
-            else:
-                w, pe = self.environment.sample(u_sel[sel], u2[sel])
-                wi[sel], radiance[sel], pdf[sel] = w, self.environment.radiance(w), pe * pk
-        return LightSample(wi, dist, radiance, pdf, delta)
+            part = self._sample_kind(name, p[idx], u_sel[idx], u[idx, 1:3])
+            for f in ("wi", "distance", "radiance", "pdf", "is_delta"):
+                setattr(out, f, getattr(out, f).index_copy(0, idx, getattr(part, f)))
+        return out
+
+    def _sample_kind(self, name: str, p: Tensor, u_sel: Tensor, u2: Tensor) -> LightSample:
+        """Samples of one light kind; pdfs include the kind-selection probability."""
+        pk = self.kind_probability
+        if name == "area":
+            idx, y, wi, pa = self.area.sample(p, u_sel, u2)  # pa = 0 on an emitter's back: unusable
+            return LightSample(wi, torch.linalg.norm(y - p, dim=-1), self.area.emission[idx], pa * pk,
+                               torch.zeros(p.shape[0], dtype=torch.bool, device=p.device))
+        if name == "point":
+            wi, d, li, pmf = self.points.sample(p, u_sel)
+            return LightSample(wi, d, li, pmf * pk, torch.ones(p.shape[0], dtype=torch.bool, device=p.device))
+        wi, pe = self.environment.sample(u_sel, u2)
+        return LightSample(wi, torch.full_like(pe, float("inf")), self.environment.radiance(wi), pe * pk,
+                           torch.zeros(p.shape[0], dtype=torch.bool, device=p.device))
 
     def area_pdf(self, light_idx: Tensor, distance: Tensor, wi: Tensor) -> Tensor:
         """MIS density of having sampled area light ``light_idx`` (>= 0) along ``wi``."""
