@@ -1,0 +1,108 @@
+"""The TLAS's numba CPU passes answer exactly as its torch path (used off the CPU) does."""
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from neuralrt import Mesh, MeshBLAS, Rays, Transform
+from neuralrt.accel.tlas import Instance, SceneAccel
+from neuralrt.rays import ray_box_intervals, valid_ray_mask
+from neuralrt.accel import tlas_kernels
+
+
+@pytest.fixture(scope="module")
+def blases():
+    rng = np.random.default_rng(0)
+    t = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=32, minor_sections=16)
+    torus = MeshBLAS(Mesh(t.vertices, t.faces, face_material_ids=rng.integers(0, 3, len(t.faces))))
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
+    return torus, MeshBLAS(Mesh(s.vertices, s.faces))
+
+
+MOVED = Transform.translate([1.5, 0, 0]) @ Transform.rotate([0, 1, 1], 40) @ Transform.scale([0.7, 1.3, 0.5])
+TILTED = Transform.translate([-1.2, 0.5, -0.3]) @ Transform.rotate([1, 0, 0], 75) @ Transform.scale(0.6)
+GRID = [Transform.translate([2.5 * x, 2.5 * y, 0.0]) for x in range(-2, 2) for y in range(-2, 2)]
+
+
+def _scene(kind, torus, sphere):
+    layouts = {
+        "identity": [(torus, Transform(), [0, 1, 2])],
+        "moved": [(torus, MOVED, [2, 0, 1])],
+        "grid16": [(torus, xf, [k % 3]) for k, xf in enumerate(GRID)],
+        "mixed": [(torus, Transform(), [0]), (sphere, TILTED, [1]), (torus, MOVED, [2]), (sphere, Transform(), [3])],
+    }
+    return SceneAccel([Instance(b, xf, torch.tensor(m), name=str(i)) for i, (b, xf, m) in enumerate(layouts[kind])])
+
+
+def _rays(n, seed, inside=False, bad_rays=True):
+    """Rays from a sphere of radius 6 through [-3, 3]^3 (or from near the origin), with bad rays
+    and finite intervals mixed in."""
+    g = np.random.default_rng(seed)
+    if inside:
+        o, d = g.normal(size=(n, 3)) * 0.2, g.normal(size=(n, 3))
+    else:
+        o = g.normal(size=(n, 3))
+        o = 6.0 * o / np.linalg.norm(o, axis=1, keepdims=True)
+        d = g.uniform(-3, 3, (n, 3)) - o
+    t_min = np.where(g.uniform(size=n) < 0.2, g.uniform(0, 0.5, n), 0.0)
+    t_max = np.where(g.uniform(size=n) < 0.2, g.uniform(0.5, 1.5, n), np.inf)
+    bad = g.permutation(n)[:400].reshape(4, 100) if bad_rays else np.zeros((4, 0), np.int64)
+    o[bad[0], 0] = np.nan
+    d[bad[1]] = 0.0
+    t_max[bad[2]] = np.nan
+    d[bad[3], 1:] = 0.0  # axis-parallel: slab planes with zero direction components
+    return Rays(*(torch.from_numpy(np.asarray(x, np.float32)) for x in (o, d, t_min, t_max)))
+
+
+def _torch_path(accel, monkeypatch):
+    monkeypatch.setattr(accel, "_kernels_on", lambda device: False)
+
+
+@pytest.mark.parametrize("kind", ["identity", "moved", "grid16", "mixed"])
+@pytest.mark.parametrize("inside,bad_rays", [(False, True), (True, True), (True, False)])
+def test_kernels_match_torch_path(kind, inside, bad_rays, blases, monkeypatch):
+    """Outside rays: gathered (ray, instance) pairs. Inside rays: one box overlapped by all rays
+    (no gathers) or by all valid ones (the invalid ones masked)."""
+    accel = _scene(kind, *blases)
+    rays = _rays(6000, seed=1, inside=inside, bad_rays=bad_rays)
+    if kind == "moved" and inside:
+        rays = MOVED.apply_rays(rays)  # every ray overlaps the one box: the no-gather path
+    fast, fast_occ = accel.intersect(rays), accel.occluded(rays)
+    _torch_path(accel, monkeypatch)
+    ref, ref_occ = accel.intersect(rays), accel.occluded(rays)
+    assert ref.hit.sum() > 200
+    for f in fields(ref):
+        assert torch.equal(getattr(fast, f.name), getattr(ref, f.name)), f.name
+    assert torch.equal(fast_occ, ref_occ)
+
+
+def test_instance_overlaps_kernel_matches_slab_test():
+    rays = _rays(3000, seed=4)
+    lo = torch.tensor([[-1.0, -1.0, -1.0], [0.5, -2.0, 0.0], [0.0, 0.0, 0.0]])
+    hi = torch.tensor([[1.0, 1.0, 1.0], [2.5, 2.0, 0.0], [0.0, 3.0, 1.0]])  # flat and degenerate boxes too
+    t_limit = torch.minimum(rays.t_max, torch.full_like(rays.t_max, 7.0))
+    t0, t1 = ray_box_intervals(rays.origins[:, None], rays.directions[:, None], lo[None], hi[None])
+    expected = (t0 <= t1) & (t1 >= rays.t_min[:, None]) & (t0 <= t_limit[:, None]) & valid_ray_mask(rays)[:, None]
+    got = np.empty((len(rays), 3), np.bool_)
+    count = tlas_kernels.instance_overlaps(
+        *(x.numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max, t_limit, lo, hi)), got
+    )
+    assert torch.equal(torch.from_numpy(got), expected) and count == int(expected.sum())
+    assert 0 < count < expected.numel()
+
+
+def test_exact_ties_go_to_the_later_instance(blases):
+    torus, _ = blases
+    accel = SceneAccel([Instance(torus, Transform(), torch.tensor([0])), Instance(torus, Transform(), torch.tensor([1]))])
+    h = accel.intersect(_rays(4000, seed=2))
+    assert h.hit.sum() > 100
+    assert (h.instance_id[h.hit] == 1).all() and (h.material_id[h.hit] == 1).all()
+
+
+def test_empty_batch(blases):
+    accel = _scene("mixed", *blases)
+    empty = Rays(torch.zeros(0, 3), torch.zeros(0, 3))
+    assert len(accel.intersect(empty)) == 0 and accel.occluded(empty).numel() == 0
