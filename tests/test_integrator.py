@@ -222,6 +222,7 @@ def test_deterministic_for_a_seed_and_aovs(tmp_path):
     assert ((centre > 3.399) & (centre < 3.46)).all()
     assert (a.normal[7:9, 7:9, 2] > 0.95).all()  # pixel centres are ~0.1 radius off the axis
     np.testing.assert_allclose(a.albedo[7:9, 7:9], np.broadcast_to([0.6, 0.3, 0.2], (2, 2, 3)), atol=1e-6)
+    assert render(scene, spp=1, resolution=(8, 4), progress=False).image.shape == (4, 8, 3)
     written = a.save(tmp_path / "out.exr")
     assert {p.name for p in written} >= {"out.exr", "out.png", "out_albedo.exr", "out_normal.png", "out_depth.exr"}
 
