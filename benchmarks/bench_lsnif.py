@@ -74,7 +74,7 @@ def inference_speed(model: LSNIFModel, exact: MeshBLAS, rays_n: int, repeats: in
     # The MLP's own limit: the network alone on a full chunk of features, at the inference precision.
     cfg = model.config
     h, w = cfg.network.hidden_width, cfg.network.hidden_layers
-    n_in, n_out = model.encoder.output_dim(cfg.features.max_points), 8 + model.num_materials
+    n_in, n_out = model.network_inputs, 8 + model.num_materials
     flops = 2 * (n_in * h + (w - 1) * h * h + h * n_out)
     x = torch.randn(cfg.inference.chunk_size, n_in)
     dtype = model._compute_dtype()

@@ -177,3 +177,18 @@ def test_resume_continues_from_checkpoint(ball, trained):
     other = LSNIFConfig.preset("lq").with_training(steps=TRAIN_STEPS + 10, batch_size=TRAIN_BATCH)
     with pytest.raises(ModelFileError, match="another run"):
         train_lsnif(ball, other, progress=False, checkpoint=ckpt, resume=True)
+
+
+def test_bf16_inference_weights_follow_updates():
+    """The cached bf16 weights of the inference path match autocast and never go stale."""
+    from neuralrt.methods.lsnif import LSNIFNetwork
+
+    net = LSNIFNetwork(20, 9, 32, 2)
+    x = torch.randn(100, 20)
+    with torch.no_grad():
+        first = net(x, torch.bfloat16)
+        net.hidden[0].weight.mul_(2.0)
+        second = net(x, torch.bfloat16)
+    assert not torch.equal(first, second)
+    assert torch.equal(second, net(x, torch.bfloat16))  # grad-enabled path: autocast
+    assert (second - net(x)).abs().max() < 0.05 * net(x).abs().max()  # bf16 close to fp32

@@ -68,8 +68,8 @@ class LossConfig(_Section):
 
 
 class TrainingConfig(_Section):
-    steps: int = Field(2000, ge=1, description="optimizer steps (paper: 2,000)")
-    batch_size: int = Field(1 << 14, ge=16, description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs)")
+    steps: int = Field(4000, ge=1, description="optimizer steps (paper: 2,000 of 2^18 rays; CPU default: 4,000 of 2^13, see docs/lsnif.md)")
+    batch_size: int = Field(1 << 13, ge=16, description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs/lsnif.md)")
     learning_rate: float = Field(0.01, gt=0.0, description="Adam learning rate (paper: 0.01)")
     adam_betas: tuple[float, float] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (instant-ngp's: tiny, so rarely-hit table entries still move)")

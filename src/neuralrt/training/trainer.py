@@ -133,7 +133,8 @@ def train_model(
     """
     from tqdm.auto import tqdm
 
-    opt = torch.optim.Adam(model.parameters(), lr=learning_rate, betas=tuple(adam_betas), eps=adam_eps)
+    # The fused (single-kernel) Adam step is ~3x faster than the default over the 786k-entry hash tables.
+    opt = torch.optim.Adam(model.parameters(), lr=learning_rate, betas=tuple(adam_betas), eps=adam_eps, fused=True)
     gamma = lr_decay_final ** (1.0 / max(steps, 1))
     identity = identity or {}
     ckpt = Path(checkpoint) if checkpoint is not None else None
