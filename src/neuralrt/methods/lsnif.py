@@ -62,16 +62,17 @@ def cpu_has_native_bf16() -> bool:
 class LSNIFNetwork(nn.Module):
     """The paper's MLP: ``hidden_layers`` leaky-ReLU layers of ``hidden_width``, Kaiming init, linear output."""
 
-    def __init__(self, in_features: int, out_features: int, hidden_width: int = 128, hidden_layers: int = 2, slope: float = 0.01):
+    def __init__(self, in_features: int, out_features: int, hidden_width: int = 128, hidden_layers: int = 2, slope: float = 0.01,
+                 generator: torch.Generator | None = None):
         super().__init__()
         widths = [in_features] + [hidden_width] * hidden_layers
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
         self.output = nn.Linear(widths[-1], out_features)
         self.slope = slope
         for layer in self.hidden:
-            nn.init.kaiming_uniform_(layer.weight, a=slope, nonlinearity="leaky_relu")
+            nn.init.kaiming_uniform_(layer.weight, a=slope, nonlinearity="leaky_relu", generator=generator)
             nn.init.zeros_(layer.bias)
-        nn.init.kaiming_uniform_(self.output.weight, a=1.0, nonlinearity="linear")
+        nn.init.kaiming_uniform_(self.output.weight, a=1.0, nonlinearity="linear", generator=generator)
         nn.init.zeros_(self.output.bias)
 
     def forward(self, x: Tensor, compute_dtype: torch.dtype = torch.float32) -> Tensor:
@@ -158,12 +159,12 @@ class LSNIFModel(nn.Module):
             log2_table_size=enc.log2_table_size, init_scale=enc.init_scale, seed=config.training.seed,
         )
         net = config.network
-        torch.manual_seed(config.training.seed)
         self.network = LSNIFNetwork(
-            self.network_inputs, 8 + self.num_materials,
-            net.hidden_width, net.hidden_layers, net.leaky_relu_slope,
+            self.network_inputs, 8 + self.num_materials, net.hidden_width, net.hidden_layers, net.leaky_relu_slope,
+            generator=torch.Generator().manual_seed(config.training.seed),
         )
         self._occupancy_np: np.ndarray | None = None
+        self._occupancy_key = None
 
     # -- construction ----------------------------------------------------------------------------
     @staticmethod
@@ -202,8 +203,11 @@ class LSNIFModel(nn.Module):
         return self.box_lo.device
 
     def _occupancy_cpu(self) -> np.ndarray:
-        if self._occupancy_np is None or self._occupancy_np.shape != tuple(self.occupancy.shape):
+        """The occupancy as a contiguous numpy array for the CPU kernels (re-made if the buffer changed)."""
+        key = (self.occupancy.data_ptr(), self.occupancy._version)
+        if self._occupancy_np is None or self._occupancy_key != key:
             self._occupancy_np = np.ascontiguousarray(self.occupancy.cpu().numpy())
+            self._occupancy_key = key
         return self._occupancy_np
 
     # -- featurization -----------------------------------------------------------------------------
