@@ -163,7 +163,7 @@ class MeshBLAS:
             albedo=torch.from_numpy(out.albedo).to(dev),
             material_id=torch.from_numpy(out.mat).to(dev),
             primitive_id=torch.from_numpy(out.prim).to(dev),
-            instance_id=torch.full((n,), -1, dtype=torch.int64, device=dev),
+            instance_id=torch.from_numpy(np.full(n, -1, np.int64)).to(dev),  # numpy: no torch thread wake-up
         )
 
     def occluded(self, rays: Rays) -> Tensor:

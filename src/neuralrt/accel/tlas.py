@@ -14,7 +14,7 @@ identity instance skips the matrix products.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -96,6 +96,7 @@ class SceneAccel:
         self._box_lo_np = self.box_lo.cpu().numpy()
         self._box_hi_np = self.box_hi.cpu().numpy()
         self._world_to_object_np = self.world_to_object.cpu().contiguous().numpy()
+        self._material_maps_np = self.material_maps.cpu().numpy()
         self._is_identity = np.array([i.transform.is_identity for i in self.instances], np.bool_)
 
     def _group_by_blas(self, camera_rays: bool) -> list[_Group]:
@@ -196,19 +197,27 @@ class SceneAccel:
 
     def _merge_every_ray(self, best: Hits | None, local: Hits, k: int, overlap: Tensor | None) -> Hits:
         """Row ``r`` of ``local`` answers ray ``r`` under instance ``k``: keep it where closer."""
+        if self._kernels_on(local.t.device):
+            # One pass instead of ~20 torch ops (each a full sweep, and a thread wake-up).
+            out = best
+            if out is None:  # uninitialised: the kernel writes every row
+                template = Hits.empty(0)
+                out = Hits(**{f.name: torch.empty((len(local), *getattr(template, f.name).shape[1:]),
+                                                  dtype=getattr(template, f.name).dtype) for f in fields(Hits)})  # fmt: skip
+            kernels.merge_every_ray(
+                *(getattr(local, f.name).detach().contiguous().numpy() for f in fields(Hits) if f.name != "instance_id"),
+                np.empty(0, np.bool_) if overlap is None else overlap.numpy(), best is not None,
+                k, self._material_maps_np[k], self._world_to_object_np[k], bool(self._is_identity[k]),
+                *(getattr(out, f.name).numpy() for f in fields(Hits)),
+            )  # fmt: skip
+            return out
         closer = local.hit if best is None else local.hit & (local.t < best.t)
         if overlap is not None:
             closer &= overlap  # rows outside the broad phase never count, whatever the BLAS said
         local.material_id = self.material_maps[k, local.material_id.clamp(0, self.material_maps.shape[1] - 1)]
         local.instance_id = torch.full_like(local.material_id, k)
-        if self._is_identity[k]:
-            # No matrix product, but still renormalised: the same bits as the general path.
-            local.normal = torch.nn.functional.normalize(local.normal, dim=-1)
-            local.geometric_normal = torch.nn.functional.normalize(local.geometric_normal, dim=-1)
-        else:
-            self._normals_to_world_(local, torch.full_like(local.material_id, k))
-        # No best yet: blend against one broadcast miss row instead of N of them.
-        return (Hits.empty(1, local.t.device) if best is None else best).where_(closer, local)
+        self._normals_to_world_(local, torch.full_like(local.material_id, k))
+        return (Hits.empty(len(local), local.t.device) if best is None else best).where_(closer, local)
 
     def _merge_pairs(
         self, best: Hits | None, local: Hits, ray_idx: Tensor, inst_idx: Tensor, n: int, device
@@ -251,9 +260,11 @@ class SceneAccel:
         if self._kernels_on(hits.normal.device):
             idx = inst_idx.contiguous().numpy()
             for name in ("normal", "geometric_normal"):
-                product = np.empty((len(idx), 3), np.float32)
-                kernels.normals_times_matrix(getattr(hits, name).detach().contiguous().numpy(), idx, self._world_to_object_np, product)
-                setattr(hits, name, torch.nn.functional.normalize(torch.from_numpy(product), dim=-1))
+                world = np.empty((len(idx), 3), np.float32)
+                kernels.normals_to_world(
+                    getattr(hits, name).detach().contiguous().numpy(), idx, self._world_to_object_np, self._is_identity, world
+                )
+                setattr(hits, name, torch.from_numpy(world))
             return
         w2o = self.world_to_object[inst_idx, :3, :3]
         hits.normal = torch.nn.functional.normalize(torch.einsum("pj,pji->pi", hits.normal, w2o), dim=-1)
