@@ -90,8 +90,8 @@ def test_point_light_over_diffuse_plane_matches_closed_form(tmp_path):
         return (albedo / math.pi * intensity * cos / r2)[:, None].expand(-1, 3)
 
     expected = _closed_form_plane_pixels(scene, closed_form)
-    # Only pixel-jitter noise: 32 random vs 64 grid positions in a pixel. The radiance varies by up
-    # to ~20% across the far (grazing) pixels: per-pixel std up to ~1%; the image mean ~0.03%.
+    # Only pixel-jitter noise (32 random vs 64 grid positions per pixel): measured over 3 seeds, the
+    # per-pixel relative error has std 0.45% and max 2.3%; the image mean is within 1e-4.
     np.testing.assert_allclose(res.image, expected, rtol=0.04)
     assert float(res.image.mean()) == pytest.approx(float(expected.mean()), rel=1e-3)
 
@@ -113,8 +113,8 @@ def test_area_light_over_diffuse_plane_matches_closed_form(tmp_path):
     res = render(scene, spp=1024, max_depth=1, progress=False)
     s = math.hypot(a, h)
     expected = albedo / math.pi * 4 * le * (a / s) * math.atan(a / s)
-    # 16 pixels x 1024 spp; per-sample relative std measured ~0.5 -> std of the mean ~0.4%.
-    assert float(res.image.mean()) == pytest.approx(expected, rel=0.02)
+    # 16 pixels x 1024 spp; per-sample relative std measured 0.18 -> std of the mean ~0.15%.
+    assert float(res.image.mean()) == pytest.approx(expected, rel=0.01)
 
 
 def test_deeper_paths_add_nothing_where_no_indirect_light_exists(tmp_path):
