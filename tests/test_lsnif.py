@@ -121,7 +121,7 @@ def test_occluded_matches_intersect_and_respects_interval(ball, trained):
     assert not model.occluded(short).any()
     away = Rays(torch.tensor([[100.0, 100.0, 100.0], [float("nan"), 0, 0]]), torch.tensor([[1.0, 0, 0], [1.0, 0, 0]]))
     assert not model.intersect(away).hit.any()
-    assert model.secondary_offset == pytest.approx(1e-3 * model.box.diagonal)
+    assert model.secondary_offset == pytest.approx(model.config.inference.secondary_offset * model.box.diagonal)
 
 
 def test_save_load_round_trip_is_bit_exact(ball, trained, tmp_path):

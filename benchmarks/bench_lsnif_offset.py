@@ -1,0 +1,77 @@
+"""How far must a ray leaving a neural hit start to not hit the same surface again?
+
+For a trained LSNIF model: shoot outside rays from the training distribution, take the model's
+hits (point and normal), spawn bounce rays there (cosine-weighted around the returned normal),
+offset by ``k x diagonal`` along that normal, and trace them with the model and with Embree from the
+same origins. A *self-hit* is a neural hit closer than ``--self-distance`` (relative to the
+diagonal) where Embree finds nothing that close. Results go to benchmarks/results/lsnif_offset.json.
+
+    python benchmarks/bench_lsnif_offset.py MODEL.nrt MESH [--rays 65536]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_lsnif.py
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.methods import load_model  # noqa: E402
+from neuralrt.rays import Rays  # noqa: E402
+from neuralrt.training.samplers import LSNIFRaySampler, cosine_weighted_directions  # noqa: E402
+
+from bench_lsnif import resolve_mesh  # noqa: E402
+
+
+def main() -> None:
+    from _common import print_table, write_results
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("model")
+    p.add_argument("mesh")
+    p.add_argument("--rays", type=int, default=1 << 16)
+    p.add_argument("--offsets", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 3e-3, 1e-2])
+    p.add_argument("--self-distance", type=float, default=0.02, help="self-hit: neural t*|d| below this x diagonal")
+    args = p.parse_args()
+
+    model = load_model(args.model)
+    mesh = resolve_mesh(args.mesh)
+    exact = MeshBLAS(mesh)
+    diag = model.box.diagonal
+    batch = LSNIFRaySampler(exact, model.box, seed=777, surface_fraction=0.0).sample(args.rays)
+    first = model.intersect(batch.rays)
+    idx = torch.nonzero(first.hit).squeeze(1)
+    points = batch.rays[idx].point_at(first.t[idx])
+    normals = first.normal[idx]
+    rng = np.random.default_rng(5)
+    dirs = torch.from_numpy(cosine_weighted_directions(normals.double().numpy(), rng).astype(np.float32))
+    rows = []
+    for k in args.offsets:
+        rays = Rays(points + k * diag * normals, dirs)
+        neural, truth = model.intersect(rays), exact.intersect(rays)
+        near = args.self_distance * diag
+        self_hit = neural.hit & (neural.t < near) & ~(truth.hit & (truth.t < near))
+        rows.append({
+            "offset_x_diagonal": k,
+            "rays": len(rays),
+            "self_hit_rate": float(self_hit.float().mean()),
+            "neural_hit_rate": float(neural.hit.float().mean()),
+            "exact_hit_rate": float(truth.hit.float().mean()),
+            "agreement": float((neural.hit == truth.hit).float().mean()),
+        })
+    print_table(rows, list(rows[0]))
+    path = write_results("lsnif_offset", rows, extra={"model": args.model, "mesh": args.mesh,
+                                                      "default_offset_x_diagonal": model.config.inference.secondary_offset})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
