@@ -274,22 +274,26 @@ class SceneAccel:
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any instance block the ray within (t_min, t_max)?"""
-        blocked = torch.zeros(len(rays), dtype=torch.bool, device=rays.device)
         if len(rays) == 0:
-            return blocked
+            return torch.zeros(0, dtype=torch.bool, device=rays.device)
+        blocked: Tensor | None = None  # all False until a group blocks something
         valid = None if self._kernels_on(rays.device) else valid_ray_mask(rays)
         for group in self._groups[False]:
-            t_limit = torch.where(blocked, -torch.inf, rays.t_max)  # done rays drop out of the broad phase
+            # Done rays drop out of the broad phase.
+            t_limit = rays.t_max if blocked is None else torch.where(blocked, -torch.inf, rays.t_max)
             ray_idx, inst_idx, overlap = self._candidate_pairs(rays, group.instance_ids, t_limit, valid)
             if ray_idx is None:  # every ray, one instance: no gathers
                 hit = group.blas.occluded(self._object_space_rays(rays, None, inst_idx, _only(rays.t_max, overlap)))
-                blocked |= hit if overlap is None else hit & overlap
+                hit = hit if overlap is None else hit & overlap
+                blocked = hit if blocked is None else blocked | hit
                 continue
             if ray_idx.numel() == 0:
                 continue
             hit = group.blas.occluded(self._object_space_rays(rays, ray_idx, inst_idx, rays.t_max[ray_idx]))
+            if blocked is None:
+                blocked = torch.zeros(len(rays), dtype=torch.bool, device=rays.device)
             blocked[ray_idx[hit]] = True
-        return blocked
+        return torch.zeros(len(rays), dtype=torch.bool, device=rays.device) if blocked is None else blocked
 
     def memory_bytes(self) -> MemoryReport:
         """Each unique BLAS once (instancing), plus 2 float32 4x4 matrices and a box per instance."""
