@@ -14,6 +14,7 @@ on an oversubscribed machine torch's spinning worker threads cost far more than 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -53,7 +54,7 @@ class _BLASTimer:
         return timed
 
 
-def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int) -> dict:
+def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int) -> dict:
     t0 = time.perf_counter()
     scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
     load_s = time.perf_counter() - t0
@@ -67,6 +68,7 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
     for _ in range(repeats):
         timer.seconds = tlas_timer.seconds = 0.0
         timer.rays = 0
+        torch.set_num_threads(threads)  # numba's OpenMP layer (Embree/TLAS kernels) may have reset it
         result = render(scene, spp=spp, seed=0, progress=False)
         if best is None or result.seconds < best[0].seconds:
             best = (result, timer.seconds, tlas_timer.seconds, timer.rays)
@@ -96,12 +98,13 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3, help="renders per scene; the fastest is reported")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    rows = [bench_scene(n, args.resolution, args.spp, args.detail, args.repeats) for n in args.scenes.split(",")]
+    rows = [bench_scene(n, args.resolution, args.spp, args.detail, args.repeats, args.threads) for n in args.scenes.split(",")]
     print(f"{args.resolution}x{args.resolution}, {args.spp} spp (best of {args.repeats}), max_depth = scene default, "
-          f"torch threads = {torch.get_num_threads()}")
+          f"torch threads = {args.threads}, load average {os.getloadavg()[0]:.1f}")
     print_table(rows, COLUMNS)
     path = write_results("render", rows, {"resolution": args.resolution, "spp": args.spp, "detail": args.detail,
-                                          "torch_threads": args.threads, "repeats": args.repeats})
+                                          "torch_threads": args.threads, "repeats": args.repeats,
+                                          "load_average_1min": os.getloadavg()[0]})
     print(f"wrote {path}")
 
 
