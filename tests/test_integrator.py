@@ -239,3 +239,16 @@ def test_small_wavefronts_give_the_same_estimate(tmp_path):
     # 16 spp x ~80 hit pixels, per-sample std 0.12: std of the mean ~0.0035.
     assert float(res.image[hit].mean()) == pytest.approx(0.5, abs=0.015)
     assert np.abs(res.image[~hit] - 0.5).max() < 1e-6
+
+
+def test_film_drops_and_counts_nonfinite_samples():
+    from neuralrt.render.film import Film
+
+    film = Film(2, 1)
+    pixel = torch.tensor([0, 0, 1])
+    radiance = torch.tensor([[1.0, 1.0, 1.0], [float("nan"), 0.0, 0.0], [2.0, float("inf"), 2.0]])
+    zeros = torch.zeros(3, 3)
+    film.add(pixel, radiance, zeros, zeros, torch.zeros(3))
+    res = film.result(spp=1, seconds=1.0)
+    np.testing.assert_allclose(res.image[0], [[0.5, 0.5, 0.5], [0.0, 0.0, 0.0]])
+    assert res.stats["nonfinite_samples"] == 2

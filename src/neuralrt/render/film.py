@@ -24,9 +24,15 @@ class Film:
         self.normal = torch.zeros(n, 3, dtype=torch.float64, device=dev)
         self.depth = torch.zeros(n, dtype=torch.float64, device=dev)
         self.count = torch.zeros(n, dtype=torch.float64, device=dev)
+        self.nonfinite_samples = 0  # samples whose radiance was NaN/Inf (dropped to 0, counted)
 
     def add(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> None:
-        """Add one sample per entry of ``pixel`` (pixels may repeat)."""
+        """Add one sample per entry of ``pixel`` (pixels may repeat). A NaN/Inf radiance sample
+        (e.g. from a degenerate hit record) counts as 0 so it cannot poison the pixel; it is counted."""
+        bad = ~torch.isfinite(radiance).all(-1)
+        if bool(bad.any()):
+            self.nonfinite_samples += int(bad.sum())
+            radiance = torch.where(bad[:, None], 0.0, radiance)
         self.radiance.index_add_(0, pixel, radiance.double())
         self.albedo.index_add_(0, pixel, albedo.double())
         self.normal.index_add_(0, pixel, normal.double())
@@ -41,7 +47,8 @@ class Film:
     def result(self, spp: int, seconds: float) -> "RenderResult":
         normal = self.normal / torch.linalg.norm(self.normal, dim=-1, keepdim=True).clamp(min=1e-12)
         return RenderResult(image=self._mean(self.radiance), albedo=self._mean(self.albedo), normal=normal.float().reshape(self.height, self.width, 3).cpu().numpy(),
-                            depth=self._mean(self.depth), spp=spp, seconds=seconds)
+                            depth=self._mean(self.depth), spp=spp, seconds=seconds,
+                            stats={"nonfinite_samples": self.nonfinite_samples})
 
 
 @dataclass
