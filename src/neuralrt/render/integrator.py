@@ -229,7 +229,9 @@ def render(
     bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
     "neural") picks who answers camera rays for neural objects that keep their mesh.
     """
-    settings = settings or IntegratorSettings(max_paths=max_paths)
+    from dataclasses import replace
+
+    settings = replace(settings) if settings is not None else IntegratorSettings(max_paths=max_paths)  # never mutate the caller's
     if primary is not None:
         settings.primary = primary
     if settings.primary not in ("exact", "neural"):
