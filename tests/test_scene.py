@@ -206,3 +206,19 @@ def test_save_builtin_round_trip(tmp_path):
     assert again == spec
     with pytest.raises(SceneError, match="must end in .toml or .json"):
         save_scene(spec, tmp_path / "inst.yaml")
+
+
+def test_reference_page_is_current_and_its_example_loads(tmp_path):
+    """docs/scenes.md equals what `python -m neuralrt.scene.schemadoc` generates; its TOML example loads."""
+    from neuralrt.io.images import write_hdr
+    from neuralrt.scene.schemadoc import default_path, scene_reference
+
+    page = scene_reference()
+    assert default_path().read_text(encoding="utf-8") == page, "regenerate: python -m neuralrt.scene.schemadoc"
+    example = page.split("```toml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "meshes").mkdir()
+    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "meshes" / "statue.ply")
+    write_hdr(tmp_path / "sky.hdr", np.full((4, 8, 3), 0.5, np.float32))
+    (tmp_path / "example.toml").write_text(example)
+    scene = load_scene(tmp_path / "example.toml", resolution=(8, 8))
+    assert len(scene.accel.instances) == 2 and scene.lights.kinds == ["area", "environment"]

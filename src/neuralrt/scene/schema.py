@@ -74,11 +74,12 @@ class _Strict(BaseModel):
 class CameraSpec(_Strict):
     """Perspective camera (looks from ``position`` to ``look_at``)."""
 
-    position: Vec3 = (0.0, 0.0, 3.9)
-    look_at: Vec3 = (0.0, 0.0, 0.0)
-    up: Vec3 = (0.0, 1.0, 0.0)
-    fov: float = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view in degrees")
-    resolution: tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]] = (256, 256)
+    position: Vec3 = Field((0.0, 0.0, 3.9), description="eye point, world units")
+    look_at: Vec3 = Field((0.0, 0.0, 0.0), description="point the camera looks at")
+    up: Vec3 = Field((0.0, 1.0, 0.0), description="up direction (must not be parallel to the view direction)")
+    fov: float = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
+    resolution: tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]] = Field(
+        (256, 256), description="image width, height in pixels")
 
     @model_validator(mode="after")
     def _not_degenerate(self) -> "CameraSpec":
@@ -97,10 +98,10 @@ class TransformSpec(_Strict):
     ``rotate`` holds Euler angles in degrees about the world x, then y, then z axis.
     """
 
-    translate: Vec3 = (0.0, 0.0, 0.0)
-    rotate: Vec3 = (0.0, 0.0, 0.0)
-    scale: float | Vec3 = 1.0
-    matrix: list[list[float]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces the others")
+    translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset, world units (applied last)")
+    rotate: Vec3 = Field((0.0, 0.0, 0.0), description="Euler angles in degrees about the world x, then y, then z axis")
+    scale: float | Vec3 = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); non-zero")
+    matrix: list[list[float]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces translate/rotate/scale")
 
     @field_validator("scale")
     @classmethod
@@ -137,37 +138,37 @@ Albedo = Union[NonNegVec3, str]  # linear RGB, or a texture image path
 class DiffuseMaterialSpec(_Strict):
     """Lambertian reflector."""
 
-    type: Literal["diffuse"] = "diffuse"
-    name: str
-    albedo: Albedo = (0.8, 0.8, 0.8)
+    type: Literal["diffuse"] = Field("diffuse", description="material kind")
+    name: str = Field(description="referenced by objects' material / materials")
+    albedo: Albedo = Field((0.8, 0.8, 0.8), description="linear RGB reflectance, or a texture image path")
 
 
 class ConductorMaterialSpec(_Strict):
     """Rough metal (GGX); ``albedo`` is the reflectance at normal incidence (Schlick F0)."""
 
-    type: Literal["conductor"] = "conductor"
-    name: str
-    albedo: Albedo = (0.9, 0.9, 0.9)
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha")
+    type: Literal["conductor"] = Field("conductor", description="material kind")
+    name: str = Field(description="referenced by objects' material / materials")
+    albedo: Albedo = Field((0.9, 0.9, 0.9), description="reflectance at normal incidence (Schlick F0), RGB or texture path")
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha (clamped to >= 1e-3)")
 
 
 class PlasticMaterialSpec(_Strict):
     """Diffuse base (``albedo``) under a rough dielectric coat (GGX alpha ``roughness``, index ``ior``)."""
 
-    type: Literal["plastic"] = "plastic"
-    name: str
-    albedo: Albedo = (0.5, 0.5, 0.5)
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha")
-    ior: float = Field(1.5, gt=1.0, le=4.0)
+    type: Literal["plastic"] = Field("plastic", description="material kind")
+    name: str = Field(description="referenced by objects' material / materials")
+    albedo: Albedo = Field((0.5, 0.5, 0.5), description="diffuse base colour, RGB or texture path")
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha of the coat (clamped to >= 1e-3)")
+    ior: float = Field(1.5, gt=1.0, le=4.0, description="index of refraction of the coat")
 
 
 class EmissiveMaterialSpec(_Strict):
     """Area light: emits ``emission`` (radiance) from its front face; reflects diffusely with ``albedo``."""
 
-    type: Literal["emissive"] = "emissive"
-    name: str
-    emission: NonNegVec3
-    albedo: Albedo = (0.0, 0.0, 0.0)
+    type: Literal["emissive"] = Field("emissive", description="material kind")
+    name: str = Field(description="referenced by objects' material / materials")
+    emission: NonNegVec3 = Field(description="emitted radiance (linear RGB), from the front face only")
+    albedo: Albedo = Field((0.0, 0.0, 0.0), description="diffuse reflectance of the emitter's surface")
 
 
 MaterialSpec = Annotated[
@@ -179,8 +180,9 @@ MaterialSpec = Annotated[
 class GeneratorSpec(_Strict):
     """A procedural mesh: ``neuralrt.geometry.procedural.make_procedural(name, **params)``."""
 
-    name: str
-    params: dict[str, Union[bool, int, float, str, list[float]]] = Field(default_factory=dict)
+    name: str = Field(description="statue, hairball, foliage, box, plane, sphere or cornell_box")
+    params: dict[str, Union[bool, int, float, str, list[float]]] = Field(
+        default_factory=dict, description="keyword arguments of the generator, e.g. { detail = 3 }")
 
 
 class ObjectSpec(_Strict):
@@ -191,13 +193,14 @@ class ObjectSpec(_Strict):
     rays (hybrid rendering).
     """
 
-    name: str = ""
-    mesh: str | None = None
-    generator: GeneratorSpec | None = None
-    model: str | None = None
-    transform: TransformSpec = Field(default_factory=TransformSpec)
-    material: str | None = None
-    materials: dict[str, str] = Field(default_factory=dict)
+    name: str = Field("", description="label (used by conversion to select objects)")
+    mesh: str | None = Field(None, description="mesh file (OBJ, PLY, OFF, STL, glTF), relative to the scene file")
+    generator: GeneratorSpec | None = Field(None, description="procedural mesh instead of a file")
+    model: str | None = Field(None, description="trained neural model (.nrt) answering this object's rays")
+    transform: TransformSpec = Field(default_factory=TransformSpec, description="object-to-world transform")
+    material: str | None = Field(None, description="scene material for every face")
+    materials: dict[str, str] = Field(default_factory=dict, description="mesh material name -> scene material name "
+                                      "(unmapped slots use the scene material of the same name, else 'default')")
 
     @model_validator(mode="after")
     def _one_source(self) -> "ObjectSpec":
@@ -213,17 +216,18 @@ class ObjectSpec(_Strict):
 class PointLightSpec(_Strict):
     """Isotropic point light of radiant intensity ``intensity`` (W/sr)."""
 
-    type: Literal["point"] = "point"
-    position: Vec3
-    intensity: NonNegVec3
+    type: Literal["point"] = Field("point", description="light kind")
+    position: Vec3 = Field(description="world position")
+    intensity: NonNegVec3 = Field(description="radiant intensity, W/sr (linear RGB)")
 
 
 class EnvironmentSpec(_Strict):
     """Distant lighting: constant ``color`` or a lat-long ``image`` (importance sampled), times ``scale``."""
 
-    color: NonNegVec3 | None = None
-    image: str | None = None
-    scale: float = Field(1.0, ge=0.0)
+    color: NonNegVec3 | None = Field(None, description="constant radiance (linear RGB)")
+    image: str | None = Field(None, description="lat-long image (EXR, HDR, PNG, JPG), relative to the scene file; "
+                              "its centre is seen looking down -z, row 0 is straight up")
+    scale: float = Field(1.0, ge=0.0, description="multiplies the colour or image")
 
     @model_validator(mode="after")
     def _one_source(self) -> "EnvironmentSpec":
@@ -235,19 +239,19 @@ class EnvironmentSpec(_Strict):
 class RenderSettings(_Strict):
     """Render defaults stored with the scene (callers may override)."""
 
-    spp: int = Field(16, gt=0)
+    spp: int = Field(16, gt=0, description="samples per pixel")
     max_depth: int = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
 
 
 class SceneSpec(_Strict):
     """A whole scene file."""
 
-    camera: CameraSpec = Field(default_factory=CameraSpec)
-    materials: list[MaterialSpec] = Field(default_factory=list)
-    objects: list[ObjectSpec] = Field(min_length=1)
-    lights: list[PointLightSpec] = Field(default_factory=list)
-    environment: EnvironmentSpec | None = None
-    render: RenderSettings = Field(default_factory=RenderSettings)
+    camera: CameraSpec = Field(default_factory=CameraSpec, description="the camera")
+    materials: list[MaterialSpec] = Field(default_factory=list, description="scene materials ('default', diffuse 0.8, is added if absent)")
+    objects: list[ObjectSpec] = Field(min_length=1, description="placed objects (at least one)")
+    lights: list[PointLightSpec] = Field(default_factory=list, description="point lights (area lights are emissive objects)")
+    environment: EnvironmentSpec | None = Field(None, description="distant light; none = black")
+    render: RenderSettings = Field(default_factory=RenderSettings, description="render defaults")
 
     def reference_errors(self) -> list[tuple[str, str]]:
         """(key path, problem) for duplicate material names and references to unknown materials."""

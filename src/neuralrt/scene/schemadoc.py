@@ -1,0 +1,148 @@
+"""Generates docs/scenes.md, the scene-file reference, from the pydantic schema and the built-ins.
+
+    python -m neuralrt.scene.schemadoc [path]      # default: docs/scenes.md of the source tree
+
+A test compares the committed file with `scene_reference()`, so the page stays true to the code.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from pydantic import BaseModel
+from pydantic_core import PydanticUndefined
+
+from .builtins import BUILTIN_SCENES
+from .schema import (
+    CameraSpec,
+    ConductorMaterialSpec,
+    DiffuseMaterialSpec,
+    EmissiveMaterialSpec,
+    EnvironmentSpec,
+    GeneratorSpec,
+    ObjectSpec,
+    PlasticMaterialSpec,
+    PointLightSpec,
+    RenderSettings,
+    SceneSpec,
+    TransformSpec,
+)
+
+__all__ = ["scene_reference", "main"]
+
+_SECTIONS: list[tuple[str, type[BaseModel]]] = [
+    ("top level", SceneSpec),
+    ("`[camera]`", CameraSpec),
+    ("`[[materials]]` with `type = \"diffuse\"`", DiffuseMaterialSpec),
+    ("`[[materials]]` with `type = \"conductor\"`", ConductorMaterialSpec),
+    ("`[[materials]]` with `type = \"plastic\"`", PlasticMaterialSpec),
+    ("`[[materials]]` with `type = \"emissive\"`", EmissiveMaterialSpec),
+    ("`[[objects]]`", ObjectSpec),
+    ("`objects.transform`", TransformSpec),
+    ("`objects.generator`", GeneratorSpec),
+    ("`[[lights]]`", PointLightSpec),
+    ("`[environment]`", EnvironmentSpec),
+    ("`[render]`", RenderSettings),
+]
+
+_INTRO = """# Scene file reference
+
+Generated from `neuralrt/scene/schema.py` by `python -m neuralrt.scene.schemadoc` (a test keeps it
+current). Scene files are TOML or JSON with these keys; an unknown key or a bad value is an error
+naming the file and the key path (`scene.toml: objects.2.transform.scale: scale must be finite and
+non-zero`). Paths (meshes, models, textures, environment images) resolve relative to the scene file.
+Objects that use the same mesh file, or the same generator with the same parameters, share one
+accelerator (instancing). `neuralrt.scene.scene.save_scene(spec, path)` writes a spec back.
+
+Conventions: right-handed, +y up; the camera looks down its -z axis. Colours are linear RGB.
+Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
+triangles' normals face, and cannot be neural models.
+
+```toml
+[camera]
+position = [0, 0, 3.9]
+look_at = [0, 0, 0]
+fov = 40
+resolution = [256, 256]
+
+[[materials]]
+name = "white"
+type = "diffuse"
+albedo = [0.73, 0.73, 0.73]
+
+[[materials]]
+name = "light"
+type = "emissive"
+emission = [17, 12, 4]
+
+[[objects]]
+generator = { name = "cornell_box" }        # its mesh materials "white", "red", "green", "light"
+materials = { red = "white", green = "white" }
+
+[[objects]]
+name = "statue"
+mesh = "meshes/statue.ply"
+material = "white"
+transform = { translate = [0, -0.4, 0], rotate = [0, 25, 0], scale = 0.6 }
+
+[environment]
+image = "sky.hdr"
+scale = 0.5
+```
+"""
+
+
+def _default(field) -> str:
+    if field.default is PydanticUndefined and field.default_factory is None:
+        return "required"
+    if field.default_factory is not None:
+        value = field.default_factory()
+        if isinstance(value, BaseModel):
+            return "(section)"
+        return f"`{json.dumps(value)}`"
+    value = field.default
+    if value is None:
+        return "none"
+    if isinstance(value, tuple):
+        value = list(value)
+    return f"`{json.dumps(value)}`"
+
+
+def scene_reference() -> str:
+    """The reference page as Markdown."""
+    lines = [_INTRO]
+    for title, model in _SECTIONS:
+        lines.append(f"## {title}\n")
+        doc = (model.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+        lines.append(f"{doc}\n")
+        lines.append("| key | default | meaning |")
+        lines.append("|---|---|---|")
+        for name, field in model.model_fields.items():
+            lines.append(f"| `{name}` | {_default(field)} | {field.description or ''} |")
+        lines.append("")
+    lines.append("## Built-in scenes\n")
+    lines.append("`builtin:<name>` or `builtin:<name>?detail=N` (or `load_scene(..., detail=N)`) needs no files; "
+                 "`detail` is the procedural meshes' detail level (triangle counts: `neuralrt.geometry.procedural`).\n")
+    lines.append("| name | default detail | scene |")
+    lines.append("|---|---|---|")
+    for name, b in BUILTIN_SCENES.items():
+        lines.append(f"| `{name}` | {b.default_detail} | {b.description.strip()} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def default_path() -> Path:
+    return Path(__file__).resolve().parents[3] / "docs" / "scenes.md"
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    path = Path(args[0]) if args else default_path()
+    path.write_text(scene_reference(), encoding="utf-8")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
