@@ -13,6 +13,8 @@ from neuralrt.render.integrator import render
 from neuralrt.scene.loader import build_scene
 from neuralrt.scene.schema import (
     CameraSpec,
+    ConductorMaterialSpec,
+    PlasticMaterialSpec,
     DiffuseMaterialSpec,
     EmissiveMaterialSpec,
     EnvironmentSpec,
@@ -57,6 +59,19 @@ def test_white_furnace_returns_the_environment(tmp_path):
     assert np.abs(res.image[hit] - 0.5).max() < 0.08  # no pixel far off (per-pixel std measured 0.016)
 
 
+@pytest.mark.parametrize("material,low", [
+    (ConductorMaterialSpec(name="white", albedo=(1, 1, 1), roughness=0.05), 0.485),
+    (ConductorMaterialSpec(name="white", albedo=(1, 1, 1), roughness=0.3), 0.40),
+    (PlasticMaterialSpec(name="white", albedo=(1, 1, 1), roughness=0.3), 0.40),
+])
+def test_glossy_furnace_never_brightens(tmp_path, material, low):
+    """White metal / plastic spheres in the furnace: single-scattering GGX and a coat without internal
+    reflections only lose energy (measured means 0.498, 0.440, 0.449), a near-mirror almost none."""
+    spec = _furnace(tmp_path)
+    spec.materials = [material]
+    res = render(build_scene(spec), spp=64, max_depth=32, seed=1, progress=False)
+    mean = float(res.image[res.depth > 0].mean())
+    assert low < mean < 0.5 + 0.005  # std of the mean measured < 0.004
 def _closed_form_plane_pixels(scene, radiance_at, k=8):
     """Pixel means of ``radiance_at(points on y = 0)`` over a k x k grid of positions in each pixel."""
     cam = scene.camera
