@@ -3,7 +3,6 @@ samples), area-light densities, hit -> light lookup, lat-long mapping, camera ra
 
 import math
 
-import numpy as np
 import pytest
 import torch
 from scipy.stats import chi2

@@ -29,7 +29,6 @@ from torch import Tensor
 
 from ..rays import Hits, Rays
 from .film import Film, RenderResult
-from .materials import MaterialKind
 from .sampling import make_generator, power_heuristic, uniform
 
 __all__ = ["render", "IntegratorSettings", "PathTracer"]
