@@ -119,11 +119,14 @@ class PointLights:
 
 
 class Environment:
-    """Infinitely distant lighting: ``color`` (constant) or a lat-long ``image`` [H, W, 3], times ``scale``."""
+    """Infinitely distant lighting: ``color`` (constant) or a lat-long ``image`` [H, W, 3], times ``scale``,
+    turned by ``rotate_y`` degrees about +y (right-handed: what the image shows at direction e is
+    seen at R_y(rotate_y) e)."""
 
-    def __init__(self, color=None, image: Tensor | None = None, scale: float = 1.0, device="cpu"):
+    def __init__(self, color=None, image: Tensor | None = None, scale: float = 1.0, device="cpu", rotate_y: float = 0.0):
         dev = torch.device(device)
         self.device = dev
+        self._cos, self._sin = math.cos(math.radians(rotate_y)), math.sin(math.radians(rotate_y))
         if (color is None) == (image is None):
             raise ValueError("an environment needs exactly one of color or image")
         self.image = None
@@ -169,12 +172,25 @@ class Environment:
         s = torch.sin(theta)
         return torch.stack([s * torch.sin(phi), torch.cos(theta), -s * torch.cos(phi)], -1)
 
+    def _to_env(self, d: Tensor) -> Tensor:
+        """World direction -> the image's frame (rotate by -rotate_y about +y)."""
+        if self._sin == 0.0 and self._cos == 1.0:
+            return d
+        c, s = self._cos, self._sin
+        return torch.stack([c * d[:, 0] - s * d[:, 2], d[:, 1], s * d[:, 0] + c * d[:, 2]], -1)
+
+    def _from_env(self, d: Tensor) -> Tensor:
+        if self._sin == 0.0 and self._cos == 1.0:
+            return d
+        c, s = self._cos, self._sin
+        return torch.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+
     def radiance(self, d: Tensor) -> Tensor:
         """Radiance [N, 3] arriving from unit directions ``d`` (nearest texel: piecewise constant, like the pdf)."""
         if self.color is not None:
             return self.color.expand(d.shape[0], 3)
         h, w = self.image.shape[:2]
-        uv = self.direction_to_uv(d)
+        uv = self.direction_to_uv(self._to_env(d))
         x = (uv[:, 0] * w).long().clamp(0, w - 1)
         y = (uv[:, 1] * h).long().clamp(0, h - 1)
         return self.image[y, x]
@@ -190,7 +206,7 @@ class Environment:
         h, w = self.image.shape[:2]
         pix = self.distribution.sample(u_pixel)
         uv = torch.stack([((pix % w).float() + u_dir[:, 0]) / w, (torch.div(pix, w, rounding_mode="floor").float() + u_dir[:, 1]) / h], -1)
-        d = self.uv_to_direction(uv)
+        d = self._from_env(self.uv_to_direction(uv))
         return d, self.pdf(d)
 
     def pdf(self, d: Tensor) -> Tensor:
@@ -198,6 +214,7 @@ class Environment:
         if self.color is not None:
             return torch.full((d.shape[0],), 1.0 / (4 * math.pi), device=d.device)
         h, w = self.image.shape[:2]
+        d = self._to_env(d)
         uv = self.direction_to_uv(d)
         x = (uv[:, 0] * w).long().clamp(0, w - 1)
         y = (uv[:, 1] * h).long().clamp(0, h - 1)

@@ -305,4 +305,4 @@ def _environment(spec: SceneSpec, label: str, device) -> Environment | None:
         image = torch.from_numpy(read_image(env.image))
     except NeuralRTError as exc:
         raise SceneError(f"{label}: environment.image: {exc}") from None
-    return Environment(image=image, scale=env.scale, device=device)
+    return Environment(image=image, scale=env.scale, device=device, rotate_y=env.rotate_y)

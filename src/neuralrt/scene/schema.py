@@ -228,6 +228,7 @@ class EnvironmentSpec(_Strict):
     image: str | None = Field(None, description="lat-long image (EXR, HDR, PNG, JPG), relative to the scene file; "
                               "its centre is seen looking down -z, row 0 is straight up")
     scale: float = Field(1.0, ge=0.0, description="multiplies the colour or image")
+    rotate_y: float = Field(0.0, description="turns the image about +y, degrees (right-handed)")
 
     @model_validator(mode="after")
     def _one_source(self) -> "EnvironmentSpec":
