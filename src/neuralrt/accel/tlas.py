@@ -158,8 +158,15 @@ class SceneAccel:
         """The pairs' rays in their instance's object space, with interval (t_min, ``t_max`` [P]).
         ``ray_idx`` None: every ray, in order, under the one instance ``inst_idx[0]``."""
         if ray_idx is None:
-            if self._is_identity[int(inst_idx[0])]:
+            k = int(inst_idx[0])
+            if self._is_identity[k]:
                 return Rays(rays.origins, rays.directions, rays.t_min, t_max)
+            if self._kernels_on(rays.device):
+                o, d = np.empty((len(rays), 3), np.float32), np.empty((len(rays), 3), np.float32)
+                kernels.transform_rays(
+                    rays.origins.detach().numpy(), rays.directions.detach().numpy(), self._world_to_object_np[k], o, d
+                )
+                return Rays(torch.from_numpy(o), torch.from_numpy(d), rays.t_min, t_max)
             t_min, ray_idx, inst_idx = rays.t_min, torch.arange(len(rays)), inst_idx.expand(len(rays))
         else:
             t_min = rays.t_min[ray_idx]

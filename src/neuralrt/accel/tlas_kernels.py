@@ -14,7 +14,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-__all__ = ["instance_overlaps", "object_space_rays", "normals_to_world", "merge_every_ray", "closest_pair_per_ray"]
+__all__ = ["instance_overlaps", "object_space_rays", "transform_rays", "normals_to_world", "merge_every_ray", "closest_pair_per_ray"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -100,6 +100,17 @@ def object_space_rays(origins, directions, ray_idx, inst_idx, world_to_object, i
             for a in range(3):
                 out_origins[p, a] = _affine(m, ox, oy, oz, a, True)
                 out_directions[p, a] = _affine(m, dx, dy, dz, a, False)
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def transform_rays(origins, directions, world_to_object, out_origins, out_directions):
+    """Every ray under one instance: `object_space_rays` without index arrays."""
+    for r in range(origins.shape[0]):
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
+        for a in range(3):
+            out_origins[r, a] = _affine(world_to_object, ox, oy, oz, a, True)
+            out_directions[r, a] = _affine(world_to_object, dx, dy, dz, a, False)
 
 
 @intrinsic
