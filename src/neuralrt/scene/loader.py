@@ -113,18 +113,7 @@ def validate_spec(data, label: str) -> SceneSpec:
 def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
     """A copy of ``spec`` whose relative file paths are resolved against ``base_dir``."""
 
-    def resolve(p: str | None) -> str | None:
-        return p if p is None else str((base_dir / os.path.expanduser(p)).resolve())
-
-    spec = spec.model_copy(deep=True)
-    for m in spec.materials:
-        if isinstance(m.albedo, str):
-            m.albedo = resolve(m.albedo)
-    for obj in spec.objects:
-        obj.mesh, obj.model = resolve(obj.mesh), resolve(obj.model)
-    if spec.environment is not None and spec.environment.image is not None:
-        spec.environment.image = resolve(spec.environment.image)
-    return spec
+    return spec.with_paths(lambda p: str((base_dir / os.path.expanduser(p)).resolve()))
 
 
 # --- building --------------------------------------------------------------------------------------

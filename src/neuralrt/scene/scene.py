@@ -60,23 +60,15 @@ def instance_ray_offsets(accel: SceneAccel) -> Tensor:
 def _relocated_paths(spec: SceneSpec, folder: Path) -> SceneSpec:
     """A copy whose absolute file paths are rewritten relative to ``folder`` (where the file will live)."""
 
-    def rel(p: str | None) -> str | None:
-        if p is None or not os.path.isabs(p):
+    def rel(p: str) -> str:
+        if not os.path.isabs(p):
             return p
         try:
             return os.path.relpath(p, folder)
         except ValueError:  # another drive on Windows: keep absolute
             return p
 
-    data = spec.model_copy(deep=True)
-    for m in data.materials:
-        if isinstance(m.albedo, str):
-            m.albedo = rel(m.albedo)
-    for obj in data.objects:
-        obj.mesh, obj.model = rel(obj.mesh), rel(obj.model)
-    if data.environment is not None and data.environment.image is not None:
-        data.environment.image = rel(data.environment.image)
-    return data
+    return spec.with_paths(rel)
 
 
 def save_scene(spec: SceneSpec, path: str | Path) -> None:

@@ -254,6 +254,19 @@ class SceneSpec(_Strict):
     environment: EnvironmentSpec | None = Field(None, description="distant light; none = black")
     render: RenderSettings = Field(default_factory=RenderSettings, description="render defaults")
 
+    def with_paths(self, fn) -> "SceneSpec":
+        """A copy with every file path (textures, meshes, models, environment image) mapped by ``fn``."""
+        spec = self.model_copy(deep=True)
+        for m in spec.materials:
+            if isinstance(m.albedo, str):
+                m.albedo = fn(m.albedo)
+        for obj in spec.objects:
+            obj.mesh = None if obj.mesh is None else fn(obj.mesh)
+            obj.model = None if obj.model is None else fn(obj.model)
+        if spec.environment is not None and spec.environment.image is not None:
+            spec.environment.image = fn(spec.environment.image)
+        return spec
+
     def reference_errors(self) -> list[tuple[str, str]]:
         """(key path, problem) for duplicate material names and references to unknown materials."""
         errors: list[tuple[str, str]] = []
