@@ -69,8 +69,8 @@ def inference_speed(model: LSNIFModel, exact: MeshBLAS, rays_n: int, repeats: in
     for _ in range(repeats):
         embree.append(best_rate(lambda: exact.intersect(rays), rays_n, 1))
         neural.append(best_rate(lambda: model.intersect(rays), rays_n, 1))
-    prep = model._prepare(rays[: 1 << 16])
-    network_fraction = len(prep.active) / (1 << 16)
+    sample = rays[torch.arange(0, rays_n, 16)]  # outside and surface rays alike (the batch holds outside rays first)
+    network_fraction = len(model._prepare(sample).active) / len(sample)
     # The MLP's own limit: the network alone on a full chunk of features, at the inference precision.
     cfg = model.config
     h, w = cfg.network.hidden_width, cfg.network.hidden_layers
@@ -100,6 +100,10 @@ def inference_speed(model: LSNIFModel, exact: MeshBLAS, rays_n: int, repeats: in
     }
 
 
+def model_file_name(spec: str, preset: str) -> str:
+    return f"{spec.replace('/', '_').replace(':', '_')}-{preset}.nrt"
+
+
 def run(spec: str, preset: str, args) -> dict:
     mesh = resolve_mesh(spec)
     exact = MeshBLAS(mesh)
@@ -109,7 +113,7 @@ def run(spec: str, preset: str, args) -> dict:
     train_wall = time.perf_counter() - t0
     if args.models_dir:
         Path(args.models_dir).mkdir(parents=True, exist_ok=True)
-        model.save(Path(args.models_dir) / f"{spec.replace('/', '_').replace(':', '_')}-{preset}.nrt")
+        model.save(Path(args.models_dir) / model_file_name(spec, preset))
     metrics = evaluate_model(model, mesh, rays=args.eval_rays, resolution=args.image_resolution)
     out = {
         "mesh": spec,
@@ -169,6 +173,8 @@ def main() -> None:
     p.add_argument("--inference-rays", type=int, default=1_000_000, help="0 skips the speed test")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--models-dir", default=None, help="also save the trained models here")
+    p.add_argument("--remeasure-inference", action="store_true",
+                   help="only re-measure inference speed of models saved in --models-dir, updating existing runs")
     p.add_argument("--name", default="lsnif", help="results file: benchmarks/results/NAME.json (runs merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
@@ -177,7 +183,12 @@ def main() -> None:
     runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
     for spec in args.meshes:
         for preset in args.presets:
-            r = run(spec, preset, args)
+            if args.remeasure_inference:
+                r = runs[f"{spec}|{preset}"]
+                model = LSNIFModel.load(Path(args.models_dir) / model_file_name(spec, preset))
+                r["inference"] = inference_speed(model, MeshBLAS(resolve_mesh(spec)), args.inference_rays, args.repeats)
+            else:
+                r = run(spec, preset, args)
             runs[f"{spec}|{preset}"] = r
             write_results(args.name, [summary_row(v) for v in runs.values()], extra={"runs": runs})
             print_table([summary_row(r)], COLUMNS)
