@@ -119,6 +119,7 @@ def run(spec: str, preset: str, args) -> dict:
         "mesh": spec,
         "triangles": mesh.num_triangles,
         "preset": preset,
+        "config": cfg.model_dump(mode="json"),
         "training": {**model.training_record, "wall_seconds_incl_setup": train_wall},
         "metrics": metrics,
         "memory": {"lsnif": model.memory_bytes().as_dict()},

@@ -67,7 +67,7 @@ def one_torch_thread():
 
 @pytest.fixture(scope="module")
 def trained(ball, tmp_path_factory, one_torch_thread):
-    cfg = LSNIFConfig.preset("hq").with_training(steps=TRAIN_STEPS, batch_size=TRAIN_BATCH, seed=0)
+    cfg = LSNIFConfig.preset("hq").with_training(steps=TRAIN_STEPS, batch_size=TRAIN_BATCH, seed=0, lr_decay_final=1.0)
     ckpt = tmp_path_factory.mktemp("ckpt") / "run.ckpt"
     return train_lsnif(ball, cfg, progress=False, checkpoint=ckpt), ckpt
 
@@ -77,7 +77,7 @@ def _held_out(mesh, model, n=8192, seed=12345):
 
 
 def test_short_training_learns_the_object(ball, trained):
-    """150 steps x 4096 rays on a sphere: held-out hit/miss and distances close to exact."""
+    """150 steps x 4096 rays (constant lr: a short run) on a sphere: held-out hit/miss and distances close to exact."""
     model, _ = trained
     batch = _held_out(ball, model)
     pred = model.intersect(batch.rays)
@@ -169,7 +169,7 @@ def test_bad_model_files_rejected(trained, tmp_path):
 def test_resume_continues_from_checkpoint(ball, trained):
     """Training 150 steps then resuming to 160 runs only the last 10 steps."""
     model, ckpt = trained
-    cfg = LSNIFConfig.preset("hq").with_training(steps=TRAIN_STEPS + 10, batch_size=TRAIN_BATCH, seed=0)
+    cfg = LSNIFConfig.preset("hq").with_training(steps=TRAIN_STEPS + 10, batch_size=TRAIN_BATCH, seed=0, lr_decay_final=1.0)
     resumed = train_lsnif(ball, cfg, progress=False, checkpoint=ckpt, resume=True)
     rec = resumed.training_record
     assert rec["resumed_from"] == TRAIN_STEPS and rec["steps"] == TRAIN_STEPS + 10
