@@ -123,6 +123,10 @@ def run_scene(scene: str, work: Path, args) -> dict:
     return row
 
 
+def short_name(scene: str) -> str:
+    return "shared" if scene.endswith("shared_scene/scene.toml") else scene.replace("builtin:", "").replace("?detail=", " d")
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -130,14 +134,17 @@ def plot(rows: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    for r in rows:
-        for preset, marker in (("hq", "o"), ("lq", "s")):
-            ax.scatter(r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"], marker=marker)
-            ax.annotate(f"{r['scene'].replace('builtin:', '')} {preset}", (r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"]),
-                        fontsize=7, xytext=(3, 3), textcoords="offset points")
-        ax.scatter(r["bvh_a_bytes"] / 2**20, r["flip_floor"], marker="x", color="k")
+    for k, r in enumerate(rows):
+        color = f"C{k}"
+        for preset, marker, dy in (("hq", "o", 4), ("lq", "s", -10)):
+            ax.scatter(r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"], marker=marker, color=color)
+            ax.annotate(f"{short_name(r['scene'])} {preset}", (r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"]),
+                        fontsize=7, xytext=(5, dy), textcoords="offset points", color=color)
+        ax.scatter(r["bvh_a_bytes"] / 2**20, r["flip_floor"], marker="x", color=color)
+        ax.annotate(short_name(r["scene"]), (r["bvh_a_bytes"] / 2**20, r["flip_floor"]), fontsize=7,
+                    xytext=(-5, 5), textcoords="offset points", ha="right", color=color)
     ax.set_xscale("log")
-    ax.set_xlabel("memory of the replaced objects [MiB] (x: exact BVH A at its noise floor)")
+    ax.set_xlabel("memory of replaced objects [MiB] (o hq, s lq, x BVH A at noise floor)")
     ax.set_ylabel("FLIP vs exact render")
     ax.set_title("Hybrid LSNIF rendering: error vs memory")
     fig.tight_layout()
