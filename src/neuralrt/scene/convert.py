@@ -26,8 +26,7 @@ import torch
 from ..errors import ModelFileError, NeuralRTError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.model_file import read_header
-from .loader import _scene_material_for as scene_material_for
-from .loader import _shape_for, load_scene_spec
+from .loader import load_scene_spec, scene_material_for, shape_for
 from .schema import EmissiveMaterialSpec, ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
@@ -226,7 +225,7 @@ def convert_scene(
 
     spec, _, label = load_scene_spec(scene, detail=detail)
     shapes: dict = {}  # instances of one mesh share one load
-    meshes = [getattr(_shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
+    meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
     chosen = _selected(spec, meshes, select, min_triangles)
     if not chosen:
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "

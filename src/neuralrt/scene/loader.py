@@ -35,7 +35,7 @@ from .schema import (
 )
 from .scene import Scene, instance_ray_offsets
 
-__all__ = ["load_scene", "load_scene_spec", "build_scene", "BUILTIN_PREFIX"]
+__all__ = ["load_scene", "load_scene_spec", "build_scene", "scene_material_for", "shape_for", "BUILTIN_PREFIX"]
 
 BUILTIN_PREFIX = "builtin:"
 DEFAULT_MATERIAL = DiffuseMaterialSpec(name="default", albedo=(0.8, 0.8, 0.8))  # for faces nothing else names
@@ -144,7 +144,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     meshes: list[Mesh | None] = []
     for i, obj in enumerate(spec.objects):
         key = f"objects.{i}"
-        shape = _shape_for(obj, shapes, label, key)
+        shape = shape_for(obj, shapes, label, key)
         blas, camera_blas = (shape.blas if shape else None), None
         if obj.model is not None:
             if _uses_emissive(obj, shape, index, materials):
@@ -154,7 +154,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
                 models[obj.model] = _load_model(obj.model, label, key)
             blas, camera_blas = models[obj.model], (shape.blas if shape else None)
         slot_names = [m.name for m in shape.mesh.materials] if shape else list(getattr(blas, "material_names", None) or ["default"])
-        material_map = [index[_scene_material_for(obj, name, index)] for name in slot_names]
+        material_map = [index[scene_material_for(obj, name, index)] for name in slot_names]
         if shape is None and bool(materials.emissive_mask[torch.tensor(material_map)].any()):
             raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map),
@@ -177,11 +177,11 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
 def _uses_emissive(obj: ObjectSpec, shape: _Shape | None, index: dict[str, int], materials: MaterialTable) -> bool:
     """Whether any of the object's faces get an emissive scene material (known before a model loads)."""
     slots = [m.name for m in shape.mesh.materials] if shape else ["default"]
-    names = {_scene_material_for(obj, slot, index) for slot in slots}
+    names = {scene_material_for(obj, slot, index) for slot in slots}
     return any(bool(materials.emissive_mask[index[n]]) for n in names)
 
 
-def _scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str:
+def scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str:
     """Scene material for a mesh material slot: the object's `material`, its `materials` map, the
     scene material of the same name, else ``default``."""
     if obj.material is not None:
@@ -191,7 +191,7 @@ def _scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> st
     return slot if slot in index else "default"
 
 
-def _shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | None:
+def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | None:
     if obj.mesh is not None:
         cache_key = ("file", obj.mesh)
     elif obj.generator is not None:
