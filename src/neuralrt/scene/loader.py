@@ -192,6 +192,8 @@ def scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str
 
 
 def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | None:
+    """The object's mesh and exact BLAS, loaded once per source (cached in ``shapes``); None for a
+    model-only object. Errors name ``label`` and ``key``."""
     if obj.mesh is not None:
         cache_key = ("file", obj.mesh)
     elif obj.generator is not None:
