@@ -65,7 +65,7 @@ def _cmd_train(args) -> None:
     _print_result(result, args.json)
 
 
-def _cmd_eval(args) -> None:
+def _cmd_evaluate(args) -> None:
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
                           image_dir=args.images, device=args.device)
     if args.json:
@@ -166,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
     p.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
     _add_common(p)
-    p.set_defaults(func=_cmd_eval)
+    p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("convert", help="train models for a scene's complex objects; write a scene that uses them")
     p.add_argument("scene", help="scene file or builtin:NAME")
