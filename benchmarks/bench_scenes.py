@@ -74,12 +74,10 @@ def shared_scene(work: Path) -> Path | None:
 
 
 def run_scene(scene: str, work: Path, args) -> dict:
-    from neuralrt.accel.classical_memory import classical_memory
     from neuralrt.eval.image_metrics import compare_images
     from neuralrt.io.images import write_png
-    from neuralrt.methods import load_model
     from neuralrt.render.integrator import render
-    from neuralrt.scene.convert import convert_scene
+    from neuralrt.scene.convert import convert_scene, neural_bytes, replaced_memory
     from neuralrt.scene.loader import load_scene
 
     tag = scene.replace("builtin:", "").replace("?", "_").replace("=", "").replace("/", "_")
@@ -110,14 +108,12 @@ def run_scene(scene: str, work: Path, args) -> dict:
         row[f"{preset}_s"] = seconds[preset]
         row[f"time_{preset}_ratio"] = seconds[preset] / seconds["exact"]
         row[f"train_{preset}_s"] = report.train_seconds
-        row[f"neural_{preset}_bytes"] = sum(load_model(m.model_path).memory_bytes().total for m in report.models)
-    hybrid_scene, report = scenes["hq"], reports["hq"]
+        row[f"neural_{preset}_bytes"] = neural_bytes(scenes[preset])
+    memory = replaced_memory(scenes["hq"])  # both presets replace the same meshes
+    report = reports["hq"]
     row["objects"], row["unique"] = report.neural_objects, report.unique_models
-    meshes = {id(i.camera_blas): i.camera_blas.mesh for i in hybrid_scene.accel.instances if i.camera_blas is not None}
-    mems = [classical_memory(m) for m in meshes.values()]
-    row["triangles"] = sum(m.triangles for m in mems)
-    row["bvh_a_bytes"] = sum(m.bvh_a_bytes for m in mems)
-    row["bvh_b_bytes"] = sum(m.bvh_b_bytes for m in mems)
+    row["triangles"] = memory["neural_triangles"]
+    row["bvh_a_bytes"], row["bvh_b_bytes"] = memory["bvh_a_bytes"], memory["bvh_b_bytes"]
     row["bvh_a_ratio"] = row["bvh_a_bytes"] / row["neural_hq_bytes"]
     row["bvh_b_ratio"] = row["bvh_b_bytes"] / row["neural_hq_bytes"]
     return row

@@ -96,12 +96,10 @@ def _markdown(report: dict) -> str:
 def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device: str = "cpu",
              progress: bool = True, settings: DemoSettings | None = None) -> dict:
     """Run the whole demo and return the report (also written to ``out_dir/report.json``)."""
-    from .accel.classical_memory import classical_memory
     from .eval.image_metrics import compare_images, write_srgb_png
     from .io.images import linear_to_srgb, tone_map
-    from .methods import load_model
     from .render.integrator import render
-    from .scene.convert import convert_scene
+    from .scene.convert import convert_scene, replaced_memory
     from .scene.loader import load_scene
 
     s = settings or (DEMO_QUICK if quick else DEMO_DEFAULT)
@@ -135,14 +133,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
                   ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / "side_by_side.png")
 
     say("[4/4] memory accounting ...")
-    neural_bytes = bvh_a = bvh_b = triangles = 0
-    for record in conversion.models:
-        neural_bytes += load_model(record.model_path).memory_bytes().total
-    converted_meshes = {id(inst.camera_blas): inst.camera_blas for inst in hybrid_scene.accel.instances
-                        if inst.camera_blas is not None}
-    for blas in converted_meshes.values():
-        mem = classical_memory(blas.mesh)
-        bvh_a, bvh_b, triangles = bvh_a + mem.bvh_a_bytes, bvh_b + mem.bvh_b_bytes, triangles + mem.triangles
+    memory = replaced_memory(hybrid_scene)
 
     report = {
         "scene": s.scene,
@@ -158,12 +149,9 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         "flip_noise_floor": floor.flip,
         "psnr_noise_floor": floor.psnr,
         "memory": {
-            "neural_bytes": int(neural_bytes),
-            "bvh_a_bytes": int(bvh_a),
-            "bvh_b_bytes": int(bvh_b),
-            "neural_triangles": int(triangles),
-            "bvh_a_ratio": bvh_a / max(neural_bytes, 1),
-            "bvh_b_ratio": bvh_b / max(neural_bytes, 1),
+            **memory,
+            "bvh_a_ratio": memory["bvh_a_bytes"] / max(memory["neural_bytes"], 1),
+            "bvh_b_ratio": memory["bvh_b_bytes"] / max(memory["neural_bytes"], 1),
         },
         "time": {
             "train_s": conversion.train_seconds,

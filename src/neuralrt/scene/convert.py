@@ -30,7 +30,7 @@ from .loader import load_scene_spec, scene_material_for, shape_for
 from .schema import EmissiveMaterialSpec, ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
-__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "DEFAULT_MIN_TRIANGLES"]
+__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
 
 # Objects smaller than this stay triangles unless selected by name: a model costs ~1.5 MB, a
 # 10k-triangle mesh with its BVH about as much, so smaller meshes gain nothing.
@@ -117,11 +117,22 @@ def _is_emissive(spec: SceneSpec, obj: ObjectSpec, mesh: Mesh, index: dict) -> b
     return False
 
 
-def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | None, min_triangles: int | None) -> list[int]:
-    """Indices of the objects to convert; errors name unknown or unconvertible selections."""
+def _material_index(spec: SceneSpec) -> dict[str, int]:
+    """Scene material name -> index, with the loader's implicit ``default``."""
     index = {m.name: i for i, m in enumerate(spec.materials)}
     index.setdefault("default", len(index))
-    names = [obj.name or f"object{i}" for i, obj in enumerate(spec.objects)]
+    return index
+
+
+def _object_names(spec: SceneSpec) -> list[str]:
+    """Each object's name as the loader names its instance."""
+    return [obj.name or f"object{i}" for i, obj in enumerate(spec.objects)]
+
+
+def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | None, min_triangles: int | None) -> list[int]:
+    """Indices of the objects to convert; errors name unknown or unconvertible selections."""
+    index = _material_index(spec)
+    names = _object_names(spec)
     if select:
         unknown = sorted(set(select) - set(names))
         if unknown:
@@ -145,8 +156,7 @@ def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | No
 
 def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> Mesh:
     """Selected objects baked into one world-space mesh whose materials are scene material names."""
-    index = {m.name: i for i, m in enumerate(spec.materials)}
-    index.setdefault("default", len(index))
+    index = _material_index(spec)
     names: list[str] = []
     verts, faces, normals, mat_ids = [], [], [], []
     offset = 0
@@ -230,7 +240,7 @@ def convert_scene(
     if not chosen:
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "
                          f"{DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles} triangles)")
-    names = [obj.name or f"object{i}" for i, obj in enumerate(spec.objects)]
+    names = _object_names(spec)
     out_spec = spec.model_copy(deep=True)
     report = ConversionReport(scene_path=str(output))
 
@@ -277,3 +287,24 @@ def convert_scene(
     report.neural_objects = len(chosen)
     save_scene(out_spec, output)
     return report
+
+
+def neural_bytes(scene) -> int:
+    """Run-time bytes of a converted scene's neural models, each counted once (instancing)."""
+    models = {id(i.blas): i.blas for i in scene.accel.instances if i.camera_blas is not None}
+    return int(sum(m.memory_bytes().total for m in models.values()))
+
+
+def replaced_memory(scene) -> dict:
+    """Memory of a converted scene's neural objects: their models (each once) and the BVH A / B
+    that their meshes (kept for camera rays, each once) would need instead."""
+    from ..accel.classical_memory import classical_memory
+
+    meshes = {id(i.camera_blas): i.camera_blas.mesh for i in scene.accel.instances if i.camera_blas is not None}
+    classical = [classical_memory(mesh) for mesh in meshes.values()]
+    return {
+        "neural_bytes": neural_bytes(scene),
+        "bvh_a_bytes": int(sum(c.bvh_a_bytes for c in classical)),
+        "bvh_b_bytes": int(sum(c.bvh_b_bytes for c in classical)),
+        "neural_triangles": int(sum(c.triangles for c in classical)),
+    }
