@@ -244,19 +244,20 @@ def convert_scene(
     out_spec = spec.model_copy(deep=True)
     report = ConversionReport(scene_path=str(output))
 
-    # Work items: (mesh to train, objects that use it)
-    jobs: list[tuple[Mesh, list[int]]] = []
+    # Work items: mesh hash -> (mesh to train, objects that use it). Instances share one Mesh
+    # object (the loader's cache), so each distinct object is hashed once.
+    jobs: dict[str, tuple[Mesh, list[int]]] = {}
     if group:
         merged = _merged_world_mesh(spec, chosen, meshes)
-        jobs.append((merged, chosen))
+        jobs[merged.content_hash()] = (merged, chosen)
     else:
-        by_hash: dict[str, tuple[Mesh, list[int]]] = {}
+        hashes: dict[int, str] = {}
         for i in chosen:
-            by_hash.setdefault(meshes[i].content_hash(), (meshes[i], []))[1].append(i)
-        jobs = list(by_hash.values())
+            if id(meshes[i]) not in hashes:
+                hashes[id(meshes[i])] = meshes[i].content_hash()
+            jobs.setdefault(hashes[id(meshes[i])], (meshes[i], []))[1].append(i)
 
-    for k, (mesh, users) in enumerate(jobs):
-        mesh_hash = mesh.content_hash()
+    for k, (mesh_hash, (mesh, users)) in enumerate(jobs.items()):
         stem = f"{_safe_name(mesh.name)}-{mesh_hash[:10]}-{config_hash[:8]}"
         model_path = models_dir / f"{stem}.nrt"
         reused = _cached_model_is_valid(model_path, mesh_hash, config)
