@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
-__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask"]
+__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward"]
 
 
 @dataclass
@@ -175,6 +175,14 @@ def valid_ray_mask(rays: Rays) -> Tensor:
     finite = torch.isfinite(rays.origins).all(-1) & torch.isfinite(rays.directions).all(-1)
     nonzero = (rays.directions.abs().amax(-1) > 0)
     return finite & nonzero & ~torch.isnan(rays.t_min) & ~torch.isnan(rays.t_max) & (rays.t_max > rays.t_min)
+
+
+def face_forward(normals: Tensor, directions: Tensor) -> Tensor:
+    """``normals`` [..., 3] flipped where needed to face against ``directions`` [..., 3] (the side the
+    ray arrives from). Works on torch tensors and numpy arrays alike (any float dtype, any device)."""
+    facing_away = (normals * directions).sum(-1, keepdims=True) > 0
+    where = np.where if isinstance(normals, np.ndarray) else torch.where
+    return where(facing_away, -normals, normals)
 
 
 def ray_box_intervals(
