@@ -136,6 +136,11 @@ def test_json_scene_and_relative_paths_resolve_against_the_file(scene_dir, tmp_p
         (lambda s: s.replace('albedo = [0.5, 0.5, 0.5]', 'albedo = "missing.png"'), r"scene.toml: materials.0.albedo: .*missing.png: image file not found"),
         (lambda s: s + "\n[[objects]]\nname = 'x'\n", r"scene.toml: objects.4: .*needs a mesh, a generator or a model"),
         (lambda s: s.replace("[camera]", "[camera\n"), r"scene.toml: not valid TOML"),
+        (lambda s: s.replace("translate = [1, 0, 0]", "translate = [nan, 0, 0]"), r"scene.toml: objects.1.transform.translate.0: .*finite"),
+        (lambda s: s.replace("rotate = [0, 45, 0]", "rotate = [0, inf, 0]"), r"scene.toml: objects.1.transform.rotate.1: .*finite"),
+        (lambda s: s.replace("translate = [-1, 0, 0]", "matrix = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -inf], [0, 0, 0, 1]]"),
+         r"scene.toml: objects.2.transform.matrix.2.3: .*finite"),
+        (lambda s: s.replace("position = [0, 1, 4]", "position = [0, nan, 4]"), r"scene.toml: camera.position.1: .*finite"),
     ],
 )
 def test_errors_are_one_line_and_name_file_and_key(scene_dir, edit, message):

@@ -35,7 +35,8 @@ A scene file has these sections (unknown keys are errors)::
     spp = 16
     max_depth = 5
 
-Emissive objects (materials of type "emissive") are the area lights.
+Emissive objects (materials of type "emissive") are the area lights. Every number must be
+finite: ``nan`` and ``inf`` (which TOML and JSON readers accept) are errors naming the key.
 """
 
 from __future__ import annotations
@@ -63,8 +64,12 @@ __all__ = [
     "SceneSpec",
 ]
 
-Vec3 = tuple[float, float, float]
-NonNegVec3 = tuple[Annotated[float, Field(ge=0)], Annotated[float, Field(ge=0)], Annotated[float, Field(ge=0)]]
+# Every number in a scene is finite: TOML and JSON readers accept nan / inf, and a NaN in a transform
+# or camera would only surface deep inside rendering.
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNegFinite = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+NonNegVec3 = tuple[NonNegFinite, NonNegFinite, NonNegFinite]
 
 
 class _Strict(BaseModel):
@@ -100,8 +105,8 @@ class TransformSpec(_Strict):
 
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset, world units (applied last)")
     rotate: Vec3 = Field((0.0, 0.0, 0.0), description="Euler angles in degrees about the world x, then y, then z axis")
-    scale: float | Vec3 = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); non-zero")
-    matrix: list[list[float]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces translate/rotate/scale")
+    scale: float | tuple[float, float, float] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); non-zero")
+    matrix: list[list[Finite]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces translate/rotate/scale")
 
     @field_validator("scale")
     @classmethod
@@ -227,8 +232,8 @@ class EnvironmentSpec(_Strict):
     color: NonNegVec3 | None = Field(None, description="constant radiance (linear RGB)")
     image: str | None = Field(None, description="lat-long image (EXR, HDR, PNG, JPG), relative to the scene file; "
                               "its centre is seen looking down -z, row 0 is straight up")
-    scale: float = Field(1.0, ge=0.0, description="multiplies the colour or image")
-    rotate_y: float = Field(0.0, description="turns the image about +y, degrees (right-handed)")
+    scale: NonNegFinite = Field(1.0, description="multiplies the colour or image")
+    rotate_y: Finite = Field(0.0, description="turns the image about +y, degrees (right-handed)")
 
     @model_validator(mode="after")
     def _one_source(self) -> "EnvironmentSpec":
