@@ -34,7 +34,7 @@ def reference_intersect(blas: MeshBLAS, rays: Rays) -> dict[str, np.ndarray]:
         return bw * attr[faces[:, 0]] + bu * attr[faces[:, 1]] + bv * attr[faces[:, 2]]
 
     n = len(o)
-    out = {"hit": hit, "t": np.where(hit, res["tfar"] + t_min, np.inf).astype(np.float32), "primitive_id": prim,
+    out = {"hit": hit, "t": np.where(hit, res["tfar"] + start, np.inf).astype(np.float32), "primitive_id": prim,
            "normal": np.zeros((n, 3), np.float32), "geometric_normal": np.zeros((n, 3), np.float32),
            "uv": np.zeros((n, 2), np.float32), "albedo": np.ones((n, 3), np.float32),
            "material_id": np.full(n, -1, np.int64)}  # fmt: skip

@@ -1,9 +1,16 @@
-"""Exact ray/triangle intersection with Embree (through `embreex`): the classical baseline and the
-ground truth every neural model is trained against."""
+"""Exact ray/triangle intersection: the classical baseline and the ground truth every neural model
+is trained against.
+
+`MeshBLAS(mesh, device=...)` picks the backend for the device once, at construction: Embree (through
+`embreex`) on the CPU; on CUDA, OptiX through Mitsuba 3 (`mesh_blas_mitsuba.py`, the optional
+``neuralrt[gpu]`` extra), or Embree on the host with a one-line notice when Mitsuba is missing.
+Every backend answers the same contract, tested against each other in tests/test_mesh_blas_backends.py.
+"""
 
 from __future__ import annotations
 
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -16,7 +23,7 @@ from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
 
-__all__ = ["MeshBLAS"]
+__all__ = ["MeshBLAS", "EmbreeMeshBLAS"]
 
 # Stands in for a missing per-vertex attribute (the kernels take arrays, never None).
 _NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
@@ -26,6 +33,10 @@ _NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
 # threads and keep a chunk's Embree results in cache for the attribute pass.
 _CHUNK_RAYS = 1 << 15
 _pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (process id, workers, pool)
+_fallback_noticed = False  # the CUDA-without-Mitsuba notice is printed once per process
+
+FALLBACK_NOTICE = ("neuralrt: note: Mitsuba 3 is not installed (pip install 'neuralrt[gpu]'): "
+                   "exact rays on {device} are traced by Embree on the host")
 
 
 def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -58,6 +69,82 @@ def _run_in_chunks(trace, n: int, threads: int | None) -> None:
         future.result()  # re-raises a worker's exception here
 
 
+def _backend_for(device: torch.device) -> type["MeshBLAS"]:
+    """The `MeshBLAS` implementation for ``device``: decided once, when a BLAS is built."""
+    if device.type != "cuda":
+        return EmbreeMeshBLAS
+    from . import mesh_blas_mitsuba
+
+    if mesh_blas_mitsuba.mitsuba_variant_available(device):
+        return mesh_blas_mitsuba.MitsubaMeshBLAS
+    global _fallback_noticed
+    if not _fallback_noticed:
+        _fallback_noticed = True
+        print(FALLBACK_NOTICE.format(device=device.type), file=sys.stderr)
+    return EmbreeMeshBLAS
+
+
+class MeshBLAS:
+    """Exact closest-hit and any-hit queries over one triangle mesh, in the mesh's own space.
+
+    ``MeshBLAS(mesh, device=None)`` builds the backend for ``device`` (default CPU): an
+    `EmbreeMeshBLAS` on the CPU, a `MitsubaMeshBLAS` (OptiX) on CUDA when Mitsuba 3 is installed.
+    Built once per mesh (instances share it through the scene TLAS).
+
+    Contract, whatever the backend: ``intersect(rays)`` returns `Hits` on ``rays.device`` (the
+    closest hit in ``(t_min, t_max)``: t in units of the direction's length, triangle index,
+    shading normal interpolated from ``mesh.vertex_normals``, unit face normal, UV, albedo =
+    material base colour x texture x vertex colour clipped to [0, 1], material id);
+    ``occluded(rays)`` returns [N] bool. Rays with NaN/Inf origins or directions, zero directions
+    or empty/NaN intervals are misses.
+    """
+
+    mesh: Mesh
+    bounds: AABB
+    secondary_offset: float
+    device: torch.device
+    backend: str  # "embree", or the Mitsuba variant ("cuda_ad_rgb", "llvm_ad_rgb")
+
+    def __new__(cls, mesh: Mesh, device=None, threads: int | None = None):
+        if cls is MeshBLAS:
+            cls = _backend_for(torch.device(device if device is not None else "cpu"))
+        return super().__new__(cls)
+
+    def _init_common(self, mesh: Mesh, device) -> None:
+        """What every backend shares: the mesh, its bounds (CPU tensors), the secondary-ray offset."""
+        self.mesh = mesh
+        self.device = torch.device(device if device is not None else "cpu")
+        lo, hi = mesh.bounds
+        self.bounds = AABB(torch.from_numpy(lo.copy()), torch.from_numpy(hi.copy()))
+        # Offset for secondary rays: a few float32 ulps of the object's extent.
+        self.secondary_offset = float(1e-4 * max(self.bounds.diagonal, 1e-12))
+        self._memory: MemoryReport | None = None
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.mesh.name!r}, {self.mesh.num_triangles} triangles, {self.backend})"
+
+    def intersect(self, rays: Rays) -> Hits:
+        raise NotImplementedError
+
+    def occluded(self, rays: Rays) -> Tensor:
+        raise NotImplementedError
+
+    def _material_albedo(self) -> np.ndarray:
+        """[M, 3] float32 base colour per material (read per call: materials may be edited)."""
+        return np.stack([np.asarray(x.base_color, np.float32).reshape(3) for x in self.mesh.materials])
+
+    # -- memory ------------------------------------------------------------------------------------
+    def memory_bytes(self) -> MemoryReport:
+        """Vertex/index buffers plus the SAH BVH (the LSNIF paper's "BVH A") we build for this mesh:
+        a backend-independent figure (Embree's and OptiX's own layouts are not exposed)."""
+        if self._memory is None:
+            from .classical_memory import classical_memory
+
+            report = classical_memory(self.mesh)
+            self._memory = MemoryReport({"mesh": report.mesh_bytes, "bvh_a": report.bvh_a_bytes})
+        return self._memory
+
+
 class _HitArrays:
     """Uninitialised numpy outputs of `MeshBLAS.intersect`; the kernel fills every row."""
 
@@ -79,32 +166,23 @@ class _HitArrays:
         return self.hit, self.t, self.normal, self.geo, self.uv, self.albedo, self.mat, self.prim
 
 
-class MeshBLAS:
-    """Exact closest-hit and any-hit queries over one triangle mesh, in the mesh's own space.
+class EmbreeMeshBLAS(MeshBLAS):
+    """`MeshBLAS` on the CPU: Embree, with fused numba passes before and after each query, over
+    chunks of rays on ``threads`` threads. Answers rays on any device (moved to the host and back)."""
 
-    Built once per mesh (instances share it through the scene TLAS). Rays with NaN/Inf origins or
-    directions, zero directions or empty intervals are reported as misses.
-    """
+    backend = "embree"
 
-    def __init__(self, mesh: Mesh, threads: int | None = None):
+    def __init__(self, mesh: Mesh, device=None, threads: int | None = None):
         from embreex import mesh_construction, rtcore_scene
 
-        self.mesh = mesh
+        self._init_common(mesh, device)
         self._scene = rtcore_scene.EmbreeScene()
         mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(mesh.triangles(), dtype=np.float32))
         # embreex builds the BVH lazily on the first query, unsafely if several threads query at
         # once: build it now, with one ray, on this thread.
         self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), dists=np.zeros(1, np.float32))
-        lo, hi = mesh.bounds
-        self.bounds = AABB(torch.from_numpy(lo.copy()), torch.from_numpy(hi.copy()))
-        # Offset for secondary rays: a few float32 ulps of the object's extent.
-        self.secondary_offset = float(1e-4 * max(self.bounds.diagonal, 1e-12))
         self._face_normals = mesh.face_normals()
         self.threads = threads  # chunks of rays traced in parallel; None: numba.get_num_threads()
-        self._memory: MemoryReport | None = None
-
-    def __repr__(self) -> str:
-        return f"MeshBLAS({self.mesh.name!r}, {self.mesh.num_triangles} triangles)"
 
     # -- queries ---------------------------------------------------------------------------------
     def _embree_inputs(self, o, d, t_min, t_max) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -182,10 +260,6 @@ class MeshBLAS:
         _run_in_chunks(trace, n, self.threads)
         return torch.from_numpy(blocked).to(rays.device)
 
-    def _material_albedo(self) -> np.ndarray:
-        """[M, 3] float32 base colour per material (read per call: materials may be edited)."""
-        return np.stack([np.asarray(x.base_color, np.float32).reshape(3) for x in self.mesh.materials])
-
     def _apply_textures_(self, albedo, hit, mat, uv, prim, bary_u, bary_v) -> None:
         """Textured meshes: multiply the base colours in ``albedo`` by texture (and vertex colour)
         at the hits, then clip, in place (the kernel left these steps to us)."""
@@ -206,16 +280,6 @@ class MeshBLAS:
             vc = m.vertex_colors
             colour *= bw * vc[faces[:, 0]] + bu * vc[faces[:, 1]] + bv * vc[faces[:, 2]]
         albedo[idx] = np.clip(colour, 0.0, 1.0)
-
-    # -- memory ------------------------------------------------------------------------------------
-    def memory_bytes(self) -> MemoryReport:
-        """Vertex/index buffers plus the SAH BVH (the LSNIF paper's "BVH A") we build for this mesh."""
-        if self._memory is None:
-            from .classical_memory import classical_memory
-
-            report = classical_memory(self.mesh)
-            self._memory = MemoryReport({"mesh": report.mesh_bytes, "bvh_a": report.bvh_a_bytes})
-        return self._memory
 
 
 def sample_texture_bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -115,7 +115,8 @@ def closest_hit_attributes(
             primitive_id[i] = -1
             continue
         hit[i] = True
-        t[i] = tfar[i] + t_min[i]
+        # Embree measured from the origin moved to t_min (to the origin itself when t_min = -inf).
+        t[i] = tfar[i] + (t_min[i] if np.isfinite(t_min[i]) else zero)
         primitive_id[i] = p
         # Embree's (u, v) weight vertices 1 and 2 of the triangle.
         bu, bv = bary_u[i], bary_v[i]
