@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MeshError
+from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 
 __all__ = ["Mesh", "MeshMaterial", "load_mesh"]
@@ -180,8 +181,9 @@ def load_mesh(path: str | Path) -> Mesh:
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
-        raise MeshError(f"{path}: mesh file not found")
+    problem = input_file_problem(path, "mesh file")
+    if problem:
+        raise MeshError(problem)
     try:
         loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for malformed files

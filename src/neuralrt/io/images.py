@@ -1,19 +1,18 @@
 """Image files: linear HDR EXR, tone-mapped sRGB PNG, and reading EXR / PNG / JPG / Radiance .hdr.
 
 Every array here is ``[H, W, 3]`` float32 *linear* RGB, row 0 at the top. Writes are atomic
-(a temporary file in the same folder, then ``os.replace``), so a crash never leaves half a file.
+(`neuralrt.io.files.write_atomically`), so a crash never leaves half a file.
 """
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ImageError
+from .files import input_file_problem, write_atomically
 
 __all__ = ["write_exr", "write_png", "write_hdr", "read_image", "linear_to_srgb", "srgb_to_linear", "tone_map"]
 
@@ -59,22 +58,16 @@ def _as_rgb(image: np.ndarray, path: Path) -> np.ndarray:
 
 
 def _atomic_write(path: Path, write_to) -> None:
-    """Call ``write_to(tmp_path)`` then rename over ``path`` (same folder, so the rename is atomic)."""
+    """`neuralrt.io.files.write_atomically`, with every failure as one `ImageError` naming ``path``."""
     path = Path(path)
     if not path.parent.exists():
         raise ImageError(f"{path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
     try:
-        write_to(tmp)
-        os.replace(tmp, path)
+        write_atomically(path, write_to)
     except ImageError:
         raise
     except Exception as exc:
         raise ImageError(f"{path}: cannot write image ({type(exc).__name__}: {exc})") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 # --- writing -----------------------------------------------------------------------------------
@@ -135,8 +128,9 @@ def read_image(path: str | Path) -> np.ndarray:
     Grey images are replicated to 3 channels and alpha is dropped. Errors name the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ImageError(f"{path}: image file not found")
+    problem = input_file_problem(path, "image file")
+    if problem:
+        raise ImageError(problem)
     suffix = path.suffix.lower()
     try:
         if suffix == ".exr":

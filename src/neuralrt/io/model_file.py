@@ -14,7 +14,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ModelFileError
+from .files import write_atomically
 
 __all__ = ["FORMAT_VERSION", "METADATA_KEY", "ModelFile", "read_model_file", "read_header", "write_model_file", "arrays_digest"]
 
@@ -66,16 +66,7 @@ def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays:
     full_header = {**header, "format_version": FORMAT_VERSION, "method": method, "arrays_sha256": arrays_digest(arrays)}
     metadata = {METADATA_KEY: json.dumps(full_header, sort_keys=True)}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        save_file(arrays, tmp, metadata=metadata)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_atomically(path, lambda tmp: save_file(arrays, tmp, metadata=metadata), fsync=True)
     return path
 
 

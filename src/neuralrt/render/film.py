@@ -70,10 +70,12 @@ class RenderResult:
     def save(self, path: str | Path, exposure: float = 0.0) -> list[Path]:
         """Write ``<stem>.exr`` (linear HDR) and ``<stem>.png`` (sRGB), plus ``<stem>_albedo``,
         ``<stem>_normal`` and ``<stem>_depth`` as EXR (exact values) and PNG (to look at).
-        Returns the paths written."""
+        Missing folders are created here, once there is something to write (a failed render
+        leaves no empty folders behind). Returns the paths written."""
         from ..io.images import write_exr, write_png
 
         path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
         stem = path.with_suffix("")
         out: list[Path] = []
 

@@ -22,6 +22,7 @@ from ..accel.mesh_blas import MeshBLAS
 from ..accel.tlas import Instance, SceneAccel
 from ..errors import NeuralRTError, SceneError
 from ..geometry.mesh import Mesh, load_mesh
+from ..io.files import input_file_problem
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -69,8 +70,9 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         return spec, Path.cwd(), text
     path = Path(path_or_builtin)
     label = path.name
-    if not path.is_file():
-        raise SceneError(f"{path}: scene file not found")
+    problem = input_file_problem(path, "scene file")
+    if problem:
+        raise SceneError(problem)
     try:
         raw = path.read_bytes().decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
@@ -226,8 +228,9 @@ def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:
 
 def _load_model(path: str, label: str, key: str):
     """A trained neural model as this object's BLAS (the methods package is imported only here)."""
-    if not os.path.isfile(path):
-        raise SceneError(f"{label}: {key}.model: model file not found: {path}")
+    problem = input_file_problem(path, "model file")
+    if problem:
+        raise SceneError(f"{label}: {key}.model: {problem}")
     try:
         from ..methods import load_model
     except ImportError as exc:

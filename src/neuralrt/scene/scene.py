@@ -12,6 +12,7 @@ from torch import Tensor
 
 from ..accel.tlas import SceneAccel
 from ..errors import SceneError
+from ..io.files import write_atomically
 from ..render.camera import Camera
 from ..render.lights import LightSet
 from ..render.materials import MaterialTable
@@ -74,8 +75,6 @@ def _relocated_paths(spec: SceneSpec, folder: Path) -> SceneSpec:
 def save_scene(spec: SceneSpec, path: str | Path) -> None:
     """Write ``spec`` as TOML (``.toml``) or JSON (``.json``) that `load_scene` reads back to the same
     scene; absolute file paths are written relative to the new file's folder. Atomic."""
-    import tempfile
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".json"):
@@ -89,11 +88,4 @@ def save_scene(spec: SceneSpec, path: str | Path) -> None:
         import tomli_w
 
         text = tomli_w.dumps(data)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_atomically(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

@@ -1,0 +1,67 @@
+"""Output and input files: atomic writes that respect the user's umask, and input-file checks.
+
+`write_atomically` is the one way neuralrt writes an output file (images, model files, scene
+files, checkpoints): the data goes to a temporary sibling, then one ``os.replace`` puts it in
+place, so a crash leaves the old file or the new one, never half of one. The temporary file is
+created with mode ``0o666`` filtered by the umask, like any file a program opens for writing
+(``tempfile.mkstemp`` would make every output ``0600``).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import stat
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["write_atomically", "input_file_problem"]
+
+
+def _create_sibling(path: Path) -> Path:
+    """A new empty file beside ``path`` (mode 0o666 & ~umask) with an unused hidden name."""
+    while True:
+        # The suffix stays last: some writers pick the format from the name.
+        tmp = path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+
+
+def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], fsync: bool = False) -> Path:
+    """Call ``write_to(tmp_path)`` (it writes the whole file there), then rename it over ``path``.
+
+    ``path``'s folder must exist. With ``fsync`` the data is flushed to disk before the rename
+    (model files and checkpoints: a power cut must not leave an empty file under the final name).
+    Whatever ``write_to`` raises propagates after the temporary file is removed.
+    """
+    path = Path(path)
+    tmp = _create_sibling(path)
+    mode = stat.S_IMODE(os.stat(tmp).st_mode)  # 0o666 & ~umask, as the kernel applied it
+    try:
+        write_to(str(tmp))
+        os.chmod(tmp, mode)  # some writers (safetensors) replace the file with a 0600 one of their own
+        if fsync:
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
+    """None when ``path`` is a readable file, else the one-line problem naming it, e.g.
+    ``"scenes: is a directory, not a scene file"`` or ``"a.obj: mesh file not found"``."""
+    path = Path(path)
+    if path.is_dir():
+        return f"{path}: is a directory, not a {what}"
+    if not path.exists():
+        return f"{path}: {what} not found"
+    if not path.is_file():
+        return f"{path}: not a regular file (a {what} must be one)"
+    return None

@@ -1,0 +1,94 @@
+"""Output files get the user's umask and appear atomically; a directory given as an input file is
+named as one; every writer (images, scene files, model files) goes through the same helper."""
+
+import os
+import stat
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt.errors import ImageError, MeshError, ModelFileError, SceneError
+from neuralrt.geometry.mesh import load_mesh
+from neuralrt.io.files import input_file_problem, write_atomically
+from neuralrt.io.images import read_image, write_exr, write_hdr, write_png
+from neuralrt.io.model_file import read_header, write_model_file
+from neuralrt.scene.loader import load_scene, load_scene_spec
+from neuralrt.scene.scene import save_scene
+
+
+@pytest.fixture
+def umask_027():
+    old = os.umask(0o027)
+    yield 0o640  # 0o666 & ~0o027
+    os.umask(old)
+
+
+def _mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def test_every_writer_gives_outputs_the_umask_mode(tmp_path, umask_027):
+    write_exr(tmp_path / "a.exr", np.ones((2, 2, 3)))
+    write_png(tmp_path / "a.png", np.ones((2, 2, 3)))
+    write_hdr(tmp_path / "a.hdr", np.ones((2, 2, 3)))
+    spec, _, _ = load_scene_spec("builtin:instances?detail=0")
+    save_scene(spec, tmp_path / "s.toml")
+    write_model_file(tmp_path / "m.nrt", "test", {}, {"w": torch.zeros(3)})
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["a.exr", "a.hdr", "a.png", "m.nrt", "s.toml"]  # no temporaries left
+    assert {n: _mode(tmp_path / n) for n in names} == dict.fromkeys(names, umask_027)
+    assert read_header(tmp_path / "m.nrt")["method"] == "test"
+
+
+def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+
+    def half_then_fail(tmp):
+        with open(tmp, "w") as f:
+            f.write("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_atomically(target, half_then_fail)
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+    write_atomically(target, lambda tmp: open(tmp, "w").write("new"))
+    assert target.read_text() == "new"
+
+
+def test_a_directory_as_an_input_file_is_named_as_one(tmp_path):
+    folder = tmp_path / "inputs.obj"
+    folder.mkdir()
+    assert input_file_problem(folder, "mesh file") == f"{folder}: is a directory, not a mesh file"
+    assert input_file_problem(tmp_path / "x.obj", "mesh file") == f"{tmp_path / 'x.obj'}: mesh file not found"
+    with pytest.raises(MeshError, match="inputs.obj: is a directory, not a mesh file"):
+        load_mesh(folder)
+    with pytest.raises(ImageError, match="is a directory, not an? image file"):
+        read_image(folder)
+    with pytest.raises(SceneError, match="is a directory, not a scene file"):
+        load_scene(folder)
+    with pytest.raises(ModelFileError, match="not a file"):
+        read_header(folder)
+
+
+def test_random_bytes_mesh_is_one_line_mesh_error(tmp_path):
+    junk = tmp_path / "junk.obj"
+    junk.write_bytes(np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+    with pytest.raises(MeshError, match="junk.obj") as info:
+        load_mesh(junk)
+    assert "\n" not in str(info.value) and "No module" not in str(info.value)
+
+
+def test_failed_render_leaves_no_empty_folders(tmp_path):
+    from neuralrt import api
+    from neuralrt.errors import NeuralRTError
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[objects]]\nmesh = 'missing.obj'\n")
+    with pytest.raises(NeuralRTError, match="missing.obj"):
+        api.render(bad, tmp_path / "out" / "deep" / "img.exr", progress=False)
+    assert not (tmp_path / "out").exists()
+    done = api.render("builtin:cornell-statue?detail=0", tmp_path / "out" / "deep" / "img.exr", spp=1,
+                      resolution=(8, 8), progress=False)
+    assert (tmp_path / "out" / "deep" / "img.exr").is_file() and len(done["files"]) == 8
