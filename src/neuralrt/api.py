@@ -127,8 +127,6 @@ def render(
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    if not output.parent.exists():
-        output.parent.mkdir(parents=True, exist_ok=True)
     loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail)
     try:
         result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
