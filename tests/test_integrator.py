@@ -267,3 +267,25 @@ def test_film_drops_and_counts_nonfinite_samples():
     res = film.result(spp=1, seconds=1.0)
     np.testing.assert_allclose(res.image[0], [[0.5, 0.5, 0.5], [0.0, 0.0, 0.0]])
     assert res.stats["nonfinite_samples"] == 2
+
+
+def test_settings_are_honoured_and_keywords_override_them(tmp_path, monkeypatch):
+    """``settings`` gives max_depth and max_paths unless a keyword overrides them; the caller's
+    settings object is never modified."""
+    from neuralrt.render.integrator import IntegratorSettings, PathTracer
+
+    scene = build_scene(_furnace(tmp_path))
+    seen = []
+    real_trace = PathTracer.trace
+    monkeypatch.setattr(PathTracer, "trace", lambda self, pixel, g: seen.append((pixel.numel(), self.settings.max_depth))
+                        or real_trace(self, pixel, g))
+    mine = IntegratorSettings(max_depth=2, max_paths=36)
+    render(scene, spp=1, settings=mine, progress=False)
+    assert {n for n, _ in seen} == {36} and {d for _, d in seen} == {2}  # 144 pixels in wavefronts of 36
+    seen.clear()
+    render(scene, spp=1, settings=mine, max_depth=3, max_paths=72, progress=False)
+    assert {n for n, _ in seen} == {72} and {d for _, d in seen} == {3}
+    assert (mine.max_depth, mine.max_paths) == (2, 36)
+    seen.clear()
+    render(scene, spp=1, progress=False)  # the scene's render defaults, the default wavefront size
+    assert seen == [(144, scene.settings.max_depth)]

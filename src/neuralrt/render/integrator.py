@@ -216,29 +216,31 @@ def render(
     resolution: tuple[int, int] | None = None,
     device=None,
     progress: bool = True,
-    max_paths: int = 1 << 18,
+    max_paths: int | None = None,
     settings: IntegratorSettings | None = None,
     primary: str | None = None,
 ) -> RenderResult:
     """Render ``scene`` (a `neuralrt.scene.Scene`) progressively and return the pixel means.
 
-    ``spp`` / ``max_depth`` default to the scene's ``render`` settings; ``resolution`` (width,
-    height) overrides the camera's. Samples are taken in passes of ``k`` samples per pixel, with
+    Each setting comes from, in order: its keyword argument, then ``settings`` (an
+    `IntegratorSettings`, never modified), then the scene (``spp`` / ``max_depth`` from its
+    ``render`` section), then the `IntegratorSettings` defaults. ``resolution`` (width, height)
+    overrides the camera's. Samples are taken in passes of ``k`` samples per pixel, with
     ``k * pixels <= max_paths`` paths alive at once (at least one pixel row's worth); a progress
     bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
     "neural") picks who answers camera rays for neural objects that keep their mesh.
     """
     from dataclasses import replace
 
-    settings = replace(settings) if settings is not None else IntegratorSettings(max_paths=max_paths)  # never mutate the caller's
-    if primary is not None:
-        settings.primary = primary
+    if settings is None:
+        settings = IntegratorSettings(max_depth=scene.settings.max_depth)
+    overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary}
+    settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
     if settings.primary not in ("exact", "neural"):
         raise ValueError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     spp = int(spp if spp is not None else scene.settings.spp)
-    settings.max_depth = int(max_depth if max_depth is not None else scene.settings.max_depth)
-    if spp < 1 or settings.max_depth < 1:
-        raise ValueError("spp and max_depth must be >= 1")
+    if spp < 1 or settings.max_depth < 1 or settings.max_paths < 1:
+        raise ValueError("spp, max_depth and max_paths must be >= 1")
     camera = scene.camera.with_resolution(resolution) if resolution is not None else scene.camera
     dev = torch.device(device) if device is not None else scene.device
     if dev != scene.device:
