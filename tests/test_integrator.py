@@ -242,7 +242,7 @@ def test_deterministic_for_a_seed_and_aovs(tmp_path):
     np.testing.assert_allclose(a.albedo[7:9, 7:9], np.broadcast_to([0.6, 0.3, 0.2], (2, 2, 3)), atol=1e-6)
     assert render(scene, spp=1, resolution=(8, 4), progress=False).image.shape == (4, 8, 3)
     written = a.save(tmp_path / "out.exr")
-    assert {p.name for p in written} >= {"out.exr", "out.png", "out_albedo.exr", "out_normal.png", "out_depth.exr"}
+    assert {p.name for p in written} >= {"out.exr", "out.png", "out_albedo.exr", "out_normal.png", "out_depth.exr", "out_coverage.exr"}
 
 
 def test_small_wavefronts_give_the_same_estimate(tmp_path):
@@ -263,7 +263,7 @@ def test_film_drops_and_counts_nonfinite_samples():
     pixel = torch.tensor([0, 0, 1])
     radiance = torch.tensor([[1.0, 1.0, 1.0], [float("nan"), 0.0, 0.0], [2.0, float("inf"), 2.0]])
     zeros = torch.zeros(3, 3)
-    film.add(pixel, radiance, zeros, zeros, torch.zeros(3))
+    film.add(pixel, radiance, zeros, zeros, torch.zeros(3), torch.zeros(3, dtype=torch.bool))
     res = film.result(spp=1, seconds=1.0)
     np.testing.assert_allclose(res.image[0], [[0.5, 0.5, 0.5], [0.0, 0.0, 0.0]])
     assert res.stats["nonfinite_samples"] == 2
@@ -289,3 +289,30 @@ def test_settings_are_honoured_and_keywords_override_them(tmp_path, monkeypatch)
     seen.clear()
     render(scene, spp=1, progress=False)  # the scene's render defaults, the default wavefront size
     assert seen == [(144, scene.settings.max_depth)]
+
+
+def test_depth_averages_over_hits_and_coverage_counts_them():
+    """A pixel whose samples half miss keeps its surface's depth (misses are not averaged in as 0,
+    which showed as near-white dots in the depth PNG); coverage says how many samples hit."""
+    from neuralrt.render.film import Film
+
+    film = Film(3, 1)
+    pixel = torch.tensor([0, 0, 0, 0, 1, 1, 2])
+    depth = torch.tensor([2.0, 4.0, 0.0, 0.0, 5.0, 5.0, 0.0])
+    hit = torch.tensor([True, True, False, False, True, True, False])
+    zeros = torch.zeros(7, 3)
+    film.add(pixel, zeros, zeros, zeros, depth, hit)
+    res = film.result(spp=1, seconds=1.0)
+    np.testing.assert_allclose(res.depth, [[3.0, 5.0, 0.0]])
+    np.testing.assert_allclose(res.coverage, [[0.5, 1.0, 0.0]])
+
+
+def test_silhouette_pixels_keep_the_surface_depth(tmp_path):
+    """Rendered: every pixel that any sample hits has a depth within the sphere's depth range."""
+    res = render(build_scene(_furnace(tmp_path)), spp=8, seed=1, max_depth=1, progress=False)
+    edge = (res.coverage > 0) & (res.coverage < 1)
+    assert edge.sum() >= 8
+    seen = res.coverage > 0
+    # Unit sphere seen from distance 3: depths from 2 (front) to sqrt(8) = 2.83 (silhouette).
+    assert res.depth[seen].min() > 1.99 and res.depth[seen].max() < 2.84
+    assert (res.depth[~seen] == 0).all()

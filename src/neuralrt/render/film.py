@@ -22,13 +22,16 @@ class Film:
         self.radiance = torch.zeros(n, 3, dtype=torch.float64, device=dev)  # float64 sums: many passes stay exact
         self.albedo = torch.zeros(n, 3, dtype=torch.float64, device=dev)
         self.normal = torch.zeros(n, 3, dtype=torch.float64, device=dev)
-        self.depth = torch.zeros(n, dtype=torch.float64, device=dev)
+        self.depth = torch.zeros(n, dtype=torch.float64, device=dev)  # summed over samples that hit only
+        self.hits = torch.zeros(n, dtype=torch.float64, device=dev)  # samples whose camera ray hit
         self.count = torch.zeros(n, dtype=torch.float64, device=dev)
         self.nonfinite_samples = 0  # samples whose radiance was NaN/Inf (dropped to 0, counted)
 
-    def add(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor) -> None:
-        """Add one sample per entry of ``pixel`` (pixels may repeat). A NaN/Inf radiance sample
-        (e.g. from a degenerate hit record) counts as 0 so it cannot poison the pixel; it is counted."""
+    def add(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor, hit: Tensor) -> None:
+        """Add one sample per entry of ``pixel`` [n] (pixels may repeat): ``radiance``, ``albedo``,
+        ``normal`` [n, 3], first-hit ``depth`` [n] and whether the camera ray hit, ``hit`` [n] bool.
+        A NaN/Inf radiance sample (e.g. from a degenerate hit record) counts as 0 so it cannot
+        poison the pixel; it is counted."""
         bad = ~torch.isfinite(radiance).all(-1)
         if bool(bad.any()):
             self.nonfinite_samples += int(bad.sum())
@@ -36,18 +39,20 @@ class Film:
         self.radiance.index_add_(0, pixel, radiance.double())
         self.albedo.index_add_(0, pixel, albedo.double())
         self.normal.index_add_(0, pixel, normal.double())
-        self.depth.index_add_(0, pixel, depth.double())
+        self.depth.index_add_(0, pixel, torch.where(hit, depth.double(), 0.0))
+        self.hits.index_add_(0, pixel, hit.double())
         self.count.index_add_(0, pixel, torch.ones_like(depth, dtype=torch.float64))
 
-    def _mean(self, total: Tensor) -> np.ndarray:
-        c = self.count.clamp(min=1).reshape(-1, *([1] * (total.ndim - 1)))
+    def _mean(self, total: Tensor, over: Tensor | None = None) -> np.ndarray:
+        """Per-pixel ``total / over`` (default: over all samples; 0 where ``over`` is 0) as [H, W, ...]."""
+        c = (self.count if over is None else self.hits).clamp(min=1).reshape(-1, *([1] * (total.ndim - 1)))
         shape = (self.height, self.width) + tuple(total.shape[1:])
         return (total / c).float().reshape(shape).cpu().numpy()
 
     def result(self, spp: int, seconds: float) -> "RenderResult":
         normal = self.normal / torch.linalg.norm(self.normal, dim=-1, keepdim=True).clamp(min=1e-12)
         return RenderResult(image=self._mean(self.radiance), albedo=self._mean(self.albedo), normal=normal.float().reshape(self.height, self.width, 3).cpu().numpy(),
-                            depth=self._mean(self.depth), spp=spp, seconds=seconds,
+                            depth=self._mean(self.depth, over=self.hits), coverage=self._mean(self.hits), spp=spp, seconds=seconds,
                             stats={"nonfinite_samples": self.nonfinite_samples})
 
 
@@ -56,20 +61,25 @@ class RenderResult:
     """A finished render: linear HDR image and first-hit AOVs (pixel means), as numpy float32.
 
     ``albedo`` is the first hit's surface albedo, ``normal`` its unit world-space shading normal
-    (turned towards the camera), ``depth`` its distance from the camera (0 where the ray escaped).
+    (turned towards the camera): both averaged over all samples (escaped rays count as 0).
+    ``depth`` is the first hit's distance from the camera averaged over the samples that hit
+    (0 where none did), and ``coverage`` the fraction of samples whose camera ray hit, so a pixel
+    on a silhouette keeps its surface's depth instead of a blend with 0.
     """
 
     image: np.ndarray  # [H, W, 3] linear radiance
     albedo: np.ndarray  # [H, W, 3]
     normal: np.ndarray  # [H, W, 3]
-    depth: np.ndarray  # [H, W]
+    depth: np.ndarray  # [H, W] mean over samples that hit
+    coverage: np.ndarray  # [H, W] in [0, 1]
     spp: int
     seconds: float
     stats: dict = field(default_factory=dict)
 
     def save(self, path: str | Path, exposure: float = 0.0) -> list[Path]:
         """Write ``<stem>.exr`` (linear HDR) and ``<stem>.png`` (sRGB), plus ``<stem>_albedo``,
-        ``<stem>_normal`` and ``<stem>_depth`` as EXR (exact values) and PNG (to look at).
+        ``<stem>_normal``, ``<stem>_depth`` and ``<stem>_coverage`` as EXR (exact values) and PNG
+        (to look at; the depth PNG shows near as bright, faded by coverage at silhouettes).
         Missing folders are created here, once there is something to write (a failed render
         leaves no empty folders behind). Returns the paths written."""
         from ..io.images import write_exr, write_png
@@ -90,7 +100,9 @@ class RenderResult:
         from ..io.images import srgb_to_linear
 
         both("_normal", self.normal, srgb_to_linear(0.5 + 0.5 * self.normal))
-        hit = self.depth > 0
+        hit = self.coverage > 0
         far = float(self.depth[hit].max()) if hit.any() else 1.0
-        both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat((1.0 - self.depth / far)[..., None] * hit[..., None], 3, -1)))
+        near_bright = (1.0 - self.depth / far) * self.coverage
+        both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat(near_bright[..., None], 3, -1)))
+        both("_coverage", np.repeat(self.coverage[..., None], 3, -1), np.repeat(self.coverage[..., None], 3, -1))
         return out

@@ -176,13 +176,15 @@ class PathTracer:
         return _Paths(Rays(origin, s.wi[idx]), paths.sample[idx], throughput[idx], s.pdf[idx])
 
     # -- one wavefront -----------------------------------------------------------------------------------
-    def trace(self, pixel: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Radiance, albedo, normal, depth [n] for one sample through each entry of ``pixel``."""
+    def trace(self, pixel: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Radiance, albedo, normal [n, 3], depth [n] and camera-ray hit [n] bool for one sample
+        through each entry of ``pixel`` [n]."""
         n, dev = pixel.numel(), pixel.device
         radiance = torch.zeros(n, 3, device=dev)  # per-sample radiance accumulator
         aov_albedo = torch.zeros(n, 3, device=dev)
         aov_normal = torch.zeros(n, 3, device=dev)
         aov_depth = torch.zeros(n, device=dev)
+        aov_hit = torch.zeros(n, dtype=torch.bool, device=dev)  # camera ray hit something
         paths = self.generate_camera_rays(pixel, g)
         for bounce in range(self.settings.max_depth + 1):
             first = bounce == 0
@@ -199,13 +201,14 @@ class PathTracer:
                 aov_albedo[paths.sample] = sh.albedo
                 aov_normal[paths.sample] = sh.ns
                 aov_depth[paths.sample] = hits.t
+                aov_hit[paths.sample] = True
             if bounce == self.settings.max_depth:
                 break
             self.sample_lights(paths, hits, sh, radiance, g)
             paths = self.sample_bsdf(paths, hits, sh, bounce, g)
             if paths.sample.numel() == 0:
                 break
-        return radiance, aov_albedo, aov_normal, aov_depth
+        return radiance, aov_albedo, aov_normal, aov_depth, aov_hit
 
 
 def render(
