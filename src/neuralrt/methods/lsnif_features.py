@@ -26,9 +26,12 @@ Decisions (documented here because the model and its tests rely on them):
 - Rays that cross no occupied voxel get ``count == 0``: with conservative voxelization they are
   certain misses, and the model skips its network for them (pitfall 6).
 
-`featurize_rays` is a numba kernel, parallel over rays. `featurize_rays_reference` is a slow,
-per-ray implementation written from the definition (sort every plane crossing, look up the
-voxel at each segment's midpoint) that the tests compare the kernel against.
+`featurize_rays` has two implementations with this one contract, chosen once by the rays'
+device: `featurize_rays_numba` (CPU, parallel over rays) and `featurize_rays_triton` (CUDA, in
+`lsnif_features_triton`, the same float64 walk as a Triton kernel; no host round trips).
+`featurize_rays_reference` is a slow, per-ray implementation written from the definition (sort
+every plane crossing, look up the voxel at each segment's midpoint) that the tests compare both
+kernels against.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from torch import Tensor
 __all__ = [
     "RayFeaturePoints",
     "featurize_rays",
+    "featurize_rays_numba",
     "featurize_rays_reference",
     "PADDING",
     "ORIGIN_POINT",
@@ -261,9 +265,29 @@ def featurize_rays(
 
     ``origins``/``directions``: ``[N, 3]`` in unit-box coordinates (directions need not be
     normalised; zero/NaN directions give ``count == 0``). ``occupancy``: bool ``[V, V, V]``
-    indexed ``[x, y, z]``. The walk runs in float64 on the CPU (numba); results come back on the
-    device of ``origins``.
+    indexed ``[x, y, z]`` (a tensor on the rays' device avoids a copy). The walk runs in float64;
+    results are on the device of ``origins``. CUDA rays run the Triton kernel
+    (`featurize_rays_triton`), others the numba kernel (`featurize_rays_numba`).
     """
+    _check_rays(origins, directions, max_points)
+    if origins.device.type == "cuda":
+        from .lsnif_features_triton import featurize_rays_triton as implementation
+    else:
+        implementation = featurize_rays_numba
+    return implementation(origins, directions, occupancy, max_points,
+                          origin_point=origin_point, share_boundary_points=share_boundary_points)  # fmt: skip
+
+
+def featurize_rays_numba(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor | np.ndarray,
+    max_points: int = 18,
+    *,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+) -> RayFeaturePoints:
+    """`featurize_rays` on the CPU (numba, parallel over rays); results go back to the rays' device."""
     _check_rays(origins, directions, max_points)
     device = origins.device
     o = origins.detach().to("cpu", torch.float64).contiguous().numpy()

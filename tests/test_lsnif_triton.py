@@ -1,0 +1,85 @@
+"""Triton kernels of LSNIF against the numba kernels and the references.
+
+With a GPU the kernels are compiled for CUDA; without one they run on CPU tensors under Triton's
+interpreter (TRITON_INTERPRET=1, set here before triton is imported), on small inputs. Skipped
+when triton is not installed.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+CUDA = torch.cuda.is_available()
+if not CUDA:
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+pytest.importorskip("triton")
+
+from test_lsnif_features import _assert_same, _random_rays, _torus_occupancy  # noqa: E402
+
+from neuralrt.methods.lsnif_features import (  # noqa: E402
+    ORIGIN_POINT,
+    featurize_rays,
+    featurize_rays_numba,
+    featurize_rays_reference,
+)
+from neuralrt.methods.lsnif_features_triton import featurize_rays_triton  # noqa: E402
+
+DEVICE = torch.device("cuda" if CUDA else "cpu")
+if not CUDA and os.environ.get("TRITON_INTERPRET") != "1":
+    pytest.skip("no GPU and TRITON_INTERPRET is not 1", allow_module_level=True)
+
+
+def _assert_features_match(fast, ref):
+    """Bit-identical under the interpreter. Compiled, the GPU may fuse ``o + t * d`` into an FMA
+    (one float64 ulp): all but rare rays on a voxel plane match exactly in count and codes, and
+    points agree to float32 rounding."""
+    fast = fast.to("cpu")
+    if not CUDA:
+        _assert_same(fast, ref)
+        return
+    same = (fast.count == ref.count) & (fast.face_axis == ref.face_axis).all(1)
+    assert same.float().mean() >= 0.999
+    torch.testing.assert_close(fast.points[same], ref.points[same], atol=2e-6, rtol=0)
+    torch.testing.assert_close(fast.t_enter, ref.t_enter, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(fast.t_exit, ref.t_exit, atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.parametrize("origin_point,share", [(True, True), (False, False)])
+def test_triton_featurize_matches_numba_and_reference(origin_point, share):
+    rng = np.random.default_rng(3)
+    occ = rng.uniform(size=(8, 8, 8)) < 0.3
+    o, d = _random_rays(rng, 256, occ)
+    kw = dict(origin_point=origin_point, share_boundary_points=share)
+    fast = featurize_rays_triton(o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), 10, **kw)
+    ref = featurize_rays_reference(o, d, occ, 10, **kw)
+    _assert_same(featurize_rays_numba(o, d, occ, 10, **kw), ref)
+    _assert_features_match(fast, ref)
+    # the sample covers misses, inside starts (origin points), truncation and padding
+    assert (ref.count == 0).any() and ref.truncated.any() and (ref.face_axis == ORIGIN_POINT).any() == origin_point
+
+
+def test_triton_featurize_on_a_voxelized_mesh_and_degenerate_rays():
+    occ, tris = _torus_occupancy(32)
+    rng = np.random.default_rng(4)
+    o, d = _random_rays(rng, 192, occ, tris)
+    # NaN, zero and denormal directions, a start on the box face, a ray along a voxel plane
+    o = torch.cat([o, torch.tensor([[np.nan, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.0, 0.3, 0.4], [-1, 0.5, 0.5]])])
+    d = torch.cat([d, torch.tensor([[1.0, 0, 0], [0, 0, 0], [1e-40, 0, 0], [1.0, 0.2, 0.1], [1.0, 0.0, 0.0]])])
+    fast = featurize_rays_triton(o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), 18)
+    ref = featurize_rays_numba(o, d, occ, 18)
+    _assert_features_match(fast, ref)
+    assert (ref.count > 0).float().mean() > 0.3 and ref.count[-5:-2].tolist() == [0, 0, 0]
+
+
+def test_featurize_dispatches_on_device_and_checks_input():
+    occ = torch.ones(4, 4, 4, dtype=torch.bool, device=DEVICE)
+    o = torch.tensor([[-0.5, 0.5, 0.5]], device=DEVICE)
+    d = torch.tensor([[1.0, 0.01, 0.02]], device=DEVICE)
+    f = featurize_rays(o, d, occ)
+    assert f.points.device == o.device and f.count.item() == 5
+    with pytest.raises(ValueError, match="cubic"):
+        featurize_rays_triton(o, d, torch.ones(4, 4, 2, dtype=torch.bool, device=DEVICE))
+    empty = featurize_rays_triton(o[:0], d[:0], occ)
+    assert empty.points.shape == (0, 18, 3) and empty.count.device == o.device
