@@ -6,9 +6,11 @@
   one-sided: from the face the geometric normal points out of.
 - `PointLights`: isotropic points of radiant intensity ``I`` (W/sr), picked by luminance of I;
   delta lights (no MIS: a BSDF sample never hits them).
-- `Environment`: radiance from infinitely far away, a constant colour or a lat-long image
-  importance-sampled by ``luminance x sin(theta)``. The 2D table is sampled as the joint of the
-  row marginal and the per-row conditional (one flattened CDF, same distribution).
+- `Environment`: radiance from infinitely far away, a constant colour or a lat-long image looked
+  up bilinearly (wrapping in azimuth, clamped at the poles) so a directly seen sky shows no texel
+  steps. Importance sampling picks a texel with probability ~ ``luminance x sin(theta)`` of the
+  lookup's *average over that texel* (the image filtered by [1/8, 3/4, 1/8] in each direction),
+  then a uniform point in it: wherever the interpolated radiance is non-zero the density is too.
   Lat-long mapping: ``u = 0.5 + atan2(x, -z) / 2pi``, ``v = acos(y) / pi`` (row 0 = straight up,
   the image centre is seen looking down -z).
 - `LightSet`: chooses among the kinds present with equal probability, samples one light, and gives
@@ -140,9 +142,10 @@ class Environment:
             if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
                 raise ValueError(f"environment image must be [H, W, 3], got {tuple(img.shape)}")
             self.image = img.clamp(min=0) * scale
-            h, w = img.shape[:2]
+            h = img.shape[0]
             sin_theta = torch.sin((torch.arange(h, device=dev, dtype=torch.float32) + 0.5) * math.pi / h)
-            weights = luminance(self.image) * sin_theta[:, None]
+            self._texel_means = luminance(_bilinear_texel_means(self.image))  # [H, W]
+            weights = self._texel_means * sin_theta[:, None]
             self.distribution = DiscreteDistribution(weights.reshape(-1) + 1e-12).to(dev)
 
     @property
@@ -151,12 +154,12 @@ class Environment:
 
     @property
     def mean_radiance(self) -> float:
-        """Luminance averaged over the sphere."""
+        """Luminance of `radiance` averaged over the sphere (texel means weighted by sin theta)."""
         if self.color is not None:
             return float(luminance(self.color))
         h = self.image.shape[0]
         sin_theta = torch.sin((torch.arange(h, device=self.device, dtype=torch.float32) + 0.5) * math.pi / h)
-        return float((luminance(self.image) * sin_theta[:, None]).sum() / (sin_theta.sum() * self.image.shape[1]))
+        return float((self._texel_means * sin_theta[:, None]).sum() / (sin_theta.sum() * self.image.shape[1]))
 
     # -- direction <-> image coordinates --------------------------------------------------------
     @staticmethod
@@ -186,14 +189,24 @@ class Environment:
         return torch.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
 
     def radiance(self, d: Tensor) -> Tensor:
-        """Radiance [N, 3] arriving from unit directions ``d`` (nearest texel: piecewise constant, like the pdf)."""
+        """Radiance [N, 3] arriving from unit directions ``d`` [N, 3]: bilinear between texel centres,
+        wrapping in azimuth (u) and clamped at the poles (v)."""
         if self.color is not None:
             return self.color.expand(d.shape[0], 3)
         h, w = self.image.shape[:2]
         uv = self.direction_to_uv(self._to_env(d))
-        x = (uv[:, 0] * w).long().clamp(0, w - 1)
-        y = (uv[:, 1] * h).long().clamp(0, h - 1)
-        return self.image[y, x]
+        x = uv[:, 0] * w - 0.5  # texel centres at integer x, y
+        y = uv[:, 1] * h - 0.5
+        x0, y0 = torch.floor(x), torch.floor(y)
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+        x0 = x0.long()
+        y0 = y0.long()
+        xa, xb = torch.remainder(x0, w), torch.remainder(x0 + 1, w)
+        ya, yb = y0.clamp(0, h - 1), (y0 + 1).clamp(0, h - 1)
+        img = self.image
+        top = img[ya, xa] * (1 - fx) + img[ya, xb] * fx
+        bottom = img[yb, xa] * (1 - fx) + img[yb, xb] * fx
+        return top * (1 - fy) + bottom * fy
 
     def sample(self, u_pixel: Tensor, u_dir: Tensor) -> tuple[Tensor, Tensor]:
         """(unit direction, solid-angle pdf) for uniforms ``u_pixel`` [N] and ``u_dir`` [N, 2]."""
@@ -222,6 +235,16 @@ class Environment:
         # sin(theta) from x and z: sqrt(1 - y^2) rounds to 0 in float32 within ~3e-4 rad of the poles.
         sin_theta = torch.sqrt(d[:, 0] * d[:, 0] + d[:, 2] * d[:, 2])
         return torch.where(sin_theta > 0, pdf_uv / (2 * math.pi * math.pi * sin_theta.clamp(min=1e-30)), 0.0)
+
+
+def _bilinear_texel_means(image: Tensor) -> Tensor:
+    """[H, W, C]: the mean over each texel of `Environment.radiance`'s bilinear lookup. Over one texel
+    the tent weights of it and its two neighbours average to 3/4 and 1/8 each, per axis; azimuth
+    wraps, the pole rows repeat themselves (the lookup clamps there)."""
+    up = torch.cat([image[:1], image[:-1]], 0)
+    down = torch.cat([image[1:], image[-1:]], 0)
+    rows = 0.75 * image + 0.125 * (up + down)
+    return 0.75 * rows + 0.125 * (torch.roll(rows, 1, dims=1) + torch.roll(rows, -1, dims=1))
 
 
 class LightSet:
