@@ -1,4 +1,5 @@
-"""The TLAS's numba CPU passes answer exactly as its torch path (used off the CPU) does."""
+"""The TLAS's two stage implementations (numba on CPU arrays, torch on any device) answer
+bit-identically: both run here on CPU tensors."""
 
 from dataclasses import fields
 
@@ -9,6 +10,7 @@ import trimesh
 
 from neuralrt import Mesh, MeshBLAS, Rays, Transform
 from neuralrt.accel.tlas import Instance, SceneAccel
+from neuralrt.accel.tlas_stages import NumbaTLASStages, TorchTLASStages
 from neuralrt.rays import ray_box_intervals, valid_ray_mask
 from neuralrt.accel import tlas_kernels
 
@@ -27,14 +29,14 @@ TILTED = Transform.translate([-1.2, 0.5, -0.3]) @ Transform.rotate([1, 0, 0], 75
 GRID = [Transform.translate([2.5 * x, 2.5 * y, 0.0]) for x in range(-2, 2) for y in range(-2, 2)]
 
 
-def _scene(kind, torus, sphere):
+def _scene(kind, torus, sphere, stages=None):
     layouts = {
         "identity": [(torus, Transform(), [0, 1, 2])],
         "moved": [(torus, MOVED, [2, 0, 1])],
         "grid16": [(torus, xf, [k % 3]) for k, xf in enumerate(GRID)],
         "mixed": [(torus, Transform(), [0]), (sphere, TILTED, [1]), (torus, MOVED, [2]), (sphere, Transform(), [3])],
     }
-    return SceneAccel([Instance(b, xf, torch.tensor(m), name=str(i)) for i, (b, xf, m) in enumerate(layouts[kind])])
+    return SceneAccel([Instance(b, xf, torch.tensor(m), name=str(i)) for i, (b, xf, m) in enumerate(layouts[kind])], stages=stages)
 
 
 def _rays(n, seed, inside=False, bad_rays=True):
@@ -57,22 +59,19 @@ def _rays(n, seed, inside=False, bad_rays=True):
     return Rays(*(torch.from_numpy(np.asarray(x, np.float32)) for x in (o, d, t_min, t_max)))
 
 
-def _torch_path(accel, monkeypatch):
-    monkeypatch.setattr(accel, "_kernels_on", lambda device: False)
-
-
 @pytest.mark.parametrize("kind", ["identity", "moved", "grid16", "mixed"])
 @pytest.mark.parametrize("inside,bad_rays", [(False, True), (True, True), (True, False)])
-def test_kernels_match_torch_path(kind, inside, bad_rays, blases, monkeypatch):
+def test_numba_stages_match_torch_stages(kind, inside, bad_rays, blases):
     """Outside rays: gathered (ray, instance) pairs. Inside rays: one box overlapped by all rays
     (no gathers) or by all valid ones (the invalid ones masked)."""
     accel = _scene(kind, *blases)
+    assert isinstance(accel.stages, NumbaTLASStages)  # the CPU default, chosen at construction
     rays = _rays(6000, seed=1, inside=inside, bad_rays=bad_rays)
     if kind == "moved" and inside:
         rays = MOVED.apply_rays(rays)  # every ray overlaps the one box: the no-gather path
     fast, fast_occ = accel.intersect(rays), accel.occluded(rays)
-    _torch_path(accel, monkeypatch)
-    ref, ref_occ = accel.intersect(rays), accel.occluded(rays)
+    torch_accel = _scene(kind, *blases, stages=TorchTLASStages)
+    ref, ref_occ = torch_accel.intersect(rays), torch_accel.occluded(rays)
     assert ref.hit.sum() > 200
     for f in fields(ref):
         assert torch.equal(getattr(fast, f.name), getattr(ref, f.name)), f.name
@@ -94,15 +93,28 @@ def test_instance_overlaps_kernel_matches_slab_test():
     assert 0 < count < expected.numel()
 
 
-def test_exact_ties_go_to_the_later_instance(blases):
+@pytest.mark.parametrize("stages", [NumbaTLASStages, TorchTLASStages])
+def test_exact_ties_go_to_the_later_instance(blases, stages):
     torus, _ = blases
-    accel = SceneAccel([Instance(torus, Transform(), torch.tensor([0])), Instance(torus, Transform(), torch.tensor([1]))])
+    accel = SceneAccel([Instance(torus, Transform(), torch.tensor([0])), Instance(torus, Transform(), torch.tensor([1]))], stages=stages)
     h = accel.intersect(_rays(4000, seed=2))
     assert h.hit.sum() > 100
     assert (h.instance_id[h.hit] == 1).all() and (h.material_id[h.hit] == 1).all()
 
 
-def test_empty_batch(blases):
-    accel = _scene("mixed", *blases)
+@pytest.mark.parametrize("stages", [NumbaTLASStages, TorchTLASStages])
+def test_empty_batch(blases, stages):
+    accel = _scene("mixed", *blases, stages=stages)
     empty = Rays(torch.zeros(0, 3), torch.zeros(0, 3))
     assert len(accel.intersect(empty)) == 0 and accel.occluded(empty).numel() == 0
+
+
+def test_rays_on_another_device_are_one_line_errors(blases):
+    from neuralrt.errors import DeviceError
+
+    accel = _scene("mixed", *blases)
+    rays = _rays(1000, seed=3).to("meta")
+    for query in (accel.intersect, accel.occluded):
+        with pytest.raises(DeviceError, match="rays are on meta but the scene is on cpu") as info:
+            query(rays)
+        assert "\n" not in str(info.value)

@@ -1,0 +1,200 @@
+"""The scene TLAS's whole-batch stages, in two implementations with one contract.
+
+`NumbaTLASStages` runs fused numba passes (`tlas_kernels`) on CPU arrays; `TorchTLASStages` runs
+torch ops on any device. `SceneAccel` picks one at construction (`stages_for(device)`) and never
+branches on the device again. Both compute the same values in the same float32 order, so a scene
+answers bit-identically with either (the tests run both on CPU tensors).
+
+Every stage sees the instance table the accelerator was built with (`InstanceTable`):
+
+- ``valid_mask(rays)``: [N] bool valid rays, or None when `candidate_pairs` tests validity itself.
+- ``candidate_pairs(rays, instance_ids, t_limit, valid)``: the (ray, instance) pairs whose ray is
+  valid and whose interval ``(t_min, t_limit)`` meets the instance's world box, as
+  ``(ray_idx [P], inst_idx [P], None)``; or ``(None, instance_ids, overlap)`` for a one-instance
+  group most rays overlap: every ray in order is a pair, ``overlap`` [N] marking the real ones
+  (None when all are).
+- ``object_space_rays(rays, ray_idx, inst_idx, t_max)``: the pairs' rays in object space with
+  interval ``(t_min, t_max)``; ``ray_idx`` None means every ray under instance ``inst_idx[0]``.
+- ``merge_every_ray(best, local, k, overlap)``: row r of ``local`` (object space, instance ``k``)
+  answers ray r; keep it in world space where it hits (inside ``overlap``) closer than ``best``.
+- ``merge_pairs(best, local, ray_idx, inst_idx)``: each ray's closest improving pair of ``local``,
+  in world space, written into ``best``; exact ties go to the later pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..rays import Hits, Rays, ray_box_intervals, valid_ray_mask
+from . import tlas_kernels as kernels
+
+__all__ = ["InstanceTable", "NumbaTLASStages", "TorchTLASStages", "stages_for"]
+
+# Bound on (rays x instances) slab tests held in memory at once.
+_BROAD_PHASE_CHUNK = 1 << 23
+# A one-instance group sends every ray to its BLAS (no gather/scatter of pairs) when at least this
+# fraction of the rays overlaps its box; the rest get an empty interval.
+_EVERY_RAY_FRACTION = 0.5
+
+
+@dataclass
+class InstanceTable:
+    """Per-instance data of a scene, on the accelerator's device."""
+
+    box_lo: Tensor  # [I, 3] float32 world box
+    box_hi: Tensor  # [I, 3] float32
+    world_to_object: Tensor  # [I, 4, 4] float32; its 3x3 transpose maps object normals to world
+    material_maps: Tensor  # [I, K] int64 BLAS-local material -> scene material (-1 padding)
+    is_identity: Tensor  # [I] bool: identity transform (ray and normal maps are skipped)
+
+
+def _local_material_index(material_id: Tensor, material_maps: Tensor) -> Tensor:
+    """BLAS-local material ids clamped into the map (misses and out-of-range ids map to slot 0 / K-1)."""
+    return material_id.clamp(0, material_maps.shape[1] - 1)
+
+
+class TorchTLASStages:
+    """The stages as torch ops: any device."""
+
+    def __init__(self, table: InstanceTable):
+        self.t = table
+
+    def valid_mask(self, rays: Rays) -> Tensor | None:
+        return valid_ray_mask(rays)
+
+    def candidate_pairs(self, rays: Rays, instance_ids: Tensor, t_limit: Tensor, valid: Tensor | None):
+        if valid is None:
+            valid = valid_ray_mask(rays)
+        n, g = len(rays), instance_ids.numel()
+        lo, hi = self.t.box_lo[instance_ids], self.t.box_hi[instance_ids]
+        ray_idx, inst_idx = [], []
+        chunk = max(1, _BROAD_PHASE_CHUNK // max(g, 1))
+        for start in range(0, n, chunk):
+            sl = slice(start, min(n, start + chunk))
+            t0, t1 = ray_box_intervals(rays.origins[sl, None], rays.directions[sl, None], lo[None], hi[None])  # [n, G]
+            overlap = (t0 <= t1) & (t1 >= rays.t_min[sl, None]) & (t0 <= t_limit[sl, None]) & valid[sl, None]
+            r, k = torch.nonzero(overlap, as_tuple=True)
+            ray_idx.append(r + start)
+            inst_idx.append(instance_ids[k])
+        return torch.cat(ray_idx), torch.cat(inst_idx), None
+
+    def object_space_rays(self, rays: Rays, ray_idx: Tensor | None, inst_idx: Tensor, t_max: Tensor) -> Rays:
+        if ray_idx is None:
+            if bool(self.t.is_identity[inst_idx[0]]):
+                return Rays(rays.origins, rays.directions, rays.t_min, t_max)
+            ray_idx, inst_idx = torch.arange(len(rays), device=rays.device), inst_idx[:1].expand(len(rays))
+        m = self.t.world_to_object[inst_idx]  # [P, 4, 4]
+        o = torch.einsum("pij,pj->pi", m[:, :3, :3], rays.origins[ray_idx]) + m[:, :3, 3]
+        d = torch.einsum("pij,pj->pi", m[:, :3, :3], rays.directions[ray_idx])
+        return Rays(o, d, rays.t_min[ray_idx], t_max)
+
+    def merge_every_ray(self, best: Hits | None, local: Hits, k: int, overlap: Tensor | None) -> Hits:
+        closer = local.hit if best is None else local.hit & (local.t < best.t)
+        if overlap is not None:
+            closer &= overlap  # rows outside the broad phase never count, whatever the BLAS said
+        inst_idx = torch.full_like(local.material_id, k)
+        self._to_world_(local, inst_idx)
+        return (Hits.empty(len(local), local.t.device) if best is None else best).where_(closer, local)
+
+    def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
+        closer = local.hit & (local.t < best.t[ray_idx])
+        if not closer.any():
+            return best
+        ray_idx, inst_idx, local = ray_idx[closer], inst_idx[closer], local[closer]
+        # Several instances may improve one ray: keep the smallest t per ray, the later pair on ties.
+        best_t = best.t.clone().scatter_reduce_(0, ray_idx, local.t, reduce="amin")
+        winner = local.t == best_t[ray_idx]
+        ray_idx, inst_idx, local = ray_idx[winner], inst_idx[winner], local[winner]
+        self._to_world_(local, inst_idx)
+        return best.scatter_(ray_idx, local)
+
+    def _to_world_(self, hits: Hits, inst_idx: Tensor) -> None:
+        """Object-space hit records to world space (normals by the inverse transpose), in place."""
+        w2o = self.t.world_to_object[inst_idx, :3, :3]  # normal_world = normalize(n^T M^-1)
+        hits.normal = torch.nn.functional.normalize(torch.einsum("pj,pji->pi", hits.normal, w2o), dim=-1)
+        hits.geometric_normal = torch.nn.functional.normalize(torch.einsum("pj,pji->pi", hits.geometric_normal, w2o), dim=-1)
+        hits.material_id = self.t.material_maps[inst_idx, _local_material_index(hits.material_id, self.t.material_maps)]
+        hits.instance_id = inst_idx
+
+
+class NumbaTLASStages:
+    """The stages as fused numba passes over CPU arrays (one sweep each instead of chains of ops)."""
+
+    def __init__(self, table: InstanceTable):
+        if table.box_lo.device.type != "cpu":
+            raise ValueError("NumbaTLASStages needs an instance table on the CPU")
+        self.t = table
+        self._box_lo = table.box_lo.numpy()
+        self._box_hi = table.box_hi.numpy()
+        self._world_to_object = table.world_to_object.contiguous().numpy()
+        self._material_maps = table.material_maps.numpy()
+        self._is_identity = table.is_identity.numpy()
+
+    def valid_mask(self, rays: Rays) -> Tensor | None:
+        return None  # fused into the broad phase
+
+    def candidate_pairs(self, rays: Rays, instance_ids: Tensor, t_limit: Tensor, valid: Tensor | None):
+        n, g = len(rays), instance_ids.numel()
+        overlap = np.empty((n, g), np.bool_)
+        o, d, t_min, t_max, limit = (x.detach().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max, t_limit))
+        ids = instance_ids.numpy()
+        count = kernels.instance_overlaps(o, d, t_min, t_max, limit, self._box_lo[ids], self._box_hi[ids], overlap)
+        if g == 1 and count >= _EVERY_RAY_FRACTION * n:
+            return None, instance_ids, None if count == n else torch.from_numpy(overlap[:, 0])
+        ray_idx, k = np.nonzero(overlap)
+        return torch.from_numpy(ray_idx), instance_ids[torch.from_numpy(k)], None
+
+    def object_space_rays(self, rays: Rays, ray_idx: Tensor | None, inst_idx: Tensor, t_max: Tensor) -> Rays:
+        origins, directions = rays.origins.detach().numpy(), rays.directions.detach().numpy()
+        if ray_idx is None:
+            k = int(inst_idx[0])
+            if self._is_identity[k]:
+                return Rays(rays.origins, rays.directions, rays.t_min, t_max)
+            o, d = np.empty((len(rays), 3), np.float32), np.empty((len(rays), 3), np.float32)
+            kernels.transform_rays(origins, directions, self._world_to_object[k], o, d)
+            return Rays(torch.from_numpy(o), torch.from_numpy(d), rays.t_min, t_max)
+        o, d = np.empty((ray_idx.numel(), 3), np.float32), np.empty((ray_idx.numel(), 3), np.float32)
+        kernels.object_space_rays(origins, directions, ray_idx.numpy(), inst_idx.contiguous().numpy(),
+                                  self._world_to_object, self._is_identity, o, d)
+        return Rays(torch.from_numpy(o), torch.from_numpy(d), rays.t_min[ray_idx], t_max)
+
+    def merge_every_ray(self, best: Hits | None, local: Hits, k: int, overlap: Tensor | None) -> Hits:
+        out = best
+        if out is None:  # uninitialised: the kernel writes every row
+            template = Hits.empty(0)
+            out = Hits(**{f.name: torch.empty((len(local), *getattr(template, f.name).shape[1:]),
+                                              dtype=getattr(template, f.name).dtype) for f in fields(Hits)})  # fmt: skip
+        kernels.merge_every_ray(
+            *(getattr(local, f.name).detach().contiguous().numpy() for f in fields(Hits) if f.name != "instance_id"),
+            np.empty(0, np.bool_) if overlap is None else overlap.numpy(), best is not None,
+            k, self._material_maps[k], self._world_to_object[k], bool(self._is_identity[k]),
+            *(getattr(out, f.name).numpy() for f in fields(Hits)),
+        )  # fmt: skip
+        return out
+
+    def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
+        winner = np.empty(len(best), np.int64)
+        found = kernels.closest_pair_per_ray(ray_idx.numpy(), local.hit.numpy(), local.t.detach().numpy(), best.t.detach().numpy(), winner)
+        if found == 0:
+            return best
+        winner_t = torch.from_numpy(winner)
+        rays_won = torch.nonzero(winner_t >= 0).squeeze(1)
+        pairs = winner_t[rays_won]
+        inst_idx, local = inst_idx[pairs], local[pairs]
+        idx = inst_idx.contiguous().numpy()
+        for name in ("normal", "geometric_normal"):
+            world = np.empty((len(idx), 3), np.float32)
+            kernels.normals_to_world(getattr(local, name).detach().contiguous().numpy(), idx, self._world_to_object, self._is_identity, world)
+            setattr(local, name, torch.from_numpy(world))
+        local.material_id = self.t.material_maps[inst_idx, _local_material_index(local.material_id, self.t.material_maps)]
+        local.instance_id = inst_idx
+        return best.scatter_(rays_won, local)
+
+
+def stages_for(table: InstanceTable) -> NumbaTLASStages | TorchTLASStages:
+    """The implementation for the table's device: numba on the CPU, torch elsewhere."""
+    return NumbaTLASStages(table) if table.box_lo.device.type == "cpu" else TorchTLASStages(table)
