@@ -83,3 +83,30 @@ def test_featurize_dispatches_on_device_and_checks_input():
         featurize_rays_triton(o, d, torch.ones(4, 4, 2, dtype=torch.bool, device=DEVICE))
     empty = featurize_rays_triton(o[:0], d[:0], occ)
     assert empty.points.shape == (0, 18, 3) and empty.count.device == o.device
+
+
+# -- sparse hash grid -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("resolutions,features,log2_size", [((32, 64), 3, 12), ((16, 32, 64), 2, 10)])
+def test_triton_hash_grid_forward_and_backward_match_numba(resolutions, features, log2_size):
+    from test_sparse_hash_grid import _featurized_points
+
+    from neuralrt.neural.sparse_hash_grid import SparseHashGrid
+    from neuralrt.neural.sparse_hash_grid_triton import sparse_hash_grid_triton
+
+    f = _featurized_points(n=200, seed=5)  # face, origin and padding points
+    grid = SparseHashGrid(resolutions=resolutions, features_per_level=features, log2_table_size=log2_size, init_scale=1.0)
+    ref = grid(f.points, f.face_axis)  # numba, CPU
+    table = grid.table.detach().to(DEVICE).requires_grad_()
+    out = sparse_hash_grid_triton(f.points.to(DEVICE), f.face_axis.to(DEVICE), table, grid.resolutions)
+    assert out.shape == ref.shape and out.device == table.device
+    if CUDA:  # fused multiply-adds on the GPU
+        torch.testing.assert_close(out.cpu(), ref, atol=1e-6, rtol=1e-5)
+    else:
+        assert torch.equal(out, ref)
+    upstream = torch.randn_like(ref)
+    (g_ref,) = torch.autograd.grad((ref * upstream).sum(), grid.table)
+    (g,) = torch.autograd.grad((out * upstream.to(DEVICE)).sum(), table)
+    assert (g_ref != 0).sum() > 100
+    torch.testing.assert_close(g.cpu(), g_ref, atol=1e-5, rtol=1e-5)  # atomic adds: order varies

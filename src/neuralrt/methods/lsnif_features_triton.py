@@ -24,7 +24,7 @@ from .lsnif_features import ORIGIN_POINT, PADDING, RayFeaturePoints
 
 __all__ = ["featurize_rays_triton", "dda_setup", "dda_next_point", "dda_point_coords"]
 
-_INF = float("inf")
+_INF = tl.constexpr(float("inf"))  # Triton reads globals only as constexpr
 
 
 @triton.jit

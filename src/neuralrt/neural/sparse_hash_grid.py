@@ -16,10 +16,11 @@ vertices of its cell; the only reads of interior vertices), -1 = padding (zero f
 Level resolutions must be multiples of the voxel resolution, so that every voxel face plane is
 a grid plane of every level (`check_resolutions`).
 
-On CPU tensors, forward and backward are fused numba kernels (parallel over rays; the backward
-scatters into one gradient table per thread, then sums them, so there are no atomics). On other
-devices the vectorized pure-torch `sparse_hash_grid_reference` runs, which is also the
-reference the tests compare the kernels against.
+One contract, implementations chosen once by the table's device: on the CPU (fp32 table), fused
+numba kernels (parallel over rays; the backward scatters into one gradient table per thread,
+then sums them, so there are no atomics); on CUDA, Triton kernels (`sparse_hash_grid_triton`:
+gather forward, atomic-add backward); elsewhere the vectorized pure-torch
+`sparse_hash_grid_reference`, which is also the reference the tests compare the kernels against.
 """
 
 from __future__ import annotations
@@ -294,9 +295,20 @@ class SparseHashGrid(nn.Module):
                 f"expected points [N, H, 3] and face_axis [N, H], got {tuple(points.shape)} and "
                 f"{tuple(face_axis.shape)}"
             )
+        if self.table.device.type == "cuda":
+            from .sparse_hash_grid_triton import sparse_hash_grid_triton
+
+            return sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
         if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
             return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np)
         return sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
+
+    def _resolutions_on(self, device: torch.device) -> Tensor:
+        """The level resolutions as an int32 tensor on ``device`` (made once per device: no copy per call)."""
+        cached = getattr(self, "_resolutions_dev", None)
+        if cached is None or cached.device != device:
+            cached = self._resolutions_dev = torch.tensor(self.resolutions, dtype=torch.int32, device=device)
+        return cached
 
     def extra_repr(self) -> str:
         return (
