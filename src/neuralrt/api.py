@@ -127,7 +127,7 @@ def render(
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail)
+    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary)
     try:
         result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
     except ValueError as exc:

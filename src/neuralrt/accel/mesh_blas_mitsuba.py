@@ -129,20 +129,23 @@ class MitsubaMeshBLAS(MeshBLAS):
 
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
-        import drjit as dr
-
         self._check_device(rays)
         if len(rays) == 0:
             return Hits.empty(0, rays.device)
+        return closest_hit_records(self._tables, *self.closest_hits(rays))
+
+    def closest_hits(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The geometric query alone: triangle [N] int32 (-1 on miss), t [N], barycentrics u, v [N]
+        (t, u, v undefined on misses), on the rays' device. `intersect` adds the attributes."""
+        import drjit as dr
+
         columns, start = self._trace_inputs(rays)
         ray, active = self._ray(columns)
         found = self._scene.ray_intersect_preliminary(ray, coherent=False, active=active)
-        hit = active & found.is_valid()
-        prim = dr.select(hit, self._types.Int32(found.prim_index), -1)
+        prim = dr.select(active & found.is_valid(), self._types.Int32(found.prim_index), -1)
         t, u, v = found.t, found.prim_uv.x, found.prim_uv.y
         dr.eval(prim, t, u, v)  # one kernel: trace and write the four columns
-        prim, t, u, v = prim.torch(), t.torch(), u.torch(), v.torch()
-        return closest_hit_records(self._tables, prim, t + start, u, v)
+        return prim.torch(), t.torch() + start, u.torch(), v.torch()
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any triangle lie within (t_min, t_max)?"""
