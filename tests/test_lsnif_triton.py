@@ -110,3 +110,64 @@ def test_triton_hash_grid_forward_and_backward_match_numba(resolutions, features
     (g,) = torch.autograd.grad((out * upstream.to(DEVICE)).sum(), table)
     assert (g_ref != 0).sum() > 100
     torch.testing.assert_close(g.cpu(), g_ref, atol=1e-5, rtol=1e-5)  # atomic adds: order varies
+
+
+# -- fused featurize + encode + first layer ---------------------------------------------------------
+
+
+class _Net(torch.nn.Module):
+    """The LSNIF network's shape (``hidden`` leaky-ReLU layers, fp32 ``output``), random weights."""
+
+    def __init__(self, inputs, width, layers, outputs, seed=0):
+        super().__init__()
+        g = torch.Generator().manual_seed(seed)
+        widths = [inputs] + [width] * layers
+        self.hidden = torch.nn.ModuleList(torch.nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.output = torch.nn.Linear(width, outputs)
+        self.slope = 0.01
+        with torch.no_grad():
+            for p in self.parameters():
+                p.copy_(torch.rand(p.shape, generator=g) * 0.4 - 0.2)
+
+    def reference(self, x, dtype):
+        x = x.to(dtype)
+        for layer in self.hidden:
+            x = torch.nn.functional.leaky_relu(torch.nn.functional.linear(x, layer.weight.to(dtype), layer.bias.to(dtype)), self.slope)
+        return self.output(x.float())
+
+
+# Interpreter: fp32 only (it reads bf16 dot operands as integers); compiled: the model's bf16 too.
+FUSED_DTYPES = [torch.float32, torch.bfloat16] if CUDA else [torch.float32]
+
+
+@pytest.mark.parametrize("dtype", FUSED_DTYPES)
+@pytest.mark.parametrize("max_points,width,distances,origin_point", [(10, 64, True, True), (6, 48, False, False)])
+def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, distances, origin_point):
+    from neuralrt.methods.lsnif import point_local_distances
+    from neuralrt.methods.lsnif_fused import fused_network_outputs
+    from neuralrt.neural.sparse_hash_grid import SparseHashGrid
+
+    occ, tris = _torus_occupancy(16)
+    o, d = _random_rays(np.random.default_rng(6), 128, occ, tris)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    net = _Net(grid.output_dim(max_points) + (max_points if distances else 0), width, 2, 11)
+    fc = dict(origin_point=origin_point, share_boundary_points=True)
+    with torch.no_grad():
+        fp = featurize_rays_numba(o, d, occ, max_points, **fc)
+        x = grid(fp.points, fp.face_axis)
+        if distances:
+            x = torch.cat([x, point_local_distances(fp, o, d)], 1)
+        ref = net.reference(x, dtype)
+        out, fused = fused_network_outputs(
+            o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), grid.to(DEVICE), net.to(DEVICE),
+            max_points=max_points, point_distances=distances, compute_dtype=dtype, block=32, **fc,
+        )  # fmt: skip
+    out, count = out.cpu(), fused.count.cpu()
+    active = fp.count > 0
+    assert active.sum() > 30 and (~active).sum() > 10
+    same = count == fp.count  # all under the interpreter; on the GPU, see _assert_features_match
+    assert same.float().mean() >= (0.999 if CUDA else 1.0)
+    torch.testing.assert_close(fused.t_enter.cpu(), fp.t_enter, atol=1e-6, rtol=1e-6)
+    tol = 2e-5 if dtype == torch.float32 else 3e-2  # bf16: layer 1 accumulates in fp32 here, bf16 GEMM there
+    compared = active & same
+    assert (out[compared] - ref[compared]).abs().max() <= tol * ref[compared].abs().max()

@@ -1,0 +1,237 @@
+"""LSNIF inference on CUDA with one fused Triton kernel per ray chunk.
+
+The kernel walks each ray through the voxels (`dda_next_point`, float64 as in `featurize_rays`),
+encodes each boundary point in the sparse hash grid as soon as it is found (`encode_point`), and
+multiplies its features (+ its point distance) into the first MLP layer at once: the network
+input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over points of
+``x_h @ W1[:, block h]^T``, one small matrix product per point slot on the tensor cores. Points
+and features stay in registers; the kernel writes only the first hidden layer's activations
+(bf16) and each ray's box interval and point count. The remaining hidden layers run as bf16
+GEMMs and the output layer in fp32, as `LSNIFNetwork.forward` does. A point slot past every
+ray's last point in a block is skipped (their features are 0 and add nothing).
+
+Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
+compute precision: the first layer accumulates in fp32 from bf16 inputs (unfused: a bf16 GEMM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+import triton
+import triton.language as tl
+from torch import Tensor, nn
+
+from ..neural.sparse_hash_grid import SparseHashGrid
+from ..neural.sparse_hash_grid_triton import encode_point
+from .lsnif_features_triton import dda_next_point, dda_point_coords, dda_setup, occupancy_bytes, plane_table
+
+__all__ = ["FusedOutputs", "fused_first_layer", "fused_network_outputs", "pack_first_layer", "fused_layout"]
+
+
+@triton.jit
+def _fused_first_layer_kernel(
+    o_ptr, d_ptr, occ_ptr, planes_ptr, table_ptr, res_ptr, w1_ptr, b1_ptr,
+    h1_ptr, t_enter_ptr, t_exit_ptr, count_ptr,
+    n_rays, V, table_size, slope,
+    MAX_POINTS: tl.constexpr, ORIGIN_POINTS: tl.constexpr, SHARE: tl.constexpr,
+    POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr,
+    HIDDEN: tl.constexpr, IEEE: tl.constexpr, BLOCK: tl.constexpr,
+):  # fmt: skip
+    rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    lane_ok = rays < n_rays
+    r64 = rays.to(tl.int64)
+    ox32 = tl.load(o_ptr + r64 * 3 + 0, mask=lane_ok, other=0.0).to(tl.float32)
+    oy32 = tl.load(o_ptr + r64 * 3 + 1, mask=lane_ok, other=0.0).to(tl.float32)
+    oz32 = tl.load(o_ptr + r64 * 3 + 2, mask=lane_ok, other=0.0).to(tl.float32)
+    dx32 = tl.load(d_ptr + r64 * 3 + 0, mask=lane_ok, other=0.0).to(tl.float32)
+    dy32 = tl.load(d_ptr + r64 * 3 + 1, mask=lane_ok, other=0.0).to(tl.float32)
+    dz32 = tl.load(d_ptr + r64 * 3 + 2, mask=lane_ok, other=0.0).to(tl.float32)
+    state, t_enter, t_exit = dda_setup(
+        ox32.to(tl.float64), oy32.to(tl.float64), oz32.to(tl.float64),
+        dx32.to(tl.float64), dy32.to(tl.float64), dz32.to(tl.float64), lane_ok, planes_ptr, V,
+    )  # fmt: skip
+    t_enter32 = t_enter.to(tl.float32)
+    t_exit32 = t_exit.to(tl.float32)
+    span = tl.maximum(t_exit32 - t_enter32, 1e-12)
+    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+    k = tl.arange(0, LP * FP)
+    n = tl.arange(0, HIDDEN)
+    acc = tl.zeros([BLOCK, HIDDEN], tl.float32)
+    count = tl.zeros([BLOCK], tl.int32)
+    h = tl.full([], 0, tl.int32)
+    any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
+    while (h < MAX_POINTS) & any_alive:
+        state, got, t, code, exiting, vx, vy, vz = dda_next_point(
+            state, planes_ptr, occ_ptr, V, ORIGIN_POINTS, SHARE)  # fmt: skip
+        px, py, pz = dda_point_coords(state, got, t, code, exiting, vx, vy, vz, planes_ptr)
+        feats = encode_point(px, py, pz, code, got, table_ptr, res_ptr, table_size, L, F, LP, FP)
+        x = tl.reshape(feats, [BLOCK, LP * FP])  # column level * FP + feature
+        if POINT_DISTANCES:  # as `point_local_distances`, in float32 on the float32 point
+            tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+            local = tl.minimum(tl.maximum((tp - t_enter32) / span, 0.0), 1.0)
+            x = tl.where(k[None, :] == L * FP, tl.where(got, local, 0.0)[:, None], x)
+        w = tl.load(w1_ptr + (h * (LP * FP) + k[:, None]) * HIDDEN + n[None, :])
+        if IEEE:
+            acc = tl.dot(x.to(w.dtype), w, acc, input_precision="ieee")
+        else:
+            acc = tl.dot(x.to(w.dtype), w, acc)
+        count += got.to(tl.int32)
+        h += 1
+        any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
+    y = acc + tl.load(b1_ptr + n)[None, :]
+    y = tl.where(y >= 0.0, y, y * slope)
+    tl.store(h1_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(h1_ptr.dtype.element_ty), mask=lane_ok[:, None])
+    tl.store(t_enter_ptr + rays, t_enter32, mask=lane_ok)
+    tl.store(t_exit_ptr + rays, t_exit32, mask=lane_ok)
+    tl.store(count_ptr + rays, count, mask=lane_ok)
+
+
+@dataclass(frozen=True)
+class FusedLayout:
+    """Padded tile sizes of the fused kernel: per point slot a ``[LP * FP]`` input block (level l,
+    feature f at column ``l * FP + f``; the point distance at ``L * FP``), hidden width ``HP``."""
+
+    levels: int
+    features: int
+    level_slots: int  # LP
+    feature_slots: int  # FP
+    hidden: int
+    hidden_padded: int  # HP
+
+    @property
+    def block_width(self) -> int:
+        return self.level_slots * self.feature_slots
+
+
+def fused_layout(levels: int, features: int, hidden: int, point_distances: bool) -> FusedLayout:
+    lp = triton.next_power_of_2(levels + (1 if point_distances else 0))
+    fp = max(triton.next_power_of_2(features), triton.cdiv(16, lp))  # tensor-core products need K >= 16
+    return FusedLayout(levels, features, lp, fp, hidden, max(16, triton.next_power_of_2(hidden)))
+
+
+def pack_first_layer(
+    weight: Tensor, bias: Tensor, max_points: int, layout: FusedLayout, point_distances: bool, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """First-layer weights regrouped per point slot: ``[H, LP * FP, HP]`` in ``dtype`` (zero rows
+    for padding columns), and the bias ``[HP]`` in fp32.
+
+    ``weight`` is ``[hidden, H * L * F (+ H)]``, the network input being point-major encoded
+    features followed by the H point distances.
+    """
+    lay, h = layout, max_points
+    lf = lay.levels * lay.features
+    packed = torch.zeros(h, lay.level_slots, lay.feature_slots, lay.hidden_padded, dtype=torch.float32, device=weight.device)
+    w = weight.detach().float().t()  # [inputs, hidden]
+    packed[:, : lay.levels, : lay.features, : lay.hidden] = w[: h * lf].reshape(h, lay.levels, lay.features, lay.hidden)
+    if point_distances:
+        packed[:, lay.levels, 0, : lay.hidden] = w[h * lf : h * lf + h]
+    b = torch.zeros(lay.hidden_padded, dtype=torch.float32, device=weight.device)
+    b[: lay.hidden] = bias.detach().float()
+    return packed.reshape(h, lay.block_width, lay.hidden_padded).to(dtype).contiguous(), b
+
+
+@dataclass
+class FusedOutputs:
+    """Per ray of the chunk: first hidden layer (post-activation), box interval, point count."""
+
+    hidden: Tensor  # [N, hidden] compute dtype (rows of rays with count 0 are meaningless)
+    t_enter: Tensor  # [N] float32 (inf on box miss)
+    t_exit: Tensor  # [N] float32
+    count: Tensor  # [N] int32: boundary points seen, up to H (0: certain miss, skip)
+
+
+def fused_first_layer(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    table: Tensor,
+    resolutions: Tensor,
+    w1_packed: Tensor,
+    b1_packed: Tensor,
+    layout: FusedLayout,
+    *,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    slope: float = 0.01,
+    block: int = 64,
+    num_warps: int = 4,
+) -> FusedOutputs:
+    """Featurize + encode + first layer (+ leaky ReLU) of unit-box rays ``[N, 3]`` in one kernel.
+
+    ``occupancy`` [V, V, V] and ``table`` [L, T, F] on the rays' device; ``resolutions`` int32
+    [L] there too; ``w1_packed``/``b1_packed`` from `pack_first_layer`. CUDA, or CPU tensors
+    under ``TRITON_INTERPRET=1``.
+    """
+    device = origins.device
+    occ = occupancy_bytes(occupancy, device)
+    o = origins.detach().to(torch.float32).contiguous()
+    d = directions.detach().to(torch.float32).contiguous()
+    n = o.shape[0]
+    hidden = torch.empty((n, layout.hidden_padded), dtype=w1_packed.dtype, device=device)
+    t_enter = torch.empty(n, dtype=torch.float32, device=device)
+    t_exit = torch.empty(n, dtype=torch.float32, device=device)
+    count = torch.empty(n, dtype=torch.int32, device=device)
+    if n:
+        _fused_first_layer_kernel[(triton.cdiv(n, block),)](
+            o, d, occ, plane_table(occ.shape[0], device), table.detach().contiguous(), resolutions,
+            w1_packed, b1_packed, hidden, t_enter, t_exit, count,
+            n, occ.shape[0], table.shape[1], float(slope),
+            MAX_POINTS=int(max_points), ORIGIN_POINTS=bool(origin_point), SHARE=bool(share_boundary_points),
+            POINT_DISTANCES=bool(point_distances), L=layout.levels, F=layout.features,
+            LP=layout.level_slots, FP=layout.feature_slots, HIDDEN=layout.hidden_padded,
+            IEEE=w1_packed.dtype == torch.float32, BLOCK=block, num_warps=num_warps,
+        )  # fmt: skip
+    return FusedOutputs(hidden[:, : layout.hidden], t_enter, t_exit, count)
+
+
+def _packed_for(network: nn.Module, encoder: SparseHashGrid, max_points: int, point_distances: bool, dtype: torch.dtype):
+    """Packed first layer and the later layers' weights in ``dtype``, cached on the network and
+    re-made when any parameter changes (same keying as the network's own bf16 weight cache)."""
+    key = (dtype, max_points, point_distances, tuple((p.data_ptr(), p._version) for p in network.hidden.parameters()))
+    cached = getattr(network, "_fused_cache", None)
+    if cached is None or cached[0] != key:
+        first = network.hidden[0]
+        layout = fused_layout(len(encoder.resolutions), encoder.features_per_level, first.out_features, point_distances)
+        w1, b1 = pack_first_layer(first.weight, first.bias, max_points, layout, point_distances, dtype)
+        rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in network.hidden[1:]]
+        cached = (key, layout, w1, b1, rest)
+        network._fused_cache = cached
+    return cached[1:]
+
+
+def fused_network_outputs(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: nn.Module,
+    *,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.bfloat16,
+    block: int = 64,
+    num_warps: int = 4,
+) -> tuple[Tensor, FusedOutputs]:
+    """The LSNIF network's raw outputs ``[N, outputs]`` (fp32) for unit-box rays, fused path.
+
+    ``network`` is an `LSNIFNetwork`/`MLP` (``hidden`` Linear layers, ``output``, ``slope``).
+    Returns the outputs and the kernel's `FusedOutputs` (box interval and point counts: rays
+    with ``count == 0`` are certain misses and their output rows are meaningless).
+    """
+    layout, w1, b1, rest = _packed_for(network, encoder, max_points, point_distances, compute_dtype)
+    fused = fused_first_layer(
+        origins, directions, occupancy, encoder.table, encoder._resolutions_on(origins.device), w1, b1, layout,
+        max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
+        point_distances=point_distances, slope=network.slope, block=block, num_warps=num_warps,
+    )  # fmt: skip
+    x = fused.hidden
+    for w, b in rest:
+        x = F.leaky_relu(F.linear(x, w, b), network.slope)
+    return network.output(x.float()), fused
