@@ -93,3 +93,14 @@ def test_content_hash_changes_with_geometry():
     b = Mesh(t.vertices * 1.001, t.faces)
     assert a.content_hash() == Mesh(t.vertices, t.faces).content_hash()
     assert a.content_hash() != b.content_hash()
+
+
+def test_face_material_ids_must_index_the_materials():
+    from neuralrt.geometry.mesh import MeshMaterial
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    with pytest.raises(MeshError, match=r"face_material_ids must be one index per face into its 1 materials"):
+        Mesh(v, [[0, 1, 2]], face_material_ids=[1])
+    with pytest.raises(MeshError, match="face_material_ids"):
+        Mesh(v, [[0, 1, 2]], face_material_ids=[0, 0], materials=[MeshMaterial("a")])
+    assert Mesh(v, [[0, 1, 2]], face_material_ids=[1], materials=[MeshMaterial("a"), MeshMaterial("b")]).face_material_ids.tolist() == [1]

@@ -6,6 +6,7 @@ import trimesh
 
 from neuralrt import Mesh, MeshBLAS, Rays, Transform
 from neuralrt.accel.tlas import Instance, SceneAccel
+from neuralrt.geometry.mesh import MeshMaterial
 
 
 def _torus_mesh():
@@ -38,6 +39,7 @@ def test_instances_match_baked_geometry():
         np.concatenate(baked_v),
         np.concatenate([mesh.faces, mesh.faces + len(mesh.vertices)]),
         face_material_ids=np.repeat([0, 1], len(mesh.faces)),
+        materials=[MeshMaterial("first"), MeshMaterial("second")],
     )
     ref = MeshBLAS(baked).intersect(rays := _random_rays(4000, 3))
     got = accel.intersect(rays)

@@ -10,6 +10,7 @@ import trimesh
 
 from neuralrt import Mesh, MeshBLAS, Rays, Transform
 from neuralrt.accel.tlas import Instance, SceneAccel
+from neuralrt.geometry.mesh import MeshMaterial
 from neuralrt.accel.tlas_stages import NumbaTLASStages, TorchTLASStages
 from neuralrt.rays import ray_box_intervals, valid_ray_mask
 from neuralrt.accel import tlas_kernels
@@ -19,7 +20,8 @@ from neuralrt.accel import tlas_kernels
 def blases():
     rng = np.random.default_rng(0)
     t = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=32, minor_sections=16)
-    torus = MeshBLAS(Mesh(t.vertices, t.faces, face_material_ids=rng.integers(0, 3, len(t.faces))))
+    torus = MeshBLAS(Mesh(t.vertices, t.faces, face_material_ids=rng.integers(0, 3, len(t.faces)),
+                          materials=[MeshMaterial(name) for name in "abc"]))
     s = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
     return torus, MeshBLAS(Mesh(s.vertices, s.faces))
 

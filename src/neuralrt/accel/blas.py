@@ -45,10 +45,15 @@ class BLAS(Protocol):
     - ``memory_bytes()``: run-time memory, itemised.
     - ``secondary_offset``: how far (in object-space units, along the normal) a ray leaving a hit
       on this object must start to avoid hitting the same surface again.
+    - ``material_names``: one name per material slot, in the order ``Hits.material_id`` indexes;
+      a scene maps each name to a scene material (`neuralrt.scene.material_rules`).
+
+    Rays and answers live on the BLAS's device; ``bounds`` are CPU tensors (an `AABB`).
     """
 
     bounds: AABB
     secondary_offset: float
+    material_names: list[str]
 
     def intersect(self, rays: Rays) -> Hits: ...
 

@@ -129,6 +129,11 @@ class MeshBLAS:
     def occluded(self, rays: Rays) -> Tensor:
         raise NotImplementedError
 
+    @property
+    def material_names(self) -> list[str]:
+        """Material slot names of the mesh, in ``material_id`` order (the BLAS contract)."""
+        return [m.name for m in self.mesh.materials]
+
     def _material_albedo(self) -> np.ndarray:
         """[M, 3] float32 base colour per material (read per call: materials may be edited)."""
         return np.stack([np.asarray(x.base_color, np.float32).reshape(3) for x in self.mesh.materials])

@@ -50,6 +50,12 @@ class Mesh:
         self.face_material_ids = np.ascontiguousarray(self.face_material_ids, dtype=np.int32)
         if not self.materials:
             self.materials = [MeshMaterial()]
+        if len(self.face_material_ids) != len(self.faces) or (
+            len(self.faces) and (self.face_material_ids.min() < 0 or self.face_material_ids.max() >= len(self.materials))
+        ):
+            raise MeshError(f"{self.name}: face_material_ids must be one index per face into its {len(self.materials)} "
+                            f"materials (got {len(self.face_material_ids)} ids in "
+                            f"[{self.face_material_ids.min(initial=0)}, {self.face_material_ids.max(initial=0)}])")
         if self.vertex_normals is None:
             self.vertex_normals = smooth_vertex_normals(self.vertices, self.faces)
         self.vertex_normals = np.ascontiguousarray(self.vertex_normals, dtype=np.float32)
@@ -64,6 +70,8 @@ class Mesh:
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo [3], hi [3]) float32 numpy arrays. The geometry layer (`Mesh`) speaks numpy, the
+        source data on the host; accelerators (`BLAS.bounds`) give an `AABB` of CPU tensors."""
         return self.vertices.min(0), self.vertices.max(0)
 
     def triangles(self) -> np.ndarray:

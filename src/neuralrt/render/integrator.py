@@ -231,16 +231,20 @@ def render(
     overrides the camera's. Samples are taken in passes of ``k`` samples per pixel, with
     ``k * pixels <= max_paths`` paths alive at once (at least one pixel row's worth); a progress
     bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
-    "neural") picks who answers camera rays for neural objects that keep their mesh.
+    "neural", default: what the scene was loaded for) picks who answers camera rays for neural
+    objects; "exact" needs a scene loaded with ``primary="exact"`` (their meshes kept).
     """
     from dataclasses import replace
 
     if settings is None:
-        settings = IntegratorSettings(max_depth=scene.settings.max_depth)
+        settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
     if settings.primary not in ("exact", "neural"):
         raise ValueError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
+    if settings.primary == "exact" and scene.primary == "neural":
+        raise ValueError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
+                         "load it with primary='exact' to render that way")
     spp = int(spp if spp is not None else scene.settings.spp)
     if spp < 1 or settings.max_depth < 1 or settings.max_paths < 1:
         raise ValueError("spp, max_depth and max_paths must be >= 1")

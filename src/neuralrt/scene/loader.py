@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 from pydantic import ValidationError
 
+from ..accel.blas import BLAS
 from ..accel.mesh_blas import MeshBLAS
 from ..accel.tlas import Instance, SceneAccel
 from ..errors import NeuralRTError, SceneError
@@ -34,12 +35,12 @@ from .schema import (
     PlasticMaterialSpec,
     SceneSpec,
 )
+from .material_rules import is_emissive, material_index, material_map, scene_material_for, scene_materials
 from .scene import Scene, instance_ray_offsets
 
-__all__ = ["load_scene", "load_scene_spec", "build_scene", "scene_material_for", "shape_for", "BUILTIN_PREFIX"]
+__all__ = ["load_scene", "load_dict", "load_scene_spec", "build_scene", "scene_material_for", "shape_for", "BUILTIN_PREFIX"]
 
 BUILTIN_PREFIX = "builtin:"
-DEFAULT_MATERIAL = DiffuseMaterialSpec(name="default", albedo=(0.8, 0.8, 0.8))  # for faces nothing else names
 
 
 def load_scene(
@@ -47,17 +48,73 @@ def load_scene(
     device="cpu",
     resolution: tuple[int, int] | None = None,
     detail: int | None = None,
+    primary: str = "exact",
 ) -> Scene:
     """Load and build a scene.
 
     ``path_or_builtin``: a ``.toml`` / ``.json`` scene file, or ``builtin:<name>`` with an optional
     ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`). ``resolution`` (width, height)
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
+    ``primary``: who answers camera rays of objects with a model (see `build_scene`).
     """
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
     if resolution is not None:
         spec.camera.resolution = tuple(int(v) for v in resolution)
-    return build_scene(spec, base_dir, device=device, label=label)
+    return build_scene(spec, base_dir, device=device, label=label, primary=primary)
+
+
+def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene") -> Scene:
+    """Build a scene from a dict shaped like a scene file (cf. Mitsuba's ``load_dict``).
+
+    Every key is that of a scene file (docs/scenes.md) and is validated at once: a bad value or an
+    unknown material is a one-line `SceneError` naming ``label`` and the key, raised here, not at
+    render time. In ``objects``, ``mesh`` may also be a `neuralrt.Mesh`, and ``model`` a loaded
+    BLAS (``neuralrt.load_model(...)``, a freshly trained model, or your own object with
+    ``bounds``, ``intersect``, ``occluded``, ``memory_bytes``, ``secondary_offset`` and
+    ``material_names``). The same Python object used by several objects is built once
+    (instancing). Relative paths resolve against ``base_dir``::
+
+        scene = load_dict({
+            "camera": {"position": [0, 0.5, 3], "resolution": [128, 128]},
+            "materials": [{"name": "white", "type": "diffuse", "albedo": [0.7, 0.7, 0.7]}],
+            "objects": [{"mesh": bunny_mesh, "model": bunny_model, "material": "white",
+                         "transform": {"rotate": [0, 30, 0]}}],
+            "environment": {"color": [1, 1, 1]},
+        })
+
+    The returned scene's ``spec`` names in-memory objects ``<in-memory ...>``: it cannot be saved.
+    """
+    if not isinstance(scene, dict):
+        raise SceneError(f"{label}: a scene must be a dict, got {type(scene).__name__}")
+    data = dict(scene)
+    given = _InMemory({}, {})
+    objects = data.get("objects")
+    if isinstance(objects, (list, tuple)):
+        data["objects"] = [_take_in_memory(obj, i, given, label) for i, obj in enumerate(objects)]
+    return _build(validate_spec(data, label), base_dir, device, label, primary, given)
+
+
+def _take_in_memory(obj, i: int, given: _InMemory, label: str):
+    """``obj`` with a `Mesh` / BLAS value replaced by a placeholder name (kept in ``given``)."""
+    if not isinstance(obj, dict):
+        return obj
+    obj = dict(obj)
+    mesh, model = obj.get("mesh"), obj.get("model")
+    if isinstance(mesh, Mesh):
+        given.meshes[i] = mesh
+        obj["mesh"] = f"<in-memory mesh {mesh.name!r}>"
+    elif isinstance(mesh, os.PathLike):
+        obj["mesh"] = os.fspath(mesh)
+    if isinstance(model, os.PathLike):
+        obj["model"] = os.fspath(model)
+    elif model is not None and not isinstance(model, str):
+        missing = [a for a in ("bounds", "intersect", "occluded", "material_names") if not hasattr(model, a)]
+        if missing:
+            raise SceneError(f"{label}: objects.{i}.model: expected a model file path or a BLAS, got "
+                             f"{type(model).__name__} (no {', '.join(missing)})")
+        given.models[i] = model
+        obj["model"] = f"<in-memory model {type(model).__name__}>"
+    return obj
 
 
 def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = None) -> tuple[SceneSpec, Path, str]:
@@ -120,48 +177,80 @@ def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
 
 # --- building --------------------------------------------------------------------------------------
 
+PRIMARY_CHOICES = ("exact", "neural")
+
+
+class _Shape:
+    """A mesh and its exact BLAS (built on first use), shared by every object that uses them."""
+
+    def __init__(self, mesh: Mesh, device=None):
+        self.mesh = mesh
+        self._device = device
+        self._blas: MeshBLAS | None = None
+
+    @property
+    def blas(self) -> MeshBLAS:
+        if self._blas is None:
+            self._blas = MeshBLAS(self.mesh, device=self._device)
+        return self._blas
+
 
 @dataclass
-class _Shape:
-    """A mesh and its exact BLAS, shared by every object that uses them."""
+class _InMemory:
+    """Objects of a `load_dict` scene given as Python objects instead of paths, by object index."""
 
-    mesh: Mesh
-    blas: MeshBLAS
+    meshes: dict[int, Mesh]
+    models: dict[int, BLAS]
 
 
-def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene") -> Scene:
-    """Runtime `Scene` from a validated spec (relative paths resolve against ``base_dir``)."""
+def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene", primary: str = "exact") -> Scene:
+    """Runtime `Scene` from a validated spec (relative paths resolve against ``base_dir``).
+
+    ``primary`` says who will answer camera rays for objects that have a model: ``"exact"`` keeps
+    their mesh's BVH for camera rays (hybrid rendering), ``"neural"`` builds no BVH for them at all.
+    """
+    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}))
+
+
+def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory) -> Scene:
+    if primary not in PRIMARY_CHOICES:
+        raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
     spec = absolutize_paths(spec, Path(base_dir))
     dev = torch.device(device)
-    material_specs = list(spec.materials)
-    index = {m.name: i for i, m in enumerate(material_specs)}
-    if "default" not in index:
-        index["default"] = len(material_specs)
-        material_specs.append(DEFAULT_MATERIAL)
-    materials = _material_table(material_specs, label, dev)
+    index = material_index(spec)
+    materials = _material_table(scene_materials(spec), label, dev)
 
     shapes: dict[tuple, _Shape] = {}
-    models: dict[str, object] = {}
+    models: dict[str, BLAS] = {}
     instances: list[Instance] = []
-    meshes: list[Mesh | None] = []
+    meshes: list[Mesh | None] = []  # exact objects' meshes (area lights come from them)
     for i, obj in enumerate(spec.objects):
         key = f"objects.{i}"
-        shape = shape_for(obj, shapes, label, key)
-        blas, camera_blas = (shape.blas if shape else None), None
-        if obj.model is not None:
-            if _uses_emissive(obj, shape, index, materials):
-                # Area lights are sampled from triangles, and MIS needs the triangle a BSDF ray hit.
+        if i in given.meshes:
+            shape = shapes.setdefault(("memory", id(given.meshes[i])), _Shape(given.meshes[i], dev))
+        else:
+            shape = shape_for(obj, shapes, label, key, device=dev)
+        if obj.model is None:
+            slots = [m.name for m in shape.mesh.materials]
+            blas, camera_blas = shape.blas, None
+        else:
+            # Area lights are sampled from triangles, and MIS needs the triangle a BSDF ray hit:
+            # known from the mesh before a model file is read, and checked again with the model's slots.
+            if shape is not None and is_emissive(spec, obj, [m.name for m in shape.mesh.materials]):
                 raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
-            if obj.model not in models:
-                models[obj.model] = _load_model(obj.model, label, key)
-            blas, camera_blas = models[obj.model], (shape.blas if shape else None)
-        slot_names = [m.name for m in shape.mesh.materials] if shape else list(getattr(blas, "material_names", None) or ["default"])
-        material_map = [index[scene_material_for(obj, name, index)] for name in slot_names]
-        if shape is None and bool(materials.emissive_mask[torch.tensor(material_map)].any()):
-            raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
-        instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map),
+            if i in given.models:
+                blas = given.models[i]
+            else:
+                if obj.model not in models:
+                    models[obj.model] = _load_model(obj.model, label, key, dev)
+                blas = models[obj.model]
+            slots = _material_names(blas, label, key)
+            if is_emissive(spec, obj, slots):
+                raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
+            camera_blas = shape.blas if shape is not None and primary == "exact" else None
+        instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map(obj, slots, index)),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
-        meshes.append(shape.mesh if shape else None)
+        meshes.append(shape.mesh if obj.model is None else None)
 
     accel = SceneAccel(instances, device=dev)
     area = _area_lights(instances, meshes, materials, dev)
@@ -173,29 +262,22 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     cam = spec.camera
     camera = Camera.look_at(cam.position, cam.look_at, cam.up, cam.fov, cam.resolution)
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
-                 instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev)
+                 instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev,
+                 primary=primary)
 
 
-def _uses_emissive(obj: ObjectSpec, shape: _Shape | None, index: dict[str, int], materials: MaterialTable) -> bool:
-    """Whether any of the object's faces get an emissive scene material (known before a model loads)."""
-    slots = [m.name for m in shape.mesh.materials] if shape else ["default"]
-    names = {scene_material_for(obj, slot, index) for slot in slots}
-    return any(bool(materials.emissive_mask[index[n]]) for n in names)
+def _material_names(blas, label: str, key: str) -> list[str]:
+    """The model's material slot names (`BLAS.material_names`: what its ``material_id`` indexes)."""
+    names = getattr(blas, "material_names", None)
+    if not names or not all(isinstance(n, str) for n in names):
+        raise SceneError(f"{label}: {key}.model: {type(blas).__name__} has no material_names (the BLAS contract: "
+                         "one name per material slot)")
+    return list(names)
 
 
-def scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str:
-    """Scene material for a mesh material slot: the object's `material`, its `materials` map, the
-    scene material of the same name, else ``default``."""
-    if obj.material is not None:
-        return obj.material
-    if slot in obj.materials:
-        return obj.materials[slot]
-    return slot if slot in index else "default"
-
-
-def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | None:
-    """The object's mesh and exact BLAS, loaded once per source (cached in ``shapes``); None for a
-    model-only object. Errors name ``label`` and ``key``."""
+def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None) -> _Shape | None:
+    """The object's mesh and exact BLAS (on ``device``, built on first use of ``.blas``), loaded once
+    per source (cached in ``shapes``); None for a model-only object. Errors name ``label`` and ``key``."""
     if obj.mesh is not None:
         cache_key = ("file", obj.mesh)
     elif obj.generator is not None:
@@ -210,7 +292,7 @@ def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str) -> _Shape | N
                 raise SceneError(f"{label}: {key}.mesh: {exc}") from None
         else:
             mesh = _generate(obj, label, key)
-        shapes[cache_key] = _Shape(mesh, MeshBLAS(mesh))
+        shapes[cache_key] = _Shape(mesh, device)
     return shapes[cache_key]
 
 
@@ -226,7 +308,7 @@ def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:
         raise SceneError(f"{label}: {key}.generator.params: {exc}") from None
 
 
-def _load_model(path: str, label: str, key: str):
+def _load_model(path: str, label: str, key: str, device):
     """A trained neural model as this object's BLAS (the methods package is imported only here)."""
     problem = input_file_problem(path, "model file")
     if problem:
@@ -236,7 +318,7 @@ def _load_model(path: str, label: str, key: str):
     except ImportError as exc:
         raise SceneError(f"{label}: {key}.model: neural models are not available ({exc})") from None
     try:
-        return load_model(path)
+        return load_model(path, device=device)
     except NeuralRTError as exc:
         raise SceneError(f"{label}: {key}.model: {exc}") from None
 

@@ -38,6 +38,16 @@ class Scene:
     spec: SceneSpec | None = None  # what the scene was built from (paths made absolute)
     name: str = ""
     device: torch.device = torch.device("cpu")
+    primary: str = "exact"  # who answers camera rays of objects with a model ("neural": they kept no mesh BVH)
+
+    def __post_init__(self) -> None:
+        # A material index beyond the table would only fail at render time, deep in shading.
+        n = len(self.materials)
+        for k, inst in enumerate(self.accel.instances):
+            bad = (inst.material_map < 0) | (inst.material_map >= n)
+            if bool(bad.any()):
+                raise SceneError(f"instance {k} ({inst.name or 'unnamed'}): material index "
+                                 f"{int(inst.material_map[bad][0])} is out of range (the scene has {n} materials)")
 
     @property
     def environment(self):

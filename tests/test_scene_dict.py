@@ -1,0 +1,154 @@
+"""Scenes built in Python (`load_dict`): in-memory meshes and models, validation at build time,
+the BLAS `material_names` contract, ``primary="neural"`` building no BVH for neural objects, and
+the honest memory report."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from neuralrt.accel.blas import MemoryReport
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.errors import SceneError
+from neuralrt.geometry.mesh import Mesh, MeshMaterial
+from neuralrt.render.integrator import render
+from neuralrt.scene import loader as loader_module
+from neuralrt.scene.loader import load_dict
+
+
+def _two_part_mesh():
+    """Two unit boxes side by side: material "shell" (left) and "core" (right)."""
+    a, b = trimesh.creation.box(extents=(1, 1, 1)), trimesh.creation.box(extents=(1, 1, 1))
+    b.apply_translation([1.5, 0, 0])
+    v = np.concatenate([a.vertices, b.vertices])
+    f = np.concatenate([a.faces, b.faces + len(a.vertices)])
+    ids = np.repeat([0, 1], len(a.faces))
+    return Mesh(v, f, face_material_ids=ids, materials=[MeshMaterial("shell"), MeshMaterial("core")], name="pair")
+
+
+class StandInModel:
+    """A BLAS that answers like a mesh but is a "model" (a Python object, not a MeshBLAS)."""
+
+    def __init__(self, mesh, names):
+        self._exact = MeshBLAS(mesh)
+        self.bounds, self.secondary_offset, self.material_names = self._exact.bounds, self._exact.secondary_offset, names
+
+    def intersect(self, rays):
+        return self._exact.intersect(rays)
+
+    def occluded(self, rays):
+        return self._exact.occluded(rays)
+
+    def memory_bytes(self):
+        return MemoryReport({"weights": 1000})
+
+
+MATERIALS = [{"name": "white", "type": "diffuse", "albedo": [0.8, 0.8, 0.8]},
+             {"name": "core", "type": "diffuse", "albedo": [0.8, 0.1, 0.1]},
+             {"name": "lamp", "type": "emissive", "emission": [5, 5, 5]}]
+
+
+def _scene_dict(mesh, **obj):
+    return {"camera": {"position": [0.75, 0, 5], "look_at": [0.75, 0, 0], "resolution": [16, 8]},
+            "materials": MATERIALS, "objects": [{"mesh": mesh, **obj}], "environment": {"color": [1, 1, 1]}}
+
+
+def test_in_memory_mesh_and_its_material_slots():
+    mesh = _two_part_mesh()
+    scene = load_dict(_scene_dict(mesh, materials={"shell": "white"}, transform={"translate": [0, 0.5, 0]}))
+    inst = scene.accel.instances[0]
+    names = scene.materials.names
+    assert [names[i] for i in inst.material_map.tolist()] == ["white", "core"]  # map, then same name
+    assert float(inst.world_bounds.lo[1]) == pytest.approx(0.0)
+    assert render(scene, spp=1, progress=False).coverage.max() == 1.0
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: d["objects"][0].update(material="gold"), r"scene: objects.0.material: unknown material 'gold'"),
+    (lambda d: d["objects"][0].update(transform={"translate": [0, float("nan"), 0]}), r"scene: objects.0.transform.translate.1: .*finite"),
+    (lambda d: d["objects"][0].update(model=42), r"scene: objects.0.model: expected a model file path or a BLAS, got int"),
+    (lambda d: d["camera"].update(fov=0), r"scene: camera.fov"),
+    (lambda d: d["objects"][0].update(material="lamp", model=StandInModel(_two_part_mesh(), ["shell", "core"])),
+     r"scene: objects.0.model: emissive objects .* must stay exact meshes"),
+])
+def test_errors_are_raised_at_build_time_naming_the_key(edit, message):
+    d = _scene_dict(_two_part_mesh())
+    edit(d)
+    with pytest.raises(SceneError, match=message) as info:
+        load_dict(d)
+    assert "\n" not in str(info.value)
+
+
+def test_model_only_object_gets_one_slot_per_model_material(tmp_path):
+    """The loader maps a model's own material names (`material_names`, the BLAS contract), not one
+    'default' slot: a model-only object keeps its materials."""
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    model = LSNIFModel.from_mesh(_two_part_mesh(), LSNIFConfig.preset("lq"))
+    assert model.material_names == ["shell", "core"]
+    model.save(tmp_path / "pair.nrt")
+    (tmp_path / "scene.toml").write_text(
+        '[[materials]]\nname = "core"\ntype = "diffuse"\nalbedo = [0.8, 0.1, 0.1]\n\n'
+        '[[objects]]\nmodel = "pair.nrt"\n')
+    scene = loader_module.load_scene(tmp_path / "scene.toml")
+    names = scene.materials.names
+    assert [names[i] for i in scene.accel.instances[0].material_map.tolist()] == ["default", "core"]
+
+
+def test_emissive_model_slots_are_rejected_after_loading():
+    model = StandInModel(_two_part_mesh(), ["shell", "lamp"])
+    with pytest.raises(SceneError, match="objects.0.model: emissive objects"):
+        load_dict({"materials": MATERIALS, "objects": [{"model": model}]})
+
+
+def test_primary_neural_builds_no_bvh_for_neural_objects(monkeypatch):
+    built = []
+    real = loader_module.MeshBLAS
+    monkeypatch.setattr(loader_module, "MeshBLAS", lambda mesh, device=None: built.append(mesh.name) or real(mesh, device=device))
+    mesh, floor = _two_part_mesh(), Mesh(*_quad(), name="floor")
+    model = StandInModel(mesh, ["shell", "core"])
+    d = {"materials": MATERIALS, "objects": [{"mesh": mesh, "model": model}, {"mesh": floor, "material": "white"}]}
+    neural = load_dict(d, primary="neural")
+    assert built == ["floor"] and neural.accel.instances[0].camera_blas is None
+    with pytest.raises(ValueError, match="loaded with primary='neural'"):
+        render(neural, spp=1, primary="exact", progress=False)
+    assert render(neural, spp=1, progress=False).spp == 1  # renders the way it was loaded
+    built.clear()
+    hybrid = load_dict(d, primary="exact")
+    assert sorted(built) == ["floor", "pair"] and isinstance(hybrid.accel.instances[0].camera_blas, real)
+
+
+def test_out_of_range_material_index_is_a_build_time_error():
+    from dataclasses import replace
+
+    from neuralrt.accel.tlas import Instance, SceneAccel
+    from neuralrt.rays import Transform
+    from neuralrt.scene.scene import Scene
+
+    scene = load_dict(_scene_dict(_two_part_mesh()))
+    bad = Instance(scene.accel.instances[0].blas, Transform(), torch.tensor([0, 7]))
+    with pytest.raises(SceneError, match=r"material index 7 is out of range \(the scene has 4 materials\)"):
+        replace(scene, accel=SceneAccel([bad]))
+
+
+def _quad():
+    v = np.array([[-3, -1, -3], [3, -1, -3], [3, -1, 3], [-3, -1, 3]], np.float32)
+    return v, np.array([[0, 2, 1], [0, 3, 2]])
+
+
+def test_scene_memory_says_what_neural_objects_cost_and_replace():
+    from neuralrt.scene.memory import scene_memory
+
+    mesh, floor = _two_part_mesh(), Mesh(*_quad(), name="floor")
+    model = StandInModel(mesh, ["shell", "core"])
+    objects = [{"mesh": mesh, "model": model}, {"mesh": mesh, "model": model, "transform": {"translate": [0, 2, 0]}},
+               {"mesh": floor, "material": "white"}]
+    exact_pair, exact_floor = MeshBLAS(mesh).memory_bytes().total, MeshBLAS(floor).memory_bytes().total
+    hybrid = load_dict({"materials": MATERIALS, "objects": objects}, primary="exact")
+    mem = scene_memory(hybrid)
+    assert (mem.exact_bytes, mem.neural_bytes, mem.camera_bytes) == (exact_floor, 1000, exact_pair)  # instanced: once
+    assert mem.replaced_bytes == exact_pair and mem.saved_bytes == -1000  # hybrid keeps the BVH: costs more
+    assert mem.total == hybrid.accel.memory_bytes().total and mem.neural_objects == 2
+    neural = scene_memory(load_dict({"materials": MATERIALS, "objects": objects}, primary="neural"))
+    assert (neural.camera_bytes, neural.replaced_bytes, neural.primary) == (0, None, "neural")
+    assert neural.total == exact_floor + 1000 + neural.instances_bytes
