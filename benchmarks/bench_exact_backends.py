@@ -36,7 +36,7 @@ from neuralrt.geometry.procedural import make_procedural  # noqa: E402
 from neuralrt.rays import Rays  # noqa: E402
 
 COLUMNS = ["mesh", "triangles", "hit_frac", "backend", "closest_Mrays/s", "trace_only_Mrays/s",
-           "attr_pass_ms", "attr_floor_ms", "anyhit_Mrays/s", "embree_closest_Mrays/s",
+           "attr_pass_ms", "attr_floor_ms", "anyhit_Mrays/s", "closest_Mrays/s_at_2^16", "embree_closest_Mrays/s",
            "embree_anyhit_Mrays/s", "fallback_closest_Mrays/s", "closest_x_embree", "anyhit_x_embree",
            "hit_mismatch", "t_rel_max"]
 # Bytes the attribute pass must move per ray at least: rays in (o, d, t_min, t_max: 32) and the Hits
@@ -144,6 +144,8 @@ def measure(spec: str, n: int, repeats: int, device: torch.device, bandwidth: fl
             row["attr_floor_ms"] = 1e3 * n * ATTR_FLOOR_BYTES_PER_RAY / bandwidth
         if profile is not None:
             write_profile(profile, other, rays, device, f"{row['mesh']}: one intersect of {n} rays")
+    small = rays[: 1 << 16]  # a wavefront of a 256x256 image: per-call overhead shows here
+    row["closest_Mrays/s_at_2^16"] = len(small) / median_seconds(lambda: other.intersect(small), device, repeats) / 1e6
     t_embree = median_seconds(lambda: embree.intersect(rays_cpu), cpu, max(3, repeats // 3), warmup=1)
     t_embree_any = median_seconds(lambda: embree.occluded(rays_cpu), cpu, max(3, repeats // 3), warmup=1)
     row["embree_closest_Mrays/s"] = n / t_embree / 1e6
