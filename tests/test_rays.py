@@ -33,9 +33,62 @@ def test_invalid_rays_flagged():
 
 def test_rays_shape_errors():
     with pytest.raises(ValueError, match="origins"):
-        Rays(torch.zeros(3), torch.zeros(3))
+        Rays(torch.zeros(4, 2), torch.zeros(4, 2))
     with pytest.raises(ValueError, match="directions"):
         Rays(torch.zeros(2, 3), torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="batch_shape"):
+        Rays(torch.zeros(6, 3), torch.zeros(6, 3), batch_shape=(4, 2))
+
+
+def test_batch_shapes_flatten_row_major_and_intervals_broadcast():
+    g = torch.Generator().manual_seed(0)
+    o, d = torch.randn(4, 5, 3, generator=g), torch.randn(4, 5, 3, generator=g)
+    t_max = torch.rand(4, 5, generator=g)
+    rays = Rays(o, d, t_min=0.25, t_max=t_max)
+    assert len(rays) == 20 and rays.batch_shape == (4, 5)
+    assert torch.equal(rays.origins[7], o[1, 2]) and torch.equal(rays.directions[7], d[1, 2])
+    assert torch.equal(rays.t_max.reshape(rays.batch_shape), t_max) and (rays.t_min == 0.25).all()
+    assert Rays(torch.zeros(3), torch.ones(3)).batch_shape == ()  # one ray
+    moved = Transform.translate([1, 0, 0]).apply_rays(rays)
+    assert moved.batch_shape == (4, 5) and rays.to("cpu").batch_shape == (4, 5)
+
+
+def test_hit_position_is_derived_from_the_rays():
+    from neuralrt.rays import Hits
+
+    rays = Rays(torch.tensor([[0.0, 0.0, 5.0], [1.0, 0.0, 5.0]]), torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.0, -1.0]]))
+    hits = Hits.empty(2)
+    hits.hit[0], hits.t[0] = True, 2.0
+    pos = hits.position(rays)
+    assert pos[0].tolist() == [0.0, 0.0, 1.0] and torch.isnan(pos[1]).all()
+
+
+def test_pinhole_rays_match_the_scene_camera():
+    from neuralrt.rays import pinhole_rays
+    from neuralrt.render.camera import Camera
+
+    rays = pinhole_rays(8, 4, 40.0, origin=(0, 1, 3), look_at=(0, 0, 0))
+    assert len(rays) == 32 and rays.batch_shape == (4, 8)
+    torch.testing.assert_close(torch.linalg.norm(rays.directions, dim=-1), torch.ones(32))
+    same = Camera.look_at((0, 1, 3), (0, 0, 0), (0, 1, 0), 40.0, (8, 4)).generate_rays(torch.arange(32), torch.full((32, 2), 0.5))
+    torch.testing.assert_close(rays.directions, same.directions)
+    # Pixel rows go down the image, columns to the right; the image centre looks at look_at.
+    grid = rays.directions.reshape(4, 8, 3)
+    assert (grid[0, :, 1] > grid[-1, :, 1]).all() and (grid[:, 0, 0] < grid[:, -1, 0]).all()
+    centre = torch.nn.functional.normalize(torch.tensor([0.0, -1.0, -3.0]), dim=0)
+    assert float(torch.nn.functional.normalize(grid[1:3, 3:5].mean((0, 1)), dim=0) @ centre) > 0.9999
+    with pytest.raises(ValueError, match="pinhole_rays"):
+        pinhole_rays(0, 4, 40.0, (0, 0, 1), (0, 0, 0))
+
+
+def test_type_hints_state_shapes():
+    import typing
+
+    from neuralrt.rays import Hits
+
+    hints = typing.get_type_hints(Rays, include_extras=True)
+    assert hints["origins"].__metadata__ == ("[N, 3] float32",)
+    assert typing.get_type_hints(Hits, include_extras=True)["hit"].__metadata__ == ("[N] bool",)
 
 
 def test_transform_roundtrip_and_t_invariance():
@@ -71,3 +124,13 @@ def test_aabb_transformed_contains_corners():
 def test_singular_transform_rejected():
     with pytest.raises(ValueError, match="singular"):
         Transform.scale([1.0, 0.0, 1.0])
+
+
+def test_package_declares_its_type_hints():
+    import importlib.resources
+    import tomllib
+    from pathlib import Path
+
+    assert importlib.resources.files("neuralrt").joinpath("py.typed").is_file()
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    assert "py.typed" in pyproject["tool"]["setuptools"]["package-data"]["neuralrt"]

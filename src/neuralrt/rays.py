@@ -1,54 +1,82 @@
-"""Batched rays and hits, axis-aligned boxes, affine transforms.
+"""Batched rays and hits, axis-aligned boxes, affine transforms, and a pinhole ray generator.
 
 Every stage of neuralrt passes `Rays` and `Hits` (small dataclasses of tensors, one row per ray)
-and nothing else. Shapes are given as ``[N, 3]`` etc.; ``N`` is the number of rays.
+and nothing else. Shapes are written nerfstudio-style: ``[N, 3]`` is N rows of xyz; ``N`` is the
+number of rays. All tensors of one batch live on one device (``rays.device``): a BLAS answers on
+the device of the rays it was given, and a scene refuses rays on another device than its own.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+import math
+from dataclasses import dataclass, field, fields, replace
+from typing import Annotated
 
 import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward"]
+__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays"]
+
+# Tensor type hints carrying shape and dtype (read them with typing.get_type_hints(..., include_extras=True)).
+Points = Annotated[Tensor, "[N, 3] float32"]
+Vectors = Annotated[Tensor, "[N, 3] float32"]
+Scalars = Annotated[Tensor, "[N] float32"]
+Mask = Annotated[Tensor, "[N] bool"]
+Indices = Annotated[Tensor, "[N] int64"]
 
 
 @dataclass
 class Rays:
-    """A batch of rays ``origin + t * direction`` for ``t`` in ``(t_min, t_max)``.
+    """A batch of rays ``origins + t * directions`` for ``t`` in ``(t_min, t_max)``.
 
-    Directions need not be normalised: ``t`` is measured in units of the direction's length,
-    which keeps ``t`` valid when rays are mapped through an affine transform.
+    Fields (``N`` rays, all on one device, float32):
+
+    - ``origins`` [N, 3]: start points, in the space of whoever answers them (world space for a
+      scene, the object's own space for a BLAS).
+    - ``directions`` [N, 3]: need not be unit length: ``t`` is measured in units of the
+      direction's length, which keeps ``t`` valid when rays are mapped through an affine transform.
+    - ``t_min``, ``t_max`` [N]: the interval; default ``0`` and ``+inf``. A scalar or any tensor
+      that broadcasts to the batch shape is accepted.
+
+    Batch shapes: origins and directions may be ``[..., 3]`` (e.g. ``[H, W, 3]``); they are
+    flattened row-major to ``[N, 3]`` and ``batch_shape`` keeps the original leading shape, so
+    answers reshape back with ``hits.t.reshape(rays.batch_shape)``. Rays with NaN/Inf or zero
+    directions, or an empty interval, are valid input: they miss.
     """
 
-    origins: Tensor  # [N, 3] float32
-    directions: Tensor  # [N, 3] float32
-    t_min: Tensor | None = None  # [N] float32, default 0
-    t_max: Tensor | None = None  # [N] float32, default +inf
+    origins: Points
+    directions: Vectors
+    t_min: Scalars | None = None
+    t_max: Scalars | None = None
+    batch_shape: tuple[int, ...] | None = field(default=None, kw_only=True)
+    """Leading shape the rays were given in (default ``(N,)``); ``N = prod(batch_shape)``."""
 
     def __post_init__(self) -> None:
-        self.origins = torch.as_tensor(self.origins, dtype=torch.float32)
-        self.directions = torch.as_tensor(
-            self.directions, dtype=torch.float32, device=self.origins.device
-        )
-        if self.origins.ndim != 2 or self.origins.shape[-1] != 3:
-            raise ValueError(f"ray origins must have shape [N, 3], got {tuple(self.origins.shape)}")
-        if self.directions.shape != self.origins.shape:
-            raise ValueError(
-                f"ray directions {tuple(self.directions.shape)} do not match origins "
-                f"{tuple(self.origins.shape)}"
-            )
-        n, dev = self.origins.shape[0], self.origins.device
-        if self.t_min is None:
-            self.t_min = torch.zeros(n, device=dev)
-        else:
-            self.t_min = torch.as_tensor(self.t_min, dtype=torch.float32, device=dev).expand(n).contiguous()
-        if self.t_max is None:
-            self.t_max = torch.full((n,), float("inf"), device=dev)
-        else:
-            self.t_max = torch.as_tensor(self.t_max, dtype=torch.float32, device=dev).expand(n).contiguous()
+        origins = torch.as_tensor(self.origins, dtype=torch.float32)
+        directions = torch.as_tensor(self.directions, dtype=torch.float32, device=origins.device)
+        if origins.ndim < 1 or origins.shape[-1] != 3:
+            raise ValueError(f"ray origins must have shape [..., 3], got {tuple(origins.shape)}")
+        if directions.shape != origins.shape:
+            raise ValueError(f"ray directions {tuple(directions.shape)} do not match origins {tuple(origins.shape)}")
+        shape = tuple(origins.shape[:-1])
+        if self.batch_shape is None:
+            self.batch_shape = shape
+        n, dev = math.prod(shape), origins.device
+        if math.prod(self.batch_shape) != n:
+            raise ValueError(f"batch_shape {self.batch_shape} does not hold {n} rays")
+        if origins.ndim != 2:
+            origins, directions = origins.reshape(n, 3), directions.reshape(n, 3)
+        self.origins, self.directions = origins, directions
+        self.t_min = torch.zeros(n, device=dev) if self.t_min is None else self._interval(self.t_min, shape, n, dev)
+        self.t_max = torch.full((n,), float("inf"), device=dev) if self.t_max is None else self._interval(self.t_max, shape, n, dev)
+
+    @staticmethod
+    def _interval(value, shape: tuple[int, ...], n: int, dev) -> Tensor:
+        t = torch.as_tensor(value, dtype=torch.float32, device=dev)
+        if t.ndim == 1 and t.shape[0] == n:
+            return t  # already per ray: the common case, no copy
+        return t.expand(shape).reshape(n).contiguous()
 
     def __len__(self) -> int:
         return self.origins.shape[0]
@@ -58,33 +86,48 @@ class Rays:
         return self.origins.device
 
     def __getitem__(self, index) -> "Rays":
-        """Select rays by boolean mask or index tensor."""
+        """Select rays by boolean mask or index tensor (the result is a flat batch)."""
         return Rays(self.origins[index], self.directions[index], self.t_min[index], self.t_max[index])
 
     def to(self, device) -> "Rays":
-        return Rays(*(getattr(self, f.name).to(device) for f in fields(self)))
+        return Rays(self.origins.to(device), self.directions.to(device), self.t_min.to(device), self.t_max.to(device),
+                    batch_shape=self.batch_shape)
 
     def point_at(self, t: Tensor) -> Tensor:
+        """``origins + t * directions`` [N, 3] for ``t`` [N]."""
         return self.origins + t[:, None] * self.directions
 
 
 @dataclass
 class Hits:
-    """Closest-hit records, one row per ray. Rows with ``hit == False`` carry ``t = inf``.
+    """Closest-hit records, one row per ray, on the rays' device; in the space of the rays that
+    were asked (object space from a BLAS, world space from a scene). Rows with ``hit == False``
+    carry ``t = inf`` and the other fields' miss values.
 
     ``albedo`` is the surface's own colour factor at the hit (texture, vertex colour, or the
     value a neural model predicts; 1 where the surface has none); scene materials multiply it.
+    The hit point is derived, not stored: `position`.
     """
 
-    hit: Tensor  # [N] bool
-    t: Tensor  # [N] float32, inf on miss
-    normal: Tensor  # [N, 3] shading normal, unit length (zeros on miss)
-    geometric_normal: Tensor  # [N, 3] unit face normal (zeros on miss)
-    uv: Tensor  # [N, 2] texture coordinates (zeros where absent)
-    albedo: Tensor  # [N, 3] surface colour factor in [0, 1]
-    material_id: Tensor  # [N] int64, per-object material index, -1 on miss
-    primitive_id: Tensor  # [N] int64, triangle id (-1 on miss or for neural hits)
-    instance_id: Tensor  # [N] int64, scene instance, -1 on miss or outside a scene
+    hit: Mask
+    """[N] bool: the ray hit something in its interval."""
+    t: Scalars
+    """[N] float32: ray parameter of the hit (units of the direction's length); inf on miss."""
+    normal: Vectors
+    """[N, 3] float32: unit shading normal (zeros on miss); not flipped towards the ray."""
+    geometric_normal: Vectors
+    """[N, 3] float32: unit face normal (zeros on miss); not flipped towards the ray."""
+    uv: Annotated[Tensor, "[N, 2] float32"]
+    """[N, 2] float32: texture coordinates (zeros where absent)."""
+    albedo: Vectors
+    """[N, 3] float32 in [0, 1]: the surface's colour factor (ones on miss)."""
+    material_id: Indices
+    """[N] int64: material slot (a BLAS's ``material_names`` index; a scene's material table index
+    from a scene); -1 on miss."""
+    primitive_id: Indices
+    """[N] int64: triangle index; -1 on miss and for neural hits."""
+    instance_id: Indices
+    """[N] int64: scene instance; -1 on miss or outside a scene."""
 
     @staticmethod
     def empty(n: int, device=None) -> "Hits":
@@ -104,6 +147,11 @@ class Hits:
 
     def __len__(self) -> int:
         return self.t.shape[0]
+
+    def position(self, rays: Rays) -> Tensor:
+        """[N, 3] hit points ``origins + t * directions`` of the ``rays`` these hits answer (same
+        space as the rays); NaN rows where the ray missed."""
+        return torch.where(self.hit[:, None], rays.origins + torch.where(self.hit, self.t, 0.0)[:, None] * rays.directions, float("nan"))
 
     def __getitem__(self, index) -> "Hits":
         return Hits(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
@@ -307,7 +355,8 @@ class Transform:
 
     def apply_rays(self, rays: Rays) -> Rays:
         """Map rays; ``t_min``/``t_max`` keep their meaning because directions are not renormalised."""
-        return Rays(self.apply_points(rays.origins), self.apply_vectors(rays.directions), rays.t_min, rays.t_max)
+        return Rays(self.apply_points(rays.origins), self.apply_vectors(rays.directions), rays.t_min, rays.t_max,
+                    batch_shape=rays.batch_shape)
 
     @property
     def is_identity(self) -> bool:
@@ -327,3 +376,31 @@ def transform_hits_to_world(hits: Hits, transform: Transform) -> Hits:
         normal=transform.apply_normals(hits.normal) * hits.hit[:, None],
         geometric_normal=transform.apply_normals(hits.geometric_normal) * hits.hit[:, None],
     )
+
+
+def pinhole_rays(
+    width: int,
+    height: int,
+    fov_y_degrees: float,
+    origin,
+    look_at,
+    up=(0.0, 1.0, 0.0),
+    device="cpu",
+) -> Rays:
+    """Camera rays through the centre of every pixel of a ``width`` x ``height`` pinhole image.
+
+    The camera sits at ``origin`` looking at ``look_at`` with ``up`` towards the image top and a
+    vertical field of view of ``fov_y_degrees`` (the same camera as scene files'). Returns
+    ``H * W`` rays in row-major pixel order (pixel ``(x, y)`` is ray ``y * W + x``, row 0 at the
+    top) with unit directions, so a hit's ``t`` is its distance; ``batch_shape`` is ``(H, W)``,
+    e.g. ``hits.t.reshape(rays.batch_shape)`` is a depth image. cf. Open3D's ``create_rays_pinhole``.
+    """
+    from .render.camera import Camera
+
+    if width < 1 or height < 1 or not 0 < fov_y_degrees < 180:
+        raise ValueError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees}")
+    camera = Camera.look_at(origin, look_at, up, fov_y_degrees, (width, height))
+    dev = torch.device(device)
+    pixels = torch.arange(width * height, device=dev)
+    rays = camera.generate_rays(pixels, torch.full((width * height, 2), 0.5, device=dev))
+    return replace(rays, batch_shape=(height, width))
