@@ -15,16 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
-# Idle OpenMP threads sleep instead of spinning. On a shared 2-core machine, spinning torch and
-# numba thread pools starve each other: a training step measured 5-10x slower under load.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import torch  # noqa: E402
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -32,9 +28,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
 from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
-from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
-from neuralrt.training.api import train_lsnif  # noqa: E402
-from neuralrt.training.samplers import LSNIFRaySampler  # noqa: E402
+from neuralrt.methods import get_method  # noqa: E402
+from neuralrt.methods.lsnif import LSNIFModel  # noqa: E402
+from neuralrt.training.api import train  # noqa: E402
+from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes"
 
@@ -63,7 +60,7 @@ def best_rate(fn, n: int, repeats: int) -> float:
 
 def inference_speed(model: LSNIFModel, exact: MeshBLAS, rays_n: int, repeats: int) -> dict:
     """rays/s of the model and of Embree on the same rays (training distribution), interleaved."""
-    rays = LSNIFRaySampler(exact, model.box, seed=4242, pool_size=1 << 16).sample(rays_n).rays
+    rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(rays_n).rays
     model.intersect(rays[: 1 << 12])  # warm-up (numba/JIT caches)
     neural, embree = [], []
     for _ in range(repeats):
@@ -107,9 +104,9 @@ def model_file_name(spec: str, preset: str) -> str:
 def run(spec: str, preset: str, args) -> dict:
     mesh = resolve_mesh(spec)
     exact = MeshBLAS(mesh)
-    cfg = LSNIFConfig.preset(preset).with_training(steps=args.steps, batch_size=args.batch, seed=args.seed)
+    cfg = get_method("lsnif").config(preset, steps=args.steps, batch_size=args.batch, seed=args.seed)
     t0 = time.perf_counter()
-    model = train_lsnif(mesh, cfg, progress=not args.quiet)
+    model = train(mesh, cfg, progress=not args.quiet)
     train_wall = time.perf_counter() - t0
     if args.models_dir:
         Path(args.models_dir).mkdir(parents=True, exist_ok=True)

@@ -32,7 +32,7 @@ from neuralrt.geometry.voxelize import voxelize_triangles  # noqa: E402
 from neuralrt.methods.lsnif_features import ORIGIN_POINT, featurize_rays  # noqa: E402
 from neuralrt.neural.sparse_hash_grid import SparseHashGrid, count_stored_entries  # noqa: E402
 from neuralrt.rays import AABB  # noqa: E402
-from neuralrt.training.samplers import LSNIFRaySampler  # noqa: E402
+from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 COLUMNS = ["mesh", "triangles", "threads", "H", "voxelize_ms", "featurize_Mrays/s", "encode_fwd_Mrays/s",
@@ -61,7 +61,7 @@ def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int
     occ = voxelize_triangles(unit_tris, 32)
 
     blas = MeshBLAS(mesh)
-    sampler = LSNIFRaySampler(blas, box, pool_size=1 << 16, seed=0)
+    sampler = BoxRayDistribution(blas, box, pool_size=1 << 16, seed=0)
     batch = sampler.sample(n_rays)
     rays = batch.rays
     o = ((rays.origins - box.lo) / ext).contiguous()

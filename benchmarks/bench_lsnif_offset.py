@@ -12,21 +12,18 @@ diagonal) where Embree finds nothing that close. Results go to benchmarks/result
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bench_lsnif.py
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.methods import load_model  # noqa: E402
 from neuralrt.rays import Rays  # noqa: E402
-from neuralrt.training.samplers import LSNIFRaySampler, cosine_weighted_directions  # noqa: E402
+from neuralrt.training.ray_distribution import BoxRayDistribution, cosine_weighted_directions  # noqa: E402
 
 from bench_lsnif import resolve_mesh  # noqa: E402
 
@@ -46,13 +43,12 @@ def main() -> None:
     mesh = resolve_mesh(args.mesh)
     exact = MeshBLAS(mesh)
     diag = model.box.diagonal
-    batch = LSNIFRaySampler(exact, model.box, seed=777, surface_fraction=0.0).sample(args.rays)
+    batch = BoxRayDistribution(exact, model.box, seed=777, surface_fraction=0.0).sample(args.rays)
     first = model.intersect(batch.rays)
     idx = torch.nonzero(first.hit).squeeze(1)
     points = batch.rays[idx].point_at(first.t[idx])
     normals = first.normal[idx]
-    rng = np.random.default_rng(5)
-    dirs = torch.from_numpy(cosine_weighted_directions(normals.double().numpy(), rng).astype(np.float32))
+    dirs = cosine_weighted_directions(normals, torch.Generator().manual_seed(5))
     rows = []
     for k in args.offsets:
         rays = Rays(points + k * diag * normals, dirs)

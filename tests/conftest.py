@@ -1,10 +1,8 @@
 """Shared fixtures: seeded RNGs, the shared meshes folder, a device fixture (cpu, and cuda when present)."""
 
-import os
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch starts OpenMP (see neuralrt/__init__.py)
-
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
 import numpy as np
 import pytest
 import torch

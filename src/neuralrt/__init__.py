@@ -2,9 +2,11 @@
 
 import os
 
-# torch's and numba's OpenMP pools alternate in every training step and inference batch; with
-# libgomp's default spin-waiting each pool burns the cores the other needs (measured on 2 cores:
-# 147k -> 230k training rays/s). Must be set before the OpenMP runtime starts; users may override.
+# The one place neuralrt sets OMP_WAIT_POLICY (tests and benchmarks import neuralrt before torch to
+# get it). torch's and numba's OpenMP pools alternate in every training step and inference batch;
+# with libgomp's default spin-waiting each pool burns the cores the other needs (measured on 2
+# cores: 147k -> 230k training rays/s). It only takes effect if neuralrt is imported before torch
+# loads OpenMP, and a value the user set is never overridden.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from .accel.blas import BLAS, MemoryReport
@@ -18,7 +20,11 @@ __version__ = "0.1.0"
 # Heavier parts (numba kernels, the training loop) load on first use.
 _LAZY = {
     "load_model": ("neuralrt.methods", "load_model"),
-    "train_lsnif": ("neuralrt.training.api", "train_lsnif"),
+    "train": ("neuralrt.training.api", "train"),
+    "is_neural": ("neuralrt.methods", "is_neural"),
+    "get_method": ("neuralrt.methods", "get_method"),
+    "method_names": ("neuralrt.methods", "method_names"),
+    "NeuralBLAS": ("neuralrt.methods.base", "NeuralBLAS"),
     "LSNIFModel": ("neuralrt.methods.lsnif", "LSNIFModel"),
     "LSNIFBLAS": ("neuralrt.methods.lsnif", "LSNIFBLAS"),
     "LSNIFConfig": ("neuralrt.methods.lsnif_config", "LSNIFConfig"),

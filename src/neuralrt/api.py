@@ -3,14 +3,43 @@ arguments, so scripts and the command line do the same thing."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-from .errors import NeuralRTError
+from .errors import ConfigError, DeviceError, NeuralRTError
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
 MODEL_SUFFIXES = {".nrt"}
 SCENE_SUFFIXES = {".toml", ".json"}
+
+
+def check_device(device) -> None:
+    """One-line `DeviceError` unless ``device`` names a torch device this process can use."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise DeviceError(f"--device {device}: not a torch device (use cpu or cuda)") from None
+    if dev.type == "cuda":
+        if not torch.backends.cuda.is_built():
+            raise DeviceError(f"--device {device}: this torch ({torch.__version__}) is built without CUDA; "
+                              "install a CUDA build of torch to use a GPU")
+        if not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count():
+            raise DeviceError(f"--device {device}: no CUDA device is available")
+    elif dev.type != "cpu":
+        raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
+
+
+def check_count(name: str, value, minimum: int = 1) -> None:
+    """One-line `ConfigError` unless ``value`` is None or an integer >= ``minimum`` (``name`` as the user wrote it)."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{name}: must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{name}: must be at least {minimum}, got {value}")
 
 
 def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> dict:
@@ -54,20 +83,21 @@ def _mesh_info(path: Path) -> dict:
 
 
 def _scene_info(spec: str) -> dict:
+    from .methods.base import is_neural
     from .scene.loader import load_scene
 
     scene = load_scene(spec)
     accel = scene.accel
     blases = accel.unique_blases
-    triangles = sum(b.mesh.num_triangles for b in blases if hasattr(b, "mesh"))
-    instanced = sum(inst.blas.mesh.num_triangles for inst in accel.instances if hasattr(inst.blas, "mesh"))
+    triangles = sum(b.mesh.num_triangles for b in blases if not is_neural(b))
+    instanced = sum(inst.blas.mesh.num_triangles for inst in accel.instances if not is_neural(inst.blas))
     memory = accel.memory_bytes()
     return {
         "kind": "scene",
         "scene": spec,
         "instances": len(accel.instances),
         "unique_blas": len(blases),
-        "neural_instances": sum(not hasattr(inst.blas, "mesh") for inst in accel.instances),
+        "neural_instances": sum(is_neural(inst.blas) for inst in accel.instances),
         "triangles_unique": triangles,
         "triangles_instanced": instanced,
         "materials": len(scene.materials),
@@ -80,23 +110,26 @@ def _scene_info(spec: str) -> dict:
 
 
 def _model_info(path: Path) -> dict:
-    from .io.model_file import read_header
+    from .io.model_file import FORMAT_VERSION, read_header, read_model_header
     from .methods import load_model
 
-    header = read_header(path)
-    report = load_model(path).memory_bytes()
-    training = header.get("training") or {}
+    header = read_model_header(path)
+    model = load_model(path)
+    report = model.memory_bytes()
     return {
         "kind": "model",
         "path": str(path),
-        "method": header["method"],
-        "format_version": header["format_version"],
+        "method": header.method,
+        "format_version": read_header(path)["format_version"],
+        "reader_format_version": FORMAT_VERSION,
         "memory_bytes": report.total,
         "memory_parts": {k: int(v) for k, v in report.parts.items()},
-        "bounds": header.get("bounds"),
-        "mesh_name": header.get("mesh_name"),
-        "mesh_sha256": header.get("mesh_sha256"),
-        "training": {k: training[k] for k in ("steps", "rays", "seconds", "hit_accuracy") if k in training},
+        "bounds": [list(header.bounds[0]), list(header.bounds[1])],
+        "materials": model.material_names,
+        "mesh_name": header.mesh_name,
+        "mesh_sha256": header.mesh_sha256,
+        "config": model.config.model_dump(mode="json"),
+        "training": header.training,
     }
 
 
@@ -124,6 +157,9 @@ def render(
     from .render.integrator import render as _render
     from .scene.loader import load_scene
 
+    check_device(device)
+    check_count("spp", spp)
+    check_count("max_depth", max_depth, minimum=0)
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
@@ -146,10 +182,11 @@ def render(
 
 
 def train(
-    mesh: str | Path,
+    mesh,
     output: str | Path,
     *,
-    preset: str = "hq",
+    method: str | None = None,
+    preset: str | None = None,
     steps: int | None = None,
     batch: int | None = None,
     seed: int | None = None,
@@ -157,54 +194,78 @@ def train(
     device: str = "cpu",
     progress: bool = True,
 ) -> dict:
-    """Train an LSNIF model of ``mesh`` and write it to ``output`` (atomically).
+    """Train a model of ``mesh`` (a path or a `Mesh`) with ``method`` (default: lsnif) and ``preset``
+    (default: the method's default for ``device``; LSNIF: ``hq`` on the CPU, ``gpu`` on CUDA), and
+    write it to ``output`` (atomically).
 
     A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
     interrupted run from it. It is removed once the model file is written.
     """
-    from .methods.lsnif import LSNIFConfig
-    from .training.api import train_lsnif
+    from .geometry.mesh import Mesh, load_mesh
+    from .methods import DEFAULT_METHOD, get_method
+    from .training.api import train as _train
 
+    check_device(device)
+    spec = get_method(method or DEFAULT_METHOD)
+    preset = preset or spec.default_preset(device)
+    config = spec.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
     output = Path(output)
-    if not output.parent.exists():
-        output.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        config = LSNIFConfig.preset(preset).with_training(steps=steps, batch_size=batch, seed=seed)
-    except ValueError as exc:
-        raise NeuralRTError(str(exc).splitlines()[0]) from None
     checkpoint = output.with_name(output.name + ".ckpt")
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
-    model = train_lsnif(str(mesh), config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
+    if not isinstance(mesh, Mesh):
+        mesh = load_mesh(mesh)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
     model.save(output)
     checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
-    return {"model": str(output), "preset": preset, "memory_bytes": memory.total,
+    return {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
             "memory_parts": dict(memory.parts), "training": model.training_record}
 
 
+def list_presets() -> list[dict]:
+    """Every registered method's presets: ``[{"method", "preset", "default_on", "summary"}, ...]``."""
+    from .methods import get_method, method_names
+
+    rows = []
+    for name in method_names():
+        spec = get_method(name)
+        defaults = {}
+        for device, preset in spec.default_presets.items():
+            defaults.setdefault(preset, []).append("other devices" if device == "*" else device)
+        for preset in spec.presets:
+            rows.append({"method": name, "preset": preset, "default_on": defaults.get(preset, []), "summary": spec.summary})
+    return rows
+
+
 def evaluate(
-    model: str | Path,
-    mesh: str | Path,
+    model,
+    mesh,
     *,
     rays: int = 1 << 17,
     seed: int | None = None,
     images: bool = True,
     image_dir: str | Path | None = None,
     device: str = "cpu",
+    allow_mesh_mismatch: bool = False,
 ) -> dict:
-    """Held-out accuracy of a model against its mesh: rays from outside and from the surface,
-    plus normal/depth images from orbit cameras, neural vs exact, with FLIP."""
+    """Held-out accuracy of a model (a path or a loaded model) against its mesh (a path or a `Mesh`):
+    rays from outside and from the surface, plus normal/depth images from orbit cameras, neural vs
+    exact, with FLIP. A model trained on another mesh is an error unless ``allow_mesh_mismatch``."""
     from .eval.intersection_metrics import HELD_OUT_SEED, evaluate_model
-    from .geometry.mesh import load_mesh
-    from .methods import load_model
+    from .geometry.mesh import Mesh, load_mesh
+    from .methods import check_mesh_match, is_neural, load_model
 
-    blas = load_model(model, device=device)
-    source = load_mesh(mesh)
-    expected = getattr(blas, "mesh_hash", None)
+    check_device(device)
+    check_count("rays", rays, minimum=2)
+    blas = model if is_neural(model) else load_model(model, device=device)
+    source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
+    mesh_hash = source.content_hash()
+    check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")
     result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
                             images=images, image_dir=image_dir)
-    result["mesh_matches_model"] = expected is None or expected == source.content_hash()
+    result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash
     return result
 
 
@@ -213,7 +274,8 @@ def convert(scene: str | Path, output: str | Path, **options) -> dict:
     (see `neuralrt.scene.convert.convert_scene` for the options)."""
     from .scene.convert import convert_scene
 
-    return convert_scene(str(scene), output, **options).as_dict()
+    check_device(options.get("device", "cpu"))
+    return convert_scene(scene, output, **options).as_dict()
 
 
 def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: str = "cpu", progress: bool = True,
@@ -221,7 +283,9 @@ def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: 
     """Convert a built-in scene, render exact and hybrid, compare, and write a report folder."""
     from dataclasses import replace
 
-    from .demo import DEMO_DEFAULT, DEMO_QUICK, run_demo
+    from . import demo as demo_module
 
-    settings = replace(DEMO_QUICK if quick else DEMO_DEFAULT, **{k: v for k, v in overrides.items() if v is not None})
-    return run_demo(out_dir, quick=quick, device=device, progress=progress, settings=settings)
+    check_device(device)
+    base = demo_module.DEMO_QUICK if quick else demo_module.DEMO_DEFAULT
+    settings = replace(base, **{k: v for k, v in overrides.items() if v is not None})  # validated on construction
+    return demo_module.run_demo(out_dir, quick=quick, device=device, progress=progress, settings=settings)

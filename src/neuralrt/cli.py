@@ -8,9 +8,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 
 from . import __version__, api
 from .errors import NeuralRTError
+
+
+class _Parser(argparse.ArgumentParser):
+    """Argument errors as one line ``neuralrt: error: ...`` and exit 2, like every other bad input."""
+
+    def error(self, message: str):
+        self.exit(2, f"neuralrt: error: {message} (see {self.prog} --help)\n")
 
 
 def _print_result(result: dict, as_json: bool) -> None:
@@ -60,14 +68,25 @@ def _cmd_render(args) -> None:
 
 
 def _cmd_train(args) -> None:
-    result = api.train(args.mesh, args.output, preset=args.preset, steps=args.steps, batch=args.batch, seed=args.seed,
-                       resume=args.resume, device=args.device, progress=not args.quiet)
+    if args.list_presets:
+        rows = api.list_presets()
+        if args.json:
+            print(json.dumps(rows))
+        for row in [] if args.json else rows:
+            default = f" (default on {', '.join(row['default_on'])})" if row["default_on"] else ""
+            print(f"{row['method']:<8} {row['preset']:<8}{default}")
+        return
+    if args.mesh is None or args.output is None:
+        raise NeuralRTError("train needs MESH and -o OUTPUT.nrt (or --list-presets)")
+    args.interrupt_hint = "run the same command with --resume to continue from the last checkpoint"
+    result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
+                       seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet)
     _print_result(result, args.json)
 
 
 def _cmd_evaluate(args) -> None:
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
-                          image_dir=args.images, device=args.device)
+                          image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch)
     if args.json:
         _print_result(result, True)
         return
@@ -82,15 +101,17 @@ def _cmd_evaluate(args) -> None:
 
 def _cmd_convert(args) -> None:
     select = [n.strip() for n in args.select.split(",") if n.strip()] if args.select else None
+    args.interrupt_hint = "run the same command again: training resumes from the checkpoints in the models folder"
     result = api.convert(args.scene, args.output, models_dir=args.models_dir, select=select,
-                         min_triangles=args.min_triangles, preset=args.preset, group=args.group, steps=args.steps,
+                         min_triangles=args.min_triangles, method=args.method, preset=args.preset, group=args.group,
+                         steps=args.steps,
                          batch=args.batch, seed=args.seed, detail=args.detail, device=args.device,
                          progress=not args.quiet)
     _print_result(result, args.json)
 
 
 def _cmd_demo(args) -> None:
-    report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene,
+    report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene, method=args.method,
                       preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps, detail=args.detail)
     m, t = report["memory"], report["time"]
     print(f"FLIP {report['flip']:.4f} (noise floor {report['flip_noise_floor']:.4f}), "
@@ -99,9 +120,17 @@ def _cmd_demo(args) -> None:
           f"hybrid {t['hybrid_render_s']:.1f} s")
 
 
+def _add_method(p: argparse.ArgumentParser) -> None:
+    from .methods import DEFAULT_METHOD, method_names
+
+    p.add_argument("--method", choices=method_names(), help=f"intersection method (default: {DEFAULT_METHOD})")
+    p.add_argument("--preset", help="the method's preset (default: the method's for the device, e.g. lsnif: hq on cpu, "
+                                    "gpu on cuda; list them with `neuralrt train --list-presets`)")
+
+
 def _add_training(p: argparse.ArgumentParser) -> None:
-    """Options shared by everything that trains LSNIF models."""
-    p.add_argument("--preset", choices=["hq", "lq"], default="hq", help="LSNIF preset (default: hq)")
+    """Options shared by everything that trains models."""
+    _add_method(p)
     p.add_argument("--steps", type=int, help="training steps per model (default: the preset's)")
     p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
     p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
@@ -115,7 +144,7 @@ def _add_common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="neuralrt",
         description="Neural ray intersection (LSNIF, N-BVH, NIF) beside exact Embree ray tracing.",
     )
@@ -150,10 +179,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(p)
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("train", help="train an LSNIF model of a mesh")
-    p.add_argument("mesh", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB)")
-    p.add_argument("-o", "--output", required=True, help="model file to write (.nrt)")
+    p = sub.add_parser("train", help="train a neural model (LSNIF, ...) of a mesh")
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB)")
+    p.add_argument("-o", "--output", help="model file to write (.nrt)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt")
+    p.add_argument("--list-presets", action="store_true", help="list every method's presets and exit")
     _add_training(p)
     _add_common(p)
     p.set_defaults(func=_cmd_train)
@@ -165,6 +195,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="seed of the held-out rays")
     p.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
     p.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
+    p.add_argument("--allow-mesh-mismatch", action="store_true",
+                   help="evaluate even if the model was trained on another mesh (default: an error)")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)
 
@@ -182,9 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="convert a built-in scene, render exact and hybrid, compare, write a report")
     p.add_argument("--out", default="neuralrt-demo", help="report folder (default: ./neuralrt-demo)")
-    p.add_argument("--quick", action="store_true", help="a ~1 minute run: small model, small image")
+    p.add_argument("--quick", action="store_true", help="a short run: the same model trained for 150 steps, a small image")
     p.add_argument("--scene", help="scene to convert (default: builtin:cornell-statue)")
-    p.add_argument("--preset", choices=["hq", "lq"], help="LSNIF preset (default: hq)")
+    _add_method(p)
     p.add_argument("--spp", type=int, help="samples per pixel of each render")
     p.add_argument("--res", type=_resolution, metavar="WxH", help="render resolution")
     p.add_argument("--steps", type=int, help="training steps")
@@ -195,17 +227,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"neuralrt: warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    show = warnings.showwarning
+    warnings.showwarning = _show_warning  # one line per warning, no source line
     try:
         args.func(args)
     except NeuralRTError as exc:
         print(f"neuralrt: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("neuralrt: interrupted", file=sys.stderr)
+        hint = getattr(args, "interrupt_hint", None)
+        print(f"neuralrt: interrupted{f' ({hint})' if hint else ''}", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = show
     return 0
 
 

@@ -1,7 +1,8 @@
 """The configuration reference page (``docs/config.md``), generated from the typed configs.
 
-Every key of a config model, its default in each preset, and its description come from the
-pydantic fields themselves, so the page cannot drift from the code (a test regenerates it).
+One section per registered method (read from the method registry): every key of its config, its
+value in each preset, and its description come from the pydantic fields themselves, so the page
+cannot drift from the code (a test regenerates it).
 Run ``python -m neuralrt.configdoc > docs/config.md`` after changing a config.
 """
 
@@ -30,34 +31,51 @@ def _fmt(value) -> str:
     return f"`{value}`"
 
 
-def config_reference() -> str:
-    """Markdown page: one table per config section, a column per LSNIF preset."""
-    from .methods.lsnif_config import PRESETS
+def method_reference(name: str) -> str:
+    """Markdown section for one registered method: one table per config section, a column per preset."""
+    from .methods import get_method
 
-    presets = {name: make() for name, make in PRESETS.items()}
-    rows = {name: config_rows(cfg) for name, cfg in presets.items()}
+    spec = get_method(name)
+    presets = {preset: make() for preset, make in spec.presets.items()}
+    rows = {preset: config_rows(cfg) for preset, cfg in presets.items()}
     first = next(iter(rows.values()))
+    cls = spec.config_class
+    sections = [k for k, f in cls.model_fields.items() if isinstance(getattr(presets[next(iter(presets))], k), BaseModel)]
+    defaults = ", ".join(f"`{p}` on {'other devices' if d == '*' else d}" for d, p in spec.default_presets.items())
     lines = [
-        "# Configuration reference",
+        f"## {name} (`{cls.__module__}.{cls.__name__}`)",
         "",
-        "Generated from the typed configs by `python -m neuralrt.configdoc` (a test keeps it current).",
-        "Every model file stores its full config in its header; `neuralrt info MODEL --json` shows it.",
+        spec.summary + ".",
         "",
-        "## LSNIF (`neuralrt.methods.lsnif_config.LSNIFConfig`)",
-        "",
-        "Presets: " + ", ".join(f"`{p}`" for p in presets) + " (`LSNIFConfig.preset(name)`). "
-        "Sections: voxel, features, encoding, network, loss, training, inference.",
+        "Presets: " + ", ".join(f"`{p}`" for p in presets) + f" (`{cls.__name__}.preset(name)`, "
+        f"`neuralrt train --method {name} --preset NAME`; default: {defaults}). Sections: {', '.join(sections)}.",
     ]
     section = None
     for i, (key, _, description) in enumerate(first):
-        head = key.split(".")[0]
+        head = key.split(".")[0] if "." in key else ""
         if head != section:
             section = head
-            lines += ["", f"### `{section}`", "", "| key | " + " | ".join(presets) + " | meaning |",
+            title = f"`{section}`" if section else "top level"
+            lines += ["", f"### {title}", "", "| key | " + " | ".join(presets) + " | meaning |",
                       "|---|" + "---|" * len(presets) + "---|"]
         values = " | ".join(_fmt(rows[p][i][1]) for p in presets)
         lines.append(f"| `{key}` | {values} | {description} |")
     return "\n".join(lines) + "\n"
+
+
+def config_reference() -> str:
+    """The whole page: a section per registered method (read from the method registry)."""
+    from .methods import method_names
+
+    head = [
+        "# Configuration reference",
+        "",
+        "Generated from the typed configs by `python -m neuralrt.configdoc` (a test keeps it current).",
+        "Every model file stores its full config in its header; `neuralrt info MODEL --json` shows it.",
+        "`neuralrt train --list-presets` lists the presets of every method.",
+        "",
+    ]
+    return "\n".join(head) + "\n" + "\n".join(method_reference(name) for name in method_names())
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,11 +23,15 @@ __all__ = ["DemoSettings", "DEMO_DEFAULT", "DEMO_QUICK", "run_demo"]
 class DemoSettings:
     """What the demo converts and renders. Defaults finish in about 4 minutes on 2 idle CPU cores
     (measured: 3 min 55 s, of which 117 s training); 256 spp keep the noise floor (exact vs exact at
-    another seed: FLIP 0.018) low enough to show the model's error beside it (FLIP 0.013)."""
+    another seed: FLIP 0.018) low enough to show the model's error beside it (FLIP 0.013).
+
+    Every value is checked on construction (one-line `ConfigError` naming it), so a bad argument
+    fails before any training starts."""
 
     scene: str = "builtin:cornell-statue"
-    preset: str = "hq"  # LSNIF preset of the trained models
-    steps: int | None = None  # training steps (None: the preset's CPU default)
+    method: str = "lsnif"  # registered method of the trained models
+    preset: str | None = None  # the method's preset (None: its default for the device; LSNIF: hq on the CPU)
+    steps: int | None = None  # training steps (None: the preset's)
     batch: int | None = None  # training rays per step (None: the preset's CPU default)
     detail: int | None = None  # procedural mesh detail of the built-in scene (None: its default)
     min_triangles: int | None = None  # objects this large become neural (None: the converter's default)
@@ -37,9 +41,26 @@ class DemoSettings:
     primary: str = "exact"  # camera rays: "exact" (paper's rasterized G-buffer stand-in) or "neural"
     seed: int = 1
 
+    def __post_init__(self) -> None:
+        from .api import check_count
+        from .errors import ConfigError
+        from .methods import get_method
+
+        for name, minimum in (("spp", 1), ("max_depth", 1), ("steps", 1), ("batch", 1), ("detail", 0), ("min_triangles", 0)):
+            check_count(name, getattr(self, name), minimum)
+        if len(self.resolution) != 2:
+            raise ConfigError(f"resolution: must be (width, height), got {self.resolution!r}")
+        for v in self.resolution:
+            check_count("resolution", v)
+        if self.primary not in ("exact", "neural"):
+            raise ConfigError(f"primary: must be exact or neural, got {self.primary!r}")
+        # The training config too (unknown preset, batch below the method's minimum, ...).
+        get_method(self.method).config(self.preset, steps=self.steps, batch_size=self.batch)
+
 
 DEMO_DEFAULT = DemoSettings()
-# About 15 seconds (measured 13 s on 2 idle cores): a small model trained briefly, a small image.
+# About 15 seconds (measured 13 s on 2 idle cores): the same model trained briefly (150 steps of
+# 4,096 rays), a small image.
 DEMO_QUICK = DemoSettings(steps=150, batch=1 << 12, resolution=(96, 96), spp=8, max_depth=3)
 
 
@@ -102,7 +123,11 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     from .scene.convert import convert_scene, replaced_memory
     from .scene.loader import load_scene
 
+    from .methods import get_method
+
     s = settings or (DEMO_QUICK if quick else DEMO_DEFAULT)
+    if s.preset is None:
+        s = replace(s, preset=get_method(s.method).default_preset(device))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -110,8 +135,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         if progress:
             print(msg, flush=True)
 
-    say(f"[1/4] converting {s.scene} (LSNIF {s.preset}) ...")
-    conversion = convert_scene(s.scene, out / "scene_neural.toml", models_dir=out / "models", preset=s.preset,
+    say(f"[1/4] converting {s.scene} ({s.method} {s.preset}) ...")
+    conversion = convert_scene(s.scene, out / "scene_neural.toml", models_dir=out / "models", method=s.method, preset=s.preset,
                                steps=s.steps, batch=s.batch, detail=s.detail, min_triangles=s.min_triangles,
                                device=device, progress=progress)
 

@@ -24,8 +24,9 @@ from torch import Tensor
 
 from ..accel.mesh_blas import MeshBLAS
 from ..geometry.mesh import Mesh
-from ..rays import AABB, Hits, Rays
-from ..training.samplers import LSNIFRaySampler
+from ..methods.base import is_neural
+from ..rays import AABB, Hits, Rays, face_forward
+from ..training.ray_distribution import BoxRayDistribution
 
 __all__ = ["evaluate_model", "ray_metrics", "orbit_cameras", "render_normal_depth", "HELD_OUT_SEED"]
 
@@ -40,10 +41,6 @@ def _quantiles(x: Tensor) -> tuple[float, float]:
     return float(q[0]), float(q[1])
 
 
-def _faced(n: Tensor, d: Tensor) -> Tensor:
-    return torch.where(((n * d).sum(-1) > 0)[:, None], -n, n)
-
-
 def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
     """Hit/miss, distance, normal and material errors of ``pred`` against ``truth`` for ``rays``."""
     ph, th = pred.hit.cpu(), truth.hit.cpu()
@@ -53,7 +50,7 @@ def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
     d = rays.directions.cpu()
     dist_err = ((pred.t.cpu() - truth.t.cpu()).abs() * d.norm(dim=-1))[both] / diagonal
     n_pred = torch.nn.functional.normalize(pred.normal.cpu()[both], dim=-1)
-    n_true = _faced(torch.nn.functional.normalize(truth.normal.cpu()[both], dim=-1), d[both])
+    n_true = face_forward(torch.nn.functional.normalize(truth.normal.cpu()[both], dim=-1), d[both])
     cos = (n_pred * n_true).sum(-1).clamp(-1, 1)
     angle = torch.rad2deg(torch.acos(cos))
     t_med, t_p90 = _quantiles(dist_err)
@@ -95,9 +92,10 @@ def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple
     """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
     idx = torch.arange(camera.num_pixels)
     rays = camera.generate_rays(idx, torch.full((len(idx), 2), 0.5))
-    hits = blas.intersect(rays)
+    device = blas.device if is_neural(blas) else rays.device
+    hits = blas.intersect(rays.to(device)).to("cpu")
     h, w = camera.height, camera.width
-    n = _faced(torch.nn.functional.normalize(hits.normal, dim=-1), rays.directions) if len(hits) else hits.normal
+    n = face_forward(torch.nn.functional.normalize(hits.normal, dim=-1), rays.directions) if len(hits) else hits.normal
     normal_img = torch.where(hits.hit[:, None], 0.5 + 0.5 * n, torch.zeros_like(n)).reshape(h, w, 3)
     near, far = depth_range
     depth = (1.0 - (hits.t - near) / max(far - near, 1e-12)).clamp(0, 1)
@@ -157,15 +155,18 @@ def evaluate_model(
     ``depth_flip``), and, for models with voxel features, ``features`` (how often H truncates).
     """
     exact = MeshBLAS(mesh)
-    box = getattr(model_blas, "box", None) or exact.bounds.inflated(0.005)
-    sampler = LSNIFRaySampler(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)))
-    batch = sampler.sample(rays)
+    neural = is_neural(model_blas)
+    # Held-out rays aim at the region the model answers in, on the model's device.
+    box = model_blas.box if neural else exact.bounds.inflated(0.005)
+    device = model_blas.device if neural else torch.device("cpu")
+    distribution = BoxRayDistribution(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)), device=device)
+    batch = distribution.sample(rays)
     pred = model_blas.intersect(batch.rays)
     diag = exact.bounds.diagonal
     result: dict = {"rays": rays, "seed": seed}
     for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface)):
         result[name] = ray_metrics(pred[sel], batch.truth[sel], batch.rays[sel], diag)
-    if hasattr(model_blas, "feature_statistics"):
+    if neural and hasattr(model_blas, "feature_statistics"):
         result["features"] = {
             name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel])
             for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))

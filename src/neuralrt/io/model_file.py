@@ -3,8 +3,13 @@
 Layout: a plain safetensors file whose ``__metadata__`` holds one key, ``"neuralrt"``, a JSON
 object with at least ``format_version``, ``method`` and ``arrays_sha256`` (a SHA-256 over every
 array's name, dtype, shape and bytes, so flipped bits in the data are caught; safetensors itself
-only checks the header). Methods add their own keys (config, bounds, materials, training record,
-source-mesh hash). Reading never executes code: safetensors parses a JSON header and raw bytes.
+only checks the header). Model files of every method share one typed header, `ModelHeader`
+(method, config, bounds, materials, training record, source-mesh hash and name); nothing that can
+be derived (box, memory) is stored. Training checkpoints use the same container with their own
+keys. Reading never executes code: safetensors parses a JSON header and raw bytes.
+
+Format versions: 2 (current) has the `ModelHeader` keys and a ``method`` key inside ``config``;
+1 also stored ``box`` and ``memory_bytes``, which are ignored when a version-1 file is read.
 
 Every problem with a file raises `ModelFileError` with one line naming the file and the problem.
 """
@@ -21,13 +26,43 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ModelFileError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..errors import ModelFileError, validation_message
 from .files import write_atomically
 
-__all__ = ["FORMAT_VERSION", "METADATA_KEY", "ModelFile", "read_model_file", "read_header", "write_model_file", "arrays_digest"]
+__all__ = [
+    "FORMAT_VERSION", "METADATA_KEY", "ModelFile", "ModelHeader", "MaterialEntry", "read_model_file", "read_header",
+    "read_model", "read_model_header", "write_model", "write_model_file", "arrays_digest",
+]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 METADATA_KEY = "neuralrt"
+# Keys of the container itself, added by `write_model_file` (not part of a `ModelHeader`).
+_CONTAINER_KEYS = ("format_version", "arrays_sha256")
+# Keys version 1 stored although they can be derived.
+_DERIVED_V1_KEYS = ("box", "memory_bytes")
+
+
+class MaterialEntry(BaseModel):
+    """One material slot of a model: its name (mapped to a scene material) and base colour."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    base_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+
+class ModelHeader(BaseModel):
+    """The header every model file has, whatever the method."""
+
+    model_config = ConfigDict(extra="forbid")
+    method: str = Field(description="registered method name, e.g. 'lsnif'")
+    config: dict = Field(description="the method's full config (validated by the method's config class on load)")
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] = Field(description="tight object-space AABB (lo, hi)")
+    materials: list[MaterialEntry] = Field(min_length=1, description="material slots in material-index order")
+    training: dict = Field(default_factory=dict, description="the training record (steps, rays, seconds, precision, ...)")
+    mesh_sha256: str | None = Field(None, description="content hash of the source mesh")
+    mesh_name: str | None = None
 
 
 @dataclass
@@ -147,3 +182,29 @@ def read_model_file(path: str | os.PathLike, method: str | None = None) -> Model
     if arrays_digest(arrays) != header["arrays_sha256"]:
         raise ModelFileError(f"{path}: corrupted array data (checksum mismatch)")
     return ModelFile(header, arrays)
+
+
+def _model_header(path: Path, raw: dict) -> ModelHeader:
+    fields = {k: v for k, v in raw.items() if k not in _CONTAINER_KEYS}
+    if raw["format_version"] == 1:
+        fields = {k: v for k, v in fields.items() if k not in _DERIVED_V1_KEYS}
+    try:
+        return ModelHeader.model_validate(fields)
+    except ValidationError as exc:
+        raise ModelFileError(f"{path}: invalid model header ({validation_message(exc)[:300]})") from None
+
+
+def write_model(path: str | os.PathLike, header: ModelHeader, arrays: dict[str, Tensor]) -> Path:
+    """Write a model file: ``header`` plus ``arrays``, atomically (see `write_model_file`)."""
+    return write_model_file(path, header.method, header.model_dump(mode="json", exclude={"method"}), arrays)
+
+
+def read_model_header(path: str | os.PathLike, method: str | None = None) -> ModelHeader:
+    """A model file's typed header only (cheap: arrays are not read or verified)."""
+    return _model_header(Path(path), read_header(path, method=method))
+
+
+def read_model(path: str | os.PathLike, method: str | None = None) -> tuple[ModelHeader, dict[str, Tensor]]:
+    """Read and verify a model file: its typed header and its named CPU arrays."""
+    f = read_model_file(path, method=method)
+    return _model_header(Path(path), f.header), f.arrays

@@ -1,4 +1,8 @@
-"""Neural intersection methods. `load_model` opens any `.nrt` model file as a `BLAS`."""
+"""Neural intersection methods, registered by name. `load_model` opens any `.nrt` model file as a `BLAS`.
+
+Adding a method: write ``methods/NAME.py`` (a `MethodConfig` subclass with presets and a
+`NeuralBLAS` subclass) and register it below with one `register_method` call.
+"""
 
 from __future__ import annotations
 
@@ -6,27 +10,31 @@ import os
 
 import torch
 
-from ..accel.blas import BLAS
 from ..errors import ModelFileError
 from ..io.model_file import read_header
+from .base import MeshMismatchWarning, NeuralBLAS, check_mesh_match, is_neural
+from .config import MethodConfig
+from .lsnif_config import LSNIFConfig
+from .registry import DEFAULT_METHOD, MethodSpec, config_from_dict, get_method, method_names, register_method
 
-__all__ = ["load_model", "MODEL_LOADERS"]
+__all__ = [
+    "load_model", "NeuralBLAS", "MethodConfig", "MethodSpec", "register_method", "get_method", "method_names",
+    "config_from_dict", "is_neural", "check_mesh_match", "MeshMismatchWarning", "DEFAULT_METHOD",
+]
+
+register_method(MethodSpec(
+    name="lsnif", config_class=LSNIFConfig, model="neuralrt.methods.lsnif:LSNIFModel",
+    summary="LSNIF (Fujieda et al. 2025): voxels + sparse hash grid + MLP, all ray types",
+    default_presets={"cuda": "gpu", "*": "hq"},
+))
 
 
-def _load_lsnif(path, device):
-    from .lsnif import LSNIFModel
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> NeuralBLAS:
+    """Open a model file of any registered method as its BLAS (intersect/occluded in object space).
 
-    return LSNIFModel.load(path, device=device)
-
-
-# method name in the file header -> loader(path, device) returning a BLAS
-MODEL_LOADERS = {"lsnif": _load_lsnif}
-
-
-def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> BLAS:
-    """Open a model file of any method as its BLAS (intersect/occluded in object space)."""
+    The model's tensors (and the rays it takes) live on ``device``. Missing, truncated, corrupted,
+    newer-version or unknown-method files raise `ModelFileError` with one line."""
     method = read_header(path)["method"]
-    if method not in MODEL_LOADERS:
-        known = ", ".join(sorted(MODEL_LOADERS))
-        raise ModelFileError(f"{path}: method '{method}' is not a loadable model (this neuralrt reads: {known})")
-    return MODEL_LOADERS[method](path, device)
+    if method not in method_names():
+        raise ModelFileError(f"{path}: method '{method}' is not a loadable model (this neuralrt reads: {', '.join(method_names())})")
+    return get_method(method).model_class.load(path, device=device)

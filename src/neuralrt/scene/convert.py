@@ -1,4 +1,4 @@
-"""Scene conversion: train one LSNIF model per unique selected mesh and write a scene that uses them.
+"""Scene conversion: train one model (any registered method) per unique selected mesh and write a scene that uses them.
 
 The paper's pipeline (LSNIF, Sec. 4 and 6.3): complex objects are replaced by per-object models
 trained offline in object space, so instances share one model and the converted scene can be
@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import ModelFileError, NeuralRTError, SceneError
+from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
-from ..io.model_file import read_header
+from ..io.model_file import read_model_header
+from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .loader import load_scene_spec, scene_material_for, shape_for
 from .schema import EmissiveMaterialSpec, ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
@@ -73,35 +74,20 @@ class ConversionReport:
         }
 
 
-def _config_for(preset: str, steps: int | None, batch: int | None, seed: int | None):
-    from ..methods.lsnif import LSNIFConfig
-
-    try:
-        config = LSNIFConfig.preset(preset)
-    except ValueError as exc:
-        raise NeuralRTError(str(exc)) from None
-    return config.with_training(steps=steps, batch_size=batch, seed=seed)
-
-
-def _config_hash(config) -> str:
+def _config_hash(config: MethodConfig) -> str:
     return hashlib.sha256(json.dumps(config.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
 
 
-def _cached_model_is_valid(path: Path, mesh_hash: str, config) -> bool:
-    """The file exists, is a readable LSNIF model, of this mesh, with this exact config."""
+def _cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
+    """The file exists, is a readable model of this config's method, of this mesh, with this exact config."""
     if not path.is_file():
         return False
     try:
-        header = read_header(path, method="lsnif")
-    except ModelFileError:
+        header = read_model_header(path, method=config.method)
+        stored = config_from_dict(header.config)
+    except (ModelFileError, ConfigError):
         return False
-    from ..methods.lsnif import LSNIFConfig
-
-    try:
-        stored = LSNIFConfig.model_validate(header.get("config", {}))
-    except Exception:
-        return False
-    return header.get("mesh_sha256") == mesh_hash and stored == config
+    return header.mesh_sha256 == mesh_hash and stored == config
 
 
 def _safe_name(name: str) -> str:
@@ -205,7 +191,8 @@ def convert_scene(
     models_dir: str | os.PathLike | None = None,
     select: list[str] | None = None,
     min_triangles: int | None = None,
-    preset: str = "hq",
+    method: str | None = None,
+    preset: str | None = None,
     group: bool = False,
     steps: int | None = None,
     batch: int | None = None,
@@ -218,19 +205,19 @@ def convert_scene(
 
     Objects are selected by name (``select``) or by size (``min_triangles``, default
     `DEFAULT_MIN_TRIANGLES`); area lights always stay triangles. One model is trained per unique
-    mesh (instances share it), or one for all selected objects with ``group=True``. Models go to
-    ``models_dir`` (default: ``<output folder>/models``) and are reused when their mesh hash and
-    config match.
+    mesh (instances share it), or one for all selected objects with ``group=True``, with
+    ``method`` (default: lsnif) and its ``preset`` (default: the method's default for ``device``).
+    Models go to ``models_dir`` (default: ``<output folder>/models``) and are reused when their
+    mesh hash and config match.
     """
-    from ..training.api import train_lsnif
+    from ..training.api import train
 
     output = Path(output)
     if output.suffix.lower() not in (".toml", ".json"):
         raise SceneError(f"{output}: converted scene must end in .toml or .json")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    models_dir = Path(models_dir) if models_dir is not None else output.parent / "models"
-    models_dir.mkdir(parents=True, exist_ok=True)
-    config = _config_for(preset, steps, batch, seed)
+    spec_of_method = get_method(method or DEFAULT_METHOD)
+    preset = preset or spec_of_method.default_preset(device)
+    config = spec_of_method.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
     config_hash = _config_hash(config)
 
     spec, _, label = load_scene_spec(scene, detail=detail)
@@ -241,6 +228,10 @@ def convert_scene(
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "
                          f"{DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles} triangles)")
     names = _object_names(spec)
+    # Folders are made only once the input is known to be good (a failed convert leaves none behind).
+    output.parent.mkdir(parents=True, exist_ok=True)
+    models_dir = Path(models_dir) if models_dir is not None else output.parent / "models"
+    models_dir.mkdir(parents=True, exist_ok=True)
     out_spec = spec.model_copy(deep=True)
     report = ConversionReport(scene_path=str(output))
 
@@ -264,10 +255,10 @@ def convert_scene(
         seconds = 0.0
         if not reused:
             if progress:
-                print(f"[{k + 1}/{len(jobs)}] training {preset} model of {mesh.name!r} "
+                print(f"[{k + 1}/{len(jobs)}] training {config.method} {preset} model of {mesh.name!r} "
                       f"({mesh.num_triangles:,} triangles, {len(users)} object(s))", flush=True)
             start = time.perf_counter()
-            model = train_lsnif(mesh, config, progress=progress, device=device,
+            model = train(mesh, config, progress=progress, device=device,
                                 checkpoint=models_dir / f"{stem}.ckpt", resume=True)
             seconds = time.perf_counter() - start
             model.save(model_path)
@@ -291,8 +282,8 @@ def convert_scene(
 
 
 def neural_bytes(scene) -> int:
-    """Run-time bytes of a converted scene's neural models, each counted once (instancing)."""
-    models = {id(i.blas): i.blas for i in scene.accel.instances if i.camera_blas is not None}
+    """Run-time bytes of a scene's neural models, each counted once (instancing), model-only objects included."""
+    models = {id(i.blas): i.blas for i in scene.accel.instances if is_neural(i.blas)}
     return int(sum(m.memory_bytes().total for m in models.values()))
 
 

@@ -1,4 +1,4 @@
-"""`train_lsnif`: one call from a mesh to a trained LSNIF model (the CLI's ``neuralrt train``)."""
+"""`train`: one call from a mesh to a trained model of any registered method (the CLI's ``neuralrt train``)."""
 
 from __future__ import annotations
 
@@ -9,47 +9,57 @@ import torch
 
 from ..accel.mesh_blas import MeshBLAS
 from ..geometry.mesh import Mesh, load_mesh
-from ..methods.lsnif import LSNIFConfig, LSNIFModel
-from .samplers import LSNIFRaySampler
-from .trainer import train_model
+from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
+from ..neural.precision import precision_name
+from .ray_distribution import BoxRayDistribution
+from .trainer import TrainingRecord, train_model
 
-__all__ = ["train_lsnif"]
+__all__ = ["train", "run_identity"]
 
 
-def train_lsnif(
+def run_identity(model: NeuralBLAS, config: MethodConfig) -> dict:
+    """What a checkpoint must match to be resumed: the mesh and the config, except the step count
+    (a run may be resumed to train longer) and the checkpoint interval."""
+    run_config = config.model_dump(mode="json")
+    run_config["training"].pop("steps")
+    run_config["training"].pop("checkpoint_every")
+    return {"mesh_sha256": model.mesh_hash, "config": run_config}
+
+
+def train(
     mesh: Mesh | str | os.PathLike,
-    config: LSNIFConfig | None = None,
+    config: MethodConfig | None = None,
     *,
     progress: bool = True,
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     device: str | torch.device = "cpu",
-) -> LSNIFModel:
-    """Voxelize ``mesh``, train an LSNIF on rays from the paper's distribution, return the model.
+) -> NeuralBLAS:
+    """Train a model of ``mesh`` with ``config`` (its ``method`` picks the method) and return it.
 
-    ``config`` defaults to the ``hq`` preset. With ``checkpoint``, training state is saved
-    periodically there; ``resume=True`` continues from it. The returned model's parameters are
-    rounded to the storage precision (fp16 by default), so it answers exactly as its saved file.
+    ``config`` defaults to the default method's default preset for ``device`` (LSNIF: ``hq`` on
+    the CPU, ``gpu`` on CUDA). Rays come from `BoxRayDistribution` with exact ground truth, on
+    ``device``. With ``checkpoint``, training state is saved periodically there; ``resume=True``
+    continues from it. The returned model's parameters are rounded to the storage precision, so
+    it answers exactly as its saved file.
     """
     if isinstance(mesh, (str, Path, os.PathLike)):
         mesh = load_mesh(mesh)
-    config = config or LSNIFConfig.preset("hq")
+    device = torch.device(device)
+    spec = get_method(config.method if config is not None else DEFAULT_METHOD)
+    config = config or spec.config(device=device.type)
     tc = config.training
-    model = LSNIFModel.from_mesh(mesh, config).to(device)
-    sampler = LSNIFRaySampler(
+    model = spec.model_class.from_mesh(mesh, config).to(device)
+    rays = BoxRayDistribution(
         MeshBLAS(mesh), model.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
-        surface_offset=tc.surface_offset, seed=tc.seed,
+        surface_offset=tc.surface_offset, seed=tc.seed, device=device,
     )
-    # A checkpoint resumes only the same run; the step count may grow (to train longer).
-    run_config = config.model_dump(mode="json")
-    run_config["training"].pop("steps")
-    run_config["training"].pop("checkpoint_every")
-    identity = {"mesh_sha256": model.mesh_hash, "config": run_config}
+    start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
     record = train_model(
-        model, sampler, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
+        model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
         adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
-        checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=identity,
-        progress=progress, description=f"lsnif {mesh.name}",
+        checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=run_identity(model, config),
+        progress=progress, description=f"{spec.name} {mesh.name}", on_step=model.after_training_step, record=start,
     )
     model.training_record = record.as_dict()
     return model.round_to_storage_precision_().eval()

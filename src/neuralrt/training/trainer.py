@@ -1,16 +1,19 @@
 """The training loop shared by neural intersectors: Adam, progress bar, checkpoints, resume.
 
 A model plugs in by offering ``training_step(rays, truth) -> StepResult`` (loss plus hit/miss
-counts); a sampler by offering ``sample(n) -> TrainingBatch`` and ``state_dict``/
-``load_state_dict``. Checkpoints are `.nrt` files (method ``"checkpoint"``) holding the model's
-state, Adam's moments, the step, the RNG states and the sampler's surface pool, written
-atomically, so an interrupted run resumes where its last checkpoint left it, bit for bit.
+counts); a ray distribution by offering ``sample(n) -> TrainingBatch`` and ``state_dict``/
+``load_state_dict``. ``on_step(step, optimizer)`` runs after every optimizer step (N-BVH refines
+its BVH cut there). Checkpoints are `.nrt` files (method ``"checkpoint"``) holding the model's
+state, Adam's moments, the step and the ray distribution's state (its own generator and surface
+pool), written atomically, so an interrupted run resumes where its last checkpoint left it, bit
+for bit. The global torch RNG is neither used nor touched.
 """
 
 from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -38,9 +41,11 @@ class TrainingRecord:
     final_loss: float = float("nan")  # mean over the last `window` steps
     final_losses: dict = field(default_factory=dict)
     hit_accuracy: float = float("nan")  # running hit/miss accuracy over the last `window` steps
-    truncated_fraction: float = float("nan")  # rays with more voxel-boundary points than H
+    compute_precision: str = ""  # arithmetic of the hidden layers in training: "bf16" or "fp32"
+    device: str = ""  # where it trained, e.g. "cpu", "cuda"
     resumed_from: int | None = None
     window: int = 50
+    extra: dict = field(default_factory=dict)  # method-specific: "<count>_fraction" over the last `window` steps
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -61,8 +66,8 @@ class _Running:
         return float(sum(vals) / len(vals)) if vals else float("nan")
 
     def ratio(self, num: str, den: str) -> float:
-        d = sum(v[den] for v in self.items)
-        return float(sum(v[num] for v in self.items) / d) if d else float("nan")
+        d = sum(v.get(den, 0) for v in self.items)
+        return float(sum(v.get(num, 0) for v in self.items) / d) if d else float("nan")
 
 
 def _optimizer_arrays(opt: torch.optim.Optimizer) -> tuple[dict, dict[str, torch.Tensor]]:
@@ -89,7 +94,6 @@ def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, recor
     arrays = {f"model.{k}": v.detach().cpu().clone() for k, v in model.state_dict().items()}
     arrays.update({f"sampler.{k}": v for k, v in sampler_arrays.items()})
     arrays.update(opt_arrays)
-    arrays["torch_rng"] = torch.get_rng_state()
     header = {"step": step, "identity": identity, "sampler": sampler_meta, "optimizer": opt_meta, "record": record.as_dict()}
     write_model_file(path, CHECKPOINT_METHOD, header, arrays)
 
@@ -103,7 +107,6 @@ def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) 
     model.load_state_dict({k: v.to(dev) for k, v in state.items()})
     _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
     sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
-    torch.set_rng_state(f.arrays["torch_rng"])
     return int(f.header["step"]), TrainingRecord(**f.header["record"])
 
 
@@ -123,13 +126,16 @@ def train_model(
     identity: dict | None = None,
     progress: bool = True,
     description: str = "train",
+    on_step: Callable[[int, torch.optim.Optimizer], None] | None = None,
+    record: TrainingRecord | None = None,
 ) -> TrainingRecord:
     """Optimise ``model`` for ``steps`` batches from ``sampler``; returns the `TrainingRecord`.
 
     With ``checkpoint``, state is saved every ``checkpoint_every`` steps and at the end; with
     ``resume`` too, a run restarts from that file (which must come from the same ``identity``,
     e.g. mesh hash and config). The learning rate decays exponentially to ``lr_decay_final``
-    times its start over the run (1 = constant).
+    times its start over the run (1 = constant). ``on_step(step, optimizer)`` runs after each
+    optimizer step; ``record`` starts the record (e.g. with the precision and device filled in).
     """
     from tqdm.auto import tqdm
 
@@ -138,7 +144,8 @@ def train_model(
     gamma = lr_decay_final ** (1.0 / max(steps, 1))
     identity = identity or {}
     ckpt = Path(checkpoint) if checkpoint is not None else None
-    start, record = 0, TrainingRecord(batch_size=batch_size)
+    start, record = 0, record or TrainingRecord()
+    record.batch_size = batch_size
     if ckpt is not None and resume and ckpt.exists():
         start, record = load_checkpoint(ckpt, model, opt, sampler, identity)
         record.resumed_from = start
@@ -156,12 +163,15 @@ def train_model(
             opt.zero_grad(set_to_none=True)
             result.loss.backward()
             opt.step()
+            if on_step is not None:
+                on_step(step, opt)
             dt = time.perf_counter() - t0
             record.seconds += dt
             record.rays += result.count
             record.network_rays += result.network_rays
             running.add(loss=result.loss.item(), correct=result.correct, count=result.count,
-                        truncated=result.truncated, **{f"loss_{k}": v for k, v in result.parts.items()})
+                        **{f"count_{k}": v for k, v in result.ray_counts.items()},
+                        **{f"loss_{k}": v for k, v in result.parts.items()})
             bar.update(1)
             if progress and (step % 10 == 0 or step == steps - 1):
                 bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
@@ -185,4 +195,5 @@ def _finish(record: TrainingRecord, running: _Running, steps: int) -> None:
     keys = sorted({k for item in running.items for k in item if k.startswith("loss_")})
     record.final_losses = {k[len("loss_"):]: running.mean(k) for k in keys}
     record.hit_accuracy = running.ratio("correct", "count")
-    record.truncated_fraction = running.ratio("truncated", "count")
+    counted = sorted({k for item in running.items for k in item if k.startswith("count_")})
+    record.extra = {f"{k[len('count_'):]}_fraction": running.ratio(k, "count") for k in counted}

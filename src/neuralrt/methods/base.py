@@ -1,0 +1,253 @@
+"""`NeuralBLAS`: what every neural intersection method shares, so a method only writes its own parts.
+
+A method subclasses `NeuralBLAS` and provides:
+
+- ``from_mesh(mesh, config)``: an untrained model of a mesh (bounds, materials, mesh hash set here);
+- ``training_step(rays, truth) -> StepResult``: the loss of one batch against exact hits;
+- ``_intersect_chunk(rays) -> Hits``: answers for at most ``config.inference.chunk_size`` rays;
+- ``memory_bytes()``: run-time bytes, itemised;
+- ``_arrays()`` / ``_from_arrays(config, bounds, materials, arrays)``: what its model file stores
+  besides the common header, and how a model is rebuilt from it;
+- optionally ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut) and ``box``
+  (the region training rays aim at; default: the bounds).
+
+The base class holds config, bounds, mesh hash, materials and training record; it answers rays in
+chunks, picks the compute precision, rounds to the storage precision, and saves and loads every
+method through one typed model-file header (`neuralrt.io.model_file.ModelHeader`).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from ..accel.blas import MemoryReport
+from ..errors import DeviceError, MeshMismatchError, ModelFileError
+from ..io.model_file import ModelHeader, read_model, write_model
+from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
+from ..rays import AABB, Hits, Rays
+from .config import MethodConfig
+
+__all__ = ["NeuralBLAS", "is_neural", "check_mesh_match", "MeshMismatchWarning", "material_table"]
+
+DEFAULT_MATERIALS = [{"name": "default", "base_color": [1.0, 1.0, 1.0]}]
+
+
+class MeshMismatchWarning(UserWarning):
+    """A model is used without its source mesh at hand, so nothing checks that they belong together."""
+
+
+def is_neural(blas) -> bool:
+    """Whether ``blas`` answers rays with a trained model (the one place that decides it)."""
+    return isinstance(blas, NeuralBLAS)
+
+
+def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = False, label: str = "") -> None:
+    """Check that ``model`` was trained on the mesh whose content hash is ``mesh_hash``.
+
+    A mismatch raises `MeshMismatchError` unless ``allow_mismatch``; ``mesh_hash=None`` (no mesh at
+    hand, e.g. a scene object given only a model) or a model that records no hash warns
+    (`MeshMismatchWarning`). ``label`` prefixes the message (e.g. the scene file and key).
+    """
+    prefix = f"{label}: " if label else ""
+    expected = getattr(model, "mesh_hash", None)
+    name = getattr(model, "mesh_name", None) or "?"
+    if mesh_hash is None or expected is None:
+        what = "no mesh is given" if mesh_hash is None else "the model file records no mesh hash"
+        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning, stacklevel=2)
+        return
+    if mesh_hash != expected and not allow_mismatch:
+        raise MeshMismatchError(
+            f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...); "
+            "pass --allow-mesh-mismatch (API: allow_mesh_mismatch=True) to use it anyway"
+        )
+
+
+def material_table(mesh) -> list[dict]:
+    """A mesh's material slots as stored in a model file: ``[{"name": str, "base_color": [r, g, b]}, ...]``."""
+    import numpy as np
+
+    return [{"name": m.name, "base_color": [float(c) for c in np.asarray(m.base_color).reshape(-1)[:3]]} for m in mesh.materials]
+
+
+class NeuralBLAS(nn.Module, ABC):
+    """A trained (or training) neural model of one object; implements the `BLAS` protocol.
+
+    Args:
+        config: the method's full config.
+        bounds: the object's tight AABB in object space (kept on the CPU).
+        materials: the material table, ``[{"name": str, "base_color": [r, g, b]}, ...]``.
+    """
+
+    METHOD: ClassVar[str]  # the name registered for the method and written in model files
+    TITLE: ClassVar[str]  # how messages name the method, e.g. "LSNIF"
+    CONFIG: ClassVar[type[MethodConfig]]
+
+    def __init__(self, config: MethodConfig, bounds: AABB, materials: list[dict] | None = None):
+        super().__init__()
+        self.config = config
+        self.bounds = AABB(bounds.lo.float().cpu(), bounds.hi.float().cpu())
+        self.materials = [dict(m) for m in materials] if materials else [dict(m) for m in DEFAULT_MATERIALS]
+        self.training_record: dict = {}  # `TrainingRecord.as_dict()` of the run that trained it
+        self.mesh_hash: str | None = None  # SHA-256 of the source mesh's content
+        self.mesh_name: str | None = None
+
+    # -- what a method provides ------------------------------------------------------------------
+    @classmethod
+    @abstractmethod
+    def from_mesh(cls, mesh, config: MethodConfig | None = None) -> "NeuralBLAS":
+        """An untrained model of ``mesh`` (set ``mesh_hash``/``mesh_name`` with `_remember_mesh`)."""
+
+    @abstractmethod
+    def training_step(self, rays: Rays, truth: Hits):
+        """`neuralrt.training.step.StepResult` of one batch against the exact hits ``truth``."""
+
+    @abstractmethod
+    def _intersect_chunk(self, rays: Rays) -> Hits:
+        """Closest hits of at most ``config.inference.chunk_size`` rays (on the model's device)."""
+
+    @abstractmethod
+    def memory_bytes(self) -> MemoryReport:
+        """Run-time bytes at the storage precision, itemised."""
+
+    @abstractmethod
+    def _arrays(self) -> dict[str, Tensor]:
+        """The named arrays the model file stores (at the storage precision)."""
+
+    @classmethod
+    @abstractmethod
+    def _from_arrays(cls, config: MethodConfig, bounds: AABB, materials: list[dict], arrays: dict[str, Tensor]) -> "NeuralBLAS":
+        """Rebuild a model from a file's arrays; raise ValueError/KeyError for missing or mis-shaped ones."""
+
+    def after_training_step(self, step: int, optimizer: torch.optim.Optimizer) -> None:
+        """Called by the training loop after each optimizer step (e.g. to refine a BVH cut). Default: nothing."""
+
+    # -- common properties -------------------------------------------------------------------------
+    @property
+    def box(self) -> AABB:
+        """The region the model answers in (object space); training and held-out rays aim at it."""
+        return self.bounds
+
+    @property
+    def material_names(self) -> list[str]:
+        """Material slot names, in material-index order (the scene maps them to scene materials)."""
+        return [m["name"] for m in self.materials]
+
+    @property
+    def num_materials(self) -> int:
+        return len(self.materials)
+
+    @property
+    def secondary_offset(self) -> float:
+        """Origin offset (object-space units, along the normal) for rays leaving a neural hit."""
+        return float(self.config.inference.secondary_offset * self.box.diagonal)
+
+    @property
+    def device(self) -> torch.device:
+        for tensor in self.buffers():
+            return tensor.device
+        return next(self.parameters()).device
+
+    def compute_dtype(self, training: bool = False) -> torch.dtype:
+        """Hidden-layer arithmetic for training or inference on the model's device (see `neuralrt.neural.precision`)."""
+        section = self.config.training if training else self.config.inference
+        return compute_dtype(section.compute_precision, self.device)
+
+    def _remember_mesh(self, mesh) -> None:
+        self.mesh_hash, self.mesh_name = mesh.content_hash(), mesh.name
+
+    # -- inference -----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def intersect(self, rays: Rays) -> Hits:
+        """Closest hit per ray in object space: hit, t, normal (facing the ray), albedo, material.
+
+        ``rays`` must be on the model's device; hits come back on it. Rays with NaN/Inf origins or
+        directions, zero directions or an empty ``(t_min, t_max)`` miss."""
+        self._check_device(rays)
+        n = len(rays)
+        chunk = self.config.inference.chunk_size
+        if n <= chunk:
+            return self._intersect_chunk(rays)
+        out = Hits.empty(n, rays.device)
+        for start in range(0, n, chunk):
+            part = rays[slice(start, start + chunk)]
+            out.scatter_(torch.arange(start, start + len(part), device=rays.device), self._intersect_chunk(part))
+        return out
+
+    @torch.no_grad()
+    def occluded(self, rays: Rays) -> Tensor:
+        """[N] bool: the model predicts a hit within (t_min, t_max) (same decision as `intersect`)."""
+        return self.intersect(rays).hit
+
+    def _check_device(self, rays: Rays) -> None:
+        if rays.device != self.device:
+            raise DeviceError(f"rays are on {rays.device} but the {self.TITLE} model is on {self.device}: move one with .to()")
+
+    # -- precision and memory ---------------------------------------------------------------------------
+    @property
+    def storage_bytes(self) -> int:
+        """Bytes per stored parameter (``inference.storage_precision``)."""
+        return STORAGE_BYTES[self.config.inference.storage_precision]
+
+    def parameter_bytes(self, module: nn.Module) -> int:
+        """Bytes of ``module``'s parameters at the storage precision."""
+        return sum(p.numel() for p in module.parameters()) * self.storage_bytes
+
+    def round_to_storage_precision_(self) -> "NeuralBLAS":
+        """Round parameters to the stored precision in place, so the model in memory answers exactly as its file."""
+        dt = STORAGE_DTYPES[self.config.inference.storage_precision]
+        with torch.no_grad():
+            for p in self.parameters():
+                p.copy_(p.to(dt).float())
+        return self
+
+    def _stored(self, named: dict[str, nn.Parameter]) -> dict[str, Tensor]:
+        """``named`` parameters as CPU tensors at the storage precision (for `_arrays`)."""
+        dt = STORAGE_DTYPES[self.config.inference.storage_precision]
+        return {k: p.detach().cpu().to(dt) for k, p in named.items()}
+
+    @staticmethod
+    def _load_parameters(named: dict[str, nn.Parameter], arrays: dict[str, Tensor]) -> None:
+        """Copy file arrays into ``named`` parameters, checking presence and shape."""
+        with torch.no_grad():
+            for key, p in named.items():
+                if key not in arrays:
+                    raise ValueError(f"array '{key}' missing")
+                if tuple(arrays[key].shape) != tuple(p.shape):
+                    raise ValueError(f"array '{key}' has shape {tuple(arrays[key].shape)}, expected {tuple(p.shape)}")
+                p.copy_(arrays[key].float())
+
+    # -- files ----------------------------------------------------------------------------------------
+    def header(self) -> ModelHeader:
+        """The typed header of this model's file (nothing derivable is stored)."""
+        return ModelHeader(
+            method=self.METHOD, config=self.config.model_dump(mode="json"), bounds=self.bounds.tolist(),
+            materials=self.materials, training=self.training_record, mesh_sha256=self.mesh_hash, mesh_name=self.mesh_name,
+        )
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the model to ``path`` (atomically; suggested suffix ``.nrt``)."""
+        return write_model(path, self.header(), self._arrays())
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "NeuralBLAS":
+        """Load a model file; bad, truncated, corrupted, newer or other-method files raise `ModelFileError`."""
+        header, arrays = read_model(path, method=cls.METHOD)
+        try:
+            config = cls.CONFIG.model_validate(header.config)
+            bounds = AABB(torch.tensor(header.bounds[0], dtype=torch.float32), torch.tensor(header.bounds[1], dtype=torch.float32))
+            model = cls._from_arrays(config, bounds, [m.model_dump() for m in header.materials], arrays)
+        except ModelFileError:
+            raise
+        except Exception as exc:  # invalid config value, missing array, wrong array shape
+            msg = str(exc).replace("\n", " ")
+            raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({type(exc).__name__}: {msg[:300]})") from None
+        model.training_record = dict(header.training)
+        model.mesh_hash, model.mesh_name = header.mesh_sha256, header.mesh_name
+        return model.to(device).eval()

@@ -1,0 +1,92 @@
+"""Config pieces every method shares: the section base class, the training and inference sections,
+and `MethodConfig`, the base of each method's whole config (its ``method`` field names it).
+
+A method's config subclasses `MethodConfig`, sets ``method: Literal["name"] = "name"``, adds its
+own sections (encoding, network, ...), has a ``training`` section that is (a subclass of)
+`TrainingConfig` and an ``inference`` section that is (a subclass of) `InferenceConfig`, and lists
+its presets in ``PRESETS`` (name -> function returning the config).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig"]
+
+
+class ConfigSection(BaseModel):
+    """A typed, validated config section: unknown keys and bad values are errors naming the key."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class TrainingConfig(ConfigSection):
+    """What the shared training loop and the training ray distribution read."""
+
+    steps: int = Field(4000, ge=1, description="optimizer steps (paper: 2,000 of 2^18 rays; CPU default: 4,000 of 2^13, see docs/lsnif.md)")
+    batch_size: int = Field(1 << 13, ge=16, description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs/lsnif.md)")
+    learning_rate: float = Field(0.01, gt=0.0, description="Adam learning rate (paper: 0.01)")
+    adam_betas: tuple[float, float] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
+    adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (instant-ngp's: tiny, so rarely-hit table entries still move)")
+    lr_decay_final: float = Field(
+        0.1, gt=0.0, le=1.0,
+        description="learning rate at the last step, relative to the first, exponential decay (1 = constant, as in the paper; "
+        "0.1 measured better on the bunny: t error 0.37% -> 0.29%, normals 5.8 -> 5.0 deg)",
+    )
+    surface_fraction: float = Field(0.5, ge=0.0, le=1.0, description="share of rays starting on the surface (paper: 0.5)")
+    surface_pool_size: int = Field(1 << 16, ge=1, description="surface points kept for surface-ray origins")
+    surface_offset: float = Field(1e-4, ge=0.0, description="origin offset of surface rays along the normal, relative to the diagonal")
+    compute_precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="hidden-layer arithmetic in training (weights stay fp32): auto = bf16 on CUDA or where the CPU "
+        "has native bf16 (decided once per process; the training record stores the choice)"
+    )
+    seed: int = Field(0, description="seeds the weights, the hash-table init and the training rays")
+    checkpoint_every: int = Field(200, ge=1, description="steps between checkpoints when a checkpoint path is given")
+
+
+class InferenceConfig(ConfigSection):
+    """How a trained model answers rays."""
+
+    occlusion_threshold: float = Field(0.5, gt=0.0, lt=1.0, description="hit if the occlusion probability exceeds this (paper: 0.5)")
+    secondary_offset: float = Field(
+        1e-2, ge=0.0,
+        description="how far a ray leaving a neural hit starts along the normal, relative to the box diagonal "
+        "(measured on the bunny: self-hits 0.9% of bounces at 1e-3, 0.13% at 1e-2; about 1/3 voxel at V=32)",
+    )
+    storage_precision: Literal["fp16", "fp32"] = Field("fp16", description="precision of the stored parameters (paper: fp16)")
+    compute_precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="MLP arithmetic at inference: auto = bf16 on CUDA or where the CPU has native bf16, else fp32 "
+        "(answers differ slightly between the two: see neuralrt.neural.precision)"
+    )
+    chunk_size: int = Field(1 << 16, ge=1, description="rays per inference chunk (bounds temporary memory)")
+
+
+class MethodConfig(ConfigSection):
+    """Base of a method's whole config. Subclasses narrow ``method`` to a literal and fill ``PRESETS``."""
+
+    method: str = Field(description="the intersection method this config belongs to")
+
+    PRESETS: ClassVar[dict[str, Callable[[], "MethodConfig"]]] = {}
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "MethodConfig":
+        """The preset ``name``, with ``overrides`` merged in key by key: ``preset("hq", training={"steps": 100})``
+        changes only ``training.steps`` and keeps every other training key of the preset. Values may
+        be dicts or config sections; unknown presets raise ``ValueError`` naming the known ones."""
+        if name not in cls.PRESETS:
+            raise ValueError(f"unknown {cls.model_fields['method'].default} preset {name!r} (choose from {', '.join(cls.PRESETS)})")
+        data = cls.PRESETS[name]().model_dump()
+        for section, values in overrides.items():
+            if isinstance(values, BaseModel):
+                values = values.model_dump(exclude_unset=True)
+            data[section] = {**data[section], **values} if isinstance(data.get(section), dict) else values
+        return cls.model_validate(data)
+
+    def with_training(self, **changes) -> "MethodConfig":
+        """A copy with some training keys changed (``None`` values are ignored): ``with_training(steps=100, batch_size=4096)``."""
+        data = self.model_dump()
+        data["training"].update({k: v for k, v in changes.items() if v is not None})
+        return type(self).model_validate(data)

@@ -1,0 +1,57 @@
+"""The fully connected network every neural intersector ends in (LSNIF, N-BVH and NIF use the same shape).
+
+``hidden_layers`` leaky-ReLU layers of ``hidden_width`` neurons, Kaiming init, then a linear output
+layer. Hidden layers may run in bf16 (see `neuralrt.neural.precision`); the output layer always
+runs in fp32 so that distance outputs keep fp32 resolution.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["MLP"]
+
+
+class MLP(nn.Module):
+    """``in_features`` -> ``hidden_layers`` x ``hidden_width`` (leaky ReLU) -> ``out_features`` (linear).
+
+    Parameters are fp32; ``generator`` seeds the Kaiming-uniform init (biases start at 0).
+    """
+
+    def __init__(self, in_features: int, out_features: int, hidden_width: int = 128, hidden_layers: int = 2, slope: float = 0.01,
+                 generator: torch.Generator | None = None):
+        super().__init__()
+        widths = [in_features] + [hidden_width] * hidden_layers
+        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.output = nn.Linear(widths[-1], out_features)
+        self.slope = slope
+        for layer in self.hidden:
+            nn.init.kaiming_uniform_(layer.weight, a=slope, nonlinearity="leaky_relu", generator=generator)
+            nn.init.zeros_(layer.bias)
+        nn.init.kaiming_uniform_(self.output.weight, a=1.0, nonlinearity="linear", generator=generator)
+        nn.init.zeros_(self.output.bias)
+
+    def forward(self, x: Tensor, compute_dtype: torch.dtype = torch.float32) -> Tensor:
+        """[M, in_features] -> [M, out_features] fp32. With ``compute_dtype=torch.bfloat16`` the hidden
+        layers run in bf16 (about 2x faster on CPUs with native bf16, and on GPUs)."""
+        if compute_dtype != torch.float32 and not torch.is_grad_enabled():
+            # Inference: reuse bf16 copies of the weights instead of casting them every call.
+            x = x.to(compute_dtype)
+            for w, b in self._cast_weights(compute_dtype):
+                x = F.leaky_relu(F.linear(x, w, b), self.slope)
+            return self.output(x.float())
+        with torch.autocast(device_type=x.device.type, dtype=compute_dtype, enabled=compute_dtype != torch.float32):
+            for layer in self.hidden:
+                x = F.leaky_relu(layer(x), self.slope)
+        return self.output(x.float())
+
+    def _cast_weights(self, dtype: torch.dtype) -> list[tuple[Tensor, Tensor]]:
+        # Keyed on each parameter's storage and version counter: any update (optimizer step,
+        # load, rounding, a move to another device) invalidates the copies.
+        key = (dtype, tuple((p.data_ptr(), p._version) for p in self.hidden.parameters()))
+        if getattr(self, "_cast_key", None) != key:
+            self._cast = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in self.hidden]
+            self._cast_key = key
+        return self._cast
