@@ -55,6 +55,14 @@ naming the file and the key path (`scene.toml: objects.2.transform.scale: scale 
 non-zero`). Paths (meshes, models, textures, environment images) resolve relative to the scene file.
 Objects that use the same mesh file, or the same generator with the same parameters, share one
 accelerator (instancing). `neuralrt.scene.scene.save_scene(spec, path)` writes a spec back.
+Every number must be finite (`nan` / `inf` are errors naming the key).
+
+From Python, `neuralrt.scene.loader.load_dict(d)` builds a scene from a dict with these same keys,
+validated at once; there an object's `mesh` may also be a `neuralrt.Mesh` and its `model` a
+loaded model (any BLAS with `material_names`). A model's material slots map to scene materials
+like a mesh's: the object's `material`, else its `materials` map, else the scene material of the
+same name, else `default`. `load_scene(..., primary="neural")` / `render --primary neural`
+builds no mesh BVH for objects with a model (camera rays go to the model too).
 
 Conventions: right-handed, +y up; the camera looks down its -z axis. Colours are linear RGB.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
