@@ -154,11 +154,11 @@ def evaluate_model(
     Keys: ``outside`` and ``surface`` (each from `ray_metrics`), ``images`` (``normal_flip``,
     ``depth_flip``), and, for models with voxel features, ``features`` (how often H truncates).
     """
-    exact = MeshBLAS(mesh)
     neural = is_neural(model_blas)
+    device = model_blas.device if neural else torch.device("cpu")
+    exact = MeshBLAS(mesh, device=device)
     # Held-out rays aim at the region the model answers in, on the model's device.
     box = model_blas.box if neural else exact.bounds.inflated(0.005)
-    device = model_blas.device if neural else torch.device("cpu")
     distribution = BoxRayDistribution(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)), device=device)
     batch = distribution.sample(rays)
     pred = model_blas.intersect(batch.rays)

@@ -51,7 +51,7 @@ def train(
     tc = config.training
     model = spec.model_class.from_mesh(mesh, config).to(device)
     rays = BoxRayDistribution(
-        MeshBLAS(mesh), model.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
+        MeshBLAS(mesh, device=device), model.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
         surface_offset=tc.surface_offset, seed=tc.seed, device=device,
     )
     start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
