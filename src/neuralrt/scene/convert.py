@@ -27,8 +27,9 @@ from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.model_file import read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
-from .loader import load_scene_spec, scene_material_for, shape_for
-from .schema import EmissiveMaterialSpec, ObjectSpec, SceneSpec, TransformSpec
+from .loader import load_scene_spec, shape_for
+from .material_rules import is_emissive, material_index, scene_material_for
+from .schema import ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
 __all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
@@ -94,22 +95,6 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "mesh"
 
 
-def _is_emissive(spec: SceneSpec, obj: ObjectSpec, mesh: Mesh, index: dict) -> bool:
-    by_name = {m.name: m for m in spec.materials}
-    for slot in mesh.materials:
-        target = by_name.get(scene_material_for(obj, slot.name, index))
-        if isinstance(target, EmissiveMaterialSpec):
-            return True
-    return False
-
-
-def _material_index(spec: SceneSpec) -> dict[str, int]:
-    """Scene material name -> index, with the loader's implicit ``default``."""
-    index = {m.name: i for i, m in enumerate(spec.materials)}
-    index.setdefault("default", len(index))
-    return index
-
-
 def _object_names(spec: SceneSpec) -> list[str]:
     """Each object's name as the loader names its instance."""
     return [obj.name or f"object{i}" for i, obj in enumerate(spec.objects)]
@@ -117,7 +102,6 @@ def _object_names(spec: SceneSpec) -> list[str]:
 
 def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | None, min_triangles: int | None) -> list[int]:
     """Indices of the objects to convert; errors name unknown or unconvertible selections."""
-    index = _material_index(spec)
     names = _object_names(spec)
     if select:
         unknown = sorted(set(select) - set(names))
@@ -128,7 +112,7 @@ def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | No
     for i, (obj, mesh) in enumerate(zip(spec.objects, meshes)):
         if mesh is None or obj.model is not None:
             continue  # already neural
-        if _is_emissive(spec, obj, mesh, index):
+        if is_emissive(spec, obj, [m.name for m in mesh.materials]):
             if select and names[i] in select:
                 raise SceneError(f"--select: object {names[i]!r} is an area light; lights stay triangles")
             continue
@@ -142,7 +126,7 @@ def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | No
 
 def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> Mesh:
     """Selected objects baked into one world-space mesh whose materials are scene material names."""
-    index = _material_index(spec)
+    index = material_index(spec)
     names: list[str] = []
     verts, faces, normals, mat_ids = [], [], [], []
     offset = 0
