@@ -32,6 +32,7 @@ class StandInModel:
     def __init__(self, mesh, names):
         self._exact = MeshBLAS(mesh)
         self.bounds, self.secondary_offset, self.material_names = self._exact.bounds, self._exact.secondary_offset, names
+        self.mesh_hash, self.mesh_name = mesh.content_hash(), mesh.name  # what it was "trained" on
 
     def intersect(self, rays):
         return self._exact.intersect(rays)
@@ -93,6 +94,19 @@ def test_model_only_object_gets_one_slot_per_model_material(tmp_path):
     scene = loader_module.load_scene(tmp_path / "scene.toml")
     names = scene.materials.names
     assert [names[i] for i in scene.accel.instances[0].material_map.tolist()] == ["default", "core"]
+
+
+def test_a_model_on_another_mesh_is_an_error_unless_allowed():
+    from neuralrt.errors import MeshMismatchError
+    from neuralrt.methods import MeshMismatchWarning
+
+    other = Mesh(*_quad(), name="floor")
+    d = {"materials": MATERIALS, "objects": [{"mesh": other, "model": StandInModel(_two_part_mesh(), ["shell", "core"])}]}
+    with pytest.raises(MeshMismatchError, match=r"scene: objects.0.model: the model was trained on another mesh \('pair'"):
+        load_dict(d)
+    assert load_dict(d, allow_mesh_mismatch=True).accel.instances[0].camera_blas.mesh is other
+    with pytest.warns(MeshMismatchWarning, match="objects.0.model: cannot check"):
+        load_dict({"materials": MATERIALS, "objects": [{"model": StandInModel(other, ["floor"])}]})
 
 
 def test_emissive_model_slots_are_rejected_after_loading():

@@ -24,6 +24,7 @@ from ..accel.tlas import Instance, SceneAccel
 from ..errors import NeuralRTError, SceneError
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
+from ..methods.base import check_mesh_match
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -49,21 +50,24 @@ def load_scene(
     resolution: tuple[int, int] | None = None,
     detail: int | None = None,
     primary: str = "exact",
+    allow_mesh_mismatch: bool = False,
 ) -> Scene:
     """Load and build a scene.
 
     ``path_or_builtin``: a ``.toml`` / ``.json`` scene file, or ``builtin:<name>`` with an optional
     ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`). ``resolution`` (width, height)
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
-    ``primary``: who answers camera rays of objects with a model (see `build_scene`).
+    ``primary``: who answers camera rays of objects with a model; ``allow_mesh_mismatch``: accept
+    a model trained on another mesh than its object's (see `build_scene`).
     """
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
     if resolution is not None:
         spec.camera.resolution = tuple(int(v) for v in resolution)
-    return build_scene(spec, base_dir, device=device, label=label, primary=primary)
+    return build_scene(spec, base_dir, device=device, label=label, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch)
 
 
-def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene") -> Scene:
+def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene",
+              allow_mesh_mismatch: bool = False) -> Scene:
     """Build a scene from a dict shaped like a scene file (cf. Mitsuba's ``load_dict``).
 
     Every key is that of a scene file (docs/scenes.md) and is validated at once: a bad value or an
@@ -91,7 +95,7 @@ def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", prim
     objects = data.get("objects")
     if isinstance(objects, (list, tuple)):
         data["objects"] = [_take_in_memory(obj, i, given, label) for i, obj in enumerate(objects)]
-    return _build(validate_spec(data, label), base_dir, device, label, primary, given)
+    return _build(validate_spec(data, label), base_dir, device, label, primary, given, allow_mesh_mismatch)
 
 
 def _take_in_memory(obj, i: int, given: _InMemory, label: str):
@@ -187,6 +191,14 @@ class _Shape:
         self.mesh = mesh
         self._device = device
         self._blas: MeshBLAS | None = None
+        self._hash: str | None = None
+
+    @property
+    def content_hash(self) -> str:
+        """`Mesh.content_hash`, computed once for all the objects that share the mesh."""
+        if self._hash is None:
+            self._hash = self.mesh.content_hash()
+        return self._hash
 
     @property
     def blas(self) -> MeshBLAS:
@@ -203,16 +215,21 @@ class _InMemory:
     models: dict[int, BLAS]
 
 
-def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene", primary: str = "exact") -> Scene:
+def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene", primary: str = "exact",
+                allow_mesh_mismatch: bool = False) -> Scene:
     """Runtime `Scene` from a validated spec (relative paths resolve against ``base_dir``).
 
     ``primary`` says who will answer camera rays for objects that have a model: ``"exact"`` keeps
     their mesh's BVH for camera rays (hybrid rendering), ``"neural"`` builds no BVH for them at all.
+    An object's model must have been trained on the object's mesh (content hash) unless
+    ``allow_mesh_mismatch``; a model-only object warns that nothing checks it
+    (`neuralrt.methods.check_mesh_match`).
     """
-    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}))
+    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
 
 
-def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory) -> Scene:
+def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory,
+           allow_mesh_mismatch: bool = False) -> Scene:
     if primary not in PRIMARY_CHOICES:
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
     spec = absolutize_paths(spec, Path(base_dir))
@@ -244,6 +261,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                 if obj.model not in models:
                     models[obj.model] = _load_model(obj.model, label, key, dev)
                 blas = models[obj.model]
+            check_mesh_match(blas, shape.content_hash if shape is not None else None, allow_mismatch=allow_mesh_mismatch,
+                             label=f"{label}: {key}.model")
             slots = _material_names(blas, label, key)
             if is_emissive(spec, obj, slots):
                 raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
