@@ -141,8 +141,11 @@ FUSED_DTYPES = [torch.float32, torch.bfloat16] if CUDA else [torch.float32]
 
 
 @pytest.mark.parametrize("dtype", FUSED_DTYPES)
-@pytest.mark.parametrize("max_points,width,distances,origin_point", [(10, 64, True, True), (6, 48, False, False)])
-def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, distances, origin_point):
+@pytest.mark.parametrize(
+    "max_points,width,layers,distances,origin_point,whole_mlp",
+    [(10, 64, 2, True, True, True), (6, 48, 3, False, False, True), (10, 64, 2, True, True, False)],
+)
+def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, layers, distances, origin_point, whole_mlp):
     from neuralrt.methods.lsnif import point_local_distances
     from neuralrt.methods.lsnif_fused import fused_network_outputs
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
@@ -150,7 +153,7 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, dist
     occ, tris = _torus_occupancy(16)
     o, d = _random_rays(np.random.default_rng(6), 128, occ, tris)
     grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
-    net = _Net(grid.output_dim(max_points) + (max_points if distances else 0), width, 2, 11)
+    net = _Net(grid.output_dim(max_points) + (max_points if distances else 0), width, layers, 11)
     fc = dict(origin_point=origin_point, share_boundary_points=True)
     with torch.no_grad():
         fp = featurize_rays_numba(o, d, occ, max_points, **fc)
@@ -158,11 +161,12 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, dist
         if distances:
             x = torch.cat([x, point_local_distances(fp, o, d)], 1)
         ref = net.reference(x, dtype)
-        out, fused = fused_network_outputs(
+        fused = fused_network_outputs(
             o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), grid.to(DEVICE), net.to(DEVICE),
-            max_points=max_points, point_distances=distances, compute_dtype=dtype, block=32, **fc,
+            max_points=max_points, point_distances=distances, compute_dtype=dtype, whole_mlp=whole_mlp, block=32, **fc,
         )  # fmt: skip
-    out, count = out.cpu(), fused.count.cpu()
+    out, count = fused.values.cpu(), fused.count.cpu()
+    assert out.shape == ref.shape
     active = fp.count > 0
     assert active.sum() > 30 and (~active).sum() > 10
     same = count == fp.count  # all under the interpreter; on the GPU, see _assert_features_match
@@ -171,3 +175,33 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, dist
     tol = 2e-5 if dtype == torch.float32 else 3e-2  # bf16: layer 1 accumulates in fp32 here, bf16 GEMM there
     compared = active & same
     assert (out[compared] - ref[compared]).abs().max() <= tol * ref[compared].abs().max()
+
+
+def test_lsnif_model_fused_answers_match_unfused():
+    """The model's fused inference path (CUDA's) gives the answers of its featurize -> encode -> MLP path."""
+    from neuralrt.geometry.procedural import statue
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+    from neuralrt.rays import Rays
+
+    dtype = "bf16" if CUDA else "fp32"
+    config = LSNIFConfig.preset("lq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+                                inference={"compute_precision": dtype})  # fmt: skip
+    model = LSNIFModel.from_mesh(statue(1), config)
+    with torch.no_grad():  # an untrained table is ~0: give the features some weight
+        model.encoder.table.uniform_(-1, 1)
+    model = model.to(DEVICE)
+    g = torch.Generator().manual_seed(7)
+    lo, hi = model.box.lo.cpu(), model.box.hi.cpu()
+    origins = (torch.randn(96, 3, generator=g) * 2 + (lo + hi) / 2)
+    targets = lo + torch.rand(96, 3, generator=g) * (hi - lo)
+    rays = Rays(origins=origins, directions=targets - origins).to(DEVICE)
+    prep = model._prepare(rays)
+    with torch.no_grad():
+        ref = model._raw_outputs(prep, model.compute_dtype())
+        act, out, t_enter, t_exit, t_offset = model._network_answers_fused(rays)
+    assert len(prep.active) > 20 and torch.equal(act, prep.active)
+    torch.testing.assert_close(t_enter, prep.features.t_enter)
+    torch.testing.assert_close(t_exit, prep.features.t_exit)
+    tol = 3e-2 if CUDA else 2e-5
+    assert (out - ref).abs().max() <= tol * ref.abs().max()

@@ -216,12 +216,10 @@ class LSNIFModel(NeuralBLAS):
     def _intersect_chunk(self, rays: Rays) -> Hits:
         n = len(rays)
         hits = Hits.empty(n, rays.device)
-        prep = self._prepare(rays)
-        if len(prep.active) == 0:
+        act, out, t_enter, t_exit, t_offset = self._network_answers(rays)
+        if len(act) == 0:
             return hits
-        fp, act = prep.features, prep.active
-        out = self._raw_outputs(prep, self.compute_dtype())
-        t = prep.t_offset + fp.t_enter + torch.sigmoid(out[:, _DIST]) * (fp.t_exit - fp.t_enter)
+        t = t_offset + t_enter + torch.sigmoid(out[:, _DIST]) * (t_exit - t_enter)
         hit = (out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)) & (t < rays.t_max[act]) & (t > rays.t_min[act])
         normal = F.normalize(out[:, _NORMAL], dim=-1)
         hits.hit[act] = hit
@@ -233,6 +231,28 @@ class LSNIFModel(NeuralBLAS):
         material = out[:, _MAT:].argmax(-1) if self.num_materials > 1 else torch.zeros_like(act)
         hits.material_id[act] = torch.where(hit, material, torch.full_like(material, -1))
         return hits
+
+    def _network_answers(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(indices, raw outputs, t_enter, t_exit, t_offset) of the rays that reach the network:
+        on CUDA one fused Triton kernel per chunk (`lsnif_fused`), elsewhere featurize -> encode -> MLP."""
+        if rays.device.type == "cuda":
+            return self._network_answers_fused(rays)
+        prep = self._prepare(rays)
+        out = self._raw_outputs(prep, self.compute_dtype())
+        return prep.active, out, prep.features.t_enter, prep.features.t_exit, prep.t_offset
+
+    def _network_answers_fused(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        from .lsnif_fused import fused_network_outputs  # imports triton: CUDA only
+
+        unit = self._unit_rays(rays)
+        fc = self.config.features
+        fused = fused_network_outputs(
+            unit.origins, unit.directions, self.occupancy, self.encoder, self.network,
+            max_points=fc.max_points, origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points,
+            point_distances=fc.point_distances, compute_dtype=self.compute_dtype(),
+        )  # fmt: skip
+        keep = torch.nonzero(fused.count > 0).squeeze(1)
+        return unit.index[keep], fused.values[keep], fused.t_enter[keep], fused.t_exit[keep], unit.t_offset[keep]
 
     @torch.no_grad()
     def feature_statistics(self, rays: Rays, truth: Hits) -> dict:

@@ -5,10 +5,11 @@ encodes each boundary point in the sparse hash grid as soon as it is found (`enc
 multiplies its features (+ its point distance) into the first MLP layer at once: the network
 input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over points of
 ``x_h @ W1[:, block h]^T``, one small matrix product per point slot on the tensor cores. Points
-and features stay in registers; the kernel writes only the first hidden layer's activations
-(bf16) and each ray's box interval and point count. The remaining hidden layers run as bf16
-GEMMs and the output layer in fp32, as `LSNIFNetwork.forward` does. A point slot past every
-ray's last point in a block is skipped (their features are 0 and add nothing).
+and features stay in registers. By default (``whole_mlp``) the other layers run in the same
+kernel too (hidden layers on the tensor cores in the compute dtype, output layer in fp32, as
+`MLP.forward` does), so a ray costs 24 bytes in and its outputs out; otherwise the kernel writes
+the first hidden layer's activations and the rest runs as torch GEMMs. A point slot past every
+ray's last point in a block is skipped (its features are 0 and add nothing).
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
 compute precision: the first layer accumulates in fp32 from bf16 inputs (unfused: a bf16 GEMM).
@@ -28,17 +29,20 @@ from ..neural.sparse_hash_grid import SparseHashGrid
 from ..neural.sparse_hash_grid_triton import encode_point
 from .lsnif_features_triton import dda_next_point, dda_point_coords, dda_setup, occupancy_bytes, plane_table
 
-__all__ = ["FusedOutputs", "fused_first_layer", "fused_network_outputs", "pack_first_layer", "fused_layout"]
+__all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_layout", "fused_network_outputs", "pack_first_layer",
+           "pack_network", "run_fused_kernel"]
 
 
 @triton.jit
-def _fused_first_layer_kernel(
+def _fused_lsnif_kernel(
     o_ptr, d_ptr, occ_ptr, planes_ptr, table_ptr, res_ptr, w1_ptr, b1_ptr,
-    h1_ptr, t_enter_ptr, t_exit_ptr, count_ptr,
+    wh_ptr, bh_ptr, wo_ptr, bo_ptr,
+    out_ptr, t_enter_ptr, t_exit_ptr, count_ptr,
     n_rays, V, table_size, slope,
     MAX_POINTS: tl.constexpr, ORIGIN_POINTS: tl.constexpr, SHARE: tl.constexpr,
     POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr,
     HIDDEN: tl.constexpr, IEEE: tl.constexpr, BLOCK: tl.constexpr,
+    WHOLE_MLP: tl.constexpr, MORE_HIDDEN: tl.constexpr, OUTPUTS: tl.constexpr, OP: tl.constexpr,
 ):  # fmt: skip
     rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     lane_ok = rays < n_rays
@@ -83,7 +87,24 @@ def _fused_first_layer_kernel(
         any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
     y = acc + tl.load(b1_ptr + n)[None, :]
     y = tl.where(y >= 0.0, y, y * slope)
-    tl.store(h1_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(h1_ptr.dtype.element_ty), mask=lane_ok[:, None])
+    if WHOLE_MLP:
+        # The other hidden layers (activations rounded to the compute dtype between layers, as
+        # the unfused path does), then the output layer in fp32.
+        for layer in tl.static_range(MORE_HIDDEN):
+            w = tl.load(wh_ptr + (layer * HIDDEN + n[:, None]) * HIDDEN + n[None, :])
+            if IEEE:
+                y = tl.dot(y.to(w.dtype), w, input_precision="ieee")
+            else:
+                y = tl.dot(y.to(w.dtype), w)
+            y = y + tl.load(bh_ptr + layer * HIDDEN + n)[None, :]
+            y = tl.where(y >= 0.0, y, y * slope)
+        y = y.to(w1_ptr.dtype.element_ty).to(tl.float32)
+        o = tl.arange(0, OP)
+        out = tl.dot(y, tl.load(wo_ptr + n[:, None] * OP + o[None, :]), input_precision="ieee")
+        out = out + tl.load(bo_ptr + o)[None, :]
+        tl.store(out_ptr + r64[:, None] * OUTPUTS + o[None, :], out, mask=lane_ok[:, None] & (o < OUTPUTS)[None, :])
+    else:
+        tl.store(out_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(out_ptr.dtype.element_ty), mask=lane_ok[:, None])
     tl.store(t_enter_ptr + rays, t_enter32, mask=lane_ok)
     tl.store(t_exit_ptr + rays, t_exit32, mask=lane_ok)
     tl.store(count_ptr + rays, count, mask=lane_ok)
@@ -92,7 +113,8 @@ def _fused_first_layer_kernel(
 @dataclass(frozen=True)
 class FusedLayout:
     """Padded tile sizes of the fused kernel: per point slot a ``[LP * FP]`` input block (level l,
-    feature f at column ``l * FP + f``; the point distance at ``L * FP``), hidden width ``HP``."""
+    feature f at column ``l * FP + f``; the point distance at ``L * FP``), hidden width ``HP``,
+    output width ``OP``."""
 
     levels: int
     features: int
@@ -100,27 +122,43 @@ class FusedLayout:
     feature_slots: int  # FP
     hidden: int
     hidden_padded: int  # HP
+    outputs: int
+    outputs_padded: int  # OP
 
     @property
     def block_width(self) -> int:
         return self.level_slots * self.feature_slots
 
 
-def fused_layout(levels: int, features: int, hidden: int, point_distances: bool) -> FusedLayout:
+def fused_layout(levels: int, features: int, hidden: int, outputs: int, point_distances: bool) -> FusedLayout:
     lp = triton.next_power_of_2(levels + (1 if point_distances else 0))
     fp = max(triton.next_power_of_2(features), triton.cdiv(16, lp))  # tensor-core products need K >= 16
-    return FusedLayout(levels, features, lp, fp, hidden, max(16, triton.next_power_of_2(hidden)))
+    pow2 = lambda n: max(16, triton.next_power_of_2(n))  # noqa: E731
+    return FusedLayout(levels, features, lp, fp, hidden, pow2(hidden), outputs, pow2(outputs))
+
+
+@dataclass
+class FusedWeights:
+    """The MLP regrouped for the kernel (zero padding everywhere): first layer per point slot
+    ``w1 [H, LP * FP, HP]``, other hidden layers ``wh [layers - 1, HP, HP]`` (input-major), both in
+    the compute dtype; biases fp32; output layer ``wo [HP, OP]`` and ``bo [OP]`` in fp32."""
+
+    layout: FusedLayout
+    w1: Tensor
+    b1: Tensor
+    wh: Tensor
+    bh: Tensor
+    wo: Tensor
+    bo: Tensor
+    rest: list[tuple[Tensor, Tensor]]  # the other hidden layers as (weight, bias) for torch GEMMs
 
 
 def pack_first_layer(
     weight: Tensor, bias: Tensor, max_points: int, layout: FusedLayout, point_distances: bool, dtype: torch.dtype
 ) -> tuple[Tensor, Tensor]:
-    """First-layer weights regrouped per point slot: ``[H, LP * FP, HP]`` in ``dtype`` (zero rows
-    for padding columns), and the bias ``[HP]`` in fp32.
-
-    ``weight`` is ``[hidden, H * L * F (+ H)]``, the network input being point-major encoded
-    features followed by the H point distances.
-    """
+    """First-layer weights per point slot ``[H, LP * FP, HP]`` in ``dtype`` and the bias ``[HP]``
+    in fp32. ``weight`` is ``[hidden, H * L * F (+ H)]``: the network input is the point-major
+    encoded features, then the H point distances."""
     lay, h = layout, max_points
     lf = lay.levels * lay.features
     packed = torch.zeros(h, lay.level_slots, lay.feature_slots, lay.hidden_padded, dtype=torch.float32, device=weight.device)
@@ -128,80 +166,104 @@ def pack_first_layer(
     packed[:, : lay.levels, : lay.features, : lay.hidden] = w[: h * lf].reshape(h, lay.levels, lay.features, lay.hidden)
     if point_distances:
         packed[:, lay.levels, 0, : lay.hidden] = w[h * lf : h * lf + h]
-    b = torch.zeros(lay.hidden_padded, dtype=torch.float32, device=weight.device)
-    b[: lay.hidden] = bias.detach().float()
-    return packed.reshape(h, lay.block_width, lay.hidden_padded).to(dtype).contiguous(), b
+    return packed.reshape(h, lay.block_width, lay.hidden_padded).to(dtype).contiguous(), _padded(bias, lay.hidden_padded)
+
+
+def _padded(t: Tensor, *shape: int) -> Tensor:
+    out = torch.zeros(shape, dtype=torch.float32, device=t.device)
+    out[tuple(slice(0, s) for s in t.shape)] = t.detach().float()
+    return out
+
+
+def pack_network(network: nn.Module, encoder: SparseHashGrid, max_points: int, point_distances: bool, dtype: torch.dtype) -> FusedWeights:
+    """`FusedWeights` of an `MLP`-shaped ``network`` (``hidden`` Linear layers, ``output``)."""
+    first, more = network.hidden[0], list(network.hidden[1:])
+    lay = fused_layout(len(encoder.resolutions), encoder.features_per_level, first.out_features,
+                       network.output.out_features, point_distances)  # fmt: skip
+    hp = lay.hidden_padded
+    w1, b1 = pack_first_layer(first.weight, first.bias, max_points, lay, point_distances, dtype)
+    wh = torch.zeros(max(len(more), 1), hp, hp, dtype=torch.float32, device=w1.device)
+    bh = torch.zeros(max(len(more), 1), hp, dtype=torch.float32, device=w1.device)
+    for i, layer in enumerate(more):
+        wh[i] = _padded(layer.weight.t(), hp, hp)
+        bh[i] = _padded(layer.bias, hp)
+    rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in more]
+    wo = _padded(network.output.weight.t(), hp, lay.outputs_padded)
+    bo = _padded(network.output.bias, lay.outputs_padded)
+    return FusedWeights(lay, w1, b1, wh.to(dtype).contiguous(), bh, wo, bo, rest)
 
 
 @dataclass
 class FusedOutputs:
-    """Per ray of the chunk: first hidden layer (post-activation), box interval, point count."""
+    """Per ray of the chunk: network outputs (or first hidden layer), box interval, point count."""
 
-    hidden: Tensor  # [N, hidden] compute dtype (rows of rays with count 0 are meaningless)
+    values: Tensor  # [N, outputs] fp32 (whole MLP), or [N, hidden] compute dtype (first layer only)
     t_enter: Tensor  # [N] float32 (inf on box miss)
     t_exit: Tensor  # [N] float32
-    count: Tensor  # [N] int32: boundary points seen, up to H (0: certain miss, skip)
+    count: Tensor  # [N] int32: boundary points seen, up to H (0: certain miss, the row is meaningless)
 
 
-def fused_first_layer(
+def run_fused_kernel(
     origins: Tensor,
     directions: Tensor,
     occupancy: Tensor,
     table: Tensor,
     resolutions: Tensor,
-    w1_packed: Tensor,
-    b1_packed: Tensor,
-    layout: FusedLayout,
+    weights: FusedWeights,
     *,
     max_points: int,
     origin_point: bool = True,
     share_boundary_points: bool = True,
     point_distances: bool = True,
     slope: float = 0.01,
+    whole_mlp: bool = True,
     block: int = 64,
     num_warps: int = 4,
 ) -> FusedOutputs:
-    """Featurize + encode + first layer (+ leaky ReLU) of unit-box rays ``[N, 3]`` in one kernel.
+    """Featurize + encode + first layer (``whole_mlp``: + every layer) of unit-box rays ``[N, 3]``.
 
-    ``occupancy`` [V, V, V] and ``table`` [L, T, F] on the rays' device; ``resolutions`` int32
-    [L] there too; ``w1_packed``/``b1_packed`` from `pack_first_layer`. CUDA, or CPU tensors
-    under ``TRITON_INTERPRET=1``.
+    ``occupancy`` [V, V, V], ``table`` [L, T, F] and ``resolutions`` (int32 [L]) on the rays'
+    device. CUDA, or CPU tensors under ``TRITON_INTERPRET=1``.
     """
-    device = origins.device
+    device, lay = origins.device, weights.layout
     occ = occupancy_bytes(occupancy, device)
     o = origins.detach().to(torch.float32).contiguous()
     d = directions.detach().to(torch.float32).contiguous()
     n = o.shape[0]
-    hidden = torch.empty((n, layout.hidden_padded), dtype=w1_packed.dtype, device=device)
+    if whole_mlp:
+        values = torch.empty((n, lay.outputs), dtype=torch.float32, device=device)
+    else:
+        values = torch.empty((n, lay.hidden_padded), dtype=weights.w1.dtype, device=device)
     t_enter = torch.empty(n, dtype=torch.float32, device=device)
     t_exit = torch.empty(n, dtype=torch.float32, device=device)
     count = torch.empty(n, dtype=torch.int32, device=device)
     if n:
-        _fused_first_layer_kernel[(triton.cdiv(n, block),)](
+        _fused_lsnif_kernel[(triton.cdiv(n, block),)](
             o, d, occ, plane_table(occ.shape[0], device), table.detach().contiguous(), resolutions,
-            w1_packed, b1_packed, hidden, t_enter, t_exit, count,
+            weights.w1, weights.b1, weights.wh, weights.bh, weights.wo, weights.bo,
+            values, t_enter, t_exit, count,
             n, occ.shape[0], table.shape[1], float(slope),
             MAX_POINTS=int(max_points), ORIGIN_POINTS=bool(origin_point), SHARE=bool(share_boundary_points),
-            POINT_DISTANCES=bool(point_distances), L=layout.levels, F=layout.features,
-            LP=layout.level_slots, FP=layout.feature_slots, HIDDEN=layout.hidden_padded,
-            IEEE=w1_packed.dtype == torch.float32, BLOCK=block, num_warps=num_warps,
+            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features,
+            LP=lay.level_slots, FP=lay.feature_slots, HIDDEN=lay.hidden_padded,
+            IEEE=weights.w1.dtype == torch.float32, BLOCK=block,
+            WHOLE_MLP=bool(whole_mlp), MORE_HIDDEN=len(weights.rest), OUTPUTS=lay.outputs, OP=lay.outputs_padded,
+            num_warps=num_warps,
         )  # fmt: skip
-    return FusedOutputs(hidden[:, : layout.hidden], t_enter, t_exit, count)
+    if not whole_mlp:
+        values = values[:, : lay.hidden]
+    return FusedOutputs(values, t_enter, t_exit, count)
 
 
-def _packed_for(network: nn.Module, encoder: SparseHashGrid, max_points: int, point_distances: bool, dtype: torch.dtype):
-    """Packed first layer and the later layers' weights in ``dtype``, cached on the network and
-    re-made when any parameter changes (same keying as the network's own bf16 weight cache)."""
-    key = (dtype, max_points, point_distances, tuple((p.data_ptr(), p._version) for p in network.hidden.parameters()))
-    cached = getattr(network, "_fused_cache", None)
+def _weights_for(network: nn.Module, encoder: SparseHashGrid, max_points: int, point_distances: bool, dtype: torch.dtype) -> FusedWeights:
+    """`pack_network`, cached on the network and re-made when any parameter changes (keyed on
+    storage and version counter, as the network's own bf16 weight cache)."""
+    key = (dtype, max_points, point_distances, tuple((p.data_ptr(), p._version) for p in network.parameters()))
+    cached = getattr(network, "_fused_weights", None)
     if cached is None or cached[0] != key:
-        first = network.hidden[0]
-        layout = fused_layout(len(encoder.resolutions), encoder.features_per_level, first.out_features, point_distances)
-        w1, b1 = pack_first_layer(first.weight, first.bias, max_points, layout, point_distances, dtype)
-        rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in network.hidden[1:]]
-        cached = (key, layout, w1, b1, rest)
-        network._fused_cache = cached
-    return cached[1:]
+        cached = (key, pack_network(network, encoder, max_points, point_distances, dtype))
+        network._fused_weights = cached
+    return cached[1]
 
 
 def fused_network_outputs(
@@ -216,22 +278,26 @@ def fused_network_outputs(
     share_boundary_points: bool = True,
     point_distances: bool = True,
     compute_dtype: torch.dtype = torch.bfloat16,
+    whole_mlp: bool = True,
     block: int = 64,
     num_warps: int = 4,
-) -> tuple[Tensor, FusedOutputs]:
-    """The LSNIF network's raw outputs ``[N, outputs]`` (fp32) for unit-box rays, fused path.
+) -> FusedOutputs:
+    """The LSNIF network's raw outputs ``[N, outputs]`` (fp32) for unit-box rays, fused.
 
-    ``network`` is an `LSNIFNetwork`/`MLP` (``hidden`` Linear layers, ``output``, ``slope``).
-    Returns the outputs and the kernel's `FusedOutputs` (box interval and point counts: rays
-    with ``count == 0`` are certain misses and their output rows are meaningless).
+    ``network`` is `MLP`-shaped (``hidden`` Linear layers, ``output``, ``slope``). With
+    ``whole_mlp`` every layer runs inside the kernel; otherwise the kernel stops after the first
+    layer and the others run as torch GEMMs (hidden in ``compute_dtype``, output in fp32).
+    Rays with ``count == 0`` are certain misses: their output rows are meaningless.
     """
-    layout, w1, b1, rest = _packed_for(network, encoder, max_points, point_distances, compute_dtype)
-    fused = fused_first_layer(
-        origins, directions, occupancy, encoder.table, encoder._resolutions_on(origins.device), w1, b1, layout,
+    weights = _weights_for(network, encoder, max_points, point_distances, compute_dtype)
+    fused = run_fused_kernel(
+        origins, directions, occupancy, encoder.table, encoder._resolutions_on(origins.device), weights,
         max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
-        point_distances=point_distances, slope=network.slope, block=block, num_warps=num_warps,
+        point_distances=point_distances, slope=network.slope, whole_mlp=whole_mlp, block=block, num_warps=num_warps,
     )  # fmt: skip
-    x = fused.hidden
-    for w, b in rest:
-        x = F.leaky_relu(F.linear(x, w, b), network.slope)
-    return network.output(x.float()), fused
+    if not whole_mlp:
+        x = fused.values
+        for w, b in weights.rest:
+            x = F.leaky_relu(F.linear(x, w, b), network.slope)
+        fused.values = network.output(x.float())
+    return fused
