@@ -1,6 +1,8 @@
 """MeshBLAS backends: chosen by device at construction, and in agreement with the Embree reference
 (t to 1e-4 relative; hit masks equal except grazing rays, counted and bounded)."""
 
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -109,3 +111,20 @@ def test_no_grazing_rays_means_identical_hit_masks(backend):
     r = _agreement(EmbreeMeshBLAS(mesh), cls(mesh, device=device), rays)
     assert r["hit_mismatch"] == 0 and r["occluded_mismatch"] == 0 and r["t_off"] == 0
     assert 0.3 < r["a"].hit.float().mean() < 0.7
+
+
+def test_variant_listed_but_not_shipped_is_unavailable(monkeypatch):
+    # A trimmed Mitsuba install lists llvm_ad_rgb in mitsuba.variants() without its module.
+    real_import = importlib.import_module
+
+    def import_module(name, *args):
+        if name.startswith("mitsuba."):
+            raise ModuleNotFoundError(f"No module named {name!r}")
+        return real_import(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", import_module)
+    mesh_blas_mitsuba._variant_available.cache_clear()
+    try:
+        assert not mitsuba_variant_available("cpu") and not mitsuba_variant_available("cuda")
+    finally:
+        mesh_blas_mitsuba._variant_available.cache_clear()

@@ -64,13 +64,13 @@ def _mesh(kind: str) -> Mesh:
     v, f = s.vertices, s.faces
     textured = MeshMaterial("tex", np.array([0.8, 0.5, 1.3], np.float32), rng.uniform(size=(8, 16, 3)).astype(np.float32))
     materials = [MeshMaterial("a", np.array([1.4, 0.2, 0.6], np.float32)), textured, MeshMaterial("b")]
-    face_mats = rng.integers(-1, 4, len(f))  # includes ids outside the table: clipped for the albedo
+    face_mats = rng.integers(0, 3, len(f))  # ids into the 3 materials (into 2 for "colours", below)
     uvs = rng.uniform(-2, 2, (len(v), 2))
     colors = rng.uniform(0, 1.5, (len(v), 3))
     if kind == "plain":
         return Mesh(v, f)
     if kind == "colours":
-        return Mesh(v, f, uvs=uvs, vertex_colors=colors, face_material_ids=face_mats, materials=materials[::2])
+        return Mesh(v, f, uvs=uvs, vertex_colors=colors, face_material_ids=face_mats % 2, materials=materials[::2])
     normals = np.where(rng.uniform(size=(len(v), 1)) < 0.3, 0.0, s.vertex_normals)  # some vanish
     return Mesh(v, f, vertex_normals=normals, uvs=uvs, vertex_colors=colors, face_material_ids=face_mats, materials=materials)
 
