@@ -148,6 +148,21 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
                 face_material_ids=np.concatenate(mat_ids), materials=[MeshMaterial(n) for n in names], name="group")
 
 
+def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
+    """``mesh`` written as OBJ and read back (a second round trip changes nothing)."""
+    from ..geometry.mesh import load_mesh
+
+    path = Path(folder) / f".{_safe_name(mesh.name)}-round-trip.obj"
+    try:
+        write_mesh_obj(mesh, path)
+        again = load_mesh(path)
+    finally:
+        path.unlink(missing_ok=True)
+        path.with_suffix(".mtl").unlink(missing_ok=True)
+    again.name = mesh.name
+    return again
+
+
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
     """Write positions, normals and per-face material groups as OBJ (+ MTL), atomically enough for a cache:
     written under a temporary name, then renamed."""
@@ -223,7 +238,9 @@ def convert_scene(
     # object (the loader's cache), so each distinct object is hashed once.
     jobs: dict[str, tuple[Mesh, list[int]]] = {}
     if group:
-        merged = _merged_world_mesh(spec, chosen, meshes)
+        # Train on the merged mesh as the converted scene will read it back from its OBJ (the
+        # round trip rounds normals), so the model's mesh hash matches what the loader checks.
+        merged = _obj_round_trip(_merged_world_mesh(spec, chosen, meshes), models_dir)
         jobs[merged.content_hash()] = (merged, chosen)
     else:
         hashes: dict[int, str] = {}
