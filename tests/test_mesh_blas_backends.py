@@ -10,10 +10,11 @@ import trimesh
 from exact_backends import other_backends
 from test_mesh_blas_kernels import _mesh, _rays
 
-from neuralrt import Mesh, MeshBLAS, NeuralRTError, Rays
+from neuralrt import Mesh, MeshBLAS, Rays
 from neuralrt.accel import mesh_blas, mesh_blas_mitsuba
 from neuralrt.accel.mesh_blas import EmbreeMeshBLAS
 from neuralrt.accel.mesh_blas_mitsuba import MitsubaMeshBLAS, mitsuba_variant_available
+from neuralrt.errors import DeviceError
 
 _TRIANGLE = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]]))
 
@@ -51,7 +52,7 @@ def test_mitsuba_rejects_rays_on_another_device(monkeypatch):
     blas = MitsubaMeshBLAS(_TRIANGLE, device="cpu")
     rays = Rays(torch.tensor([[0.2, 0.2, 1.0]]), torch.tensor([[0.0, 0.0, -1.0]]))
     monkeypatch.setattr(Rays, "device", property(lambda self: torch.device("cuda", 0)))
-    with pytest.raises(NeuralRTError, match="rays are on cuda:0 but this exact BLAS is on cpu"):
+    with pytest.raises(DeviceError, match="rays are on cuda:0 but this exact BLAS is on cpu"):
         blas.intersect(rays)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import NeuralRTError
+from ..errors import DeviceError, NeuralRTError
 from ..geometry.mesh import Mesh
 from ..rays import Hits, Rays, valid_ray_mask
 from .mesh_blas import MeshBLAS
@@ -104,7 +104,7 @@ class MitsubaMeshBLAS(MeshBLAS):
     # -- queries ---------------------------------------------------------------------------------
     def _check_device(self, rays: Rays) -> None:
         if rays.device.type != self.device.type:
-            raise NeuralRTError(f"rays are on {rays.device} but this exact BLAS is on {self.device}: move them with rays.to()")
+            raise DeviceError(f"rays are on {rays.device} but this exact BLAS is on {self.device}: move them with rays.to()")
 
     def _trace_inputs(self, rays: Rays) -> tuple[Tensor, Tensor]:
         """[7, N] contiguous float32 columns (origin moved to t_min, direction, t_far) and the
