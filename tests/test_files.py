@@ -91,4 +91,4 @@ def test_failed_render_leaves_no_empty_folders(tmp_path):
     assert not (tmp_path / "out").exists()
     done = api.render("builtin:cornell-statue?detail=0", tmp_path / "out" / "deep" / "img.exr", spp=1,
                       resolution=(8, 8), progress=False)
-    assert (tmp_path / "out" / "deep" / "img.exr").is_file() and len(done["files"]) == 8
+    assert (tmp_path / "out" / "deep" / "img.exr").is_file() and len(done["files"]) == 10  # image + 4 AOVs, EXR and PNG each
