@@ -4,8 +4,10 @@ import json
 
 from PIL import Image
 
+import pytest
+
 from neuralrt.cli import main
-from neuralrt.demo import DEMO_QUICK
+from neuralrt.errors import ConfigError
 
 
 def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
@@ -35,4 +37,26 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
         assert Image.open(out / png).size == (32, 24)
     assert Image.open(out / "side_by_side.png").size[0] == 3 * 32
     assert "FLIP hybrid vs exact" in (out / "report.md").read_text()
-    assert DEMO_QUICK.resolution[0] >= 64  # the real quick preset is untouched
+    assert report["settings"]["steps"] == 40 and report["settings"]["preset"] == "hq"  # the patched settings ran
+
+
+def test_quick_is_a_shorter_run_of_the_same_model():
+    import neuralrt.demo as demo
+
+    quick, full = demo.DEMO_QUICK, demo.DEMO_DEFAULT
+    assert quick.method == full.method and quick.preset == full.preset  # the same model, trained briefly
+    assert quick.steps < 1000 and quick.spp < full.spp and quick.resolution[0] < full.resolution[0]
+
+
+@pytest.mark.parametrize("field, value, needle", [
+    ("spp", -1, "spp: must be at least 1, got -1"),
+    ("max_depth", 0, "max_depth: must be at least 1"),
+    ("resolution", (0, 10), "resolution: must be at least 1"),
+    ("preset", "mq", "unknown lsnif preset 'mq'"),
+    ("batch", 3, "training.batch_size"),
+])
+def test_settings_are_checked_on_construction(field, value, needle):
+    import neuralrt.demo as demo
+
+    with pytest.raises(ConfigError, match=needle.replace("(", r"\(").replace(")", r"\)")):
+        demo.DemoSettings(**{field: value})

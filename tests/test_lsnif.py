@@ -171,7 +171,10 @@ def test_resume_continues_from_checkpoint(ball, trained):
     """Training 150 steps then resuming to 160 runs only the last 10 steps."""
     model, ckpt = trained
     cfg = LSNIFConfig.preset("hq").with_training(steps=TRAIN_STEPS + 10, batch_size=TRAIN_BATCH, seed=0, lr_decay_final=1.0)
+    torch.manual_seed(123)
+    global_rng = torch.get_rng_state()
     resumed = train(ball, cfg, progress=False, checkpoint=ckpt, resume=True)
+    assert torch.equal(torch.get_rng_state(), global_rng)  # training keeps its own generators
     rec = resumed.training_record
     assert rec["resumed_from"] == TRAIN_STEPS and rec["steps"] == TRAIN_STEPS + 10
     assert rec["rays"] == (TRAIN_STEPS + 10) * TRAIN_BATCH

@@ -17,15 +17,17 @@ __all__ = ["MLP"]
 class MLP(nn.Module):
     """``in_features`` -> ``hidden_layers`` x ``hidden_width`` (leaky ReLU) -> ``out_features`` (linear).
 
-    Parameters are fp32; ``generator`` seeds the Kaiming-uniform init (biases start at 0).
+    Parameters are fp32; ``generator`` seeds the Kaiming-uniform init (biases start at 0); the
+    global torch RNG is not used.
     """
 
     def __init__(self, in_features: int, out_features: int, hidden_width: int = 128, hidden_layers: int = 2, slope: float = 0.01,
                  generator: torch.Generator | None = None):
         super().__init__()
         widths = [in_features] + [hidden_width] * hidden_layers
-        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
-        self.output = nn.Linear(widths[-1], out_features)
+        # skip_init: nn.Linear's own init would draw from the global RNG; ``generator`` sets every value below.
+        self.hidden = nn.ModuleList(nn.utils.skip_init(nn.Linear, a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.output = nn.utils.skip_init(nn.Linear, widths[-1], out_features)
         self.slope = slope
         for layer in self.hidden:
             nn.init.kaiming_uniform_(layer.weight, a=slope, nonlinearity="leaky_relu", generator=generator)
