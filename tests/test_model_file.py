@@ -100,3 +100,67 @@ def test_newer_version_rejected(model_path):
 def test_wrong_method_rejected(model_path):
     msg = _error(model_path, method="nbvh")
     assert "'lsnif' model" in msg and "'nbvh'" in msg
+
+
+def _rewrite_header(path, change) -> None:
+    """Edit the neuralrt header of a model file in place (keeps the arrays and their digest)."""
+    data = path.read_bytes()
+    n = struct.unpack("<Q", data[:8])[0]
+    header = json.loads(data[8 : 8 + n])
+    inner = json.loads(header["__metadata__"]["neuralrt"])
+    change(inner)
+    header["__metadata__"]["neuralrt"] = json.dumps(inner)
+    raw = json.dumps(header).encode()
+    raw += b" " * ((8 - len(raw) % 8) % 8)
+    path.write_bytes(struct.pack("<Q", len(raw)) + raw + data[8 + n :])
+
+
+@pytest.fixture(scope="module")
+def lsnif_file(tmp_path_factory):
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    model = LSNIFModel.from_mesh(sphere(2), LSNIFConfig.preset("lq"))
+    return model, model.save(tmp_path_factory.mktemp("m") / "ball.nrt")
+
+
+def test_model_header_is_typed_and_stores_nothing_derivable(lsnif_file):
+    from neuralrt.io.model_file import read_model_header
+
+    model, path = lsnif_file
+    raw = read_header(path)
+    assert set(raw) == {"format_version", "method", "arrays_sha256", "config", "bounds", "materials", "training",
+                        "mesh_sha256", "mesh_name"}
+    header = read_model_header(path)
+    assert header.method == "lsnif" and header.config["method"] == "lsnif" and header.mesh_sha256 == model.mesh_hash
+    assert header.materials[0].name == "default"
+
+
+def test_version_1_files_still_load(lsnif_file, tmp_path):
+    from neuralrt.methods import load_model
+    from neuralrt.rays import Rays
+
+    model, path = lsnif_file
+    old = tmp_path / "v1.nrt"
+    old.write_bytes(path.read_bytes())
+
+    def as_version_1(h):  # what format 1 wrote: derivable box and memory, no method in the config
+        h.update(format_version=1, box=h["bounds"], memory_bytes={"total": 1})
+        del h["config"]["method"]
+
+    _rewrite_header(old, as_version_1)
+    loaded, current = load_model(old), load_model(path)
+    o = torch.randn(64, 3, generator=torch.Generator().manual_seed(0)) * 3
+    assert loaded.config == current.config and loaded.mesh_hash == model.mesh_hash
+    assert torch.equal(loaded.intersect(Rays(o, -o)).t, current.intersect(Rays(o, -o)).t)
+
+
+def test_invalid_model_header_is_one_line(lsnif_file, tmp_path):
+    from neuralrt.methods import load_model
+
+    _, path = lsnif_file
+    bad = tmp_path / "bad.nrt"
+    bad.write_bytes(path.read_bytes())
+    _rewrite_header(bad, lambda h: h.update(bounds=[[0, 0], [1, 1, 1]]))
+    with pytest.raises(ModelFileError, match=r"invalid model header \(bounds\.0"):
+        load_model(bad)
