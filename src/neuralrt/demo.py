@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .methods.registry import DEFAULT_METHOD
+
 __all__ = ["DemoSettings", "DEMO_DEFAULT", "DEMO_QUICK", "run_demo"]
 
 
@@ -29,7 +31,7 @@ class DemoSettings:
     fails before any training starts."""
 
     scene: str = "builtin:cornell-statue"
-    method: str = "lsnif"  # registered method of the trained models
+    method: str = DEFAULT_METHOD  # registered method of the trained models
     preset: str | None = None  # the method's preset (None: its default for the device; LSNIF: hq on the CPU)
     steps: int | None = None  # training steps (None: the preset's)
     batch: int | None = None  # training rays per step (None: the preset's CPU default)
