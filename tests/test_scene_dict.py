@@ -80,6 +80,7 @@ def test_errors_are_raised_at_build_time_naming_the_key(edit, message):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.filterwarnings("ignore:.*cannot check that the model belongs")  # model-only: nothing to check against
 def test_model_only_object_gets_one_slot_per_model_material(tmp_path):
     """The loader maps a model's own material names (`material_names`, the BLAS contract), not one
     'default' slot: a model-only object keeps its materials."""
@@ -109,6 +110,7 @@ def test_a_model_on_another_mesh_is_an_error_unless_allowed():
         load_dict({"materials": MATERIALS, "objects": [{"model": StandInModel(other, ["floor"])}]})
 
 
+@pytest.mark.filterwarnings("ignore:.*cannot check that the model belongs")  # model-only: nothing to check against
 def test_emissive_model_slots_are_rejected_after_loading():
     model = StandInModel(_two_part_mesh(), ["shell", "lamp"])
     with pytest.raises(SceneError, match="objects.0.model: emissive objects"):
