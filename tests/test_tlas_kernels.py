@@ -120,3 +120,35 @@ def test_rays_on_another_device_are_one_line_errors(blases):
         with pytest.raises(DeviceError, match="rays are on meta but the scene is on cpu") as info:
             query(rays)
         assert "\n" not in str(info.value)
+
+
+class _HostBLAS:
+    """Answers on the host whatever device the rays are on: isolates the TLAS stages on a device."""
+
+    def __init__(self, blas):
+        self.blas, self.bounds, self.secondary_offset = blas, blas.bounds, blas.secondary_offset
+
+    def intersect(self, rays):
+        return self.blas.intersect(rays.to("cpu")).to(rays.device)
+
+    def occluded(self, rays):
+        return self.blas.occluded(rays.to("cpu")).to(rays.device)
+
+
+def test_scene_on_each_device_answers_like_the_cpu(blases, device):
+    """The stages chosen for ``device`` (torch off the CPU) give the CPU's answers there."""
+    torus, sphere = (_HostBLAS(b) for b in blases)
+    layout = [(torus, Transform(), [0]), (sphere, TILTED, [1]), (torus, MOVED, [2])] + [(torus, xf, [3]) for xf in GRID[:4]]
+    instances = [Instance(b, xf, torch.tensor(m)) for b, xf, m in layout]
+    rays = _rays(5000, seed=6)
+    ref, ref_occ = SceneAccel(instances).intersect(rays), SceneAccel(instances).occluded(rays)
+    accel = SceneAccel(instances, device=device)
+    got, occ = accel.intersect(rays.to(device)), accel.occluded(rays.to(device))
+    assert ref.hit.sum() > 500 and got.t.device.type == device.type
+    same = got.hit.cpu() == ref.hit
+    assert same.float().mean() > 0.999  # rays grazing a triangle edge may flip with float rounding
+    both = same & ref.hit
+    torch.testing.assert_close(got.t.cpu()[both], ref.t[both], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got.normal.cpu()[both], ref.normal[both], rtol=1e-4, atol=1e-5)
+    assert torch.equal(got.instance_id.cpu()[both], ref.instance_id[both]) and torch.equal(got.material_id.cpu()[both], ref.material_id[both])
+    assert (occ.cpu() == ref_occ).float().mean() > 0.999
