@@ -16,7 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays"]
+__all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",
+           "resolve_device"]
 
 # Tensor type hints carrying shape and dtype (read them with typing.get_type_hints(..., include_extras=True)).
 Points = Annotated[Tensor, "[N, 3] float32"]
@@ -217,6 +218,15 @@ class AABB:
 
     def tolist(self) -> list[list[float]]:
         return [self.lo.tolist(), self.hi.tolist()]
+
+
+def resolve_device(device) -> torch.device:
+    """``device`` as tensors report it: ``"cuda"`` becomes ``cuda:<current index>`` (so it compares
+    equal to a CUDA tensor's ``.device``); other devices as given."""
+    dev = torch.device(device)
+    if dev.type == "cuda" and dev.index is None:
+        return torch.device("cuda", torch.cuda.current_device())
+    return dev
 
 
 def valid_ray_mask(rays: Rays) -> Tensor:

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DeviceError
-from ..rays import AABB, Hits, Rays, Transform
+from ..rays import AABB, Hits, Rays, Transform, resolve_device
 from .blas import BLAS, MemoryReport
 from .tlas_stages import InstanceTable, stages_for
 
@@ -75,7 +75,7 @@ class SceneAccel:
         if not instances:
             raise ValueError("a scene needs at least one instance")
         self.instances = list(instances)
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         dev = self.device
         n_inst = len(self.instances)
         box_lo = torch.stack([i.world_bounds.lo for i in self.instances]).float().to(dev)  # [I, 3]

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..rays import Hits, Rays
+from ..rays import Hits, Rays, resolve_device
 from .film import Film, RenderResult
 from .sampling import make_generator, power_heuristic, uniform
 
@@ -249,7 +249,7 @@ def render(
     if spp < 1 or settings.max_depth < 1 or settings.max_paths < 1:
         raise ValueError("spp, max_depth and max_paths must be >= 1")
     camera = scene.camera.with_resolution(resolution) if resolution is not None else scene.camera
-    dev = torch.device(device) if device is not None else scene.device
+    dev = resolve_device(device) if device is not None else scene.device
     if dev != scene.device:
         raise ValueError(f"scene was built on {scene.device}; load it with device={dev} to render there")
     tracer = PathTracer(_with_camera(scene, camera), settings)

@@ -24,6 +24,7 @@ from ..accel.tlas import Instance, SceneAccel
 from ..errors import NeuralRTError, SceneError
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
+from ..rays import resolve_device
 from ..methods.base import check_mesh_match
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
@@ -233,7 +234,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     if primary not in PRIMARY_CHOICES:
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
     spec = absolutize_paths(spec, Path(base_dir))
-    dev = torch.device(device)
+    dev = resolve_device(device)
     index = material_index(spec)
     materials = _material_table(scene_materials(spec), label, dev)
 
