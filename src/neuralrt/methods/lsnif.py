@@ -189,7 +189,7 @@ class LSNIFModel(NeuralBLAS):
         w = self.config.loss
         occ_loss = F.binary_cross_entropy_with_logits(out[:, _OCC], hit.float()) if len(act) else out.sum() * 0
         loss = w.occlusion * occ_loss
-        parts = {"occlusion": occ_loss.item()}
+        parts = {"occlusion": occ_loss}  # loss terms, read back to the host once, below
         if bool(hit.any()):
             o = out[hit]
             t_enter, t_exit = fp.t_enter[hit], fp.t_exit[hit]
@@ -200,17 +200,19 @@ class LSNIFModel(NeuralBLAS):
             albedo = torch.sigmoid(o[:, _ALBEDO])
             albedo_loss = ((albedo - tr.albedo[hit]) ** 2 / (albedo.detach() ** 2 + 1e-2)).mean()
             loss = loss + w.distance * dist_loss + w.normal * normal_loss + w.albedo * albedo_loss
-            parts.update(distance=dist_loss.item(), normal=normal_loss.item(), albedo=albedo_loss.item())
+            parts.update(distance=dist_loss, normal=normal_loss, albedo=albedo_loss)
             if self.num_materials > 1:
                 mat_loss = F.cross_entropy(o[:, _MAT:], tr.material_id[hit].clamp(0, self.num_materials - 1))
                 loss = loss + w.material * mat_loss
-                parts["material"] = mat_loss.item()
+                parts["material"] = mat_loss
         with torch.no_grad():
             predicted = out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)
-            wrong_net = int((predicted != hit).sum())
             # Certain misses are right unless the exact tracer hit there (impossible with exact voxels).
-            missed_outside = int(truth.hit.sum()) - int(hit.sum())
-        return StepResult(loss, parts, n - wrong_net - missed_outside, n, len(act), {"truncated": int(prep.truncated)})
+            counts = torch.stack([(predicted != hit).sum(), truth.hit.sum() - hit.sum(), prep.truncated]).tolist()
+            values = torch.stack([v.detach().float() for v in parts.values()]).tolist()  # one device->host copy each
+        wrong_net, missed_outside, truncated = counts
+        parts = dict(zip(parts, values))
+        return StepResult(loss, parts, n - wrong_net - missed_outside, n, len(act), {"truncated": truncated})
 
     # -- inference ---------------------------------------------------------------------------------
     def _intersect_chunk(self, rays: Rays) -> Hits:
