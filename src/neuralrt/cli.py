@@ -28,6 +28,8 @@ def _print_result(result: dict, as_json: bool) -> None:
     for key, value in result.items():
         if isinstance(value, float):
             value = f"{value:.6g}"
+        elif isinstance(value, dict) and any(isinstance(v, (dict, list)) for v in value.values()):
+            value = json.dumps(value, default=float)  # nested (a config, a training record): compact JSON
         elif isinstance(value, dict):
             value = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())
         print(f"{key:>24}: {value}")
