@@ -1,0 +1,258 @@
+"""Dense-then-hashed multiresolution grid encoding (instant-ngp; N-BVH, Weier et al. 2024, Sec. 6).
+
+``L`` levels of resolution ``base * 2**l`` (N-BVH: 8 levels, 8^3 .. 1024^3), ``F`` features per
+vertex (4), trilinear interpolation of the 8 vertices around a point. tiny-cuda-nn's conventions
+(which the N-BVH code uses): a level's scale is ``s = res - 1`` and a point ``x`` in [0, 1]
+sits at ``x * s + 0.5`` in vertex units; a level whose ``res**3`` vertices fit in the table size
+``T`` is stored densely (index ``x + y*res + z*res^2``), coarser ones first; finer levels hash
+``(x*1) ^ (y*2654435761) ^ (z*805459861) mod T``. All levels live in one table of
+``sum_l min(res_l**3, T)`` rows (`HashGridLayout`), initialised U(-1e-4, 1e-4).
+
+A query encodes P points at once (N-BVH: the 3 chord points of a ray in a leaf) with the same
+table, giving ``[N, P * L * F]`` features, point-major (point 0's levels, then point 1's, ...).
+
+One contract, implementations chosen once by the table's device: fused numba kernels on the CPU
+(forward parallel over rays; the backward scatters into one gradient table per thread, then sums
+them: no atomics), vectorized torch elsewhere (`hash_grid_torch`, autograd through indexing).
+`hash_grid_reference` is a slow scalar transcription of the definition above, for the tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+__all__ = ["HashGridLayout", "HashGrid", "hash_grid_torch", "hash_grid_reference", "HASH_PRIMES"]
+
+HASH_PRIMES = (1, 2654435761, 805459861)  # instant-ngp's spatial hash
+_P0, _P1, _P2 = HASH_PRIMES
+
+
+@dataclass(frozen=True)
+class HashGridLayout:
+    """Where each level lives in the shared table.
+
+    ``resolutions[l]`` vertices per axis, rows ``offsets[l] : offsets[l] + sizes[l]``; a level is
+    dense when ``sizes[l] == resolutions[l]**3``, else hashed into ``sizes[l] == T`` rows.
+    """
+
+    resolutions: tuple[int, ...]
+    sizes: tuple[int, ...]
+    offsets: tuple[int, ...]
+
+    @staticmethod
+    def create(levels: int = 8, base_resolution: int = 8, log2_table_size: int = 18) -> "HashGridLayout":
+        if levels < 1 or base_resolution < 2 or not 1 <= log2_table_size <= 26:
+            raise ValueError(f"hash grid: need levels >= 1, base_resolution >= 2, 1 <= log2_table_size <= 26 "
+                             f"(got {levels}, {base_resolution}, {log2_table_size})")
+        res = tuple(base_resolution * 2**lvl for lvl in range(levels))
+        sizes = tuple(min(r**3, 2**log2_table_size) for r in res)
+        offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(sizes)[:-1]]))
+        return HashGridLayout(res, sizes, offsets)
+
+    @property
+    def rows(self) -> int:
+        return int(sum(self.sizes))
+
+    @property
+    def dense(self) -> tuple[bool, ...]:
+        return tuple(s == r**3 for r, s in zip(self.resolutions, self.sizes))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(resolutions, sizes, offsets) as int64 numpy arrays (the numba kernels' arguments)."""
+        return (np.asarray(self.resolutions, np.int64), np.asarray(self.sizes, np.int64), np.asarray(self.offsets, np.int64))
+
+
+# ---------------------------------------------------------------------------------------------
+# numba kernels (CPU)
+
+
+@numba.njit(cache=True, inline="always")
+def _corners(x, y, z, res, size, offset, rows, weights):
+    """Fill ``rows``/``weights`` [8] with the table rows and trilinear weights of one point at one level."""
+    scale = np.float32(res - 1)
+    half = np.float32(0.5)
+    one = np.float32(1.0)
+    px = min(max(x, np.float32(0.0)), one) * scale + half
+    py = min(max(y, np.float32(0.0)), one) * scale + half
+    pz = min(max(z, np.float32(0.0)), one) * scale + half
+    fx, fy, fz = np.floor(px), np.floor(py), np.floor(pz)
+    wx, wy, wz = px - fx, py - fy, pz - fz
+    ix, iy, iz = np.int64(fx), np.int64(fy), np.int64(fz)
+    dense = size == res * res * res
+    for c in range(8):
+        cx = min(ix + (c & 1), res - 1)
+        cy = min(iy + ((c >> 1) & 1), res - 1)
+        cz = min(iz + ((c >> 2) & 1), res - 1)
+        if dense:
+            idx = cx + cy * res + cz * res * res
+        else:
+            idx = ((cx * _P0) ^ (cy * _P1) ^ (cz * _P2)) & (size - 1)
+        rows[c] = offset + idx
+        w = wx if (c & 1) else one - wx
+        w *= wy if ((c >> 1) & 1) else one - wy
+        w *= wz if ((c >> 2) & 1) else one - wz
+        weights[c] = w
+
+
+@numba.njit(parallel=True, cache=True)
+def _forward_kernel(points, table, resolutions, sizes, offsets, n_chunks, out):
+    """``points`` [N, P, 3], ``table`` [R, F] -> ``out`` [N, P * L * F]."""
+    n, n_points = points.shape[0], points.shape[1]
+    n_levels, n_feat = resolutions.shape[0], table.shape[1]
+    for chunk in numba.prange(n_chunks):
+        rows = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+            for p in range(n_points):
+                for lvl in range(n_levels):
+                    _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
+                    col = (p * n_levels + lvl) * n_feat
+                    for f in range(n_feat):
+                        acc = np.float32(0.0)
+                        for c in range(8):
+                            acc += weights[c] * table[rows[c], f]
+                        out[i, col + f] = acc
+
+
+@numba.njit(parallel=True, cache=True)
+def _backward_kernel(points, grad_out, resolutions, sizes, offsets, grad_tables):
+    """Scatter ``grad_out`` [N, P * L * F] into ``grad_tables[chunk]`` ([R, F] each, one per thread)."""
+    n, n_points = points.shape[0], points.shape[1]
+    n_chunks, n_feat = grad_tables.shape[0], grad_tables.shape[2]
+    n_levels = resolutions.shape[0]
+    for chunk in numba.prange(n_chunks):
+        grad = grad_tables[chunk]
+        rows = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+            for p in range(n_points):
+                for lvl in range(n_levels):
+                    _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
+                    col = (p * n_levels + lvl) * n_feat
+                    for f in range(n_feat):
+                        g = grad_out[i, col + f]
+                        for c in range(8):
+                            grad[rows[c], f] += weights[c] * g
+
+
+class _HashGridFunction(torch.autograd.Function):
+    """Fused numba forward/backward; differentiable in the table only (points are data)."""
+
+    @staticmethod
+    def forward(ctx, points: Tensor, table: Tensor, layout: HashGridLayout):
+        pts = points.detach().float().contiguous().numpy()
+        res, sizes, offsets = layout.arrays()
+        n, n_points = pts.shape[:2]
+        n_feat = table.shape[1]
+        out = np.empty((n, n_points * len(res) * n_feat), np.float32)
+        if n:
+            chunks = max(1, min(n, 8 * numba.get_num_threads()))
+            _forward_kernel(pts, table.detach().contiguous().numpy(), res, sizes, offsets, chunks, out)
+        ctx.save_for_backward(points)
+        ctx.layout, ctx.table_shape = layout, tuple(table.shape)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        if not ctx.needs_input_grad[1]:
+            return None, None, None
+        (points,) = ctx.saved_tensors
+        res, sizes, offsets = ctx.layout.arrays()
+        threads = max(1, min(len(points), numba.get_num_threads()))
+        tables = np.zeros((threads, *ctx.table_shape), np.float32)
+        if len(points):
+            _backward_kernel(points.detach().float().contiguous().numpy(), grad_out.float().contiguous().numpy(),
+                             res, sizes, offsets, tables)  # fmt: skip
+        grad = tables[0] if threads == 1 else tables.sum(0)
+        return None, torch.from_numpy(grad), None
+
+
+# ---------------------------------------------------------------------------------------------
+# torch (any device), and the slow reference
+
+_CORNER_BITS = torch.tensor([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])  # [8, 3]
+
+
+def hash_grid_torch(points: Tensor, table: Tensor, layout: HashGridLayout) -> Tensor:
+    """Vectorized torch encoding, same contract as `HashGrid.forward` (autograd through indexing)."""
+    n, n_points = points.shape[:2]
+    p = points.reshape(-1, 3).float().clamp(0.0, 1.0)
+    bits = _CORNER_BITS.to(p.device)
+    primes = torch.tensor(HASH_PRIMES, device=p.device)
+    per_level = []
+    for res, size, offset in zip(layout.resolutions, layout.sizes, layout.offsets):
+        pos = p * float(res - 1) + 0.5
+        cell = torch.floor(pos)
+        w = pos - cell
+        vertex = (cell.long()[:, None, :] + bits[None]).clamp(max=res - 1)  # [M, 8, 3]
+        if size == res**3:
+            idx = vertex[..., 0] + vertex[..., 1] * res + vertex[..., 2] * (res * res)
+        else:
+            idx = ((vertex[..., 0] * primes[0]) ^ (vertex[..., 1] * primes[1]) ^ (vertex[..., 2] * primes[2])) & (size - 1)
+        weight = torch.where(bits[None].bool(), w[:, None, :], 1 - w[:, None, :]).prod(-1)  # [M, 8]
+        per_level.append((weight[..., None] * table[offset + idx]).sum(1))
+    return torch.stack(per_level, 1).reshape(n, n_points * len(layout.resolutions) * table.shape[1])
+
+
+def hash_grid_reference(points: np.ndarray, table: np.ndarray, layout: HashGridLayout) -> np.ndarray:
+    """Scalar float64 transcription of the encoding (slow; tests only): [N, P, 3] -> [N, P * L * F]."""
+    points, table = np.asarray(points, np.float64), np.asarray(table, np.float64)
+    n, n_points, n_feat = points.shape[0], points.shape[1], table.shape[1]
+    out = np.zeros((n, n_points, len(layout.resolutions), n_feat))
+    for i in range(n):
+        for p in range(n_points):
+            for lvl, (res, size, offset) in enumerate(zip(layout.resolutions, layout.sizes, layout.offsets)):
+                pos = [min(max(x, 0.0), 1.0) * (res - 1) + 0.5 for x in points[i, p]]
+                base = [int(np.floor(x)) for x in pos]
+                for c in range(8):
+                    corner = [min(base[a] + ((c >> a) & 1), res - 1) for a in range(3)]
+                    weight = 1.0
+                    for a in range(3):
+                        frac = pos[a] - base[a]
+                        weight *= frac if (c >> a) & 1 else 1.0 - frac
+                    if size == res**3:
+                        idx = corner[0] + corner[1] * res + corner[2] * res * res
+                    else:
+                        idx = (corner[0] * _P0 ^ corner[1] * _P1 ^ corner[2] * _P2) % size
+                    out[i, p, lvl] += weight * table[offset + idx]
+    return out.reshape(n, -1)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class HashGrid(nn.Module):
+    """Multiresolution hash grid over the unit cube; ``forward(points [N, P, 3]) -> [N, P * L * F]``.
+
+    Defaults are N-BVH's: 8 levels from 8^3 to 1024^3, 4 features, ``2**18`` rows per hashed
+    level, features U(-init_scale, init_scale) drawn from a generator seeded with ``seed``.
+    Points outside [0, 1] are clamped onto the cube.
+    """
+
+    def __init__(self, levels: int = 8, base_resolution: int = 8, features_per_level: int = 4, log2_table_size: int = 18,
+                 init_scale: float = 1e-4, seed: int = 0):
+        super().__init__()
+        self.layout = HashGridLayout.create(levels, base_resolution, log2_table_size)
+        self.features_per_level = int(features_per_level)
+        generator = torch.Generator().manual_seed(seed)
+        init = (torch.rand(self.layout.rows, self.features_per_level, generator=generator) * 2 - 1) * init_scale
+        self.table = nn.Parameter(init)  # [rows, F]
+
+    def output_dim(self, points_per_query: int) -> int:
+        return points_per_query * len(self.layout.resolutions) * self.features_per_level
+
+    def forward(self, points: Tensor) -> Tensor:
+        if points.ndim != 3 or points.shape[-1] != 3:
+            raise ValueError(f"expected points [N, P, 3], got {tuple(points.shape)}")
+        if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
+            return _HashGridFunction.apply(points, self.table, self.layout)
+        return hash_grid_torch(points, self.table, self.layout)
+
+    def extra_repr(self) -> str:
+        lay = self.layout
+        return f"resolutions={lay.resolutions[0]}..{lay.resolutions[-1]}, rows={lay.rows}, features={self.features_per_level}"
