@@ -186,3 +186,26 @@ def test_interrupted_training_says_how_to_resume(tmp_path, capsys, monkeypatch):
     assert main(["train", "mesh.obj", "-o", str(tmp_path / "m.nrt")]) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("neuralrt: interrupted") and "--resume" in err
+
+
+def test_render_with_a_model_of_another_mesh_is_an_error_unless_allowed(plates, tmp_path, capsys):
+    model = tmp_path / "plates.nrt"
+    assert main(["train", str(plates), "-o", str(model), "--preset", "lq", "--steps", "2", "--batch", "256", "--quiet"]) == 0
+    scene = tmp_path / "scene.toml"
+    scene.write_text(f"""
+[camera]
+position = [0, 0, 4]
+look_at = [0, 0, 0]
+resolution = [8, 8]
+
+[[objects]]
+name = "ball"
+generator = {{ name = "sphere", params = {{ subdivisions = 1 }} }}
+model = "{model}"
+""")
+    capsys.readouterr()
+    argv = ["render", str(scene), "-o", str(tmp_path / "out" / "img.exr"), "--spp", "1", "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "objects.0" in err and "trained on another mesh" in err and "\n" not in err
+    assert main([*argv, "--allow-mesh-mismatch"]) == 0

@@ -152,8 +152,10 @@ def render(
     detail: int | None = None,
     device: str = "cpu",
     progress: bool = True,
+    allow_mesh_mismatch: bool = False,
 ) -> dict:
-    """Path-trace ``scene`` (file or ``builtin:NAME``) to ``output`` (EXR; PNG and AOVs beside it)."""
+    """Path-trace ``scene`` (file or ``builtin:NAME``) to ``output`` (EXR; PNG and AOVs beside it).
+    A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``."""
     from .render.integrator import render as _render
     from .scene.loader import load_scene
 
@@ -163,7 +165,8 @@ def render(
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary)
+    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
+                        allow_mesh_mismatch=allow_mesh_mismatch)
     try:
         result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
     except ValueError as exc:

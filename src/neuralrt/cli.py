@@ -65,7 +65,7 @@ def _cmd_render(args) -> None:
         raise NeuralRTError("render needs SCENE and -o OUTPUT.exr (or --list-builtins)")
     result = api.render(args.scene, args.output, spp=args.spp, resolution=args.res, seed=args.seed,
                         max_depth=args.max_depth, primary=args.primary, detail=args.detail, device=args.device,
-                        progress=not args.quiet)
+                        progress=not args.quiet, allow_mesh_mismatch=args.allow_mesh_mismatch)
     _print_result(result, args.json)
 
 
@@ -177,6 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="who answers camera rays for neural objects that keep their mesh (default: exact)")
     p.add_argument("--detail", type=int, help="procedural mesh detail of a built-in scene")
     p.add_argument("--list-builtins", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--allow-mesh-mismatch", action="store_true",
+                   help="use models trained on another mesh than their object's (default: an error)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_render)
