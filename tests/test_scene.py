@@ -227,3 +227,16 @@ def test_reference_page_is_current_and_its_example_loads(tmp_path):
     (tmp_path / "example.toml").write_text(example)
     scene = load_scene(tmp_path / "example.toml", resolution=(8, 8))
     assert len(scene.accel.instances) == 2 and scene.lights.kinds == ["area", "environment"]
+
+
+@pytest.mark.parametrize("command", ["info", "render"])
+def test_nan_transform_is_one_line_from_the_cli(scene_dir, capsys, command):
+    """Issue 7: NaN in translate gave a traceback in `render` and `info`."""
+    from neuralrt.cli import main
+
+    (scene_dir / "scene.toml").write_text(SCENE.replace("translate = [1, 0, 0]", "translate = [1, nan, 0]"))
+    args = [command, str(scene_dir / "scene.toml")] + (["-o", str(scene_dir / "out" / "x.exr")] if command == "render" else [])
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("neuralrt: error: scene.toml: objects.1.transform.translate.1:") and "\n" not in err
+    assert not (scene_dir / "out").exists()
