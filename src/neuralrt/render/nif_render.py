@@ -1,0 +1,163 @@
+"""Render with NIF shadow rays (Fujieda et al., HPG 2023): pick the objects, train online from the
+current view, then answer their shadow rays with the networks.
+
+`render_nif` renders the first ``train_spp`` samples per pixel with exact shadow rays while every
+(shadow ray, NIF object) pair is labelled and trained on (`NIFShadowAccel` in ``"collect"`` mode),
+then the remaining samples with the NIF objects' shadow rays answered by the networks. Camera and
+bounce rays stay exact throughout. The two parts are separate `render` calls (the second with
+seed ``seed + SECOND_PART_SEED``, so its samples are new), merged by sample count. A new call
+trains afresh: the networks hold only what this view and these lights taught them.
+
+`select_nif_instances` checks the ``--nif`` argument against the scene before any rendering.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError
+from ..methods.nif import NIFNetworks
+from ..methods.nif_config import NIFConfig
+from ..methods.nif_training import NIFTrainer
+from .film import RenderResult
+from .integrator import render
+from .nif_shadows import NIFShadowAccel
+
+__all__ = ["render_nif", "select_nif_instances", "SECOND_PART_SEED"]
+
+SECOND_PART_SEED = 104_729  # added to the seed of the samples after training (any offset gives new wavefront seeds)
+
+
+def _instance_problem(scene, inst) -> str | None:
+    from ..methods.base import is_neural
+
+    if is_neural(inst.blas) or getattr(inst.blas, "mesh", None) is None:
+        return "has no exact mesh (NIF learns from exact shadow rays)"
+    emissive = scene.materials.emissive_mask.to(inst.material_map.device)[inst.material_map]
+    if bool(emissive.any()):
+        return "is emissive (a light): its shadow rays end on it"
+    return None
+
+
+def select_nif_instances(scene, nif: str | list[str], config: NIFConfig | None = None) -> list[int]:
+    """Indices of the scene instances whose shadow rays NIF answers.
+
+    ``nif`` is ``"auto"`` (every exact, non-emissive object with more than
+    ``config.auto_min_triangles`` triangles) or object names (a list, or one comma-separated
+    string). A name matching no object, an emissive object (a light) or an object without an exact
+    mesh is a one-line `ConfigError`, as is ``auto`` finding nothing."""
+    config = config or NIFConfig()
+    instances = scene.accel.instances
+    if isinstance(nif, str) and nif.strip() == "auto":
+        chosen = [k for k, inst in enumerate(instances) if _instance_problem(scene, inst) is None
+                  and inst.blas.mesh.num_triangles > config.auto_min_triangles]
+        if not chosen:
+            biggest = max((inst.blas.mesh.num_triangles for inst in instances if getattr(inst.blas, "mesh", None) is not None), default=0)
+            raise ConfigError(f"--nif auto: no object has more than {config.auto_min_triangles:,} triangles "
+                              f"(the largest has {biggest:,}); name the objects instead")
+        return chosen
+    names = [n.strip() for n in (nif.split(",") if isinstance(nif, str) else nif)]
+    if not names or any(not n for n in names):
+        raise ConfigError(f"--nif {nif!r}: give object names separated by commas, or auto")
+    known = [inst.name for inst in instances]
+    chosen = []
+    for name in names:
+        matches = [k for k, inst in enumerate(instances) if inst.name == name]
+        if not matches:
+            raise ConfigError(f"--nif {name}: no object of that name (objects: {', '.join(dict.fromkeys(known))})")
+        for k in matches:
+            problem = _instance_problem(scene, instances[k])
+            if problem:
+                raise ConfigError(f"--nif {name}: the object {problem}")
+        chosen.extend(matches)
+    return sorted(set(chosen))
+
+
+def _merge(a: RenderResult, b: RenderResult, seconds: float) -> RenderResult:
+    """One result from two renders of the same view, weighted by their sample counts."""
+    wa, wb = a.spp, b.spp
+    spp = wa + wb
+
+    def mean(x, y):
+        return ((x.astype(np.float64) * wa + y.astype(np.float64) * wb) / spp).astype(np.float32)
+
+    hits_a, hits_b = a.coverage.astype(np.float64) * wa, b.coverage.astype(np.float64) * wb
+    hits = hits_a + hits_b
+    depth = np.where(hits > 0, (a.depth * hits_a + b.depth * hits_b) / np.maximum(hits, 1e-30), 0.0).astype(np.float32)
+    normal = mean(a.normal, b.normal)  # means of unit means: the AOV's direction, renormalised
+    normal = (normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+    stats = {"nonfinite_samples": a.stats.get("nonfinite_samples", 0) + b.stats.get("nonfinite_samples", 0)}
+    return RenderResult(image=mean(a.image, b.image), albedo=mean(a.albedo, b.albedo), normal=normal, depth=depth,
+                        coverage=mean(a.coverage, b.coverage), spp=spp, seconds=seconds, stats=stats)
+
+
+def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, train_spp: int | None = None, seed: int = 0,
+               config: NIFConfig | None = None, answer: str = "answer", audit: bool = False, **render_kwargs) -> tuple[RenderResult, dict]:
+    """Render ``scene`` with NIF answering the shadow rays of the objects ``nif`` names (see
+    `select_nif_instances`). ``train_spp`` (default ``config.training.train_spp``) samples per
+    pixel train the networks; the other ``spp - train_spp`` use them. ``answer="exact"`` renders
+    the same samples with exact shadow rays instead (the reference that differs only in who
+    answered); ``audit=True`` also runs every shadow ray exactly, timing it and counting
+    disagreements. ``render_kwargs`` go to `neuralrt.render.integrator.render` (``resolution``,
+    ``max_depth``, ``progress``, ...).
+
+    Returns the merged `RenderResult` and the NIF report (objects, memory, training time per spp,
+    shadow rays by network, times)."""
+    config = config or NIFConfig()
+    if train_spp is not None:
+        config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": int(train_spp)})})
+    train_spp = config.training.train_spp
+    spp = int(spp if spp is not None else scene.settings.spp)
+    if train_spp < 1:
+        raise ConfigError(f"--nif-train-spp: must be at least 1, got {train_spp}")
+    if spp <= train_spp:
+        raise ConfigError(f"--nif-train-spp {train_spp} leaves no samples for NIF at --spp {spp} (it must be below spp)")
+    if answer not in ("answer", "exact"):
+        raise ValueError(f"answer must be 'answer' or 'exact', got {answer!r}")
+    chosen = select_nif_instances(scene, nif, config)
+
+    accel = scene.accel
+    blases = list({id(accel.instances[k].blas): accel.instances[k].blas for k in chosen}.values())
+    boxes = [b.bounds.inflated(config.box_inflation) for b in blases]
+    networks = NIFNetworks(config, boxes).to(scene.device)
+    trainer = NIFTrainer(networks)
+    shadows = NIFShadowAccel(accel, chosen, networks, trainer, audit=audit)
+    nif_scene = replace(scene, accel=shadows)
+
+    start = time.perf_counter()
+    shadows.mode = "collect"
+    first = render(nif_scene, spp=train_spp, seed=seed, **render_kwargs)
+    trainer.finish()
+    shadows.mode = answer
+    second = render(nif_scene, spp=spp - train_spp, seed=seed + SECOND_PART_SEED, **render_kwargs)
+    total = time.perf_counter() - start
+    result = _merge(first, second, total)
+
+    tr = trainer.stats
+    names = list(dict.fromkeys(accel.instances[k].name for k in chosen))
+    report = {
+        "objects": names,
+        "instances": len(chosen),
+        "unique_meshes": len(blases),
+        "triangles": [int(b.mesh.num_triangles) for b in blases],
+        "spp": spp,
+        "train_spp": train_spp,
+        "passes_per_spp": config.training.passes_per_spp,
+        "answer": answer,
+        "training": tr.as_dict(),
+        "training_seconds": tr.seconds,
+        "training_seconds_per_spp": tr.seconds / train_spp,
+        "training_share_of_render": tr.seconds / max(total, 1e-12),
+        "render_seconds": {"train_part": first.seconds, "finish_training": total - first.seconds - second.seconds,
+                           "answer_part": second.seconds, "total": total},
+        "shadow_rays_training": shadows.stats["collect"].as_dict(),
+        "shadow_rays": shadows.stats[answer].as_dict(),
+        "memory": networks.memory_report(),
+        "device": str(scene.device),
+        "torch_threads": torch.get_num_threads(),
+    }
+    return result, report
