@@ -25,6 +25,7 @@ import torch
 
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
+from ..io.files import write_atomically
 from ..io.model_file import read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .loader import load_scene_spec, shape_for
@@ -164,10 +165,9 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
 
 
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
-    """Write positions, normals and per-face material groups as OBJ (+ MTL), atomically enough for a cache:
-    written under a temporary name, then renamed."""
+    """Write positions, normals and per-face material groups as OBJ (+ MTL), each atomically
+    (`neuralrt.io.files.write_atomically`)."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
     mtl = path.with_suffix(".mtl")
     lines = [f"mtllib {mtl.name}"]
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in mesh.vertices]
@@ -178,9 +178,9 @@ def write_mesh_obj(mesh: Mesh, path: Path) -> None:
             continue
         lines.append(f"usemtl {material.name}")
         lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in sel]
-    mtl.write_text("".join(f"newmtl {m.name}\nKd 1 1 1\n\n" for m in mesh.materials))
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    mtl_text = "".join(f"newmtl {m.name}\nKd 1 1 1\n\n" for m in mesh.materials)
+    write_atomically(mtl, lambda tmp: Path(tmp).write_text(mtl_text))
+    write_atomically(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
 
 
 def convert_scene(
