@@ -184,3 +184,14 @@ def test_group_trains_one_model_for_several_objects(converted):
     assert group.material_map.tolist() == [white]
     img = render(scene, spp=2, seed=0, max_depth=2, progress=False)
     assert np.isfinite(img.image).all() and img.image.mean() > 0
+
+
+def test_failed_conversion_leaves_no_folders(converted, tmp_path):
+    folder, _ = converted
+    with pytest.raises(SceneError, match="not found"):
+        convert_scene(tmp_path / "nope.toml", tmp_path / "a" / "x.toml", progress=False)
+    with pytest.raises(SceneError, match="no object named 'nope'"):
+        convert_scene(folder / "scene.toml", tmp_path / "b" / "x.toml", select=["nope"], progress=False)
+    with pytest.raises(ValueError, match="unknown lsnif preset 'mq'"):
+        convert_scene(folder / "scene.toml", tmp_path / "c" / "x.toml", preset="mq", progress=False)
+    assert list(tmp_path.iterdir()) == []
