@@ -8,8 +8,9 @@ A method subclasses `NeuralBLAS` and provides:
 - ``memory_bytes()``: run-time bytes, itemised;
 - ``_arrays()`` / ``_from_arrays(config, bounds, materials, arrays)``: what its model file stores
   besides the common header, and how a model is rebuilt from it;
-- optionally ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut) and ``box``
-  (the region training rays aim at; default: the bounds).
+- optionally ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut), ``box``
+  (the region training rays aim at; default: the bounds) and ``training_rays(truth, device)`` (the
+  training ray distribution; default: `BoxRayDistribution` around ``box``).
 
 The base class holds config, bounds, mesh hash, materials and training record; it answers rays in
 chunks, picks the compute precision, rounds to the storage precision, and saves and loads every
@@ -127,6 +128,15 @@ class NeuralBLAS(nn.Module, ABC):
 
     def after_training_step(self, step: int, optimizer: torch.optim.Optimizer) -> None:
         """Called by the training loop after each optimizer step (e.g. to refine a BVH cut). Default: nothing."""
+
+    def training_rays(self, truth, device: torch.device):
+        """The ray distribution training draws batches from (``sample(n)``, ``state_dict``/``load_state_dict``),
+        with exact answers from ``truth``. Default: `BoxRayDistribution` around `box` (N-BVH draws its own)."""
+        from ..training.ray_distribution import BoxRayDistribution
+
+        tc = self.config.training
+        return BoxRayDistribution(truth, self.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
+                                  surface_offset=tc.surface_offset, seed=tc.seed, device=device)
 
     # -- common properties -------------------------------------------------------------------------
     @property

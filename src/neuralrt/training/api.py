@@ -11,7 +11,6 @@ from ..accel.mesh_blas import MeshBLAS
 from ..geometry.mesh import Mesh, load_mesh
 from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
 from ..neural.precision import precision_name
-from .ray_distribution import BoxRayDistribution
 from .trainer import TrainingRecord, train_model
 
 __all__ = ["train", "run_identity"]
@@ -38,7 +37,7 @@ def train(
     """Train a model of ``mesh`` with ``config`` (its ``method`` picks the method) and return it.
 
     ``config`` defaults to the default method's default preset for ``device`` (LSNIF: ``hq`` on
-    the CPU, ``gpu`` on CUDA). Rays come from `BoxRayDistribution` with exact ground truth, on
+    the CPU, ``gpu`` on CUDA). Rays come from ``model.training_rays`` (default `BoxRayDistribution`) with exact ground truth, on
     ``device``. With ``checkpoint``, training state is saved periodically there; ``resume=True``
     continues from it. The returned model's parameters are rounded to the storage precision, so
     it answers exactly as its saved file.
@@ -50,10 +49,7 @@ def train(
     config = config or spec.config(device=device.type)
     tc = config.training
     model = spec.model_class.from_mesh(mesh, config).to(device)
-    rays = BoxRayDistribution(
-        MeshBLAS(mesh, device=device), model.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
-        surface_offset=tc.surface_offset, seed=tc.seed, device=device,
-    )
+    rays = model.training_rays(MeshBLAS(mesh, device=device), device)  # default: BoxRayDistribution
     start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
     record = train_model(
         model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
