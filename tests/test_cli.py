@@ -47,6 +47,7 @@ def test_info_mesh_and_scene_json(tmp_path, capsys):
     assert main(["info", "builtin:instances?detail=0", "--json"]) == 0
     scene = _json(capsys)
     assert scene["instances"] == 38 and scene["unique_blas"] == 5  # 36 copies of 3 meshes + floor + light
+    assert scene["memory_by_role"]["total_bytes"] == scene["memory_bytes"] and scene["memory_by_role"]["neural_bytes"] == 0
 
 
 @pytest.fixture(scope="module")

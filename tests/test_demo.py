@@ -28,6 +28,8 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     assert 0 <= report["flip"] <= 1
     mem = report["memory"]
     assert mem["neural_bytes"] > 0 and mem["bvh_a_bytes"] > 0 and mem["bvh_b_bytes"] > 0
+    # exact camera rays: the statue keeps its mesh and BVH, so the hybrid scene holds more, and says so
+    assert mem["camera_bytes"] > 0 and mem["hybrid_scene_bytes"] > mem["exact_scene_bytes"] > 0
     t = report["time"]
     assert t["train_s"] > 0 and t["exact_render_s"] > 0 and t["hybrid_render_s"] > 0
     assert report["neural_objects"] == 1 and report["settings"]["resolution"] == [32, 24]
@@ -37,6 +39,7 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
         assert Image.open(out / png).size == (32, 24)
     assert Image.open(out / "side_by_side.png").size[0] == 3 * 32
     assert "FLIP hybrid vs exact" in (out / "report.md").read_text()
+    assert "kept for camera rays" in (out / "report.md").read_text()
     assert report["settings"]["steps"] == 40 and report["settings"]["preset"] == "hq"  # the patched settings ran
 
 

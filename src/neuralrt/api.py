@@ -85,6 +85,7 @@ def _mesh_info(path: Path) -> dict:
 def _scene_info(spec: str) -> dict:
     from .methods.base import is_neural
     from .scene.loader import load_scene
+    from .scene.memory import scene_memory
 
     scene = load_scene(spec)
     accel = scene.accel
@@ -106,6 +107,8 @@ def _scene_info(spec: str) -> dict:
         "bounds": accel.bounds.tolist(),
         "memory_bytes": memory.total,
         "memory_parts": {k: int(v) for k, v in memory.parts.items()},
+        # by role: exact objects, neural models, meshes kept for camera rays, what the models replaced
+        "memory_by_role": scene_memory(scene).as_dict(),
     }
 
 
