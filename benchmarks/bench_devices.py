@@ -1,0 +1,182 @@
+"""neuralrt on one device, end to end, in one run (issue 8): training, inference of the neural BLAS
+against the exact backend on the same rays, and renders exact vs hybrid.
+
+For ``--device`` (cpu or cuda; the exact backend is Embree on the CPU and OptiX via Mitsuba 3 on
+CUDA, as `MeshBLAS(mesh, device=...)` picks it):
+
+1. **train**: an LSNIF model of each ``--meshes`` entry with the device's default preset (``hq`` on
+   the CPU, ``gpu`` = 2,000 x 2^18 rays on CUDA; ``--steps`` shortens it), wall time and training
+   rays/s, then held-out figures (hit accuracy, |t| error, normal error, normal FLIP) with
+   `evaluate_model`.
+2. **inference**: 2^``--rays-log2`` rays from a sphere around each mesh aimed at random points of its
+   box (the rays issue 8 measured OptiX with): closest-hit and shadow rays/s of the model and of the
+   exact backend, same rays, same run, median of ``--repeats`` calls with the device synchronised.
+3. **render**: ``--scene`` converted with the same preset, rendered exact and hybrid (``--primary
+   exact``: camera rays exact, every other ray neural) at ``--res``/``--spp``: seconds per spp and
+   FLIP of the hybrid image against the exact one (and exact vs exact at another seed: the noise
+   floor).
+
+Prints tables and writes benchmarks/results/devices_<device>.json (device, versions, date, figures).
+
+    python benchmarks/bench_devices.py --device cuda
+    python benchmarks/bench_devices.py --device cpu --steps 300 --rays-log2 18 --res 96 --spp 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import neuralrt  # noqa: E402,F401  (sets the process-wide defaults first)
+from _common import RESULTS_DIR, machine_info, print_table  # noqa: E402
+from bench_exact_backends import median_seconds, sphere_rays, versions  # noqa: E402
+
+from neuralrt import api  # noqa: E402
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.eval.intersection_metrics import HELD_OUT_SEED, evaluate_model  # noqa: E402
+from neuralrt.geometry.procedural import make_procedural  # noqa: E402
+from neuralrt.methods import get_method  # noqa: E402
+from neuralrt.training.api import train  # noqa: E402
+
+TRAIN_COLUMNS = ["mesh", "triangles", "preset", "steps", "batch", "train_s", "train_Mrays/s", "outside_acc",
+                 "t_err_med", "normal_err_med_deg", "normal_flip", "memory_MiB"]
+INFER_COLUMNS = ["mesh", "query", "neural_Mrays/s", "exact_Mrays/s", "neural_x_exact", "hit_agreement"]
+RENDER_COLUMNS = ["scene", "res", "spp", "exact_s_per_spp", "hybrid_s_per_spp", "hybrid_x_exact", "flip", "noise_floor"]
+
+
+def _mesh(spec: str):
+    name, _, detail = spec.partition(":")
+    return make_procedural(name, **({"detail": int(detail)} if detail else {}))
+
+
+def _first(metrics: dict, *keys):
+    """The first of ``keys`` present in the nested ``metrics`` ("a.b" paths); None if none is."""
+    for key in keys:
+        value = metrics
+        for part in key.split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        if value is not None:
+            return value
+    return None
+
+
+def bench_train(spec: str, device: torch.device, steps: int | None, images_dir: Path) -> tuple[dict, object, object]:
+    mesh = _mesh(spec)
+    lsnif = get_method("lsnif")
+    preset = lsnif.default_preset(device.type)
+    config = lsnif.config(preset, device=device.type, steps=steps)
+    start = time.perf_counter()
+    model = train(mesh, config, progress=False, device=device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    seconds = time.perf_counter() - start
+    tc = config.training
+    metrics = evaluate_model(model, mesh, seed=HELD_OUT_SEED, images=True, image_dir=images_dir / spec.replace(":", "_"))
+    row = {
+        "mesh": spec, "triangles": len(mesh.faces), "preset": preset, "steps": tc.steps, "batch": tc.batch_size,
+        "train_s": seconds, "train_Mrays/s": tc.steps * tc.batch_size / seconds / 1e6,
+        "outside_acc": _first(metrics, "outside.accuracy"),
+        "t_err_med": _first(metrics, "outside.t_rel_error_median", "outside.t_error_median"),
+        "normal_err_med_deg": _first(metrics, "outside.normal_error_deg_median"),
+        "normal_flip": _first(metrics, "images.normal_flip", "normal_flip"),
+        "memory_MiB": model.memory_bytes().total / 2**20,
+        "metrics": metrics,
+    }
+    return row, mesh, model
+
+
+def bench_inference(spec: str, mesh, model, device: torch.device, rays_log2: int, repeats: int) -> list[dict]:
+    rays = sphere_rays(mesh, 1 << rays_log2).to(device)
+    exact = MeshBLAS(mesh, device=device)
+    rows = []
+    for query in ("intersect", "occluded"):
+        neural_fn, exact_fn = getattr(model, query), getattr(exact, query)
+        t_neural = median_seconds(lambda: neural_fn(rays), device, repeats)
+        t_exact = median_seconds(lambda: exact_fn(rays), device, repeats)
+        a, b = neural_fn(rays), exact_fn(rays)
+        a, b = (a.hit, b.hit) if query == "intersect" else (a, b)
+        n = len(rays)
+        rows.append({"mesh": spec, "query": query, "rays": n, "neural_Mrays/s": n / t_neural / 1e6,
+                     "exact_Mrays/s": n / t_exact / 1e6, "neural_x_exact": t_exact / t_neural,
+                     "hit_agreement": float((a == b).float().mean())})
+    return rows
+
+
+def bench_render(scene: str, device: torch.device, steps: int | None, res: int, spp: int, work: Path) -> dict:
+    converted = work / "converted.toml"
+    report = api.convert(scene, converted, steps=steps, device=device.type, progress=False)
+    for name, target in (("warm_exact", scene), ("warm_hybrid", converted)):  # compile kernels, build BVHs once
+        api.render(str(target), work / f"{name}.exr", spp=1, resolution=(16, 16), device=device.type, progress=False)
+    seconds = {}
+    for name, target, seed in (("exact", scene, 0), ("exact_seed1", scene, 1), ("hybrid", converted, 0)):
+        out = api.render(str(target), work / f"{name}.exr", spp=spp, resolution=(res, res), seed=seed,
+                         device=device.type, progress=False)
+        seconds[name] = out["seconds"]
+    flip = api.compare(work / "exact.exr", work / "hybrid.exr")["flip"]
+    floor = api.compare(work / "exact.exr", work / "exact_seed1.exr")["flip"]
+    return {"scene": scene, "res": res, "spp": spp, "exact_s_per_spp": seconds["exact"] / spp,
+            "hybrid_s_per_spp": seconds["hybrid"] / spp, "hybrid_x_exact": seconds["hybrid"] / seconds["exact"],
+            "flip": flip, "noise_floor": floor, "train_s": report.get("train_seconds")}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--meshes", default="statue:2,hairball:6", help="procedural meshes (name:detail, comma-separated)")
+    parser.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    parser.add_argument("--rays-log2", type=int, default=22)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--scene", default="builtin:hairball?detail=6")
+    parser.add_argument("--res", type=int, default=256)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--skip", default="", help="sections to skip: train,inference,render")
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else machine_info()["cpu"]
+    out = args.out or RESULTS_DIR / f"devices_{device.type}.json"
+    payload = {"benchmark": "devices", "device": name, "machine": machine_info(), "versions": versions(),
+               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+               "train": [], "inference": [], "render": []}
+
+    def save() -> None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
+        tmp.replace(out)
+
+    skip = set(filter(None, args.skip.split(",")))
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for spec in args.meshes.split(","):
+            if "train" in skip and "inference" in skip:
+                break
+            row, mesh, model = bench_train(spec, device, args.steps, work)
+            payload["train"].append(row)
+            save()
+            if "inference" not in skip:
+                payload["inference"] += bench_inference(spec, mesh, model, device, args.rays_log2, args.repeats)
+                save()
+            del model
+        if "render" not in skip:
+            payload["render"].append(bench_render(args.scene, device, args.steps, args.res, args.spp, work))
+            save()
+    print(f"{name} ({device.type})")
+    print_table(payload["train"], TRAIN_COLUMNS)
+    print()
+    print_table(payload["inference"], INFER_COLUMNS)
+    print()
+    print_table(payload["render"], RENDER_COLUMNS)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
