@@ -15,6 +15,7 @@ from ..io.model_file import read_header
 from .base import MeshMismatchWarning, NeuralBLAS, check_mesh_match, is_neural
 from .config import MethodConfig
 from .lsnif_config import LSNIFConfig
+from .nbvh_config import NBVHConfig
 from .registry import DEFAULT_METHOD, MethodSpec, config_from_dict, get_method, method_names, register_method
 
 __all__ = [
@@ -26,6 +27,11 @@ register_method(MethodSpec(
     name="lsnif", config_class=LSNIFConfig, model="neuralrt.methods.lsnif:LSNIFModel",
     summary="LSNIF (Fujieda et al. 2025): voxels + sparse hash grid + MLP, all ray types",
     default_presets={"cuda": "gpu", "*": "hq"},
+))
+register_method(MethodSpec(
+    name="nbvh", config_class=NBVHConfig, model="neuralrt.methods.nbvh:NBVHModel",
+    summary="N-BVH (Weier et al. 2024): BVH cut + hash grid + MLP over leaf chords, all ray types",
+    default_presets={"cuda": "paper", "*": "cpu"},
 ))
 
 

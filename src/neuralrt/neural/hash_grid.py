@@ -107,16 +107,19 @@ def _forward_kernel(points, table, resolutions, sizes, offsets, n_chunks, out):
     for chunk in numba.prange(n_chunks):
         rows = np.empty(8, np.int64)
         weights = np.empty(8, np.float32)
+        acc = np.empty(n_feat, np.float32)
         for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
             for p in range(n_points):
                 for lvl in range(n_levels):
                     _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
                     col = (p * n_levels + lvl) * n_feat
+                    acc[:] = np.float32(0.0)
+                    for c in range(8):  # corner-major: one table row at a time, sums in a local array
+                        r, w = rows[c], weights[c]
+                        for f in range(n_feat):
+                            acc[f] += w * table[r, f]
                     for f in range(n_feat):
-                        acc = np.float32(0.0)
-                        for c in range(8):
-                            acc += weights[c] * table[rows[c], f]
-                        out[i, col + f] = acc
+                        out[i, col + f] = acc[f]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -134,10 +137,10 @@ def _backward_kernel(points, grad_out, resolutions, sizes, offsets, grad_tables)
                 for lvl in range(n_levels):
                     _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
                     col = (p * n_levels + lvl) * n_feat
-                    for f in range(n_feat):
-                        g = grad_out[i, col + f]
-                        for c in range(8):
-                            grad[rows[c], f] += weights[c] * g
+                    for c in range(8):
+                        r, w = rows[c], weights[c]
+                        for f in range(n_feat):
+                            grad[r, f] += w * grad_out[i, col + f]
 
 
 class _HashGridFunction(torch.autograd.Function):

@@ -1,0 +1,121 @@
+"""N-BVH configuration (Weier et al. 2024; numbers from ../shared/METHODS-SPEC.md section A).
+
+Typed sections, validated on construction, round-tripping through the model file's JSON header.
+Where the paper and the authors' code differ, the paper's choice is the default and the code's is
+an option (chord points, loss weights); see docs/nbvh.md.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar, Literal
+
+from pydantic import Field
+
+from .config import ConfigSection as _Section
+from .config import InferenceConfig, MethodConfig, TrainingConfig
+
+__all__ = ["NBVHEncodingConfig", "NBVHNetworkConfig", "QueryConfig", "CutConfig", "NBVHLossConfig",
+           "NBVHTrainingConfig", "NBVHInferenceConfig", "NBVHConfig", "PRESETS"]
+
+
+class NBVHEncodingConfig(_Section):
+    type: Literal["hash_grid"] = "hash_grid"
+    levels: int = Field(8, ge=1, le=12, description="grid levels (paper: 8)")
+    base_resolution: int = Field(8, ge=2, le=64, description="vertices per axis of the coarsest level; each level doubles it (paper: 8 .. 1024)")
+    features_per_level: int = Field(4, ge=1, le=8, description="features per table row (paper: 4)")
+    log2_table_size: int = Field(18, ge=14, le=22, description="log2 of the rows of a hashed level (paper: 14..22, default 18)")
+    init_scale: float = Field(1e-4, gt=0.0, description="features start U(-s, s) (paper: 1e-4)")
+
+
+class NBVHNetworkConfig(_Section):
+    type: Literal["mlp"] = "mlp"
+    hidden_width: int = Field(64, ge=1, le=1024, description="neurons per hidden layer (paper: 64)")
+    hidden_layers: int = Field(4, ge=1, le=16, description="hidden ReLU layers (paper: 4)")
+
+
+class QueryConfig(_Section):
+    """How a ray's chord through a leaf becomes the network input."""
+
+    chord_points: Literal["equidistant", "stratified"] = Field(
+        "equidistant",
+        description="3 points at t in {0, 1/2, 1} of the chord (the code) or one random point per third in training and "
+        "the thirds' centres at inference (the paper's 'stratified')",
+    )
+    scene_box_dilation: float = Field(1.1e-4, ge=0.0, le=0.1, description="the grid's unit cube is the object's box grown by this (relative to its largest extent) on each side")
+
+
+class CutConfig(_Section):
+    """The BVH cut grown during training (paper Sec. 5.1, 5.3; the code's split scheduler)."""
+
+    max_leaf_size: int = Field(4, ge=1, le=64, description="triangles per leaf of the binary SAH base BVH (its leaves never split)")
+    splitting_interval: int = Field(40, ge=1, description="steps between splits at the start; the interval doubles along with k's growth")
+    split_scaling: float = Field(2.5, ge=1.0, le=16.0, description="factor by which the number of leaves split at once grows")
+    last_split_step: int = Field(3000, ge=0, description="no splits after this step (paper: 3000 of 10,000)")
+    target_nodes: int | None = Field(
+        None, ge=1, description="stop splitting at this many nodes (interior included: 2 * leaves - 1); None: as the schedule gives"
+    )
+    lods: int = Field(7, ge=1, le=7, description="levels of detail registered during training (paper: up to 7; 0 finest)")
+
+
+class NBVHLossConfig(_Section):
+    """Loss weights. Paper: 2 Lv + 2 Ld + Ln + La (default); the code's effective weights are 1:1:3:3."""
+
+    visibility: float = Field(2.0, ge=0.0, description="BCE on hit / no hit")
+    depth: float = Field(2.0, ge=0.0, description="L1 on the LocalT depth, hits only")
+    normal: float = Field(1.0, ge=0.0, description="L1 on the normal in [-1, 1], hits only")
+    albedo: float = Field(1.0, ge=0.0, description="relative L2 on the albedo, hits only")
+
+
+class NBVHTrainingConfig(TrainingConfig):
+    steps: int = Field(4000, ge=1, description="optimizer steps (paper: 10,000 of 2^18 rays)")
+    batch_size: int = Field(1 << 13, ge=16, description="leaf samples per step (paper: 2^18)")
+    adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (the code's)")
+    adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")
+    lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant, as in the paper)")
+    surface_fraction: float = Field(0.0, ge=0.0, le=1.0, description="unused by N-BVH (its rays start in the scaled box)")
+    origin_box_scale: float = Field(1.5, ge=1.0, le=4.0, description="ray origins are uniform in the object box scaled by this about its centre (paper: 1.5)")
+    dilation: float = Field(1e-5, ge=0.0, description="leaf boxes grow by this (unit cube) in training, plus U(0, dilation_jitter) per sample")
+    dilation_jitter: float = Field(1e-4, ge=0.0, description="random extra leaf-box growth per training sample (against thin leaves)")
+    min_acceptance: float = Field(0.005, ge=0.0, le=1.0, description="samples are kept with p = max(h / h_max, this) (paper: 0.005)")
+
+
+class NBVHInferenceConfig(InferenceConfig):
+    lod: int = Field(0, ge=0, le=6, description="level of detail of the cut that answers rays (0: finest)")
+    box_dilation: float = Field(1e-5, ge=0.0, description="leaf boxes grow by this (unit cube) at inference")
+    max_steps: int = Field(1000, ge=1, description="wavefront steps (leaves per ray) at most")
+
+
+class NBVHConfig(MethodConfig):
+    """The whole N-BVH config. Presets: ``cpu`` (measured on 2 CPU cores, see docs/nbvh.md),
+    ``paper`` (2^18 rays x 10,000 steps, splits until 3,000, 2^18 table; the default on CUDA)."""
+
+    method: Literal["nbvh"] = Field("nbvh", description="the intersection method this config belongs to")
+    encoding: NBVHEncodingConfig = Field(default_factory=NBVHEncodingConfig)
+    network: NBVHNetworkConfig = Field(default_factory=NBVHNetworkConfig)
+    query: QueryConfig = Field(default_factory=QueryConfig)
+    cut: CutConfig = Field(default_factory=CutConfig)
+    loss: NBVHLossConfig = Field(default_factory=NBVHLossConfig)
+    training: NBVHTrainingConfig = Field(default_factory=NBVHTrainingConfig)
+    inference: NBVHInferenceConfig = Field(default_factory=NBVHInferenceConfig)
+
+    PRESETS: ClassVar[dict] = {}  # filled below
+
+
+def _paper() -> NBVHConfig:
+    # The shipped CHESS config: (interval 40, scaling 2.5) until step 3000 of 10,000, 2^18 rays.
+    return NBVHConfig(
+        training=NBVHTrainingConfig(steps=10_000, batch_size=1 << 18),
+        inference=NBVHInferenceConfig(chunk_size=1 << 20),
+    )
+
+
+def _cpu() -> NBVHConfig:
+    return NBVHConfig(
+        encoding=NBVHEncodingConfig(log2_table_size=16),
+        cut=CutConfig(splitting_interval=30, split_scaling=2.0, last_split_step=1200),
+        training=NBVHTrainingConfig(steps=4000, batch_size=1 << 13),
+    )
+
+
+PRESETS = {"cpu": _cpu, "paper": _paper}
+NBVHConfig.PRESETS = PRESETS

@@ -1,0 +1,77 @@
+"""N-BVH's training rays (paper Sec. 4 and 5.2; METHODS-SPEC A2.2-A2.3).
+
+Origins uniform in the object's box scaled 1.5x about its centre, directions uniform on the
+sphere, a cut chosen uniformly per ray among the registered LoDs (and the live cut until LoD 0
+exists), resampled until the ray crosses a leaf of its cut. Only the FIRST leaf crossed is
+trained: the sample is the ray's chord through that leaf (box grown by 1e-5 + U(0, 1e-4)), from
+its entry (or, for an origin inside the leaf, from the chord's start behind the origin) to its
+exit; its truth is the first exact hit along the chord, so it does not depend on the origin.
+
+Samples are kept with probability p = max(h / h_max, 0.005) (h: the leaf's heuristic, h_max: the
+largest h so far; a leaf never sampled has p = 1) by drawing more rays than needed and keeping
+the accepted ones: no slot ever holds a stale sample.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..rays import Rays
+from ..training.ray_distribution import TrainingBatch, uniform_sphere_points
+
+__all__ = ["NBVHRayDistribution"]
+
+
+class NBVHRayDistribution:
+    """Draws `TrainingBatch`es of leaf chords (object space: origin at the chord start, unit
+    direction, ``t_max`` = chord length) and tells ``model`` which leaf each one trains."""
+
+    def __init__(self, model, truth, device: torch.device):
+        self.model = model
+        self.truth = truth
+        self.device = torch.device(device)
+        self.generator = torch.Generator(device=self.device).manual_seed(model.config.training.seed)
+        self._yield = 0.5  # running share of candidate rays that become samples (sizes the next draw)
+
+    def _candidates(self, m: int):
+        model, tc, g = self.model, self.model.config.training, self.generator
+        center, extent = model.unit_center, model.unit_extent
+        origins = center + (torch.rand(m, 3, generator=g, device=self.device) - 0.5) * (tc.origin_box_scale * extent)
+        directions = uniform_sphere_points(m, g, self.device)
+        levels = model.training_levels()
+        level = levels[torch.randint(0, len(levels), (m,), generator=g, device=self.device)]
+        dilation = tc.dilation + tc.dilation_jitter * torch.rand(m, generator=g, device=self.device)
+        node, t0, t1 = model.first_leaf(origins, directions, torch.full((m,), float("inf"), device=self.device), level, dilation)
+        crossing = torch.nonzero(node >= 0).squeeze(1)
+        node, t0, t1 = node[crossing], t0[crossing], t1[crossing]
+        p = model.acceptance(node)
+        keep = torch.rand(len(node), generator=g, device=self.device) < p
+        idx = crossing[keep]
+        start = origins[idx] + t0[keep, None] * directions[idx]
+        return start, directions[idx], (t1 - t0)[keep], node[keep]
+
+    def sample(self, n: int) -> TrainingBatch:
+        parts, have, rounds = [], 0, 0
+        while have < n:
+            # Draw about as many as the last rounds' yield says are needed (at most 64 n at once).
+            m = min(max(int(1.2 * (n - have) / max(self._yield, 1e-3)), 1024), 64 * n)
+            start, d, length, node = self._candidates(m)
+            self._yield = 0.5 * self._yield + 0.5 * len(node) / m
+            parts.append((start, d, length, node))
+            have += len(node)
+            rounds += 1
+            if rounds > 200 and have == 0:
+                raise RuntimeError("N-BVH training rays: no sampled ray crosses a leaf of the cut")
+        start, d, length, node = (torch.cat(x)[:n] for x in zip(*parts))
+        model = self.model
+        rays = Rays(model.unit_lo + start * model.unit_scale, d, torch.zeros_like(length), length * model.unit_scale)
+        truth = self.truth.intersect(rays)
+        model.remember_batch_leaves(node)
+        return TrainingBatch(rays, torch.zeros(len(rays), dtype=torch.bool, device=self.device), truth)
+
+    def state_dict(self) -> tuple[dict, dict]:
+        return {"yield": self._yield}, {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, meta: dict, arrays: dict) -> None:
+        self.generator.set_state(arrays["generator"])
+        self._yield = float(meta["yield"])

@@ -1,0 +1,264 @@
+"""Which leaves of an N-BVH cut a ray crosses, front to back: `list_leaves`.
+
+Everything is in the model's unit cube with unit-length directions, so the paper's absolute
+thresholds apply: a leaf counts if its (dilated) box is entered ahead of the origin (t0 > 1e-4),
+or contains the origin and is left beyond t1 > 1e-3 (METHODS-SPEC A4), and t0 < t_max.
+
+A node is a leaf of the cut a ray asks for when it has no children, or when its stored LoD is at
+most the ray's level (level L >= 0: the registered cut of LoD L; level -1: the live cut of
+training, flagged by ``live``).
+
+One contract, implementations chosen once by the tensors' device: a numba kernel on the CPU (a
+stack per ray, parallel over rays, two passes: count, then fill and sort), breadth-first frontier
+expansion in torch elsewhere. Both sort each ray's leaves by (t0, node index) and compute the slab
+test with the same float32 operations, so they give the same lists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["LeafList", "CutArrays", "list_leaves", "list_leaves_torch", "first_leaves", "first_leaves_torch", "NO_LOD"]
+
+NO_LOD = 127  # stored LoD of a node that is a leaf of no registered cut
+_ENTER_MIN = 1e-4  # a leaf ahead of the origin must be entered beyond this
+_EXIT_MIN = 1e-3  # a leaf around the origin must be left beyond this
+_STACK = 256
+
+
+@dataclass
+class CutArrays:
+    """The tree the traversal walks (unit cube; node 0 is the root; children are adjacent)."""
+
+    lo: Tensor  # [M, 3] float32
+    hi: Tensor  # [M, 3] float32
+    children: Tensor  # [M, 2] int32, -1 for none
+    lod: Tensor  # [M] int8: finest registered LoD where the node is a leaf, NO_LOD if none
+    live: Tensor  # [M] bool: leaf of the live cut (training)
+
+
+@dataclass
+class LeafList:
+    """Per ray, the leaves it crosses sorted by (t0, node): rows ``start[i] : start[i + 1]``."""
+
+    start: Tensor  # [N + 1] int64
+    node: Tensor  # [E] int64
+    t0: Tensor  # [E] float32 entry (negative: the origin is inside)
+    t1: Tensor  # [E] float32 exit
+
+    @property
+    def counts(self) -> Tensor:
+        return self.start[1:] - self.start[:-1]
+
+
+# ---------------------------------------------------------------------------------------------
+# numba (CPU)
+
+
+@numba.njit(cache=True, inline="always")
+def _slab(ox, oy, oz, ix, iy, iz, lo, hi, node, dil):
+    tn = -np.inf
+    tf = np.inf
+    for a in range(3):
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        inv = ix if a == 0 else (iy if a == 1 else iz)
+        ta = ((lo[node, a] - dil) - o) * inv
+        tb = ((hi[node, a] + dil) - o) * inv
+        if ta != ta:  # 0 * inf: the origin lies on the slab plane of a parallel ray: inside
+            ta = -np.inf
+        if tb != tb:
+            tb = np.inf
+        tn = max(tn, min(ta, tb))
+        tf = min(tf, max(ta, tb))
+    return np.float32(tn), np.float32(tf)
+
+
+@numba.njit(cache=True)
+def _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, base, write):
+    ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+    ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
+    dil = dilation[i]
+    lvl = level[i]
+    tmax = t_max[i]
+    count = 0
+    sp = 1
+    stack[0] = 0
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, node, dil)
+        if not (tn <= tf and tn < tmax):
+            continue
+        leaf = children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl)
+        if leaf:
+            ok = tn > _ENTER_MIN if tn >= 0 else tf > _EXIT_MIN
+            if ok:
+                if write:
+                    out_node[base + count], out_t0[base + count], out_t1[base + count] = node, tn, tf
+                count += 1
+        elif tf > _ENTER_MIN and sp + 2 <= stack.shape[0]:
+            stack[sp], stack[sp + 1] = children[node, 1], children[node, 0]
+            sp += 2
+    return count
+
+
+@numba.njit(parallel=True, cache=True)
+def _count_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, counts):
+    dummy_i = np.empty(0, np.int64)
+    dummy_f = np.empty(0, np.float32)
+    for i in numba.prange(origins.shape[0]):
+        stack = np.empty(_STACK, np.int64)
+        counts[i] = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack,
+                          dummy_i, dummy_f, dummy_f, 0, False)  # fmt: skip
+
+
+@numba.njit(parallel=True, cache=True)
+def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, start, out_node, out_t0, out_t1):
+    for i in numba.prange(origins.shape[0]):
+        stack = np.empty(_STACK, np.int64)
+        s = start[i]
+        n = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, s, True)
+        # Insertion sort of the ray's few leaves by (t0, node).
+        for a in range(s + 1, s + n):
+            kn, k0, k1 = out_node[a], out_t0[a], out_t1[a]
+            b = a - 1
+            while b >= s and (out_t0[b] > k0 or (out_t0[b] == k0 and out_node[b] > kn)):
+                out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = out_node[b], out_t0[b], out_t1[b]
+                b -= 1
+            out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
+
+
+@numba.njit(parallel=True, cache=True)
+def _first_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1):
+    """Per ray, the leaf with the smallest (t0, node): what `list_leaves` would list first (pruned walk)."""
+    for i in numba.prange(origins.shape[0]):
+        stack = np.empty(_STACK, np.int64)
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
+        dil, lvl, tmax = dilation[i], level[i], t_max[i]
+        best_node, best_t0, best_t1 = -1, np.float32(np.inf), np.float32(np.inf)
+        sp = 1
+        stack[0] = 0
+        while sp > 0:
+            sp -= 1
+            node = stack[sp]
+            tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, node, dil)
+            # A child's box lies in its parent's, so its entry is no earlier: prune beyond the best.
+            if not (tn <= tf and tn < tmax) or tn > best_t0:
+                continue
+            leaf = children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl)
+            if leaf:
+                ok = tn > _ENTER_MIN if tn >= 0 else tf > _EXIT_MIN
+                if ok and (tn < best_t0 or (tn == best_t0 and node < best_node)):
+                    best_node, best_t0, best_t1 = node, tn, tf
+            elif tf > _ENTER_MIN and sp + 2 <= stack.shape[0]:
+                stack[sp], stack[sp + 1] = children[node, 1], children[node, 0]
+                sp += 2
+        out_node[i], out_t0[i], out_t1[i] = best_node, best_t0, best_t1
+
+
+def _np(t: Tensor, dtype) -> np.ndarray:
+    return t.detach().to(dtype).contiguous().numpy()
+
+
+def _kernel_args(origins, directions, t_max, cut: CutArrays, level, dilation) -> tuple:
+    with np.errstate(divide="ignore"):
+        inv = (1.0 / _np(directions, torch.float32)).astype(np.float32)
+    return (_np(origins, torch.float32), inv, _np(t_max, torch.float32), _np(cut.lo, torch.float32), _np(cut.hi, torch.float32),
+            _np(cut.children, torch.int32), _np(cut.lod, torch.int8), _np(cut.live, torch.bool), _np(level, torch.int8),
+            _np(dilation, torch.float32))  # fmt: skip
+
+
+def _first_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilation) -> tuple[Tensor, Tensor, Tensor]:
+    n = len(origins)
+    node, t0, t1 = np.full(n, -1, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
+    if n:
+        _first_kernel(*_kernel_args(origins, directions, t_max, cut, level, dilation), node, t0, t1)
+    return torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1)
+
+
+def _list_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilation) -> LeafList:
+    n = len(origins)
+    args = _kernel_args(origins, directions, t_max, cut, level, dilation)
+    counts = np.zeros(n, np.int64)
+    if n:
+        _count_kernel(*args, counts)
+    start = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=start[1:])
+    e = int(start[-1])
+    node, t0, t1 = np.empty(e, np.int64), np.empty(e, np.float32), np.empty(e, np.float32)
+    if e:
+        _fill_kernel(*args, start, node, t0, t1)
+    return LeafList(torch.from_numpy(start), torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1))
+
+
+# ---------------------------------------------------------------------------------------------
+# torch (any device)
+
+
+def list_leaves_torch(origins, directions, t_max, cut: CutArrays, level, dilation) -> LeafList:
+    """Breadth-first frontier of (ray, node) pairs, then one sort by (ray, t0, node)."""
+    dev = origins.device
+    inv = 1.0 / directions.float()
+    ray = torch.arange(len(origins), device=dev)
+    node = torch.zeros(len(origins), dtype=torch.long, device=dev)
+    children = cut.children.long()
+    found = []
+    while len(ray):
+        dil = dilation[ray, None]
+        o, iv = origins[ray], inv[ray]
+        ta = torch.nan_to_num(((cut.lo[node] - dil) - o) * iv, nan=-float("inf"))
+        tb = torch.nan_to_num(((cut.hi[node] + dil) - o) * iv, nan=float("inf"))
+        tn = torch.minimum(ta, tb).amax(-1)
+        tf = torch.maximum(ta, tb).amin(-1)
+        hit = (tn <= tf) & (tn < t_max[ray])
+        lvl = level[ray]
+        leaf = (children[node, 0] < 0) | torch.where(lvl < 0, cut.live[node], cut.lod[node].to(lvl.dtype) <= lvl)
+        ok = torch.where(tn >= 0, tn > _ENTER_MIN, tf > _EXIT_MIN)
+        keep = hit & leaf & ok
+        found.append((ray[keep], node[keep], tn[keep], tf[keep]))
+        down = hit & ~leaf & (tf > _ENTER_MIN)
+        ray = ray[down].repeat_interleave(2)
+        node = children[node[down]].reshape(-1)
+    r, nd, t0, t1 = (torch.cat(parts) for parts in zip(*found))
+    # Lexicographic (ray, t0, node): stable sorts from the last key to the first.
+    order = torch.argsort(nd, stable=True)
+    order = order[torch.argsort(t0[order], stable=True)]
+    order = order[torch.argsort(r[order], stable=True)]
+    r, nd, t0, t1 = r[order], nd[order], t0[order], t1[order]
+    start = torch.zeros(len(origins) + 1, dtype=torch.long, device=dev)
+    start[1:] = torch.cumsum(torch.bincount(r, minlength=len(origins)), 0)
+    return LeafList(start, nd, t0, t1)
+
+
+def list_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArrays, level: Tensor, dilation: Tensor) -> LeafList:
+    """The leaves of ``cut`` each ray crosses, sorted by (t0, node), on the rays' device.
+
+    ``origins``/``directions`` [N, 3] float32 in the unit cube (directions unit length);
+    ``t_max`` [N]; ``level`` [N] int (-1: the live cut); ``dilation`` [N] leaf-box growth."""
+    if origins.device.type == "cpu":
+        return _list_leaves_numba(origins, directions, t_max, cut, level, dilation)
+    return list_leaves_torch(origins, directions, t_max, cut, level, dilation)
+
+
+def first_leaves_torch(origins, directions, t_max, cut: CutArrays, level, dilation) -> tuple[Tensor, Tensor, Tensor]:
+    leaves = list_leaves_torch(origins, directions, t_max, cut, level, dilation)
+    has = leaves.counts > 0
+    first = leaves.start[:-1].clamp(max=max(len(leaves.node) - 1, 0))
+    if len(leaves.node) == 0:
+        inf = torch.full((len(origins),), float("inf"), device=origins.device)
+        return torch.full((len(origins),), -1, dtype=torch.long, device=origins.device), inf, inf.clone()
+    inf = torch.full_like(leaves.t0[first], float("inf"))
+    return (torch.where(has, leaves.node[first], -1), torch.where(has, leaves.t0[first], inf), torch.where(has, leaves.t1[first], inf))
+
+
+def first_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArrays, level: Tensor, dilation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(node [N] (-1: none), t0 [N], t1 [N]): the first entry `list_leaves` would give each ray (training samples it)."""
+    if origins.device.type == "cpu":
+        return _first_leaves_numba(origins, directions, t_max, cut, level, dilation)
+    return first_leaves_torch(origins, directions, t_max, cut, level, dilation)
