@@ -23,3 +23,12 @@ def test_hook_runs_after_every_step_and_extra_holds_method_statistics():
     assert calls == [0, 1, 2, 3]
     assert record.steps == 4 and record.rays == 4 * 256
     assert set(record.extra) == {"truncated_fraction"} and 0.0 <= record.extra["truncated_fraction"] <= 1.0
+
+
+def test_training_runs_on_every_device(device):
+    from neuralrt.training.api import train
+
+    mesh = sphere(2)
+    model = train(mesh, LSNIFConfig.preset("lq").with_training(steps=5, batch_size=512), progress=False, device=device)
+    assert model.device.type == device.type and model.training_record["device"] == device.type
+    assert model.training_record["steps"] == 5 and model.training_record["compute_precision"] in ("bf16", "fp32")
