@@ -36,10 +36,21 @@ register_method(MethodSpec(
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> NeuralBLAS:
-    """Open a model file of any registered method as its BLAS (intersect/occluded in object space).
+    """Open a model file of any registered method as its BLAS.
 
-    The model's tensors (and the rays it takes) live on ``device``. Missing, truncated, corrupted,
-    newer-version or unknown-method files raise `ModelFileError` with one line."""
+    Args:
+        path: a ``.nrt`` file written by ``model.save`` (any format version this neuralrt reads).
+        device: where the model's tensors live, e.g. ``"cpu"`` or ``"cuda"``.
+
+    Returns:
+        A `NeuralBLAS` (e.g. `LSNIFModel`), in eval mode. ``intersect(rays)`` takes `Rays` on
+        ``device`` in the object space of the mesh it was trained on (origins and directions
+        float32 ``[N, 3]``, directions not necessarily unit) and returns `Hits` on ``device``
+        (``t`` in units of the direction's length, normals facing the ray); ``occluded(rays)``
+        returns ``[N]`` bool. Rays on another device raise a one-line `DeviceError`.
+
+    Missing, truncated, corrupted, newer-version or unknown-method files raise `ModelFileError`
+    with one line."""
     method = read_header(path)["method"]
     if method not in method_names():
         raise ModelFileError(f"{path}: method '{method}' is not a loadable model (this neuralrt reads: {', '.join(method_names())})")
