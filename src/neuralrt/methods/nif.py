@@ -117,11 +117,12 @@ class NIFNetworks(nn.Module):
         g = torch.Generator().manual_seed(config.training.seed)
         n, s = len(boxes), config.training.init_scale
         out, inn = config.outer, config.inner
-        self.outer_position = SphericalGrid2D(n, out.position_grid.resolution, out.position_grid.features, s, g)
-        self.outer_direction = SphericalGrid2D(n, out.direction_grid.resolution, out.direction_grid.features, s, g)
-        self.inner_position = SphericalGrid2D(n, inn.position_grid.resolution, inn.position_grid.features, s, g)
-        self.inner_direction = SphericalGrid2D(n, inn.direction_grid.resolution, inn.direction_grid.features, s, g)
-        self.inner_distance = DenseGrid1D(n, inn.distance_grid.resolution, inn.distance_grid.features, s, g)
+        # Sparse grid gradients: training updates only the vertices a batch touched (`NIFTrainer`).
+        self.outer_position = SphericalGrid2D(n, out.position_grid.resolution, out.position_grid.features, s, g, sparse=True)
+        self.outer_direction = SphericalGrid2D(n, out.direction_grid.resolution, out.direction_grid.features, s, g, sparse=True)
+        self.inner_position = SphericalGrid2D(n, inn.position_grid.resolution, inn.position_grid.features, s, g, sparse=True)
+        self.inner_direction = SphericalGrid2D(n, inn.direction_grid.resolution, inn.direction_grid.features, s, g, sparse=True)
+        self.inner_distance = DenseGrid1D(n, inn.distance_grid.resolution, inn.distance_grid.features, s, g, sparse=True)
         self.outer_mlp = _xavier_mlp(out, out.input_width, config.leaky_relu_slope, g)
         self.inner_mlp = _xavier_mlp(inn, inn.input_width, config.leaky_relu_slope, g)
         self.register_buffer("box_lo", torch.stack([b.lo.float() for b in boxes]))
@@ -131,12 +132,11 @@ class NIFNetworks(nn.Module):
     def num_objects(self) -> int:
         return self.box_lo.shape[0]
 
-    def outer_parameters(self) -> list[nn.Parameter]:
-        return [*self.outer_position.parameters(), *self.outer_direction.parameters(), *self.outer_mlp.parameters()]
+    def outer_grids(self) -> list[nn.Parameter]:
+        return [self.outer_position.table, self.outer_direction.table]
 
-    def inner_parameters(self) -> list[nn.Parameter]:
-        return [*self.inner_position.parameters(), *self.inner_direction.parameters(), *self.inner_distance.parameters(),
-                *self.inner_mlp.parameters()]
+    def inner_grids(self) -> list[nn.Parameter]:
+        return [self.inner_position.table, self.inner_direction.table, self.inner_distance.table]
 
     # -- the two networks (logits; sigmoid = visibility) ----------------------------------------
     def outer_logits(self, obj: Tensor, position: Tensor, direction: Tensor) -> Tensor:

@@ -7,8 +7,11 @@ at the poles ``u = 0, 1`` (the first and last rows sit on the poles). `DenseGrid
 along one clamped axis. All objects' grids live in one table, so one gather answers any mix of
 objects (a per-query object index): NIF's "one grid gather per object" costs one call in total.
 
-Plain torch indexing: any device, autograd through the gather (its backward is an index-add into
-the table). Features start U(-init_scale, init_scale) from the given generator (NIF: 1e-4).
+Lookups are `torch.nn.functional.embedding` calls: any device, and with ``sparse=True`` the
+table's gradient is sparse (only the touched vertices' rows), for `torch.optim.SparseAdam`: a
+dense Adam step over a 256 x 256 x 3 table per 2^11-ray batch cost 30 ms of a 30 ms training step
+on 2 CPU cores (measured). Features start U(-init_scale, init_scale) from the given generator
+(NIF: 1e-4).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 __all__ = ["spherical_coords", "SphericalGrid2D", "DenseGrid1D"]
@@ -40,11 +44,12 @@ def _init_table(shape: tuple[int, ...], init_scale: float, generator: torch.Gene
 class SphericalGrid2D(nn.Module):
     """Per-object ``resolution x resolution`` grids of ``features`` values over spherical coordinates."""
 
-    def __init__(self, objects: int, resolution: int, features: int, init_scale: float = 1e-4, generator: torch.Generator | None = None):
+    def __init__(self, objects: int, resolution: int, features: int, init_scale: float = 1e-4, generator: torch.Generator | None = None,
+                 sparse: bool = False):
         super().__init__()
         if objects < 1 or resolution < 2 or features < 1:
             raise ValueError(f"need objects >= 1, resolution >= 2, features >= 1 (got {objects}, {resolution}, {features})")
-        self.objects, self.resolution, self.features = objects, resolution, features
+        self.objects, self.resolution, self.features, self.sparse = objects, resolution, features, sparse
         # [objects * R (theta rows) * R (phi columns), N]: one table, row-major per object.
         self.table = _init_table((objects * resolution * resolution, features), init_scale, generator)
 
@@ -59,9 +64,10 @@ class SphericalGrid2D(nn.Module):
         y0, x0 = y0.long(), x0.long().remainder(r)
         x1 = (x0 + 1).remainder(r)
         base = obj * (r * r) + y0 * r
-        t = self.table
-        top = t[base + x0] * (1.0 - fx) + t[base + x1] * fx
-        bottom = t[base + r + x0] * (1.0 - fx) + t[base + r + x1] * fx
+        corners = torch.stack([base + x0, base + x1, base + r + x0, base + r + x1], dim=1)  # [M, 4]
+        v = F.embedding(corners, self.table, sparse=self.sparse)  # [M, 4, N], one gather
+        top = v[:, 0] * (1.0 - fx) + v[:, 1] * fx
+        bottom = v[:, 2] * (1.0 - fx) + v[:, 3] * fx
         return top * (1.0 - fy) + bottom * fy
 
     def memory_bytes(self, bytes_per_value: int) -> int:
@@ -72,11 +78,12 @@ class SphericalGrid2D(nn.Module):
 class DenseGrid1D(nn.Module):
     """Per-object 1D grids of ``resolution`` vertices over [0, 1] (clamped), ``features`` values each."""
 
-    def __init__(self, objects: int, resolution: int, features: int, init_scale: float = 1e-4, generator: torch.Generator | None = None):
+    def __init__(self, objects: int, resolution: int, features: int, init_scale: float = 1e-4, generator: torch.Generator | None = None,
+                 sparse: bool = False):
         super().__init__()
         if objects < 1 or resolution < 2 or features < 1:
             raise ValueError(f"need objects >= 1, resolution >= 2, features >= 1 (got {objects}, {resolution}, {features})")
-        self.objects, self.resolution, self.features = objects, resolution, features
+        self.objects, self.resolution, self.features, self.sparse = objects, resolution, features, sparse
         self.table = _init_table((objects * resolution, features), init_scale, generator)
 
     def forward(self, obj: Tensor, s: Tensor) -> Tensor:
@@ -86,7 +93,8 @@ class DenseGrid1D(nn.Module):
         x0 = x.floor().clamp(max=r - 2)
         f = (x - x0)[:, None]
         i0 = obj * r + x0.long()
-        return self.table[i0] * (1.0 - f) + self.table[i0 + 1] * f
+        v = F.embedding(torch.stack([i0, i0 + 1], dim=1), self.table, sparse=self.sparse)  # [M, 2, N]
+        return v[:, 0] * (1.0 - f) + v[:, 1] * f
 
     def memory_bytes(self, bytes_per_value: int) -> int:
         return self.resolution * self.features * bytes_per_value

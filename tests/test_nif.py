@@ -1,0 +1,147 @@
+"""NIF networks and online training: the paper's shapes and memory, outer/inner classification,
+two-stage answers equal to per-object evaluation, and learning a sphere's visibility well above
+the always-visible / always-occluded baselines."""
+
+import pytest
+import torch
+
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.geometry.procedural import sphere
+from neuralrt.methods.nif import NIFNetworks, NIFPairs, make_queries
+from neuralrt.methods.nif_config import NIFConfig, NIFTrainingConfig
+from neuralrt.methods.nif_training import NIFTrainer
+from neuralrt.rays import AABB, Rays
+
+
+def _box(lo=-1.0, hi=1.0):
+    return AABB(torch.full((3,), lo), torch.full((3,), hi))
+
+
+def test_networks_have_the_papers_shapes_and_memory():
+    net = NIFNetworks(NIFConfig(), [_box()])
+    widths = lambda mlp: [(l.in_features, l.out_features) for l in [*mlp.hidden, mlp.output]]  # noqa: E731
+    assert widths(net.outer_mlp) == [(6, 64), (64, 64), (64, 1)]
+    assert widths(net.inner_mlp) == [(13, 48), (48, 48), (48, 48), (48, 1)]
+    assert (net.outer_position.resolution, net.outer_position.features) == (256, 3)
+    assert (net.inner_position.resolution, net.inner_position.features, net.inner_distance.resolution, net.inner_distance.features) == (128, 5, 128, 3)
+    mem = net.memory_report()
+    assert mem["paper_bytes_per_object"] == 4 * 256**2 + 4 * 128**2  # the paper's 256 kB + 64 kB (Sec. 5)
+    assert mem["real_bytes_per_object"]["outer_grids"] == 2 * 256 * 256 * 3 * 4  # float32, N features
+    assert mem["real_bytes_per_object"]["inner_grids"] == (2 * 128 * 128 * 5 + 128 * 3) * 4
+    assert mem["mlp_bytes"]["outer_mlp"] == (6 * 64 + 64 + 64 * 64 + 64 + 64 + 1) * 4
+    # Grids per object, MLPs shared: a second object adds grids only.
+    two = NIFNetworks(NIFConfig(), [_box(), _box(0, 2)]).memory_report()
+    assert two["real_bytes"] - mem["real_bytes"] == sum(mem["real_bytes_per_object"].values())
+
+
+def test_config_validates_with_one_line_naming_the_key():
+    with pytest.raises(ValueError, match="learning_rate"):
+        NIFTrainingConfig(learning_rate=-1)
+    with pytest.raises(ValueError, match="distance_grid"):
+        NIFConfig(inner={**NIFConfig().inner.model_dump(), "distance_grid": None})
+
+
+def test_queries_split_outer_inner_and_skip_rays_missing_the_box():
+    o = torch.tensor([[-3.0, 0.2, 0.0], [0.5, 0.5, 0.5], [-3.0, 5.0, 0.0], [-3.0, 0.0, 0.0], [0.0, 0.0, -0.5]])
+    d = torch.tensor([[6.0, 0.0, 0.0], [0.0, 3.0, 0.0], [6.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    t_max = torch.tensor([1.0, 1.0, 1.0, 1.5, 1.0])  # ray 3 stops before the box (x = -1.5)
+    pairs = NIFPairs(torch.zeros(5, dtype=torch.long), o, d, torch.zeros(5), t_max)
+    q = make_queries(pairs, torch.full((1, 3), -1.0), torch.full((1, 3), 1.0))
+    assert q.outer_pair.tolist() == [0] and sorted(q.inner_pair.tolist()) == [1, 4]
+    # Outer: the entry point (-1, 0.2, 0) seen from the centre; direction +x.
+    theta = torch.acos(torch.tensor(0.2 / (1.0 + 0.04) ** 0.5)) / torch.pi
+    assert q.outer_position[0].tolist() == pytest.approx([float(theta), 1.0], abs=1e-5)
+    assert q.outer_direction[0].tolist() == pytest.approx([0.5, 0.5], abs=1e-6)
+    # Inner: |o - c| over the half diagonal (sqrt(3)).
+    k = q.inner_pair.tolist().index(1)
+    assert float(q.inner_distance[k]) == pytest.approx((0.75 ** 0.5) / 3 ** 0.5, abs=1e-5)
+
+
+def test_two_stage_answers_equal_per_object_evaluation():
+    """One MLP call over all outer pairs (and one over all inner pairs) of three objects answers
+    every pair as evaluating each object on its own pairs does."""
+    cfg = NIFConfig(training=NIFTrainingConfig(init_scale=1.0, seed=3))  # large features: answers vary
+    boxes = [_box(), _box(0.0, 3.0), _box(-2.0, -0.5)]
+    net = NIFNetworks(cfg, boxes)
+    g = torch.Generator().manual_seed(0)
+    n = 3000
+    obj = torch.randint(0, 3, (n,), generator=g)
+    o = torch.rand(n, 3, generator=g) * 5 - 2.5
+    d = torch.randn(n, 3, generator=g) * 4
+    pairs = NIFPairs(obj, o, d, torch.zeros(n), torch.ones(n))
+    together = net.occluded(pairs)
+    apart = torch.zeros(n, dtype=torch.bool)
+    for k in range(3):
+        sel = torch.nonzero(obj == k).reshape(-1)
+        sub = NIFPairs(obj[sel], o[sel], d[sel], torch.zeros(sel.numel()), torch.ones(sel.numel()))
+        apart[sel] = net.occluded(sub)
+    assert torch.equal(together, apart)
+    q = net.queries(pairs)
+    assert q.outer_pair.numel() > 100 and q.inner_pair.numel() > 100 and 0 < int(together.sum()) < n  # both networks, both answers
+
+
+def _shadow_pairs(mesh, blas, n, g):
+    """Labelled shadow rays as a view makes them: towards random points of a small square light
+    above the object, 3/4 from a floor around it (outer rays, and inner ones where the floor
+    lies in the box), 1/4 from the object's own surface (inner: self-shadowing); label = exact."""
+    box = blas.bounds
+    c, ext = box.center, box.extent
+    size = float(ext.max())
+    light = c + torch.tensor([0.3, 1.2, 0.2]) * size + (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([0.3, 0.0, 0.3]) * size
+    m = 3 * n // 4
+    floor = c + (torch.rand(m, 3, generator=g) - 0.5) * torch.tensor([3.0, 0.0, 3.0]) * size
+    floor[:, 1] = box.lo[1] + 0.02 * size
+    v, f = torch.as_tensor(mesh.vertices, dtype=torch.float32), torch.as_tensor(mesh.faces, dtype=torch.int64)
+    tri = v[f[torch.randint(0, f.shape[0], (n - m,), generator=g)]]  # [k, 3, 3]
+    a, b = torch.rand(n - m, generator=g), torch.rand(n - m, generator=g)
+    flip = a + b > 1
+    a, b = torch.where(flip, 1 - a, a), torch.where(flip, 1 - b, b)
+    p = tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+    normal = torch.nn.functional.normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=-1)
+    to_light = light[m:] - p
+    normal = torch.where(((normal * to_light).sum(-1) < 0)[:, None], -normal, normal)  # the lit side
+    surface = p + normal * 1e-3 * size
+    o = torch.cat([floor, surface])
+    d = light - o
+    rays = Rays(o, d, torch.zeros(n), torch.ones(n))
+    return NIFPairs(torch.zeros(n, dtype=torch.long), o, d, torch.zeros(n), torch.ones(n)), blas.occluded(rays)
+
+
+def test_trained_nif_beats_the_constant_answers_by_a_margin():
+    """Outer and inner networks, held-out rays of the same light and surroundings (what NIF is
+    trained for: one view, one set of lights). Measured: accuracy 0.89-0.91 vs 0.76-0.77."""
+    mesh = sphere(subdivisions=3)
+    blas = MeshBLAS(mesh)
+    box = blas.bounds.inflated(1e-4)
+    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=16, seed=0))
+    net = NIFNetworks(cfg, [box])
+    trainer = NIFTrainer(net)
+    g = torch.Generator().manual_seed(0)
+    train, train_blocked = _shadow_pairs(mesh, blas, 1 << 14, g)
+    trainer.add(net.queries(train), ~train_blocked)
+    trainer.finish()
+    test, test_blocked = _shadow_pairs(mesh, blas, 1 << 13, g)
+    q = net.queries(test)
+    answer = net.occluded(test, q)
+    for idx in (q.outer_pair, q.inner_pair):
+        truth, said = test_blocked[idx], answer[idx]
+        accuracy = float((truth == said).float().mean())
+        best_constant = max(float(truth.float().mean()), 1.0 - float(truth.float().mean()))
+        assert accuracy >= best_constant + 0.1, (accuracy, best_constant)
+    assert trainer.stats.outer_steps >= 16 and trainer.stats.inner_steps >= 16
+    assert trainer.stats.loss_outer[-1] < 0.05 and trainer.stats.loss_inner[-1] < 0.05
+
+
+def test_training_is_seeded():
+    mesh = sphere(subdivisions=2)
+    blas = MeshBLAS(mesh)
+    box = blas.bounds.inflated(1e-4)
+    outs = []
+    for _ in range(2):
+        net = NIFNetworks(NIFConfig(training=NIFTrainingConfig(seed=7)), [box])
+        trainer = NIFTrainer(net)
+        pairs, blocked = _shadow_pairs(mesh, blas, 4096, torch.Generator().manual_seed(1))
+        trainer.add(net.queries(pairs), ~blocked)
+        trainer.finish()
+        outs.append(net.outer_mlp.output.weight.detach().clone())
+    assert torch.equal(outs[0], outs[1])
