@@ -1,11 +1,15 @@
 """Wavefront unidirectional path tracer with next-event estimation and multiple importance sampling.
 
-All paths of a wavefront advance together as tensors. Each bounce runs the same named whole-batch
+All paths of a wavefront advance together as tensors. Each bounce runs the same whole-batch
 stages (pbrt-v4's wavefront integrator):
 
-    generate_camera_rays -> intersect -> handle_escaped -> emission_at_hits (MIS) ->
-    [record AOVs at the first hit] -> sample_lights (NEE shadow rays, MIS) -> sample_bsdf ->
-    russian_roulette -> compact (finished paths drop out by mask)
+    generate_camera_rays -> intersect -> shade: escaped rays, emission at hits (MIS),
+    [AOVs at the first hit], light sample (NEE, MIS), BSDF sample, Russian roulette, compaction
+    -> occluded (the NEE shadow rays) -> add the unoccluded light samples
+
+``shade`` and the accumulation are `shading_stages`: fused numba kernels on the CPU, torch ops on
+other devices, chosen once per render (``IntegratorSettings.shading``); both draw the same
+uniforms, so they give the same images to float tolerance.
 
 MIS uses the power heuristic between light sampling and BSDF sampling for area and environment
 lights; point lights are delta lights (light sampling only). ``max_depth`` counts bounces: 1 gives
@@ -27,13 +31,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..rays import Hits, Rays, resolve_device
+from ..rays import resolve_device
 from .film import Film, RenderResult
-from .sampling import make_generator, power_heuristic, uniform
+from .sampling import make_generator, uniform
+from .shading_stages import PathState, WavefrontFilm, shading_stages_for
 
 __all__ = ["render", "IntegratorSettings", "PathTracer"]
-
-_SHADOW_T_MAX = 1.0 - 1e-3  # shadow rays (direction = light point - origin) stop at this t
 
 
 @dataclass
@@ -47,168 +50,49 @@ class IntegratorSettings:
     # Who answers camera rays for objects with both a mesh and a neural model: "exact" (the mesh,
     # standing in for the paper's rasterized G-buffer) or "neural" (the model answers every ray).
     primary: str = "exact"
-
-
-@dataclass
-class _Paths:
-    """The state of the live paths of a wavefront (one row per path)."""
-
-    rays: Rays  # current ray segment (unit directions)
-    sample: Tensor  # [n] int64 row in the wavefront's sample arrays
-    throughput: Tensor  # [n, 3] path throughput so far
-    prev_bsdf_pdf: Tensor  # [n] solid-angle pdf of the BSDF sample that produced `rays` (MIS)
-
-    def select(self, index: Tensor) -> "_Paths":
-        """The paths at ``index`` (int64 indices or a bool mask)."""
-        return _Paths(self.rays[index], self.sample[index], self.throughput[index], self.prev_bsdf_pdf[index])
-
-
-@dataclass
-class _Shading:
-    """Hit-point geometry of the live paths that hit something."""
-
-    p: Tensor  # [n, 3] world hit point
-    wo: Tensor  # [n, 3] unit, towards where the ray came from
-    ng: Tensor  # [n, 3] geometric normal turned to the side of wo
-    ns: Tensor  # [n, 3] shading normal, same side as ng (ng where the shading normal faces away from wo)
-    front: Tensor  # [n] bool: wo is on the side the (unflipped) geometric normal points to
-    albedo: Tensor  # [n, 3] material albedo x texture x surface colour
-    offset: Tensor  # [n] world-space ray offset of the hit instance
+    # Shading and sampling implementation: "auto" (numba kernels on the CPU, torch elsewhere),
+    # "torch" or "numba" (the same answers to float tolerance; see `shading_stages`).
+    shading: str = "auto"
 
 
 class PathTracer:
-    """The stages of one wavefront, over a `neuralrt.scene.Scene`."""
+    """One wavefront's bounces over a `neuralrt.scene.Scene`: ray queries here, shading and sampling
+    in the `shading_stages` implementation chosen once for the scene's device."""
 
     def __init__(self, scene, settings: IntegratorSettings):
         self.scene = scene
         self.settings = settings
-        self.materials = scene.materials
-        self.lights = scene.lights
-        self._has_emitters = bool(self.materials.emissive_mask.any())
+        self.stages = shading_stages_for(scene, settings, settings.shading)
+        self._has_lights = bool(scene.lights)
 
-    # -- stage: camera rays ------------------------------------------------------------------------
-    def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> _Paths:
+    def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> PathState:
         n, dev = pixel.numel(), pixel.device
         rays = self.scene.camera.generate_rays(pixel, uniform((n, 2), g, dev))
-        return _Paths(rays, torch.arange(n, device=dev), torch.ones(n, 3, device=dev), torch.zeros(n, device=dev))
+        return PathState(rays, torch.arange(n, device=dev), torch.ones(n, 3, device=dev), torch.zeros(n, device=dev))
 
-    # -- stage: escaped rays ------------------------------------------------------------------------
-    def handle_escaped(self, paths: _Paths, radiance: Tensor, first: bool) -> None:
-        env = self.lights.environment
-        if env is None or paths.sample.numel() == 0:
-            return
-        d = paths.rays.directions
-        le = env.radiance(d)
-        w = torch.ones_like(paths.prev_bsdf_pdf) if first else power_heuristic(paths.prev_bsdf_pdf, self.lights.environment_pdf(d))
-        radiance.index_add_(0, paths.sample, paths.throughput * le * w[:, None])
-
-    # -- stage: shading geometry ----------------------------------------------------------------------
-    def shading(self, paths: _Paths, hits: Hits) -> _Shading:
-        d = paths.rays.directions
-        p = paths.rays.origins + hits.t[:, None] * d
-        wo = -d
-        ng_raw = hits.geometric_normal
-        front = (ng_raw * wo).sum(-1) > 0
-        ng = torch.where(front[:, None], ng_raw, -ng_raw)
-        ns = hits.normal
-        ns = torch.where(((ns * ng).sum(-1) < 0)[:, None], -ns, ns)
-        ns = torch.where(((ns * wo).sum(-1) <= 0)[:, None], ng, ns)
-        albedo = self.materials.albedo_at(hits.material_id, hits.uv, hits.albedo)
-        offset = self.scene.instance_offsets[hits.instance_id.clamp(min=0)]
-        return _Shading(p, wo, ng, ns, front, albedo, offset)
-
-    # -- stage: emission at hits -----------------------------------------------------------------------
-    def emission_at_hits(self, paths: _Paths, hits: Hits, sh: _Shading, radiance: Tensor, first: bool) -> None:
-        if not self._has_emitters:
-            return
-        le = self.materials.emission_of(hits.material_id) * sh.front[:, None]
-        idx = torch.nonzero(le.amax(-1) > 0).reshape(-1)  # only rows that see emission
-        if idx.numel() == 0:
-            return
-        le = le[idx]
-        if first:
-            w = torch.ones_like(le[:, 0])
-        else:
-            light = self.lights.area.light_index(hits.instance_id[idx], hits.primitive_id[idx]) if self.lights.area is not None \
-                else torch.full_like(idx, -1)
-            light_pdf = self.lights.area_pdf(light, hits.t[idx], paths.rays.directions[idx])
-            w = power_heuristic(paths.prev_bsdf_pdf[idx], light_pdf)
-        radiance.index_add_(0, paths.sample[idx], paths.throughput[idx] * le * w[:, None])
-
-    # -- stage: next-event estimation -------------------------------------------------------------------
-    def sample_lights(self, paths: _Paths, hits: Hits, sh: _Shading, radiance: Tensor, g: torch.Generator) -> None:
-        n, dev = paths.sample.numel(), sh.p.device
-        if not self.lights or n == 0:
-            return
-        u = uniform((n, 4), g, dev)
-        ls = self.lights.sample(sh.p, u)
-        f, bsdf_pdf = self.materials.eval_pdf(hits.material_id, sh.albedo, sh.ns, sh.wo, ls.wi)
-        usable = (ls.pdf > 0) & ((ls.wi * sh.ng).sum(-1) > 0) & (f.amax(-1) > 0) & (ls.radiance.amax(-1) > 0)
-        if not usable.any():
-            return
-        idx = torch.nonzero(usable).reshape(-1)
-        origin = sh.p[idx] + sh.ng[idx] * sh.offset[idx, None]
-        # Finite lights: aim from the offset origin at the light point itself, stopping just short of it.
-        finite = torch.isfinite(ls.distance[idx])
-        target = sh.p[idx] + ls.wi[idx] * torch.where(finite, ls.distance[idx], 0.0)[:, None]
-        direction = torch.where(finite[:, None], target - origin, ls.wi[idx])
-        t_max = torch.where(finite, _SHADOW_T_MAX, float("inf"))
-        blocked = self.scene.accel.occluded(Rays(origin, direction, torch.zeros_like(t_max), t_max))
-        idx = idx[~blocked]
-        w = torch.where(ls.is_delta[idx], 1.0, power_heuristic(ls.pdf[idx], bsdf_pdf[idx]))
-        contrib = paths.throughput[idx] * f[idx] * ls.radiance[idx] * (w / ls.pdf[idx])[:, None]
-        radiance.index_add_(0, paths.sample[idx], contrib)
-
-    # -- stage: BSDF sampling + Russian roulette --------------------------------------------------------
-    def sample_bsdf(self, paths: _Paths, hits: Hits, sh: _Shading, bounce: int, g: torch.Generator) -> _Paths:
-        n, dev = paths.sample.numel(), sh.p.device
-        u = uniform((n, 4), g, dev)
-        s = self.materials.sample(hits.material_id, sh.albedo, sh.ns, sh.wo, u[:, 0], u[:, 1:3])
-        throughput = paths.throughput * s.weight
-        alive = (s.pdf > 0) & ((s.wi * sh.ng).sum(-1) > 0) & (throughput.amax(-1) > 0)
-        # Russian roulette: survive with probability ~ throughput (capped), reweight survivors.
-        if bounce + 1 >= self.settings.rr_depth:
-            q = throughput.amax(-1).clamp(max=self.settings.rr_max_survival)
-            alive &= u[:, 3] < q
-            throughput = throughput / torch.where(alive, q, 1.0)[:, None]
-        idx = torch.nonzero(alive).reshape(-1)
-        origin = sh.p[idx] + sh.ng[idx] * sh.offset[idx, None]
-        return _Paths(Rays(origin, s.wi[idx]), paths.sample[idx], throughput[idx], s.pdf[idx])
-
-    # -- one wavefront -----------------------------------------------------------------------------------
     def trace(self, pixel: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Radiance, albedo, normal [n, 3], depth [n] and camera-ray hit [n] bool for one sample
         through each entry of ``pixel`` [n]."""
         n, dev = pixel.numel(), pixel.device
-        radiance = torch.zeros(n, 3, device=dev)  # per-sample radiance accumulator
-        aov_albedo = torch.zeros(n, 3, device=dev)
-        aov_normal = torch.zeros(n, 3, device=dev)
-        aov_depth = torch.zeros(n, device=dev)
-        aov_hit = torch.zeros(n, dtype=torch.bool, device=dev)  # camera ray hit something
+        film = WavefrontFilm.zeros(n, dev)
         paths = self.generate_camera_rays(pixel, g)
         for bounce in range(self.settings.max_depth + 1):
             first = bounce == 0
             # Find closest intersections along live rays
             hits = self.scene.accel.intersect(paths.rays, camera_rays=first and self.settings.primary == "exact")
-            self.handle_escaped(paths.select(torch.nonzero(~hits.hit).reshape(-1)), radiance, first)
-            hit_idx = torch.nonzero(hits.hit).reshape(-1)  # index once, gather every field with it
-            paths, hits = paths.select(hit_idx), hits[hit_idx]
-            if paths.sample.numel() == 0:
+            u_light = u_bsdf = None
+            if bounce < self.settings.max_depth:
+                n_hit = int(hits.hit.sum())
+                if n_hit:  # uniforms for the rows that hit: light sample, then BSDF sample + roulette
+                    u_light = uniform((n_hit, 4), g, dev) if self._has_lights else None
+                    u_bsdf = uniform((n_hit, 4), g, dev)
+            shadow, paths = self.stages.shade(paths, hits, u_light, u_bsdf, bounce, film)
+            if shadow is not None:
+                blocked = self.scene.accel.occluded(shadow.rays)  # NEE shadow rays: the one visibility query
+                self.stages.add_unoccluded(film, shadow, blocked)
+            if paths is None or paths.sample.numel() == 0:
                 break
-            sh = self.shading(paths, hits)
-            self.emission_at_hits(paths, hits, sh, radiance, first)
-            if first:
-                aov_albedo[paths.sample] = sh.albedo
-                aov_normal[paths.sample] = sh.ns
-                aov_depth[paths.sample] = hits.t
-                aov_hit[paths.sample] = True
-            if bounce == self.settings.max_depth:
-                break
-            self.sample_lights(paths, hits, sh, radiance, g)
-            paths = self.sample_bsdf(paths, hits, sh, bounce, g)
-            if paths.sample.numel() == 0:
-                break
-        return radiance, aov_albedo, aov_normal, aov_depth, aov_hit
+        return film.radiance, film.albedo, film.normal, film.depth, film.hit
 
 
 def render(
@@ -222,6 +106,7 @@ def render(
     max_paths: int | None = None,
     settings: IntegratorSettings | None = None,
     primary: str | None = None,
+    shading: str | None = None,
 ) -> RenderResult:
     """Render ``scene`` (a `neuralrt.scene.Scene`) progressively and return the pixel means.
 
@@ -232,13 +117,14 @@ def render(
     ``k * pixels <= max_paths`` paths alive at once (at least one pixel row's worth); a progress
     bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
     "neural", default: what the scene was loaded for) picks who answers camera rays for neural
-    objects; "exact" needs a scene loaded with ``primary="exact"`` (their meshes kept).
+    objects; "exact" needs a scene loaded with ``primary="exact"`` (their meshes kept). ``shading``
+    ("auto", "torch" or "numba") picks the shading implementation (`IntegratorSettings.shading`).
     """
     from dataclasses import replace
 
     if settings is None:
         settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
-    overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary}
+    overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
     if settings.primary not in ("exact", "neural"):
         raise ValueError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")

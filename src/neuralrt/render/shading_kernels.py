@@ -1,0 +1,497 @@
+"""Numba passes of the path tracer's shading and sampling on the CPU.
+
+`shade_and_sample` fuses one bounce's work after the closest-hit query: escaped rays (environment,
+MIS), shading geometry, emission at hits (MIS), first-hit AOVs, next-event estimation (one light
+sample and its shadow ray, MIS), BSDF sampling and Russian roulette, and the compaction of the
+shadow rays and the surviving paths. `add_unoccluded` adds the contributions of the shadow rays
+that reached their light. Together they replace ~300 small torch ops per bounce.
+
+They compute what `shading_stages.TorchShadingStages` computes (the formulas of `materials.py`,
+`lights.py` and `sampling.py`, same random numbers in the same roles), in float64 arithmetic on
+float32 inputs, so answers agree with the torch path to float tolerance (tests compare them).
+Tables are tuples of arrays built once per scene (`shading_stages.NumbaShadingStages`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = ["shade_and_sample", "add_unoccluded", "lobes", "sample_bsdf", "sample_light", "environment_radiance",
+           "environment_pdf"]
+
+_DIFFUSE, _CONDUCTOR, _PLASTIC, _EMISSIVE = 0, 1, 2, 3  # MaterialKind
+_AREA, _POINT, _ENVIRONMENT = 0, 1, 2  # light kinds, in LightSet.kinds order
+_MIN_COAT_PROBABILITY = 0.25
+_SHADOW_T_MAX = 1.0 - 1e-3
+_INV_PI = 1.0 / math.pi
+
+_jit = numba.njit(cache=True, inline="always", error_model="numpy", fastmath=False)
+
+
+# --- small vector helpers -----------------------------------------------------------------------
+
+
+@_jit
+def _dot(ax, ay, az, bx, by, bz):
+    return ax * bx + ay * by + az * bz
+
+
+@_jit
+def _normalize(x, y, z):
+    """torch.nn.functional.normalize: divide by max(norm, 1e-12)."""
+    n = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+    return x / n, y / n, z / n
+
+
+@_jit
+def _luminance(r, g, b):
+    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+
+@_jit
+def _power_heuristic(a, b):
+    a2, b2 = a * a, b * b
+    d = a2 + b2
+    return a2 / d if d > 0 else 0.0
+
+
+@_jit
+def _basis(nx, ny, nz):
+    """Duff et al. 2017 (as `sampling.orthonormal_basis`): tangent, bitangent."""
+    sign = 1.0 if nz >= 0 else -1.0
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    return (1.0 + sign * nx * nx * a, sign * b, -sign * nx), (b, sign + ny * ny * a, -ny)
+
+
+@_jit
+def _search(cdf, u):
+    """`DiscreteDistribution.sample`: first index with cdf > u (searchsorted right), clamped."""
+    i = np.searchsorted(cdf, u, side="right")
+    return min(i, cdf.shape[0] - 1)
+
+
+# --- materials (local frame, z = normal) -----------------------------------------------------------
+
+
+@_jit
+def _fresnel_dielectric(cos_i, eta):
+    cos_i = min(max(cos_i, 0.0), 1.0)
+    sin_t2 = (1.0 - cos_i * cos_i) / (eta * eta)
+    if sin_t2 >= 1.0:
+        return 1.0
+    cos_t = math.sqrt(max(1.0 - sin_t2, 0.0))
+    rs = (cos_i - eta * cos_t) / max(cos_i + eta * cos_t, 1e-12)
+    rp = (eta * cos_i - cos_t) / max(eta * cos_i + cos_t, 1e-12)
+    return 0.5 * (rs * rs + rp * rp)
+
+
+@_jit
+def _ggx_d(cos_h, alpha):
+    if cos_h <= 0:
+        return 0.0
+    a2 = alpha * alpha
+    denom = cos_h * cos_h * (a2 - 1.0) + 1.0
+    return a2 / (math.pi * denom * denom)
+
+
+@_jit
+def _ggx_lambda(x, y, z, alpha):
+    z2 = max(z * z, 1e-12)
+    tan2 = (x * x + y * y) / z2
+    return 0.5 * (math.sqrt(1.0 + alpha * alpha * tan2) - 1.0)
+
+
+@_jit
+def _coat_probability(kind, ior, ar, ag, ab, cos_o):
+    if kind == _CONDUCTOR:
+        return 1.0
+    if kind != _PLASTIC:
+        return 0.0
+    fo = _fresnel_dielectric(max(cos_o, 0.0), ior)
+    kd = (1.0 - fo) * _luminance(ar, ag, ab)
+    return min(max(fo / max(fo + kd, 1e-8), _MIN_COAT_PROBABILITY), 1.0)
+
+
+@_jit
+def lobes(kind, alpha, ior, ar, ag, ab, lox, loy, loz, lix, liy, liz):
+    """`MaterialTable._lobes` for one row: (f*cos r, g, b, pdf)."""
+    cos_o, cos_i = loz, liz
+    if not (cos_o > 0 and cos_i > 0):
+        return 0.0, 0.0, 0.0, 0.0
+    if kind == _DIFFUSE or kind == _EMISSIVE:
+        c = cos_i * _INV_PI
+        return ar * c, ag * c, ab * c, c
+    hx, hy, hz = _normalize(lox + lix, loy + liy, loz + liz)
+    o_dot_h = max(_dot(lox, loy, loz, hx, hy, hz), 0.0)
+    d = _ggx_d(hz, alpha)
+    g2 = 1.0 / (1.0 + _ggx_lambda(lox, loy, loz, alpha) + _ggx_lambda(lix, liy, liz, alpha))
+    safe_cos_o = max(cos_o, 1e-8)
+    micro = d * g2 / (4.0 * safe_cos_o)
+    if kind == _CONDUCTOR:
+        s5 = (1.0 - min(max(o_dot_h, 0.0), 1.0)) ** 5
+        vr = (ar + (1.0 - ar) * s5) * micro
+        vg = (ag + (1.0 - ag) * s5) * micro
+        vb = (ab + (1.0 - ab) * s5) * micro
+    else:
+        spec = _fresnel_dielectric(o_dot_h, ior) * micro
+        transmit = (1.0 - _fresnel_dielectric(cos_i, ior)) * (1.0 - _fresnel_dielectric(cos_o, ior))
+        base = transmit * cos_i * _INV_PI
+        vr, vg, vb = spec + ar * base, spec + ag * base, spec + ab * base
+    p_coat = _coat_probability(kind, ior, ar, ag, ab, cos_o)
+    pdf_spec = d / ((1.0 + _ggx_lambda(lox, loy, loz, alpha)) * 4.0 * safe_cos_o)
+    pdf = p_coat * pdf_spec + (1.0 - p_coat) * cos_i * _INV_PI
+    return vr, vg, vb, pdf
+
+
+@_jit
+def _ggx_visible_normal(ox, oy, oz, alpha, u0, u1):
+    """Heitz 2018, as `materials.ggx_sample_visible_normal`."""
+    vx, vy, vz = _normalize(alpha * ox, alpha * oy, max(oz, 1e-6))
+    lensq = vx * vx + vy * vy
+    if lensq > 0:
+        inv = 1.0 / math.sqrt(max(lensq, 1e-20))
+        t1x, t1y, t1z = -vy * inv, vx * inv, 0.0
+    else:
+        t1x, t1y, t1z = 1.0, 0.0, 0.0
+    t2x, t2y, t2z = vy * t1z - vz * t1y, vz * t1x - vx * t1z, vx * t1y - vy * t1x
+    r = math.sqrt(u0)
+    phi = 2.0 * math.pi * u1
+    p1 = r * math.cos(phi)
+    p2 = r * math.sin(phi)
+    s = 0.5 * (1.0 + vz)
+    p2 = (1.0 - s) * math.sqrt(max(1.0 - p1 * p1, 0.0)) + s * p2
+    pz = math.sqrt(max(1.0 - p1 * p1 - p2 * p2, 0.0))
+    nx = p1 * t1x + p2 * t2x + pz * vx
+    ny = p1 * t1y + p2 * t2y + pz * vy
+    nz = p1 * t1z + p2 * t2z + pz * vz
+    return _normalize(alpha * nx, alpha * ny, max(nz, 1e-6))
+
+
+@_jit
+def _cosine_hemisphere(u0, u1):
+    """Concentric disk lifted to the hemisphere (`sampling.cosine_hemisphere`)."""
+    ax, ay = 2.0 * u0 - 1.0, 2.0 * u1 - 1.0
+    first = abs(ax) > abs(ay)
+    r = ax if first else ay
+    safe = 1.0 if r == 0 else r
+    phi = (math.pi / 4) * (ay / safe) if first else math.pi / 2 - (math.pi / 4) * (ax / safe)
+    dx, dy = r * math.cos(phi), r * math.sin(phi)
+    return dx, dy, math.sqrt(max(1.0 - (dx * dx + dy * dy), 0.0))
+
+
+@_jit
+def sample_bsdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz, u_lobe, u0, u1):
+    """`MaterialTable.sample` for one row: (wi xyz, weight rgb, pdf)."""
+    (tx, ty, tz), (bx, by, bz) = _basis(nx, ny, nz)
+    lox, loy, loz = _dot(wox, woy, woz, tx, ty, tz), _dot(wox, woy, woz, bx, by, bz), _dot(wox, woy, woz, nx, ny, nz)
+    lix, liy, liz = _cosine_hemisphere(u0, u1)
+    if kind == _CONDUCTOR or kind == _PLASTIC:
+        p_coat = _coat_probability(kind, ior, ar, ag, ab, loz)
+        if u_lobe < p_coat:  # mirror wo about a visible microfacet normal
+            hx, hy, hz = _ggx_visible_normal(lox, loy, loz, alpha, u0, u1)
+            c = 2.0 * _dot(lox, loy, loz, hx, hy, hz)
+            lix, liy, liz = c * hx - lox, c * hy - loy, c * hz - loz
+        lix, liy, liz = _normalize(lix, liy, liz)
+    vr, vg, vb, pdf = lobes(kind, alpha, ior, ar, ag, ab, lox, loy, loz, lix, liy, liz)
+    wx = lix * tx + liy * bx + liz * nx
+    wy = lix * ty + liy * by + liz * ny
+    wz = lix * tz + liy * bz + liz * nz
+    if pdf > 0:
+        return wx, wy, wz, vr / pdf, vg / pdf, vb / pdf, pdf
+    return wx, wy, wz, 0.0, 0.0, 0.0, pdf
+
+
+@_jit
+def _eval_pdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz, wix, wiy, wiz):
+    (tx, ty, tz), (bx, by, bz) = _basis(nx, ny, nz)
+    return lobes(kind, alpha, ior, ar, ag, ab,
+                 _dot(wox, woy, woz, tx, ty, tz), _dot(wox, woy, woz, bx, by, bz), _dot(wox, woy, woz, nx, ny, nz),
+                 _dot(wix, wiy, wiz, tx, ty, tz), _dot(wix, wiy, wiz, bx, by, bz), _dot(wix, wiy, wiz, nx, ny, nz))
+
+
+@_jit
+def _albedo_at(materials, mid, u, v, sr, sg, sb):
+    """`MaterialTable.albedo_at`: material albedo x bilinear wrapped texture x the surface's colour."""
+    kinds, albedo, roughness, ior, emission, tex_offset, tex_size, tex_data = materials
+    r, g, b = float(albedo[mid, 0]), float(albedo[mid, 1]), float(albedo[mid, 2])
+    off = tex_offset[mid]
+    if off >= 0:
+        h, w = tex_size[mid, 0], tex_size[mid, 1]
+        x = (u % 1.0) * w - 0.5
+        y = (1.0 - (v % 1.0)) * h - 0.5
+        x0f, y0f = math.floor(x), math.floor(y)
+        fx, fy = x - x0f, y - y0f
+        x0, y0 = int(x0f) % w, int(y0f) % h
+        x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+        t = np.zeros(3)
+        for c in range(3):
+            top = tex_data[off + y0 * w + x0, c] * (1 - fx) + tex_data[off + y0 * w + x1, c] * fx
+            bottom = tex_data[off + y1 * w + x0, c] * (1 - fx) + tex_data[off + y1 * w + x1, c] * fx
+            t[c] = top * (1 - fy) + bottom * fy
+        r, g, b = r * t[0], g * t[1], b * t[2]
+    return r * sr, g * sg, b * sb
+
+
+# --- lights ------------------------------------------------------------------------------------------
+
+
+@_jit
+def _to_env(env, x, y, z):
+    c, s = env[5], env[6]
+    return c * x - s * z, y, s * x + c * z
+
+
+@_jit
+def _direction_to_uv(x, y, z):
+    u = (0.5 + math.atan2(x, -z) / (2 * math.pi)) % 1.0
+    return u, math.acos(min(max(y, -1.0), 1.0)) / math.pi
+
+
+@_jit
+def environment_radiance(env, x, y, z):
+    """`Environment.radiance` for one unit direction (env: the `_environment_table` tuple)."""
+    color, image, cdf, pmf, is_constant = env[0], env[1], env[2], env[3], env[4]
+    if is_constant:
+        return float(color[0]), float(color[1]), float(color[2])
+    h, w = image.shape[0], image.shape[1]
+    ex, ey, ez = _to_env(env, x, y, z)
+    u, v = _direction_to_uv(ex, ey, ez)
+    fxp = u * w - 0.5
+    fyp = v * h - 0.5
+    x0f, y0f = math.floor(fxp), math.floor(fyp)
+    fx, fy = fxp - x0f, fyp - y0f
+    x0, y0 = int(x0f), int(y0f)
+    xa, xb = x0 % w, (x0 + 1) % w
+    ya, yb = min(max(y0, 0), h - 1), min(max(y0 + 1, 0), h - 1)
+    out = np.zeros(3)
+    for c in range(3):
+        top = image[ya, xa, c] * (1 - fx) + image[ya, xb, c] * fx
+        bottom = image[yb, xa, c] * (1 - fx) + image[yb, xb, c] * fx
+        out[c] = top * (1 - fy) + bottom * fy
+    return out[0], out[1], out[2]
+
+
+@_jit
+def environment_pdf(env, x, y, z):
+    """`Environment.pdf` (without the light-kind probability)."""
+    image, pmf, is_constant = env[1], env[3], env[4]
+    if is_constant:
+        return 1.0 / (4 * math.pi)
+    h, w = image.shape[0], image.shape[1]
+    ex, ey, ez = _to_env(env, x, y, z)
+    u, v = _direction_to_uv(ex, ey, ez)
+    px = min(max(int(u * w), 0), w - 1)
+    py = min(max(int(v * h), 0), h - 1)
+    pdf_uv = pmf[py * w + px] * (h * w)
+    sin_theta = math.sqrt(ex * ex + ez * ez)
+    if sin_theta > 0:
+        return pdf_uv / (2 * math.pi * math.pi * max(sin_theta, 1e-30))
+    return 0.0
+
+
+@_jit
+def _area_pdf(area, light, distance, wx, wy, wz):
+    """`AreaLights.pdf`: solid-angle density of reaching ``light`` along w at ``distance``."""
+    normals, density = area[1], area[5]
+    cos_l = -_dot(wx, wy, wz, normals[light, 0], normals[light, 1], normals[light, 2])
+    if cos_l > 0:
+        return density[light] * distance * distance / max(cos_l, 1e-12)
+    return 0.0
+
+
+@_jit
+def _area_light_index(area, instance, primitive):
+    """`AreaLights.light_index` for one hit (-1: not an area light)."""
+    base, holds, lookup = area[6], area[7], area[8]
+    if instance < 0 or primitive < 0 or not holds[instance]:
+        return -1
+    slot = min(base[instance] + primitive, max(lookup.shape[0] - 1, 0))
+    return lookup[slot]
+
+
+@_jit
+def sample_light(kinds, area, points, env, px, py, pz, u0, u1, u2):
+    """`LightSet.sample` for one shading point: (wi xyz, distance, radiance rgb, pdf, is_delta)."""
+    k = kinds.shape[0]
+    pk = 1.0 / k
+    kind_slot = min(int(u0 * k), k - 1)
+    u_sel = min(max(u0 * k - kind_slot, 0.0), 1.0 - 1e-7)
+    kind = kinds[kind_slot]
+    if kind == _AREA:
+        tris, emission, cdf = area[0], area[2], area[3]
+        i = _search(cdf, u_sel)
+        su = math.sqrt(u1)
+        b0 = 1.0 - su
+        b1 = u2 * su
+        b2 = 1.0 - b0 - b1
+        yx = b0 * tris[i, 0, 0] + b1 * tris[i, 1, 0] + b2 * tris[i, 2, 0]
+        yy = b0 * tris[i, 0, 1] + b1 * tris[i, 1, 1] + b2 * tris[i, 2, 1]
+        yz = b0 * tris[i, 0, 2] + b1 * tris[i, 1, 2] + b2 * tris[i, 2, 2]
+        dx, dy, dz = yx - px, yy - py, yz - pz
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dist = max(norm, 1e-12)
+        wx, wy, wz = dx / dist, dy / dist, dz / dist
+        pdf = _area_pdf(area, i, dist, wx, wy, wz) * pk
+        return wx, wy, wz, norm, float(emission[i, 0]), float(emission[i, 1]), float(emission[i, 2]), pdf, False
+    if kind == _POINT:
+        positions, intensities, cdf, pmf = points
+        i = _search(cdf, u_sel)
+        dx, dy, dz = positions[i, 0] - px, positions[i, 1] - py, positions[i, 2] - pz
+        dist = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        inv_d2 = 1.0 / (dist * dist)
+        return (dx / dist, dy / dist, dz / dist, dist, intensities[i, 0] * inv_d2, intensities[i, 1] * inv_d2,
+                intensities[i, 2] * inv_d2, float(pmf[i]) * pk, True)
+    image, cdf, is_constant = env[1], env[2], env[4]
+    if is_constant:
+        z = 1.0 - 2.0 * u1
+        r = math.sqrt(max(1.0 - z * z, 0.0))
+        phi = 2 * math.pi * u2
+        wx, wy, wz = r * math.cos(phi), z, r * math.sin(phi)
+    else:
+        h, w = image.shape[0], image.shape[1]
+        pix = _search(cdf, u_sel)
+        u = ((pix % w) + u1) / w
+        v = ((pix // w) + u2) / h
+        phi = 2 * math.pi * (u - 0.5)
+        theta = math.pi * v
+        s = math.sin(theta)
+        ex, ey, ez = s * math.sin(phi), math.cos(theta), -s * math.cos(phi)
+        c, sn = env[5], env[6]
+        wx, wy, wz = c * ex + sn * ez, ey, -sn * ex + c * ez
+    lr, lg, lb = environment_radiance(env, wx, wy, wz)
+    return wx, wy, wz, np.inf, lr, lg, lb, environment_pdf(env, wx, wy, wz) * pk, False
+
+
+# --- the fused bounce ------------------------------------------------------------------------------
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def shade_and_sample(
+    origins, directions, sample, throughput, prev_pdf,  # the live paths [n]
+    hit, t, normal, geometric_normal, uv, surface_albedo, material_id, instance_id, primitive_id,  # their hits [n]
+    u_light, u_bsdf,  # [n_hit, 4] uniforms for the rows that hit, in row order
+    materials, instance_offsets, kinds, area, points, env,  # scene tables
+    first, scatter, sample_lights, has_emitters, has_area, russian_roulette, rr_max_survival,
+    radiance, aov_albedo, aov_normal, aov_depth, aov_hit,  # per-sample accumulators of the wavefront
+    shadow_origin, shadow_direction, shadow_t_max, shadow_sample, shadow_contribution,  # out: compacted shadow rays
+    next_origin, next_direction, next_sample, next_throughput, next_pdf,  # out: compacted surviving paths
+):
+    """One bounce after the closest-hit query (see the module docstring); returns the number of
+    shadow rays and of surviving paths written to the front of the output arrays."""
+    mat_kind, mat_albedo, mat_roughness, mat_ior, mat_emission = materials[0], materials[1], materials[2], materials[3], materials[4]
+    has_env = env[7]
+    pk = 1.0 / max(kinds.shape[0], 1)
+    n_shadow = 0
+    n_next = 0
+    j = -1  # row among the hits (index into the uniforms)
+    for i in range(origins.shape[0]):
+        s = sample[i]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        tr, tg, tb = throughput[i, 0], throughput[i, 1], throughput[i, 2]
+        if not hit[i]:
+            if has_env:
+                lr, lg, lb = environment_radiance(env, dx, dy, dz)
+                w = 1.0 if first else _power_heuristic(prev_pdf[i], environment_pdf(env, dx, dy, dz) * pk)
+                radiance[s, 0] += tr * lr * w
+                radiance[s, 1] += tg * lg * w
+                radiance[s, 2] += tb * lb * w
+            continue
+        j += 1
+        # Shading geometry: normals turned to the side the ray came from.
+        th = t[i]
+        px, py, pz = origins[i, 0] + th * dx, origins[i, 1] + th * dy, origins[i, 2] + th * dz
+        wox, woy, woz = -dx, -dy, -dz
+        gx, gy, gz = geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2]
+        front = _dot(gx, gy, gz, wox, woy, woz) > 0
+        if not front:
+            gx, gy, gz = -gx, -gy, -gz
+        nx, ny, nz = normal[i, 0], normal[i, 1], normal[i, 2]
+        if _dot(nx, ny, nz, gx, gy, gz) < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        if _dot(nx, ny, nz, wox, woy, woz) <= 0:
+            nx, ny, nz = gx, gy, gz
+        mid_raw = material_id[i]
+        mid = max(mid_raw, 0)
+        ar, ag, ab = _albedo_at(materials, mid, uv[i, 0], uv[i, 1], surface_albedo[i, 0], surface_albedo[i, 1], surface_albedo[i, 2])
+        offset = instance_offsets[max(instance_id[i], 0)]
+        # Emission seen at the hit (front faces only), MIS against light sampling after a bounce.
+        if has_emitters and front and mid_raw >= 0:
+            er, eg, eb = mat_emission[mid, 0], mat_emission[mid, 1], mat_emission[mid, 2]
+            if max(er, eg, eb) > 0:
+                w = 1.0
+                if not first:
+                    light_pdf = 0.0
+                    if has_area:
+                        light = _area_light_index(area, instance_id[i], primitive_id[i])
+                        if light >= 0:
+                            light_pdf = _area_pdf(area, light, th, dx, dy, dz) * pk
+                    w = _power_heuristic(prev_pdf[i], light_pdf)
+                radiance[s, 0] += tr * er * w
+                radiance[s, 1] += tg * eg * w
+                radiance[s, 2] += tb * eb * w
+        if first:
+            aov_albedo[s, 0], aov_albedo[s, 1], aov_albedo[s, 2] = ar, ag, ab
+            aov_normal[s, 0], aov_normal[s, 1], aov_normal[s, 2] = nx, ny, nz
+            aov_depth[s] = th
+            aov_hit[s] = True
+        if not scatter:
+            continue
+        kind, alpha, ior = mat_kind[mid], mat_roughness[mid], mat_ior[mid]
+        ox, oy, oz = px + gx * offset, py + gy * offset, pz + gz * offset  # secondary rays leave from here
+        # Next-event estimation: one light sample; its shadow ray is queried by the caller.
+        if sample_lights:
+            wx, wy, wz, dist, lr, lg, lb, lpdf, is_delta = sample_light(kinds, area, points, env, px, py, pz,
+                                                                       u_light[j, 0], u_light[j, 1], u_light[j, 2])
+            fr, fg, fb, bpdf = _eval_pdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz, wx, wy, wz)
+            if lpdf > 0 and _dot(wx, wy, wz, gx, gy, gz) > 0 and max(fr, fg, fb) > 0 and max(lr, lg, lb) > 0:
+                k = n_shadow
+                n_shadow += 1
+                shadow_origin[k, 0], shadow_origin[k, 1], shadow_origin[k, 2] = ox, oy, oz
+                if math.isfinite(dist):  # aim at the light point itself, stopping just short of it
+                    shadow_direction[k, 0] = px + wx * dist - ox
+                    shadow_direction[k, 1] = py + wy * dist - oy
+                    shadow_direction[k, 2] = pz + wz * dist - oz
+                    shadow_t_max[k] = _SHADOW_T_MAX
+                else:
+                    shadow_direction[k, 0], shadow_direction[k, 1], shadow_direction[k, 2] = wx, wy, wz
+                    shadow_t_max[k] = np.inf
+                w = 1.0 if is_delta else _power_heuristic(lpdf, bpdf)
+                c = w / lpdf
+                shadow_sample[k] = s
+                shadow_contribution[k, 0] = tr * fr * lr * c
+                shadow_contribution[k, 1] = tg * fg * lg * c
+                shadow_contribution[k, 2] = tb * fb * lb * c
+        # BSDF sampling and Russian roulette.
+        wx, wy, wz, fr, fg, fb, spdf = sample_bsdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz,
+                                                   u_bsdf[j, 0], u_bsdf[j, 1], u_bsdf[j, 2])
+        nr, ng_, nb = tr * fr, tg * fg, tb * fb
+        q = max(nr, ng_, nb)
+        if not (spdf > 0 and _dot(wx, wy, wz, gx, gy, gz) > 0 and q > 0):
+            continue
+        if russian_roulette:
+            q = min(q, rr_max_survival)
+            if not (u_bsdf[j, 3] < q):
+                continue
+            nr, ng_, nb = nr / q, ng_ / q, nb / q
+        k = n_next
+        n_next += 1
+        next_origin[k, 0], next_origin[k, 1], next_origin[k, 2] = ox, oy, oz
+        next_direction[k, 0], next_direction[k, 1], next_direction[k, 2] = wx, wy, wz
+        next_sample[k] = s
+        next_throughput[k, 0], next_throughput[k, 1], next_throughput[k, 2] = nr, ng_, nb
+        next_pdf[k] = spdf
+    return n_shadow, n_next
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def add_unoccluded(radiance, shadow_sample, shadow_contribution, blocked):
+    """Add the contribution of every shadow ray that reached its light to its sample's radiance."""
+    for k in range(shadow_sample.shape[0]):
+        if not blocked[k]:
+            s = shadow_sample[k]
+            for c in range(3):
+                radiance[s, c] += shadow_contribution[k, c]
