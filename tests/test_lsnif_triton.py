@@ -129,6 +129,9 @@ class _Net(torch.nn.Module):
             for p in self.parameters():
                 p.copy_(torch.rand(p.shape, generator=g) * 0.4 - 0.2)
 
+    def forward(self, x, compute_dtype=torch.float32):
+        return self.reference(x, compute_dtype)
+
     def reference(self, x, dtype):
         x = x.to(dtype)
         for layer in self.hidden:
@@ -142,10 +145,11 @@ FUSED_DTYPES = [torch.float32, torch.bfloat16] if CUDA else [torch.float32]
 
 @pytest.mark.parametrize("dtype", FUSED_DTYPES)
 @pytest.mark.parametrize(
-    "max_points,width,layers,distances,origin_point,whole_mlp",
-    [(10, 64, 2, True, True, True), (6, 48, 3, False, False, True), (10, 64, 2, True, True, False)],
+    "max_points,width,layers,distances,origin_point,stage",
+    [(10, 64, 2, True, True, "whole"), (6, 48, 3, False, False, "whole"), (10, 64, 2, True, True, "first_layer"),
+     (10, 64, 2, True, True, "input"), (6, 48, 3, False, False, "input")],
 )
-def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, layers, distances, origin_point, whole_mlp):
+def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, layers, distances, origin_point, stage):
     from neuralrt.methods.lsnif import point_local_distances
     from neuralrt.methods.lsnif_fused import fused_network_outputs
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
@@ -163,7 +167,7 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, laye
         ref = net.reference(x, dtype)
         fused = fused_network_outputs(
             o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), grid.to(DEVICE), net.to(DEVICE),
-            max_points=max_points, point_distances=distances, compute_dtype=dtype, whole_mlp=whole_mlp, block=32, **fc,
+            max_points=max_points, point_distances=distances, compute_dtype=dtype, stage=stage, block=32, **fc,
         )  # fmt: skip
     out, count = fused.values.cpu(), fused.count.cpu()
     assert out.shape == ref.shape

@@ -5,14 +5,17 @@ encodes each boundary point in the sparse hash grid as soon as it is found (`enc
 multiplies its features (+ its point distance) into the first MLP layer at once: the network
 input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over points of
 ``x_h @ W1[:, block h]^T``, one small matrix product per point slot on the tensor cores. Points
-and features stay in registers. By default (``whole_mlp``) the other layers run in the same
-kernel too (hidden layers on the tensor cores in the compute dtype, output layer in fp32, as
-`MLP.forward` does), so a ray costs 24 bytes in and its outputs out; otherwise the kernel writes
-the first hidden layer's activations and the rest runs as torch GEMMs. A point slot past every
-ray's last point in a block is skipped (its features are 0 and add nothing).
+and features stay in registers. Where the kernel stops is a choice (``stage``, measured in
+benchmarks/bench_lsnif_kernels_cuda.py): ``"whole"`` runs the other layers in the same kernel
+too (hidden layers on the tensor cores in the compute dtype, output layer in fp32, as
+`MLP.forward` does), so a ray costs 24 bytes in and its outputs out; ``"first_layer"`` writes
+the first hidden layer's activations and the rest runs as torch GEMMs; ``"input"`` writes the
+network input in bf16 (no accumulator in the kernel: fewer registers, more rays in flight) and
+the whole MLP runs as torch GEMMs. A point slot past every ray's last point in a block is
+skipped (its features are 0 and add nothing).
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
-compute precision: the first layer accumulates in fp32 from bf16 inputs (unfused: a bf16 GEMM).
+compute precision: in-kernel layers accumulate in fp32 from bf16 inputs (unfused: bf16 GEMMs).
 """
 
 from __future__ import annotations
@@ -33,6 +36,10 @@ __all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_layout", "fused
            "pack_network", "run_fused_kernel"]
 
 
+# What the kernel writes: the network input, the first hidden layer, or the network's outputs.
+STAGES = {"input": 0, "first_layer": 1, "whole": 2}
+
+
 @triton.jit
 def _fused_lsnif_kernel(
     o_ptr, d_ptr, occ_ptr, planes_ptr, table_ptr, res_ptr, w1_ptr, b1_ptr,
@@ -42,7 +49,7 @@ def _fused_lsnif_kernel(
     MAX_POINTS: tl.constexpr, ORIGIN_POINTS: tl.constexpr, SHARE: tl.constexpr,
     POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr,
     HIDDEN: tl.constexpr, IEEE: tl.constexpr, BLOCK: tl.constexpr,
-    WHOLE_MLP: tl.constexpr, MORE_HIDDEN: tl.constexpr, OUTPUTS: tl.constexpr, OP: tl.constexpr,
+    STAGE: tl.constexpr, MORE_HIDDEN: tl.constexpr, OUTPUTS: tl.constexpr, OP: tl.constexpr,
 ):  # fmt: skip
     rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     lane_ok = rays < n_rays
@@ -63,6 +70,12 @@ def _fused_lsnif_kernel(
     dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
     k = tl.arange(0, LP * FP)
     n = tl.arange(0, HIDDEN)
+    levels = tl.arange(0, LP)
+    feats_i = tl.arange(0, FP)
+    INPUTS: tl.constexpr = MAX_POINTS * L * F + (MAX_POINTS if POINT_DISTANCES else 0)
+    # network-input columns of a point's features: point-major, then level, then feature
+    in_cols = levels[None, :, None] * F + feats_i[None, None, :]
+    in_mask = lane_ok[:, None, None] & (levels < L)[None, :, None] & (feats_i < F)[None, None, :]
     acc = tl.zeros([BLOCK, HIDDEN], tl.float32)
     count = tl.zeros([BLOCK], tl.int32)
     h = tl.full([], 0, tl.int32)
@@ -72,42 +85,64 @@ def _fused_lsnif_kernel(
             state, planes_ptr, occ_ptr, V, ORIGIN_POINTS, SHARE)  # fmt: skip
         px, py, pz = dda_point_coords(state, got, t, code, exiting, vx, vy, vz, planes_ptr)
         feats = encode_point(px, py, pz, code, got, table_ptr, res_ptr, table_size, L, F, LP, FP)
-        x = tl.reshape(feats, [BLOCK, LP * FP])  # column level * FP + feature
+        local = tl.zeros([BLOCK], tl.float32)
         if POINT_DISTANCES:  # as `point_local_distances`, in float32 on the float32 point
             tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-            local = tl.minimum(tl.maximum((tp - t_enter32) / span, 0.0), 1.0)
-            x = tl.where(k[None, :] == L * FP, tl.where(got, local, 0.0)[:, None], x)
-        w = tl.load(w1_ptr + (h * (LP * FP) + k[:, None]) * HIDDEN + n[None, :])
-        if IEEE:
-            acc = tl.dot(x.to(w.dtype), w, acc, input_precision="ieee")
+            local = tl.where(got, tl.minimum(tl.maximum((tp - t_enter32) / span, 0.0), 1.0), 0.0)
+        if STAGE == 0:  # the network input row, exactly as the unfused path lays it out
+            row = out_ptr + r64[:, None, None] * INPUTS + h * (L * F)
+            tl.store(row + in_cols, feats.to(out_ptr.dtype.element_ty), mask=in_mask)
+            if POINT_DISTANCES:
+                tl.store(out_ptr + r64 * INPUTS + MAX_POINTS * L * F + h, local.to(out_ptr.dtype.element_ty), mask=lane_ok)
         else:
-            acc = tl.dot(x.to(w.dtype), w, acc)
+            x = tl.reshape(feats, [BLOCK, LP * FP])  # column level * FP + feature
+            if POINT_DISTANCES:
+                x = tl.where(k[None, :] == L * FP, local[:, None], x)
+            w = tl.load(w1_ptr + (h * (LP * FP) + k[:, None]) * HIDDEN + n[None, :])
+            if IEEE:
+                acc = tl.dot(x.to(w.dtype), w, acc, input_precision="ieee")
+            else:
+                acc = tl.dot(x.to(w.dtype), w, acc)
         count += got.to(tl.int32)
         h += 1
         any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
-    y = acc + tl.load(b1_ptr + n)[None, :]
-    y = tl.where(y >= 0.0, y, y * slope)
-    if WHOLE_MLP:
-        # The other hidden layers (activations rounded to the compute dtype between layers, as
-        # the unfused path does), then the output layer in fp32.
-        for layer in tl.static_range(MORE_HIDDEN):
-            w = tl.load(wh_ptr + (layer * HIDDEN + n[:, None]) * HIDDEN + n[None, :])
-            if IEEE:
-                y = tl.dot(y.to(w.dtype), w, input_precision="ieee")
-            else:
-                y = tl.dot(y.to(w.dtype), w)
-            y = y + tl.load(bh_ptr + layer * HIDDEN + n)[None, :]
-            y = tl.where(y >= 0.0, y, y * slope)
-        y = y.to(w1_ptr.dtype.element_ty).to(tl.float32)
-        o = tl.arange(0, OP)
-        out = tl.dot(y, tl.load(wo_ptr + n[:, None] * OP + o[None, :]), input_precision="ieee")
-        out = out + tl.load(bo_ptr + o)[None, :]
-        tl.store(out_ptr + r64[:, None] * OUTPUTS + o[None, :], out, mask=lane_ok[:, None] & (o < OUTPUTS)[None, :])
-    else:
-        tl.store(out_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(out_ptr.dtype.element_ty), mask=lane_ok[:, None])
     tl.store(t_enter_ptr + rays, t_enter32, mask=lane_ok)
     tl.store(t_exit_ptr + rays, t_exit32, mask=lane_ok)
     tl.store(count_ptr + rays, count, mask=lane_ok)
+    if STAGE == 0:
+        # Slots no ray of the block reached are padding: zero features, zero distance.
+        zeros = tl.zeros([BLOCK, LP, FP], tl.float32).to(out_ptr.dtype.element_ty)
+        zero_row = tl.zeros([BLOCK], tl.float32).to(out_ptr.dtype.element_ty)
+        for hz in range(MAX_POINTS):
+            pad = hz >= h
+            tl.store(out_ptr + r64[:, None, None] * INPUTS + hz * (L * F) + in_cols, zeros, mask=in_mask & pad)
+            if POINT_DISTANCES:
+                tl.store(out_ptr + r64 * INPUTS + MAX_POINTS * L * F + hz, zero_row, mask=lane_ok & pad)
+    else:
+        y = acc + tl.load(b1_ptr + n)[None, :]
+        y = tl.where(y >= 0.0, y, y * slope)
+        if STAGE == 2:
+            # The other hidden layers (activations rounded to the compute dtype between layers,
+            # as the unfused path does), then the output layer in fp32.
+            for layer in tl.static_range(MORE_HIDDEN):
+                w = tl.load(wh_ptr + (layer * HIDDEN + n[:, None]) * HIDDEN + n[None, :])
+                if IEEE:
+                    y = tl.dot(y.to(w.dtype), w, input_precision="ieee")
+                else:
+                    y = tl.dot(y.to(w.dtype), w)
+                y = y + tl.load(bh_ptr + layer * HIDDEN + n)[None, :]
+                y = tl.where(y >= 0.0, y, y * slope)
+            y = y.to(w1_ptr.dtype.element_ty).to(tl.float32)
+            o = tl.arange(0, OP)
+            out = tl.dot(y, tl.load(wo_ptr + n[:, None] * OP + o[None, :]), input_precision="ieee")
+            out = out + tl.load(bo_ptr + o)[None, :]
+            tl.store(out_ptr + r64[:, None] * OUTPUTS + o[None, :], out, mask=lane_ok[:, None] & (o < OUTPUTS)[None, :])
+        else:
+            tl.store(out_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(out_ptr.dtype.element_ty), mask=lane_ok[:, None])
+
+
+# Rays per program and warps of the fused kernel (measured on an H100: bench_lsnif_kernels_cuda.py).
+DEFAULT_LAUNCH = {"stage": "whole", "block": 64, "num_warps": 4}
 
 
 @dataclass(frozen=True)
@@ -216,11 +251,11 @@ def run_fused_kernel(
     share_boundary_points: bool = True,
     point_distances: bool = True,
     slope: float = 0.01,
-    whole_mlp: bool = True,
+    stage: str = "whole",
     block: int = 64,
     num_warps: int = 4,
 ) -> FusedOutputs:
-    """Featurize + encode + first layer (``whole_mlp``: + every layer) of unit-box rays ``[N, 3]``.
+    """Featurize + encode (+ the first layer, or the whole MLP: ``stage``) of unit-box rays ``[N, 3]``.
 
     ``occupancy`` [V, V, V], ``table`` [L, T, F] and ``resolutions`` (int32 [L]) on the rays'
     device. CUDA, or CPU tensors under ``TRITON_INTERPRET=1``.
@@ -230,10 +265,14 @@ def run_fused_kernel(
     o = origins.detach().to(torch.float32).contiguous()
     d = directions.detach().to(torch.float32).contiguous()
     n = o.shape[0]
-    if whole_mlp:
-        values = torch.empty((n, lay.outputs), dtype=torch.float32, device=device)
+    inputs = max_points * lay.levels * lay.features + (max_points if point_distances else 0)
+    width, dtype = {"input": (inputs, weights.w1.dtype), "first_layer": (lay.hidden_padded, weights.w1.dtype),
+                    "whole": (lay.outputs, torch.float32)}[stage]  # fmt: skip
+    values = torch.empty((n, width), dtype=dtype, device=device)
+    if stage == "input":  # no matrix product: no K >= 16 padding, no distance slot (half the registers)
+        lp, fp = triton.next_power_of_2(lay.levels), triton.next_power_of_2(lay.features)
     else:
-        values = torch.empty((n, lay.hidden_padded), dtype=weights.w1.dtype, device=device)
+        lp, fp = lay.level_slots, lay.feature_slots
     t_enter = torch.empty(n, dtype=torch.float32, device=device)
     t_exit = torch.empty(n, dtype=torch.float32, device=device)
     count = torch.empty(n, dtype=torch.int32, device=device)
@@ -244,13 +283,12 @@ def run_fused_kernel(
             values, t_enter, t_exit, count,
             n, occ.shape[0], table.shape[1], float(slope),
             MAX_POINTS=int(max_points), ORIGIN_POINTS=bool(origin_point), SHARE=bool(share_boundary_points),
-            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features,
-            LP=lay.level_slots, FP=lay.feature_slots, HIDDEN=lay.hidden_padded,
+            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features, LP=lp, FP=fp, HIDDEN=lay.hidden_padded,
             IEEE=weights.w1.dtype == torch.float32, BLOCK=block,
-            WHOLE_MLP=bool(whole_mlp), MORE_HIDDEN=len(weights.rest), OUTPUTS=lay.outputs, OP=lay.outputs_padded,
+            STAGE=STAGES[stage], MORE_HIDDEN=len(weights.rest), OUTPUTS=lay.outputs, OP=lay.outputs_padded,
             num_warps=num_warps,
         )  # fmt: skip
-    if not whole_mlp:
+    if stage == "first_layer":
         values = values[:, : lay.hidden]
     return FusedOutputs(values, t_enter, t_exit, count)
 
@@ -278,24 +316,32 @@ def fused_network_outputs(
     share_boundary_points: bool = True,
     point_distances: bool = True,
     compute_dtype: torch.dtype = torch.bfloat16,
-    whole_mlp: bool = True,
-    block: int = 64,
-    num_warps: int = 4,
+    stage: str | None = None,
+    block: int | None = None,
+    num_warps: int | None = None,
 ) -> FusedOutputs:
     """The LSNIF network's raw outputs ``[N, outputs]`` (fp32) for unit-box rays, fused.
 
-    ``network`` is `MLP`-shaped (``hidden`` Linear layers, ``output``, ``slope``). With
-    ``whole_mlp`` every layer runs inside the kernel; otherwise the kernel stops after the first
-    layer and the others run as torch GEMMs (hidden in ``compute_dtype``, output in fp32).
-    Rays with ``count == 0`` are certain misses: their output rows are meaningless.
+    ``network`` is `MLP`-shaped (``hidden`` Linear layers, ``output``, ``slope``). ``stage``
+    (default `DEFAULT_LAUNCH`): ``"whole"`` runs every layer inside the kernel; ``"first_layer"``
+    stops after the first layer, the others run as torch GEMMs; ``"input"`` writes the network
+    input (bf16) and the whole network runs as torch GEMMs (``network.forward``). Rays with
+    ``count == 0`` are certain misses: their output rows are meaningless.
     """
     weights = _weights_for(network, encoder, max_points, point_distances, compute_dtype)
+    stage = stage or DEFAULT_LAUNCH["stage"]
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
+    block = block or DEFAULT_LAUNCH["block"]
+    num_warps = num_warps or DEFAULT_LAUNCH["num_warps"]
     fused = run_fused_kernel(
         origins, directions, occupancy, encoder.table, encoder._resolutions_on(origins.device), weights,
         max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
-        point_distances=point_distances, slope=network.slope, whole_mlp=whole_mlp, block=block, num_warps=num_warps,
+        point_distances=point_distances, slope=network.slope, stage=stage, block=block, num_warps=num_warps,
     )  # fmt: skip
-    if not whole_mlp:
+    if stage == "input":
+        fused.values = network(fused.values, compute_dtype)
+    elif stage == "first_layer":
         x = fused.values
         for w, b in weights.rest:
             x = F.leaky_relu(F.linear(x, w, b), network.slope)
