@@ -1,0 +1,247 @@
+"""N-BVH: traversal (numba vs torch vs brute force), split schedule and LoDs, compaction, training
+statistics, a short real training run (accuracy, reversed chords, resume), files and memory."""
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.geometry.mesh import Mesh
+from neuralrt.geometry.procedural import sphere
+from neuralrt.methods import load_model
+from neuralrt.methods.nbvh import NBVHConfig, NBVHModel
+from neuralrt.methods.nbvh_config import CutConfig
+from neuralrt.methods.nbvh_cut import compact, lod_to_register, split_count
+from neuralrt.methods.nbvh_traversal import NO_LOD, CutArrays, first_leaves, first_leaves_torch, list_leaves, list_leaves_torch
+from neuralrt.rays import Rays
+from neuralrt.training.api import train
+
+CENTER = np.array([3.0, -2.0, 1.0])
+RADIUS = 2.0
+
+
+@pytest.fixture(scope="module")
+def ball() -> Mesh:
+    base = sphere(subdivisions=3)
+    return Mesh(base.vertices * RADIUS + CENTER, base.faces, vertex_normals=base.vertex_normals, name="ball")
+
+
+def _random_cut(model: NBVHModel, seed: int) -> None:
+    """Grow a random cut (LoD 0) and a coarser one (LoD 3), as training would."""
+    g = np.random.default_rng(seed)
+    children = model.node_children.numpy()
+    lod = np.full(len(children), NO_LOD, np.int8)
+    frontier = [0]
+    for step in range(60):
+        splittable = [n for n in frontier if children[n, 0] >= 0]
+        if not splittable:
+            break
+        if step == 10:
+            lod[frontier] = 3
+        n = splittable[g.integers(len(splittable))]
+        frontier.remove(n)
+        frontier += [int(children[n, 0]), int(children[n, 1])]
+    lod[frontier] = 0
+    model.node_lod.copy_(torch.from_numpy(lod))
+    model.registered.zero_()
+    model.registered[[0, 3]] = True
+    model.live.zero_()
+    model.live[frontier] = True
+
+
+def _unit_rays(n, seed, inside_share=0.3):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.rand(n, 3, generator=g) * 1.6 - 0.3
+    o[: int(n * inside_share)] = 0.3 + 0.4 * torch.rand(int(n * inside_share), 3, generator=g)  # origins in leaves
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    d[0] = torch.tensor([1.0, 0.0, 0.0])  # axis-parallel: IEEE infinities in the slab test
+    return o, d
+
+
+@pytest.mark.parametrize("level", [0, 3, -1])
+def test_numba_torch_and_brute_force_list_the_same_leaves(ball, level):
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    _random_cut(model, seed=1)
+    cut = model.cut_arrays()
+    o, d = _unit_rays(2000, 2)
+    t_max = torch.full((2000,), 0.9)
+    lvl = torch.full((2000,), level, dtype=torch.int8)
+    dil = torch.full((2000,), 1e-5)
+    a = list_leaves(o, d, t_max, cut, lvl, dil)
+    b = list_leaves_torch(o, d, t_max, cut, lvl, dil)
+    assert torch.equal(a.start, b.start) and torch.equal(a.node, b.node)
+    assert torch.equal(a.t0, b.t0) and torch.equal(a.t1, b.t1)
+    assert len(a.node) > 2000  # rays cross several leaves
+    # Brute force over the cut's leaves: same sets; each list sorted by t0.
+    lod = model.node_lod
+    leaves = torch.nonzero(model.live if level < 0 else lod <= level).squeeze(1)
+    leaves = leaves[[not any(bool((lod[p] <= level) if level >= 0 else model.live[p]) for p in _ancestors(model, int(x))) for x in leaves]]
+    lo, hi = cut.lo[leaves] - 1e-5, cut.hi[leaves] + 1e-5
+    inv = 1 / d[:, None, :]
+    ta, tb = torch.nan_to_num((lo - o[:, None]) * inv, nan=-np.inf), torch.nan_to_num((hi - o[:, None]) * inv, nan=np.inf)
+    tn, tf = torch.minimum(ta, tb).amax(-1), torch.maximum(ta, tb).amin(-1)
+    valid = (tn <= tf) & (tn < t_max[:, None]) & torch.where(tn >= 0, tn > 1e-4, tf > 1e-3)
+    for i in range(0, 2000, 97):
+        listed = a.node[a.start[i] : a.start[i + 1]]
+        assert set(listed.tolist()) == set(leaves[valid[i]].tolist())
+        assert (torch.diff(a.t0[a.start[i] : a.start[i + 1]]) >= 0).all()
+    # The first leaf (what training samples) is the head of each list.
+    node, t0, _ = first_leaves(o, d, t_max, cut, lvl, dil)
+    node_t, t0_t, _ = first_leaves_torch(o, d, t_max, cut, lvl, dil)
+    has = a.counts > 0
+    assert torch.equal(node, node_t) and torch.equal(node >= 0, has)
+    assert torch.equal(node[has], a.node[a.start[:-1][has]]) and torch.equal(t0[has], t0_t[has])
+
+
+def _ancestors(model, node):
+    parent = {}
+    ch = model.node_children.numpy()
+    for p in range(len(ch)):
+        if ch[p, 0] >= 0:
+            parent[int(ch[p, 0])] = parent[int(ch[p, 1])] = p
+    out = []
+    while node in parent:
+        node = parent[node]
+        out.append(node)
+    return out
+
+
+def test_split_schedule_gives_the_shipped_node_counts():
+    def nodes(interval, scaling, last):
+        cut = CutConfig(splitting_interval=interval, split_scaling=scaling, last_split_step=last)
+        return 1 + 2 * sum(split_count(s, cut, 10_000) for s in range(last + 1))
+
+    # METHODS-SPEC A3.3 (chess presets, and the CPU suggestions of section E).
+    assert nodes(300, 2, 3000) == 155 and nodes(100, 2, 3000) == 1243
+    assert abs(nodes(40, 2.5, 3000) / 32940 - 1) < 2e-3 and abs(nodes(50, 2.3, 3000) / 10903 - 1) < 2e-3
+    assert nodes(30, 2, 1200) == 2395 and nodes(16, 2, 1200) == 8283
+    cut = CutConfig(last_split_step=3000, lods=7)
+    assert [lod_to_register(s, cut, 10_000) for s in (428, 857, 3000, 2999)] == [6, 5, 0, None]
+    assert lod_to_register(59, cut, 60) == 0  # a short run registers its final cut as LoD 0
+
+
+def test_compaction_keeps_the_registered_cuts_and_their_order(ball):
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    _random_cut(model, seed=4)
+    lo, hi, children, lod = compact(model.node_lo.numpy(), model.node_hi.numpy(), model.node_children.numpy(), model.node_lod.numpy())
+    assert len(lo) < len(model.node_lo) and len(lo) == model.num_nodes
+    small = CutArrays(torch.from_numpy(lo), torch.from_numpy(hi), torch.from_numpy(children), torch.from_numpy(lod),
+                      torch.zeros(len(lo), dtype=torch.bool))
+    o, d = _unit_rays(1000, 5)
+    for level in (0, 3, 6):
+        args = (o, d, torch.full((1000,), np.inf), None, torch.full((1000,), level, dtype=torch.int8), torch.full((1000,), 1e-5))
+        full = list_leaves(*args[:3], model.cut_arrays(), *args[4:])
+        compacted = list_leaves(*args[:3], small, *args[4:])
+        assert torch.equal(full.start, compacted.start) and torch.equal(full.t0, compacted.t0)
+        assert torch.equal(torch.from_numpy(lo)[compacted.node], model.node_lo[full.node])
+
+
+def test_statistics_acceptance_and_splits(ball):
+    cfg = NBVHConfig.preset("cpu", cut={"splitting_interval": 5, "split_scaling": 2.0, "last_split_step": 20, "lods": 2},
+                            training={"steps": 30})
+    model = NBVHModel.from_mesh(ball, cfg)
+    assert model.live_nodes() == 1 and model.training_levels().tolist() == [-1]
+    assert torch.equal(model.acceptance(torch.tensor([0])), torch.ones(1))  # never sampled: p = 1
+    model.remember_batch_leaves(torch.tensor([0, 0]))
+    model._batch_losses = torch.tensor([1.0, 3.0])
+    model.after_training_step(0, None)  # step 0: split the root
+    assert float(model.loss_sum[0]) == 4.0 and float(model.samples[0]) == 16.0 and float(model.alive_steps[0]) == 1.0
+    kids = model.node_children[0].long()
+    assert not model.live[0] and model.live[kids].all() and model.live_nodes() == 3
+    # Two leaves with statistics: p = max(h / h_max, 0.005), h = loss_sum / sqrt(samples * alive).
+    model.remember_batch_leaves(kids)
+    model._batch_losses = torch.tensor([8.0, 0.0001])
+    model.after_training_step(1, None)
+    h = model.node_heuristic()
+    assert float(h[kids[0]]) == pytest.approx(8.0 / np.sqrt(8.0 * 1.0))
+    assert torch.allclose(model.acceptance(kids), torch.tensor([1.0, 0.005]))
+    model.after_training_step(10, None)  # LoD 1 at step (2 - 1) * 20 / 2 = 10; the split of step 10 comes first
+    assert bool(model.registered[1]) and model.training_levels().tolist() == [1, -1]
+    assert (model.node_lod[model.live] == 1).all()
+
+
+@pytest.fixture(scope="module")
+def trained(ball, tmp_path_factory):
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)  # see test_lsnif.one_torch_thread
+    try:
+        cfg = NBVHConfig.preset("cpu", encoding={"log2_table_size": 14},
+                                cut={"splitting_interval": 20, "split_scaling": 2.0, "last_split_step": 150},
+                                training={"steps": 200, "batch_size": 4096, "seed": 0})
+        ckpt = tmp_path_factory.mktemp("ckpt") / "run.ckpt"
+        return train(ball, cfg, progress=False, checkpoint=ckpt), ckpt, cfg
+    finally:
+        torch.set_num_threads(before)
+
+
+def _sphere_rays(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.from_numpy(CENTER).float() + 2.5 * RADIUS * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    target = torch.from_numpy(CENTER).float() + 1.5 * RADIUS * (torch.rand(n, 3, generator=g) - 0.5) * 2
+    return Rays(o, target - o)
+
+
+def test_short_training_learns_the_sphere(ball, trained):
+    model, _, _ = trained
+    assert model.num_nodes > 7 and bool(model.registered[0])
+    rays = _sphere_rays(4096, 1)
+    exact, neural = MeshBLAS(ball).intersect(rays), model.intersect(rays)
+    assert (exact.hit == neural.hit).float().mean() > 0.97  # always-miss would score ~0.5
+    both = exact.hit & neural.hit
+    diag = float(model.bounds.diagonal)
+    assert ((neural.t - exact.t)[both].abs() / (diag * rays.directions[both].norm(dim=1))).median() < 0.01
+    cos = (neural.normal[both] * exact.normal[both]).sum(-1).abs()
+    assert torch.rad2deg(torch.acos(cos.clamp(max=1))).median() < 10
+    assert torch.equal(model.occluded(rays), neural.hit)
+
+
+def test_origins_inside_leaves_use_the_reversed_chord(ball, trained):
+    """Rays from inside the sphere (inside its leaves) find the wall ahead, at R - |o| along an outward ray."""
+    model, _, _ = trained
+    g = torch.Generator().manual_seed(3)
+    d = torch.nn.functional.normalize(torch.randn(2048, 3, generator=g), dim=1)
+    o = torch.from_numpy(CENTER).float() + 0.5 * RADIUS * d  # halfway out, heading out
+    h = model.intersect(Rays(o, d))
+    assert h.hit.float().mean() > 0.9
+    assert ((h.t[h.hit] - 0.5 * RADIUS).abs() / RADIUS).median() < 0.05
+
+
+def test_resume_continues_bit_for_bit(ball, trained, tmp_path):
+    model, _, cfg = trained
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        short = cfg.with_training(steps=30)
+        straight = train(ball, short, progress=False)
+        ckpt = tmp_path / "r.ckpt"
+        train(ball, short.with_training(steps=15), progress=False, checkpoint=ckpt)
+        resumed = train(ball, short, progress=False, checkpoint=ckpt, resume=True)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(straight.encoder.table, resumed.encoder.table)
+    assert torch.equal(straight.node_lod, resumed.node_lod) and torch.equal(straight.loss_sum, resumed.loss_sum)
+
+
+def test_file_round_trip_and_memory(trained, tmp_path):
+    model, _, cfg = trained
+    path = model.save(tmp_path / "ball.nrt")
+    loaded = load_model(path)
+    assert isinstance(loaded, NBVHModel) and loaded.num_nodes == model.num_nodes == len(loaded.node_lo)
+    mem = loaded.memory_bytes().parts
+    rows = sum(min((8 * 2**lvl) ** 3, 2**14) for lvl in range(8))
+    assert mem["hash_table"] == rows * 4 * 2
+    assert mem["mlp"] == 2 * (96 * 64 + 64 + 3 * (64 * 64 + 64) + 64 * 8 + 8)  # ~19.5k parameters (paper)
+    assert mem["nodes"] == 33 * model.num_nodes
+    rays = _sphere_rays(1024, 7)
+    a, b = model.intersect(rays), loaded.intersect(rays)
+    assert torch.equal(a.hit, b.hit) and torch.equal(a.t, b.t)
+
+
+def test_config_presets_and_validation():
+    paper, cpu = NBVHConfig.preset("paper"), NBVHConfig.preset("cpu")
+    assert (paper.training.steps, paper.training.batch_size, paper.cut.last_split_step, paper.encoding.log2_table_size) == (10_000, 2**18, 3000, 18)
+    assert (paper.network.hidden_layers, paper.network.hidden_width, paper.training.learning_rate) == (4, 64, 0.01)
+    assert (paper.loss.visibility, paper.loss.depth, paper.loss.normal, paper.loss.albedo) == (2, 2, 1, 1)
+    assert cpu.training.batch_size <= 2**14
+    with pytest.raises(ValueError, match="log2_table_size"):
+        NBVHConfig.preset("cpu", encoding={"log2_table_size": 23})
