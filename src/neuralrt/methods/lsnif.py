@@ -184,25 +184,27 @@ class LSNIFModel(NeuralBLAS):
         prep = self._prepare(rays)
         fp, act = prep.features, prep.active
         out = self._raw_outputs(prep, self.compute_dtype(training=True))
-        tr = truth[act]
-        hit = tr.hit
+        hit = truth.hit[act]
         w = self.config.loss
         occ_loss = F.binary_cross_entropy_with_logits(out[:, _OCC], hit.float()) if len(act) else out.sum() * 0
         loss = w.occlusion * occ_loss
         parts = {"occlusion": occ_loss}  # loss terms, read back to the host once, below
-        if bool(hit.any()):
-            o = out[hit]
-            t_enter, t_exit = fp.t_enter[hit], fp.t_exit[hit]
-            t_local = (tr.t[hit] - prep.t_offset[hit] - t_enter) / torch.clamp(t_exit - t_enter, min=1e-12)
+        # Rows of the active rays that hit (one device sync here, instead of one per masked tensor).
+        hit_rows = torch.nonzero(hit).squeeze(1)
+        if len(hit_rows):
+            ray_rows = act[hit_rows]  # the same rays as rows of the batch
+            o = out[hit_rows]
+            t_enter, t_exit = fp.t_enter[hit_rows], fp.t_exit[hit_rows]
+            t_local = (truth.t[ray_rows] - prep.t_offset[hit_rows] - t_enter) / torch.clamp(t_exit - t_enter, min=1e-12)
             dist_loss = (torch.sigmoid(o[:, _DIST]) - t_local.clamp(0, 1)).abs().mean()
-            n_true = face_forward(tr.normal[hit], rays.directions[act][hit])
+            n_true = face_forward(truth.normal[ray_rows], rays.directions[ray_rows])
             normal_loss = (1 - F.cosine_similarity(o[:, _NORMAL], n_true, dim=-1, eps=1e-8)).mean()
             albedo = torch.sigmoid(o[:, _ALBEDO])
-            albedo_loss = ((albedo - tr.albedo[hit]) ** 2 / (albedo.detach() ** 2 + 1e-2)).mean()
+            albedo_loss = ((albedo - truth.albedo[ray_rows]) ** 2 / (albedo.detach() ** 2 + 1e-2)).mean()
             loss = loss + w.distance * dist_loss + w.normal * normal_loss + w.albedo * albedo_loss
             parts.update(distance=dist_loss, normal=normal_loss, albedo=albedo_loss)
             if self.num_materials > 1:
-                mat_loss = F.cross_entropy(o[:, _MAT:], tr.material_id[hit].clamp(0, self.num_materials - 1))
+                mat_loss = F.cross_entropy(o[:, _MAT:], truth.material_id[ray_rows].clamp(0, self.num_materials - 1))
                 loss = loss + w.material * mat_loss
                 parts["material"] = mat_loss
         with torch.no_grad():
