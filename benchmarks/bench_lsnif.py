@@ -74,7 +74,7 @@ def inference_speed(model: LSNIFModel, exact: MeshBLAS, rays_n: int, repeats: in
     n_in, n_out = model.network_inputs, 8 + model.num_materials
     flops = 2 * (n_in * h + (w - 1) * h * h + h * n_out)
     x = torch.randn(cfg.inference.chunk_size, n_in)
-    dtype = model._compute_dtype()
+    dtype = model.compute_dtype()
 
     def mlp_only():
         with torch.no_grad():
