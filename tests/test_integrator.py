@@ -1,6 +1,8 @@
 """The path tracer against closed forms: white furnace, point light and area light over a diffuse
 plane, an environment image over a plane (importance sampling + MIS), instance-transform
-invariance, determinism, AOVs. Tolerances are stated from the measured noise level."""
+invariance, determinism, AOVs. Tolerances are stated from the measured noise level. Every test
+runs with both shading implementations (torch ops and the CPU's numba kernels), and the two are
+compared on the same random numbers."""
 
 import math
 
@@ -9,6 +11,7 @@ import pytest
 import torch
 import trimesh
 
+from neuralrt.render import integrator
 from neuralrt.render.integrator import render
 from neuralrt.scene.loader import build_scene
 from neuralrt.scene.schema import (
@@ -23,6 +26,14 @@ from neuralrt.scene.schema import (
     SceneSpec,
     TransformSpec,
 )
+
+
+@pytest.fixture(params=["torch", "numba"], autouse=True)
+def shading(request, monkeypatch):
+    """Run each test with the shading stages of one implementation, whatever the render asks for."""
+    real = integrator.shading_stages_for
+    monkeypatch.setattr(integrator, "shading_stages_for", lambda scene, settings, backend="auto": real(scene, settings, request.param))
+    return request.param
 
 
 def _quad_file(path, half=1.0, y=0.0, down=False):
@@ -322,3 +333,4 @@ def test_silhouette_pixels_keep_the_surface_depth(tmp_path):
     # Unit sphere seen from distance 3: depths from 2 (front) to sqrt(8) = 2.83 (silhouette).
     assert res.depth[seen].min() > 1.99 and res.depth[seen].max() < 2.84
     assert (res.depth[~seen] == 0).all()
+

@@ -19,8 +19,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["shade_and_sample", "add_unoccluded", "lobes", "sample_bsdf", "sample_light", "environment_radiance",
-           "environment_pdf"]
+__all__ = ["shade_and_sample", "add_unoccluded", "bsdf_sample_rows", "bsdf_eval_rows", "light_sample_rows", "environment_rows"]
 
 _DIFFUSE, _CONDUCTOR, _PLASTIC, _EMISSIVE = 0, 1, 2, 3  # MaterialKind
 _AREA, _POINT, _ENVIRONMENT = 0, 1, 2  # light kinds, in LightSet.kinds order
@@ -495,3 +494,41 @@ def add_unoccluded(radiance, shadow_sample, shadow_contribution, blocked):
             s = shadow_sample[k]
             for c in range(3):
                 radiance[s, c] += shadow_contribution[k, c]
+
+
+# --- whole-batch entry points of the per-row functions (tests compare them with the torch path) ---------
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def bsdf_sample_rows(kind, alpha, ior, albedo, normal, wo, u_lobe, u_dir, wi, weight, pdf):
+    """`sample_bsdf` for every row: per-row material parameters (``kind`` [N] ...), writes ``wi``
+    [N, 3], ``weight`` [N, 3] and ``pdf`` [N]."""
+    for i in range(kind.shape[0]):
+        r = sample_bsdf(kind[i], alpha[i], ior[i], albedo[i, 0], albedo[i, 1], albedo[i, 2], normal[i, 0], normal[i, 1],
+                        normal[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], u_lobe[i], u_dir[i, 0], u_dir[i, 1])
+        wi[i, 0], wi[i, 1], wi[i, 2], weight[i, 0], weight[i, 1], weight[i, 2], pdf[i] = r
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def bsdf_eval_rows(kind, alpha, ior, albedo, normal, wo, wi, value, pdf):
+    """``f cos`` [N, 3] and ``pdf`` [N] for every row (`MaterialTable.eval_pdf`)."""
+    for i in range(kind.shape[0]):
+        r = _eval_pdf(kind[i], alpha[i], ior[i], albedo[i, 0], albedo[i, 1], albedo[i, 2], normal[i, 0], normal[i, 1],
+                      normal[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], wi[i, 0], wi[i, 1], wi[i, 2])
+        value[i, 0], value[i, 1], value[i, 2], pdf[i] = r
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def light_sample_rows(kinds, area, points, env, p, u, wi, distance, radiance, pdf, is_delta):
+    """`sample_light` for every shading point ``p`` [N, 3] with uniforms ``u`` [N, 3] (`LightSet.sample`)."""
+    for i in range(p.shape[0]):
+        r = sample_light(kinds, area, points, env, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1], u[i, 2])
+        wi[i, 0], wi[i, 1], wi[i, 2], distance[i], radiance[i, 0], radiance[i, 1], radiance[i, 2], pdf[i], is_delta[i] = r
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def environment_rows(env, d, radiance, pdf):
+    """`Environment.radiance` [N, 3] and `Environment.pdf` [N] for unit directions ``d`` [N, 3]."""
+    for i in range(d.shape[0]):
+        radiance[i, 0], radiance[i, 1], radiance[i, 2] = environment_radiance(env, d[i, 0], d[i, 1], d[i, 2])
+        pdf[i] = environment_pdf(env, d[i, 0], d[i, 1], d[i, 2])
