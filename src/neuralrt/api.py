@@ -156,22 +156,36 @@ def render(
     device: str = "cpu",
     progress: bool = True,
     allow_mesh_mismatch: bool = False,
+    nif: str | list[str] | None = None,
+    nif_train_spp: int | None = None,
 ) -> dict:
     """Path-trace ``scene`` (file or ``builtin:NAME``) to ``output`` (EXR; PNG and AOVs beside it).
-    A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``."""
+    A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``.
+    ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
+    online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
     from .render.integrator import render as _render
     from .scene.loader import load_scene
 
     check_device(device)
     check_count("spp", spp)
     check_count("max_depth", max_depth, minimum=0)
+    check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
+    if nif_train_spp is not None and nif is None:
+        raise ConfigError("--nif-train-spp needs --nif OBJECTS|auto")
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
     loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
                         allow_mesh_mismatch=allow_mesh_mismatch)
+    nif_report = None
     try:
-        result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
+        if nif is not None:  # NIF hook (issue 10): objects and spp are checked before any sample is rendered
+            from .render.nif_render import render_nif
+
+            result, nif_report = render_nif(loaded, nif, spp=spp, train_spp=nif_train_spp, seed=seed, max_depth=max_depth,
+                                            progress=progress, primary=primary)
+        else:
+            result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
     except ValueError as exc:
         raise NeuralRTError(str(exc)) from None
     files = result.save(output)
@@ -184,6 +198,7 @@ def render(
         "spp": result.spp,
         "seconds": result.seconds,
         "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),
+        **({"nif": nif_report} if nif_report is not None else {}),
     }
 
 

@@ -65,7 +65,8 @@ def _cmd_render(args) -> None:
         raise NeuralRTError("render needs SCENE and -o OUTPUT.exr (or --list-builtins)")
     result = api.render(args.scene, args.output, spp=args.spp, resolution=args.res, seed=args.seed,
                         max_depth=args.max_depth, primary=args.primary, detail=args.detail, device=args.device,
-                        progress=not args.quiet, allow_mesh_mismatch=args.allow_mesh_mismatch)
+                        progress=not args.quiet, allow_mesh_mismatch=args.allow_mesh_mismatch,
+                        nif=args.nif, nif_train_spp=args.nif_train_spp)
     _print_result(result, args.json)
 
 
@@ -179,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--list-builtins", action="store_true", help="list the built-in scenes and exit")
     p.add_argument("--allow-mesh-mismatch", action="store_true",
                    help="use models trained on another mesh than their object's (default: an error)")
+    p.add_argument("--nif", metavar="OBJECTS|auto", help="answer these objects' shadow rays with NIF, trained online "
+                   "(comma-separated names; auto: objects over 100K triangles; docs/nif.md)")
+    p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_render)

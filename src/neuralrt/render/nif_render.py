@@ -110,6 +110,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     config = config or NIFConfig()
     if train_spp is not None:
         config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": int(train_spp)})})
+    chosen = select_nif_instances(scene, nif, config)
     train_spp = config.training.train_spp
     spp = int(spp if spp is not None else scene.settings.spp)
     if train_spp < 1:
@@ -118,14 +119,14 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         raise ConfigError(f"--nif-train-spp {train_spp} leaves no samples for NIF at --spp {spp} (it must be below spp)")
     if answer not in ("answer", "exact"):
         raise ValueError(f"answer must be 'answer' or 'exact', got {answer!r}")
-    chosen = select_nif_instances(scene, nif, config)
 
     accel = scene.accel
     blases = list({id(accel.instances[k].blas): accel.instances[k].blas for k in chosen}.values())
     boxes = [b.bounds.inflated(config.box_inflation) for b in blases]
     networks = NIFNetworks(config, boxes).to(scene.device)
     trainer = NIFTrainer(networks)
-    shadows = NIFShadowAccel(accel, chosen, networks, trainer, audit=audit)
+    # The exact reference needs no networks: nothing is trained for it.
+    shadows = NIFShadowAccel(accel, chosen, networks, trainer if answer == "answer" else None, audit=audit)
     nif_scene = replace(scene, accel=shadows)
 
     start = time.perf_counter()

@@ -53,6 +53,7 @@ class ShadowRayStats:
     audit_exact_seconds: float = 0.0  # audit: the whole exact accelerator on the same rays
     audit_disagreements: int = 0  # audit: rays whose answer differs from the exact one
     audit_false_visible: int = 0  # audit: NIF says visible, exact says blocked
+    audit_blocked_by_nif_objects_only: int = 0  # audit: rays only NIF objects block (the errors of answering "visible")
 
     def as_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -165,7 +166,7 @@ class NIFShadowAccel:
         st.pairs += len(pairs)
         st.outer += queries.outer_pair.numel()
         st.inner += queries.inner_pair.numel()
-        blocked = blocked.clone()
+        exact_blocked, blocked = blocked, blocked.clone()
         blocked[ray_idx[hit]] = True
         if self.audit:
             t = time.perf_counter()
@@ -173,4 +174,5 @@ class NIFShadowAccel:
             st.audit_exact_seconds += time.perf_counter() - t
             st.audit_disagreements += int((truth != blocked).sum())
             st.audit_false_visible += int((truth & ~blocked).sum())
+            st.audit_blocked_by_nif_objects_only += int((truth & ~exact_blocked).sum())
         return blocked

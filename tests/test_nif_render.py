@@ -1,0 +1,140 @@
+"""NIF inside the renderer: collecting changes no pixel, the stand-in accelerator's two-stage answer
+equals each instance evaluated on its own (instances of one mesh share its grids), bad ``--nif``
+arguments are one-line errors before rendering, and an online-trained render answers shadow rays
+far better than calling every NIF ray visible."""
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError
+from neuralrt.geometry.procedural import box, plane, sphere
+from neuralrt.methods.nif import NIFNetworks, NIFPairs
+from neuralrt.methods.nif_config import NIFConfig, NIFTrainingConfig
+from neuralrt.methods.nif_training import NIFTrainer
+from neuralrt.rays import Rays
+from neuralrt.render.integrator import render
+from neuralrt.render.nif_render import render_nif, select_nif_instances
+from neuralrt.render.nif_shadows import NIFShadowAccel
+from neuralrt.scene.loader import load_dict
+
+
+def _scene(res=(24, 16)):
+    ball, cube = sphere(subdivisions=2), box()
+    return load_dict({
+        "camera": {"position": [0, 1.5, 5], "look_at": [0, 0, 0], "resolution": list(res)},
+        "materials": [{"name": "white", "type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
+                      {"name": "lamp", "type": "emissive", "emission": [8, 8, 8]}],
+        "objects": [
+            {"name": "ball", "mesh": ball, "material": "white", "transform": {"translate": [-0.8, 0, 0], "scale": 0.5}},
+            {"name": "ball", "mesh": ball, "material": "white", "transform": {"translate": [0.8, 0, 0], "scale": 0.5}},
+            {"name": "cube", "mesh": cube, "material": "white", "transform": {"translate": [0, 0, -0.8], "scale": 0.6}},
+            {"name": "floor", "mesh": plane(size=6.0), "material": "white", "transform": {"translate": [0, -0.6, 0]}},
+            {"name": "lamp", "mesh": plane(size=1.0), "material": "lamp", "transform": {"translate": [0, 2.5, 0], "rotate": [180, 0, 0]}},
+        ],
+    })
+
+
+def _shadows(scene, names, seed=0, init_scale=1e-4):
+    cfg = NIFConfig(training=NIFTrainingConfig(seed=seed, init_scale=init_scale))
+    chosen = select_nif_instances(scene, names, cfg)
+    blases = list({id(scene.accel.instances[k].blas): scene.accel.instances[k].blas for k in chosen}.values())
+    net = NIFNetworks(cfg, [b.bounds.inflated(cfg.box_inflation) for b in blases])
+    return NIFShadowAccel(scene.accel, chosen, net, NIFTrainer(net)), chosen, blases
+
+
+def test_collecting_changes_no_pixel_and_labels_every_pair():
+    from dataclasses import replace
+
+    scene = _scene()
+    shadows, _, _ = _shadows(scene, "ball,cube")
+    exact = render(scene, spp=2, seed=3, progress=False)
+    collected = render(replace(scene, accel=shadows), spp=2, seed=3, progress=False)
+    assert np.array_equal(exact.image, collected.image)
+    st = shadows.stats["collect"]
+    assert st.shadow_rays > 0 and st.outer > 0 and st.inner > 0
+    assert shadows.trainer.stats.outer_pairs == st.outer and shadows.trainer.stats.inner_pairs == st.inner
+
+
+def test_two_stage_answer_equals_each_instance_on_its_own():
+    scene = _scene()
+    shadows, chosen, blases = _shadows(scene, "ball,cube", init_scale=1.0)  # large features: varied answers
+    assert len(chosen) == 3 and len(blases) == 2  # two balls share one mesh: one NIF object
+    shadows.mode = "answer"
+    g = torch.Generator().manual_seed(0)
+    n = 4000
+    o = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([4.0, 1.0, 3.0])
+    target = torch.tensor([0.0, 2.5, 0.0]) + (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([1.0, 0.0, 1.0])
+    rays = Rays(o, target - o, torch.zeros(n), torch.full((n,), 0.999))
+    answer = shadows.occluded(rays)
+    # By hand: the exact objects, then every NIF instance alone (its own object-space rays).
+    expected = shadows.exact.occluded(rays).clone()
+    blas_index = {id(b): k for k, b in enumerate(blases)}
+    for k in chosen:
+        inst = scene.accel.instances[k]
+        local = inst.transform.inverse().apply_rays(rays)
+        pairs = NIFPairs(torch.full((n,), blas_index[id(inst.blas)]), local.origins, local.directions, local.t_min, local.t_max)
+        hit = shadows.networks.occluded(pairs)
+        # only where the world box test lets the pair through (the stand-in's stage 1)
+        lo, hi = inst.world_bounds.lo, inst.world_bounds.hi
+        from neuralrt.rays import ray_box_intervals
+
+        t0, t1 = ray_box_intervals(rays.origins, rays.directions, lo, hi)
+        overlap = (t0 <= t1) & (t1 >= 0) & (t0 <= rays.t_max)
+        expected |= hit & overlap & ~shadows.exact.occluded(rays)
+    assert torch.equal(answer, expected)
+    st = shadows.stats["answer"]
+    assert st.outer > 100 and st.inner > 0 and 0 < int(answer.sum()) < n
+
+
+@pytest.mark.parametrize("nif, message", [
+    ("statue", "no object of that name"),
+    ("ball,lamp", "emissive"),
+    ("auto", "no object has more than 100,000 triangles"),
+    ("ball,", "object names separated by commas"),
+])
+def test_bad_nif_arguments_are_one_line_errors(nif, message):
+    with pytest.raises(ConfigError, match=message):
+        select_nif_instances(_scene(), nif)
+
+
+def test_auto_picks_objects_above_the_triangle_count():
+    scene = _scene()
+    chosen = select_nif_instances(scene, "auto", NIFConfig(auto_min_triangles=100))
+    assert [scene.accel.instances[k].name for k in chosen] == ["ball", "ball"]  # sphere(2): 320 triangles; cube: 12
+
+
+def test_train_spp_must_leave_samples_for_nif():
+    with pytest.raises(ConfigError, match="below spp"):
+        render_nif(_scene(), "ball", spp=4, train_spp=4, progress=False)
+
+
+def test_cli_rejects_bad_nif_before_rendering(tmp_path, capsys):
+    out = tmp_path / "img.exr"
+    args = ["render", "builtin:cornell-statue?detail=0", "-o", str(out), "--spp", "4", "--res", "16x12", "--quiet"]
+    assert main(args + ["--nif", "box"]) == 2  # the Cornell box holds the ceiling light
+    err = capsys.readouterr().err
+    assert err.startswith("neuralrt: error: --nif box") and "emissive" in err and err.count("\n") == 1
+    assert main(args + ["--nif", "nothing"]) == 2
+    assert main(args + ["--nif", "statue", "--nif-train-spp", "4"]) == 2
+    assert main(args + ["--nif-train-spp", "2"]) == 2  # without --nif it means nothing
+    assert not out.parent.exists() or not any(out.parent.iterdir())
+
+
+def test_online_trained_render_answers_far_better_than_visible(tmp_path):
+    scene = _scene(res=(64, 48))
+    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=8))  # small image, few pairs: more passes (docs/nif.md)
+    result, report = render_nif(scene, "ball,cube", spp=36, train_spp=32, config=cfg, progress=False, audit=True)
+    st = report["shadow_rays"]
+    baseline = st["audit_blocked_by_nif_objects_only"]  # errors of answering every NIF pair "visible"
+    assert baseline > 500
+    assert st["audit_disagreements"] < 0.5 * baseline, (st["audit_disagreements"], baseline)  # measured: 338 of 918
+    assert result.spp == 36 and np.isfinite(result.image).all()
+    assert report["training"]["outer_steps"] > 0 and report["training_seconds_per_spp"] > 0
+    assert 0 < st["outer_share"] < 1 and 0 < st["inner_share"] < 1
+    assert report["memory"]["paper_bytes"] == 2 * (4 * 256**2 + 4 * 128**2)
+    # The same samples with exact shadow rays: the reference that differs only in who answered.
+    reference, _ = render_nif(scene, "ball,cube", spp=36, train_spp=32, config=cfg, progress=False, answer="exact")
+    diff = np.abs(np.clip(result.image, 0, 1) - np.clip(reference.image, 0, 1))
+    assert 0 < diff.mean() < 0.01
