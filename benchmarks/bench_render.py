@@ -1,14 +1,18 @@
-"""Render time per sample per pixel of each built-in scene, and how much of it is spent inside the
-BLAS (Embree) versus the rest (TLAS, shading, sampling: torch). Prints a table and writes
-benchmarks/results/render.json.
+"""Render time per sample per pixel of each built-in scene with both shading implementations in the
+same run (torch ops, the CPU path before the numba kernels, vs the fused numba kernels), split into
+ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
 
-    python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
+    python benchmarks/bench_render.py [--resolution 128] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 
-``blas_share`` is the fraction of render time spent in `BLAS.intersect` / `BLAS.occluded` (Embree),
-``tlas_share`` the fraction in `SceneAccel.intersect` / `occluded` (the BLAS time included); the rest
-is the integrator (shading, sampling, bookkeeping). Measured in the same run: the machines are
-shared, so compare ratios, not seconds. ``--threads`` sets torch's intra-op threads (default 1:
-on an oversubscribed machine torch's spinning worker threads cost far more than they give).
+Per scene and implementation: ``s_per_spp`` (the fastest of ``--repeats`` renders, taken in
+alternation so both see the same machine load), ``queries_s_per_spp`` (time inside
+`SceneAccel.intersect` / ``occluded``: TLAS + BLAS, i.e. Embree and its bookkeeping), ``rest_s_per_spp``
+(everything else: camera rays, shading, sampling, accumulation), and ``blas_share`` (the fraction
+inside `BLAS.intersect` / ``occluded`` alone). ``speedup`` is torch s/spp over numba s/spp.
+The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
+average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
+machine torch's spinning worker threads cost far more than they give); the numba kernels are
+single-threaded; Embree uses its own threads.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (before torch: sets OMP_WAIT_POLICY)
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -29,19 +34,21 @@ from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.builtins import BUILTIN_SCENES  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
-COLUMNS = ["scene", "unique_tris", "instanced_tris", "instances", "load_s", "s_per_spp", "blas_share", "tlas_share",
-           "rays_per_spp", "Mrays/s", "mean_radiance"]
+BACKENDS = ("torch", "numba")
+COLUMNS = ["scene", "instanced_tris", "instances", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup",
+           "torch_queries_s_per_spp", "torch_rest_s_per_spp", "numba_queries_s_per_spp", "numba_rest_s_per_spp",
+           "numba_query_share", "images_max_rel_diff"]
 
 
-class _BLASTimer:
-    """Wraps every unique BLAS of a scene so its queries are timed and counted."""
+class _Timer:
+    """Wraps the ``intersect`` / ``occluded`` methods of some objects so their time and rays are counted."""
 
-    def __init__(self, blases):
+    def __init__(self, objects):
         self.seconds = 0.0
         self.rays = 0
-        for blas in blases:
+        for obj in objects:
             for name in ("intersect", "occluded"):
-                setattr(blas, name, self._wrap(getattr(blas, name)))
+                setattr(obj, name, self._wrap(getattr(obj, name)))
 
     def _wrap(self, fn):
         def timed(rays, *args, **kwargs):
@@ -53,58 +60,64 @@ class _BLASTimer:
 
         return timed
 
+    def reset(self) -> None:
+        self.seconds, self.rays = 0.0, 0
+
 
 def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int) -> dict:
-    t0 = time.perf_counter()
     scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
-    load_s = time.perf_counter() - t0
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
-    unique_tris = sum(b.mesh.num_triangles for b in unique.values())
-    instanced_tris = sum(i.blas.mesh.num_triangles for i in scene.accel.instances)
-    render(scene, spp=1, seed=123, progress=False)  # warm-up (allocator, first-call costs)
-    timer = _BLASTimer(unique.values())
-    tlas_timer = _BLASTimer([scene.accel])
-    best = None  # the fastest of `repeats` renders: the least disturbed by other jobs on the machine
+    for backend in BACKENDS:  # warm-up: allocator, first calls, numba's compiled-kernel cache
+        render(scene, spp=1, seed=123, progress=False, shading=backend)
+    blas_timer = _Timer(unique.values())
+    query_timer = _Timer([scene.accel])
+    best: dict[str, tuple] = {}
     for _ in range(repeats):
-        timer.seconds = tlas_timer.seconds = 0.0
-        timer.rays = 0
-        torch.set_num_threads(threads)  # numba's OpenMP layer (Embree/TLAS kernels) may have reset it
-        result = render(scene, spp=spp, seed=0, progress=False)
-        if best is None or result.seconds < best[0].seconds:
-            best = (result, timer.seconds, tlas_timer.seconds, timer.rays)
-    result, blas_s, tlas_s, rays = best
-    return {
-        "scene": name,
-        "unique_tris": unique_tris,
-        "instanced_tris": instanced_tris,
-        "instances": len(scene.accel.instances),
-        "load_s": load_s,
-        "s_per_spp": result.seconds / spp,
-        "blas_share": blas_s / result.seconds,
-        "tlas_share": tlas_s / result.seconds,
-        "rays_per_spp": rays / spp,
-        "Mrays/s": rays / result.seconds / 1e6,
-        "mean_radiance": float(result.image.mean()),
-    }
+        for backend in BACKENDS:  # alternate, so a burst of load from other jobs hits both alike
+            blas_timer.reset()
+            query_timer.reset()
+            torch.set_num_threads(threads)  # numba's OpenMP layer (Embree/TLAS kernels) may have reset it
+            result = render(scene, spp=spp, seed=0, progress=False, shading=backend)
+            if backend not in best or result.seconds < best[backend][0].seconds:
+                best[backend] = (result, query_timer.seconds, blas_timer.seconds, query_timer.rays)
+    row = {"scene": name, "instanced_tris": sum(i.blas.mesh.num_triangles for i in scene.accel.instances),
+           "instances": len(scene.accel.instances), "rays_per_spp": best["numba"][3] / spp}
+    for backend in BACKENDS:
+        result, query_s, blas_s, _ = best[backend]
+        row[f"{backend}_s_per_spp"] = result.seconds / spp
+        row[f"{backend}_queries_s_per_spp"] = query_s / spp
+        row[f"{backend}_rest_s_per_spp"] = (result.seconds - query_s) / spp
+        row[f"{backend}_query_share"] = query_s / result.seconds
+        row[f"{backend}_blas_share"] = blas_s / result.seconds
+    row["speedup"] = row["torch_s_per_spp"] / row["numba_s_per_spp"]
+    row["rest_speedup"] = row["torch_rest_s_per_spp"] / row["numba_rest_s_per_spp"]
+    a, b = best["torch"][0].image, best["numba"][0].image  # same seed: the same paths through both
+    row["images_max_rel_diff"] = float(abs(a - b).max() / max(float(abs(a).max()), 1e-12))
+    row["mean_radiance"] = float(b.mean())
+    return row
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--resolution", type=int, default=256)
+    parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--spp", type=int, default=4)
     parser.add_argument("--detail", type=int, default=None, help="procedural detail (default: each scene's)")
     parser.add_argument("--scenes", default=",".join(BUILTIN_SCENES))
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--repeats", type=int, default=3, help="renders per scene; the fastest is reported")
+    parser.add_argument("--repeats", type=int, default=3, help="renders per scene and implementation; the fastest is reported")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()[0]
+    start = time.perf_counter()
     rows = [bench_scene(n, args.resolution, args.spp, args.detail, args.repeats, args.threads) for n in args.scenes.split(",")]
+    load_after = os.getloadavg()[0]
     print(f"{args.resolution}x{args.resolution}, {args.spp} spp (best of {args.repeats}), max_depth = scene default, "
-          f"torch threads = {args.threads}, load average {os.getloadavg()[0]:.1f}")
+          f"torch threads = {args.threads}, load average {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores, "
+          f"{time.perf_counter() - start:.0f} s")
     print_table(rows, COLUMNS)
     path = write_results("render", rows, {"resolution": args.resolution, "spp": args.spp, "detail": args.detail,
                                           "torch_threads": args.threads, "repeats": args.repeats,
-                                          "load_average_1min": os.getloadavg()[0]})
+                                          "load_average_1min_before": load_before, "load_average_1min_after": load_after})
     print(f"wrote {path}")
 
 
