@@ -212,7 +212,9 @@ class NBVHModel(NeuralBLAS):
             node = self._batch[0]
             self.loss_sum.index_add_(0, node, self._batch_losses.double())
             self.samples.index_add_(0, node, torch.full((len(node),), 8.0, dtype=torch.float64, device=node.device))
-        self.alive_steps += self.live.double()
+        # Alive = a leaf of a cut training draws from (the live one or a registered LoD), so that
+        # samples / alive_steps stays a sampling rate for nodes of coarse LoDs too.
+        self.alive_steps += (self.live | (self.node_lod < NO_LOD)).double()
         h = self.node_heuristic()
         cut, steps = self.config.cut, self.config.training.steps
         count = split_count(step, cut, steps)
@@ -230,7 +232,9 @@ class NBVHModel(NeuralBLAS):
             self.node_lod[self.live] = lod
             self.registered[: lod + 1] = False
             self.registered[lod] = True
-        self.h_max.fill_(float(h.max()) if len(h) else 0.0)
+        if self._batch is not None:
+            # Over the leaves just trained: nodes split long ago keep their early, large h frozen.
+            self.h_max.fill_(float(h[self._batch[0]].max()) if len(self._batch[0]) else 0.0)
         self._batch, self._batch_losses, self._h = None, None, None
 
     # -- inference ---------------------------------------------------------------------------------
