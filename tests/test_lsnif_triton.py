@@ -146,8 +146,7 @@ FUSED_DTYPES = [torch.float32, torch.bfloat16] if CUDA else [torch.float32]
 @pytest.mark.parametrize("dtype", FUSED_DTYPES)
 @pytest.mark.parametrize(
     "max_points,width,layers,distances,origin_point,stage",
-    [(10, 64, 2, True, True, "whole"), (6, 48, 3, False, False, "whole"), (10, 64, 2, True, True, "first_layer"),
-     (10, 64, 2, True, True, "input"), (6, 48, 3, False, False, "input")],
+    [(10, 64, 2, True, True, "whole"), (6, 48, 3, False, False, "first_layer"), (6, 48, 3, False, False, "input")],
 )
 def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, layers, distances, origin_point, stage):
     from neuralrt.methods.lsnif import point_local_distances
@@ -155,7 +154,7 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, laye
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
 
     occ, tris = _torus_occupancy(16)
-    o, d = _random_rays(np.random.default_rng(6), 128, occ, tris)
+    o, d = _random_rays(np.random.default_rng(6), 96, occ, tris)
     grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
     net = _Net(grid.output_dim(max_points) + (max_points if distances else 0), width, layers, 11)
     fc = dict(origin_point=origin_point, share_boundary_points=True)
@@ -172,7 +171,7 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, laye
     out, count = fused.values.cpu(), fused.count.cpu()
     assert out.shape == ref.shape
     active = fp.count > 0
-    assert active.sum() > 30 and (~active).sum() > 10
+    assert active.sum() > 25 and (~active).sum() > 5
     same = count == fp.count  # all under the interpreter; on the GPU, see _assert_features_match
     assert same.float().mean() >= (0.999 if CUDA else 1.0)
     torch.testing.assert_close(fused.t_enter.cpu(), fp.t_enter, atol=1e-6, rtol=1e-6)

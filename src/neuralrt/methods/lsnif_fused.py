@@ -141,8 +141,10 @@ def _fused_lsnif_kernel(
             tl.store(out_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(out_ptr.dtype.element_ty), mask=lane_ok[:, None])
 
 
-# Rays per program and warps of the fused kernel (measured on an H100: bench_lsnif_kernels_cuda.py).
-DEFAULT_LAUNCH = {"stage": "whole", "block": 64, "num_warps": 4}
+# Stage, rays per program and warps of the fused kernel. Measured on an H100 (hairball(6), 2^22
+# rays, benchmarks/results/lsnif_kernels_h100.json): "input" 32 x 4 is the fastest for hq (23.7 ms
+# vs 25.7 ms for "whole" 32 x 4, 34-55 ms for 64-ray blocks) and within 9% of the best for lq.
+DEFAULT_LAUNCH = {"stage": "input", "block": 32, "num_warps": 4}
 
 
 @dataclass(frozen=True)
