@@ -1,0 +1,139 @@
+"""N-BVH figures: training time and held-out quality, inference rays/s against Embree on the same
+rays in the same run, and model bytes (itemised) against classical BVH bytes.
+
+Usage (results merge into benchmarks/results/NAME.json)::
+
+    python benchmarks/bench_nbvh.py bunny00.off --presets cpu
+    python benchmarks/bench_nbvh.py bunny00.off --presets cpu --steps 1500 --inference-rays 262144
+    python benchmarks/bench_nbvh.py bunny00.off --presets paper --device cuda --name nbvh_h100
+
+A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
+``procedural:NAME:DETAIL`` (as in bench_lsnif.py). Timings on a shared machine are noisy: the
+load average at the start and end of training is recorded beside every training time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_lsnif import best_rate, resolve_mesh  # noqa: E402
+
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
+from neuralrt.methods import get_method  # noqa: E402
+from neuralrt.training.api import train  # noqa: E402
+from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
+
+
+def inference_speed(model, exact, rays_n: int, repeats: int, device: torch.device) -> dict:
+    """rays/s of the model and of the exact backend on the same held-out rays, interleaved; and of occluded()."""
+    rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16, device=device).sample(rays_n).rays
+    model.intersect(rays[: 1 << 12])  # warm-up (numba caches)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def timed(fn):
+        def run():
+            fn()
+            sync()
+        return run
+
+    neural, exact_rate, shadow = [], [], []
+    for _ in range(repeats):
+        exact_rate.append(best_rate(timed(lambda: exact.intersect(rays)), rays_n, 1))
+        neural.append(best_rate(timed(lambda: model.intersect(rays)), rays_n, 1))
+        shadow.append(best_rate(timed(lambda: model.occluded(rays)), rays_n, 1))
+    return {"rays": rays_n, "nbvh_rays_per_s": max(neural), "nbvh_occluded_rays_per_s": max(shadow),
+            "exact_rays_per_s": max(exact_rate), "speedup_vs_exact": max(neural) / max(exact_rate)}
+
+
+def run(spec: str, preset: str, args) -> dict:
+    device = torch.device(args.device)
+    mesh = resolve_mesh(spec)
+    cfg = get_method("nbvh").config(preset, steps=args.steps, batch_size=args.batch, seed=args.seed)
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    model = train(mesh, cfg, progress=not args.quiet, device=device)
+    wall = time.perf_counter() - t0
+    load_after = os.getloadavg()
+    if args.models_dir:
+        Path(args.models_dir).mkdir(parents=True, exist_ok=True)
+        model.save(Path(args.models_dir) / f"{Path(spec).stem}-nbvh-{preset}.nrt")
+    metrics = evaluate_model(model, mesh, rays=args.eval_rays, resolution=args.image_resolution)
+    out = {
+        "mesh": spec, "triangles": mesh.num_triangles, "preset": preset, "config": cfg.model_dump(mode="json"),
+        "training": {**model.training_record, "wall_seconds_incl_setup": wall,
+                     "load_average_1min_before_after": [load_before[0], load_after[0]]},
+        "nodes": model.num_nodes, "metrics": metrics, "memory": {"nbvh": model.memory_bytes().as_dict()},
+    }
+    if args.inference_rays:
+        out["inference"] = inference_speed(model, MeshBLAS(mesh, device=device), args.inference_rays, args.repeats, device)
+    try:
+        from neuralrt.accel.classical_memory import classical_memory
+
+        classical = classical_memory(mesh).as_dict()
+        out["memory"]["classical"] = classical
+        out["memory"]["nbvh_over_bvh_a"] = out["memory"]["nbvh"]["total"] / classical["bvh_a_bytes"]
+    except ImportError:
+        pass
+    return out
+
+
+COLUMNS = ["mesh", "preset", "steps", "nodes", "train_s", "train_rays_per_s", "acc_out", "acc_surf", "t_err_med", "n_err_deg_med",
+           "flip_normal", "nbvh_rays_per_s", "exact_rays_per_s", "memory_mb"]
+
+
+def summary_row(r: dict) -> dict:
+    m, tr, inf = r["metrics"], r["training"], r.get("inference", {})
+    return {
+        "mesh": r["mesh"], "preset": r["preset"], "steps": tr["steps"], "nodes": r["nodes"], "train_s": tr["seconds"],
+        "train_rays_per_s": tr["rays_per_second"], "acc_out": m["outside"]["accuracy"], "acc_surf": m["surface"]["accuracy"],
+        "t_err_med": m["outside"]["t_error_median"], "n_err_deg_med": m["outside"]["normal_error_deg_median"],
+        "flip_normal": m.get("images", {}).get("normal_flip"), "nbvh_rays_per_s": inf.get("nbvh_rays_per_s"),
+        "exact_rays_per_s": inf.get("exact_rays_per_s"), "memory_mb": r["memory"]["nbvh"]["total"] / 2**20,
+    }
+
+
+def main() -> None:
+    from _common import RESULTS_DIR, print_table, write_results
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("meshes", nargs="+")
+    p.add_argument("--presets", nargs="+", default=["cpu"])
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--batch", type=int, default=None, help="samples per step (default: the preset's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--eval-rays", type=int, default=1 << 17)
+    p.add_argument("--image-resolution", type=int, default=128)
+    p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--models-dir", default=None, help="also save the trained models here")
+    p.add_argument("--name", default="nbvh", help="results file: benchmarks/results/NAME.json (runs merge into it)")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args()
+
+    path = RESULTS_DIR / f"{args.name}.json"
+    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    for spec in args.meshes:
+        for preset in args.presets:
+            r = run(spec, preset, args)
+            runs[f"{spec}|{preset}|{r['training']['steps']}"] = r
+            write_results(args.name, [summary_row(v) for v in runs.values()], extra={"runs": runs})
+            print_table([summary_row(r)], COLUMNS)
+    print_table([summary_row(v) for v in runs.values()], COLUMNS)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
