@@ -27,6 +27,8 @@ from neuralrt.methods.lsnif_features import (  # noqa: E402
 from neuralrt.methods.lsnif_features_triton import featurize_rays_triton  # noqa: E402
 
 DEVICE = torch.device("cuda" if CUDA else "cpu")
+# The interpreter computes masked-off lanes too (NaN rays, inf times): numpy warns about them.
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 if not CUDA and os.environ.get("TRITON_INTERPRET") != "1":
     pytest.skip("no GPU and TRITON_INTERPRET is not 1", allow_module_level=True)
 
@@ -50,7 +52,7 @@ def _assert_features_match(fast, ref):
 def test_triton_featurize_matches_numba_and_reference(origin_point, share):
     rng = np.random.default_rng(3)
     occ = rng.uniform(size=(8, 8, 8)) < 0.3
-    o, d = _random_rays(rng, 256, occ)
+    o, d = _random_rays(rng, 160, occ)
     kw = dict(origin_point=origin_point, share_boundary_points=share)
     fast = featurize_rays_triton(o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), 10, **kw)
     ref = featurize_rays_reference(o, d, occ, 10, **kw)
@@ -61,14 +63,14 @@ def test_triton_featurize_matches_numba_and_reference(origin_point, share):
 
 
 def test_triton_featurize_on_a_voxelized_mesh_and_degenerate_rays():
-    occ, tris = _torus_occupancy(32)
+    occ, tris = _torus_occupancy(16)
     rng = np.random.default_rng(4)
-    o, d = _random_rays(rng, 192, occ, tris)
+    o, d = _random_rays(rng, 96, occ, tris)
     # NaN, zero and denormal directions, a start on the box face, a ray along a voxel plane
     o = torch.cat([o, torch.tensor([[np.nan, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.0, 0.3, 0.4], [-1, 0.5, 0.5]])])
     d = torch.cat([d, torch.tensor([[1.0, 0, 0], [0, 0, 0], [1e-40, 0, 0], [1.0, 0.2, 0.1], [1.0, 0.0, 0.0]])])
-    fast = featurize_rays_triton(o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), 18)
-    ref = featurize_rays_numba(o, d, occ, 18)
+    fast = featurize_rays_triton(o.to(DEVICE), d.to(DEVICE), torch.from_numpy(occ).to(DEVICE), 12)
+    ref = featurize_rays_numba(o, d, occ, 12)
     _assert_features_match(fast, ref)
     assert (ref.count > 0).float().mean() > 0.3 and ref.count[-5:-2].tolist() == [0, 0, 0]
 
@@ -95,7 +97,7 @@ def test_triton_hash_grid_forward_and_backward_match_numba(resolutions, features
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
     from neuralrt.neural.sparse_hash_grid_triton import sparse_hash_grid_triton
 
-    f = _featurized_points(n=200, seed=5)  # face, origin and padding points
+    f = _featurized_points(n=120, seed=5)  # face, origin and padding points
     grid = SparseHashGrid(resolutions=resolutions, features_per_level=features, log2_table_size=log2_size, init_scale=1.0)
     ref = grid(f.points, f.face_axis)  # numba, CPU
     table = grid.table.detach().to(DEVICE).requires_grad_()
@@ -182,7 +184,7 @@ def test_fused_inference_matches_the_unfused_path(dtype, max_points, width, laye
 
 def test_lsnif_model_fused_answers_match_unfused():
     """The model's fused inference path (CUDA's) gives the answers of its featurize -> encode -> MLP path."""
-    from neuralrt.geometry.procedural import statue
+    from neuralrt.geometry.procedural import sphere
     from neuralrt.methods.lsnif import LSNIFModel
     from neuralrt.methods.lsnif_config import LSNIFConfig
     from neuralrt.rays import Rays
@@ -190,20 +192,20 @@ def test_lsnif_model_fused_answers_match_unfused():
     dtype = "bf16" if CUDA else "fp32"
     config = LSNIFConfig.preset("lq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
                                 inference={"compute_precision": dtype})  # fmt: skip
-    model = LSNIFModel.from_mesh(statue(1), config)
+    model = LSNIFModel.from_mesh(sphere(2), config)
     with torch.no_grad():  # an untrained table is ~0: give the features some weight
         model.encoder.table.uniform_(-1, 1)
     model = model.to(DEVICE)
     g = torch.Generator().manual_seed(7)
     lo, hi = model.box.lo.cpu(), model.box.hi.cpu()
-    origins = (torch.randn(96, 3, generator=g) * 2 + (lo + hi) / 2)
-    targets = lo + torch.rand(96, 3, generator=g) * (hi - lo)
+    origins = (torch.randn(64, 3, generator=g) * 2 + (lo + hi) / 2)
+    targets = lo + torch.rand(64, 3, generator=g) * (hi - lo)
     rays = Rays(origins=origins, directions=targets - origins).to(DEVICE)
     prep = model._prepare(rays)
     with torch.no_grad():
         ref = model._raw_outputs(prep, model.compute_dtype())
         act, out, t_enter, t_exit, t_offset = model._network_answers_fused(rays)
-    assert len(prep.active) > 20 and torch.equal(act, prep.active)
+    assert len(prep.active) > 15 and torch.equal(act, prep.active)
     torch.testing.assert_close(t_enter, prep.features.t_enter)
     torch.testing.assert_close(t_exit, prep.features.t_exit)
     tol = 3e-2 if CUDA else 2e-5
