@@ -9,6 +9,8 @@ surface rays whose origin is a point) and the sparse grid's stored entries vs a 
 Best of ``--repeats`` runs. Prints a table and writes benchmarks/results/lsnif_kernels.json.
 
     python benchmarks/bench_lsnif_kernels.py [MESH ...] [--rays 65536] [--repeats 5] [--threads 1 2]
+
+On a CUDA GPU (Triton kernels, fused inference, training step): bench_lsnif_kernels_cuda.py.
 """
 
 from __future__ import annotations
