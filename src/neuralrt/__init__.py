@@ -13,7 +13,7 @@ from .accel.blas import BLAS, MemoryReport
 from .accel.mesh_blas import MeshBLAS
 from .errors import NeuralRTError
 from .geometry.mesh import Mesh, load_mesh
-from .rays import AABB, Hits, Rays, Transform
+from .rays import AABB, Hits, Rays, Transform, face_forward, pinhole_rays
 
 __version__ = "0.1.0"
 
@@ -29,6 +29,8 @@ _LAZY = {
     "LSNIFBLAS": ("neuralrt.methods.lsnif", "LSNIFBLAS"),
     "LSNIFConfig": ("neuralrt.methods.lsnif_config", "LSNIFConfig"),
     "load_scene": ("neuralrt.scene.loader", "load_scene"),
+    "load_dict": ("neuralrt.scene.loader", "load_dict"),
+    "scene_memory": ("neuralrt.scene.memory", "scene_memory"),
     "render": ("neuralrt.render.integrator", "render"),
 }
 
@@ -43,4 +45,4 @@ def __getattr__(name: str):
 
 
 __all__ = ["AABB", "BLAS", "Hits", "Mesh", "MeshBLAS", "MemoryReport", "NeuralRTError", "Rays", "Transform",
-           "load_mesh", *_LAZY]
+           "face_forward", "load_mesh", "pinhole_rays", *_LAZY]

@@ -144,7 +144,7 @@ def list_builtins() -> list[tuple[str, str]]:
 
 
 def render(
-    scene: str | Path,
+    scene,
     output: str | Path,
     *,
     spp: int | None = None,
@@ -159,12 +159,15 @@ def render(
     nif: str | list[str] | None = None,
     nif_train_spp: int | None = None,
 ) -> dict:
-    """Path-trace ``scene`` (file or ``builtin:NAME``) to ``output`` (EXR; PNG and AOVs beside it).
+    """Path-trace ``scene`` to ``output`` (EXR; PNG and AOVs beside it).
+
+    ``scene`` is a scene file, ``builtin:NAME``, a dict shaped like a scene file (objects may hold
+    `Mesh` and loaded model objects; see `neuralrt.scene.load_dict`) or an already built `Scene`
+    (then ``resolution``, ``detail`` and ``primary`` are the scene's own: passing them is an error).
     A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``.
     ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
     online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
     from .render.integrator import render as _render
-    from .scene.loader import load_scene
 
     check_device(device)
     check_count("spp", spp)
@@ -175,8 +178,9 @@ def render(
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    loaded = load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
-                        allow_mesh_mismatch=allow_mesh_mismatch)
+    loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
+                         allow_mesh_mismatch=allow_mesh_mismatch)
+    primary = loaded.primary
     nif_report = None
     try:
         if nif is not None:  # NIF hook (issue 10): objects and spp are checked before any sample is rendered
@@ -191,7 +195,7 @@ def render(
     files = result.save(output)
     h, w = result.image.shape[:2]
     return {
-        "scene": str(scene),
+        "scene": scene if isinstance(scene, (str, Path)) else (getattr(loaded, "name", "") or type(scene).__name__),
         "output": str(output),
         "files": [str(f) for f in files],
         "resolution": [w, h],
@@ -200,6 +204,31 @@ def render(
         "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),
         **({"nif": nif_report} if nif_report is not None else {}),
     }
+
+
+def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch):
+    """A built `Scene` from a path / ``builtin:NAME``, a scene dict, or a `Scene` (returned as is)."""
+    import torch
+
+    from .scene.loader import load_dict, load_scene
+    from .scene.scene import Scene
+
+    if isinstance(scene, Scene):
+        if resolution is not None or detail is not None or primary != "exact":
+            raise NeuralRTError("resolution, detail and primary belong to a built Scene: set them when building it")
+        if torch.device(device).type != scene.device.type:
+            raise NeuralRTError(f"the scene was built on {scene.device}, not on {device}: build it with device={device!r}")
+        return scene
+    if isinstance(scene, dict):
+        if detail is not None:
+            raise NeuralRTError("detail applies to builtin scenes, not to a scene dict")
+        if resolution is not None:
+            scene = {**scene, "camera": {**scene.get("camera", {}), "resolution": list(resolution)}}
+        return load_dict(scene, device=device, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch)
+    if not isinstance(scene, (str, Path)):
+        raise NeuralRTError(f"scene must be a path, 'builtin:NAME', a dict or a Scene, not {type(scene).__name__}")
+    return load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
+                      allow_mesh_mismatch=allow_mesh_mismatch)
 
 
 def train(
