@@ -133,32 +133,62 @@ def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, d
             out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
 
 
+@numba.njit(cache=True, inline="always")
+def _enterable(node, tn, tf, tmax, children, lod, live, lvl):
+    """Whether a crossed box can hold a listed leaf: a valid leaf, or an interior node left ahead of the origin."""
+    if not (tn <= tf and tn < tmax):
+        return False
+    if children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl):
+        return tn > _ENTER_MIN if tn >= 0 else tf > _EXIT_MIN
+    return tf > _ENTER_MIN
+
+
 @numba.njit(parallel=True, cache=True)
 def _first_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1):
-    """Per ray, the leaf with the smallest (t0, node): what `list_leaves` would list first (pruned walk)."""
+    """Per ray, the leaf with the smallest (t0, node): what `list_leaves` would list first.
+
+    Nearer child first, and a box entered after the best leaf so far is skipped (a child's box lies
+    in its parent's, so nothing below it is entered earlier)."""
     for i in numba.prange(origins.shape[0]):
         stack = np.empty(_STACK, np.int64)
+        stack_t0 = np.empty(_STACK, np.float32)
+        stack_t1 = np.empty(_STACK, np.float32)
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
         dil, lvl, tmax = dilation[i], level[i], t_max[i]
         best_node, best_t0, best_t1 = -1, np.float32(np.inf), np.float32(np.inf)
-        sp = 1
-        stack[0] = 0
+        sp = 0
+        tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, 0, dil)
+        if _enterable(0, tn, tf, tmax, children, lod, live, lvl):
+            stack[0], stack_t0[0], stack_t1[0] = 0, tn, tf
+            sp = 1
         while sp > 0:
             sp -= 1
-            node = stack[sp]
-            tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, node, dil)
-            # A child's box lies in its parent's, so its entry is no earlier: prune beyond the best.
-            if not (tn <= tf and tn < tmax) or tn > best_t0:
+            node, tn, tf = stack[sp], stack_t0[sp], stack_t1[sp]
+            if tn > best_t0:
                 continue
-            leaf = children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl)
-            if leaf:
-                ok = tn > _ENTER_MIN if tn >= 0 else tf > _EXIT_MIN
-                if ok and (tn < best_t0 or (tn == best_t0 and node < best_node)):
+            if children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl):
+                if tn < best_t0 or node < best_node:  # tn == best_t0 here unless smaller
                     best_node, best_t0, best_t1 = node, tn, tf
-            elif tf > _ENTER_MIN and sp + 2 <= stack.shape[0]:
-                stack[sp], stack[sp + 1] = children[node, 1], children[node, 0]
+                continue
+            a, b = children[node, 0], children[node, 1]
+            ta0, ta1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, a, dil)
+            tb0, tb1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, b, dil)
+            use_a = _enterable(a, ta0, ta1, tmax, children, lod, live, lvl) and ta0 <= best_t0
+            use_b = _enterable(b, tb0, tb1, tmax, children, lod, live, lvl) and tb0 <= best_t0
+            if sp + 2 > _STACK:
+                continue
+            if use_a and use_b and tb0 < ta0:  # far child below, near child on top
+                stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
+                stack[sp + 1], stack_t0[sp + 1], stack_t1[sp + 1] = b, tb0, tb1
                 sp += 2
+                continue
+            if use_b:
+                stack[sp], stack_t0[sp], stack_t1[sp] = b, tb0, tb1
+                sp += 1
+            if use_a:
+                stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
+                sp += 1
         out_node[i], out_t0[i], out_t1[i] = best_node, best_t0, best_t1
 
 
