@@ -8,10 +8,10 @@ along one clamped axis. All objects' grids live in one table, so one gather answ
 objects (a per-query object index): NIF's "one grid gather per object" costs one call in total.
 
 Lookups are `torch.nn.functional.embedding` calls: any device, and with ``sparse=True`` the
-table's gradient is sparse (only the touched vertices' rows), for `torch.optim.SparseAdam`: a
-dense Adam step over a 256 x 256 x 3 table per 2^11-ray batch cost 30 ms of a 30 ms training step
-on 2 CPU cores (measured). Features start U(-init_scale, init_scale) from the given generator
-(NIF: 1e-4).
+table's gradient is sparse (only the touched vertices' rows), for a lazy Adam (NIF's trainer):
+dense gradients and a dense Adam over a 256 x 256 x 3 table made a 2^11-pair training step 5x
+slower on 2 CPU cores (measured, docs/nif.md). Features start U(-init_scale, init_scale) from the
+given generator (NIF: 1e-4).
 """
 
 from __future__ import annotations
