@@ -145,3 +145,28 @@ def test_training_is_seeded():
         trainer.finish()
         outs.append(net.outer_mlp.output.weight.detach().clone())
     assert torch.equal(outs[0], outs[1])
+
+
+def test_lazy_adam_equals_adam_where_every_row_is_touched_and_leaves_other_rows_alone():
+    from neuralrt.methods.nif_training import LazyAdam
+
+    g = torch.Generator().manual_seed(0)
+    start = torch.randn(6, 3, generator=g)
+    dense, lazy = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
+    opt_dense = torch.optim.Adam([dense], lr=0.005, betas=(0.9, 0.999), eps=1e-15)
+    opt_lazy = LazyAdam([lazy], lr=0.005, betas=(0.9, 0.999), eps=1e-15)
+    for _ in range(5):
+        rows = torch.tensor([0, 1, 2, 3, 4, 5, 2])  # every row, one twice (gradients add up)
+        target = torch.randn(7, 3, generator=g)
+        for p, opt, sparse in ((dense, opt_dense, False), (lazy, opt_lazy, True)):
+            opt.zero_grad()
+            (torch.nn.functional.embedding(rows, p, sparse=sparse) - target).square().sum().backward()
+            opt.step()
+    assert torch.allclose(dense, lazy, atol=1e-6)
+    # Rows no batch touches stay where they are (a dense Adam would keep moving them by momentum).
+    before = lazy.detach().clone()
+    opt_lazy.zero_grad()
+    torch.nn.functional.embedding(torch.tensor([1]), lazy, sparse=True).sum().backward()
+    opt_lazy.step()
+    moved = (lazy.detach() != before).any(-1)
+    assert moved.tolist() == [False, True, False, False, False, False]
