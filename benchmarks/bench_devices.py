@@ -18,7 +18,7 @@ CUDA, as `MeshBLAS(mesh, device=...)` picks it):
 
 Prints tables and writes benchmarks/results/devices_<device>.json (device, versions, date, figures).
 
-    python benchmarks/bench_devices.py --device cuda
+    python benchmarks/bench_devices.py --device cuda [--methods lsnif,nbvh] [--method-steps nbvh=1000]
     python benchmarks/bench_devices.py --device cpu --steps 300 --rays-log2 18 --res 96 --spp 4
 """
 
@@ -46,9 +46,9 @@ from neuralrt.geometry.procedural import make_procedural  # noqa: E402
 from neuralrt.methods import get_method  # noqa: E402
 from neuralrt.training.api import train  # noqa: E402
 
-TRAIN_COLUMNS = ["mesh", "triangles", "preset", "steps", "batch", "train_s", "train_Mrays/s", "outside_acc",
+TRAIN_COLUMNS = ["method", "mesh", "triangles", "preset", "steps", "batch", "train_s", "train_Mrays/s", "outside_acc",
                  "t_err_med", "normal_err_med_deg", "normal_flip", "memory_MiB"]
-INFER_COLUMNS = ["mesh", "query", "neural_Mrays/s", "exact_Mrays/s", "neural_x_exact", "hit_agreement"]
+INFER_COLUMNS = ["method", "mesh", "query", "neural_Mrays/s", "exact_Mrays/s", "neural_x_exact", "hit_agreement"]
 RENDER_COLUMNS = ["scene", "res", "spp", "exact_s_per_spp", "hybrid_s_per_spp", "hybrid_x_exact", "flip", "noise_floor"]
 
 
@@ -68,20 +68,21 @@ def _first(metrics: dict, *keys):
     return None
 
 
-def bench_train(spec: str, device: torch.device, steps: int | None, images_dir: Path) -> tuple[dict, object, object]:
+def bench_train(method: str, spec: str, device: torch.device, steps: int | None, images_dir: Path) -> tuple[dict, object, object]:
     mesh = _mesh(spec)
-    lsnif = get_method("lsnif")
-    preset = lsnif.default_preset(device.type)
-    config = lsnif.config(preset, device=device.type, steps=steps)
+    registered = get_method(method)
+    preset = registered.default_preset(device.type)
+    config = registered.config(preset, device=device.type, steps=steps)
     start = time.perf_counter()
     model = train(mesh, config, progress=False, device=device)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     seconds = time.perf_counter() - start
     tc = config.training
-    metrics = evaluate_model(model, mesh, seed=HELD_OUT_SEED, images=True, image_dir=images_dir / spec.replace(":", "_"))
+    metrics = evaluate_model(model, mesh, seed=HELD_OUT_SEED, images=True,
+                             image_dir=images_dir / f"{method}_{spec.replace(':', '_')}")
     row = {
-        "mesh": spec, "triangles": len(mesh.faces), "preset": preset, "steps": tc.steps, "batch": tc.batch_size,
+        "method": method, "mesh": spec, "triangles": len(mesh.faces), "preset": preset, "steps": tc.steps, "batch": tc.batch_size,
         "train_s": seconds, "train_Mrays/s": tc.steps * tc.batch_size / seconds / 1e6,
         "outside_acc": _first(metrics, "outside.accuracy"),
         "t_err_med": _first(metrics, "outside.t_rel_error_median", "outside.t_error_median"),
@@ -93,7 +94,7 @@ def bench_train(spec: str, device: torch.device, steps: int | None, images_dir: 
     return row, mesh, model
 
 
-def bench_inference(spec: str, mesh, model, device: torch.device, rays_log2: int, repeats: int) -> list[dict]:
+def bench_inference(method: str, spec: str, mesh, model, device: torch.device, rays_log2: int, repeats: int) -> list[dict]:
     rays = sphere_rays(mesh, 1 << rays_log2).to(device)
     exact = MeshBLAS(mesh, device=device)
     rows = []
@@ -104,7 +105,7 @@ def bench_inference(spec: str, mesh, model, device: torch.device, rays_log2: int
         a, b = neural_fn(rays), exact_fn(rays)
         a, b = (a.hit, b.hit) if query == "intersect" else (a, b)
         n = len(rays)
-        rows.append({"mesh": spec, "query": query, "rays": n, "neural_Mrays/s": n / t_neural / 1e6,
+        rows.append({"method": method, "mesh": spec, "query": query, "rays": n, "neural_Mrays/s": n / t_neural / 1e6,
                      "exact_Mrays/s": n / t_exact / 1e6, "neural_x_exact": t_exact / t_neural,
                      "hit_agreement": float((a == b).float().mean())})
     return rows
@@ -131,7 +132,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--meshes", default="statue:2,hairball:6", help="procedural meshes (name:detail, comma-separated)")
+    parser.add_argument("--methods", default="lsnif", help="registered methods to train and time (comma-separated)")
     parser.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    parser.add_argument("--method-steps", default="", help="per-method steps, e.g. nbvh=1000 (overrides --steps)")
     parser.add_argument("--rays-log2", type=int, default=22)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--scene", default="builtin:hairball?detail=6")
@@ -156,16 +159,18 @@ def main() -> None:
     skip = set(filter(None, args.skip.split(",")))
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for spec in args.meshes.split(","):
-            if "train" in skip and "inference" in skip:
-                break
-            row, mesh, model = bench_train(spec, device, args.steps, work)
-            payload["train"].append(row)
-            save()
-            if "inference" not in skip:
-                payload["inference"] += bench_inference(spec, mesh, model, device, args.rays_log2, args.repeats)
+        method_steps = {k: int(v) for k, v in (item.split("=") for item in filter(None, args.method_steps.split(",")))}
+        for method in args.methods.split(","):
+            for spec in args.meshes.split(","):
+                if "train" in skip and "inference" in skip:
+                    break
+                row, mesh, model = bench_train(method, spec, device, method_steps.get(method, args.steps), work)
+                payload["train"].append(row)
                 save()
-            del model
+                if "inference" not in skip:
+                    payload["inference"] += bench_inference(method, spec, mesh, model, device, args.rays_log2, args.repeats)
+                    save()
+                del model
         if "render" not in skip:
             payload["render"].append(bench_render(args.scene, device, args.steps, args.res, args.spp, work))
             save()
