@@ -8,7 +8,8 @@ Per scene and implementation: ``s_per_spp`` (the fastest of ``--repeats`` render
 alternation so both see the same machine load), ``queries_s_per_spp`` (time inside
 `SceneAccel.intersect` / ``occluded``: TLAS + BLAS, i.e. Embree and its bookkeeping), ``rest_s_per_spp``
 (everything else: camera rays, shading, sampling, accumulation), and ``blas_share`` (the fraction
-inside `BLAS.intersect` / ``occluded`` alone). ``speedup`` is torch s/spp over numba s/spp.
+inside `BLAS.intersect` / ``occluded`` alone). ``speedup`` is torch s/spp over numba s/spp; ``pixels_differing`` the fraction of pixels whose
+values differ by more than 0.1% between the two (same seed).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
 average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
 machine torch's spinning worker threads cost far more than they give); the numba kernels are
@@ -24,6 +25,7 @@ import time
 from pathlib import Path
 
 import neuralrt  # noqa: F401  (before torch: sets OMP_WAIT_POLICY)
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -37,7 +39,7 @@ from neuralrt.scene.loader import load_scene  # noqa: E402
 BACKENDS = ("torch", "numba")
 COLUMNS = ["scene", "instanced_tris", "instances", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup",
            "torch_queries_s_per_spp", "torch_rest_s_per_spp", "numba_queries_s_per_spp", "numba_rest_s_per_spp",
-           "numba_query_share", "images_max_rel_diff"]
+           "numba_query_share", "pixels_differing"]
 
 
 class _Timer:
@@ -91,9 +93,11 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
         row[f"{backend}_blas_share"] = blas_s / result.seconds
     row["speedup"] = row["torch_s_per_spp"] / row["numba_s_per_spp"]
     row["rest_speedup"] = row["torch_rest_s_per_spp"] / row["numba_rest_s_per_spp"]
-    a, b = best["torch"][0].image, best["numba"][0].image  # same seed: the same paths through both
-    row["images_max_rel_diff"] = float(abs(a - b).max() / max(float(abs(a).max()), 1e-12))
-    row["mean_radiance"] = float(b.mean())
+    # Same seed: the same paths through both, except where float32 (torch) and float64 (numba)
+    # rounding of a direction makes a ray graze past or into thin geometry (a path then diverges).
+    a, b = best["torch"][0].image, best["numba"][0].image
+    row["pixels_differing"] = float((~np.isclose(b, a, rtol=1e-3, atol=1e-4).all(-1)).mean())
+    row["mean_radiance_torch"], row["mean_radiance_numba"] = float(a.mean()), float(b.mean())
     return row
 
 

@@ -9,7 +9,7 @@ stages (pbrt-v4's wavefront integrator):
 
 ``shade`` and the accumulation are `shading_stages`: fused numba kernels on the CPU, torch ops on
 other devices, chosen once per render (``IntegratorSettings.shading``); both draw the same
-uniforms, so they give the same images to float tolerance.
+uniforms (one row per sample and bounce), so they give the same images to float tolerance.
 
 MIS uses the power heuristic between light sampling and BSDF sampling for area and environment
 lights; point lights are delta lights (light sampling only). ``max_depth`` counts bounces: 1 gives
@@ -20,7 +20,8 @@ instance's `Scene.instance_offsets` (its BLAS ``secondary_offset`` scaled to wor
 stop short of their light point by a relative ``1e-3`` of its distance. The integrator only calls
 ``scene.accel.intersect`` / ``occluded``: it never knows which kind of BLAS answered.
 Randomness comes from one torch generator per wavefront seeded from (``seed``, wavefront index),
-so a given seed and settings give the same image.
+so a given seed and settings give the same image; each bounce draws one row of 8 uniforms per
+sample of the wavefront, so a path's random numbers do not depend on the other paths.
 """
 
 from __future__ import annotations
@@ -63,7 +64,6 @@ class PathTracer:
         self.scene = scene
         self.settings = settings
         self.stages = shading_stages_for(scene, settings, settings.shading)
-        self._has_lights = bool(scene.lights)
 
     def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> PathState:
         n, dev = pixel.numel(), pixel.device
@@ -80,13 +80,12 @@ class PathTracer:
             first = bounce == 0
             # Find closest intersections along live rays
             hits = self.scene.accel.intersect(paths.rays, camera_rays=first and self.settings.primary == "exact")
-            u_light = u_bsdf = None
-            if bounce < self.settings.max_depth:
-                n_hit = int(hits.hit.sum())
-                if n_hit:  # uniforms for the rows that hit: light sample, then BSDF sample + roulette
-                    u_light = uniform((n_hit, 4), g, dev) if self._has_lights else None
-                    u_bsdf = uniform((n_hit, 4), g, dev)
-            shadow, paths = self.stages.shade(paths, hits, u_light, u_bsdf, bounce, film)
+            u = None
+            if bounce < self.settings.max_depth and bool(hits.hit.any()):
+                # One row of uniforms per sample of the wavefront, looked up by the path's sample: a
+                # path's random numbers do not depend on which other paths are still alive.
+                u = uniform((n, 8), g, dev)
+            shadow, paths = self.stages.shade(paths, hits, u, bounce, film)
             if shadow is not None:
                 blocked = self.scene.accel.occluded(shadow.rays)  # NEE shadow rays: the one visibility query
                 self.stages.add_unoccluded(film, shadow, blocked)

@@ -372,7 +372,7 @@ def sample_light(kinds, area, points, env, px, py, pz, u0, u1, u2):
 def shade_and_sample(
     origins, directions, sample, throughput, prev_pdf,  # the live paths [n]
     hit, t, normal, geometric_normal, uv, surface_albedo, material_id, instance_id, primitive_id,  # their hits [n]
-    u_light, u_bsdf,  # [n_hit, 4] uniforms for the rows that hit, in row order
+    u,  # [n_samples, 8] uniforms, read at each path's sample: light [0:3], BSDF lobe/direction/roulette [4:8]
     materials, instance_offsets, kinds, area, points, env,  # scene tables
     first, scatter, sample_lights, has_emitters, has_area, russian_roulette, rr_max_survival,
     radiance, aov_albedo, aov_normal, aov_depth, aov_hit,  # per-sample accumulators of the wavefront
@@ -386,7 +386,6 @@ def shade_and_sample(
     pk = 1.0 / max(kinds.shape[0], 1)
     n_shadow = 0
     n_next = 0
-    j = -1  # row among the hits (index into the uniforms)
     for i in range(origins.shape[0]):
         s = sample[i]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
@@ -399,7 +398,6 @@ def shade_and_sample(
                 radiance[s, 1] += tg * lg * w
                 radiance[s, 2] += tb * lb * w
             continue
-        j += 1
         # Shading geometry: normals turned to the side the ray came from.
         th = t[i]
         px, py, pz = origins[i, 0] + th * dx, origins[i, 1] + th * dy, origins[i, 2] + th * dz
@@ -444,7 +442,7 @@ def shade_and_sample(
         # Next-event estimation: one light sample; its shadow ray is queried by the caller.
         if sample_lights:
             wx, wy, wz, dist, lr, lg, lb, lpdf, is_delta = sample_light(kinds, area, points, env, px, py, pz,
-                                                                       u_light[j, 0], u_light[j, 1], u_light[j, 2])
+                                                                       u[s, 0], u[s, 1], u[s, 2])
             fr, fg, fb, bpdf = _eval_pdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz, wx, wy, wz)
             if lpdf > 0 and _dot(wx, wy, wz, gx, gy, gz) > 0 and max(fr, fg, fb) > 0 and max(lr, lg, lb) > 0:
                 k = n_shadow
@@ -466,14 +464,14 @@ def shade_and_sample(
                 shadow_contribution[k, 2] = tb * fb * lb * c
         # BSDF sampling and Russian roulette.
         wx, wy, wz, fr, fg, fb, spdf = sample_bsdf(kind, alpha, ior, ar, ag, ab, nx, ny, nz, wox, woy, woz,
-                                                   u_bsdf[j, 0], u_bsdf[j, 1], u_bsdf[j, 2])
+                                                   u[s, 4], u[s, 5], u[s, 6])
         nr, ng_, nb = tr * fr, tg * fg, tb * fb
         q = max(nr, ng_, nb)
         if not (spdf > 0 and _dot(wx, wy, wz, gx, gy, gz) > 0 and q > 0):
             continue
         if russian_roulette:
             q = min(q, rr_max_survival)
-            if not (u_bsdf[j, 3] < q):
+            if not (u[s, 7] < q):
                 continue
             nr, ng_, nb = nr / q, ng_ / q, nb / q
         k = n_next

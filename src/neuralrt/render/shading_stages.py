@@ -7,17 +7,17 @@ the same answers to float tolerance (the tests run both on CPU tensors).
 
 The contract, for the live paths of a wavefront and their closest hits:
 
-- ``shade(paths, hits, u_light, u_bsdf, bounce, film)``: adds escaped radiance (environment, MIS)
-  and emission seen at hits (MIS) to ``film.radiance``, records the AOVs at the first bounce, and,
-  when ``u_bsdf`` is given (``bounce < max_depth``), samples one light per hit (``u_light``, None
-  without lights) and the BSDF with Russian roulette (``u_bsdf``). Returns ``(shadow, next_paths)``:
-  the NEE shadow rays with the contribution each adds if unoccluded (None when there are none), and
-  the surviving paths (None when nothing scatters). ``u_light`` / ``u_bsdf`` are [n_hit, 4]
-  uniforms for the rows that hit, in row order.
+- ``shade(paths, hits, u, bounce, film)``: adds escaped radiance (environment, MIS) and emission
+  seen at hits (MIS) to ``film.radiance``, records the AOVs at the first bounce, and, when ``u``
+  is given (``bounce < max_depth``), samples one light per hit (NEE) and the BSDF with Russian
+  roulette. Returns ``(shadow, next_paths)``: the NEE shadow rays with the contribution each adds
+  if unoccluded (None when there are none), and the surviving paths (None when nothing scatters).
 - ``add_unoccluded(film, shadow, blocked)``: adds the contributions of the shadow rays not blocked.
 
-Uniform roles: ``u_light[:, 0]`` picks the light kind and the light, ``[:, 1:3]`` the point on it;
-``u_bsdf[:, 0]`` picks the lobe, ``[:, 1:3]`` the direction, ``[:, 3]`` decides Russian roulette.
+``u`` is [n_samples, 8] uniforms, one row per sample of the wavefront, read at each path's
+``sample``: ``u[:, 0]`` picks the light kind and the light, ``[:, 1:3]`` the point on it (``3`` is
+unused); ``u[:, 4]`` picks the BSDF lobe, ``[:, 5:7]`` the direction, ``[:, 7]`` decides Russian
+roulette.
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ class TorchShadingStages:
         self.lights: LightSet = scene.lights
         self._has_emitters = bool(self.materials.emissive_mask.any())
 
-    def shade(self, paths: PathState, hits: Hits, u_light: Tensor | None, u_bsdf: Tensor | None, bounce: int,
+    def shade(self, paths: PathState, hits: Hits, u: Tensor | None, bounce: int,
               film: WavefrontFilm) -> tuple[ShadowQueries | None, PathState | None]:
         first = bounce == 0
         self._escaped(paths.select(torch.nonzero(~hits.hit).reshape(-1)), film.radiance, first)
@@ -130,10 +130,11 @@ class TorchShadingStages:
             film.normal[paths.sample] = sh.ns
             film.depth[paths.sample] = hits.t
             film.hit[paths.sample] = True
-        if u_bsdf is None:
+        if u is None:
             return None, None
-        shadow = self._light_samples(paths, hits, sh, u_light) if u_light is not None else None
-        return shadow, self._sample_bsdf(paths, hits, sh, bounce, u_bsdf)
+        u = u[paths.sample]
+        shadow = self._light_samples(paths, hits, sh, u[:, 0:4]) if self.lights else None
+        return shadow, self._sample_bsdf(paths, hits, sh, bounce, u[:, 4:8])
 
     def add_unoccluded(self, film: WavefrontFilm, shadow: ShadowQueries, blocked: Tensor) -> None:
         keep = torch.nonzero(~blocked).reshape(-1)
@@ -284,13 +285,13 @@ class NumbaShadingStages:
         self.kinds, self.area, self.points, self.env = _light_tables(scene.lights)
         self.has_emitters = bool(scene.materials.emissive_mask.any())
         self.has_area = scene.lights.area is not None
+        self.has_lights = bool(scene.lights)
 
-    def shade(self, paths: PathState, hits: Hits, u_light: Tensor | None, u_bsdf: Tensor | None, bounce: int,
+    def shade(self, paths: PathState, hits: Hits, u: Tensor | None, bounce: int,
               film: WavefrontFilm) -> tuple[ShadowQueries | None, PathState | None]:
         n = len(paths.sample)
-        scatter = u_bsdf is not None
+        scatter = u is not None
         m = n if scatter else 0  # output rows (at most one shadow ray and one next path per row)
-        empty4 = np.zeros((0, 4), np.float32)
         shadow_origin, shadow_direction = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
         shadow_t_max, shadow_sample, shadow_contribution = np.empty(m, np.float32), np.empty(m, np.int64), np.empty((m, 3), np.float32)
         next_origin, next_direction = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
@@ -300,9 +301,9 @@ class NumbaShadingStages:
             _c(rays.origins), _c(rays.directions), _c(paths.sample), _c(paths.throughput), _c(paths.prev_bsdf_pdf),
             _c(hits.hit), _c(hits.t), _c(hits.normal), _c(hits.geometric_normal), _c(hits.uv), _c(hits.albedo),
             _c(hits.material_id), _c(hits.instance_id), _c(hits.primitive_id),
-            _c(u_light) if u_light is not None else empty4, _c(u_bsdf) if scatter else empty4,
+            _c(u) if scatter else np.zeros((0, 8), np.float32),
             self.materials, self.instance_offsets, self.kinds, self.area, self.points,
-            self.env, bounce == 0, scatter, u_light is not None, self.has_emitters, self.has_area, bounce + 1 >= self.settings.rr_depth,
+            self.env, bounce == 0, scatter, scatter and self.has_lights, self.has_emitters, self.has_area, bounce + 1 >= self.settings.rr_depth,
             float(self.settings.rr_max_survival),
             film.radiance.numpy(), film.albedo.numpy(), film.normal.numpy(), film.depth.numpy(), film.hit.numpy(),
             shadow_origin, shadow_direction, shadow_t_max, shadow_sample, shadow_contribution,
