@@ -1,9 +1,11 @@
 """NIF shadow rays against exact shadow rays, in the paper's Table 2 form, plus image quality.
 
-    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--details 2,4] [--device cpu]
+    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1]
+                                   [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
 
-Per scene (``builtin:cornell-statue?detail=D``, NIF on the statue; detail 2 = 75,720 triangles,
-detail 4 = statue(4)), one NIF render with ``audit=True``: every shadow-ray batch of the samples
+Per scene (``builtin:NAME?detail=D``, NIF on every statue: cornell-statue detail 2 = 75,720
+triangles, detail 4 = statue(4), 1.2M; ``instances:3`` = 12 instances of statue(2) sharing one NIF
+object among 24 other objects), one NIF render with ``audit=True``: every shadow-ray batch of the samples
 after training is answered by the NIF stand-in (exact objects + NIF stages 1 and 2) AND by the
 whole exact accelerator (Embree on the CPU, OptiX on CUDA), timed in the same run on the same
 rays. Columns:
@@ -42,25 +44,28 @@ from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.render.nif_render import render_nif  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
-COLUMNS = ["scene", "tris", "shadow_rays", "outer", "inner", "exact_ms", "nif_ms", "speedup", "disagree", "visible_err",
+COLUMNS = ["scene", "tris", "nif_instances", "shadow_rays", "outer", "inner", "exact_ms", "nif_ms", "speedup", "disagree", "visible_err",
            "psnr_same", "flip_same", "psnr", "psnr_floor", "flip", "flip_floor", "train_s_per_spp", "train_share", "paper_kb", "real_kb"]
 
 
-def bench_scene(detail: int, args) -> dict:
+def bench_scene(builtin: str, detail: int, args) -> dict:
     t0 = time.perf_counter()
-    scene = load_scene(f"builtin:cornell-statue?detail={detail}", device=args.device, resolution=(args.resolution, args.resolution))
+    scene = load_scene(f"builtin:{builtin}?detail={detail}", device=args.device, resolution=(args.resolution, args.resolution))
     load_s = time.perf_counter() - t0
+    statues = sorted({inst.name for inst in scene.accel.instances if getattr(inst.blas, "mesh", None) is not None
+                      and inst.blas.mesh.name.startswith("statue")})
     cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp))
     kw = dict(spp=args.spp, seed=0, config=cfg, progress=False)
-    nif, report = render_nif(scene, "statue", audit=True, **kw)
-    same, _ = render_nif(scene, "statue", answer="exact", **kw)
+    nif, report = render_nif(scene, statues, audit=True, **kw)
+    same, _ = render_nif(scene, statues, answer="exact", **kw)
     other = render(scene, spp=args.spp, seed=1, progress=False)
     st = report["shadow_rays"]
     rays = max(st["shadow_rays"], 1)
     vs_same, vs_other, floor = compare_images(same.image, nif.image), compare_images(other.image, nif.image), compare_images(other.image, same.image)
     return {
-        "scene": f"cornell-statue?detail={detail}",
+        "scene": f"{builtin}?detail={detail}",
         "tris": report["triangles"][0],
+        "nif_instances": report["instances"],
         "shadow_rays": st["shadow_rays"],
         "outer": st["outer"],
         "inner": st["inner"],
@@ -88,13 +93,14 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--train-spp", type=int, default=32)
     ap.add_argument("--passes", type=int, default=NIFTrainingConfig().passes_per_spp)
-    ap.add_argument("--details", default="2,4", help="statue detail levels (cornell-statue?detail=D)")
+    ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--name", help="results file name (default: nif, or nif_<device>)")
     args = ap.parse_args()
     rows = []
-    for detail in (int(d) for d in args.details.split(",")):
-        rows.append(bench_scene(detail, args))
+    for item in args.scenes.split(","):
+        builtin, _, detail = item.partition(":")
+        rows.append(bench_scene(builtin, int(detail or 2), args))
         print_table(rows[-1:], COLUMNS)
     print()
     print_table(rows, COLUMNS)

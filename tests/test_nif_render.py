@@ -138,3 +138,17 @@ def test_online_trained_render_answers_far_better_than_visible(tmp_path):
     reference, _ = render_nif(scene, "ball,cube", spp=36, train_spp=32, config=cfg, progress=False, answer="exact")
     diff = np.abs(np.clip(result.image, 0, 1) - np.clip(reference.image, 0, 1))
     assert 0 < diff.mean() < 0.01
+
+
+def test_cli_render_with_nif_reports_it(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "img.exr"
+    args = ["render", "builtin:cornell-statue?detail=0", "-o", str(out), "--spp", "3", "--res", "24x16", "--quiet", "--json",
+            "--nif", "statue", "--nif-train-spp", "2"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    nif = result["nif"]
+    assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2
+    assert nif["shadow_rays"]["shadow_rays"] > 0 and nif["training"]["outer_pairs"] + nif["training"]["inner_pairs"] > 0
+    assert nif["memory"]["paper_bytes_per_object"] == 327_680 and out.exists()
