@@ -5,10 +5,12 @@ ray queries and the rest. Prints a table and writes benchmarks/results/render.js
     python benchmarks/bench_render.py [--resolution 128] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 
 Per scene and implementation: ``s_per_spp`` (the fastest of ``--repeats`` renders, taken in
-alternation so both see the same machine load), ``queries_s_per_spp`` (time inside
-`SceneAccel.intersect` / ``occluded``: TLAS + BLAS, i.e. Embree and its bookkeeping), ``rest_s_per_spp``
-(everything else: camera rays, shading, sampling, accumulation), and ``blas_share`` (the fraction
-inside `BLAS.intersect` / ``occluded`` alone). ``speedup`` is torch s/spp over numba s/spp; ``pixels_differing`` the fraction of pixels whose
+alternation so both see the same machine load); ``queries_s_per_spp``, the time inside
+`SceneAccel.intersect` / ``occluded`` (TLAS + BLAS: Embree and its bookkeeping);
+``rest_s_per_spp``, everything else, of which ``shading_s_per_spp`` is inside the shading stages
+(shading, sampling, NEE, roulette, accumulation; the remainder is camera rays, random numbers and
+the film); ``blas_share``, the fraction inside `BLAS.intersect` / ``occluded`` alone.
+``speedup`` is torch s/spp over numba s/spp; ``pixels_differing`` the fraction of pixels whose
 values differ by more than 0.1% between the two (same seed).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
 average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
@@ -32,14 +34,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import print_table, write_results  # noqa: E402
 
+from neuralrt.render import shading_stages  # noqa: E402
 from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.builtins import BUILTIN_SCENES  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
 BACKENDS = ("torch", "numba")
-COLUMNS = ["scene", "instanced_tris", "instances", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup",
-           "torch_queries_s_per_spp", "torch_rest_s_per_spp", "numba_queries_s_per_spp", "numba_rest_s_per_spp",
-           "numba_query_share", "pixels_differing"]
+COLUMNS = ["scene", "instanced_tris", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup",
+           "torch_queries_s_per_spp", "torch_rest_s_per_spp", "torch_shading_s_per_spp", "numba_queries_s_per_spp",
+           "numba_rest_s_per_spp", "numba_shading_s_per_spp", "numba_query_share", "pixels_differing"]
 
 
 class _Timer:
@@ -66,7 +69,28 @@ class _Timer:
         self.seconds, self.rays = 0.0, 0
 
 
-def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int) -> dict:
+class _StageTimer:
+    """Times the shading stages (``shade`` + ``add_unoccluded``) of both implementations (class-level)."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        for cls in (shading_stages.TorchShadingStages, shading_stages.NumbaShadingStages):
+            for name in ("shade", "add_unoccluded"):
+                setattr(cls, name, self._wrap(getattr(cls, name)))
+
+    def _wrap(self, fn):
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            self.seconds += time.perf_counter() - t0
+            return out
+
+        return timed
+
+
+
+def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int,
+                stage_timer: _StageTimer) -> dict:
     scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
     for backend in BACKENDS:  # warm-up: allocator, first calls, numba's compiled-kernel cache
@@ -78,17 +102,19 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
         for backend in BACKENDS:  # alternate, so a burst of load from other jobs hits both alike
             blas_timer.reset()
             query_timer.reset()
+            stage_timer.seconds = 0.0
             torch.set_num_threads(threads)  # numba's OpenMP layer (Embree/TLAS kernels) may have reset it
             result = render(scene, spp=spp, seed=0, progress=False, shading=backend)
             if backend not in best or result.seconds < best[backend][0].seconds:
-                best[backend] = (result, query_timer.seconds, blas_timer.seconds, query_timer.rays)
+                best[backend] = (result, query_timer.seconds, blas_timer.seconds, query_timer.rays, stage_timer.seconds)
     row = {"scene": name, "instanced_tris": sum(i.blas.mesh.num_triangles for i in scene.accel.instances),
            "instances": len(scene.accel.instances), "rays_per_spp": best["numba"][3] / spp}
     for backend in BACKENDS:
-        result, query_s, blas_s, _ = best[backend]
+        result, query_s, blas_s, _, shading_s = best[backend]
         row[f"{backend}_s_per_spp"] = result.seconds / spp
         row[f"{backend}_queries_s_per_spp"] = query_s / spp
         row[f"{backend}_rest_s_per_spp"] = (result.seconds - query_s) / spp
+        row[f"{backend}_shading_s_per_spp"] = shading_s / spp  # part of the rest
         row[f"{backend}_query_share"] = query_s / result.seconds
         row[f"{backend}_blas_share"] = blas_s / result.seconds
     row["speedup"] = row["torch_s_per_spp"] / row["numba_s_per_spp"]
@@ -113,7 +139,9 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
     start = time.perf_counter()
-    rows = [bench_scene(n, args.resolution, args.spp, args.detail, args.repeats, args.threads) for n in args.scenes.split(",")]
+    stage_timer = _StageTimer()
+    rows = [bench_scene(n, args.resolution, args.spp, args.detail, args.repeats, args.threads, stage_timer)
+            for n in args.scenes.split(",")]
     load_after = os.getloadavg()[0]
     print(f"{args.resolution}x{args.resolution}, {args.spp} spp (best of {args.repeats}), max_depth = scene default, "
           f"torch threads = {args.threads}, load average {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores, "
