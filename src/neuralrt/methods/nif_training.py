@@ -43,7 +43,10 @@ class NIFTrainingStats:
 class LazyAdam(torch.optim.Optimizer):
     """Adam on the rows of tables with sparse gradients (`F.embedding(..., sparse=True)`): each step
     updates the moments and values of the rows the gradient touches, with the bias correction of
-    the global step count (as `torch.optim.SparseAdam`, in fewer passes)."""
+    the global step count (as `torch.optim.SparseAdam`, in fewer passes).
+
+    Repeated rows are summed by scattering into a dense scratch table and reading back the touched
+    rows (a scan of a row mask) instead of sorting them (`coalesce`: 20% of a training step)."""
 
     def __init__(self, params, lr: float, betas: tuple[float, float], eps: float):
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
@@ -55,11 +58,22 @@ class LazyAdam(torch.optim.Optimizer):
             for p in group["params"]:
                 if p.grad is None:
                     continue
-                grad = p.grad.coalesce()
-                rows, g = grad.indices()[0], grad.values()
                 state = self.state[p]
                 if not state:
                     state["step"], state["m"], state["v"] = 0, torch.zeros_like(p), torch.zeros_like(p)
+                    state["sum"] = torch.zeros_like(p)  # scratch: all zero between steps
+                    state["touched"] = torch.zeros(p.shape[0], dtype=torch.bool, device=p.device)
+                grad = p.grad
+                index, values = (grad._indices()[0], grad._values()) if grad.is_sparse else (None, grad)
+                if index is None:  # a dense gradient: every row
+                    rows, g = torch.arange(p.shape[0], device=p.device), values
+                else:
+                    state["sum"].index_add_(0, index, values)
+                    state["touched"][index] = True
+                    rows = torch.nonzero(state["touched"]).reshape(-1)
+                    g = state["sum"].index_select(0, rows)
+                    state["sum"].index_fill_(0, rows, 0.0)
+                    state["touched"][rows] = False
                 state["step"] += 1
                 t = state["step"]
                 m = state["m"].index_select(0, rows).mul_(b1).add_(g, alpha=1 - b1)
