@@ -1,18 +1,20 @@
 """LSNIF inference on CUDA with one fused Triton kernel per ray chunk.
 
-The kernel walks each ray through the voxels (`dda_next_point`, float64 as in `featurize_rays`),
-encodes each boundary point in the sparse hash grid as soon as it is found (`encode_point`), and
-multiplies its features (+ its point distance) into the first MLP layer at once: the network
-input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over points of
-``x_h @ W1[:, block h]^T``, one small matrix product per point slot on the tensor cores. Points
-and features stay in registers. Where the kernel stops is a choice (``stage``, measured in
-benchmarks/bench_lsnif_kernels_cuda.py): ``"whole"`` runs the other layers in the same kernel
-too (hidden layers on the tensor cores in the compute dtype, output layer in fp32, as
-`MLP.forward` does), so a ray costs 24 bytes in and its outputs out; ``"first_layer"`` writes
-the first hidden layer's activations and the rest runs as torch GEMMs; ``"input"`` writes the
-network input in bf16 (no accumulator in the kernel: fewer registers, more rays in flight) and
-the whole MLP runs as torch GEMMs. A point slot past every ray's last point in a block is
-skipped (its features are 0 and add nothing).
+The kernel walks each ray through the voxels (`dda_next_point`, float64 as in `featurize_rays`)
+and encodes each boundary point in the sparse hash grid as soon as it is found (`encode_point`):
+points never go to global memory. Where it stops is a choice (``stage``):
+
+- ``"input"`` (default): it writes the network input row (bf16, the unfused path's layout) and
+  the MLP runs as torch GEMMs (`MLP.forward`). No accumulator in the kernel: fewest registers.
+- ``"first_layer"``: the network input is the concatenation of per-point blocks, so
+  ``x @ W1^T`` is the sum over point slots of ``x_h @ W1[:, block h]^T``: one small tensor-core
+  product per slot, accumulated in registers; the kernel writes the first hidden layer.
+- ``"whole"``: also the other hidden layers (tensor cores, compute dtype) and the fp32 output
+  layer in the kernel: 24 bytes in per ray, its outputs out.
+
+Measured on an H100 (benchmarks/results/lsnif_kernels_h100.json, hq, 2^22 hairball(6) rays):
+``input`` 23.7 ms, ``whole`` 25.7 ms, ``first_layer`` 54.8 ms (its best launches); unfused
+26.2 ms. A point slot past every ray's last point in a block is skipped (its features are 0).
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
 compute precision: in-kernel layers accumulate in fp32 from bf16 inputs (unfused: bf16 GEMMs).
