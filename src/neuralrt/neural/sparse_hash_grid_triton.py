@@ -47,9 +47,10 @@ def _axis_terms(p, fixed, resf, prime):
     in_cell = tl.minimum(tl.maximum(tl.floor(f), 0.0), resf[None, :] - 1.0)
     i = tl.where(fixed[:, None], on_plane, in_cell)
     w = tl.where(fixed[:, None], 0.0, f - i)
-    i64 = i.to(tl.int64)
-    h0 = i64 * prime
-    h1 = tl.where(fixed[:, None], h0, (i64 + 1) * prime)
+    # 32-bit products: the hash keeps only the low log2(T) <= 24 bits, which wrap-around preserves.
+    iu = i.to(tl.uint32)
+    h0 = iu * prime
+    h1 = tl.where(fixed[:, None], h0, (iu + 1) * prime)
     return h0, h1, w
 
 
@@ -80,7 +81,7 @@ def _corner(terms, code, valid, table_size, C: tl.constexpr, L: tl.constexpr, LP
     else:
         hz, fz, on_z = z0, 1.0 - wz, valid
     levels = tl.arange(0, LP)
-    row = levels[None, :].to(tl.int64) * table_size + ((hx ^ hy ^ hz) & (table_size - 1))
+    row = levels[None, :] * table_size + ((hx ^ hy ^ hz) & (table_size - 1)).to(tl.int32)
     needed = (valid & on_x & on_y & on_z)[:, None] & (levels < L)[None, :]
     return row, fx * fy * fz, needed
 
@@ -195,5 +196,7 @@ def sparse_hash_grid_triton(
 
     ``points [N, H, 3]``, ``face_axis [N, H]``, ``table [L, T, F]`` -> ``[N, H * L * F]`` float32.
     """
+    if table.numel() >= 2**31:
+        raise ValueError(f"hash table of {table.numel()} entries is too large for 32-bit offsets")
     res = torch.as_tensor(resolutions, dtype=torch.int32).to(table.device)
     return _SparseHashGridTritonFunction.apply(points, face_axis, table, res, block)
