@@ -6,6 +6,7 @@ Usage (results merge into benchmarks/results/NAME.json)::
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu --steps 1500 --inference-rays 262144
     python benchmarks/bench_nbvh.py bunny00.off --presets paper --device cuda --name nbvh_h100
+    python benchmarks/bench_nbvh.py --offsets MODEL.nrt bunny00.off   # secondary-ray offsets -> nbvh_offset.json
 
 A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
 ``procedural:NAME:DETAIL`` (as in bench_lsnif.py). Timings on a shared machine are noisy: the
@@ -104,9 +105,22 @@ def summary_row(r: dict) -> dict:
     }
 
 
+def offsets(model: str, mesh: str) -> None:
+    """bench_lsnif_offset.py's measurement (it takes any model file), written to nbvh_offset.json."""
+    import _common
+    import bench_lsnif_offset
+
+    write = _common.write_results
+    _common.write_results = lambda name, rows, extra=None: write("nbvh_offset", rows, extra)
+    sys.argv = [sys.argv[0], model, mesh]
+    bench_lsnif_offset.main()
+
+
 def main() -> None:
     from _common import RESULTS_DIR, print_table, write_results
 
+    if sys.argv[1:2] == ["--offsets"]:
+        return offsets(*sys.argv[2:4])
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["cpu"])

@@ -66,7 +66,10 @@ class NBVHRayDistribution:
         model = self.model
         rays = Rays(model.unit_lo + start * model.unit_scale, d, torch.zeros_like(length), length * model.unit_scale)
         truth = self.truth.intersect(rays)
-        model.remember_batch_leaves(node)
+        fractions = None
+        if model.config.query.chord_points == "stratified":  # one random point per third of the chord
+            fractions = (torch.arange(3, device=self.device) + torch.rand(len(node), 3, generator=self.generator, device=self.device)) / 3
+        model.remember_batch_leaves(node, fractions)
         return TrainingBatch(rays, torch.zeros(len(rays), dtype=torch.bool, device=self.device), truth)
 
     def state_dict(self) -> tuple[dict, dict]:
