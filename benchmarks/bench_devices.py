@@ -135,6 +135,7 @@ def main() -> None:
     parser.add_argument("--methods", default="lsnif", help="registered methods to train and time (comma-separated)")
     parser.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
     parser.add_argument("--method-steps", default="", help="per-method steps, e.g. nbvh=1000 (overrides --steps)")
+    parser.add_argument("--method-meshes", default="", help="per-method meshes, e.g. nbvh=statue:2+hairball:6 (overrides --meshes)")
     parser.add_argument("--rays-log2", type=int, default=22)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--scene", default="builtin:hairball?detail=6")
@@ -160,8 +161,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         method_steps = {k: int(v) for k, v in (item.split("=") for item in filter(None, args.method_steps.split(",")))}
-        for method in args.methods.split(","):
-            for spec in args.meshes.split(","):
+        method_meshes = dict(item.split("=") for item in filter(None, args.method_meshes.split(",")))
+        for index, method in enumerate(args.methods.split(",")):
+            if index == 1 and "render" not in skip:  # the render (LSNIF) before the other methods' rows
+                payload["render"].append(bench_render(args.scene, device, args.steps, args.res, args.spp, work))
+                save()
+            for spec in method_meshes.get(method, args.meshes.replace(",", "+")).split("+"):
                 if "train" in skip and "inference" in skip:
                     break
                 row, mesh, model = bench_train(method, spec, device, method_steps.get(method, args.steps), work)
@@ -171,7 +176,7 @@ def main() -> None:
                     payload["inference"] += bench_inference(method, spec, mesh, model, device, args.rays_log2, args.repeats)
                     save()
                 del model
-        if "render" not in skip:
+        if "render" not in skip and not payload["render"]:
             payload["render"].append(bench_render(args.scene, device, args.steps, args.res, args.spp, work))
             save()
     print(f"{name} ({device.type})")
