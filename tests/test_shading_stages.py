@@ -121,3 +121,20 @@ def test_environment_lookup_and_density_equal_torch():
     shading_kernels.environment_rows(_light_tables(LightSet(environment=env))[3], d.numpy(), radiance.numpy(), pdf.numpy())
     torch.testing.assert_close(radiance, env.radiance(d), rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(pdf, env.pdf(d), rtol=1e-4, atol=1e-6)
+
+
+def test_camera_paths_equal_torch(tmp_path):
+    """The numba camera rays are the torch ones (float32 arithmetic in both) for an off-axis camera."""
+    from neuralrt.render.shading_stages import NumbaShadingStages, TorchShadingStages
+
+    spec = _every_feature_scene(tmp_path)
+    spec.camera = CameraSpec(position=(0.3, 1.2, 3.0), look_at=(-0.2, 0, 0), fov=55, resolution=(37, 23))
+    scene = build_scene(spec, base_dir=tmp_path)
+    g = torch.Generator().manual_seed(13)
+    pixel = torch.randint(0, 37 * 23, (5000,), generator=g)
+    jitter = torch.rand(5000, 2, generator=g)
+    ref = TorchShadingStages(scene, None).camera_paths(pixel, jitter)
+    got = NumbaShadingStages(scene, None).camera_paths(pixel, jitter)
+    torch.testing.assert_close(got.rays.origins, ref.rays.origins)
+    torch.testing.assert_close(got.rays.directions, ref.rays.directions, rtol=0, atol=3e-7)
+    assert torch.equal(got.sample, ref.sample) and torch.equal(got.throughput, ref.throughput)

@@ -66,9 +66,7 @@ class PathTracer:
         self.stages = shading_stages_for(scene, settings, settings.shading)
 
     def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> PathState:
-        n, dev = pixel.numel(), pixel.device
-        rays = self.scene.camera.generate_rays(pixel, uniform((n, 2), g, dev))
-        return PathState(rays, torch.arange(n, device=dev), torch.ones(n, 3, device=dev), torch.zeros(n, device=dev))
+        return self.stages.camera_paths(pixel, uniform((pixel.numel(), 2), g, pixel.device))
 
     def trace(self, pixel: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Radiance, albedo, normal [n, 3], depth [n] and camera-ray hit [n] bool for one sample

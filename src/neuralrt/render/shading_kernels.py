@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["shade_and_sample", "add_unoccluded", "bsdf_sample_rows", "bsdf_eval_rows", "light_sample_rows", "environment_rows"]
+__all__ = ["shade_and_sample", "add_unoccluded", "camera_rays", "bsdf_sample_rows", "bsdf_eval_rows", "light_sample_rows", "environment_rows"]
 
 _DIFFUSE, _CONDUCTOR, _PLASTIC, _EMISSIVE = 0, 1, 2, 3  # MaterialKind
 _AREA, _POINT, _ENVIRONMENT = 0, 1, 2  # light kinds, in LightSet.kinds order
@@ -42,6 +42,12 @@ def _dot(ax, ay, az, bx, by, bz):
 def _normalize(x, y, z):
     """torch.nn.functional.normalize: divide by max(norm, 1e-12)."""
     n = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+    return x / n, y / n, z / n
+
+
+@_jit
+def _normalize32(x, y, z):
+    n = max(np.float32(math.sqrt(x * x + y * y + z * z)), np.float32(1e-12))
     return x / n, y / n, z / n
 
 
@@ -492,6 +498,26 @@ def add_unoccluded(radiance, shadow_sample, shadow_contribution, blocked):
             s = shadow_sample[k]
             for c in range(3):
                 radiance[s, c] += shadow_contribution[k, c]
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def camera_rays(pixel, jitter, width, height, tan_half, aspect, camera_to_world, origins, directions):
+    """`Camera.generate_rays`: rays through pixels ``pixel`` [N] (row-major) at offsets ``jitter``
+    [N, 2], written to ``origins`` / ``directions`` [N, 3] (unit)."""
+    # float32 throughout, as torch computes it: camera rays then match to the last bit or nearly,
+    # so thin geometry is hit or missed alike by both implementations.
+    m = camera_to_world
+    one, two = np.float32(1.0), np.float32(2.0)
+    w, h = np.float32(width), np.float32(height)
+    t, a = np.float32(tan_half), np.float32(aspect)
+    for i in range(pixel.shape[0]):
+        px = np.float32(pixel[i] % width) + jitter[i, 0]
+        py = np.float32(pixel[i] // width) + jitter[i, 1]
+        cx, cy, cz = _normalize32((two * px / w - one) * t * a, (one - two * py / h) * t, -one)
+        dx, dy, dz = _normalize32(m[0, 0] * cx + m[0, 1] * cy + m[0, 2] * cz, m[1, 0] * cx + m[1, 1] * cy + m[1, 2] * cz,
+                                  m[2, 0] * cx + m[2, 1] * cy + m[2, 2] * cz)
+        origins[i, 0], origins[i, 1], origins[i, 2] = m[0, 3], m[1, 3], m[2, 3]
+        directions[i, 0], directions[i, 1], directions[i, 2] = dx, dy, dz
 
 
 # --- whole-batch entry points of the per-row functions (tests compare them with the torch path) ---------

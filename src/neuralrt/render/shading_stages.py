@@ -7,6 +7,9 @@ the same answers to float tolerance (the tests run both on CPU tensors).
 
 The contract, for the live paths of a wavefront and their closest hits:
 
+- ``camera_paths(pixel, jitter)``: paths starting with the camera rays through pixels ``pixel``
+  [n] (row-major) at offsets ``jitter`` [n, 2] (`Camera.generate_rays`), sample ``k`` in row k.
+
 - ``shade(paths, hits, u, bounce, film)``: adds escaped radiance (environment, MIS) and emission
   seen at hits (MIS) to ``film.radiance``, records the AOVs at the first bounce, and, when ``u``
   is given (``bounce < max_depth``), samples one light per hit (NEE) and the BSDF with Russian
@@ -22,6 +25,7 @@ roulette.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,6 +118,11 @@ class TorchShadingStages:
         self.materials: MaterialTable = scene.materials
         self.lights: LightSet = scene.lights
         self._has_emitters = bool(self.materials.emissive_mask.any())
+
+    def camera_paths(self, pixel: Tensor, jitter: Tensor) -> PathState:
+        n, dev = pixel.numel(), pixel.device
+        rays = self.scene.camera.generate_rays(pixel, jitter)
+        return PathState(rays, torch.arange(n, device=dev), torch.ones(n, 3, device=dev), torch.zeros(n, device=dev))
 
     def shade(self, paths: PathState, hits: Hits, u: Tensor | None, bounce: int,
               film: WavefrontFilm) -> tuple[ShadowQueries | None, PathState | None]:
@@ -286,6 +295,15 @@ class NumbaShadingStages:
         self.has_emitters = bool(scene.materials.emissive_mask.any())
         self.has_area = scene.lights.area is not None
         self.has_lights = bool(scene.lights)
+        self.camera = scene.camera
+
+    def camera_paths(self, pixel: Tensor, jitter: Tensor) -> PathState:
+        n, cam = pixel.numel(), self.camera
+        origins, directions = torch.empty(n, 3), torch.empty(n, 3)
+        self.kernels.camera_rays(_c(pixel), _c(jitter), cam.width, cam.height, math.tan(math.radians(cam.fov_y_degrees) * 0.5),
+                                 cam.width / cam.height, _np(cam.camera_to_world.matrix, np.float32), origins.numpy(),
+                                 directions.numpy())
+        return PathState(Rays(origins, directions), torch.arange(n), torch.ones(n, 3), torch.zeros(n))
 
     def shade(self, paths: PathState, hits: Hits, u: Tensor | None, bounce: int,
               film: WavefrontFilm) -> tuple[ShadowQueries | None, PathState | None]:
