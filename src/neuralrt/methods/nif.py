@@ -139,13 +139,19 @@ class NIFNetworks(nn.Module):
         return [self.inner_position.table, self.inner_direction.table, self.inner_distance.table]
 
     # -- the two networks (logits; sigmoid = visibility) ----------------------------------------
+    def outer_features(self, obj: Tensor, position: Tensor, direction: Tensor) -> Tensor:
+        """[M, 6] outer MLP inputs: position grid then direction grid features."""
+        return torch.cat([self.outer_position(obj, position), self.outer_direction(obj, direction)], dim=-1)
+
+    def inner_features(self, obj: Tensor, position: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
+        """[M, 13] inner MLP inputs: position, direction and distance grid features."""
+        return torch.cat([self.inner_position(obj, position), self.inner_direction(obj, direction), self.inner_distance(obj, distance)], dim=-1)
+
     def outer_logits(self, obj: Tensor, position: Tensor, direction: Tensor) -> Tensor:
-        x = torch.cat([self.outer_position(obj, position), self.outer_direction(obj, direction)], dim=-1)
-        return self.outer_mlp(x)[:, 0]
+        return self.outer_mlp(self.outer_features(obj, position, direction))[:, 0]
 
     def inner_logits(self, obj: Tensor, position: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
-        x = torch.cat([self.inner_position(obj, position), self.inner_direction(obj, direction), self.inner_distance(obj, distance)], dim=-1)
-        return self.inner_mlp(x)[:, 0]
+        return self.inner_mlp(self.inner_features(obj, position, direction, distance))[:, 0]
 
     def queries(self, pairs: NIFPairs) -> NIFQueries:
         return make_queries(pairs, self.box_lo, self.box_hi)
@@ -155,11 +161,17 @@ class NIFNetworks(nn.Module):
         """Stage 2: [P] bool, the pair's object blocks its ray (visibility < 1/2): one MLP call for
         every outer pair and one for every inner pair, whatever their objects."""
         q = self.queries(pairs) if queries is None else queries
-        blocked = torch.zeros(len(pairs), dtype=torch.bool, device=pairs.obj.device)
-        if q.outer_pair.numel():  # logit < 0 <=> sigmoid < 1/2
-            blocked[q.outer_pair] = self.outer_logits(q.outer_obj, q.outer_position, q.outer_direction) < 0
-        if q.inner_pair.numel():
-            blocked[q.inner_pair] = self.inner_logits(q.inner_obj, q.inner_position, q.inner_direction, q.inner_distance) < 0
+        return self.occluded_from_features(len(pairs), q.outer_pair, self.outer_features(q.outer_obj, q.outer_position, q.outer_direction),
+                                           q.inner_pair, self.inner_features(q.inner_obj, q.inner_position, q.inner_direction, q.inner_distance))
+
+    @torch.no_grad()
+    def occluded_from_features(self, n: int, outer_pair: Tensor, outer_x: Tensor, inner_pair: Tensor, inner_x: Tensor) -> Tensor:
+        """[n] bool from the MLP inputs of the outer pairs ``outer_pair`` and inner pairs ``inner_pair``."""
+        blocked = torch.zeros(n, dtype=torch.bool, device=outer_x.device)
+        if outer_pair.numel():  # logit < 0 <=> sigmoid < 1/2
+            blocked[outer_pair] = self.outer_mlp(outer_x)[:, 0] < 0
+        if inner_pair.numel():
+            blocked[inner_pair] = self.inner_mlp(inner_x)[:, 0] < 0
         return blocked
 
     # -- memory --------------------------------------------------------------------------------

@@ -7,7 +7,9 @@ accelerator unchanged. ``occluded`` (shadow rays) is answered in two parts:
 - the NIF objects, in two stages (the paper's Sec. 4.1). Stage 1: the TLAS stages of a `SceneAccel`
   over the NIF instances give every (ray, instance) pair whose interval meets the instance's box,
   with the ray in object space; instances of one mesh are one NIF object (occlusion is
-  object-space, so they share its grids). Stage 2: `NIFNetworks.occluded` over all pairs at once.
+  object-space, so they share its grids). Stage 2: the MLP inputs of all pairs at once
+  (`nif_features`: a fused numba pass on the CPU, torch ops elsewhere, chosen here once), then
+  one MLP call for every outer pair and one for every inner pair (`NIFNetworks.occluded_from_features`).
 
 A ray is occluded if an exact object blocks it or any NIF object's answer says so. The integrator
 calls ``occluded`` as on any accelerator and never knows a network answered.
@@ -30,6 +32,7 @@ from torch import Tensor
 
 from ..accel.tlas import SceneAccel
 from ..methods.nif import NIFNetworks, NIFPairs
+from ..methods.nif_features import nif_features_for
 from ..methods.nif_training import NIFTrainer
 from ..rays import Rays
 
@@ -98,6 +101,7 @@ class NIFShadowAccel:
         if len(self.blases) != networks.num_objects:
             raise ValueError(f"{len(self.blases)} NIF objects but networks for {networks.num_objects}")
         self._groups = [torch.tensor(ids, dtype=torch.int64, device=dev) for ids in objects.values()]
+        self.features = nif_features_for(dev)  # stage 2 inputs: numba on the CPU, torch elsewhere
         self.stats = {m: ShadowRayStats() for m in MODES}
 
     def __getattr__(self, name):  # everything else (instances, bounds, device, memory) is the wrapped accelerator's
@@ -153,19 +157,22 @@ class NIFShadowAccel:
         pairs, ray_idx = self.pairs(rays, t_limit)
         st.stage1_seconds += time.perf_counter() - t
         t = time.perf_counter()
-        queries = self.networks.queries(pairs)
         if self.mode == "answer":
-            hit = self.networks.occluded(pairs, queries)
+            outer_pair, outer_x, inner_pair, inner_x = self.features(self.networks, pairs)
+            hit = self.networks.occluded_from_features(len(pairs), outer_pair, outer_x, inner_pair, inner_x)
+            n_outer, n_inner = outer_pair.numel(), inner_pair.numel()
         else:
+            queries = self.networks.queries(pairs)
             hit = self.exact_labels(pairs)
             if self.mode == "collect" and self.trainer is not None:
                 trained = self.trainer.stats.seconds
                 self.trainer.add(queries, ~hit)
                 t += self.trainer.stats.seconds - trained  # training rounds are counted by the trainer, not here
+            n_outer, n_inner = queries.outer_pair.numel(), queries.inner_pair.numel()
         st.stage2_seconds += time.perf_counter() - t
         st.pairs += len(pairs)
-        st.outer += queries.outer_pair.numel()
-        st.inner += queries.inner_pair.numel()
+        st.outer += n_outer
+        st.inner += n_inner
         exact_blocked, blocked = blocked, blocked.clone()
         blocked[ray_idx[hit]] = True
         if self.audit:
