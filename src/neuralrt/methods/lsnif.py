@@ -237,13 +237,31 @@ class LSNIFModel(NeuralBLAS):
         return hits
 
     def _network_answers(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """(indices, raw outputs, t_enter, t_exit, t_offset) of the rays that reach the network:
-        on CUDA one fused Triton kernel per chunk (`lsnif_fused`), elsewhere featurize -> encode -> MLP."""
-        if rays.device.type == "cuda":
-            return self._network_answers_fused(rays)
+        """(indices, raw outputs, t_enter, t_exit, t_offset) of the rays that reach the network, from
+        one fused pass per chunk (walk + encoding (+ first layer) per ray): a Triton kernel on CUDA
+        (`lsnif_fused`), a numba kernel on the CPU (`lsnif_fused_cpu`); elsewhere featurize -> encode -> MLP."""
+        answer = {"cuda": self._network_answers_fused, "cpu": self._network_answers_fused_cpu}.get(rays.device.type)
+        if answer is not None:
+            return answer(rays)
+        return self._network_answers_unfused(rays)
+
+    def _network_answers_unfused(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         prep = self._prepare(rays)
         out = self._raw_outputs(prep, self.compute_dtype())
         return prep.active, out, prep.features.t_enter, prep.features.t_exit, prep.t_offset
+
+    def _network_answers_fused_cpu(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        from .lsnif_fused_cpu import fused_network_outputs_cpu
+
+        unit = self._unit_rays(rays)
+        fc = self.config.features
+        fused = fused_network_outputs_cpu(
+            unit.origins, unit.directions, self.occupancy, self.encoder, self.network,
+            max_points=fc.max_points, origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points,
+            point_distances=fc.point_distances, compute_dtype=self.compute_dtype(),
+        )  # fmt: skip
+        act = fused.active
+        return unit.index[act], fused.values, fused.t_enter[act], fused.t_exit[act], unit.t_offset[act]
 
     def _network_answers_fused(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         from .lsnif_fused import fused_network_outputs  # imports triton: CUDA only

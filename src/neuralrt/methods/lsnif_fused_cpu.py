@@ -1,0 +1,268 @@
+"""LSNIF inference on the CPU with one fused numba pass per ray chunk.
+
+For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
+decisions), encodes each boundary point in the sparse hash grid (`sparse_hash_grid._point_level`,
+float32, the same sums as its forward kernel) and adds the point's contribution to the first MLP
+layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the
+sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel
+writes the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype);
+the other hidden layers and the output layer run as torch GEMMs with the model's own weights.
+Nothing of size [rays, points, features] is ever in memory; a ray's points live in a per-thread
+scratch row of H entries.
+
+Rays that cross no occupied voxel (``count == 0``) are certain misses and never reach the GEMMs.
+
+Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> `MLP`) up to the
+compute precision: the first layer accumulates in fp32 from fp32 features here (unfused: a bf16
+GEMM where the compute dtype is bf16); in fp32 the two differ only by summation order.
+
+The CUDA counterpart is `lsnif_fused` (Triton); `LSNIFModel._network_answers` picks one by device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..neural.mlp import MLP
+from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
+from .lsnif_features import ORIGIN_POINT, _check_rays, _emit, _plane_time, _slab, _start_index
+
+__all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
+
+
+@dataclass
+class FusedCPUOutputs:
+    """Per ray of the batch: ``count``, ``t_enter``, ``t_exit`` (as `featurize_rays`); per ray that
+    reached the network (``active``, indices into the batch, ascending): the MLP's raw ``values``."""
+
+    active: Tensor  # [M] long
+    values: Tensor  # [M, outputs] fp32
+    count: Tensor  # [N] int32
+    t_enter: Tensor  # [N] float32
+    t_exit: Tensor  # [N] float32
+
+
+@numba.njit(cache=True, inline="always")
+def _walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, share, pts, axes):
+    """The DDA of `lsnif_features._featurize_kernel` for one ray, writing its points into the
+    scratch ``pts[0]``/``axes[0]``. Returns (count, truncated, t_enter, t_exit)."""
+    inf = np.inf
+    res = occ.shape[0]
+    if not (np.isfinite(ox + oy + oz + dx + dy + dz)) or (dx == 0.0 and dy == 0.0 and dz == 0.0):
+        return 0, False, inf, inf
+    sx, inv_x, nx, fx, okx = _slab(ox, dx)
+    sy, inv_y, ny, fy, oky = _slab(oy, dy)
+    sz, inv_z, nz, fz, okz = _slab(oz, dz)
+    if not (okx and oky and okz):
+        return 0, False, inf, inf
+    t_near, near_axis = nx, 0
+    if ny > t_near:
+        t_near, near_axis = ny, 1
+    if nz > t_near:
+        t_near, near_axis = nz, 2
+    t_far = min(fx, min(fy, fz))
+    inside = t_near < 0.0
+    t_cur = 0.0 if inside else t_near
+    if not t_cur < t_far:
+        return 0, False, inf, inf
+    t_start = t_cur
+    ix = _start_index(ox, dx, t_cur, sx, res, not inside and near_axis == 0)
+    iy = _start_index(oy, dy, t_cur, sy, res, not inside and near_axis == 1)
+    iz = _start_index(oz, dz, t_cur, sz, res, not inside and near_axis == 2)
+    tx = _plane_time(ox, inv_x, ix, sx, planes)
+    ty = _plane_time(oy, inv_y, iy, sy, planes)
+    tz = _plane_time(oz, inv_z, iz, sz, planes)
+    entry_code = ORIGIN_POINT if inside else near_axis
+    count = 0
+    last_t = -inf
+    while True:
+        if ty < tx:
+            axis, t_next = (2, tz) if tz < ty else (1, ty)
+        else:
+            axis, t_next = (2, tz) if tz < tx else (0, tx)
+        if t_next == inf:
+            break
+        t_next = max(t_next, t_cur)
+        if occ[ix, iy, iz] and t_next > t_cur:
+            skip_entry = (share and t_cur == last_t) or (entry_code == ORIGIN_POINT and not origin_point)
+            if not skip_entry:
+                count = _emit(pts, axes, 0, count, max_points, t_cur, entry_code, False,
+                              ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
+                if count < 0:
+                    break
+            count = _emit(pts, axes, 0, count, max_points, t_next, axis, True,
+                          ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
+            if count < 0:
+                break
+            last_t = t_next
+        if axis == 0:
+            ix += sx
+            if ix < 0 or ix >= res:
+                break
+            tx = _plane_time(ox, inv_x, ix, sx, planes)
+        elif axis == 1:
+            iy += sy
+            if iy < 0 or iy >= res:
+                break
+            ty = _plane_time(oy, inv_y, iy, sy, planes)
+        else:
+            iz += sz
+            if iz < 0 or iz >= res:
+                break
+            tz = _plane_time(oz, inv_z, iz, sz, planes)
+        t_cur = t_next
+        entry_code = axis
+    if count < 0:
+        return max_points, True, t_start, t_far
+    return count, False, t_start, t_far
+
+
+@numba.njit(parallel=True, cache=True)
+def _fused_kernel(
+    origins, directions, occ, planes, table, resolutions, w1, b1, slope,
+    max_points, origin_point, share, point_distances, to_bf16, n_chunks,
+    hidden_f32, hidden_bf16, counts, t_enter, t_exit,
+):  # fmt: skip
+    """``w1 [H, L * F (+ 1), W]``: the first layer's weights per point slot (input-major, the
+    point distance last); writes ``hidden_f32`` or (``to_bf16``) ``hidden_bf16`` (bf16 bits) rows
+    of the rays with points; other rows are left as they were."""
+    n_rays = origins.shape[0]
+    n_levels = resolutions.shape[0]
+    n_feat = table.shape[1]
+    table_size = table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
+    width = b1.shape[0]
+    for chunk in numba.prange(n_chunks):
+        pts = np.empty((1, max_points, 3), np.float32)
+        axes = np.empty((1, max_points), np.int8)
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        x = np.empty(n_levels * n_feat + 1, np.float32)  # one point's inputs
+        acc = np.empty(width, np.float32)
+        acc_bits = acc.view(np.uint32)
+        for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
+            ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
+            dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+            count, _, t0, t1 = _walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                         np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                         occ, planes, max_points, origin_point, share, pts, axes)  # fmt: skip
+            counts[n] = count
+            t_enter[n] = t0
+            t_exit[n] = t1
+            if count == 0:
+                continue
+            # point_local_distances, in float32 as the unfused path computes it
+            te, tx = np.float32(t0), np.float32(t1)
+            span = max(tx - te, np.float32(1e-12))
+            dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+            for j in range(width):
+                acc[j] = b1[j]
+            for h in range(count):
+                px, py, pz = pts[0, h, 0], pts[0, h, 1], pts[0, h, 2]
+                code = axes[0, h]
+                q = 0
+                for lvl in range(n_levels):
+                    k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots, weights)
+                    for f in range(n_feat):
+                        a = np.float32(0.0)
+                        for c in range(k):
+                            a += weights[c] * table[slots[c], f]
+                        x[q] = a
+                        q += 1
+                if point_distances:
+                    tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+                    x[q] = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
+                    q += 1
+                for i in range(q):
+                    v = x[i]
+                    for j in range(width):
+                        acc[j] += v * w1[h, i, j]
+            for j in range(width):
+                y = acc[j]
+                acc[j] = y if y >= 0 else y * slope
+            if to_bf16:
+                for j in range(width):  # round to nearest even, as torch's float -> bf16
+                    bits = acc_bits[j]
+                    hidden_bf16[n, j] = np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+            else:
+                for j in range(width):
+                    hidden_f32[n, j] = acc[j]
+
+
+def first_layer_blocks(network: MLP, max_points: int, block: int, point_distances: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The first hidden layer as ``w1 [H, block (+ 1), W]`` fp32 (point slot h's ``block`` = L * F
+    encoded inputs, then its point distance) and the bias ``[W]`` fp32."""
+    weight = network.hidden[0].weight.detach().float()  # [W, H * block (+ H)]
+    features = weight[:, : max_points * block].T.reshape(max_points, block, -1)
+    if point_distances:
+        distances = weight[:, max_points * block :].T.reshape(max_points, 1, -1)
+        features = torch.cat([features, distances], dim=1)
+    return features.contiguous().numpy(), network.hidden[0].bias.detach().float().contiguous().numpy()
+
+
+def rest_of_network(network: MLP, first_hidden: Tensor, compute_dtype: torch.dtype) -> Tensor:
+    """The MLP after its first hidden layer: [M, W] activations in ``compute_dtype`` -> [M, outputs]
+    fp32, as `MLP.forward` computes those layers in inference."""
+    x = first_hidden
+    if compute_dtype == torch.float32:
+        layers = [(layer.weight, layer.bias) for layer in network.hidden[1:]]
+    else:
+        layers = network._cast_weights(compute_dtype)[1:]  # bf16 copies cached by the MLP
+    for w, b in layers:
+        x = F.leaky_relu(F.linear(x, w, b), network.slope)
+    return network.output(x.float())
+
+
+@torch.no_grad()
+def fused_network_outputs_cpu(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: MLP,
+    *,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.float32,
+) -> FusedCPUOutputs:
+    """Raw MLP outputs of unit-box rays (``origins``/``directions`` ``[N, 3]`` fp32 CPU), with the
+    walk, the encoding and the first layer fused in one numba pass; see the module docstring."""
+    _check_rays(origins, directions, max_points)
+    if compute_dtype not in (torch.float32, torch.bfloat16):
+        raise ValueError(f"compute dtype must be float32 or bfloat16, got {compute_dtype}")
+    n = origins.shape[0]
+    o = origins.detach().to(torch.float32).contiguous().numpy()
+    d = directions.detach().to(torch.float32).contiguous().numpy()
+    occ = occupancy.detach().contiguous().numpy()
+    if occ.ndim != 3 or len(set(occ.shape)) != 1:
+        raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
+    levels, _, n_feat = encoder.table.shape
+    table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
+    w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
+    width = b1.shape[0]
+    to_bf16 = compute_dtype == torch.bfloat16
+    # One output buffer is used, the other stays empty: numba compiles one kernel for both dtypes.
+    hidden_f32 = np.empty((0 if to_bf16 else n, width), np.float32)
+    hidden_bf16 = np.empty((n if to_bf16 else 0, width), np.uint16)
+    counts = np.zeros(n, np.int32)
+    t_enter = np.full(n, np.inf, np.float32)
+    t_exit = np.full(n, np.inf, np.float32)
+    if n:
+        planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
+        n_chunks = max(1, min(n, 8 * numba.get_num_threads()))  # a few per thread: rays vary in length
+        _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, b1, np.float32(network.slope),
+                      int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
+                      to_bf16, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
+    count = torch.from_numpy(counts)
+    active = torch.nonzero(count > 0).squeeze(1)
+    hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
+    values = rest_of_network(network, hidden[active], compute_dtype)
+    return FusedCPUOutputs(active, values, count, torch.from_numpy(t_enter), torch.from_numpy(t_exit))
