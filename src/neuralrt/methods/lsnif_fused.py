@@ -31,7 +31,7 @@ import triton.language as tl
 from torch import Tensor, nn
 
 from ..neural.sparse_hash_grid import SparseHashGrid
-from ..neural.sparse_hash_grid_triton import encode_point
+from ..neural.sparse_hash_grid_triton import encode_point, encode_point_level_feature
 from .lsnif_features_triton import dda_next_point, dda_point_coords, dda_setup, occupancy_bytes, plane_table
 
 __all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_layout", "fused_network_outputs", "pack_first_layer",
@@ -39,7 +39,8 @@ __all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_layout", "fused
 
 
 # What the kernel writes: the network input, the first hidden layer, or the network's outputs.
-STAGES = {"input": 0, "first_layer": 1, "whole": 2}
+# ``input_per_ray`` writes what ``input`` writes, from `_fused_input_per_ray_kernel` (one ray per lane).
+STAGES = {"input": 0, "first_layer": 1, "whole": 2, "input_per_ray": 0}
 
 
 @triton.jit
@@ -141,6 +142,69 @@ def _fused_lsnif_kernel(
             tl.store(out_ptr + r64[:, None] * OUTPUTS + o[None, :], out, mask=lane_ok[:, None] & (o < OUTPUTS)[None, :])
         else:
             tl.store(out_ptr + r64[:, None] * HIDDEN + n[None, :], y.to(out_ptr.dtype.element_ty), mask=lane_ok[:, None])
+
+
+@triton.jit
+def _fused_input_per_ray_kernel(
+    o_ptr, d_ptr, occ_ptr, planes_ptr, table_ptr, res_ptr,
+    out_ptr, t_enter_ptr, t_exit_ptr, count_ptr,
+    n_rays, V, table_size,
+    MAX_POINTS: tl.constexpr, ORIGIN_POINTS: tl.constexpr, SHARE: tl.constexpr,
+    POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, BLOCK: tl.constexpr,
+):  # fmt: skip
+    """Stage ``input`` with one ray per lane: every tensor is a [BLOCK] vector (no [B, LP, FP]
+    tile), so with BLOCK = 32 * num_warps each thread walks one ray, once. Each point is encoded
+    level by level and feature by feature (`encode_point_level_feature`) and stored column by
+    column. Same arithmetic, same output as `_fused_lsnif_kernel` with ``STAGE == 0``."""
+    rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    lane_ok = rays < n_rays
+    r64 = rays.to(tl.int64)
+    ox32 = tl.load(o_ptr + r64 * 3 + 0, mask=lane_ok, other=0.0).to(tl.float32)
+    oy32 = tl.load(o_ptr + r64 * 3 + 1, mask=lane_ok, other=0.0).to(tl.float32)
+    oz32 = tl.load(o_ptr + r64 * 3 + 2, mask=lane_ok, other=0.0).to(tl.float32)
+    dx32 = tl.load(d_ptr + r64 * 3 + 0, mask=lane_ok, other=0.0).to(tl.float32)
+    dy32 = tl.load(d_ptr + r64 * 3 + 1, mask=lane_ok, other=0.0).to(tl.float32)
+    dz32 = tl.load(d_ptr + r64 * 3 + 2, mask=lane_ok, other=0.0).to(tl.float32)
+    state, t_enter, t_exit = dda_setup(
+        ox32.to(tl.float64), oy32.to(tl.float64), oz32.to(tl.float64),
+        dx32.to(tl.float64), dy32.to(tl.float64), dz32.to(tl.float64), lane_ok, planes_ptr, V,
+    )  # fmt: skip
+    t_enter32 = t_enter.to(tl.float32)
+    t_exit32 = t_exit.to(tl.float32)
+    span = tl.maximum(t_exit32 - t_enter32, 1e-12)
+    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+    INPUTS: tl.constexpr = MAX_POINTS * L * F + (MAX_POINTS if POINT_DISTANCES else 0)
+    row = out_ptr + r64 * INPUTS
+    count = tl.zeros([BLOCK], tl.int32)
+    h = tl.full([], 0, tl.int32)
+    any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
+    while (h < MAX_POINTS) & any_alive:
+        state, got, t, code, exiting, vx, vy, vz = dda_next_point(
+            state, planes_ptr, occ_ptr, V, ORIGIN_POINTS, SHARE)  # fmt: skip
+        px, py, pz = dda_point_coords(state, got, t, code, exiting, vx, vy, vz, planes_ptr)
+        for level in tl.static_range(L):
+            resf = tl.load(res_ptr + level).to(tl.float32)
+            for f in tl.static_range(F):
+                feat = encode_point_level_feature(px, py, pz, code, got, table_ptr, resf, level, table_size, f, F)
+                tl.store(row + h * (L * F) + level * F + f, feat.to(out_ptr.dtype.element_ty), mask=lane_ok)
+        if POINT_DISTANCES:  # as `point_local_distances`, in float32 on the float32 point
+            tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+            local = tl.where(got, tl.minimum(tl.maximum((tp - t_enter32) / span, 0.0), 1.0), 0.0)
+            tl.store(row + MAX_POINTS * L * F + h, local.to(out_ptr.dtype.element_ty), mask=lane_ok)
+        count += got.to(tl.int32)
+        h += 1
+        any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
+    tl.store(t_enter_ptr + rays, t_enter32, mask=lane_ok)
+    tl.store(t_exit_ptr + rays, t_exit32, mask=lane_ok)
+    tl.store(count_ptr + rays, count, mask=lane_ok)
+    # Slots no ray of the block reached are padding: zero features, zero distance.
+    zero = tl.zeros([BLOCK], tl.float32).to(out_ptr.dtype.element_ty)
+    for hz in range(MAX_POINTS):
+        pad = lane_ok & (hz >= h)
+        for c in tl.static_range(L * F):
+            tl.store(row + hz * (L * F) + c, zero, mask=pad)
+        if POINT_DISTANCES:
+            tl.store(row + MAX_POINTS * L * F + hz, zero, mask=pad)
 
 
 # Stage, rays per program and warps of the fused kernel. Measured on an H100 (hairball(6), 2^22
@@ -270,8 +334,8 @@ def run_fused_kernel(
     d = directions.detach().to(torch.float32).contiguous()
     n = o.shape[0]
     inputs = max_points * lay.levels * lay.features + (max_points if point_distances else 0)
-    width, dtype = {"input": (inputs, weights.w1.dtype), "first_layer": (lay.hidden_padded, weights.w1.dtype),
-                    "whole": (lay.outputs, torch.float32)}[stage]  # fmt: skip
+    width, dtype = {"input": (inputs, weights.w1.dtype), "input_per_ray": (inputs, weights.w1.dtype),
+                    "first_layer": (lay.hidden_padded, weights.w1.dtype), "whole": (lay.outputs, torch.float32)}[stage]  # fmt: skip
     values = torch.empty((n, width), dtype=dtype, device=device)
     if stage == "input":  # no matrix product: no K >= 16 padding, no distance slot (half the registers)
         lp, fp = triton.next_power_of_2(lay.levels), triton.next_power_of_2(lay.features)
@@ -280,7 +344,14 @@ def run_fused_kernel(
     t_enter = torch.empty(n, dtype=torch.float32, device=device)
     t_exit = torch.empty(n, dtype=torch.float32, device=device)
     count = torch.empty(n, dtype=torch.int32, device=device)
-    if n:
+    if n and stage == "input_per_ray":
+        _fused_input_per_ray_kernel[(triton.cdiv(n, block),)](
+            o, d, occ, plane_table(occ.shape[0], device), table.detach().contiguous(), resolutions,
+            values, t_enter, t_exit, count, n, occ.shape[0], table.shape[1],
+            MAX_POINTS=int(max_points), ORIGIN_POINTS=bool(origin_point), SHARE=bool(share_boundary_points),
+            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features, BLOCK=block, num_warps=num_warps,
+        )  # fmt: skip
+    elif n:
         _fused_lsnif_kernel[(triton.cdiv(n, block),)](
             o, d, occ, plane_table(occ.shape[0], device), table.detach().contiguous(), resolutions,
             weights.w1, weights.b1, weights.wh, weights.bh, weights.wo, weights.bo,
@@ -343,7 +414,7 @@ def fused_network_outputs(
         max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
         point_distances=point_distances, slope=network.slope, stage=stage, block=block, num_warps=num_warps,
     )  # fmt: skip
-    if stage == "input":
+    if stage in ("input", "input_per_ray"):
         fused.values = network(fused.values, compute_dtype)
     elif stage == "first_layer":
         x = fused.values

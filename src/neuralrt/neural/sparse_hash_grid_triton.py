@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .sparse_hash_grid import HASH_PRIMES
 
-__all__ = ["sparse_hash_grid_triton", "encode_point"]
+__all__ = ["sparse_hash_grid_triton", "encode_point", "encode_point_level_feature"]
 
 _P0, _P1, _P2 = (tl.constexpr(p) for p in HASH_PRIMES)  # Triton reads globals only as constexpr
 
@@ -98,6 +98,50 @@ def encode_point(px, py, pz, code, valid, table_ptr, res_ptr, table_size,
         mask = needed[:, :, None] & (feats < F)[None, None, :]
         vals = tl.load(table_ptr + row[:, :, None] * F + feats[None, None, :], mask=mask, other=0.0)
         acc += w[:, :, None] * vals.to(tl.float32)
+    return acc
+
+
+@triton.jit
+def _lane_axis_terms(p, fixed, resf, prime):
+    """`_axis_terms` of one level (``resf`` a float32 scalar): every value is a [B] lane vector."""
+    f = p * resf
+    on_plane = tl.minimum(tl.maximum(_rint(f), 0.0), resf)
+    in_cell = tl.minimum(tl.maximum(tl.floor(f), 0.0), resf - 1.0)
+    i = tl.where(fixed, on_plane, in_cell)
+    w = tl.where(fixed, 0.0, f - i)
+    iu = i.to(tl.uint32)
+    h0 = iu * prime
+    h1 = tl.where(fixed, h0, (iu + 1) * prime)
+    return h0, h1, w
+
+
+@triton.jit
+def encode_point_level_feature(px, py, pz, code, valid, table_ptr, resf, level, table_size, f, F: tl.constexpr):
+    """Feature ``f`` of level ``level`` (resolution ``resf``) of points [B]: a [B] float32 vector,
+    the same arithmetic as `encode_point` (corners summed in the same order) without its padded
+    [B, LP, FP] tile, so a lane holds one point and nothing else. The hash terms do not depend on
+    ``f``: called for each ``f`` in an unrolled loop, the compiler computes them once."""
+    x0, x1, wx = _lane_axis_terms(px, code == 0, resf, _P0)
+    y0, y1, wy = _lane_axis_terms(py, code == 1, resf, _P1)
+    z0, z1, wz = _lane_axis_terms(pz, code == 2, resf, _P2)
+    base = level * table_size
+    acc = tl.zeros(px.shape, tl.float32)
+    for c in tl.static_range(8):
+        if c & 1:
+            hx, fx, on_x = x1, wx, code != 0
+        else:
+            hx, fx, on_x = x0, 1.0 - wx, valid
+        if (c >> 1) & 1:
+            hy, fy, on_y = y1, wy, code != 1
+        else:
+            hy, fy, on_y = y0, 1.0 - wy, valid
+        if (c >> 2) & 1:
+            hz, fz, on_z = z1, wz, code != 2
+        else:
+            hz, fz, on_z = z0, 1.0 - wz, valid
+        row = base + ((hx ^ hy ^ hz) & (table_size - 1)).to(tl.int32)
+        vals = tl.load(table_ptr + row * F + f, mask=valid & on_x & on_y & on_z, other=0.0)
+        acc += fx * fy * fz * vals.to(tl.float32)
     return acc
 
 
