@@ -138,3 +138,25 @@ def test_camera_paths_equal_torch(tmp_path):
     torch.testing.assert_close(got.rays.origins, ref.rays.origins)
     torch.testing.assert_close(got.rays.directions, ref.rays.directions, rtol=0, atol=3e-7)
     assert torch.equal(got.sample, ref.sample) and torch.equal(got.throughput, ref.throughput)
+
+
+def test_film_sums_equal_torch():
+    """`Film.add` on the CPU (numba) and as torch ops: the same float64 sums, NaN/Inf samples counted as 0."""
+    from neuralrt.render.film import Film
+
+    g = torch.Generator().manual_seed(14)
+    n = 5000
+    pixel = torch.randint(0, 12, (n,), generator=g)
+    radiance = torch.rand(n, 3, generator=g)
+    radiance[::97, 1] = float("nan")
+    radiance[::89, 2] = float("inf")
+    albedo, normal, depth = torch.rand(n, 3, generator=g), torch.randn(n, 3, generator=g), torch.rand(n, generator=g) * 5
+    hit = torch.rand(n, generator=g) < 0.7
+    numba_film, torch_film = Film(4, 3), Film(4, 3)
+    torch_film._add = torch_film._add_torch
+    for film in (numba_film, torch_film):
+        film.add(pixel, radiance, albedo, normal, depth, hit)
+        film.add(pixel[:100], radiance[:100], albedo[:100], normal[:100], depth[:100], hit[:100])
+    assert numba_film.nonfinite_samples == torch_film.nonfinite_samples > 50
+    for name in ("radiance", "albedo", "normal", "depth", "hits", "count"):
+        torch.testing.assert_close(getattr(numba_film, name), getattr(torch_film, name), rtol=1e-12, atol=1e-9)

@@ -13,7 +13,10 @@ __all__ = ["Film", "RenderResult"]
 
 
 class Film:
-    """Accumulates samples per pixel (row-major pixel index); every value is a running sum."""
+    """Accumulates samples per pixel (row-major pixel index); every value is a running sum.
+
+    `add` runs as one numba pass on the CPU (`shading_kernels.film_add`) and as torch ops
+    elsewhere, chosen at construction; both give the same sums."""
 
     def __init__(self, width: int, height: int, device="cpu"):
         self.width, self.height = width, height
@@ -26,12 +29,16 @@ class Film:
         self.hits = torch.zeros(n, dtype=torch.float64, device=dev)  # samples whose camera ray hit
         self.count = torch.zeros(n, dtype=torch.float64, device=dev)
         self.nonfinite_samples = 0  # samples whose radiance was NaN/Inf (dropped to 0, counted)
+        self._add = self._add_numba if dev.type == "cpu" else self._add_torch
 
     def add(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor, hit: Tensor) -> None:
         """Add one sample per entry of ``pixel`` [n] (pixels may repeat): ``radiance``, ``albedo``,
         ``normal`` [n, 3], first-hit ``depth`` [n] and whether the camera ray hit, ``hit`` [n] bool.
         A NaN/Inf radiance sample (e.g. from a degenerate hit record) counts as 0 so it cannot
         poison the pixel; it is counted."""
+        self._add(pixel, radiance, albedo, normal, depth, hit)
+
+    def _add_torch(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor, hit: Tensor) -> None:
         bad = ~torch.isfinite(radiance).all(-1)
         if bool(bad.any()):
             self.nonfinite_samples += int(bad.sum())
@@ -42,6 +49,16 @@ class Film:
         self.depth.index_add_(0, pixel, torch.where(hit, depth.double(), 0.0))
         self.hits.index_add_(0, pixel, hit.double())
         self.count.index_add_(0, pixel, torch.ones_like(depth, dtype=torch.float64))
+
+    def _add_numba(self, pixel: Tensor, radiance: Tensor, albedo: Tensor, normal: Tensor, depth: Tensor, hit: Tensor) -> None:
+        from .shading_kernels import film_add
+
+        def c(t):
+            return t.detach().contiguous().numpy()
+
+        self.nonfinite_samples += int(film_add(c(pixel), c(radiance), c(albedo), c(normal), c(depth), c(hit), self.radiance.numpy(),
+                                               self.albedo.numpy(), self.normal.numpy(), self.depth.numpy(), self.hits.numpy(),
+                                               self.count.numpy()))
 
     def _mean(self, total: Tensor, over: Tensor | None = None) -> np.ndarray:
         """Per-pixel ``total / over`` (default: over all samples; 0 where ``over`` is 0) as [H, W, ...]."""

@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["shade_and_sample", "add_unoccluded", "camera_rays", "bsdf_sample_rows", "bsdf_eval_rows", "light_sample_rows", "environment_rows"]
+__all__ = ["shade_and_sample", "add_unoccluded", "camera_rays", "film_add", "bsdf_sample_rows", "bsdf_eval_rows", "light_sample_rows", "environment_rows"]
 
 _DIFFUSE, _CONDUCTOR, _PLASTIC, _EMISSIVE = 0, 1, 2, 3  # MaterialKind
 _AREA, _POINT, _ENVIRONMENT = 0, 1, 2  # light kinds, in LightSet.kinds order
@@ -518,6 +518,27 @@ def camera_rays(pixel, jitter, width, height, tan_half, aspect, camera_to_world,
                                   m[2, 0] * cx + m[2, 1] * cy + m[2, 2] * cz)
         origins[i, 0], origins[i, 1], origins[i, 2] = m[0, 3], m[1, 3], m[2, 3]
         directions[i, 0], directions[i, 1], directions[i, 2] = dx, dy, dz
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def film_add(pixel, radiance, albedo, normal, depth, hit, sum_radiance, sum_albedo, sum_normal, sum_depth, sum_hits, count):
+    """`Film.add` (float64 sums; a NaN/Inf radiance sample counts as 0); returns how many were."""
+    nonfinite = 0
+    for i in range(pixel.shape[0]):
+        p = pixel[i]
+        finite = math.isfinite(radiance[i, 0]) and math.isfinite(radiance[i, 1]) and math.isfinite(radiance[i, 2])
+        if not finite:
+            nonfinite += 1
+        for c in range(3):
+            if finite:
+                sum_radiance[p, c] += radiance[i, c]
+            sum_albedo[p, c] += albedo[i, c]
+            sum_normal[p, c] += normal[i, c]
+        if hit[i]:
+            sum_depth[p] += depth[i]
+            sum_hits[p] += 1.0
+        count[p] += 1.0
+    return nonfinite
 
 
 # --- whole-batch entry points of the per-row functions (tests compare them with the torch path) ---------
