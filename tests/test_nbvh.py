@@ -261,3 +261,25 @@ def test_device_generic_path_answers_like_the_cpu_kernels(trained, monkeypatch):
     assert (generic.hit != cpu.hit).sum() <= 2  # float sums in another order may flip a borderline answer
     both = generic.hit & cpu.hit
     assert torch.allclose(generic.t[both], cpu.t[both], rtol=1e-4, atol=1e-4)
+
+
+def test_instanced_in_a_scene_and_rendered_without_triangles(ball, trained):
+    """Two instances of one N-BVH model in a scene (one BLAS), every ray answered by the model."""
+    import warnings
+
+    from neuralrt.render.integrator import render
+    from neuralrt.scene.loader import load_dict
+
+    model, _, _ = trained
+    # Scaled by 0.4 about the origin, then moved so the two balls sit at x = -1.2 and x = +1.2.
+    objects = [{"mesh": ball, "model": model, "material": "white",
+                "transform": {"translate": (np.array([x, 0.0, 0.0]) - 0.4 * CENTER).tolist(), "scale": 0.4}} for x in (-1.2, 1.2)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load_dict({"camera": {"position": [0, 0, 6], "look_at": [0, 0, 0], "resolution": [24, 16]},
+                           "materials": [{"name": "white", "type": "diffuse", "albedo": [0.7, 0.7, 0.7]}],
+                           "objects": objects, "environment": {"color": [1, 1, 1]}}, primary="neural")
+    result = render(scene, spp=1, seed=0, progress=False)
+    coverage = result.coverage.reshape(16, 24)
+    assert 0.1 < coverage.mean() < 0.9 and coverage[:, :12].sum() > 0 and coverage[:, 12:].sum() > 0
+    assert np.isfinite(result.image).all()
