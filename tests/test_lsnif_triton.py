@@ -232,3 +232,38 @@ def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin
     assert torch.equal(per_ray.count, tiled.count) and (tiled.count == 8).any() and (tiled.count == 0).any()
     assert torch.equal(per_ray.t_enter, tiled.t_enter) and torch.equal(per_ray.t_exit, tiled.t_exit)
     assert torch.equal(per_ray.values, tiled.values) and (tiled.values != 0).float().mean() > 0.2
+
+
+def test_fused_hits_equal_the_unfused_intersect():
+    """`fused_hits` (fused input kernel, torch hidden layers, output layer + decoding in a kernel)
+    answers as `_intersect_chunk`'s featurize -> encode -> MLP -> torch decoding path."""
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+    from neuralrt.rays import Hits, Rays
+
+    config = LSNIFConfig.preset("lq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+                                inference={"compute_precision": "fp32"})  # fmt: skip
+    model = LSNIFModel.from_mesh(sphere(2), config)
+    with torch.no_grad():  # untrained weights answer ~0: spread the logits so that hits and misses both occur
+        model.encoder.table.uniform_(-1, 1)
+        model.network.output.weight.mul_(8)
+    g = torch.Generator().manual_seed(9)
+    lo, hi = model.box.lo, model.box.hi
+    origins = torch.randn(72, 3, generator=g) * 2 + (lo + hi) / 2
+    targets = lo + torch.rand(72, 3, generator=g) * (hi - lo)
+    rays = Rays(origins=origins, directions=targets - origins)
+    rays.t_max[:8] = 0.5  # some hits cut by t_max
+    rays.origins[8] = float("nan")  # an invalid ray
+    with torch.no_grad():
+        ref = model._intersect_chunk(rays)  # CPU: the unfused path
+        model = model.to(DEVICE)
+        hits = Hits.empty(len(rays), DEVICE)
+        model._network_answers_fused_hits(rays.to(DEVICE), hits)
+    hits = hits.to("cpu")
+    assert 5 < int(ref.hit.sum()) < 60 and (ref.t[:8] == float("inf")).all()
+    assert torch.equal(hits.hit, ref.hit) and torch.equal(hits.material_id, ref.material_id)
+    torch.testing.assert_close(hits.t, ref.t, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(hits.normal, ref.normal, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(hits.geometric_normal, ref.geometric_normal, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(hits.albedo, ref.albedo, atol=1e-5, rtol=1e-5)

@@ -220,6 +220,8 @@ class LSNIFModel(NeuralBLAS):
     def _intersect_chunk(self, rays: Rays) -> Hits:
         n = len(rays)
         hits = Hits.empty(n, rays.device)
+        if self._network_answers_as_hits(rays, hits):  # CUDA, when the fused kernels decode the hits themselves
+            return hits
         act, out, t_enter, t_exit, t_offset = self._network_answers(rays)
         if len(act) == 0:
             return hits
@@ -275,6 +277,32 @@ class LSNIFModel(NeuralBLAS):
         )  # fmt: skip
         keep = torch.nonzero(fused.count > 0).squeeze(1)
         return unit.index[keep], fused.values[keep], fused.t_enter[keep], fused.t_exit[keep], unit.t_offset[keep]
+
+    def _network_answers_as_hits(self, rays: Rays, hits: Hits) -> bool:
+        """On CUDA with ``lsnif_fused.DEFAULT_LAUNCH["write_hits"]``: `_network_answers_fused_hits`
+        writes the chunk's answers into ``hits``; returns whether it did."""
+        if rays.device.type != "cuda":
+            return False
+        from .lsnif_fused import DEFAULT_LAUNCH  # imports triton: CUDA only
+
+        if not DEFAULT_LAUNCH["write_hits"]:
+            return False
+        self._network_answers_fused_hits(rays, hits)
+        return True
+
+    def _network_answers_fused_hits(self, rays: Rays, hits: Hits) -> None:
+        """The decoded answers of `_intersect_chunk`, written into ``hits`` by `lsnif_fused.fused_hits`."""
+        from .lsnif_fused import fused_hits  # imports triton: CUDA only
+
+        unit = self._unit_rays(rays)
+        fc = self.config.features
+        fused_hits(
+            unit.origins, unit.directions, self.occupancy, self.encoder, self.network,
+            index=unit.index, t_offset=unit.t_offset, t_min=rays.t_min, t_max=rays.t_max, hits=hits,
+            occlusion_logit=_logit(self.config.inference.occlusion_threshold), num_materials=self.num_materials,
+            max_points=fc.max_points, origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points,
+            point_distances=fc.point_distances, compute_dtype=self.compute_dtype(),
+        )  # fmt: skip
 
     @torch.no_grad()
     def feature_statistics(self, rays: Rays, truth: Hits) -> dict:

@@ -34,8 +34,8 @@ from ..neural.sparse_hash_grid import SparseHashGrid
 from ..neural.sparse_hash_grid_triton import encode_point, encode_point_level_feature
 from .lsnif_features_triton import dda_next_point, dda_point_coords, dda_setup, occupancy_bytes, plane_table
 
-__all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_layout", "fused_network_outputs", "pack_first_layer",
-           "pack_network", "run_fused_kernel"]
+__all__ = ["FusedLayout", "FusedOutputs", "FusedWeights", "fused_hits", "fused_layout", "fused_network_outputs",
+           "pack_first_layer", "pack_network", "run_fused_kernel"]
 
 
 # What the kernel writes: the network input, the first hidden layer, or the network's outputs.
@@ -210,7 +210,8 @@ def _fused_input_per_ray_kernel(
 # Stage, rays per program and warps of the fused kernel. Measured on an H100 (hairball(6), 2^22
 # rays, benchmarks/results/lsnif_kernels_h100.json): "input" 32 x 4 is the fastest for hq (23.7 ms
 # vs 25.7 ms for "whole" 32 x 4, 34-55 ms for 64-ray blocks) and within 9% of the best for lq.
-DEFAULT_LAUNCH = {"stage": "input", "block": 32, "num_warps": 4}
+# ``write_hits``: `LSNIFModel.intersect` decodes with `fused_hits` (needs an input stage) instead of torch.
+DEFAULT_LAUNCH = {"stage": "input", "block": 32, "num_warps": 4, "write_hits": False}
 
 
 @dataclass(frozen=True)
@@ -254,6 +255,7 @@ class FusedWeights:
     wo: Tensor
     bo: Tensor
     rest: list[tuple[Tensor, Tensor]]  # the other hidden layers as (weight, bias) for torch GEMMs
+    hidden: list[tuple[Tensor, Tensor]]  # every hidden layer as (weight, bias) in the compute dtype (`fused_hits`)
 
 
 def pack_first_layer(
@@ -293,7 +295,8 @@ def pack_network(network: nn.Module, encoder: SparseHashGrid, max_points: int, p
     rest = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in more]
     wo = _padded(network.output.weight.t(), hp, lay.outputs_padded)
     bo = _padded(network.output.bias, lay.outputs_padded)
-    return FusedWeights(lay, w1, b1, wh.to(dtype).contiguous(), bh, wo, bo, rest)
+    hidden = [(first.weight.detach().to(dtype), first.bias.detach().to(dtype))] + rest
+    return FusedWeights(lay, w1, b1, wh.to(dtype).contiguous(), bh, wo, bo, rest, hidden)
 
 
 @dataclass
@@ -422,3 +425,114 @@ def fused_network_outputs(
             x = F.leaky_relu(F.linear(x, w, b), network.slope)
         fused.values = network.output(x.float())
     return fused
+
+
+@triton.jit
+def _column(out, cols, j):
+    """Column ``j`` of a [B, OP] tile as a [B] vector (the other entries are zeros added to it)."""
+    return tl.sum(tl.where(cols[None, :] == j, out, 0.0), axis=1)
+
+
+@triton.jit
+def _output_hits_kernel(
+    x_ptr, wo_ptr, bo_ptr, count_ptr, t_enter_ptr, t_exit_ptr, t_offset_ptr, index_ptr, t_min_ptr, t_max_ptr,
+    hit_ptr, t_ptr, normal_ptr, geometric_normal_ptr, albedo_ptr, material_ptr,
+    n_rows, occlusion_logit,
+    WIDTH: tl.constexpr, HP: tl.constexpr, OP: tl.constexpr, MATERIALS: tl.constexpr, BLOCK: tl.constexpr,
+):  # fmt: skip
+    """The output layer (fp32, from the compute-dtype activations ``x [N, WIDTH]`` as they are)
+    and `LSNIFModel._intersect_chunk`'s decoding, written straight into the chunk's `Hits` at rows
+    ``index``; rows with ``count == 0`` (certain misses) are left as `Hits.empty` made them."""
+    rows = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    row_ok = rows < n_rows
+    active = row_ok & (tl.load(count_ptr + rows, mask=row_ok, other=0) > 0)
+    k = tl.arange(0, HP)
+    cols = tl.arange(0, OP)
+    x = tl.load(x_ptr + rows.to(tl.int64)[:, None] * WIDTH + k[None, :], mask=active[:, None] & (k < WIDTH)[None, :], other=0.0)
+    out = tl.dot(x.to(tl.float32), tl.load(wo_ptr + k[:, None] * OP + cols[None, :]), input_precision="ieee")
+    out = out + tl.load(bo_ptr + cols)[None, :]
+    t_enter = tl.load(t_enter_ptr + rows, mask=active, other=0.0)
+    t_exit = tl.load(t_exit_ptr + rows, mask=active, other=0.0)
+    t = tl.load(t_offset_ptr + rows, mask=active, other=0.0) + t_enter + tl.sigmoid(_column(out, cols, 1)) * (t_exit - t_enter)
+    ray = tl.load(index_ptr + rows, mask=active, other=0)
+    hit = (_column(out, cols, 0) > occlusion_logit) & (t < tl.load(t_max_ptr + ray, mask=active, other=0.0))
+    hit = hit & (t > tl.load(t_min_ptr + ray, mask=active, other=0.0)) & active
+    nx, ny, nz = _column(out, cols, 2), _column(out, cols, 3), _column(out, cols, 4)
+    norm = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)  # F.normalize's eps
+    nx, ny, nz = tl.where(hit, nx / norm, 0.0), tl.where(hit, ny / norm, 0.0), tl.where(hit, nz / norm, 0.0)
+    material = tl.zeros([BLOCK], tl.int64)
+    if MATERIALS > 1:  # argmax, the first of equal logits
+        best = _column(out, cols, 8)
+        for m in tl.static_range(1, MATERIALS):
+            logit = _column(out, cols, 8 + m)
+            material = tl.where(logit > best, m, material)
+            best = tl.maximum(best, logit)
+    tl.store(hit_ptr + ray, hit.to(tl.uint8), mask=active)
+    tl.store(t_ptr + ray, tl.where(hit, t, float("inf")), mask=active)
+    tl.store(normal_ptr + ray * 3 + 0, nx, mask=active)
+    tl.store(normal_ptr + ray * 3 + 1, ny, mask=active)
+    tl.store(normal_ptr + ray * 3 + 2, nz, mask=active)
+    tl.store(geometric_normal_ptr + ray * 3 + 0, nx, mask=active)
+    tl.store(geometric_normal_ptr + ray * 3 + 1, ny, mask=active)
+    tl.store(geometric_normal_ptr + ray * 3 + 2, nz, mask=active)
+    for c in tl.static_range(3):
+        tl.store(albedo_ptr + ray * 3 + c, tl.sigmoid(_column(out, cols, 5 + c)), mask=hit)
+    tl.store(material_ptr + ray, tl.where(hit, material, -1), mask=active)
+
+
+def fused_hits(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: nn.Module,
+    *,
+    index: Tensor,
+    t_offset: Tensor,
+    t_min: Tensor,
+    t_max: Tensor,
+    hits,
+    occlusion_logit: float,
+    num_materials: int,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.bfloat16,
+    stage: str | None = None,
+    block: int | None = None,
+    num_warps: int | None = None,
+) -> None:
+    """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk):
+    the fused kernel writes the network input (``stage`` ``input`` or ``input_per_ray``), the hidden
+    layers run as torch GEMMs in ``compute_dtype``, and `_output_hits_kernel` runs the output layer
+    on those activations (no fp32 copy of them) and decodes into ``hits`` at rows ``index`` (the
+    chunk rays of the unit-box ``origins``; ``t_min``/``t_max`` are the chunk's). No compaction of
+    the active rays: certain misses are skipped inside the kernel."""
+    stage = stage or DEFAULT_LAUNCH["stage"]
+    block = block or DEFAULT_LAUNCH["block"]
+    num_warps = num_warps or DEFAULT_LAUNCH["num_warps"]
+    if stage not in ("input", "input_per_ray"):
+        raise ValueError(f"fused_hits needs stage input or input_per_ray, got {stage!r}")
+    weights = _weights_for(network, encoder, max_points, point_distances, compute_dtype)
+    lay = weights.layout
+    fused = run_fused_kernel(
+        origins, directions, occupancy, encoder.table, encoder._resolutions_on(origins.device), weights,
+        max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
+        point_distances=point_distances, stage=stage, block=block, num_warps=num_warps,
+    )  # fmt: skip
+    x = fused.values
+    for w, b in weights.hidden:
+        x = F.leaky_relu(F.linear(x, w, b), network.slope)
+    x = x.contiguous()
+    n = x.shape[0]
+    if n:
+        rows = 32
+        _output_hits_kernel[(triton.cdiv(n, rows),)](
+            x, weights.wo, weights.bo, fused.count, fused.t_enter, fused.t_exit, t_offset.to(torch.float32).contiguous(),
+            index.contiguous(), t_min.to(torch.float32).contiguous(), t_max.to(torch.float32).contiguous(),
+            hits.hit.view(torch.uint8), hits.t, hits.normal, hits.geometric_normal, hits.albedo, hits.material_id,
+            n, float(occlusion_logit),
+            WIDTH=lay.hidden, HP=lay.hidden_padded, OP=lay.outputs_padded, MATERIALS=int(num_materials), BLOCK=rows,
+            num_warps=4,
+        )  # fmt: skip
