@@ -160,3 +160,30 @@ def test_film_sums_equal_torch():
     assert numba_film.nonfinite_samples == torch_film.nonfinite_samples > 50
     for name in ("radiance", "albedo", "normal", "depth", "hits", "count"):
         torch.testing.assert_close(getattr(numba_film, name), getattr(torch_film, name), rtol=1e-12, atol=1e-9)
+
+
+def test_row_chunks_on_threads_give_the_same_image(tmp_path):
+    """Wavefronts larger than one chunk run their numba passes on several threads: the image is the
+    same bit for bit as on one thread (each chunk writes its own rows; outputs keep row order)."""
+    import numba
+
+    from neuralrt.render import shading_stages
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba runs one thread here")
+    scene = build_scene(_every_feature_scene(tmp_path), base_dir=tmp_path)
+    kwargs = dict(spp=8, seed=2, max_depth=4, resolution=(96, 80), progress=False, shading="numba")  # 61,440 paths
+    assert 96 * 80 * 8 > 1.5 * shading_stages._CHUNK_ROWS
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = render(scene, **kwargs)
+    finally:
+        numba.set_num_threads(threads)
+    numba.set_num_threads(2)
+    try:
+        several = render(scene, **kwargs)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(several.image, one.image)
+    np.testing.assert_array_equal(several.depth, one.depth)

@@ -310,34 +310,34 @@ class NumbaShadingStages:
         n = len(paths.sample)
         scatter = u is not None
         m = n if scatter else 0  # output rows (at most one shadow ray and one next path per row)
-        shadow_origin, shadow_direction = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
-        shadow_t_max, shadow_sample, shadow_contribution = np.empty(m, np.float32), np.empty(m, np.int64), np.empty((m, 3), np.float32)
-        next_origin, next_direction = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
-        next_sample, next_throughput, next_pdf = np.empty(m, np.int64), np.empty((m, 3), np.float32), np.empty(m, np.float32)
+        shadow_out = (np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m, np.int64),
+                      np.empty((m, 3), np.float32))  # origin, direction, t_max, sample, contribution
+        next_out = (np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.int64), np.empty((m, 3), np.float32),
+                    np.empty(m, np.float32))  # origin, direction, sample, throughput, pdf
         rays = paths.rays
-        n_shadow, n_next = self.kernels.shade_and_sample(
-            _c(rays.origins), _c(rays.directions), _c(paths.sample), _c(paths.throughput), _c(paths.prev_bsdf_pdf),
-            _c(hits.hit), _c(hits.t), _c(hits.normal), _c(hits.geometric_normal), _c(hits.uv), _c(hits.albedo),
-            _c(hits.material_id), _c(hits.instance_id), _c(hits.primitive_id),
-            _c(u) if scatter else np.zeros((0, 8), np.float32),
-            self.materials, self.instance_offsets, self.kinds, self.area, self.points,
-            self.env, bounce == 0, scatter, scatter and self.has_lights, self.has_emitters, self.has_area, bounce + 1 >= self.settings.rr_depth,
-            float(self.settings.rr_max_survival),
-            film.radiance.numpy(), film.albedo.numpy(), film.normal.numpy(), film.depth.numpy(), film.hit.numpy(),
-            shadow_origin, shadow_direction, shadow_t_max, shadow_sample, shadow_contribution,
-            next_origin, next_direction, next_sample, next_throughput, next_pdf,
-        )
+        rows = [_c(x) for x in (rays.origins, rays.directions, paths.sample, paths.throughput, paths.prev_bsdf_pdf, hits.hit, hits.t,
+                                hits.normal, hits.geometric_normal, hits.uv, hits.albedo, hits.material_id, hits.instance_id,
+                                hits.primitive_id)]
+        shared = (_c(u) if scatter else np.zeros((0, 8), np.float32), self.materials, self.instance_offsets, self.kinds, self.area,
+                  self.points, self.env, bounce == 0, scatter, scatter and self.has_lights, self.has_emitters, self.has_area,
+                  bounce + 1 >= self.settings.rr_depth, float(self.settings.rr_max_survival),
+                  film.radiance.numpy(), film.albedo.numpy(), film.normal.numpy(), film.depth.numpy(), film.hit.numpy())
+
+        def run(lo: int, hi: int) -> tuple[int, int]:
+            # Rows [lo, hi) write their outputs compacted from row lo on; samples differ between
+            # rows, so chunks never write the same accumulator.
+            return self.kernels.shade_and_sample(*(x[lo:hi] for x in rows), *shared, *(x[lo:hi] for x in shadow_out),
+                                                 *(x[lo:hi] for x in next_out))
+
+        chunks = _run_in_chunks(run, n)
         shadow = None
-        if n_shadow:
-            t_max = torch.from_numpy(shadow_t_max[:n_shadow])
-            shadow = ShadowQueries(Rays(torch.from_numpy(shadow_origin[:n_shadow]), torch.from_numpy(shadow_direction[:n_shadow]),
-                                        torch.zeros_like(t_max), t_max),
-                                   torch.from_numpy(shadow_sample[:n_shadow]), torch.from_numpy(shadow_contribution[:n_shadow]))
+        if sum(c[0][0] for c in chunks):
+            origin, direction, t_max, sample, contribution = (_gather(x, chunks, 0) for x in shadow_out)
+            shadow = ShadowQueries(Rays(origin, direction, torch.zeros_like(t_max), t_max), sample, contribution)
         if not scatter:
             return shadow, None
-        return shadow, PathState(Rays(torch.from_numpy(next_origin[:n_next]), torch.from_numpy(next_direction[:n_next])),
-                                 torch.from_numpy(next_sample[:n_next]), torch.from_numpy(next_throughput[:n_next]),
-                                 torch.from_numpy(next_pdf[:n_next]))
+        origin, direction, sample, throughput, pdf = (_gather(x, chunks, 1) for x in next_out)
+        return shadow, PathState(Rays(origin, direction), sample, throughput, pdf)
 
     def add_unoccluded(self, film: WavefrontFilm, shadow: ShadowQueries, blocked: Tensor) -> None:
         self.kernels.add_unoccluded(film.radiance.numpy(), _c(shadow.sample), _c(shadow.contribution), _c(blocked))
@@ -346,3 +346,41 @@ class NumbaShadingStages:
 def _c(t: Tensor) -> np.ndarray:
     """A contiguous numpy view of a CPU tensor (a copy only where the tensor is strided)."""
     return t.detach().contiguous().numpy()
+
+
+# Rows per chunk of a numba pass: enough to amortise a thread hand-off, small enough to balance threads.
+_CHUNK_ROWS = 1 << 15
+_pool: tuple[int, int, "ThreadPoolExecutor"] | None = None  # (process id, workers, pool)
+
+
+def _run_in_chunks(run, n: int) -> list[tuple[tuple[int, int], int]]:
+    """``run(lo, hi)`` over consecutive row chunks on numba's thread count (the kernels release the
+    GIL); returns each chunk's ``run`` result with its first row, in row order. One chunk (or one
+    thread) runs on the calling thread."""
+    import numba
+
+    bounds = [(lo, min(n, lo + _CHUNK_ROWS)) for lo in range(0, n, _CHUNK_ROWS)] or [(0, 0)]
+    threads = numba.get_num_threads()
+    if threads == 1 or len(bounds) == 1:
+        return [(run(0, n), 0)]
+    results = [_thread_pool(threads).submit(run, lo, hi) for lo, hi in bounds]
+    return [(future.result(), lo) for future, (lo, _) in zip(results, bounds)]
+
+
+def _thread_pool(workers: int):
+    """One shared pool per process (a forked child must not reuse its parent's dead threads)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    global _pool
+    if _pool is None or _pool[0] != os.getpid() or _pool[1] != workers:
+        _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, thread_name_prefix="neuralrt-shading"))
+    return _pool[2]
+
+
+def _gather(out: np.ndarray, chunks: list[tuple[tuple[int, int], int]], which: int) -> Tensor:
+    """The rows each chunk wrote (``counts[which]`` rows from its first row on), in order, as a tensor."""
+    if len(chunks) == 1:
+        (counts, lo), = chunks
+        return torch.from_numpy(out[lo:lo + counts[which]])
+    return torch.from_numpy(np.concatenate([out[lo:lo + counts[which]] for counts, lo in chunks]))
