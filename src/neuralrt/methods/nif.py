@@ -7,7 +7,8 @@ Per object, in object space, with ``c`` its box centre and ``sph`` = `spherical_
 - a shadow ray starting INSIDE is an inner query: features at ``sph(o - c)``, ``sph(d)`` and at
   ``|o - c| / half diagonal`` (1D), into the inner MLP (13 -> 48 -> 48 -> 48 -> 1).
 
-Leaky ReLU hidden layers, sigmoid output = probability that the object lets the ray through;
+Leaky ReLU hidden layers (answering in bf16 where `neuralrt.neural.precision` picks it, training
+in fp32), sigmoid output = probability that the object lets the ray through;
 the ray is occluded by the object when it is below 1/2. Grids are per object (`neuralrt.neural.
 dense_grid`, all objects in one table); ONE outer and ONE inner MLP serve every NIF object of a
 scene (the paper's choice, Sec. 4.1). A ray that misses the object's box is visible without a query.
@@ -27,6 +28,7 @@ from torch import Tensor, nn
 from ..accel.blas import MemoryReport
 from ..neural.dense_grid import DenseGrid1D, SphericalGrid2D, spherical_coords
 from ..neural.mlp import MLP
+from ..neural.precision import compute_dtype
 from ..rays import AABB, ray_box_intervals
 from .nif_config import NIFConfig, NIFNetworkConfig
 
@@ -168,10 +170,11 @@ class NIFNetworks(nn.Module):
     def occluded_from_features(self, n: int, outer_pair: Tensor, outer_x: Tensor, inner_pair: Tensor, inner_x: Tensor) -> Tensor:
         """[n] bool from the MLP inputs of the outer pairs ``outer_pair`` and inner pairs ``inner_pair``."""
         blocked = torch.zeros(n, dtype=torch.bool, device=outer_x.device)
+        dtype = compute_dtype(self.config.compute_precision, outer_x.device)
         if outer_pair.numel():  # logit < 0 <=> sigmoid < 1/2
-            blocked[outer_pair] = self.outer_mlp(outer_x)[:, 0] < 0
+            blocked[outer_pair] = self.outer_mlp(outer_x, dtype)[:, 0] < 0
         if inner_pair.numel():
-            blocked[inner_pair] = self.inner_mlp(inner_x)[:, 0] < 0
+            blocked[inner_pair] = self.inner_mlp(inner_x, dtype)[:, 0] < 0
         return blocked
 
     # -- memory --------------------------------------------------------------------------------

@@ -6,6 +6,8 @@ Typed and validated (pydantic): an unknown key or a bad value is an error naming
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from .config import ConfigSection
@@ -64,6 +66,9 @@ class NIFConfig(ConfigSection):
     outer: NIFNetworkConfig = Field(default_factory=_outer, description="network for shadow rays starting outside the object's box")
     inner: NIFNetworkConfig = Field(default_factory=_inner, description="network for shadow rays starting inside the object's box")
     leaky_relu_slope: float = Field(0.01, ge=0.0, lt=1.0, description="negative slope of the hidden layers' leaky ReLUs")
+    compute_precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description="MLP hidden layers when answering (training is fp32): auto = bf16 on CUDA or where the CPU has "
+        "native bf16 (decided once per process, neuralrt.neural.precision)")
     box_inflation: float = Field(1e-4, ge=0.0, le=0.1, description="object box padding per side, relative to its diagonal "
                                  "(no triangle lies on a box face)")
     training: NIFTrainingConfig = Field(default_factory=NIFTrainingConfig)

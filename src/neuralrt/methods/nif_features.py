@@ -37,10 +37,11 @@ class TorchNIFFeatures:
 
 @numba.njit(cache=True, inline="always")
 def _sph(x, y, z):
+    x, y, z = np.float32(x), np.float32(y), np.float32(z)  # float32 libm calls, as torch's
     length = math.sqrt(x * x + y * y + z * z)
-    c = y / length if length > 0.0 else 0.0
-    c = min(max(c, -1.0), 1.0)
-    return np.float32(math.acos(c) / math.pi), np.float32((math.atan2(z, x) + math.pi) / (2.0 * math.pi))
+    c = y / length if length > np.float32(0.0) else np.float32(0.0)
+    c = min(max(c, np.float32(-1.0)), np.float32(1.0))
+    return math.acos(c) * np.float32(1.0 / math.pi), (math.atan2(z, x) + np.float32(math.pi)) * np.float32(0.5 / math.pi)
 
 
 @numba.njit(cache=True, inline="always")
