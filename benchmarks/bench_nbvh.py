@@ -7,6 +7,7 @@ Usage (results merge into benchmarks/results/NAME.json)::
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu --steps 1500 --inference-rays 262144
     python benchmarks/bench_nbvh.py bunny00.off --presets paper --device cuda --name nbvh_h100
     python benchmarks/bench_nbvh.py --offsets MODEL.nrt bunny00.off   # secondary-ray offsets -> nbvh_offset.json
+    python benchmarks/bench_nbvh.py --lods MODEL.nrt bunny00.off      # quality and rays/s per LoD -> nbvh_lod.json
 
 A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
 ``procedural:NAME:DETAIL`` (as in bench_lsnif.py). Timings on a shared machine are noisy: the
@@ -116,11 +117,44 @@ def offsets(model: str, mesh: str) -> None:
     bench_lsnif_offset.main()
 
 
+def lods(model_path: str, mesh_spec: str) -> None:
+    """Held-out outside/surface quality and rays/s of one model answering with each registered LoD."""
+    from _common import print_table, write_results
+
+    from neuralrt.methods import load_model
+
+    model, mesh = load_model(model_path), resolve_mesh(mesh_spec)
+    exact = MeshBLAS(mesh)
+    rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(1 << 17).rays
+    rows = []
+    for lod in [lvl for lvl in range(7) if bool(model.registered[lvl])]:
+        model.config.inference.lod = lod
+        m = evaluate_model(model, mesh, rays=1 << 17, images=False)
+        leaves = int(((model.node_lod <= lod) & ~_has_leaf_ancestor(model, lod)).sum())
+        rows.append({"lod": lod, "leaves": leaves, "acc_out": m["outside"]["accuracy"], "t_err_med": m["outside"]["t_error_median"],
+                     "n_err_deg_med": m["outside"]["normal_error_deg_median"], "acc_surf": m["surface"]["accuracy"],
+                     "rays_per_s": best_rate(lambda: model.intersect(rays), len(rays), 2)})
+    print_table(rows, list(rows[0]))
+    print(f"wrote {write_results('nbvh_lod', rows, extra={'model': model_path, 'mesh': mesh_spec})}")
+
+
+def _has_leaf_ancestor(model, lod: int) -> torch.Tensor:
+    """[M] bool: nodes below a node that is already a leaf at ``lod`` (traversal never reaches them)."""
+    below = torch.zeros(len(model.node_lod), dtype=torch.bool)
+    children = model.node_children.long()
+    for node in range(len(children)):  # parents come before their children
+        if children[node, 0] >= 0 and (below[node] or model.node_lod[node] <= lod):
+            below[children[node]] = True
+    return below
+
+
 def main() -> None:
     from _common import RESULTS_DIR, print_table, write_results
 
     if sys.argv[1:2] == ["--offsets"]:
         return offsets(*sys.argv[2:4])
+    if sys.argv[1:2] == ["--lods"]:
+        return lods(*sys.argv[2:4])
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["cpu"])

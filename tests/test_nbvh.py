@@ -283,3 +283,12 @@ def test_instanced_in_a_scene_and_rendered_without_triangles(ball, trained):
     coverage = result.coverage.reshape(16, 24)
     assert 0.1 < coverage.mean() < 0.9 and coverage[:, :12].sum() > 0 and coverage[:, 12:].sum() > 0
     assert np.isfinite(result.image).all()
+
+
+def test_target_nodes_caps_the_cut(ball):
+    cfg = NBVHConfig.preset("cpu", cut={"splitting_interval": 1, "split_scaling": 2.0, "last_split_step": 50, "target_nodes": 9},
+                            training={"steps": 60})
+    model = NBVHModel.from_mesh(ball, cfg)
+    for step in range(12):
+        model.after_training_step(step, None)
+    assert model.live_nodes() == 9  # 1, 3, 5 (k = 2 from step 1 on: 9), then capped

@@ -69,7 +69,6 @@ class NBVHModel(NeuralBLAS):
         super().__init__(config, bounds, materials)
         unit_lo, unit_scale = unit_cube(self.bounds, config.query.scene_box_dilation)
         self.register_buffer("unit_lo", unit_lo, persistent=False)
-        self.register_buffer("unit_scale_t", torch.tensor(unit_scale, dtype=torch.float32), persistent=False)
         self.unit_scale = unit_scale
         self.register_buffer("unit_center", (self.bounds.center.float() - unit_lo) / unit_scale, persistent=False)
         self.register_buffer("unit_extent", self.bounds.extent.float() / unit_scale, persistent=False)
