@@ -5,6 +5,7 @@ Usage (results merge into benchmarks/results/NAME.json)::
 
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu --steps 1500 --inference-rays 262144
+    python benchmarks/bench_nbvh.py bunny00.off --set query.chord_points=stratified --set loss.normal=3
     python benchmarks/bench_nbvh.py bunny00.off --presets paper --device cuda --name nbvh_h100
     python benchmarks/bench_nbvh.py --offsets MODEL.nrt bunny00.off   # secondary-ray offsets -> nbvh_offset.json
     python benchmarks/bench_nbvh.py --lods MODEL.nrt bunny00.off      # quality and rays/s per LoD -> nbvh_lod.json
@@ -63,6 +64,20 @@ def run(spec: str, preset: str, args) -> dict:
     device = torch.device(args.device)
     mesh = resolve_mesh(spec)
     cfg = get_method("nbvh").config(preset, steps=args.steps, batch_size=args.batch, seed=args.seed)
+    if args.set:
+        overrides: dict = {}
+        for item in args.set:
+            key, _, value = item.partition("=")
+            section, _, name = key.partition(".")
+            try:
+                parsed = json.loads(value)
+            except json.JSONDecodeError:
+                parsed = value  # a plain word, e.g. stratified
+            overrides.setdefault(section, {})[name] = parsed
+        data = cfg.model_dump()
+        for section, values in overrides.items():
+            data[section].update(values)
+        cfg = type(cfg).model_validate(data)
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     model = train(mesh, cfg, progress=not args.quiet, device=device)
@@ -73,7 +88,7 @@ def run(spec: str, preset: str, args) -> dict:
         model.save(Path(args.models_dir) / f"{Path(spec).stem}-nbvh-{preset}.nrt")
     metrics = evaluate_model(model, mesh, rays=args.eval_rays, resolution=args.image_resolution)
     out = {
-        "mesh": spec, "triangles": mesh.num_triangles, "preset": preset, "config": cfg.model_dump(mode="json"),
+        "mesh": spec, "triangles": mesh.num_triangles, "preset": preset, "overrides": args.set or [], "config": cfg.model_dump(mode="json"),
         "training": {**model.training_record, "wall_seconds_incl_setup": wall,
                      "load_average_1min_before_after": [load_before[0], load_after[0]]},
         "nodes": model.num_nodes, "metrics": metrics, "memory": {"nbvh": model.memory_bytes().as_dict()},
@@ -162,6 +177,7 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=None, help="samples per step (default: the preset's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="change one config key of the preset (repeatable)")
     p.add_argument("--eval-rays", type=int, default=1 << 17)
     p.add_argument("--image-resolution", type=int, default=128)
     p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
@@ -176,7 +192,7 @@ def main() -> None:
     for spec in args.meshes:
         for preset in args.presets:
             r = run(spec, preset, args)
-            runs[f"{spec}|{preset}|{r['training']['steps']}"] = r
+            runs["|".join([spec, preset, str(r["training"]["steps"]), *r["overrides"]])] = r
             write_results(args.name, [summary_row(v) for v in runs.values()], extra={"runs": runs})
             print_table([summary_row(r)], COLUMNS)
     print_table([summary_row(v) for v in runs.values()], COLUMNS)
