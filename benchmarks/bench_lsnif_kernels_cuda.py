@@ -18,16 +18,30 @@ Times are medians of `triton.testing.do_bench` (CUDA events, warm-up). Writes
 benchmarks/results/lsnif_kernels_<device>.json (or ``--out``).
 
     python benchmarks/bench_lsnif_kernels_cuda.py [--rays-log2 22] [--out FILE]
+
+``--quick`` (<= ~2 min on an H100, Triton compiles included; the JSON is rewritten after every
+measurement, so a cut-off run keeps what it measured): for ``hq`` and ``lq``, featurize, encode,
+the fused kernel alone and with the MLP for the previous kernel (``input``, padded tile) and the
+one-ray-per-lane kernel (``input_per_ray``) side by side, whether both write the same bytes, and
+the full ``intersect`` with the shipped default, with each kernel's best launch, and with
+`fused_hits` (output layer + decoding in a kernel). ``--dry-run`` runs the same code paths on the
+CPU under ``TRITON_INTERPRET=1`` on a few rays (checks the script, not the speed).
+
+    python benchmarks/bench_lsnif_kernels_cuda.py --quick --out lsnif_kernels.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import traceback
 from pathlib import Path
+
+if "--dry-run" in sys.argv:  # before triton is imported
+    os.environ["TRITON_INTERPRET"] = "1"
 
 import neuralrt  # noqa: F401  (first: sets the OpenMP wait policy)
 import numba
@@ -211,6 +225,167 @@ def bench_preset(preset: str, mesh, n: int, ceil: dict, row: dict) -> None:
         train_step(model, rays, row)
 
 
+# --quick: the previous kernel (padded [rays, levels, features] tile; its measured best launches)
+# beside the one-ray-per-lane kernel, as (stage, rays per program, warps).
+QUICK_CONFIGS = {
+    "hq": [("input", 32, 4), ("input_per_ray", 32, 1), ("input_per_ray", 64, 2), ("input_per_ray", 128, 4)],
+    "lq": [("input", 32, 4), ("input", 128, 4), ("input_per_ray", 32, 1), ("input_per_ray", 128, 4)],
+}
+
+
+class Budget:
+    """Seconds left for measurements; past the end, `record` skips (and says so in the JSON)."""
+
+    def __init__(self, seconds: float):
+        self.end = time.perf_counter() + seconds
+
+    def left(self) -> float:
+        return self.end - time.perf_counter()
+
+
+def _sync() -> None:
+    if DEVICE == "cuda":
+        torch.cuda.synchronize()
+
+
+def bench_preset_quick(preset: str, mesh, n: int, row: dict, budget: Budget, save) -> None:
+    """The --quick measurements of one preset into ``row``; ``save()`` after each one."""
+    overrides = {"inference": {"chunk_size": n}}
+    configs = QUICK_CONFIGS[preset]
+    if DEVICE != "cuda":  # dry run: the interpreter has no bf16 dots and takes ~10 s per walk step of a block
+        overrides = {"inference": {"chunk_size": n, "compute_precision": "fp32"}, "features": {"max_points": 3}}
+        configs = [configs[0], configs[-1]]
+    config = LSNIFConfig.preset(preset, **overrides)
+    t0 = time.perf_counter()
+    model = LSNIFModel.from_mesh(mesh, config).to(DEVICE).eval()
+    row["model_build_s"] = time.perf_counter() - t0
+    if DEVICE != "cuda":
+        _route_through_fused(model)
+    fc = config.features
+    h = fc.max_points
+    rays = sphere_rays(model, n)
+    unit = model._unit_rays(rays)
+    o, d, occ = unit.origins, unit.directions, model.occupancy
+    kw = dict(origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points)
+    dtype = model.compute_dtype()
+    common = dict(max_points=h, point_distances=fc.point_distances, compute_dtype=dtype, **kw)
+    fp = featurize_rays(o, d, occ, h, **kw)
+    active = float((fp.count > 0).float().mean())
+    row.update(rays=n, H=h, hidden_width=config.network.hidden_width, compute_dtype=str(dtype), active_frac=active,
+               mean_points_active=float(fp.count[fp.count > 0].float().mean()) if active else 0.0,
+               truncated_frac=float(fp.truncated.float().mean()))  # fmt: skip
+
+    def record(name: str, fn, rep: int = 100) -> float:
+        if budget.left() <= 0:
+            row[f"{name}_skipped"] = "over the --budget-s time budget"
+            print(f"  {preset} {name}: skipped (time budget)", flush=True)
+            return float("inf")
+        try:
+            if DEVICE == "cuda":  # first call: Triton compile (if not cached) + one run
+                t1 = time.perf_counter()
+                fn()
+                _sync()
+                row[f"{name}_first_call_s"] = time.perf_counter() - t1
+                t = float(do_bench(fn, warmup=25, rep=rep, return_mode="median"))
+            else:
+                t = 1e3 * _wall(fn)
+            row[f"{name}_ms"] = t
+            row[f"{name}_Mrays_per_s"] = n / t / 1e3
+            print(f"  {preset} {name}: {t:.3f} ms  {n / t / 1e3:,.1f} M rays/s", flush=True)
+            return t
+        except Exception as exc:  # keep measuring the rest; the error is part of the result
+            row[f"{name}_error"] = f"{type(exc).__name__}: {exc}"[:500]
+            traceback.print_exc()
+            return float("inf")
+        finally:
+            save()
+
+    with torch.no_grad():
+        record("featurize_triton", lambda: featurize_rays(o, d, occ, h, **kw))
+        record("encode_fwd_triton", lambda: model.encoder(fp.points, fp.face_axis))
+        weights = lsnif_fused._weights_for(model.network, model.encoder, h, fc.point_distances, dtype)
+        res = model.encoder._resolutions_on(o.device)
+        best: dict[str, tuple[float, tuple]] = {}
+        for stage, block, warps in configs:
+            launch = dict(stage=stage, block=block, num_warps=warps)
+            tag = f"{stage}_B{block}_W{warps}"
+            record(f"kernel_{tag}", lambda: lsnif_fused.run_fused_kernel(
+                o, d, occ, model.encoder.table, res, weights, slope=model.network.slope, **launch, **common_kernel(common)))  # fmt: skip
+            t = record(f"fused_{tag}", lambda: lsnif_fused.fused_network_outputs(
+                o, d, occ, model.encoder, model.network, **launch, **common))  # fmt: skip
+            if t < best.get(stage, (float("inf"),))[0]:
+                best[stage] = (t, (stage, block, warps))
+        row["fused_best_launch"] = {stage: list(c) for stage, (_, c) in best.items()}
+        # Does the new kernel write the old one's bytes (network input, counts, box interval)?
+        sub = slice(0, min(n, 1 << 18))
+        try:
+            outs = [lsnif_fused.run_fused_kernel(o[sub], d[sub], occ, model.encoder.table, res, weights, stage=stage, block=b,
+                                                 num_warps=w, **common_kernel(common))
+                    for stage, b, w in (configs[0], configs[-1])]  # fmt: skip
+            same_rows = (outs[0].values == outs[1].values).all(1) & (outs[0].count == outs[1].count)
+            row["per_ray_vs_tiled_identical_rows_frac"] = float(same_rows.float().mean())
+            row["per_ray_vs_tiled_max_abs_diff"] = float((outs[0].values.float() - outs[1].values.float()).abs().max())
+        except Exception as exc:
+            row["per_ray_vs_tiled_error"] = f"{type(exc).__name__}: {exc}"[:500]
+            traceback.print_exc()
+        save()
+
+        # -- full intersect: the shipped default, each kernel's best launch, and fused_hits ----------
+        shipped = dict(lsnif_fused.DEFAULT_LAUNCH)
+        row["default_launch"] = shipped
+        try:
+            ref_hits = model.intersect(rays)
+            record("intersect_default", lambda: model.intersect(rays), rep=200)
+            timed = {}
+            for stage, (_, (st, b, w)) in best.items():
+                lsnif_fused.DEFAULT_LAUNCH.update(stage=st, block=b, num_warps=w, write_hits=False)
+                timed[stage] = record(f"intersect_best_{stage}", lambda: model.intersect(rays), rep=200)
+            fastest = min(timed, key=timed.get) if timed else shipped["stage"]
+            st, b, w = best[fastest][1] if fastest in best else (shipped["stage"], shipped["block"], shipped["num_warps"])
+            lsnif_fused.DEFAULT_LAUNCH.update(stage=st, block=b, num_warps=w, write_hits=True)
+            row["intersect_fused_hits_launch"] = [st, b, w]
+            record("intersect_fused_hits", lambda: model.intersect(rays), rep=200)
+            hits = model.intersect(rays)
+            both = hits.hit & ref_hits.hit
+            row["fused_hits_hit_agree_frac"] = float((hits.hit == ref_hits.hit).float().mean())
+            row["fused_hits_t_max_rel_diff"] = float(((hits.t - ref_hits.t).abs() / ref_hits.t.abs()).where(both, 0).max())
+            row["fused_hits_normal_max_diff"] = float((hits.normal - ref_hits.normal).abs().max())
+            row["hit_frac"] = float(ref_hits.hit.float().mean())
+        except Exception as exc:
+            row["intersect_error"] = f"{type(exc).__name__}: {exc}"[:500]
+            traceback.print_exc()
+        finally:
+            lsnif_fused.DEFAULT_LAUNCH.clear()
+            lsnif_fused.DEFAULT_LAUNCH.update(shipped)
+        times = {k: v for k, v in row.items() if k.startswith("intersect_") and k.endswith("_ms")}
+        if times:
+            fastest = min(times, key=times.get)
+            row["intersect_best"] = fastest[: -len("_ms")]
+            row["intersect_best_Mrays_per_s"] = n / times[fastest] / 1e3
+            row["intersect_target_Mrays_per_s"] = TARGETS_RAYS_PER_S[preset] / 1e6
+            row["intersect_target_met"] = bool(n / times[fastest] * 1e3 >= TARGETS_RAYS_PER_S[preset])
+        save()
+
+
+def _route_through_fused(model: LSNIFModel) -> None:
+    """Dry run: send the CPU model's intersect down the CUDA path (fused kernels, interpreted), as
+    `LSNIFModel._network_answers*` do on CUDA tensors, so that --dry-run executes that path."""
+
+    def as_hits(rays: Rays, hits: Hits) -> bool:
+        if not lsnif_fused.DEFAULT_LAUNCH["write_hits"]:
+            return False
+        model._network_answers_fused_hits(rays, hits)
+        return True
+
+    model._network_answers = model._network_answers_fused
+    model._network_answers_as_hits = as_hits
+
+
+def common_kernel(common: dict) -> dict:
+    """`fused_network_outputs` keywords minus those `run_fused_kernel` does not take."""
+    return {k: v for k, v in common.items() if k != "compute_dtype"}
+
+
 def train_step(model: LSNIFModel, rays: Rays, row: dict, batch: int = 1 << 18) -> None:
     model.train()
     batch = min(batch, len(rays))
@@ -255,6 +430,10 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["hq", "lq"])
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--dry-run", action="store_true", help="CPU, Triton interpreter, tiny sizes: checks the script")
+    parser.add_argument("--quick", action="store_true",
+                        help="kernels old vs new and intersect only (<= ~2 min on an H100, compiles included)")
+    parser.add_argument("--budget-s", type=float, default=100.0,
+                        help="--quick: seconds of measurements after the model builds; later ones are skipped")
     parser.add_argument("--profile", metavar="STAGE,BLOCK,WARPS", default=None,
                         help="only run the fused kernel 3 times on hq (for ncu: --launch-skip 2 --launch-count 1)")
     args = parser.parse_args()
@@ -263,6 +442,10 @@ def main() -> None:
         DEVICE = "cpu"
     elif not torch.cuda.is_available():
         raise SystemExit("bench_lsnif_kernels_cuda: needs a CUDA device (or --dry-run)")
+    if args.dry_run:  # the interpreter runs a few rays of a small hairball
+        args.rays_log2 = min(args.rays_log2, 5)
+        args.detail = min(args.detail, 2)
+        args.budget_s = float("inf")
     n = 1 << args.rays_log2
     device_name = torch.cuda.get_device_name() if DEVICE == "cuda" else "cpu-dry-run"
     info = {"device": device_name, "torch": torch.__version__, "triton": triton.__version__,
@@ -281,6 +464,8 @@ def main() -> None:
                     block=int(block), num_warps=int(warps))  # fmt: skip
         torch.cuda.synchronize()
         return
+    if args.quick:
+        return main_quick(args, n, device_name, info)
     ceil = ceilings()
     print(f"{device_name}: copy {ceil['copy_GB_per_s']:,.0f} GB/s, bf16 GEMM {ceil['bf16_gemm_TFLOP_per_s']:,.0f} TFLOP/s", flush=True)
     t0 = time.perf_counter()
@@ -305,6 +490,37 @@ def main() -> None:
     for row in rows:
         keys = [k for k in row if k.endswith("_Mrays_per_s")]
         print(row["preset"], {k: round(row[k], 1) for k in keys})
+
+
+def main_quick(args, n: int, device_name: str, info: dict) -> None:
+    t_start = time.perf_counter()
+    t0 = time.perf_counter()
+    mesh = hairball(args.detail)
+    info["mesh"] = {"name": mesh.name, "triangles": int(len(mesh.faces)), "build_s": time.perf_counter() - t0}
+    out = args.out or RESULTS_DIR / "lsnif_kernels_quick.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rows: list[dict] = []
+    result = {"benchmark": "lsnif_kernels_cuda --quick", **info, "rows": rows}
+
+    def save() -> None:
+        result["total_s"] = time.perf_counter() - t_start
+        out.write_text(json.dumps(result, indent=2, default=str) + "\n")
+
+    budget = Budget(args.budget_s)
+    for preset in args.presets:
+        row = {"preset": preset, "mesh": mesh.name}
+        rows.append(row)
+        try:
+            bench_preset_quick(preset, mesh, n, row, budget, save)
+        except Exception as exc:
+            row["error"] = f"{type(exc).__name__}: {exc}"[:1000]
+            traceback.print_exc()
+        save()
+        if DEVICE == "cuda":
+            torch.cuda.empty_cache()
+    print(f"wrote {out} ({time.perf_counter() - t_start:.0f} s)")
+    for row in rows:
+        print(row["preset"], {k: round(row[k], 1) for k in row if k.endswith("_Mrays_per_s")})
 
 
 if __name__ == "__main__":
