@@ -12,9 +12,18 @@ points never go to global memory. Where it stops is a choice (``stage``):
 - ``"whole"``: also the other hidden layers (tensor cores, compute dtype) and the fp32 output
   layer in the kernel: 24 bytes in per ray, its outputs out.
 
+- ``"input_per_ray"``: what ``input`` writes, from `_fused_input_per_ray_kernel`: one ray per
+  lane, each point encoded level by level and feature by feature, no padded [rays, levels,
+  features] tile. In ``_fused_lsnif_kernel`` the walk's [BLOCK] vectors share the tile's layout,
+  so with 32 rays on 128 threads every ray is walked 4 times over; here a thread walks one ray.
+  Same bytes as ``input`` (tested under the interpreter; the bench compares them on the GPU).
+
 Measured on an H100 (benchmarks/results/lsnif_kernels_h100.json, hq, 2^22 hairball(6) rays):
 ``input`` 23.7 ms, ``whole`` 25.7 ms, ``first_layer`` 54.8 ms (its best launches); unfused
 26.2 ms. A point slot past every ray's last point in a block is skipped (its features are 0).
+``input_per_ray`` and `fused_hits` (the output layer and the hit decoding in a kernel writing
+`Hits`) are not measured yet: ``bench_lsnif_kernels_cuda.py --quick`` times them beside ``input``.
+By ptxas for sm_90: ``input`` 32 x 4 125 registers; ``input_per_ray`` 128 x 4 103, 32 x 1 96.
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
 compute precision: in-kernel layers accumulate in fp32 from bf16 inputs (unfused: bf16 GEMMs).
