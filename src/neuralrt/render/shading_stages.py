@@ -9,7 +9,6 @@ The contract, for the live paths of a wavefront and their closest hits:
 
 - ``camera_paths(pixel, jitter)``: paths starting with the camera rays through pixels ``pixel``
   [n] (row-major) at offsets ``jitter`` [n, 2] (`Camera.generate_rays`), sample ``k`` in row k.
-
 - ``shade(paths, hits, u, bounce, film)``: adds escaped radiance (environment, MIS) and emission
   seen at hits (MIS) to ``film.radiance``, records the AOVs at the first bounce, and, when ``u``
   is given (``bounce < max_depth``), samples one light per hit (NEE) and the BSDF with Russian
