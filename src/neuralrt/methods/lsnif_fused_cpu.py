@@ -27,6 +27,10 @@ import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from torch import Tensor
 
 from ..neural.mlp import MLP
@@ -123,87 +127,160 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, sha
     return count, False, t_start, t_far
 
 
+@intrinsic
+def _prefetch_row(typingctx, array, row):
+    """Hint the CPU to bring ``array[row, 0]`` into the cache (LLVM's prefetch: read, keep)."""
+
+    def codegen(context, builder, sig, args):
+        array_type = sig.args[0]
+        data = context.make_array(array_type)(context, builder, args[0])
+        index = context.cast(builder, args[1], sig.args[1], types.intp)
+        ptr = cgutils.get_item_pointer2(
+            context, builder, data=data.data, shape=cgutils.unpack_tuple(builder, data.shape),
+            strides=cgutils.unpack_tuple(builder, data.strides), layout=array_type.layout,
+            inds=[index, context.get_constant(types.intp, 0)], wraparound=False, boundscheck=False,
+        )  # fmt: skip
+        byte_ptr, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, i32, i32, i32]), "llvm.prefetch.p0i8")
+        builder.call(fn, [builder.bitcast(ptr, byte_ptr), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return types.void(array, row), codegen
+
+
+@numba.njit(cache=True, fastmath={"contract"})
+def _add_inputs(acc, w1, xs, n_inputs):
+    """``acc += xs[:n] @ w1[:n]``, eight inputs per pass over ``acc`` (it stays in registers for
+    eight products; fused multiply-adds allowed here only, not in the walk)."""
+    width = acc.shape[0]
+    i = 0
+    while i + 8 <= n_inputs:
+        x0, x1, x2, x3, x4, x5, x6, x7 = xs[i], xs[i + 1], xs[i + 2], xs[i + 3], xs[i + 4], xs[i + 5], xs[i + 6], xs[i + 7]
+        for j in range(width):
+            acc[j] += ((x0 * w1[i, j] + x1 * w1[i + 1, j]) + (x2 * w1[i + 2, j] + x3 * w1[i + 3, j])) + (
+                (x4 * w1[i + 4, j] + x5 * w1[i + 5, j]) + (x6 * w1[i + 6, j] + x7 * w1[i + 7, j]))
+        i += 8
+    while i + 2 <= n_inputs:
+        x0, x1 = xs[i], xs[i + 1]
+        for j in range(width):
+            acc[j] += x0 * w1[i, j] + x1 * w1[i + 1, j]
+        i += 2
+    if i < n_inputs:
+        x0 = xs[i]
+        for j in range(width):
+            acc[j] += x0 * w1[i, j]
+
+
+# Rays walked before their points are encoded: the table reads of a whole group are then
+# independent of each other and many are in flight at once (the table is larger than L2).
+_GROUP = 16
+
+
 @numba.njit(parallel=True, cache=True)
 def _fused_kernel(
     origins, directions, occ, planes, table, resolutions, w1, b1, slope,
     max_points, origin_point, share, point_distances, to_bf16, n_chunks,
     hidden_f32, hidden_bf16, counts, t_enter, t_exit,
 ):  # fmt: skip
-    """``w1 [H, L * F (+ 1), W]``: the first layer's weights per point slot (input-major, the
-    point distance last); writes ``hidden_f32`` or (``to_bf16``) ``hidden_bf16`` (bf16 bits) rows
-    of the rays with points; other rows are left as they were."""
+    """``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
+    ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
+    are the first ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``)
+    ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
     table_size = table.shape[0] // n_levels
     mask = np.int64(table_size - 1)
     width = b1.shape[0]
+    block = n_levels * n_feat + 1  # weight rows per point slot
     for chunk in numba.prange(n_chunks):
-        pts = np.empty((1, max_points, 3), np.float32)
-        axes = np.empty((1, max_points), np.int8)
-        slots = np.empty(8, np.int64)
-        weights = np.empty(8, np.float32)
-        x = np.empty(n_levels * n_feat + 1, np.float32)  # one point's inputs
+        pts = np.empty((_GROUP, max_points, 3), np.float32)
+        axes = np.empty((_GROUP, max_points), np.int8)
+        group_count = np.empty(_GROUP, np.int64)
+        slots = np.empty((_GROUP * max_points * n_levels, 8), np.int64)  # per (ray, point, level)
+        weights = np.empty((_GROUP * max_points * n_levels, 8), np.float32)
+        reads = np.empty(_GROUP * max_points * n_levels, np.int64)  # 4 (face) or 8 (origin) per entry
+        xs = np.empty((_GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
         acc = np.empty(width, np.float32)
         acc_bits = acc.view(np.uint32)
-        for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
-            ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
-            dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
-            count, _, t0, t1 = _walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                         np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                         occ, planes, max_points, origin_point, share, pts, axes)  # fmt: skip
-            counts[n] = count
-            t_enter[n] = t0
-            t_exit[n] = t1
-            if count == 0:
-                continue
-            # point_local_distances, in float32 as the unfused path computes it
-            te, tx = np.float32(t0), np.float32(t1)
-            span = max(tx - te, np.float32(1e-12))
-            dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
-            for j in range(width):
-                acc[j] = b1[j]
-            for h in range(count):
-                px, py, pz = pts[0, h, 0], pts[0, h, 1], pts[0, h, 2]
-                code = axes[0, h]
-                q = 0
-                for lvl in range(n_levels):
-                    k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots, weights)
-                    for f in range(n_feat):
-                        a = np.float32(0.0)
-                        for c in range(k):
-                            a += weights[c] * table[slots[c], f]
-                        x[q] = a
-                        q += 1
-                if point_distances:
+        first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
+        for start in range(first, last, _GROUP):
+            stop = min(start + _GROUP, last)
+            # 1. walk, and where each point reads the table
+            e = 0
+            for g in range(stop - start):
+                n = start + g
+                ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
+                dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+                count, _, t0, t1 = _walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                             np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                             occ, planes, max_points, origin_point, share, pts[g:], axes[g:])  # fmt: skip
+                counts[n] = count
+                t_enter[n] = t0
+                t_exit[n] = t1
+                group_count[g] = count
+                te, tx = np.float32(t0), np.float32(t1)
+                span = max(tx - te, np.float32(1e-12))
+                dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+                for h in range(count):
+                    px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+                    code = axes[g, h]
+                    for lvl in range(n_levels):
+                        k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
+                        reads[e] = k
+                        for c in range(k):  # the reads come after the whole group's walk: start them now
+                            _prefetch_row(table, slots[e, c])
+                        e += 1
+                    # point_local_distances, in float32 as the unfused path computes it
                     tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-                    x[q] = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
-                    q += 1
-                for i in range(q):
-                    v = x[i]
-                    for j in range(width):
-                        acc[j] += v * w1[h, i, j]
-            for j in range(width):
-                y = acc[j]
-                acc[j] = y if y >= 0 else y * slope
-            if to_bf16:
-                for j in range(width):  # round to nearest even, as torch's float -> bf16
-                    bits = acc_bits[j]
-                    hidden_bf16[n, j] = np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
-            else:
+                    local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
+                    xs[g, h * block + block - 1] = local if point_distances else np.float32(0.0)
+            # 2. the table reads, all independent
+            e = 0
+            for g in range(stop - start):
+                for h in range(group_count[g]):
+                    col = h * block
+                    for lvl in range(n_levels):
+                        for f in range(n_feat):
+                            a = np.float32(0.0)
+                            for c in range(reads[e]):
+                                a += weights[e, c] * table[slots[e, c], f]
+                            xs[g, col] = a
+                            col += 1
+                        e += 1
+            # 3. the first layer
+            for g in range(stop - start):
+                count = group_count[g]
+                if count == 0:
+                    continue
                 for j in range(width):
-                    hidden_f32[n, j] = acc[j]
+                    acc[j] = b1[j]
+                _add_inputs(acc, w1, xs[g], count * block)
+                for j in range(width):
+                    y = acc[j]
+                    acc[j] = y if y >= 0 else y * slope
+                n = start + g
+                if to_bf16:
+                    for j in range(width):  # round to nearest even, as torch's float -> bf16
+                        bits = acc_bits[j]
+                        hidden_bf16[n, j] = np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+                else:
+                    for j in range(width):
+                        hidden_f32[n, j] = acc[j]
 
 
 def first_layer_blocks(network: MLP, max_points: int, block: int, point_distances: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The first hidden layer as ``w1 [H, block (+ 1), W]`` fp32 (point slot h's ``block`` = L * F
-    encoded inputs, then its point distance) and the bias ``[W]`` fp32."""
+    """The first hidden layer as ``w1 [H * (block + 1), W]`` fp32, input-major: point slot h's
+    ``block`` = L * F encoded inputs, then its point distance (a zero row without distances), and
+    the bias ``[W]`` fp32."""
     weight = network.hidden[0].weight.detach().float()  # [W, H * block (+ H)]
     features = weight[:, : max_points * block].T.reshape(max_points, block, -1)
     if point_distances:
         distances = weight[:, max_points * block :].T.reshape(max_points, 1, -1)
-        features = torch.cat([features, distances], dim=1)
-    return features.contiguous().numpy(), network.hidden[0].bias.detach().float().contiguous().numpy()
+    else:
+        distances = torch.zeros(max_points, 1, weight.shape[0])
+    rows = torch.cat([features, distances], dim=1).reshape(max_points * (block + 1), -1)
+    return rows.contiguous().numpy(), network.hidden[0].bias.detach().float().contiguous().numpy()
 
 
 def rest_of_network(network: MLP, first_hidden: Tensor, compute_dtype: torch.dtype) -> Tensor:

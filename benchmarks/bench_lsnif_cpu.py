@@ -1,0 +1,137 @@
+"""LSNIF inference on the CPU: the fused numba pass against the unfused path, Embree and the MLP alone.
+
+For each mesh and preset, one untrained model on the mesh's real occupancy (the speed does not
+depend on the weights; the hash table is filled with random values so no feature is 0) answers
+the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
+with ``intersect`` through the fused kernel (the CPU default) and through the unfused path
+(featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
+(the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
+inference precision, and the fused kernel's own time (walk + encoding + first layer). Best of
+``--repeats``. Writes benchmarks/results/lsnif_cpu.json.
+
+    python benchmarks/bench_lsnif_cpu.py bunny00.off procedural:hairball:6 [--presets hq lq] [--rays 262144]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import numba
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import print_table, write_results  # noqa: E402
+from bench_lsnif import resolve_mesh  # noqa: E402
+
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.methods.lsnif import LSNIFModel  # noqa: E402
+from neuralrt.methods.lsnif_config import LSNIFConfig  # noqa: E402
+from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: E402
+from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
+
+COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
+           "fused_vs_embree", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+
+
+def seconds(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
+    mesh = resolve_mesh(spec)
+    exact = MeshBLAS(mesh)
+    model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset(preset))
+    with torch.no_grad():
+        model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+    rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(n_rays).rays
+    def fused_intersect():
+        model.intersect(rays)
+
+    def unfused_intersect():
+        model._network_answers = model._network_answers_unfused  # the instance attribute wins over the method
+        try:
+            model.intersect(rays)
+        finally:
+            del model._network_answers
+
+    unit = model._unit_rays(rays)
+    fc, dtype = model.config.features, model.compute_dtype()
+
+    def kernel_and_gemms():
+        fused_network_outputs_cpu(unit.origins, unit.directions, model.occupancy, model.encoder, model.network,
+                                  max_points=fc.max_points, origin_point=fc.origin_point,
+                                  share_boundary_points=fc.share_boundary_points, point_distances=fc.point_distances,
+                                  compute_dtype=dtype)  # fmt: skip
+
+    x = torch.randn(model.config.inference.chunk_size, model.network_inputs)
+
+    def mlp_only():
+        with torch.no_grad():
+            model.network(x, dtype)
+
+    for fn in (fused_intersect, unfused_intersect, mlp_only):  # compile / warm caches
+        fn()
+    times = {"embree": [], "fused": [], "unfused": [], "fused_network": [], "mlp": []}
+    for _ in range(repeats):
+        times["embree"].append(seconds(lambda: exact.intersect(rays)))
+        times["fused"].append(seconds(fused_intersect))
+        times["unfused"].append(seconds(unfused_intersect))
+        times["fused_network"].append(seconds(kernel_and_gemms))
+        times["mlp"].append(seconds(mlp_only))
+    best = {k: min(v) for k, v in times.items()}
+    with torch.no_grad():
+        active = len(model._network_answers_fused_cpu(rays)[0])
+    network_fraction = active / n_rays
+    rate = {k: n_rays / best[k] for k in ("embree", "fused", "unfused", "fused_network")}
+    mlp_rate = len(x) / best["mlp"]
+    return {
+        "mesh": spec,
+        "preset": preset,
+        "precision": str(dtype).replace("torch.", ""),
+        "rays": n_rays,
+        "threads": numba.get_num_threads(),
+        "network_frac": network_fraction,
+        "embree_Mrays/s": rate["embree"] / 1e6,
+        "fused_Mrays/s": rate["fused"] / 1e6,
+        "unfused_Mrays/s": rate["unfused"] / 1e6,
+        "fused_network_Mrays/s": rate["fused_network"] / 1e6,
+        "mlp_only_Mrows/s": mlp_rate / 1e6,
+        "fused_vs_embree": rate["fused"] / rate["embree"],
+        "unfused_vs_embree": rate["unfused"] / rate["embree"],
+        "fused_vs_unfused": rate["fused"] / rate["unfused"],
+        # share of intersect spent in the fused kernel + the GEMMs (the rest: ray mapping, decoding, scatter)
+        "kernel_share": best["fused_network"] / best["fused"],
+        # network rays/s of the whole pipeline over the MLP alone (as bench_lsnif.py)
+        "fraction_of_mlp_limit": rate["fused"] * network_fraction / mlp_rate,
+        "load": os.getloadavg()[0],
+        "times_s": times,
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("meshes", nargs="+", help="as bench_lsnif.py: a file in ../shared/meshes, a path, or procedural:NAME:DETAIL")
+    p.add_argument("--presets", nargs="+", default=["hq", "lq"])
+    p.add_argument("--rays", type=int, default=1 << 18)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--name", default="lsnif_cpu")
+    args = p.parse_args()
+    rows = []
+    for spec in args.meshes:
+        for preset in args.presets:
+            rows.append(bench(spec, preset, args.rays, args.repeats))
+            print_table(rows[-1:], COLUMNS)
+    print_table(rows, COLUMNS)
+    print(f"wrote {write_results(args.name, rows)}")
+
+
+if __name__ == "__main__":
+    main()
