@@ -244,7 +244,9 @@ def test_fused_hits_equal_the_unfused_intersect():
 
     config = LSNIFConfig.preset("lq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
                                 inference={"compute_precision": "fp32"})  # fmt: skip
-    model = LSNIFModel.from_mesh(sphere(2), config)
+    shape = LSNIFModel.from_mesh(sphere(2), config)
+    materials = [{"name": f"m{i}", "base_color": [0.5, 0.5, 0.5]} for i in range(3)]  # the argmax too
+    model = LSNIFModel(config, shape.bounds, shape.occupancy, materials)
     with torch.no_grad():  # untrained weights answer ~0: spread the logits so that hits and misses both occur
         model.encoder.table.uniform_(-1, 1)
         model.network.output.weight.mul_(8)
@@ -262,6 +264,7 @@ def test_fused_hits_equal_the_unfused_intersect():
         model._network_answers_fused_hits(rays.to(DEVICE), hits)
     hits = hits.to("cpu")
     assert 5 < int(ref.hit.sum()) < 60 and (ref.t[:8] == float("inf")).all()
+    assert len(set(ref.material_id[ref.hit].tolist())) > 1
     assert torch.equal(hits.hit, ref.hit) and torch.equal(hits.material_id, ref.material_id)
     torch.testing.assert_close(hits.t, ref.t, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(hits.normal, ref.normal, atol=1e-5, rtol=1e-5)
