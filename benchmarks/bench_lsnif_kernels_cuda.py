@@ -432,7 +432,7 @@ def main() -> None:
     parser.add_argument("--dry-run", action="store_true", help="CPU, Triton interpreter, tiny sizes: checks the script")
     parser.add_argument("--quick", action="store_true",
                         help="kernels old vs new and intersect only (<= ~2 min on an H100, compiles included)")
-    parser.add_argument("--budget-s", type=float, default=100.0,
+    parser.add_argument("--budget-s", type=float, default=95.0,
                         help="--quick: seconds of measurements after the model builds; later ones are skipped")
     parser.add_argument("--profile", metavar="STAGE,BLOCK,WARPS", default=None,
                         help="only run the fused kernel 3 times on hq (for ncu: --launch-skip 2 --launch-count 1)")
