@@ -129,6 +129,10 @@ class NeuralBLAS(nn.Module, ABC):
     def after_training_step(self, step: int, optimizer: torch.optim.Optimizer) -> None:
         """Called by the training loop after each optimizer step (e.g. to refine a BVH cut). Default: nothing."""
 
+    def progress_fields(self) -> dict[str, str]:
+        """Method-specific fields the training progress bar shows (e.g. N-BVH's node count). Default: none."""
+        return {}
+
     def training_rays(self, truth, device: torch.device):
         """The ray distribution training draws batches from (``sample(n)``, ``state_dict``/``load_state_dict``),
         with exact answers from ``truth``. Default: `BoxRayDistribution` around `box` (N-BVH draws its own)."""

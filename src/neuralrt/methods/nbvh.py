@@ -175,6 +175,9 @@ class NBVHModel(NeuralBLAS):
         return torch.tensor(pts, device=device).expand(n, 3)
 
     # -- training ------------------------------------------------------------------------------------
+    def progress_fields(self) -> dict[str, str]:
+        return {"nodes": str(self.live_nodes())}
+
     def training_rays(self, truth, device: torch.device) -> NBVHRayDistribution:
         return NBVHRayDistribution(self, truth, device)
 

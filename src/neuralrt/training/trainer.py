@@ -175,7 +175,7 @@ def train_model(
             bar.update(1)
             if progress and (step % 10 == 0 or step == steps - 1):
                 bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
-                                rays_s=f"{result.count / max(dt, 1e-9):.3g}")
+                                rays_s=f"{result.count / max(dt, 1e-9):.3g}", **getattr(model, "progress_fields", dict)())
             if ckpt is not None and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
                 _finish(record, running, step + 1)
                 save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity)
