@@ -292,3 +292,26 @@ def test_target_nodes_caps_the_cut(ball):
     for step in range(12):
         model.after_training_step(step, None)
     assert model.live_nodes() == 9  # 1, 3, 5 (k = 2 from step 1 on: 9), then capped
+
+
+def test_material_slots_are_learned(ball):
+    """A two-material sphere (top half red, bottom half blue): the hit's material slot is predicted."""
+    from neuralrt.geometry.mesh import MeshMaterial
+
+    top = (ball.vertices[ball.faces].mean(1)[:, 1] > CENTER[1]).astype(np.int32)
+    mesh = Mesh(ball.vertices, ball.faces, vertex_normals=ball.vertex_normals, face_material_ids=top,
+                materials=[MeshMaterial("blue", base_color=(0, 0, 1)), MeshMaterial("red", base_color=(1, 0, 0))], name="two")
+    cfg = NBVHConfig.preset("cpu", encoding={"log2_table_size": 14}, cut={"splitting_interval": 20, "last_split_step": 60},
+                            training={"steps": 80, "batch_size": 2048})
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model = train(mesh, cfg, progress=False)
+    finally:
+        torch.set_num_threads(before)
+    assert model.material_names == ["blue", "red"] and model.network.output.out_features == 10
+    rays = _sphere_rays(2048, 9)
+    exact, neural = MeshBLAS(mesh).intersect(rays), model.intersect(rays)
+    both = exact.hit & neural.hit
+    assert (neural.material_id[both] == exact.material_id[both]).float().mean() > 0.9
+    assert set(neural.material_id[neural.hit].tolist()) == {0, 1}

@@ -43,7 +43,8 @@ from .nbvh_traversal import NO_LOD, CutArrays, LeafList, first_leaves, list_leav
 __all__ = ["NBVHModel", "NBVHConfig", "METHOD"]
 
 METHOD = "nbvh"
-_VIS, _DEPTH, _NORMAL, _ALBEDO = 0, 1, slice(2, 5), slice(5, 8)
+# Output layout: 8 fixed channels, then one logit per material when the mesh has several.
+_VIS, _DEPTH, _NORMAL, _ALBEDO, _MAT = 0, 1, slice(2, 5), slice(5, 8), 8
 _DEPTH_PAD = 1e-3  # LocalT: depth is relative to (chord length + 1e-3)
 _REVERSED_MIN = 0.2  # reversed chords accept hits beyond 0.2 * len + 1e-5
 _NODE_BYTES = 3 * 4 + 3 * 4 + 2 * 4 + 1  # lo, hi (fp32), two child indices (int32), LoD (int8)
@@ -90,7 +91,7 @@ class NBVHModel(NeuralBLAS):
         self.encoder = HashGrid(enc.levels, enc.base_resolution, enc.features_per_level, enc.log2_table_size, enc.init_scale,
                                 seed=config.training.seed)
         net = config.network
-        self.network = MLP(self.encoder.output_dim(3), 8, net.hidden_width, net.hidden_layers, 0.0,
+        self.network = MLP(self.encoder.output_dim(3), 8 + self.material_logits, net.hidden_width, net.hidden_layers, 0.0,
                            generator=torch.Generator().manual_seed(config.training.seed))
         self._batch: tuple[Tensor, Tensor | None] | None = None  # (leaf per sample, chord fractions) of the batch being trained
         self._batch_losses: Tensor | None = None
@@ -119,6 +120,11 @@ class NBVHModel(NeuralBLAS):
         return model
 
     # -- the cut -------------------------------------------------------------------------------------
+    @property
+    def material_logits(self) -> int:
+        """Material outputs of the MLP: one per material slot, none for a single-material mesh."""
+        return self.num_materials if self.num_materials > 1 else 0
+
     def cut_arrays(self) -> CutArrays:
         return CutArrays(self.node_lo, self.node_hi, self.node_children, self.node_lod, self.live)
 
@@ -165,7 +171,7 @@ class NBVHModel(NeuralBLAS):
 
     # -- network -------------------------------------------------------------------------------------
     def _query(self, origins: Tensor, directions: Tensor, a: Tensor, b: Tensor, fractions: Tensor, compute_dtype) -> Tensor:
-        """Raw outputs [K, 8] for the chords from ``o + a d`` to ``o + b d`` (unit cube) at ``fractions``."""
+        """Raw outputs [K, 8 + material logits] for the chords from ``o + a d`` to ``o + b d`` (unit cube) at ``fractions``."""
         t = a[:, None] + fractions * (b - a)[:, None]  # [K, 3]
         points = origins[:, None, :] + t[..., None] * directions[:, None, :]
         return self.network(self.encoder(points), compute_dtype)
@@ -202,6 +208,9 @@ class NBVHModel(NeuralBLAS):
         # Means over all samples (misses count as 0 for the hit-only losses), per channel.
         parts = {"visibility": bce.mean(), "depth": depth.mean(), "normal": normal.mean() / 3, "albedo": rel.mean() / 3}
         loss = w.visibility * parts["visibility"] + w.depth * parts["depth"] + w.normal * parts["normal"] + w.albedo * parts["albedo"]
+        if self.material_logits and bool(hit.any()):  # not in the paper (one BSDF there): the slot of the hit
+            parts["material"] = F.cross_entropy(out[hit, _MAT:], truth.material_id[hit].clamp(0, self.num_materials - 1))
+            loss = loss + w.material * parts["material"]
         self._batch_losses = (bce + depth + normal + rel).detach()  # the sample's 8 channel losses, summed
         with torch.no_grad():
             correct = int(((out[:, _VIS] > 0) == hit).sum())
@@ -253,14 +262,14 @@ class NBVHModel(NeuralBLAS):
         return idx, o.contiguous(), (d / norm[:, None]).contiguous(), t_max.contiguous(), to_ray_t, t_off
 
     def _closest(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
-        """Wavefront over the cut: (t [K] unit, inf where missed; raw outputs [K, 8] of the accepted hit)."""
+        """Wavefront over the cut: (t [K] unit, inf where missed; raw outputs of the accepted hit)."""
         k, dev = len(o), o.device
         inf = self.config.inference
         leaves = self.leaf_list(o, d, t_max, torch.full((k,), inf.lod, dtype=torch.int8, device=dev),
                                 torch.full((k,), inf.box_dilation, device=dev))  # fmt: skip
         ptr, end = leaves.start[:-1].clone(), leaves.start[1:]
         best_t = torch.full((k,), float("inf"), device=dev)
-        best_out = torch.zeros(k, 8, device=dev)
+        best_out = torch.zeros(k, 8 + self.material_logits, device=dev)
         threshold = math.log(inf.occlusion_threshold / (1 - inf.occlusion_threshold))
         dtype = self.compute_dtype()
         active = torch.nonzero(ptr < end).squeeze(1)
@@ -305,7 +314,8 @@ class NBVHModel(NeuralBLAS):
         hits.normal[idx] = normal
         hits.geometric_normal[idx] = normal
         hits.albedo[idx] = torch.where(hit[:, None], torch.sigmoid(out[:, _ALBEDO]), hits.albedo[idx])
-        hits.material_id[idx] = torch.where(hit, torch.zeros_like(idx), torch.full_like(idx, -1))
+        material = out[:, _MAT:].argmax(-1) if self.material_logits else torch.zeros_like(idx)
+        hits.material_id[idx] = torch.where(hit, material, torch.full_like(idx, -1))
         return hits
 
     def _intersect_chunk(self, rays: Rays) -> Hits:

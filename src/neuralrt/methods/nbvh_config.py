@@ -64,6 +64,7 @@ class NBVHLossConfig(_Section):
     depth: float = Field(2.0, ge=0.0, description="L1 on the LocalT depth, hits only")
     normal: float = Field(1.0, ge=0.0, description="L1 on the normal in [-1, 1], hits only")
     albedo: float = Field(1.0, ge=0.0, description="relative L2 on the albedo, hits only")
+    material: float = Field(1.0, ge=0.0, description="cross-entropy on the material slot, hits only, meshes with several materials (not in the paper)")
 
 
 class NBVHTrainingConfig(TrainingConfig):
