@@ -212,10 +212,13 @@ def test_lsnif_model_fused_answers_match_unfused():
     assert (out - ref).abs().max() <= tol * ref.abs().max()
 
 
-@pytest.mark.parametrize("distances,origin_point,block,warps", [(True, True, 32, 1), (False, False, 64, 2)])
-def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin_point, block, warps):
+@pytest.mark.parametrize(
+    "distances,origin_point,block,warps,dtype", [(True, True, 32, 1, torch.bfloat16), (False, False, 64, 2, torch.float32)]
+)
+def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin_point, block, warps, dtype):
     """``input_per_ray`` (one ray per lane) and ``input`` (padded tile, checked against the unfused
-    path above) write the same bytes."""
+    path above) write the same bytes; bf16 rows go out as packed pairs (neither stage has a dot
+    product, so bf16 runs under the interpreter too)."""
     from neuralrt.methods.lsnif_fused import pack_network, run_fused_kernel
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
 
@@ -223,7 +226,7 @@ def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin
     o, d = _random_rays(np.random.default_rng(8), 48, occ, tris)
     grid = SparseHashGrid(resolutions=(16, 32), features_per_level=3, log2_table_size=12, init_scale=1.0).to(DEVICE)
     net = _Net(grid.output_dim(6) + (6 if distances else 0), 32, 2, 11).to(DEVICE)
-    weights = pack_network(net, grid, 6, distances, torch.float32)
+    weights = pack_network(net, grid, 6, distances, dtype)
     occ_t, res = torch.from_numpy(occ).to(DEVICE), grid._resolutions_on(DEVICE)
     kw = dict(max_points=6, origin_point=origin_point, point_distances=distances)
     tiled = run_fused_kernel(o.to(DEVICE), d.to(DEVICE), occ_t, grid.table, res, weights, stage="input", block=32, **kw)
@@ -231,7 +234,7 @@ def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin
                                block=block, num_warps=warps, **kw)  # fmt: skip
     assert torch.equal(per_ray.count, tiled.count) and (tiled.count == 6).any() and (tiled.count == 0).any()
     assert torch.equal(per_ray.t_enter, tiled.t_enter) and torch.equal(per_ray.t_exit, tiled.t_exit)
-    assert torch.equal(per_ray.values, tiled.values) and (tiled.values != 0).float().mean() > 0.2
+    assert per_ray.values.dtype == dtype and torch.equal(per_ray.values, tiled.values) and (tiled.values != 0).float().mean() > 0.2
 
 
 def test_fused_hits_equal_the_unfused_intersect():

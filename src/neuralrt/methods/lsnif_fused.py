@@ -23,7 +23,7 @@ Measured on an H100 (benchmarks/results/lsnif_kernels_h100.json, hq, 2^22 hairba
 26.2 ms. A point slot past every ray's last point in a block is skipped (its features are 0).
 ``input_per_ray`` and `fused_hits` (the output layer and the hit decoding in a kernel writing
 `Hits`) are not measured yet: ``bench_lsnif_kernels_cuda.py --quick`` times them beside ``input``.
-By ptxas for sm_90: ``input`` 32 x 4 125 registers; ``input_per_ray`` 128 x 4 103, 32 x 1 96.
+By ptxas for sm_90 (hq): ``input`` 32 x 4 125 registers; ``input_per_ray`` 32 x 1 88, 128 x 4 ~105.
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
 compute precision: in-kernel layers accumulate in fp32 from bf16 inputs (unfused: bf16 GEMMs).
@@ -154,17 +154,28 @@ def _fused_lsnif_kernel(
 
 
 @triton.jit
+def _pack_pair(first, second, dtype: tl.constexpr):
+    """Two float32 vectors rounded to the 16-bit ``dtype``, as one uint32 (``first`` in the low
+    half: its place in memory on a little-endian GPU)."""
+    lo = first.to(dtype).to(tl.uint16, bitcast=True).to(tl.uint32)
+    hi = second.to(dtype).to(tl.uint16, bitcast=True).to(tl.uint32)
+    return lo | (hi << 16)
+
+
+@triton.jit
 def _fused_input_per_ray_kernel(
     o_ptr, d_ptr, occ_ptr, planes_ptr, table_ptr, res_ptr,
     out_ptr, t_enter_ptr, t_exit_ptr, count_ptr,
     n_rays, V, table_size,
     MAX_POINTS: tl.constexpr, ORIGIN_POINTS: tl.constexpr, SHARE: tl.constexpr,
-    POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, BLOCK: tl.constexpr,
+    POINT_DISTANCES: tl.constexpr, L: tl.constexpr, F: tl.constexpr, BLOCK: tl.constexpr, PACK: tl.constexpr,
 ):  # fmt: skip
     """Stage ``input`` with one ray per lane: every tensor is a [BLOCK] vector (no [B, LP, FP]
     tile), so with BLOCK = 32 * num_warps each thread walks one ray, once. Each point is encoded
     level by level and feature by feature (`encode_point_level_feature`) and stored column by
-    column. Same arithmetic, same output as `_fused_lsnif_kernel` with ``STAGE == 0``."""
+    column. Same arithmetic, same output as `_fused_lsnif_kernel` with ``STAGE == 0``. ``PACK``
+    (16-bit output, even L * F and row width): two features per 32-bit store, as a lane's stores
+    each touch another row (half the store instructions)."""
     rays = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     lane_ok = rays < n_rays
     r64 = rays.to(tl.int64)
@@ -184,6 +195,7 @@ def _fused_input_per_ray_kernel(
     dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
     INPUTS: tl.constexpr = MAX_POINTS * L * F + (MAX_POINTS if POINT_DISTANCES else 0)
     row = out_ptr + r64 * INPUTS
+    words = out_ptr.to(tl.pointer_type(tl.uint32)) + r64 * (INPUTS // 2)  # with PACK: INPUTS is even
     count = tl.zeros([BLOCK], tl.int32)
     h = tl.full([], 0, tl.int32)
     any_alive = tl.max(state[22].to(tl.int32), axis=0) > 0
@@ -191,11 +203,16 @@ def _fused_input_per_ray_kernel(
         state, got, t, code, exiting, vx, vy, vz = dda_next_point(
             state, planes_ptr, occ_ptr, V, ORIGIN_POINTS, SHARE)  # fmt: skip
         px, py, pz = dda_point_coords(state, got, t, code, exiting, vx, vy, vz, planes_ptr)
-        for level in tl.static_range(L):
-            resf = tl.load(res_ptr + level).to(tl.float32)
-            for f in tl.static_range(F):
-                feat = encode_point_level_feature(px, py, pz, code, got, table_ptr, resf, level, table_size, f, F)
-                tl.store(row + h * (L * F) + level * F + f, feat.to(out_ptr.dtype.element_ty), mask=lane_ok)
+        pending = tl.zeros([BLOCK], tl.float32)
+        for c in tl.static_range(L * F):
+            resf = tl.load(res_ptr + c // F).to(tl.float32)
+            feat = encode_point_level_feature(px, py, pz, code, got, table_ptr, resf, c // F, table_size, c % F, F)
+            if not PACK:
+                tl.store(row + h * (L * F) + c, feat.to(out_ptr.dtype.element_ty), mask=lane_ok)
+            elif c % 2 == 0:
+                pending = feat
+            else:
+                tl.store(words + h * (L * F // 2) + c // 2, _pack_pair(pending, feat, out_ptr.dtype.element_ty), mask=lane_ok)
         if POINT_DISTANCES:  # as `point_local_distances`, in float32 on the float32 point
             tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
             local = tl.where(got, tl.minimum(tl.maximum((tp - t_enter32) / span, 0.0), 1.0), 0.0)
@@ -210,8 +227,12 @@ def _fused_input_per_ray_kernel(
     zero = tl.zeros([BLOCK], tl.float32).to(out_ptr.dtype.element_ty)
     for hz in range(MAX_POINTS):
         pad = lane_ok & (hz >= h)
-        for c in tl.static_range(L * F):
-            tl.store(row + hz * (L * F) + c, zero, mask=pad)
+        if PACK:
+            for c in tl.static_range(L * F // 2):
+                tl.store(words + hz * (L * F // 2) + c, tl.zeros([BLOCK], tl.uint32), mask=pad)
+        else:
+            for c in tl.static_range(L * F):
+                tl.store(row + hz * (L * F) + c, zero, mask=pad)
         if POINT_DISTANCES:
             tl.store(row + MAX_POINTS * L * F + hz, zero, mask=pad)
 
@@ -361,7 +382,9 @@ def run_fused_kernel(
             o, d, occ, plane_table(occ.shape[0], device), table.detach().contiguous(), resolutions,
             values, t_enter, t_exit, count, n, occ.shape[0], table.shape[1],
             MAX_POINTS=int(max_points), ORIGIN_POINTS=bool(origin_point), SHARE=bool(share_boundary_points),
-            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features, BLOCK=block, num_warps=num_warps,
+            POINT_DISTANCES=bool(point_distances), L=lay.levels, F=lay.features, BLOCK=block,
+            PACK=values.element_size() == 2 and (lay.levels * lay.features) % 2 == 0 and inputs % 2 == 0,
+            num_warps=num_warps,
         )  # fmt: skip
     elif n:
         _fused_lsnif_kernel[(triton.cdiv(n, block),)](
