@@ -334,10 +334,13 @@ def fused_network_outputs_cpu(
     t_exit = np.full(n, np.inf, np.float32)
     if n:
         planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
-        n_chunks = max(1, min(n, 8 * numba.get_num_threads()))  # a few per thread: rays vary in length
-        _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, b1, np.float32(network.slope),
-                      int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
-                      to_bf16, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
+        # Many small chunks handed out one at a time: rays vary in length, and on a shared machine
+        # one thread may be descheduled; with the default static split the other waits for it.
+        n_chunks = max(1, min(n, 32 * numba.get_num_threads()))
+        with numba.parallel_chunksize(1):
+            _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, b1, np.float32(network.slope),
+                          int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
+                          to_bf16, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
     hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
