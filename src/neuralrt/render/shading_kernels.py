@@ -4,12 +4,14 @@
 MIS), shading geometry, emission at hits (MIS), first-hit AOVs, next-event estimation (one light
 sample and its shadow ray, MIS), BSDF sampling and Russian roulette, and the compaction of the
 shadow rays and the surviving paths. `add_unoccluded` adds the contributions of the shadow rays
-that reached their light. Together they replace ~300 small torch ops per bounce.
+that reached their light. `camera_rays` and `film_add` are the wavefront's first and last steps.
+They replace the chains of small whole-batch torch ops of `shading_stages.TorchShadingStages`
+(each op a pass over memory with its own dispatch cost).
 
-They compute what `shading_stages.TorchShadingStages` computes (the formulas of `materials.py`,
-`lights.py` and `sampling.py`, same random numbers in the same roles), in float64 arithmetic on
-float32 inputs, so answers agree with the torch path to float tolerance (tests compare them).
-Tables are tuples of arrays built once per scene (`shading_stages.NumbaShadingStages`).
+They compute what the torch stages compute (the formulas of `materials.py`, `lights.py` and
+`sampling.py`, the same random numbers in the same roles), mostly in float64 arithmetic on float32
+inputs, so answers agree with the torch path to float tolerance (tests compare them). Tables are
+tuples of arrays built once per scene (`shading_stages.NumbaShadingStages`), unpacked once per pass.
 """
 
 from __future__ import annotations

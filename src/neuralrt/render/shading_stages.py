@@ -3,7 +3,8 @@
 `NumbaShadingStages` runs fused numba passes (`shading_kernels`) on CPU tensors; `TorchShadingStages`
 runs torch ops on any device. `PathTracer` picks one at construction (`shading_stages_for`) and never
 branches on the device again. Both take the same random numbers in the same roles, so they give
-the same answers to float tolerance (the tests run both on CPU tensors).
+the same answers to float tolerance (the tests run both on CPU tensors). The numba passes run over
+chunks of rows on numba's thread count (they release the GIL); the result does not depend on it.
 
 The contract, for the live paths of a wavefront and their closest hits:
 
