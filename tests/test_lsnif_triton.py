@@ -261,7 +261,9 @@ def test_fused_hits_equal_the_unfused_intersect():
     rays.t_max[:8] = 0.5  # some hits cut by t_max
     rays.origins[8] = float("nan")  # an invalid ray
     with torch.no_grad():
-        ref = model._intersect_chunk(rays)  # CPU: the unfused path
+        model._network_answers = model._network_answers_unfused  # the reference: featurize -> encode -> MLP
+        ref = model._intersect_chunk(rays)
+        del model._network_answers
         model = model.to(DEVICE)
         hits = Hits.empty(len(rays), DEVICE)
         model._network_answers_fused_hits(rays.to(DEVICE), hits)
