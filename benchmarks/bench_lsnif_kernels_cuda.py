@@ -64,8 +64,10 @@ TARGETS_RAYS_PER_S = {"hq": 330e6, "lq": 1e9}  # issue 8, on an H100
 TOP_CONFIGS: list = []  # the fastest launch configurations of the first preset, tried on the others
 # (stage, rays per program, warps) of the fused kernel; register counts from ptxas for sm_90 (hq):
 # whole 32/4: 229, 64/8: ~200; first_layer 64/8: 178; input 32/4: 125, 64/8: 128, 128/4: 235, 128/8: 166.
+# input_per_ray 32/1: 88, 128/4: ~105 (packed bf16 stores).
 LAUNCH_CONFIGS = [("whole", 32, 4), ("whole", 64, 8), ("first_layer", 64, 8), ("input", 32, 4), ("input", 64, 8),
-                  ("input", 128, 4), ("input", 128, 8)]  # fmt: skip
+                  ("input", 128, 4), ("input", 128, 8), ("input_per_ray", 32, 1), ("input_per_ray", 64, 2),
+                  ("input_per_ray", 128, 4)]  # fmt: skip
 
 
 
