@@ -490,8 +490,10 @@ def _output_hits_kernel(
     hit = (_column(out, cols, 0) > occlusion_logit) & (t < tl.load(t_max_ptr + ray, mask=active, other=0.0))
     hit = hit & (t > tl.load(t_min_ptr + ray, mask=active, other=0.0)) & active
     nx, ny, nz = _column(out, cols, 2), _column(out, cols, 3), _column(out, cols, 4)
-    norm = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)  # F.normalize's eps
-    nx, ny, nz = tl.where(hit, nx / norm, 0.0), tl.where(hit, ny / norm, 0.0), tl.where(hit, nz / norm, 0.0)
+    # F.normalize (eps 1e-12), correctly rounded as torch's (Triton's plain sqrt and / are approximate on GPUs)
+    norm = tl.maximum(tl.sqrt_rn(nx * nx + ny * ny + nz * nz), 1e-12)
+    nx, ny, nz = tl.div_rn(nx, norm), tl.div_rn(ny, norm), tl.div_rn(nz, norm)
+    nx, ny, nz = tl.where(hit, nx, 0.0), tl.where(hit, ny, 0.0), tl.where(hit, nz, 0.0)
     material = tl.zeros([BLOCK], tl.int64)
     if MATERIALS > 1:  # argmax, the first of equal logits
         best = _column(out, cols, 8)
