@@ -187,3 +187,17 @@ def test_row_chunks_on_threads_give_the_same_image(tmp_path):
         numba.set_num_threads(threads)
     np.testing.assert_array_equal(several.image, one.image)
     np.testing.assert_array_equal(several.depth, one.depth)
+
+
+def test_stages_are_chosen_by_device(tmp_path):
+    """auto: numba kernels for a CPU scene (torch for any other device); numba refuses a non-CPU scene."""
+    from types import SimpleNamespace
+
+    from neuralrt.render.integrator import IntegratorSettings
+    from neuralrt.render.shading_stages import NumbaShadingStages, TorchShadingStages, shading_stages_for
+
+    scene = build_scene(_furnace(tmp_path))
+    assert isinstance(shading_stages_for(scene, IntegratorSettings()), NumbaShadingStages)
+    assert isinstance(shading_stages_for(scene, IntegratorSettings(), "torch"), TorchShadingStages)
+    with pytest.raises(ValueError, match="run on the CPU"):
+        shading_stages_for(SimpleNamespace(device=torch.device("meta")), IntegratorSettings(), "numba")
