@@ -159,3 +159,30 @@ def test_fp32_answers_do_not_depend_on_the_thread_split(figure):
     keep = whole.active >= 7
     torch.testing.assert_close(part.values, whole.values[keep], atol=1e-6, rtol=1e-6)  # GEMMs of another size
     assert np.array_equal(part.active.numpy() + 7, whole.active[keep].numpy())
+
+
+def test_face_point_hashing_equals_the_encoders():
+    """The branch-free face-point path reads the same table rows with the same weights as the encoder's."""
+    import numba
+
+    from neuralrt.methods.lsnif_fused_cpu import _face_point_level
+    from neuralrt.neural.sparse_hash_grid import _point_level
+
+    @numba.njit
+    def both(points, codes, res, mask, base):
+        out = np.zeros((len(codes), 2, 8), np.int64)
+        w = np.zeros((len(codes), 2, 8), np.float32)
+        for i in range(len(codes)):
+            p = points[i]
+            _point_level(p[0], p[1], p[2], codes[i], res, mask, base, out[i, 0], w[i, 0])
+            _face_point_level(p[0], p[1], p[2], codes[i], res, mask, base, out[i, 1], w[i, 1])
+        return out, w
+
+    rng = np.random.default_rng(2)
+    points = rng.random((3000, 3)).astype(np.float32)
+    codes = rng.integers(0, 3, 3000).astype(np.int8)
+    points[np.arange(3000), codes] = rng.integers(0, 33, 3000) / np.float32(32)  # on a voxel face plane
+    points[:10] = [0.0, 1.0, 1.0]  # box corners: clamped at both ends
+    slots, weights = both(points, codes, 64, 4095, 4096)
+    assert np.array_equal(slots[:, 0], slots[:, 1]) and np.array_equal(weights[:, 0], weights[:, 1])
+    assert len(np.unique(slots[:, 0, :4])) > 2000

@@ -35,10 +35,12 @@ from numba.extending import intrinsic
 from torch import Tensor
 
 from ..neural.mlp import MLP
-from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
+from ..neural.sparse_hash_grid import HASH_PRIMES, SparseHashGrid, _point_level
 from .lsnif_features import ORIGIN_POINT, _check_rays, _emit, _plane_time, _slab, _start_index
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
+
+_P0, _P1, _P2 = HASH_PRIMES
 
 
 @dataclass
@@ -149,6 +151,38 @@ def _prefetch_row(typingctx, array, row):
     return types.void(array, row), codegen
 
 
+@numba.njit(cache=True, inline="always")
+def _face_point_level(px, py, pz, code, res, mask, base, slots, weights):
+    """`_point_level` for a face point (code 0/1/2), without branches on the face axis (it changes
+    from point to point along a ray, so branches on it mispredict). Same slots, same weights."""
+    one = np.float32(1.0)
+    r = np.float32(res)
+    pa = px if code == 0 else (py if code == 1 else pz)  # on the face plane
+    pu = py if code == 0 else px  # the two in-plane axes, in x, y, z order
+    pv = py if code == 2 else pz
+    prime_a = _P0 if code == 0 else (_P1 if code == 1 else _P2)
+    prime_u = _P1 if code == 0 else _P0
+    prime_v = _P1 if code == 2 else _P2
+    a = np.int64(min(max(int(np.rint(pa * r)), 0), res)) * prime_a
+    fu = pu * r
+    iu = min(max(int(np.floor(fu)), 0), res - 1)
+    wu = fu - np.float32(iu)
+    fv = pv * r
+    iv = min(max(int(np.floor(fv)), 0), res - 1)
+    wv = fv - np.float32(iv)
+    u0, u1 = np.int64(iu) * prime_u, np.int64(iu + 1) * prime_u
+    v0, v1 = np.int64(iv) * prime_v, np.int64(iv + 1) * prime_v
+    slots[0] = base + ((a ^ u0 ^ v0) & mask)
+    slots[1] = base + ((a ^ u1 ^ v0) & mask)
+    slots[2] = base + ((a ^ u0 ^ v1) & mask)
+    slots[3] = base + ((a ^ u1 ^ v1) & mask)
+    weights[0] = (one - wu) * (one - wv)
+    weights[1] = wu * (one - wv)
+    weights[2] = (one - wu) * wv
+    weights[3] = wu * wv
+    return 4
+
+
 @numba.njit(cache=True, fastmath={"contract"})
 def _add_inputs(acc, w1, xs, n_inputs):
     """``acc += xs[:n] @ w1[:n]``, eight inputs per pass over ``acc`` (it stays in registers for
@@ -227,7 +261,10 @@ def _fused_kernel(
                     px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
                     code = axes[g, h]
                     for lvl in range(n_levels):
-                        k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
+                        if code == ORIGIN_POINT:
+                            k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
+                        else:
+                            k = _face_point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
                         reads[e] = k
                         for c in range(k):  # the reads come after the whole group's walk: start them now
                             _prefetch_row(table, slots[e, c])
