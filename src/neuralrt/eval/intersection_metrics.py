@@ -92,8 +92,7 @@ def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple
     """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
     idx = torch.arange(camera.num_pixels)
     rays = camera.generate_rays(idx, torch.full((len(idx), 2), 0.5))
-    device = blas.device if is_neural(blas) else rays.device
-    hits = blas.intersect(rays.to(device)).to("cpu")
+    hits = blas.intersect(rays.to(getattr(blas, "device", rays.device))).to("cpu")  # cameras make CPU rays
     h, w = camera.height, camera.width
     n = face_forward(torch.nn.functional.normalize(hits.normal, dim=-1), rays.directions) if len(hits) else hits.normal
     normal_img = torch.where(hits.hit[:, None], 0.5 + 0.5 * n, torch.zeros_like(n)).reshape(h, w, 3)
@@ -112,7 +111,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
     ranges = []
     for cam in cams:
         rays = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
-        h = exact.intersect(rays)
+        h = exact.intersect(rays.to(exact.device)).to("cpu")
         if h.hit.any():
             ranges.append((float(h.t[h.hit].min()), float(h.t[h.hit].max())))
     near = min((r[0] for r in ranges), default=0.0)
