@@ -186,3 +186,14 @@ def test_face_point_hashing_equals_the_encoders():
     slots, weights = both(points, codes, 64, 4095, 4096)
     assert np.array_equal(slots[:, 0], slots[:, 1]) and np.array_equal(weights[:, 0], weights[:, 1])
     assert len(np.unique(slots[:, 0, :4])) > 2000
+
+
+def test_hidden_buffer_is_reused_per_thread_and_large_ones_are_not_kept():
+    from neuralrt.methods import lsnif_fused_cpu as fused
+
+    a = fused._hidden_buffer(100, 16, np.uint16)
+    b = fused._hidden_buffer(50, 16, np.uint16)
+    assert b.base is a.base or np.shares_memory(a, b)  # the same memory, no new pages to fault in
+    big = fused._hidden_buffer(fused._KEPT_BYTES // 16 + 1, 4, np.float32)
+    again = fused._hidden_buffer(10, 4, np.float32)
+    assert big.shape == (fused._KEPT_BYTES // 16 + 1, 4) and not np.shares_memory(big, again)

@@ -308,12 +308,15 @@ def _fused_kernel(
 
 
 _scratch = threading.local()
+_KEPT_BYTES = 64 << 20  # larger buffers are allocated per call rather than kept by the thread
 
 
 def _hidden_buffer(rows: int, width: int, dtype) -> np.ndarray:
     """A ``[rows, width]`` buffer for the first hidden layer, reused across calls on this thread:
     a fresh one costs a page fault per 4 KiB on first touch (measured: ~25% of a call); nothing
     outside a call keeps a reference to it (its rows are copied out by the gather)."""
+    if rows * width * np.dtype(dtype).itemsize > _KEPT_BYTES:  # e.g. 2^20-ray chunks: not kept
+        return np.empty((rows, width), dtype)
     key = (width, np.dtype(dtype).str)
     buffer = getattr(_scratch, "buffers", {}).get(key)
     if buffer is None or buffer.shape[0] < rows:
