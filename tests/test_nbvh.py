@@ -315,3 +315,27 @@ def test_material_slots_are_learned(ball):
     both = exact.hit & neural.hit
     assert (neural.material_id[both] == exact.material_id[both]).float().mean() > 0.9
     assert set(neural.material_id[neural.hit].tolist()) == {0, 1}
+
+
+def test_cli_train_info_eval(ball, tmp_path, capsys):
+    import json
+
+    import trimesh
+
+    from neuralrt.cli import main
+
+    mesh_path = tmp_path / "ball.obj"
+    trimesh.Trimesh(ball.vertices, ball.faces).export(mesh_path)
+    model = tmp_path / "ball.nrt"
+    base = ["train", str(mesh_path), "-o", str(model), "--method", "nbvh", "--batch", "1024", "--quiet", "--json"]
+    assert main([*base, "--steps", "10"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(model), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["method"] == "nbvh" and set(info["memory_parts"]) == {"hash_table", "mlp", "nodes"}
+    assert info["memory_parts"]["hash_table"] == sum(min((8 * 2**lvl) ** 3, 2**16) for lvl in range(8)) * 4 * 2
+    assert main(["eval", str(model), str(mesh_path), "--rays", "2048", "--no-images", "--json"]) == 0
+    metrics = json.loads(capsys.readouterr().out)
+    assert metrics["outside"]["true_hit_fraction"] > 0.2 and 0 <= metrics["outside"]["accuracy"] <= 1
+    assert main(["train", str(mesh_path), "-o", str(model), "--method", "nbvh", "--preset", "nope"]) == 2
+    assert capsys.readouterr().err.strip().startswith("neuralrt: error: unknown nbvh preset")
