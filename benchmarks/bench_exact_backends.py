@@ -21,12 +21,12 @@ import time
 from importlib import metadata
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import RESULTS_DIR, print_table, write_results  # noqa: E402
+from bench_mesh_blas import random_rays  # noqa: E402
 
 from neuralrt.accel.mesh_blas import EmbreeMeshBLAS, MeshBLAS  # noqa: E402
 from neuralrt.accel.mesh_blas_attributes import closest_hit_records  # noqa: E402
@@ -46,14 +46,8 @@ ATTR_FLOOR_BYTES_PER_RAY = 32 + 73
 
 def sphere_rays(mesh: Mesh, n: int, seed: int = 0) -> Rays:
     """Origins uniform on a sphere around the mesh (1.5x its bounding radius), aimed at uniform
-    points of its bounding box; t in [0, inf). CPU tensors."""
-    rng = np.random.default_rng(seed)
-    lo, hi = (b.astype(np.float64) for b in mesh.bounds)
-    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    u = rng.normal(size=(n, 3))
-    origins = centre + 1.5 * radius * u / np.linalg.norm(u, axis=1, keepdims=True)
-    targets = lo + rng.uniform(size=(n, 3)) * (hi - lo)
-    return Rays(torch.from_numpy(origins.astype(np.float32)), torch.from_numpy((targets - origins).astype(np.float32)))
+    points of its bounding box; t in [0, inf). CPU tensors (bench_mesh_blas's rays)."""
+    return random_rays(mesh, n, seed)
 
 
 def synchronize(device: torch.device) -> None:

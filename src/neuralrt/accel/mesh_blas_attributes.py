@@ -12,8 +12,9 @@ from torch import Tensor
 
 from ..geometry.mesh import Mesh
 from ..rays import Hits
+from ..render.materials import sample_texture  # the renderer's lookup: exact hits shade as the renderer samples
 
-__all__ = ["MeshAttributeTables", "closest_hit_records", "sample_texture_bilinear_torch"]
+__all__ = ["MeshAttributeTables", "closest_hit_records"]
 
 _NORMAL_EPS = 1e-12  # as mesh_blas_kernels: below it the interpolated normal counts as vanished
 
@@ -87,7 +88,7 @@ def closest_hit_records(tables: MeshAttributeTables, prim: Tensor, t: Tensor, ba
     albedo = base[material.clamp(0, base.shape[0] - 1)]
     for k, entry in enumerate(tables.mesh.materials):
         if entry.texture is not None:
-            textured = albedo * sample_texture_bilinear_torch(tables.texture(entry.texture), uv)
+            textured = albedo * sample_texture(tables.texture(entry.texture), uv)
             albedo = torch.where((material == k)[:, None], textured, albedo)
     if tables.vertex_colors is not None:
         albedo = albedo * interpolate(tables.vertex_colors)
@@ -105,18 +106,3 @@ def closest_hit_records(tables: MeshAttributeTables, prim: Tensor, t: Tensor, ba
         primitive_id=torch.where(hit, p, minus_one),
         instance_id=minus_one.expand(n).clone(),
     )
-
-
-def sample_texture_bilinear_torch(texture: Tensor, uv: Tensor) -> Tensor:
-    """Bilinear lookup with wrap-around; ``texture`` [H, W, 3] row 0 is v = 1 (image convention).
-    The torch twin of `mesh_blas.sample_texture_bilinear`."""
-    h, w = texture.shape[:2]
-    x = (uv[:, 0] % 1.0) * w - 0.5
-    y = (1.0 - uv[:, 1] % 1.0) * h - 0.5
-    x0f, y0f = torch.floor(x), torch.floor(y)
-    fx, fy = (x - x0f)[:, None], (y - y0f)[:, None]
-    x0, y0 = x0f.long() % w, y0f.long() % h
-    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-    top = texture[y0, x0] * (1 - fx) + texture[y0, x1] * fx
-    bottom = texture[y1, x0] * (1 - fx) + texture[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
