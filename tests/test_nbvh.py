@@ -339,3 +339,65 @@ def test_cli_train_info_eval(ball, tmp_path, capsys):
     assert metrics["outside"]["true_hit_fraction"] > 0.2 and 0 <= metrics["outside"]["accuracy"] <= 1
     assert main(["train", str(mesh_path), "-o", str(model), "--method", "nbvh", "--preset", "nope"]) == 2
     assert capsys.readouterr().err.strip().startswith("neuralrt: error: unknown nbvh preset")
+
+
+def test_secondary_lod_view_resolution(ball):
+    """`views_for_rays`: the coarsest registered LoD up to ``secondary_lod``, a shared-parameter view made once."""
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", inference={"secondary_lod": 1}))
+    _random_cut(model, 0)  # registers LoDs 0 and 3
+    assert model.views_for_rays() == (model, model)  # nothing registered in (0, 1]
+    model.config = model.config.model_copy(update={"inference": model.config.inference.model_copy(update={"secondary_lod": 5})})
+    camera, other = model.views_for_rays()
+    assert camera is model and other is not model and other.config.inference.lod == 3 and model.config.inference.lod == 0
+    assert other is model.at_lod(3) and other.memory_owner is model and model.memory_owner is model
+    assert other.encoder is model.encoder and other.node_lod is model.node_lod  # no bytes copied
+    assert other.views_for_rays()[1] is other and model.at_lod(0) is model
+    model.config = model.config.model_copy(update={"inference": model.config.inference.model_copy(update={"secondary_lod": None})})
+    assert model.views_for_rays() == (model, model)
+
+
+def test_scene_answers_camera_rays_finest_and_other_rays_coarser(ball, trained, tmp_path):
+    """In a scene, camera rays use LoD 0 and all others the default secondary LoD 1; memory counts the model once."""
+    import warnings
+
+    from neuralrt.scene.loader import load_dict
+    from neuralrt.scene.memory import scene_memory
+
+    model, _, _ = trained
+    assert model.config.inference.secondary_lod == 1 and bool(model.registered[1])
+    coarse = model.at_lod(1)
+    rays = _sphere_rays(4096, 21)
+    ones = torch.ones(len(rays), dtype=torch.int8)
+    dil = torch.zeros(len(rays))
+    o = (rays.origins - model.unit_lo) / model.unit_scale
+    d = torch.nn.functional.normalize(rays.directions, dim=1)
+    t_max = torch.full((len(rays),), 1e9)
+    fine_leaves, coarse_leaves = (len(model.leaf_list(o, d, t_max, ones * lvl, dil).node) for lvl in (0, 1))
+    assert coarse_leaves < fine_leaves  # the coarser cut: fewer leaves to query
+    fine_hits, coarse_hits = model.intersect(rays), coarse.intersect(rays)
+    assert not torch.equal(fine_hits.t, coarse_hits.t)
+
+    spec = {"camera": {"position": [0, 0, 12], "resolution": [8, 8]}, "objects": [{"mesh": ball, "model": model}]}
+    for primary in ("neural", "exact"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scene = load_dict(spec, primary=primary)
+        inst = scene.accel.instances[0]
+        assert inst.blas is coarse
+        assert inst.camera_blas is model if primary == "neural" else isinstance(inst.camera_blas, MeshBLAS)
+        camera, other = scene.accel.intersect(rays, camera_rays=True), scene.accel.intersect(rays)
+        assert torch.equal(other.hit, coarse_hits.hit) and torch.allclose(other.t[other.hit], coarse_hits.t[coarse_hits.hit])
+        if primary == "neural":
+            assert torch.equal(camera.hit, fine_hits.hit) and torch.allclose(camera.t[camera.hit], fine_hits.t[fine_hits.hit])
+        memory = scene_memory(scene)
+        assert memory.neural_bytes == model.memory_bytes().total
+        assert scene.accel.memory_bytes().total == memory.instances_bytes + memory.neural_bytes + memory.camera_bytes
+        if primary == "neural":
+            assert memory.camera_bytes == 0 and memory.replaced_bytes is None and len(scene.accel.unique_blases) == 1
+    # secondary_lod None: the model itself answers every ray, as before the hook.
+    plain = load_model(model.save(tmp_path / "ball.nrt"))
+    plain.config = plain.config.model_copy(update={"inference": plain.config.inference.model_copy(update={"secondary_lod": None})})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        inst = load_dict({**spec, "objects": [{"mesh": ball, "model": plain}]}, primary="neural").accel.instances[0]
+    assert inst.blas is plain and inst.camera_blas is None

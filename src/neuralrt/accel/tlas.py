@@ -107,8 +107,8 @@ class SceneAccel:
         seen: dict[int, BLAS] = {}
         for inst in self.instances:
             for b in (inst.blas, inst.camera_blas):
-                if b is not None:
-                    seen.setdefault(id(b), b)
+                if b is not None:  # a view of a neural model (e.g. another LoD) shares its model's bytes
+                    seen.setdefault(id(getattr(b, "memory_owner", b)), b)
         return list(seen.values())
 
     def _check_device(self, rays: Rays) -> None:

@@ -35,7 +35,7 @@ from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
 from ..rays import AABB, Hits, Rays
 from .config import MethodConfig
 
-__all__ = ["NeuralBLAS", "is_neural", "check_mesh_match", "MeshMismatchWarning", "material_table"]
+__all__ = ["NeuralBLAS", "is_neural", "ray_views", "memory_owner", "check_mesh_match", "MeshMismatchWarning", "material_table"]
 
 DEFAULT_MATERIALS = [{"name": "default", "base_color": [1.0, 1.0, 1.0]}]
 
@@ -47,6 +47,19 @@ class MeshMismatchWarning(UserWarning):
 def is_neural(blas) -> bool:
     """Whether ``blas`` answers rays with a trained model (the one place that decides it)."""
     return isinstance(blas, NeuralBLAS)
+
+
+def ray_views(blas) -> tuple:
+    """(camera_blas, other_blas): what answers an object's camera rays and every other ray
+    (`NeuralBLAS.views_for_rays`); a BLAS without the hook answers both itself."""
+    views = getattr(blas, "views_for_rays", None)
+    return views() if views is not None else (blas, blas)
+
+
+def memory_owner(blas):
+    """The object whose bytes ``blas`` reports: a view sharing a model's parameters names the model,
+    so that a scene counts them once (`NeuralBLAS.memory_owner`); any other BLAS is its own owner."""
+    return getattr(blas, "memory_owner", blas)
 
 
 def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = False, label: str = "") -> None:
@@ -141,6 +154,17 @@ class NeuralBLAS(nn.Module, ABC):
         tc = self.config.training
         return BoxRayDistribution(truth, self.box, surface_fraction=tc.surface_fraction, pool_size=tc.surface_pool_size,
                                   surface_offset=tc.surface_offset, seed=tc.seed, device=device)
+
+    def views_for_rays(self) -> tuple["NeuralBLAS", "NeuralBLAS"]:
+        """(camera_blas, other_blas) a scene registers for this model: what answers camera rays and
+        what answers every other ray (e.g. N-BVH's coarser level of detail after the first bounce).
+        Views share this model's parameters (`memory_owner`). Default: the model answers both."""
+        return self, self
+
+    @property
+    def memory_owner(self) -> "NeuralBLAS":
+        """The model whose parameters this object uses (itself, unless it is a view of another)."""
+        return self.__dict__.get("_view_of") or self
 
     # -- common properties -------------------------------------------------------------------------
     @property

@@ -20,6 +20,7 @@ the registered cuts (`nbvh_cut.compact`), the hash table and the MLP.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import ClassVar
 
@@ -96,6 +97,7 @@ class NBVHModel(NeuralBLAS):
         self._batch: tuple[Tensor, Tensor | None] | None = None  # (leaf per sample, chord fractions) of the batch being trained
         self._batch_losses: Tensor | None = None
         self._h: Tensor | None = None
+        self._lod_views: dict[int, NBVHModel] = {}
 
     # -- construction ----------------------------------------------------------------------------
     @classmethod
@@ -168,6 +170,37 @@ class NBVHModel(NeuralBLAS):
 
     def live_nodes(self) -> int:
         return 2 * int(self.live.sum()) - 1
+
+    # -- levels of detail in a scene -----------------------------------------------------------------
+    def registered_lods(self) -> list[int]:
+        return [lvl for lvl in range(7) if bool(self.registered[lvl])]
+
+    def at_lod(self, lod: int) -> "NBVHModel":
+        """A view of this model answering rays with the cut of LoD ``lod``: it shares every parameter
+        and buffer (a shallow copy with its own config), reports this model as `memory_owner`, and is
+        made once per LoD (instances of one model share it)."""
+        if not 0 <= lod <= 6:
+            raise ValueError(f"N-BVH level of detail must be in 0..6, got {lod}")
+        if lod == self.config.inference.lod:
+            return self
+        owner = self.memory_owner
+        if owner is not self:
+            return owner.at_lod(lod)
+        if lod not in self._lod_views:
+            view = copy.copy(self)  # shares _parameters/_buffers/_modules: no bytes copied
+            view.config = self.config.model_copy(update={"inference": self.config.inference.model_copy(update={"lod": lod})})
+            object.__setattr__(view, "_view_of", self)  # not nn.Module.__setattr__: a model is no submodule of its view
+            self._lod_views[lod] = view
+        return self._lod_views[lod]
+
+    def views_for_rays(self) -> tuple["NBVHModel", "NBVHModel"]:
+        """(this model, the view at ``inference.secondary_lod``): camera rays get the configured cut,
+        every other ray the coarsest registered LoD up to ``secondary_lod`` (never finer than ``lod``)."""
+        inf = self.config.inference
+        if inf.secondary_lod is None or inf.secondary_lod <= inf.lod:
+            return self, self
+        coarser = [lvl for lvl in self.registered_lods() if inf.lod < lvl <= inf.secondary_lod]
+        return (self, self.at_lod(max(coarser))) if coarser else (self, self)
 
     # -- network -------------------------------------------------------------------------------------
     def _query(self, origins: Tensor, directions: Tensor, a: Tensor, b: Tensor, fractions: Tensor, compute_dtype) -> Tensor:

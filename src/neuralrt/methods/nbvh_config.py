@@ -82,6 +82,7 @@ class NBVHTrainingConfig(TrainingConfig):
 
 class NBVHInferenceConfig(InferenceConfig):
     lod: int = Field(0, ge=0, le=6, description="level of detail of the cut that answers rays (0: finest)")
+    secondary_lod: int | None = Field(1, ge=0, le=6, description="in a scene, the level of detail that answers every ray but camera rays (paper Sec. 7.1: a coarser cut after the first bounce); the coarsest registered LoD up to it, never finer than `lod`; None: `lod` for every ray")
     box_dilation: float = Field(1e-5, ge=0.0, description="leaf boxes grow by this (unit cube) at inference")
     max_steps: int = Field(1000, ge=1, description="wavefront steps (leaves per ray) at most")
 

@@ -293,7 +293,7 @@ def replaced_memory(scene) -> dict:
     that their meshes (kept for camera rays, each once) would need instead."""
     from ..accel.classical_memory import classical_memory
 
-    meshes = {id(i.camera_blas): i.camera_blas.mesh for i in scene.accel.instances if i.camera_blas is not None}
+    meshes = {id(i.camera_blas): i.camera_blas.mesh for i in scene.accel.instances if i.camera_blas is not None and not is_neural(i.camera_blas)}
     classical = [classical_memory(mesh) for mesh in meshes.values()]
     return {
         "neural_bytes": neural_bytes(scene),

@@ -25,7 +25,7 @@ from ..errors import NeuralRTError, SceneError
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import resolve_device
-from ..methods.base import check_mesh_match
+from ..methods.base import check_mesh_match, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -267,7 +267,11 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
             slots = _material_names(blas, label, key)
             if is_emissive(spec, obj, slots):
                 raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
-            camera_blas = shape.blas if shape is not None and primary == "exact" else None
+            camera_view, blas = ray_views(blas)  # e.g. N-BVH: a coarser LoD for all but camera rays
+            if shape is not None and primary == "exact":
+                camera_blas = shape.blas
+            else:
+                camera_blas = camera_view if camera_view is not blas else None
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map(obj, slots, index)),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)

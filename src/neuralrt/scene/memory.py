@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..methods.base import is_neural
+
 __all__ = ["SceneMemory", "scene_memory"]
 
 
@@ -62,9 +64,10 @@ def scene_memory(scene) -> SceneMemory:
         has_model = [inst.camera_blas is not None for inst in instances]
     exact = {id(i.blas): i.blas for i, m in zip(instances, has_model) if not m}
     neural = {id(i.blas): i.blas for i, m in zip(instances, has_model) if m and id(i.blas) not in exact}
-    camera = {id(i.camera_blas): i.camera_blas for i, m in zip(instances, has_model)
-              if m and i.camera_blas is not None and id(i.camera_blas) not in exact}
-    every_mesh_kept = all(i.camera_blas is not None for i, m in zip(instances, has_model) if m)
+    # A neural camera BLAS is a view of the object's model (e.g. N-BVH's finest LoD), counted in `neural`.
+    kept = [i.camera_blas is not None and not is_neural(i.camera_blas) for i in instances]
+    camera = {id(i.camera_blas): i.camera_blas for i, m, k in zip(instances, has_model, kept) if m and k and id(i.camera_blas) not in exact}
+    every_mesh_kept = all(k for k, m in zip(kept, has_model) if m)
 
     def total(blases: dict) -> int:
         return int(sum(b.memory_bytes().total for b in blases.values()))
