@@ -75,6 +75,10 @@ class BoxRayDistribution:
         device: where rays, hits and the pool live (default: cpu).
     """
 
+    # Batches depend only on the distribution's own generator and pool, never on the model, so
+    # the training loop may draw the next one while the network runs (`BatchSource`).
+    model_independent = True
+
     def __init__(
         self,
         truth: BLAS,

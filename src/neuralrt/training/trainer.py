@@ -22,6 +22,7 @@ from torch import nn
 
 from ..errors import ModelFileError
 from ..io.model_file import read_model_file, write_model_file
+from .prefetch import BatchSource
 
 __all__ = ["TrainingRecord", "train_model", "CHECKPOINT_METHOD"]
 
@@ -128,6 +129,7 @@ def train_model(
     description: str = "train",
     on_step: Callable[[int, torch.optim.Optimizer], None] | None = None,
     record: TrainingRecord | None = None,
+    overlap_sampling: bool = True,
 ) -> TrainingRecord:
     """Optimise ``model`` for ``steps`` batches from ``sampler``; returns the `TrainingRecord`.
 
@@ -136,6 +138,8 @@ def train_model(
     e.g. mesh hash and config). The learning rate decays exponentially to ``lr_decay_final``
     times its start over the run (1 = constant). ``on_step(step, optimizer)`` runs after each
     optimizer step; ``record`` starts the record (e.g. with the precision and device filled in).
+    With ``overlap_sampling``, a sampler that declares ``model_independent = True`` draws batch
+    k+1 on a background thread while step k runs (same batches, same order; `BatchSource`).
     """
     from tqdm.auto import tqdm
 
@@ -153,12 +157,15 @@ def train_model(
     model.train()
     bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
     step = start
+    batches = BatchSource(sampler, batch_size, overlap=overlap_sampling)
     try:
         for step in range(start, steps):
             for g in opt.param_groups:
                 g["lr"] = learning_rate * gamma**step
+            checkpoint_after = ckpt is not None and (step + 1) % checkpoint_every == 0 and step + 1 < steps
             t0 = time.perf_counter()
-            batch = sampler.sample(batch_size)
+            # Not ahead of a checkpoint: the saved sampler state must be the one before the next batch.
+            batch = batches.next(ahead=step + 1 < steps and not checkpoint_after)
             result = model.training_step(batch.rays, batch.truth)
             opt.zero_grad(set_to_none=True)
             result.loss.backward()
@@ -176,10 +183,11 @@ def train_model(
             if progress and (step % 10 == 0 or step == steps - 1):
                 bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
                                 rays_s=f"{result.count / max(dt, 1e-9):.3g}", **getattr(model, "progress_fields", dict)())
-            if ckpt is not None and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
+            if checkpoint_after:
                 _finish(record, running, step + 1)
                 save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity)
     finally:
+        batches.close()
         bar.close()
     _finish(record, running, steps if steps > start else start)
     if ckpt is not None:
