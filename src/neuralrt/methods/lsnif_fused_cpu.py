@@ -35,7 +35,7 @@ from numba.extending import intrinsic
 from torch import Tensor
 
 from ..neural.mlp import MLP
-from ..neural.sparse_hash_grid import HASH_PRIMES, SparseHashGrid, _point_level
+from ..neural.sparse_hash_grid import HASH_PRIMES, SparseHashGrid, _point_level, face_corners
 from .lsnif_features import ORIGIN_POINT, _check_rays, _emit, _plane_time, _slab, _start_index
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
@@ -155,7 +155,6 @@ def _prefetch_row(typingctx, array, row):
 def _face_point_level(px, py, pz, code, res, mask, base, slots, weights):
     """`_point_level` for a face point (code 0/1/2), without branches on the face axis (it changes
     from point to point along a ray, so branches on it mispredict). Same slots, same weights."""
-    one = np.float32(1.0)
     r = np.float32(res)
     pa = px if code == 0 else (py if code == 1 else pz)  # on the face plane
     pu = py if code == 0 else px  # the two in-plane axes, in x, y, z order
@@ -172,15 +171,7 @@ def _face_point_level(px, py, pz, code, res, mask, base, slots, weights):
     wv = fv - np.float32(iv)
     u0, u1 = np.int64(iu) * prime_u, np.int64(iu + 1) * prime_u
     v0, v1 = np.int64(iv) * prime_v, np.int64(iv + 1) * prime_v
-    slots[0] = base + ((a ^ u0 ^ v0) & mask)
-    slots[1] = base + ((a ^ u1 ^ v0) & mask)
-    slots[2] = base + ((a ^ u0 ^ v1) & mask)
-    slots[3] = base + ((a ^ u1 ^ v1) & mask)
-    weights[0] = (one - wu) * (one - wv)
-    weights[1] = wu * (one - wv)
-    weights[2] = (one - wu) * wv
-    weights[3] = wu * wv
-    return 4
+    return face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights)
 
 
 @numba.njit(cache=True, fastmath={"contract"})

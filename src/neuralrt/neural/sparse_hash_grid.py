@@ -76,6 +76,22 @@ def _axis_terms(p, res, fixed, prime):
 
 
 @numba.njit(cache=True, inline="always")
+def face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights):
+    """The 4 rows and bilinear weights of a face point, from the fixed axis's hash term ``a`` and the
+    in-plane axes' corner terms (u0, u1, v0, v1) and fractions (wu, wv); returns 4."""
+    one = np.float32(1.0)
+    slots[0] = base + ((a ^ u0 ^ v0) & mask)
+    slots[1] = base + ((a ^ u1 ^ v0) & mask)
+    slots[2] = base + ((a ^ u0 ^ v1) & mask)
+    slots[3] = base + ((a ^ u1 ^ v1) & mask)
+    weights[0] = (one - wu) * (one - wv)
+    weights[1] = wu * (one - wv)
+    weights[2] = (one - wu) * wv
+    weights[3] = wu * wv
+    return 4
+
+
+@numba.njit(cache=True, inline="always")
 def _point_level(px, py, pz, code, res, mask, base, slots, weights):
     """Fill ``slots``/``weights`` with the table rows (offset by ``base``) a point reads; returns
     how many: 4 (bilinear on the face cell) for face points, 8 (trilinear) for origin points."""
@@ -102,15 +118,7 @@ def _point_level(px, py, pz, code, res, mask, base, slots, weights):
         a, u0, u1, wu, v0, v1, wv = y0, x0, x1, wx, z0, z1, wz
     else:
         a, u0, u1, wu, v0, v1, wv = z0, x0, x1, wx, y0, y1, wy
-    slots[0] = base + ((a ^ u0 ^ v0) & mask)
-    slots[1] = base + ((a ^ u1 ^ v0) & mask)
-    slots[2] = base + ((a ^ u0 ^ v1) & mask)
-    slots[3] = base + ((a ^ u1 ^ v1) & mask)
-    weights[0] = (one - wu) * (one - wv)
-    weights[1] = wu * (one - wv)
-    weights[2] = (one - wu) * wv
-    weights[3] = wu * wv
-    return 4
+    return face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights)
 
 
 @numba.njit(parallel=True, cache=True)
