@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
+from abc import ABC, abstractmethod
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -84,7 +85,7 @@ def _backend_for(device: torch.device) -> type["MeshBLAS"]:
     return EmbreeMeshBLAS
 
 
-class MeshBLAS:
+class MeshBLAS(ABC):
     """Exact closest-hit and any-hit queries over one triangle mesh, in the mesh's own space.
 
     ``MeshBLAS(mesh, device=None)`` builds the backend for ``device`` (default CPU): an
@@ -123,11 +124,13 @@ class MeshBLAS:
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.mesh.name!r}, {self.mesh.num_triangles} triangles, {self.backend})"
 
+    @abstractmethod
     def intersect(self, rays: Rays) -> Hits:
-        raise NotImplementedError
+        """Closest hit per ray (the backend's)."""
 
+    @abstractmethod
     def occluded(self, rays: Rays) -> Tensor:
-        raise NotImplementedError
+        """[N] bool: any hit within (t_min, t_max) (the backend's)."""
 
     @property
     def material_names(self) -> list[str]:
