@@ -13,7 +13,8 @@ table, giving ``[N, P * L * F]`` features, point-major (point 0's levels, then p
 
 One contract, implementations chosen once by the table's device: fused numba kernels on the CPU
 (forward parallel over rays; the backward scatters into one gradient table per thread, then sums
-them: no atomics), vectorized torch elsewhere (`hash_grid_torch`, autograd through indexing).
+them: no atomics), Triton kernels on CUDA (`hash_grid_triton`: gather forward, atomic-add
+backward), vectorized torch elsewhere (`hash_grid_torch`, autograd through indexing).
 `hash_grid_reference` is a slow scalar transcription of the definition above, for the tests.
 """
 
@@ -254,6 +255,10 @@ class HashGrid(nn.Module):
             raise ValueError(f"expected points [N, P, 3], got {tuple(points.shape)}")
         if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
             return _HashGridFunction.apply(points, self.table, self.layout)
+        if self.table.device.type == "cuda":
+            from .hash_grid_triton import hash_grid_triton
+
+            return hash_grid_triton(points, self.table, self.layout)
         return hash_grid_torch(points, self.table, self.layout)
 
     def extra_repr(self) -> str:

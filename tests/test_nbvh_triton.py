@@ -1,0 +1,72 @@
+"""Triton kernels of N-BVH (hash grid, cut traversal) against the numba kernels and the references.
+
+With a GPU the kernels are compiled for CUDA; without one they run on CPU tensors under Triton's
+interpreter (TRITON_INTERPRET=1, set here before triton is imported), on small inputs. Skipped
+when triton is not installed.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+CUDA = torch.cuda.is_available()
+if not CUDA:
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+pytest.importorskip("triton")
+
+from neuralrt.neural.hash_grid import HashGrid, hash_grid_reference  # noqa: E402
+from neuralrt.neural.hash_grid_triton import hash_grid_triton  # noqa: E402
+
+DEVICE = torch.device("cuda" if CUDA else "cpu")
+# The interpreter computes masked-off lanes too: numpy warns about them.
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
+if not CUDA and os.environ.get("TRITON_INTERPRET") != "1":
+    pytest.skip("no GPU and TRITON_INTERPRET is not 1", allow_module_level=True)
+
+
+# -- hash grid --------------------------------------------------------------------------------------
+
+
+def _points(n, p, seed):
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.rand(n, p, 3, generator=g) * 1.2 - 0.1  # some outside the cube: clamped
+    pts[0, 0] = torch.tensor([1.0, 1.0, 1.0])  # the far corner (clamped vertex index)
+    pts[0, 1] = torch.tensor([0.0, 0.0, 0.0])
+    pts[1, 0] = torch.tensor([0.5, 0.25, 0.75])  # on vertex planes of every level
+    return pts
+
+
+@pytest.mark.parametrize("levels,base,features,log2_table", [(8, 8, 4, 12), (5, 4, 3, 9)])
+def test_triton_hash_grid_matches_numba_and_reference(levels, base, features, log2_table):
+    """N-BVH's 8 levels x 4 features (dense 8^3, 16^3, hashed above at 2^12) and an odd shape."""
+    grid = HashGrid(levels=levels, base_resolution=base, features_per_level=features, log2_table_size=log2_table,
+                    init_scale=1.0, seed=3)  # fmt: skip
+    assert any(grid.layout.dense) and not all(grid.layout.dense)
+    pts = _points(150, 3, 1)
+    numba_out = grid(pts)  # CPU float32: the numba kernel
+    table = grid.table.detach().to(DEVICE).requires_grad_()
+    out = hash_grid_triton(pts.to(DEVICE), table, grid.layout)
+    assert out.shape == numba_out.shape == (150, 3 * levels * features) and out.device == table.device
+    if CUDA:  # fused multiply-adds on the GPU
+        torch.testing.assert_close(out.detach().cpu(), numba_out.detach(), atol=1e-6, rtol=1e-5)
+    else:
+        assert torch.equal(out.detach(), numba_out.detach())
+    ref = hash_grid_reference(pts.numpy(), grid.table.detach().numpy(), grid.layout)
+    # float32 vertex positions x * (res - 1) + 0.5 are rounded to ~res * eps: so are the weights.
+    assert np.abs(out.detach().cpu().numpy() - ref).max() < 2 * np.finfo(np.float32).eps * max(grid.layout.resolutions)
+    # Backward: atomic adds (order varies) against numba's per-thread tables.
+    upstream = torch.randn(numba_out.shape, generator=torch.Generator().manual_seed(4))
+    (g_ref,) = torch.autograd.grad((numba_out * upstream).sum(), grid.table)
+    (g,) = torch.autograd.grad((out * upstream.to(DEVICE)).sum(), table)
+    assert (g_ref != 0).sum() > 200
+    torch.testing.assert_close(g.cpu(), g_ref, atol=1e-5, rtol=1e-5)
+
+
+def test_triton_hash_grid_edge_cases():
+    grid = HashGrid(levels=3, base_resolution=4, features_per_level=4, log2_table_size=6, seed=0)
+    table = grid.table.detach().to(DEVICE)
+    assert hash_grid_triton(torch.zeros(0, 3, 3, device=DEVICE), table, grid.layout).shape == (0, 36)
+    with pytest.raises(ValueError, match="rows"):
+        hash_grid_triton(torch.zeros(2, 3, 3, device=DEVICE), table[:-1], grid.layout)
