@@ -1,0 +1,266 @@
+"""LSNIF and N-BVH side by side on the same meshes: held-out quality, normal-image FLIP, memory
+against BVH A / B, inference rays/s against Embree on the same rays in the same run, training time;
+and quadric decimation (fast-simplification) at the same bytes.
+
+Usage (rows merge into benchmarks/results/NAME.json, so runs can be split and resumed)::
+
+    python benchmarks/bench_methods.py bunny00.off                       # the default variants
+    python benchmarks/bench_methods.py armadillo.off --variants lsnif:hq nbvh:cpu:t15
+    python benchmarks/bench_methods.py bunny00.off --train-only          # only train (models cached)
+    python benchmarks/bench_methods.py --plot                            # results/methods_flip_memory.png
+
+A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
+``procedural:NAME:DETAIL`` (as in bench_lsnif.py). A variant is ``METHOD:PRESET[:tN]``: the
+preset, with ``encoding.log2_table_size = N`` when ``tN`` is given. The defaults are LSNIF ``hq``
+(2 levels x 2^17 entries x 3 features) and N-BVH ``cpu`` at tables 2^15 (about LSNIF ``hq``'s
+bytes), 2^16 and 2^18 (the paper's memory points). Trained models are kept in --models-dir under
+the scene converter's cache names, so bench_scenes.py --models-dir reuses them for the same mesh
+and config; a model found there is not retrained (its recorded training time is reported).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_lsnif import resolve_mesh  # noqa: E402
+from bench_nbvh import inference_speed  # noqa: E402
+
+from neuralrt.accel.classical_memory import classical_memory  # noqa: E402
+from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
+from neuralrt.geometry.mesh import Mesh  # noqa: E402
+from neuralrt.io.files import write_atomically  # noqa: E402
+from neuralrt.methods import get_method, load_model  # noqa: E402
+from neuralrt.training.api import train  # noqa: E402
+
+DEFAULT_VARIANTS = ["lsnif:hq", "nbvh:cpu:t15", "nbvh:cpu:t16", "nbvh:cpu:t18"]
+DEFAULT_MODELS = Path("/tmp/methods-models")
+
+
+def variant_config(variant: str, steps: dict[str, int]):
+    """``METHOD:PRESET[:tN]`` -> (method, config); ``steps`` maps a method to its training steps."""
+    method, preset, *rest = variant.split(":")
+    cfg = get_method(method).config(preset, steps=steps.get(method))
+    if rest:
+        data = cfg.model_dump()
+        data["encoding"]["log2_table_size"] = int(rest[0].removeprefix("t"))
+        cfg = type(cfg).model_validate(data)
+    return method, cfg
+
+
+def cached_model_path(mesh: Mesh, cfg, models_dir: Path) -> Path:
+    """The scene converter's cache name for (mesh, config), so its scenes reuse these models."""
+    from neuralrt.scene.convert import _config_hash, _safe_name  # its naming, not a copy of it
+
+    return models_dir / f"{_safe_name(mesh.name)}-{mesh.content_hash()[:10]}-{_config_hash(cfg)[:8]}.nrt"
+
+
+def train_or_load(mesh: Mesh, cfg, models_dir: Path, quiet: bool):
+    """(model, training info): the cached model when its file matches, else a freshly trained one
+    (the wall time and the load average before/after are kept beside it in ``*.train.json``)."""
+    from neuralrt.scene.convert import _cached_model_is_valid
+
+    path = cached_model_path(mesh, cfg, models_dir)
+    side = path.with_suffix(".train.json")
+    if _cached_model_is_valid(path, mesh.content_hash(), cfg) and side.is_file():
+        return load_model(path), {**json.loads(side.read_text()), "reused_model": str(path)}
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    model = train(mesh, cfg, progress=not quiet)
+    info = {"wall_seconds_incl_setup": time.perf_counter() - t0,
+            "load_average_1min_before_after": [load_before[0], os.getloadavg()[0]]}
+    models_dir.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    write_atomically(side, lambda tmp: Path(tmp).write_text(json.dumps(info)))
+    return model, info
+
+
+def measure_model(spec: str, mesh: Mesh, classical: dict, variant: str, model, train_info: dict, args) -> dict:
+    exact = MeshBLAS(mesh)
+    metrics = evaluate_model(model, mesh, rays=args.eval_rays, resolution=args.image_resolution)
+    memory = model.memory_bytes().as_dict()
+    row = {
+        "mesh": spec, "triangles": mesh.num_triangles, "variant": variant, "method": model.config.method,
+        "config": model.config.model_dump(mode="json"),
+        "training": {**model.training_record, **train_info},
+        "metrics": metrics, "memory": memory,
+        "bytes": memory["total"], "over_bvh_a": memory["total"] / classical["bvh_a_bytes"],
+        "over_bvh_b": memory["total"] / classical["bvh_b_bytes"],
+    }
+    if getattr(model, "num_nodes", None) is not None:
+        row["nodes"] = int(model.num_nodes)
+    if args.inference_rays:
+        speed = inference_speed(model, exact, args.inference_rays, args.repeats, torch.device("cpu"))
+        row["inference"] = {"rays": speed["rays"], "neural_rays_per_s": speed["nbvh_rays_per_s"],
+                            "neural_occluded_rays_per_s": speed["nbvh_occluded_rays_per_s"],
+                            "embree_rays_per_s": speed["exact_rays_per_s"], "vs_embree": speed["speedup_vs_exact"]}
+    return row
+
+
+def decimated_mesh(mesh: Mesh, target_bytes: int, tolerance: float = 0.05) -> tuple[Mesh, dict]:
+    """Quadric decimation of ``mesh`` whose mesh bytes + BVH A bytes are within ``tolerance`` of
+    ``target_bytes`` (the triangle count is corrected a few times: bytes per triangle vary a little)."""
+    import fast_simplification
+
+    full = classical_memory(mesh)
+    per_triangle = (full.mesh_bytes + full.bvh_a_bytes) / mesh.num_triangles
+    target = max(4, int(target_bytes / per_triangle))
+    for _ in range(4):
+        reduction = min(max(1.0 - target / mesh.num_triangles, 0.0), 0.9999)
+        points, faces = fast_simplification.simplify(mesh.vertices, mesh.faces, target_reduction=reduction)
+        out = Mesh(vertices=np.ascontiguousarray(points, np.float32), faces=np.ascontiguousarray(faces, np.int32),
+                   name=f"{mesh.name}-decimated")
+        mem = classical_memory(out)
+        got = mem.mesh_bytes + mem.bvh_a_bytes
+        if abs(got / target_bytes - 1.0) <= tolerance or reduction == 0.0:
+            break
+        target = max(4, int(out.num_triangles * target_bytes / got))
+    return out, {**mem.as_dict(), "bytes": got, "target_bytes": target_bytes}
+
+
+def measure_decimation(spec: str, mesh: Mesh, target_bytes: int, label: str, args) -> dict:
+    small, mem = decimated_mesh(mesh, target_bytes)
+    metrics = evaluate_model(MeshBLAS(small), mesh, rays=args.eval_rays, resolution=args.image_resolution)
+    return {"mesh": spec, "triangles": mesh.num_triangles, "variant": f"decimate@{label}", "method": "decimation",
+            "kept_triangles": small.num_triangles, "metrics": metrics, "memory": mem, "bytes": mem["bytes"]}
+
+
+COLUMNS = ["mesh", "variant", "steps", "nodes", "train_s", "load", "acc_out", "t_err_med", "n_err_deg_med", "acc_surf",
+           "flip_normal", "bytes_mb", "vs_bvh_a", "vs_bvh_b", "rays_per_s", "occl_rays_per_s", "embree_rays_per_s", "vs_embree"]
+
+
+def summary_row(r: dict) -> dict:
+    m, tr, inf = r["metrics"], r.get("training", {}), r.get("inference", {})
+    return {
+        "mesh": r["mesh"], "variant": r["variant"], "steps": tr.get("steps"), "nodes": r.get("nodes", r.get("kept_triangles")),
+        "train_s": tr.get("seconds"), "load": max(tr["load_average_1min_before_after"]) if tr else None,
+        "acc_out": m["outside"]["accuracy"], "t_err_med": m["outside"]["t_error_median"],
+        "n_err_deg_med": m["outside"]["normal_error_deg_median"], "acc_surf": m["surface"]["accuracy"],
+        "flip_normal": m["images"]["normal_flip"], "bytes_mb": r["bytes"] / 2**20,
+        "vs_bvh_a": r.get("over_bvh_a"), "vs_bvh_b": r.get("over_bvh_b"),
+        "rays_per_s": inf.get("neural_rays_per_s"), "occl_rays_per_s": inf.get("neural_occluded_rays_per_s"),
+        "embree_rays_per_s": inf.get("embree_rays_per_s"), "vs_embree": inf.get("vs_embree"),
+    }
+
+
+def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
+    """FLIP against bytes: per mesh, LSNIF / N-BVH (table sizes) / decimation; per scene from the scenes JSON."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    meshes = list(dict.fromkeys(r["mesh"] for r in runs.values()))
+    scene_rows = json.loads(scenes_json.read_text())["rows"] if scenes_json and scenes_json.is_file() else []
+    scene_rows = [r for r in scene_rows if any(k.startswith("flip_decimate") for k in r)]
+    panels = len(meshes) + len(scene_rows)
+    fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.6), dpi=110, squeeze=False)
+    style = {"lsnif": ("o", "C0", "LSNIF"), "nbvh": ("s", "C1", "N-BVH"), "decimation": ("^", "C2", "decimation")}
+    for ax, mesh in zip(axes[0], meshes):
+        rows = [r for r in runs.values() if r["mesh"] == mesh]
+        for method, (marker, color, label) in style.items():
+            pts = sorted((r["bytes"] / 2**20, r["metrics"]["images"]["normal_flip"], r["variant"]) for r in rows if r["method"] == method)
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=color, label=label,
+                    linestyle="-" if method != "lsnif" else "none")
+            for x, y, v in pts:
+                if method != "decimation":
+                    ax.annotate(v.split(":", 1)[1], (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color=color)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(mesh.replace("procedural:", ""), fontsize=9)
+        ax.set_xlabel("bytes [MiB]")
+    for ax, r in zip(axes[0][len(meshes):], scene_rows):
+        for key, value in r.items():
+            if not key.startswith("flip_") or key == "flip_floor":
+                continue
+            label = key.removeprefix("flip_")
+            method = "decimation" if label.startswith("decimate") else ("nbvh" if label.startswith("nbvh") else "lsnif")
+            marker, color, _ = style[method]
+            ax.scatter(r[f"neural_{label}_bytes"] / 2**20, value, marker=marker, color=color)
+            ax.annotate(label, (r[f"neural_{label}_bytes"] / 2**20, value), fontsize=6, xytext=(3, 3), textcoords="offset points")
+        ax.axhline(r["flip_floor"], color="gray", linestyle=":", label="noise floor")
+        ax.set_xscale("log")
+        ax.set_title(f"scene {r['scene'].replace('builtin:', '')}", fontsize=9)
+        ax.set_xlabel("bytes of the replaced objects [MiB]")
+        ax.legend(fontsize=6)
+    axes[0][0].set_ylabel("normal-image FLIP vs exact (meshes); render FLIP (scenes)")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def main() -> None:
+    from _common import RESULTS_DIR, print_table, write_results
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("meshes", nargs="*")
+    p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, help="METHOD:PRESET[:tN] (default: %(default)s)")
+    p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the preset's)")
+    p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
+                   help="also decimate the mesh to the bytes of these variants (no names: every variant's)")
+    p.add_argument("--eval-rays", type=int, default=1 << 17)
+    p.add_argument("--image-resolution", type=int, default=256)
+    p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--models-dir", type=Path, default=DEFAULT_MODELS)
+    p.add_argument("--train-only", action="store_true", help="only train (or find) the models")
+    p.add_argument("--plot", action="store_true", help="draw results/NAME_flip_memory.png from the JSON (and --scenes-json)")
+    p.add_argument("--scenes-json", type=Path, default=RESULTS_DIR / "scenes_methods.json")
+    p.add_argument("--name", default="methods", help="results file: benchmarks/results/NAME.json (rows merge into it)")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args()
+    steps = {k: int(v) for k, v in (s.split("=") for s in args.steps)}
+
+    path = RESULTS_DIR / f"{args.name}.json"
+    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    if args.plot:
+        out = RESULTS_DIR / f"{args.name}_flip_memory.png"
+        plot(runs, args.scenes_json, out)
+        print(f"wrote {out}")
+        return
+
+    def save():
+        write_results(args.name, [summary_row(v) for v in runs.values()], extra={"runs": runs})
+
+    for spec in args.meshes:
+        mesh = resolve_mesh(spec)
+        classical = classical_memory(mesh).as_dict()
+        for variant in args.variants:
+            _, cfg = variant_config(variant, steps)
+            model, info = train_or_load(mesh, cfg, args.models_dir, args.quiet)
+            if args.train_only:
+                continue
+            row = measure_model(spec, mesh, classical, variant, model, info, args)
+            row["classical"] = classical
+            row["load_average_1min_at_end"] = os.getloadavg()[0]
+            runs[f"{spec}|{variant}|{row['training']['steps']}"] = row
+            save()
+            print_table([summary_row(row)], COLUMNS)
+        if args.decimate is not None and not args.train_only:
+            for variant in args.decimate or args.variants:
+                source = next(r for r in runs.values() if r["mesh"] == spec and r["variant"] == variant)
+                row = measure_decimation(spec, mesh, source["bytes"], variant, args)
+                runs[f"{spec}|decimate@{variant}"] = row
+                save()
+                print_table([summary_row(row)], COLUMNS)
+    if runs and not args.train_only:
+        print_table([summary_row(v) for v in runs.values()], COLUMNS)
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
