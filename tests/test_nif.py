@@ -152,14 +152,16 @@ def test_training_is_seeded():
     assert torch.equal(outs[0], outs[1])
 
 
-def test_lazy_adam_equals_adam_where_every_row_is_touched_and_leaves_other_rows_alone():
-    from neuralrt.methods.nif_training import LazyAdam
+@pytest.mark.parametrize("update", ["torch", "numba"])
+def test_lazy_adam_equals_adam_where_every_row_is_touched_and_leaves_other_rows_alone(update):
+    from neuralrt.methods import nif_optim
+    from neuralrt.methods.nif_optim import LazyAdam
 
     g = torch.Generator().manual_seed(0)
     start = torch.randn(6, 3, generator=g)
     dense, lazy = torch.nn.Parameter(start.clone()), torch.nn.Parameter(start.clone())
     opt_dense = torch.optim.Adam([dense], lr=0.005, betas=(0.9, 0.999), eps=1e-15)
-    opt_lazy = LazyAdam([lazy], lr=0.005, betas=(0.9, 0.999), eps=1e-15)
+    opt_lazy = LazyAdam([lazy], lr=0.005, betas=(0.9, 0.999), eps=1e-15, update=getattr(nif_optim, f"lazy_adam_rows_{update}"))
     for _ in range(5):
         rows = torch.tensor([0, 1, 2, 3, 4, 5, 2])  # every row, one twice (gradients add up)
         target = torch.randn(7, 3, generator=g)
@@ -175,3 +177,26 @@ def test_lazy_adam_equals_adam_where_every_row_is_touched_and_leaves_other_rows_
     opt_lazy.step()
     moved = (lazy.detach() != before).any(-1)
     assert moved.tolist() == [False, True, False, False, False, False]
+
+
+def test_lazy_adam_numba_equals_torch_on_grid_batches():
+    from neuralrt.methods.nif_optim import LazyAdam, lazy_adam_rows_for, lazy_adam_rows_numba, lazy_adam_rows_torch
+
+    assert lazy_adam_rows_for("cpu") is lazy_adam_rows_numba and lazy_adam_rows_for("cuda") is lazy_adam_rows_torch
+    g = torch.Generator().manual_seed(3)
+    start = torch.rand(64 * 64, 3, generator=g) * 2e-4 - 1e-4
+    tables = [torch.nn.Parameter(start.clone()) for _ in range(2)]
+    opts = [LazyAdam([t], lr=0.005, betas=(0.9, 0.999), eps=1e-15, update=u) for t, u in zip(tables, (lazy_adam_rows_torch, lazy_adam_rows_numba))]
+    for _ in range(20):  # bilinear-like batches: 4 corners per query, many repeats, most rows untouched
+        rows = torch.randint(0, 600, (512, 4), generator=g)
+        target = torch.rand(512, 3, generator=g)
+        for t, opt in zip(tables, opts):
+            opt.zero_grad()
+            (torch.nn.functional.embedding(rows, t, sparse=True).sum(1) - target).square().sum().backward()
+            opt.step()
+    assert torch.allclose(tables[0], tables[1], rtol=1e-5, atol=1e-7)
+    assert torch.equal(tables[1][600:], start[600:])  # never touched
+    for key in ("m", "v"):
+        assert torch.allclose(opts[0].state[tables[0]][key], opts[1].state[tables[1]][key], rtol=1e-4, atol=1e-6)
+    for opt, t in zip(opts, tables):  # the scratch is clean between steps
+        assert not opt.state[t]["sum"].any() and not opt.state[t]["touched"].any()

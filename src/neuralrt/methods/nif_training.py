@@ -6,10 +6,10 @@ round: ``passes_per_spp`` passes, each over the round's pairs in a fresh random 
 of ``outer_batch`` / ``inner_batch`` (the last batch of a pass may be smaller). Loss: L2 between
 the sigmoid output and the label (1 = visible); Adam (lr 0.005, betas 0.9/0.999, eps 1e-15) per
 network kind, so an outer step never moves inner parameters. The grids' Adam is lazy
-(`LazyAdam`: only the vertices a batch touched move, their moments decay only when touched):
-an outer step took 36 ms with dense gradients and Adam, 22 ms with `torch.optim.SparseAdam`,
-7 ms with `LazyAdam` (2 CPU cores, docs/nif.md); vertices no ray of the view reaches have
-nothing to learn.
+(`nif_optim.LazyAdam`: only the vertices a batch touched move, their moments decay only when
+touched): an outer step took 36 ms with dense gradients and Adam, 22 ms with
+`torch.optim.SparseAdam`, 7 ms with `LazyAdam` (2 CPU cores, docs/nif.md); vertices no ray of the
+view reaches have nothing to learn.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .nif import NIFNetworks, NIFQueries
+from .nif_optim import LazyAdam
 
 __all__ = ["NIFTrainer", "NIFTrainingStats", "LazyAdam"]
 
@@ -38,50 +39,6 @@ class NIFTrainingStats:
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-
-class LazyAdam(torch.optim.Optimizer):
-    """Adam on the rows of tables with sparse gradients (`F.embedding(..., sparse=True)`): each step
-    updates the moments and values of the rows the gradient touches, with the bias correction of
-    the global step count (as `torch.optim.SparseAdam`, in fewer passes).
-
-    Repeated rows are summed by scattering into a dense scratch table and reading back the touched
-    rows (a scan of a row mask) instead of sorting them (`coalesce`: 20% of a training step)."""
-
-    def __init__(self, params, lr: float, betas: tuple[float, float], eps: float):
-        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
-
-    @torch.no_grad()
-    def step(self, closure=None):
-        for group in self.param_groups:
-            lr, (b1, b2), eps = group["lr"], group["betas"], group["eps"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                state = self.state[p]
-                if not state:
-                    state["step"], state["m"], state["v"] = 0, torch.zeros_like(p), torch.zeros_like(p)
-                    state["sum"] = torch.zeros_like(p)  # scratch: all zero between steps
-                    state["touched"] = torch.zeros(p.shape[0], dtype=torch.bool, device=p.device)
-                grad = p.grad
-                index, values = (grad._indices()[0], grad._values()) if grad.is_sparse else (None, grad)
-                if index is None:  # a dense gradient: every row
-                    rows, g = torch.arange(p.shape[0], device=p.device), values
-                else:
-                    state["sum"].index_add_(0, index, values)
-                    state["touched"][index] = True
-                    rows = torch.nonzero(state["touched"]).reshape(-1)
-                    g = state["sum"].index_select(0, rows)
-                    state["sum"].index_fill_(0, rows, 0.0)
-                    state["touched"][rows] = False
-                state["step"] += 1
-                t = state["step"]
-                m = state["m"].index_select(0, rows).mul_(b1).add_(g, alpha=1 - b1)
-                v = state["v"].index_select(0, rows).mul_(b2).addcmul_(g, g, value=1 - b2)
-                state["m"].index_copy_(0, rows, m)
-                state["v"].index_copy_(0, rows, v)
-                update = (m / (1 - b1**t)).div_((v / (1 - b2**t)).sqrt_().add_(eps)).mul_(-lr)
-                p.index_add_(0, rows, update)
 
 
 class _Optimizers:
@@ -106,9 +63,9 @@ class NIFTrainer:
         self.cfg = cfg
         adam = dict(lr=cfg.learning_rate, betas=tuple(cfg.adam_betas), eps=cfg.adam_eps)
         self.optim_outer = _Optimizers(LazyAdam(networks.outer_grids(), **adam),
-                                       torch.optim.Adam(networks.outer_mlp.parameters(), **adam))
+                                       torch.optim.Adam(networks.outer_mlp.parameters(), **adam, fused=True))
         self.optim_inner = _Optimizers(LazyAdam(networks.inner_grids(), **adam),
-                                       torch.optim.Adam(networks.inner_mlp.parameters(), **adam))
+                                       torch.optim.Adam(networks.inner_mlp.parameters(), **adam, fused=True))
         dev = networks.box_lo.device
         self.generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
         self._outer: list[tuple[Tensor, ...]] = []
