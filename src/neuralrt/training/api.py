@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -25,6 +26,18 @@ def run_identity(model: NeuralBLAS, config: MethodConfig) -> dict:
     return {"mesh_sha256": model.mesh_hash, "config": run_config}
 
 
+def _then(first: Callable, second: Callable | None) -> Callable:
+    """``first``, then ``second`` (if any), with the same arguments."""
+    if second is None:
+        return first
+
+    def both(*args):
+        first(*args)
+        second(*args)
+
+    return both
+
+
 def train(
     mesh: Mesh | str | os.PathLike,
     config: MethodConfig | None = None,
@@ -33,6 +46,7 @@ def train(
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     device: str | torch.device = "cpu",
+    on_step: Callable[[int, torch.optim.Optimizer], None] | None = None,
 ) -> NeuralBLAS:
     """Train a model of ``mesh`` with ``config`` (its ``method`` picks the method) and return it.
 
@@ -40,7 +54,8 @@ def train(
     the CPU, ``gpu`` on CUDA). Rays come from ``model.training_rays`` (default `BoxRayDistribution`) with exact ground truth, on
     ``device``. With ``checkpoint``, training state is saved periodically there; ``resume=True``
     continues from it. The returned model's parameters are rounded to the storage precision, so
-    it answers exactly as its saved file.
+    it answers exactly as its saved file. ``on_step(step, optimizer)`` runs after the model's own
+    per-step work (e.g. progress reports from `neuralrt.scene.convert_executors`).
     """
     if isinstance(mesh, (str, Path, os.PathLike)):
         mesh = load_mesh(mesh)
@@ -55,7 +70,7 @@ def train(
         model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
         adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
         checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=run_identity(model, config),
-        progress=progress, description=f"{spec.name} {mesh.name}", on_step=model.after_training_step, record=start,
+        progress=progress, description=f"{spec.name} {mesh.name}", on_step=_then(model.after_training_step, on_step), record=start,
     )
     model.training_record = record.as_dict()
     return model.round_to_storage_precision_().eval()
