@@ -1,24 +1,30 @@
-"""The LSNIF paper's Table 1 on our scenes: memory, render time and FLIP of hybrid vs exact rendering.
+"""The LSNIF paper's Table 1 on our scenes: memory, render time and FLIP of hybrid vs exact
+rendering, for any of the methods (LSNIF, N-BVH) and, at the same bytes, quadric decimation.
 
-For each scene: convert it with the `hq` and `lq` presets (models cached in --work), render it
-exactly (seed S and, for the noise floor, seed S+1) and hybrid (`hq`, `lq`; seed S: correlated
-sampling) at equal spp and resolution, and report:
-
-  neural objects (unique), neural memory, BVH A and BVH B of the replaced meshes and their ratios
-  to neural memory, render times exact / hybrid hq / hybrid lq (ratios in the same run), FLIP hq /
-  lq vs exact, and the noise floor (FLIP exact vs exact, other seed).
+For each scene: replace its large objects (the converter's rule) by each variant's models (one per
+unique mesh, trained once and cached in --models-dir under the converter's names; bench_methods.py
+shares them), render it exactly (seed S and, for the noise floor, seed S+1) and with each variant
+(seed S: correlated sampling) at equal spp and resolution, and report: neural objects (unique),
+bytes per variant, BVH A and BVH B of the replaced meshes and their ratios to each variant's bytes,
+render times (ratios to exact in the same run, best of --repeats, interleaved), FLIP vs exact, the
+noise floor (FLIP exact vs exact, other seed) and each variant's summed training time. With
+--decimate V, the large meshes are also replaced by quadric decimations (fast-simplification)
+whose mesh + BVH A bytes match variant V's model bytes; they answer every ray, camera rays included.
 
 Scenes: the built-ins (at --detail, default 2, or per scene with name?detail=N) and "shared", a
 scene of ../shared/meshes objects Loop-subdivided to >= 1M triangles each (skipped when absent).
-Writes benchmarks/results/scenes.json and a FLIP-vs-memory plot benchmarks/results/scenes.png.
+Rows merge by scene into benchmarks/results/NAME.json; a FLIP-vs-memory plot goes to NAME.png.
 
-    python benchmarks/bench_scenes.py                       # all scenes, 256x256, 64 spp
+    python benchmarks/bench_scenes.py                       # all scenes, LSNIF hq and lq, 256x256, 64 spp
     python benchmarks/bench_scenes.py --scenes builtin:hairball?detail=6 --spp 16 --res 128
+    python benchmarks/bench_scenes.py --variants lsnif:hq nbvh:cpu:t15 nbvh:cpu --decimate lsnif:hq \\
+        --models-dir /tmp/methods-models --name scenes_methods --res 128 --spp 64
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -73,11 +79,71 @@ def shared_scene(work: Path) -> Path | None:
     return path
 
 
+def variant_label(variant: str) -> str:
+    """Row-key label of a variant: LSNIF presets keep their bare names (hq, lq: the earlier JSON's keys)."""
+    return variant.split(":")[1] if variant.startswith("lsnif:") and variant.count(":") == 1 else variant.replace(":", "_").replace("@", "_")
+
+
+def scene_objects(scene: str, min_triangles: int | None):
+    """(spec, per-object meshes, indices of the objects a conversion replaces): the converter's own choice."""
+    from neuralrt.scene.convert import _selected  # the converter's selection rule, not a copy of it
+    from neuralrt.scene.loader import load_scene_spec, shape_for
+
+    spec, _, label = load_scene_spec(scene)
+    shapes: dict = {}
+    meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
+    return spec, meshes, _selected(spec, meshes, None, min_triangles)
+
+
+def convert_variant(scene: str, output: Path, variant: str, args) -> dict:
+    """Write ``output``: the scene with its large objects answered by ``variant``'s models
+    (bench_methods' METHOD:PRESET[:tN], trained once per unique mesh and cached in --models-dir under
+    the converter's names); returns {"bytes_by_mesh": ..., "train_s": summed recorded training time}."""
+    from bench_methods import train_or_load, variant_config
+    from neuralrt.scene.scene import save_scene
+
+    spec, meshes, chosen = scene_objects(scene, args.min_triangles)
+    _, cfg = variant_config(variant, {k: int(v) for k, v in (s.split("=") for s in args.steps)})
+    out_spec, trained, train_s = spec.model_copy(deep=True), {}, 0.0
+    for i in chosen:
+        if id(meshes[i]) not in trained:
+            model, info = train_or_load(meshes[i], cfg, args.models_dir, args.quiet)
+            from bench_methods import cached_model_path
+
+            trained[id(meshes[i])] = (cached_model_path(meshes[i], cfg, args.models_dir), model.memory_bytes().total)
+            train_s += model.training_record["seconds"]
+        out_spec.objects[i].model = str(trained[id(meshes[i])][0])
+    save_scene(out_spec, output)
+    return {"bytes_by_mesh": {meshes[i].name: trained[id(meshes[i])][1] for i in chosen}, "train_s": train_s}
+
+
+def decimate_variant(scene: str, output: Path, bytes_by_mesh: dict, args) -> dict:
+    """Write ``output``: the scene with each large object's mesh replaced (for every ray, camera rays
+    included) by its quadric decimation whose mesh + BVH A bytes match ``bytes_by_mesh[mesh name]``."""
+    import trimesh
+    from bench_methods import decimated_mesh
+    from neuralrt.scene.scene import save_scene
+
+    spec, meshes, chosen = scene_objects(scene, args.min_triangles)
+    out_spec, done = spec.model_copy(deep=True), {}
+    for i in chosen:
+        if id(meshes[i]) not in done:
+            small, mem = decimated_mesh(meshes[i], bytes_by_mesh[meshes[i].name])
+            path = output.parent / f"{output.stem}-{len(done)}.ply"
+            trimesh.Trimesh(small.vertices, small.faces, process=False).export(path)
+            done[id(meshes[i])] = (path, mem)
+        out_spec.objects[i] = out_spec.objects[i].model_copy(update={"mesh": str(done[id(meshes[i])][0]), "generator": None})
+    save_scene(out_spec, output)
+    return {"bytes": int(sum(m["bytes"] for _, m in done.values())),
+            "kept_triangles": int(sum(m["triangles"] for _, m in done.values()))}
+
+
 def run_scene(scene: str, work: Path, args) -> dict:
     from neuralrt.eval.image_metrics import compare_images
     from neuralrt.io.images import write_png
+    from neuralrt.methods import is_neural
     from neuralrt.render.integrator import render
-    from neuralrt.scene.convert import convert_scene, neural_bytes, replaced_memory
+    from neuralrt.scene.convert import neural_bytes, replaced_memory
     from neuralrt.scene.loader import load_scene
 
     tag = scene.replace("builtin:", "").replace("?", "_").replace("=", "").replace("/", "_")
@@ -86,13 +152,17 @@ def run_scene(scene: str, work: Path, args) -> dict:
     res = (args.res, args.res)
     common = dict(spp=args.spp, max_depth=args.max_depth, progress=False)
 
-    # Train (or reuse) both presets first, so renders are timed back to back on a quiet machine.
-    reports = {preset: convert_scene(scene, out / f"{preset}.toml", models_dir=work / "models", preset=preset,
-                                     steps=args.steps, min_triangles=args.min_triangles, progress=not args.quiet)
-               for preset in ("hq", "lq")}
+    # Train (or reuse) every variant's models first, so renders are timed back to back.
+    labels = {variant: variant_label(variant) for variant in args.variants}
+    reports = {variant: convert_variant(scene, out / f"{labels[variant]}.toml", variant, args) for variant in args.variants}
     scenes = {"exact": load_scene(scene, resolution=res)}
-    scenes.update({preset: load_scene(out / f"{preset}.toml", resolution=res) for preset in ("hq", "lq")})
-    # Same seed for exact and hybrid (correlated sampling); timings: best of --repeats, interleaved.
+    scenes.update({labels[v]: load_scene(out / f"{labels[v]}.toml", resolution=res) for v in args.variants})
+    decimated = {}
+    for source in args.decimate or []:
+        label = f"decimate_{labels[source]}"
+        decimated[label] = decimate_variant(scene, out / f"{label}.toml", reports[source]["bytes_by_mesh"], args)
+        scenes[label] = load_scene(out / f"{label}.toml", resolution=res)
+    # Same seed for exact and the others (correlated sampling); timings: best of --repeats, interleaved.
     images, seconds = {}, {name: float("inf") for name in scenes}
     for _ in range(args.repeats):
         for name, loaded in scenes.items():
@@ -102,20 +172,29 @@ def run_scene(scene: str, work: Path, args) -> dict:
     write_png(out / "exact.png", images["exact"])
     row = {"scene": scene, "res": args.res, "spp": args.spp, "exact_s": seconds["exact"],
            "flip_floor": compare_images(images["exact"], floor.image).flip}
-    for preset, report in reports.items():
-        write_png(out / f"hybrid_{preset}.png", images[preset])
-        row[f"flip_{preset}"] = compare_images(images["exact"], images[preset]).flip
-        row[f"{preset}_s"] = seconds[preset]
-        row[f"time_{preset}_ratio"] = seconds[preset] / seconds["exact"]
-        row[f"train_{preset}_s"] = report.train_seconds
-        row[f"neural_{preset}_bytes"] = neural_bytes(scenes[preset])
-    memory = replaced_memory(scenes["hq"])  # both presets replace the same meshes
-    report = reports["hq"]
-    row["objects"], row["unique"] = report.neural_objects, report.unique_models
+    for name in scenes:
+        if name == "exact":
+            continue
+        write_png(out / f"{'hybrid_' if name in labels.values() else ''}{name}.png", images[name])
+        row[f"flip_{name}"] = compare_images(images["exact"], images[name]).flip
+        row[f"{name}_s"] = seconds[name]
+        row[f"time_{name}_ratio"] = seconds[name] / seconds["exact"]
+        if name in decimated:
+            row[f"neural_{name}_bytes"] = decimated[name]["bytes"]  # mesh + BVH A of the decimated meshes
+            row[f"{name}_triangles"] = decimated[name]["kept_triangles"]
+        else:
+            row[f"train_{name}_s"] = reports[next(v for v, lb in labels.items() if lb == name)]["train_s"]
+            row[f"neural_{name}_bytes"] = neural_bytes(scenes[name])
+    first = labels[args.variants[0]]
+    memory = replaced_memory(scenes[first])  # every variant replaces the same meshes
+    row["objects"] = sum(1 for i in scenes[first].accel.instances if is_neural(i.blas))
+    row["unique"] = len(reports[args.variants[0]]["bytes_by_mesh"])
     row["triangles"] = memory["neural_triangles"]
     row["bvh_a_bytes"], row["bvh_b_bytes"] = memory["bvh_a_bytes"], memory["bvh_b_bytes"]
-    row["bvh_a_ratio"] = row["bvh_a_bytes"] / row["neural_hq_bytes"]
-    row["bvh_b_ratio"] = row["bvh_b_bytes"] / row["neural_hq_bytes"]
+    for name in labels.values():
+        row[f"bvh_a_ratio_{name}"] = row["bvh_a_bytes"] / row[f"neural_{name}_bytes"]
+        row[f"bvh_b_ratio_{name}"] = row["bvh_b_bytes"] / row[f"neural_{name}_bytes"]
+    row["load_average_1min_at_end"] = os.getloadavg()[0]
     return row
 
 
@@ -129,20 +208,22 @@ def plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    markers = "osD^vP*"
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for k, r in enumerate(rows):
         color = f"C{k}"
-        for preset, marker, dy in (("hq", "o", 4), ("lq", "s", -10)):
-            ax.scatter(r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"], marker=marker, color=color)
-            ax.annotate(f"{short_name(r['scene'])} {preset}", (r[f"neural_{preset}_bytes"] / 2**20, r[f"flip_{preset}"]),
-                        fontsize=7, xytext=(5, dy), textcoords="offset points", color=color)
+        labels = [key.removeprefix("flip_") for key in r if key.startswith("flip_") and key != "flip_floor"]
+        for j, label in enumerate(labels):
+            x, y = r[f"neural_{label}_bytes"] / 2**20, r[f"flip_{label}"]
+            ax.scatter(x, y, marker=markers[j % len(markers)], color=color)
+            ax.annotate(f"{short_name(r['scene'])} {label}", (x, y), fontsize=6, xytext=(5, 4 - 7 * j), textcoords="offset points", color=color)
         ax.scatter(r["bvh_a_bytes"] / 2**20, r["flip_floor"], marker="x", color=color)
         ax.annotate(short_name(r["scene"]), (r["bvh_a_bytes"] / 2**20, r["flip_floor"]), fontsize=7,
                     xytext=(-5, 5), textcoords="offset points", ha="right", color=color)
     ax.set_xscale("log")
-    ax.set_xlabel("memory of replaced objects [MiB] (o hq, s lq, x BVH A at noise floor)")
+    ax.set_xlabel("memory of replaced objects [MiB] (x: BVH A at the noise floor)")
     ax.set_ylabel("FLIP vs exact render")
-    ax.set_title("Hybrid LSNIF rendering: error vs memory")
+    ax.set_title("Hybrid rendering: error vs memory")
     fig.tight_layout()
     fig.savefig(path)
 
@@ -155,12 +236,22 @@ def main() -> None:
     p.add_argument("--max-depth", type=int, default=4)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--repeats", type=int, default=2, help="timed renders per scene and mode (best is kept)")
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the presets')")
     p.add_argument("--min-triangles", type=int, default=None)
+    p.add_argument("--variants", nargs="+", default=["lsnif:hq", "lsnif:lq"],
+                   help="METHOD:PRESET[:tN] answering the large objects (bench_methods.py's variants; default: %(default)s)")
+    p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
+                   help="also render with each large mesh decimated to the bytes of these variants' models")
+    p.add_argument("--models-dir", type=Path, default=None, help="model cache (default: WORK/models); bench_methods.py's is /tmp/methods-models")
+    p.add_argument("--name", default="scenes", help="results: benchmarks/results/NAME.json and NAME.png (rows merge by scene)")
     p.add_argument("--work", type=Path, default=Path("/tmp/neuralrt-bench-scenes"))
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
-    rows = []
+    args.models_dir = args.models_dir or args.work / "models"
+    path = RESULTS_DIR / f"{args.name}.json"
+    import json
+
+    rows = json.loads(path.read_text())["rows"] if path.exists() else []
     for scene in args.scenes:
         if scene == "shared":
             path = shared_scene(args.work)
@@ -169,17 +260,19 @@ def main() -> None:
                 continue
             scene = str(path)
         start = time.perf_counter()
-        rows.append(run_scene(scene, args.work, args))
-        rows[-1]["wall_s"] = time.perf_counter() - start
-        print_table(rows[-1:], ["scene", "objects", "unique", "neural_hq_bytes", "bvh_a_ratio", "flip_hq", "flip_floor"])
-    columns = ["scene", "objects", "unique", "triangles", "neural_hq_bytes", "neural_lq_bytes", "bvh_a_bytes", "bvh_a_ratio",
-               "bvh_b_bytes", "bvh_b_ratio", "exact_s", "time_hq_ratio", "time_lq_ratio", "flip_hq", "flip_lq", "flip_floor",
-               "train_hq_s", "train_lq_s"]
+        row = run_scene(scene, args.work, args)
+        row["wall_s"] = time.perf_counter() - start
+        rows = [r for r in rows if short_name(r["scene"]) != short_name(scene)] + [row]
+        path = write_results(args.name, rows, {"settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}})
+        print_table([row], [k for k in row if k.startswith(("flip", "neural_", "time_"))])
+    labels = [variant_label(v) for v in args.variants] + [f"decimate_{variant_label(v)}" for v in args.decimate or []]
+    columns = ["scene", "objects", "unique", "triangles", "bvh_a_bytes", "bvh_b_bytes", "exact_s", "flip_floor"]
+    columns += [f"{prefix}{label}{suffix}" for label in labels
+                for prefix, suffix in (("neural_", "_bytes"), ("time_", "_ratio"), ("flip_", ""))]
     print()
     print_table(rows, columns)
-    path = write_results("scenes", rows, {"settings": vars(args) | {"work": str(args.work)}})
-    plot(rows, RESULTS_DIR / "scenes.png")
-    print(f"\nwrote {path} and {RESULTS_DIR / 'scenes.png'}")
+    plot(rows, RESULTS_DIR / f"{args.name}.png")
+    print(f"\nwrote {path} and {RESULTS_DIR / f'{args.name}.png'}")
 
 
 if __name__ == "__main__":
