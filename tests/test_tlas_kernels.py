@@ -11,7 +11,7 @@ import trimesh
 from neuralrt import Mesh, MeshBLAS, Rays, Transform
 from neuralrt.accel.tlas import Instance, SceneAccel
 from neuralrt.geometry.mesh import MeshMaterial
-from neuralrt.accel.tlas_stages import NumbaTLASStages, TorchTLASStages
+from neuralrt.accel.tlas_stages import InstanceTable, NumbaTLASStages, TorchTLASStages
 from neuralrt.rays import ray_box_intervals, valid_ray_mask
 from neuralrt.accel import tlas_kernels
 
@@ -152,3 +152,42 @@ def test_scene_on_each_device_answers_like_the_cpu(blases, device):
     torch.testing.assert_close(got.normal.cpu()[both], ref.normal[both], rtol=1e-4, atol=1e-5)
     assert torch.equal(got.instance_id.cpu()[both], ref.instance_id[both]) and torch.equal(got.material_id.cpu()[both], ref.material_id[both])
     assert (occ.cpu() == ref_occ).float().mean() > 0.999
+
+
+def _box_table(n_boxes, seed):
+    """Random instance boxes, with repeated, flat and point-like ones among them."""
+    g = np.random.default_rng(seed)
+    lo = g.uniform(-3, 2.5, (n_boxes, 3)).astype(np.float32)
+    hi = (lo + g.uniform(0.05, 1.5, (n_boxes, 3))).astype(np.float32)
+    hi[1, 2] = lo[1, 2]  # flat
+    hi[2] = lo[2]  # a point
+    lo[3], hi[3] = lo[4], hi[4]  # repeated
+    lo[5:9], hi[5:9] = lo[5], hi[5]  # coincident centroids: the build halves such ranges
+    table_lo, table_hi = torch.from_numpy(lo), torch.from_numpy(hi)
+    return InstanceTable(table_lo, table_hi, torch.eye(4).expand(n_boxes, 4, 4).contiguous(),
+                         torch.zeros(n_boxes, 1, dtype=torch.int64), torch.ones(n_boxes, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("n_boxes", [9, 37])
+def test_bvh_broad_phase_gives_the_brute_force_pairs(n_boxes):
+    """The numba stages' BVH walk lists the same (ray, instance) pairs, in the same order, as every
+    ray against every box (numba) and as the torch stages, bad and axis-parallel rays included."""
+    table = _box_table(n_boxes, seed=n_boxes)
+    rays = _rays(5000, seed=5)
+    g = np.random.default_rng(1)
+    t_limit = torch.minimum(rays.t_max, torch.from_numpy(g.uniform(2, 12, len(rays)).astype(np.float32)))
+    # A group: every instance, or some of them (the others belong to other BLASes).
+    ids = torch.arange(n_boxes) if n_boxes < 10 else torch.from_numpy(np.sort(g.permutation(n_boxes)[:30]))
+    bvh_stages = NumbaTLASStages(table)
+    pairs = bvh_stages.candidate_pairs(rays, ids, t_limit, None)
+    assert bvh_stages._bvhs, "the BVH walk answered"
+    brute = NumbaTLASStages(table, broad_phase="all_boxes").candidate_pairs(rays, ids, t_limit, None)
+    ref = TorchTLASStages(table).candidate_pairs(rays, ids, t_limit, None)
+    assert 500 < pairs[0].numel() < len(rays) * len(ids) // 4
+    for got, other in ((pairs, brute), (pairs, ref)):
+        assert torch.equal(got[0], other[0]) and torch.equal(got[1], other[1]) and got[2] is None and other[2] is None
+
+
+def test_unknown_broad_phase_is_refused():
+    with pytest.raises(ValueError, match="broad_phase must be"):
+        NumbaTLASStages(_box_table(9, seed=0), broad_phase="grid")

@@ -1,6 +1,8 @@
 """The scene's top-level accelerator: instances of bottom-level accelerators (BLAS) under transforms.
 
-Broad phase: every ray is tested against every instance's world-space box (slabs, batched).
+Broad phase: the (ray, instance) pairs whose ray meets the instance's world-space box; on the CPU
+a group of several instances is walked as a BVH over their boxes, elsewhere every ray is tested
+against every box (slabs, batched) — the same pairs either way.
 Narrow phase: the surviving (ray, instance) pairs are grouped by BLAS, so that each BLAS — an
 Embree scene or a neural model — runs once per call over all of its rays from all of its
 instances; rays are mapped to object space per pair, and the closest hit over all pairs wins.

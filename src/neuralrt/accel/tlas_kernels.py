@@ -1,5 +1,6 @@
 """Numba passes of the scene TLAS on the CPU: the broad phase (ray validity + slab test against
-every instance box, fused), the mapping of (ray, instance) pairs to object space, normals back to
+every instance box, fused; or a walk of a BVH over the instance boxes that emits the overlapping
+(ray, instance) pairs directly), the mapping of (ray, instance) pairs to object space, normals back to
 world space, and the choice of the closest pair per ray.
 
 They replace chains of torch ops (each allocating [N, I] or [P, 4, 4] temporaries) and compute
@@ -14,7 +15,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-__all__ = ["instance_overlaps", "object_space_rays", "transform_rays", "normals_to_world", "merge_every_ray", "closest_pair_per_ray"]
+__all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "normals_to_world", "merge_every_ray", "closest_pair_per_ray"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -72,6 +73,121 @@ def instance_overlaps(origins, directions, t_min, t_max, t_limit, lo, hi, overla
             count += hit
         total += count
     return total
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _box_overlap(ox, oy, oz, ix, iy, iz, lo, hi, k, t_min, t_limit):
+    """The slab test of `instance_overlaps` for box ``k`` of ``lo``/``hi`` (same float32 values)."""
+    t0 = _slab_limit((lo[k, 0] - ox) * ix, -np.inf)
+    t1 = _slab_limit((hi[k, 0] - ox) * ix, np.inf)
+    t_enter, t_exit = min(t0, t1), max(t0, t1)
+    t0 = _slab_limit((lo[k, 1] - oy) * iy, -np.inf)
+    t1 = _slab_limit((hi[k, 1] - oy) * iy, np.inf)
+    t_enter, t_exit = max(t_enter, min(t0, t1)), min(t_exit, max(t0, t1))
+    t0 = _slab_limit((lo[k, 2] - oz) * iz, -np.inf)
+    t1 = _slab_limit((hi[k, 2] - oz) * iz, np.inf)
+    t_enter, t_exit = max(t_enter, min(t0, t1)), min(t_exit, max(t0, t1))
+    return t_enter <= t_exit and t_exit >= t_min and t_enter <= t_limit
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _finite_box_overlap(ox, oy, oz, ix, iy, iz, lo, hi, k, t_min, t_limit):
+    """`_box_overlap` for a ray whose inverse direction is finite: no slab bound is NaN then, so
+    clamping to +-float32 max (branch-free min/max) is `_slab_limit`."""
+    big = _FLOAT32_MAX
+    t0 = min(max((lo[k, 0] - ox) * ix, -big), big)
+    t1 = min(max((hi[k, 0] - ox) * ix, -big), big)
+    t_enter, t_exit = min(t0, t1), max(t0, t1)
+    t0 = min(max((lo[k, 1] - oy) * iy, -big), big)
+    t1 = min(max((hi[k, 1] - oy) * iy, -big), big)
+    t_enter, t_exit = max(t_enter, min(t0, t1)), min(t_exit, max(t0, t1))
+    t0 = min(max((lo[k, 2] - oz) * iz, -big), big)
+    t1 = min(max((hi[k, 2] - oz) * iz, -big), big)
+    t_enter, t_exit = max(t_enter, min(t0, t1)), min(t_exit, max(t0, t1))
+    return (t_enter <= t_exit) & (t_exit >= t_min) & (t_enter <= t_limit)
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def instance_pairs(origins, directions, t_min, t_max, t_limit, lo, hi, node_lo, node_hi, children, leaf_start,
+                   leaf_count, prim_order):  # fmt: skip
+    """The true entries of `instance_overlaps`'s ``overlap`` as (ray [P], box [P]) index arrays in
+    row-major order (as ``np.nonzero`` lists them), found by walking a binary BVH over the boxes
+    (`neuralrt.geometry.bvh.build_box_bvh`: ``node_lo``/``node_hi``, ``children`` [M, 2],
+    ``leaf_start``/``leaf_count`` into ``prim_order``) instead of testing every box.
+
+    A node box contains its boxes, and each slab bound is a monotone function of the box bound
+    when the ray's inverse direction is finite, so a box that passes the test lies in nodes that
+    pass it: the pairs are exactly the brute-force ones. Rays with an infinite inverse direction
+    component (0 * inf = NaN breaks that monotonicity) test every box instead.
+    """
+    n, g = origins.shape[0], lo.shape[0]
+    capacity = max(16, 2 * n)
+    ray_out = np.empty(capacity, np.int64)
+    box_out = np.empty(capacity, np.int64)
+    found = np.empty(g, np.int64)
+    stack = np.empty(children.shape[0] + 1, np.int64)
+    total = 0
+    one = np.float32(1.0)
+    for i in range(n):
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        valid = (
+            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
+            and (dx != 0 or dy != 0 or dz != 0)
+            and t_max[i] > t_min[i]
+        )  # fmt: skip
+        if not valid:
+            continue
+        ix, iy, iz = one / dx, one / dy, one / dz
+        t0, t1 = t_min[i], t_limit[i]
+        m = 0
+        if np.isfinite(ix) and np.isfinite(iy) and np.isfinite(iz):
+            sp = 0
+            if _finite_box_overlap(ox, oy, oz, ix, iy, iz, node_lo, node_hi, 0, t0, t1):
+                stack[0] = 0
+                sp = 1
+            while sp > 0:
+                sp -= 1
+                node = stack[sp]
+                if leaf_count[node] > 0:
+                    for j in range(leaf_start[node], leaf_start[node] + leaf_count[node]):
+                        k = prim_order[j]
+                        if _finite_box_overlap(ox, oy, oz, ix, iy, iz, lo, hi, k, t0, t1):
+                            # Insertion in ascending box order (np.nonzero's order within a row).
+                            p = m
+                            while p > 0 and found[p - 1] > k:
+                                found[p] = found[p - 1]
+                                p -= 1
+                            found[p] = k
+                            m += 1
+                    continue
+                for c in range(2):
+                    child = children[node, c]
+                    if _finite_box_overlap(ox, oy, oz, ix, iy, iz, node_lo, node_hi, child, t0, t1):
+                        stack[sp] = child
+                        sp += 1
+        else:
+            for k in range(g):
+                if _box_overlap(ox, oy, oz, ix, iy, iz, lo, hi, k, t0, t1):
+                    found[m] = k
+                    m += 1
+        if total + m > capacity:
+            capacity = max(2 * capacity, total + m)
+            ray_out = _grown(ray_out, capacity, total)
+            box_out = _grown(box_out, capacity, total)
+        for p in range(m):
+            ray_out[total + p] = i
+            box_out[total + p] = found[p]
+        total += m
+    return ray_out[:total], box_out[:total]
+
+
+@numba.njit(cache=True, inline="always")
+def _grown(buffer, capacity, used):
+    out = np.empty(capacity, buffer.dtype)
+    out[:used] = buffer[:used]
+    return out
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")

@@ -1,8 +1,9 @@
 """The scene TLAS's whole-batch stages, in two implementations with one contract.
 
-`NumbaTLASStages` runs fused numba passes (`tlas_kernels`) on CPU arrays; `TorchTLASStages` runs
-torch ops on any device. `SceneAccel` picks one at construction (`stages_for(device)`) and never
-branches on the device again. Both compute the same values in the same float32 order, so a scene
+`NumbaTLASStages` runs fused numba passes (`tlas_kernels`) on CPU arrays, its broad phase walking
+a BVH over a group's instance boxes; `TorchTLASStages` runs torch ops on any device, testing every
+box (the same pairs in the same order). `SceneAccel` picks one at construction
+(`stages_for(device)`) and never branches on the device again. Both compute the same values in the same float32 order, so a scene
 answers bit-identically with either (the tests run both on CPU tensors).
 
 Every stage sees the instance table the accelerator was built with (`InstanceTable`):
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..geometry.bvh import BVH, build_box_bvh
 from ..rays import Hits, Rays, ray_box_intervals, valid_ray_mask
 from . import tlas_kernels as kernels
 
@@ -39,6 +41,9 @@ _BROAD_PHASE_CHUNK = 1 << 23
 # A one-instance group sends every ray to its BLAS (no gather/scatter of pairs) when at least this
 # fraction of the rays overlaps its box; the rest get an empty interval.
 _EVERY_RAY_FRACTION = 0.5
+# Groups of at least this many instances walk a BVH over their boxes (numba stages); smaller ones
+# test every box.
+_BVH_MIN_INSTANCES = 4
 
 
 @dataclass
@@ -124,7 +129,9 @@ class TorchTLASStages:
 class NumbaTLASStages:
     """The stages as fused numba passes over CPU arrays (one sweep each instead of chains of ops)."""
 
-    def __init__(self, table: InstanceTable):
+    def __init__(self, table: InstanceTable, broad_phase: str = "bvh"):
+        if broad_phase not in ("bvh", "all_boxes"):
+            raise ValueError(f"broad_phase must be 'bvh' or 'all_boxes', got {broad_phase!r}")
         if table.box_lo.device.type != "cpu":
             raise ValueError("NumbaTLASStages needs an instance table on the CPU")
         self.t = table
@@ -133,20 +140,35 @@ class NumbaTLASStages:
         self._world_to_object = table.world_to_object.contiguous().numpy()
         self._material_maps = table.material_maps.numpy()
         self._is_identity = table.is_identity.numpy()
+        self.broad_phase = broad_phase  # "all_boxes": every ray against every box (kept to measure against)
+        self._bvhs: dict[bytes, BVH] = {}
 
     def valid_mask(self, rays: Rays) -> Tensor | None:
         return None  # fused into the broad phase
 
     def candidate_pairs(self, rays: Rays, instance_ids: Tensor, t_limit: Tensor, valid: Tensor | None):
         n, g = len(rays), instance_ids.numel()
-        overlap = np.empty((n, g), np.bool_)
         o, d, t_min, t_max, limit = (x.detach().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max, t_limit))
         ids = instance_ids.numpy()
+        if g >= _BVH_MIN_INSTANCES and self.broad_phase == "bvh":
+            bvh = self._group_bvh(ids)
+            ray_idx, k = kernels.instance_pairs(o, d, t_min, t_max, limit, self._box_lo[ids], self._box_hi[ids], bvh.node_lo,
+                                                bvh.node_hi, bvh.children, bvh.leaf_start, bvh.leaf_count, bvh.prim_order)
+            return torch.from_numpy(ray_idx), instance_ids[torch.from_numpy(k)], None
+        overlap = np.empty((n, g), np.bool_)
         count = kernels.instance_overlaps(o, d, t_min, t_max, limit, self._box_lo[ids], self._box_hi[ids], overlap)
         if g == 1 and count >= _EVERY_RAY_FRACTION * n:
             return None, instance_ids, None if count == n else torch.from_numpy(overlap[:, 0])
         ray_idx, k = np.nonzero(overlap)
         return torch.from_numpy(ray_idx), instance_ids[torch.from_numpy(k)], None
+
+    def _group_bvh(self, ids: np.ndarray) -> BVH:
+        """The BVH over these instances' boxes, built on first use (a scene queries a few fixed groups)."""
+        key = ids.tobytes()
+        bvh = self._bvhs.get(key)
+        if bvh is None:
+            bvh = self._bvhs[key] = build_box_bvh(self._box_lo[ids], self._box_hi[ids])
+        return bvh
 
     def object_space_rays(self, rays: Rays, ray_idx: Tensor | None, inst_idx: Tensor, t_max: Tensor) -> Rays:
         origins, directions = rays.origins.detach().numpy(), rays.directions.detach().numpy()

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import MeshError
 
-__all__ = ["BVH", "build_bvh", "collapse_bvh"]
+__all__ = ["BVH", "build_box_bvh", "build_bvh", "collapse_bvh"]
 
 
 @dataclass
@@ -286,6 +286,18 @@ def build_bvh(triangles, width: int = 2, max_leaf_size: int = 2, num_bins: int =
     children = np.stack([left, right], 1)
     binary = BVH(2, int(max_leaf_size), node_lo, node_hi, children, start, count, order)
     return binary if width == 2 else collapse_bvh(binary, width)
+
+
+def build_box_bvh(lo, hi, max_leaf_size: int = 1, num_bins: int = 16) -> BVH:
+    """Binary binned-SAH BVH over axis-aligned boxes ``lo``/``hi`` [B, 3] (e.g. a scene's instance
+    boxes) instead of triangles; ``prim_order`` holds box indices. Node bounds are exact float32
+    unions of the float32 boxes."""
+    lo, hi = np.asarray(lo, np.float32), np.asarray(hi, np.float32)
+    if lo.ndim != 2 or lo.shape[1:] != (3,) or lo.shape != hi.shape or len(lo) == 0:
+        raise ValueError(f"build_box_bvh: expected two [B, 3] arrays with B > 0, got {lo.shape} and {hi.shape}")
+    node_lo, node_hi, left, right, start, count, order = _build_binary(
+        lo.astype(np.float64), hi.astype(np.float64), int(max_leaf_size), int(num_bins))
+    return BVH(2, int(max_leaf_size), node_lo, node_hi, np.stack([left, right], 1), start, count, order)
 
 
 def collapse_bvh(binary: BVH, width: int) -> BVH:
