@@ -70,3 +70,54 @@ def test_triton_hash_grid_edge_cases():
     assert hash_grid_triton(torch.zeros(0, 3, 3, device=DEVICE), table, grid.layout).shape == (0, 36)
     with pytest.raises(ValueError, match="rows"):
         hash_grid_triton(torch.zeros(2, 3, 3, device=DEVICE), table[:-1], grid.layout)
+
+
+# -- cut traversal ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ball_model():
+    from test_nbvh import CENTER, RADIUS, _random_cut
+
+    from neuralrt.geometry.mesh import Mesh
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.nbvh import NBVHConfig, NBVHModel
+
+    base = sphere(subdivisions=3)
+    ball = Mesh(base.vertices * RADIUS + CENTER, base.faces, vertex_normals=base.vertex_normals, name="ball")
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    _random_cut(model, seed=1)
+    return model
+
+
+def _cut_on(cut, device):
+    from neuralrt.methods.nbvh_traversal import CutArrays
+
+    return CutArrays(*(getattr(cut, f).to(device) for f in ("lo", "hi", "children", "lod", "live")))
+
+
+@pytest.mark.parametrize("level", [0, 3, -1])
+def test_triton_traversal_lists_the_numba_leaves(ball_model, level):
+    from test_nbvh import _unit_rays
+
+    from neuralrt.methods.nbvh_traversal import first_leaves, list_leaves
+    from neuralrt.methods.nbvh_traversal_triton import first_leaves_triton, list_leaves_triton
+
+    n = 300
+    o, d = _unit_rays(n, 2)
+    t_max = torch.full((n,), 0.9)
+    t_max[:20] = float("inf")
+    lvl = torch.full((n,), level, dtype=torch.int8)
+    lvl[::7] = 0 if level < 0 else -1  # levels per ray
+    dil = torch.full((n,), 1e-5)
+    cut = ball_model.cut_arrays()
+    ref = list_leaves(o, d, t_max, cut, lvl, dil)  # numba
+    dev = [x.to(DEVICE) for x in (o, d, t_max)] + [_cut_on(cut, DEVICE)] + [x.to(DEVICE) for x in (lvl, dil)]
+    got = list_leaves_triton(*dev)
+    assert len(ref.node) > n and (ref.counts >= 4).sum() > 10  # several leaves per ray: the sort is exercised
+    for field in ("start", "node", "t0", "t1"):
+        assert torch.equal(getattr(got, field).cpu(), getattr(ref, field)), field
+    node, t0, t1 = first_leaves_triton(*dev)
+    rn, r0, r1 = first_leaves(o, d, t_max, cut, lvl, dil)
+    assert torch.equal(node.cpu(), rn) and torch.equal(t0.cpu(), r0) and torch.equal(t1.cpu(), r1)
+    assert (rn < 0).any() and (rn >= 0).any()
