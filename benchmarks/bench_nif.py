@@ -1,11 +1,14 @@
 """NIF shadow rays against exact shadow rays, in the paper's Table 2 form, plus image quality.
 
-    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1]
+    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--repeats 3]
                                    [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
 
-Per scene (``builtin:NAME?detail=D``, NIF on every statue: cornell-statue detail 2 = 75,720
-triangles, detail 4 = statue(4), 1.2M; ``instances:3`` = 12 instances of statue(2) sharing one NIF
-object among 24 other objects), one NIF render with ``audit=True``: every shadow-ray batch of the samples
+Scenes: ``NAME:D`` is ``builtin:NAME?detail=D`` with NIF on every statue (cornell-statue detail 2 =
+75,720 triangles, 4 = statue(4), 1.2M, 5 = statue(5), 4.8M; ``instances:D`` = 12 instances of
+statue(D-1) sharing one NIF object among 24 other objects). ``mesh:FILE@loopK`` is FILE from
+../shared/meshes Loop-subdivided K times (subdivided once and cached as binary PLY under
+``--mesh-cache``, default /tmp/neuralrt-nif-meshes), scaled to 1.6 units, on a floor under a square
+area light, with NIF on it. Per scene, one NIF render with ``audit=True``: every shadow-ray batch of the samples
 after training is answered by the NIF stand-in (exact objects + NIF stages 1 and 2) AND by the
 whole exact accelerator (Embree on the CPU, OptiX on CUDA), timed in the same run on the same
 rays. Columns:
@@ -18,16 +21,24 @@ rays. Columns:
   (only the answers differ: the NIF error itself); ``psnr`` / ``flip``: against an exact render
   with other samples (seed 1), next to ``psnr_floor`` / ``flip_floor``, exact against exact with
   other samples (the noise floor at this spp);
-- ``train_s_per_spp``, ``train_share`` (training time over the whole NIF render's time),
-  ``paper_kb`` / ``real_kb`` (memory in the paper's convention and the real bytes).
+- ``train_s_per_spp``, ``train_share`` (training time over the whole NIF render's time), both the
+  median of ``--repeats`` NIF renders WITHOUT the audit (the audit's exact shadow rays would
+  inflate the render time), with every run's share in ``train_share_runs``; ``render_vs_exact``:
+  the median NIF render time over the exact render's (seed 1, same spp) in the same run;
+- ``paper_kb`` / ``real_kb`` (memory in the paper's convention and the real bytes), ``peak_rss_gb``
+  (the process's peak resident memory after the row: run one big scene per process to attribute it).
 
-The machine is shared: compare ratios within a run. Writes benchmarks/results/nif[_<device>].json.
+Every scene is first rendered tiny (16 x 16, 2 spp, NIF trained on 1), so no timing includes a
+compile. The machine is shared: compare ratios within a run; the JSON records the load average
+before and after each row. Writes benchmarks/results/nif[_<device>].json.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -45,7 +56,56 @@ from neuralrt.render.nif_render import render_nif  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
 COLUMNS = ["scene", "tris", "nif_instances", "shadow_rays", "outer", "inner", "exact_ms", "nif_ms", "speedup", "disagree", "visible_err",
-           "psnr_same", "flip_same", "psnr", "psnr_floor", "flip", "flip_floor", "train_s_per_spp", "train_share", "paper_kb", "real_kb"]
+           "psnr_same", "flip_same", "psnr", "psnr_floor", "flip", "flip_floor", "train_s_per_spp", "train_share", "render_vs_exact",
+           "paper_kb", "real_kb", "peak_rss_gb"]
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def cached_subdivided_mesh(spec: str, cache: Path):
+    """``FILE@loopK``: FILE (in ../shared/meshes, or a path) Loop-subdivided K times, cached as binary PLY."""
+    import numpy as np
+    import trimesh
+
+    from neuralrt.geometry.mesh import load_mesh
+
+    file, _, loops = spec.partition("@loop")
+    source = Path(file) if Path(file).is_file() else SHARED / file
+    target = cache / f"{source.stem}_loop{loops or 0}.ply"
+    if not target.is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        tm = trimesh.Trimesh(*(lambda m: (m.vertices, m.faces))(load_mesh(source)), process=False)
+        for _ in range(int(loops or 0)):
+            tm = tm.subdivide_loop(iterations=1)  # one level at a time: lower peak memory
+        partial = target.with_suffix(".part.ply")
+        trimesh.Trimesh(tm.vertices.astype(np.float32), tm.faces.astype(np.int32), process=False).export(partial)
+        partial.replace(target)
+        del tm
+    return load_mesh(target)
+
+
+def mesh_scene(spec: str, args):
+    """The subdivided mesh on a floor, under a square area light off to one side (shadows on the floor
+    and on the mesh itself), camera in front; NIF on the mesh."""
+    from neuralrt.scene.loader import load_dict
+
+    mesh = cached_subdivided_mesh(spec, Path(args.mesh_cache))
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    scale = 1.6 / float((hi - lo).max())
+    centre = 0.5 * (lo + hi)
+    translate = [float(-centre[0] * scale), float(-1.0 - lo[1] * scale), float(-centre[2] * scale)]  # on the floor, centred
+    scene = load_dict({
+        "camera": {"position": [0.0, 0.4, 3.6], "look_at": [0.0, -0.3, 0.0], "fov": 40.0, "resolution": [args.resolution, args.resolution]},
+        "materials": [{"name": "clay", "type": "plastic", "albedo": [0.7, 0.55, 0.45], "roughness": 0.3},
+                      {"name": "floor", "type": "diffuse", "albedo": [0.5, 0.5, 0.5]},
+                      {"name": "light", "type": "emissive", "emission": [8.0, 8.0, 8.0]}],
+        "objects": [{"name": "object", "mesh": mesh, "material": "clay", "transform": {"translate": translate, "scale": scale}},
+                    {"name": "floor", "generator": {"name": "plane", "params": {"size": 8.0}}, "material": "floor",
+                     "transform": {"translate": [0.0, -1.0, 0.0]}},
+                    {"name": "light", "generator": {"name": "plane", "params": {"size": 1.0}}, "material": "light",
+                     "transform": {"translate": [1.2, 1.8, 0.8], "rotate": [180.0, 0.0, 0.0]}}],
+        "environment": {"color": [0.2, 0.22, 0.28]},
+    }, device=args.device, label=f"mesh:{spec}")
+    return scene, ["object"]
 
 
 def warm_up(device: str) -> None:
@@ -62,22 +122,38 @@ def warm_up(device: str) -> None:
     net.occluded_from_features(2, *nif_features_for(device)(net, pairs))
 
 
-def bench_scene(builtin: str, detail: int, args) -> dict:
-    t0 = time.perf_counter()
+def builtin_scene(builtin: str, detail: int, args):
     scene = load_scene(f"builtin:{builtin}?detail={detail}", device=args.device, resolution=(args.resolution, args.resolution))
-    load_s = time.perf_counter() - t0
     statues = sorted({inst.name for inst in scene.accel.instances if getattr(inst.blas, "mesh", None) is not None
                       and inst.blas.mesh.name.startswith("statue")})
+    return scene, statues
+
+
+def bench_scene(item: str, args) -> dict:
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    if item.startswith("mesh:"):
+        label = item
+        scene, objects = mesh_scene(item[len("mesh:"):], args)
+    else:
+        builtin, _, detail = item.partition(":")
+        label = f"{builtin}?detail={int(detail or 2)}"
+        scene, objects = builtin_scene(builtin, int(detail or 2), args)
+    load_s = time.perf_counter() - t0
     cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp))
+    render_nif(scene, objects, spp=2, train_spp=1, seed=0, progress=False, resolution=(16, 16))  # compile everything once
     kw = dict(spp=args.spp, seed=0, config=cfg, progress=False)
-    nif, report = render_nif(scene, statues, audit=True, **kw)
-    same, _ = render_nif(scene, statues, answer="exact", **kw)
+    nif, report = render_nif(scene, objects, audit=True, **kw)
+    same, _ = render_nif(scene, objects, answer="exact", **kw)
     other = render(scene, spp=args.spp, seed=1, progress=False)
+    timed = [render_nif(scene, objects, **kw)[1] for _ in range(args.repeats)]  # no audit: the render time NIF users see
+    shares = [r["training_share_of_render"] for r in timed]
+    totals = [r["render_seconds"]["total"] for r in timed]
     st = report["shadow_rays"]
     rays = max(st["shadow_rays"], 1)
     vs_same, vs_other, floor = compare_images(same.image, nif.image), compare_images(other.image, nif.image), compare_images(other.image, same.image)
     return {
-        "scene": f"{builtin}?detail={detail}",
+        "scene": label,
         "tris": report["triangles"][0],
         "nif_instances": report["instances"],
         "shadow_rays": st["shadow_rays"],
@@ -90,14 +166,22 @@ def bench_scene(builtin: str, detail: int, args) -> dict:
         "visible_err": st["audit_blocked_by_nif_objects_only"] / rays,
         "psnr_same": vs_same.psnr, "flip_same": vs_same.flip,
         "psnr": vs_other.psnr, "psnr_floor": floor.psnr, "flip": vs_other.flip, "flip_floor": floor.flip,
-        "train_s_per_spp": report["training_seconds_per_spp"],
-        "train_share": report["training_share_of_render"],
+        "train_s_per_spp": statistics.median(r["training_seconds_per_spp"] for r in timed),
+        "train_share": statistics.median(shares),
+        "render_vs_exact": statistics.median(totals) / other.seconds,
+        "train_share_runs": shares,
+        "nif_render_seconds_runs": totals,
+        "training_runs": [r["training"] for r in timed],
+        "exact_render_seconds": other.seconds,
         "paper_kb": report["memory"]["paper_bytes"] / 1024,
         "real_kb": report["memory"]["real_bytes"] / 1024,
         "nif_ms_parts": {"exact_objects": 1e3 * st["exact_seconds"], "stage1": 1e3 * st["stage1_seconds"], "stage2": 1e3 * st["stage2_seconds"]},
         "render_seconds": report["render_seconds"],
         "training": report["training"],
         "load_s": load_s,
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
     }
 
 
@@ -108,18 +192,19 @@ def main() -> None:
     ap.add_argument("--train-spp", type=int, default=32)
     ap.add_argument("--passes", type=int, default=NIFTrainingConfig().passes_per_spp)
     ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
+    ap.add_argument("--repeats", type=int, default=3, help="NIF renders without the audit, for the training share (median)")
+    ap.add_argument("--mesh-cache", default="/tmp/neuralrt-nif-meshes", help="where mesh:FILE@loopK scenes keep their subdivided meshes")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--name", help="results file name (default: nif, or nif_<device>)")
     args = ap.parse_args()
     warm_up(args.device)
     rows = []
     for item in args.scenes.split(","):
-        builtin, _, detail = item.partition(":")
-        rows.append(bench_scene(builtin, int(detail or 2), args))
+        rows.append(bench_scene(item, args))
         print_table(rows[-1:], COLUMNS)
     print()
     print_table(rows, COLUMNS)
-    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "device")}
+    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "repeats", "device")}
     name = args.name or ("nif" if args.device == "cpu" else f"nif_{args.device}")
     path = write_results(name, rows, {"settings": settings, "load_average_1min": os.getloadavg()[0]})
     print(f"\nwrote {path}")
