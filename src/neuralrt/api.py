@@ -321,10 +321,12 @@ def evaluate(
 
 def convert(scene: str | Path, output: str | Path, **options) -> dict:
     """Train models for a scene's complex objects and write a scene that uses them
-    (see `neuralrt.scene.convert.convert_scene` for the options)."""
+    (see `neuralrt.scene.convert.convert_scene` for the options; ``executor="ray"`` trains them
+    on a Ray cluster, `neuralrt.scene.convert_executors`)."""
     from .scene.convert import convert_scene
 
-    check_device(options.get("device", "cpu"))
+    if options.get("executor", "local") != "ray":  # Ray tasks train on the cluster's devices, checked there
+        check_device(options.get("device", "cpu"))
     return convert_scene(scene, output, **options).as_dict()
 
 

@@ -109,7 +109,9 @@ def _cmd_convert(args) -> None:
                          min_triangles=args.min_triangles, method=args.method, preset=args.preset, group=args.group,
                          steps=args.steps,
                          batch=args.batch, seed=args.seed, detail=args.detail, device=args.device,
-                         progress=not args.quiet)
+                         progress=not args.quiet, executor=args.executor, address=args.address,
+                         cpus_per_model=args.cpus_per_model, gpus_per_model=args.gpus_per_model,
+                         threads_per_model=args.threads_per_model, max_retries=args.max_retries)
     _print_result(result, args.json)
 
 
@@ -218,6 +220,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detail", type=int, help="procedural mesh detail of a built-in scene")
     _add_training(p)
     _add_common(p)
+    g = p.add_argument_group("executor", "who trains the models (docs/cluster.md)")
+    g.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="local: one after another in this process (default); ray: one Ray task per model")
+    g.add_argument("--address", help="ray: an existing cluster (auto, HOST:PORT, ray://HOST:PORT); "
+                                     "default: a local Ray instance on this machine's cores")
+    g.add_argument("--cpus-per-model", type=float, metavar="C", help="ray: CPUs each training task asks for (default: 1)")
+    g.add_argument("--gpus-per-model", type=float, metavar="G",
+                   help="ray: GPUs each task asks for (default: 1 with --device cuda, else 0; 0.5 shares a GPU)")
+    g.add_argument("--threads-per-model", type=int, metavar="T",
+                   help="torch and numba threads while a model trains (ray default: --cpus-per-model; local default: "
+                        "the process's). Same threads, same model bits")
+    g.add_argument("--max-retries", type=int, metavar="N",
+                   help="ray: reruns of a task whose worker died; it resumes from its checkpoint (default: 3)")
     p.set_defaults(func=_cmd_convert)
 
     p = sub.add_parser("demo", help="convert a built-in scene, render exact and hybrid, compare, write a report")

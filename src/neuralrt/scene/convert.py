@@ -16,7 +16,6 @@ import hashlib
 import json
 import os
 import re
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.files import write_atomically
 from ..io.model_file import read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
+from .convert_executors import Executor, TrainingJob, make_executor
 from .loader import load_scene_spec, shape_for
 from .material_rules import is_emissive, material_index, scene_material_for
 from .schema import ObjectSpec, SceneSpec, TransformSpec
@@ -50,6 +50,7 @@ class ConvertedModel:
     objects: list[str]
     reused: bool
     train_seconds: float
+    trained_on: str = ""  # "local" or the Ray node's address; "" when reused
 
 
 @dataclass
@@ -199,6 +200,12 @@ def convert_scene(
     detail: int | None = None,
     device: str = "cpu",
     progress: bool = True,
+    executor: str = "local",
+    address: str | None = None,
+    cpus_per_model: float | None = None,
+    gpus_per_model: float | None = None,
+    threads_per_model: int | None = None,
+    max_retries: int | None = None,
 ) -> ConversionReport:
     """Convert ``scene`` (file or ``builtin:NAME``) into ``output`` (a .toml/.json scene file).
 
@@ -208,9 +215,14 @@ def convert_scene(
     ``method`` (default: lsnif) and its ``preset`` (default: the method's default for ``device``).
     Models go to ``models_dir`` (default: ``<output folder>/models``) and are reused when their
     mesh hash and config match.
-    """
-    from ..training.api import train
 
+    ``executor`` trains the missing models: ``"local"`` one after another in this process,
+    ``"ray"`` one Ray task each on a local Ray instance or the cluster at ``address``, with
+    ``cpus_per_model`` / ``gpus_per_model`` / ``threads_per_model`` / ``max_retries`` (see
+    `neuralrt.scene.convert_executors`). Either way each finished model is written at once, an
+    interrupted training resumes from its checkpoint on the next run, and the scene file is
+    written only when every model exists.
+    """
     output = Path(output)
     if output.suffix.lower() not in (".toml", ".json"):
         raise SceneError(f"{output}: converted scene must end in .toml or .json")
@@ -218,7 +230,17 @@ def convert_scene(
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
     config_hash = _config_hash(config)
+    # Checked before the scene loads: Ray installed, a given cluster reachable, the options valid.
+    runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
+                           address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
+                           max_retries=max_retries)
+    with runner:
+        return _convert(scene, output, runner, models_dir=models_dir, select=select, min_triangles=min_triangles,
+                        config=config, config_hash=config_hash, preset=preset, group=group, detail=detail, progress=progress)
 
+
+def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_triangles, config: MethodConfig,
+             config_hash: str, preset: str, group: bool, detail, progress: bool) -> ConversionReport:
     spec, _, label = load_scene_spec(scene, detail=detail)
     shapes: dict = {}  # instances of one mesh share one load
     meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
@@ -249,25 +271,30 @@ def convert_scene(
                 hashes[id(meshes[i])] = meshes[i].content_hash()
             jobs.setdefault(hashes[id(meshes[i])], (meshes[i], []))[1].append(i)
 
+    stems = {h: f"{_safe_name(mesh.name)}-{h[:10]}-{config_hash[:8]}" for h, (mesh, _) in jobs.items()}
+    method = get_method(config.method)
+    to_train: list[TrainingJob] = []
     for k, (mesh_hash, (mesh, users)) in enumerate(jobs.items()):
-        stem = f"{_safe_name(mesh.name)}-{mesh_hash[:10]}-{config_hash[:8]}"
-        model_path = models_dir / f"{stem}.nrt"
-        reused = _cached_model_is_valid(model_path, mesh_hash, config)
-        seconds = 0.0
-        if not reused:
+        stem = stems[mesh_hash]
+        if _cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
             if progress:
-                print(f"[{k + 1}/{len(jobs)}] training {config.method} {preset} model of {mesh.name!r} "
-                      f"({mesh.num_triangles:,} triangles, {len(users)} object(s))", flush=True)
-            start = time.perf_counter()
-            model = train(mesh, config, progress=progress, device=device,
-                                checkpoint=models_dir / f"{stem}.ckpt", resume=True)
-            seconds = time.perf_counter() - start
-            model.save(model_path)
-            (models_dir / f"{stem}.ckpt").unlink(missing_ok=True)
-        elif progress:
-            print(f"[{k + 1}/{len(jobs)}] reusing {model_path.name} for {mesh.name!r}", flush=True)
-        report.models.append(ConvertedModel(mesh.name, mesh.num_triangles, str(model_path),
-                                            [names[i] for i in users], reused, seconds))
+                print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
+            continue
+        to_train.append(TrainingJob(stem, mesh, config, method, models_dir / f"{stem}.ckpt",
+                                    f"{config.method} {preset} model of {mesh.name!r} ({mesh.num_triangles:,} triangles, "
+                                    f"{len(users)} object(s))"))
+    trained = {}
+    for result in runner.run(to_train):  # each model is written as soon as it exists
+        result.save(models_dir / f"{result.key}.nrt")
+        (models_dir / f"{result.key}.ckpt").unlink(missing_ok=True)
+        trained[result.key] = result
+
+    for mesh_hash, (mesh, users) in jobs.items():
+        stem = stems[mesh_hash]
+        model_path = models_dir / f"{stem}.nrt"
+        done = trained.get(stem)
+        report.models.append(ConvertedModel(mesh.name, mesh.num_triangles, str(model_path), [names[i] for i in users],
+                                            done is None, done.seconds if done else 0.0, done.where if done else ""))
         if group:
             mesh_path = models_dir / f"{stem}.obj"
             write_mesh_obj(mesh, mesh_path)

@@ -1,0 +1,436 @@
+"""Who trains a conversion's models: one contract ("train these jobs, yield each result as it
+finishes"), two executors.
+
+`convert_scene` decides what to train (one `TrainingJob` per unique mesh whose model is not
+already in the models folder), hands the jobs to an executor and writes each `TrainedModel` into
+the models folder as it arrives:
+
+- `LocalExecutor` trains them one after another in this process (the behaviour before Ray).
+- `RayExecutor` runs one Ray task per job, on a local Ray instance (this machine's cores) or an
+  existing cluster (``address``). Each task asks for ``cpus_per_model`` CPUs and
+  ``gpus_per_model`` GPUs (one by default when training on CUDA). A mesh is put into Ray's object
+  store once by the driver, so workers never read or generate the scene; a task returns the
+  model file's bytes and the driver writes the file, so no shared filesystem is needed for the
+  models. Tasks checkpoint to the models folder's path: a worker that dies is retried by Ray
+  (``max_retries``) and resumes from that checkpoint where the path is visible to it (this
+  machine, or a shared filesystem).
+
+Training is bit-reproducible for a fixed number of torch and numba threads (the hash-grid
+gradient is summed per thread), so both executors take ``threads`` (threads per model) and set
+both libraries to it while a job trains; `LocalExecutor` leaves the process's settings alone by
+default, `RayExecutor` uses ``cpus_per_model`` threads by default.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from urllib.parse import urlparse
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..errors import ConfigError, NeuralRTError, validation_message
+from ..geometry.mesh import Mesh
+from ..io.files import write_atomically
+from ..methods import MethodConfig, MethodSpec
+
+__all__ = [
+    "TrainingJob", "TrainedModel", "Executor", "LocalExecutor", "RayExecutor", "RayOptions", "EXECUTORS",
+    "make_executor", "training_threads",
+]
+
+EXECUTORS = ("local", "ray")
+INSTALL_HINT = "pip install 'neuralrt[cluster]'"
+_PROGRESS_SECONDS = 0.5  # how often workers report and the driver redraws
+
+
+@dataclass(frozen=True)
+class TrainingJob:
+    """One model to train: its file stem in the models folder (``name-meshhash-confighash``), the
+    mesh, the full config, where it checkpoints, and a description for progress lines."""
+
+    key: str
+    mesh: Mesh
+    config: MethodConfig
+    method: MethodSpec  # shipped to workers so a method registered outside neuralrt is known there too
+    checkpoint: Path
+    description: str
+
+
+@dataclass
+class TrainedModel:
+    """A finished job: the model (local) or its file's bytes (Ray), and where and how it trained."""
+
+    key: str
+    seconds: float  # wall time of the job, model construction and ground truth included
+    rays_per_second: float
+    resumed_from: int | None
+    where: str  # "local", or the Ray node's address
+    threads: tuple[int, int] | None  # (torch, numba) threads while training
+    model: object | None = None
+    model_file: bytes | None = None
+
+    def save(self, path: Path) -> None:
+        """Write the model file (atomically, like every output)."""
+        if self.model is not None:
+            self.model.save(path)
+        else:
+            write_atomically(path, lambda tmp: Path(tmp).write_bytes(self.model_file), fsync=True)
+
+
+@contextmanager
+def training_threads(threads: int | None):
+    """Set torch's and numba's thread counts to ``threads`` (None: leave them) and restore them after.
+    numba's count is per calling thread and capped by ``NUMBA_NUM_THREADS`` (the core count)."""
+    if threads is None:
+        yield None
+        return
+    import numba
+    import torch
+
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield torch.get_num_threads(), numba.get_num_threads()
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
+def _current_threads() -> tuple[int, int]:
+    import numba
+    import torch
+
+    return torch.get_num_threads(), numba.get_num_threads()
+
+
+def _train_job(job: TrainingJob, mesh: Mesh, device: str, *, threads: int | None, progress: bool, on_step=None):
+    """Train one job here (in this process or a Ray worker); returns (model, seconds, threads used)."""
+    from ..training.api import train
+
+    start = time.perf_counter()
+    with training_threads(threads) as used:
+        model = train(mesh, job.config, progress=progress, device=device, checkpoint=job.checkpoint, resume=True,
+                      on_step=on_step)
+        used = used or _current_threads()
+    return model, time.perf_counter() - start, used
+
+
+class Executor:
+    """Contract: ``with executor: for result in executor.run(jobs): ...`` trains every job and
+    yields each `TrainedModel` as it finishes (any order). Entering checks that the executor can
+    run (before any long work); leaving stops whatever is still running."""
+
+    name = "executor"
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+        raise NotImplementedError  # pragma: no cover - abstract
+
+
+class LocalExecutor(Executor):
+    """Jobs one after another in this process, each with the trainer's own progress bar."""
+
+    name = "local"
+
+    def __init__(self, *, device: str = "cpu", progress: bool = True, threads: int | None = None):
+        self.device, self.progress, self.threads = device, progress, threads
+
+    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+        for k, job in enumerate(jobs):
+            if self.progress:
+                print(f"[{k + 1}/{len(jobs)}] training {job.description}", flush=True)
+            model, seconds, used = _train_job(job, job.mesh, self.device, threads=self.threads, progress=self.progress)
+            record = model.training_record
+            yield TrainedModel(job.key, seconds, record.get("rays_per_second", 0.0), record.get("resumed_from"),
+                               "local", used, model=model)
+
+
+# --- Ray ------------------------------------------------------------------------------------------
+
+
+_FLAGS = {"address": "--address", "cpus_per_model": "--cpus-per-model", "gpus_per_model": "--gpus-per-model",
+          "threads_per_model": "--threads-per-model", "max_retries": "--max-retries"}
+
+
+class RayOptions(BaseModel):
+    """Settings of the Ray executor (the CLI's flags of the same names)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    address: str | None = Field(None, description="existing cluster: 'auto', HOST:PORT or ray://HOST:PORT; "
+                                                  "None: start a local Ray instance on this machine's cores")
+    cpus_per_model: float = Field(1.0, gt=0, description="Ray CPUs each training task asks for")
+    gpus_per_model: float | None = Field(None, ge=0, description="Ray GPUs each task asks for (default: 1 on cuda, 0 on cpu; "
+                                                                 "a fraction shares a GPU)")
+    threads_per_model: int | None = Field(None, ge=1, description="torch and numba threads of each task "
+                                                                  "(default: cpus_per_model, at least 1)")
+    max_retries: int = Field(3, ge=0, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
+
+    @classmethod
+    def parse(cls, **values) -> "RayOptions":
+        try:
+            return cls(**{k: v for k, v in values.items() if v is not None})
+        except ValidationError as exc:
+            msg = validation_message(exc)
+            for key, flag in _FLAGS.items():
+                msg = msg.replace(f"{key}:", f"{flag}:")
+            raise ConfigError(msg) from None
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError(f"--executor ray needs Ray, which is not installed: {INSTALL_HINT}") from None
+    return ray
+
+
+def _probe(address: str, timeout: float = 3.0) -> None:
+    """One-line error unless something listens at ``address`` (HOST:PORT or ray://HOST:PORT): Ray
+    itself retries an unreachable address for minutes before giving up."""
+    if address == "auto":
+        return  # Ray finds the cluster on this machine, or says at once that there is none
+    parsed = urlparse(address if "://" in address else f"tcp://{address}")
+    try:
+        host, port = parsed.hostname, parsed.port
+    except ValueError:
+        host = port = None
+    if not host or not port:
+        raise ConfigError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as exc:
+        raise ConfigError(f"--address {address}: no Ray cluster reachable ({exc.strerror or exc}); start one with "
+                          f"`ray start --head` on the head node, or leave --address out for a local Ray instance") from None
+
+
+class _ProgressBoard:
+    """A Ray actor (no CPU) that workers report to and the driver reads: key -> latest report."""
+
+    def __init__(self):
+        self.rows: dict[str, dict] = {}
+
+    def report(self, key: str, row: dict) -> None:
+        old = self.rows.get(key)
+        if old is not None and old["pid"] != row["pid"]:
+            row["attempt"] = old["attempt"] + 1  # a new worker took the job over (Ray's retry)
+        else:
+            row["attempt"] = old["attempt"] if old else 1
+        self.rows[key] = row
+
+    def snapshot(self) -> dict:
+        return self.rows
+
+
+class _StepReporter:
+    """The worker's ``on_step`` hook: step, steps and running rays/s to the board, twice a second."""
+
+    def __init__(self, board, key: str, steps: int, batch_size: int, node: str):
+        self.board, self.key, self.steps, self.batch = board, key, steps, batch_size
+        self.node, self.pid = node, os.getpid()
+        self.first: tuple[int, float] | None = None
+        self.last = 0.0
+
+    def __call__(self, step: int, optimizer) -> None:
+        now = time.monotonic()
+        if self.first is None:
+            self.first = (step, now)
+        if now - self.last < _PROGRESS_SECONDS and step + 1 < self.steps:
+            return
+        self.last = now
+        done = step + 1 - self.first[0]
+        rate = done * self.batch / (now - self.first[1]) if now > self.first[1] else 0.0
+        self.board.report.remote(self.key, {"step": step + 1, "steps": self.steps, "rays_per_second": rate,
+                                            "resumed_from": self.first[0] or None, "node": self.node, "pid": self.pid})
+
+
+def _train_on_worker(job: TrainingJob, mesh: Mesh, device: str, threads: int, board) -> TrainedModel:
+    """The Ray task: train one job, return the model file's bytes."""
+    # Unpickling this function imported neuralrt (and its OMP_WAIT_POLICY) before torch.
+    import ray
+    import torch
+
+    from ..methods import method_names, register_method
+
+    if job.method.name not in method_names():
+        register_method(job.method)
+    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+        raise NeuralRTError(f"{ray.util.get_node_ip_address()}: the task got no usable CUDA device")
+    try:  # checkpoints go to the models folder's path where this node can write it (else: none)
+        job.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        job = replace(job, checkpoint=None)
+    node = ray.util.get_node_ip_address()
+    reporter = _StepReporter(board, job.key, job.config.training.steps, job.config.training.batch_size, node)
+    model, seconds, used = _train_job(job, mesh, device, threads=threads, progress=False, on_step=reporter)
+    with tempfile.TemporaryDirectory() as folder:
+        path = model.save(Path(folder) / f"{job.key}.nrt")
+        data = path.read_bytes()
+    record = model.training_record
+    return TrainedModel(job.key, seconds, record.get("rays_per_second", 0.0), record.get("resumed_from"), node, used,
+                        model_file=data)
+
+
+def _one_line(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None) or exc  # RayTaskError wraps the worker's exception
+    text = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {text[-1] if text else ''}".strip(": ")
+
+
+class RayExecutor(Executor):
+    """One Ray task per job on a local Ray instance or a cluster; a tqdm bar of models done / total
+    with each running task's step and rays/s."""
+
+    name = "ray"
+
+    def __init__(self, options: RayOptions, *, device: str = "cpu", progress: bool = True):
+        import torch
+
+        self.options, self.progress = options, progress
+        self.device = torch.device(device).type  # a task sees its own GPUs as cuda:0...
+        gpus = options.gpus_per_model
+        if gpus is None:
+            gpus = 1.0 if self.device == "cuda" else 0.0
+        if self.device == "cuda" and gpus == 0:
+            raise ConfigError("--gpus-per-model 0 with --device cuda: a task training on CUDA needs a GPU (e.g. 1, or 0.5 to share one)")
+        if self.device != "cuda" and gpus > 0:
+            raise ConfigError(f"--gpus-per-model {options.gpus_per_model:g} needs --device cuda (the tasks train on {self.device})")
+        self.gpus = gpus
+        self.threads = options.threads_per_model or max(1, int(options.cpus_per_model))
+        self._ray = None
+        self._started = False  # this executor started (and so stops) the Ray instance
+        self._running: dict = {}  # ObjectRef -> TrainingJob of each task still running
+
+    # Connecting to a given address happens on entry (fails fast); a local instance starts only
+    # when there is something to train (a rerun with every model present never starts Ray).
+    def __enter__(self):
+        self._ray = _import_ray()
+        if self.options.address is not None and not self._ray.is_initialized():
+            _probe(self.options.address)
+            self._connect()
+        return self
+
+    def _connect(self) -> None:
+        import logging
+
+        ray = self._ray
+        if ray.is_initialized():
+            return  # a caller's own ray.init (tests, notebooks) is used as it is
+        try:
+            if self.options.address is None:
+                ray.init(include_dashboard=False, logging_level=logging.WARNING)
+            else:
+                ray.init(address=self.options.address, logging_level=logging.WARNING)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            where = self.options.address or "a local instance"
+            raise ConfigError(f"--address {where}: could not connect to Ray ({str(exc).splitlines()[0]}); start a cluster "
+                              f"with `ray start --head`, or leave --address out for a local Ray instance") from None
+        self._started = True
+        nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
+        if not any(r.get("CPU", 0) >= self.options.cpus_per_model and r.get("GPU", 0) >= self.gpus for r in nodes):
+            have = "; ".join(f"{r.get('CPU', 0):g} CPU, {r.get('GPU', 0):g} GPU" for r in nodes) or "no node"
+            raise ConfigError(f"no Ray node has {self.options.cpus_per_model:g} CPU and {self.gpus:g} GPU for one model "
+                              f"(nodes: {have}); lower --cpus-per-model / --gpus-per-model or add nodes")
+
+    def __exit__(self, *exc) -> None:
+        ray, running = self._ray, self._running
+        if ray is None or not ray.is_initialized():
+            return
+        if running:  # interrupted or failed: stop the tasks (their checkpoints stay for the next run)
+            for ref in list(running):
+                ray.cancel(ref)  # KeyboardInterrupt in the task: temporary files are removed on the way out
+            ray.wait(list(running), num_returns=len(running), timeout=10)
+            running.clear()
+        if self._started:
+            ray.shutdown()
+            self._started = False
+
+    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+        if not jobs:
+            return
+        self._connect()
+        ray = self._ray
+        board = ray.remote(num_cpus=0)(_ProgressBoard).remote()
+        task = ray.remote(_train_on_worker)
+        running = self._running
+        for job in jobs:
+            mesh_ref = ray.put(job.mesh)  # once per mesh; the task gets it from the object store
+            slim = replace(job, mesh=None)  # the mesh travels by reference, not inside the task's arguments
+            ref = task.options(num_cpus=self.options.cpus_per_model, num_gpus=self.gpus, max_retries=self.options.max_retries,
+                               retry_exceptions=False, name=f"neuralrt-train:{job.key}").remote(
+                slim, mesh_ref, self.device, self.threads, board)
+            running[ref] = job
+        yield from self._collect(ray, board, len(jobs))
+
+    def _collect(self, ray, board, total: int) -> Iterator[TrainedModel]:
+        from tqdm.auto import tqdm
+
+        running, failures, seen = self._running, [], {}
+        bar = tqdm(total=total, desc="models", unit="model", disable=not self.progress, dynamic_ncols=True)
+        try:
+            while running:
+                done, _ = ray.wait(list(running), num_returns=1, timeout=_PROGRESS_SECONDS)
+                if self.progress:
+                    self._show(bar, ray.get(board.snapshot.remote()), seen)
+                for ref in done:
+                    job = running.pop(ref)
+                    try:
+                        result = ray.get(ref)
+                    except ray.exceptions.RayError as exc:
+                        failures.append(f"{job.key} ({_one_line(exc)})")
+                        continue
+                    bar.update(1)
+                    if self.progress:
+                        bar.write(f"trained {job.description} in {result.seconds:.1f} s on {result.where} "
+                                  f"({result.rays_per_second:,.0f} rays/s)")
+                    yield result
+        finally:
+            bar.close()
+        if failures:
+            raise NeuralRTError(f"training failed for {len(failures)} of {total} model(s): {'; '.join(failures)}; the "
+                                f"finished models are in the models folder, run the same command again to retry")
+
+    def _show(self, bar, rows: dict, seen: dict) -> None:
+        """Running tasks' step and rays/s in the bar; a line when a task resumes or is retried."""
+        running_keys = {job.key: job for job in self._running.values()}
+        parts, total_rate = [], 0.0
+        for key, row in rows.items():
+            if key not in running_keys:
+                continue
+            if seen.get(key) != row["attempt"]:
+                if row["attempt"] > 1 or row["resumed_from"]:
+                    resumed = f"from step {row['resumed_from']}" if row["resumed_from"] else "from the start"
+                    retry = f" (attempt {row['attempt']}: its first worker died)" if row["attempt"] > 1 else ""
+                    bar.write(f"{key}: resumed {resumed}{retry} on {row['node']}")
+                seen[key] = row["attempt"]
+            total_rate += row["rays_per_second"]
+            parts.append(f"{running_keys[key].mesh.name} {row['step']}/{row['steps']} {row['rays_per_second'] / 1e3:.0f}k")
+        bar.set_postfix_str(f"{total_rate / 1e3:.0f}k rays/s | " + ", ".join(parts) if parts else "starting", refresh=True)
+
+
+def make_executor(name: str, *, device: str = "cpu", progress: bool = True, threads_per_model: int | None = None,
+                  **ray_options) -> Executor:
+    """``"local"`` or ``"ray"`` with its options (`RayOptions`); bad names or options are one-line errors."""
+    if name not in EXECUTORS:
+        raise ConfigError(f"--executor {name!r}: choose from {', '.join(EXECUTORS)}")
+    if name == "local":
+        given = [_FLAGS[k] for k, v in ray_options.items() if v is not None]
+        if given:
+            raise ConfigError(f"{', '.join(given)}: only with --executor ray")
+        if threads_per_model is not None and threads_per_model < 1:
+            raise ConfigError(f"--threads-per-model: must be >= 1, got {threads_per_model}")
+        return LocalExecutor(device=device, progress=progress, threads=threads_per_model)
+    return RayExecutor(RayOptions.parse(threads_per_model=threads_per_model, **ray_options), device=device, progress=progress)
