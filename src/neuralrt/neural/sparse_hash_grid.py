@@ -17,8 +17,9 @@ Level resolutions must be multiples of the voxel resolution, so that every voxel
 a grid plane of every level (`check_resolutions`).
 
 One contract, implementations chosen once by the table's device: on the CPU (fp32 table), fused
-numba kernels (parallel over rays; the backward scatters into one gradient table per thread,
-then sums them, so there are no atomics); on CUDA, Triton kernels (`sparse_hash_grid_triton`:
+numba kernels (the forward parallel over rays; the backward parallel over table rows: each thread
+owns a range of one level's rows and adds the contributions that land there, so there are no
+atomics, no per-thread tables to sum, and the sums are the serial ones); on CUDA, Triton kernels (`sparse_hash_grid_triton`:
 gather forward, atomic-add backward); elsewhere the vectorized pure-torch
 `sparse_hash_grid_reference`, which is also the reference the tests compare the kernels against.
 """
@@ -181,6 +182,44 @@ def _backward_kernel(points, axes, grad_out, resolutions, grad_tables):
                             grad[slots[c], f] += weights[c] * g
 
 
+@numba.njit(parallel=True, cache=True)
+def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level, grad_table):
+    """Scatter ``grad_out`` into the one ``grad_table`` (``[L * T, F]``) with no atomics and no
+    per-thread copies: task (level, r) owns rows ``r/R .. (r+1)/R`` of that level's table
+    (``R = ranges_per_level``), zeroes them, and adds every point's contributions that land there.
+    Each row sums its contributions in ray order, whatever R and the thread count: the result
+    is the serial scatter's, bit for bit. With R > 1 every task of a level recomputes that level's
+    slots for all points (the price of owning rows)."""
+    n_rays, n_points = axes.shape
+    n_levels = resolutions.shape[0]
+    n_feat = grad_table.shape[1]
+    table_size = grad_table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
+    stride = n_levels * n_feat
+    for task in numba.prange(n_levels * ranges_per_level):
+        lvl, r = task // ranges_per_level, task % ranges_per_level
+        base = lvl * table_size
+        row_lo = base + r * table_size // ranges_per_level
+        row_hi = base + (r + 1) * table_size // ranges_per_level
+        grad_table[row_lo:row_hi] = 0.0
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        res = resolutions[lvl]
+        for n in range(n_rays):
+            for h in range(n_points):
+                code = axes[n, h]
+                if code < 0 or code > _ORIGIN_POINT:
+                    continue
+                k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code, res, mask, base, slots, weights)
+                col = h * stride + lvl * n_feat
+                for c in range(k):
+                    row = slots[c]
+                    if row_lo <= row < row_hi:
+                        w = weights[c]
+                        for f in range(n_feat):
+                            grad_table[row, f] += w * grad_out[n, col + f]
+
+
 def _numpy(t: Tensor, dtype) -> np.ndarray:
     return t.detach().to(dtype).contiguous().numpy()
 
@@ -189,7 +228,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
     """Fused numba forward/backward; differentiable in the table only (points are data)."""
 
     @staticmethod
-    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray):
+    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray, backward_scatter: str):
         pts = _numpy(points, torch.float32)
         axes = _numpy(face_axis, torch.int8)
         n_rays, n_points = axes.shape
@@ -202,6 +241,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
         ctx.save_for_backward(points, face_axis)
         ctx.resolutions = resolutions
         ctx.table_shape = tuple(table.shape)
+        ctx.backward_scatter = backward_scatter
         return torch.from_numpy(out)
 
     @staticmethod
@@ -209,15 +249,19 @@ class _SparseHashGridFunction(torch.autograd.Function):
         grad_table = None
         if ctx.needs_input_grad[2]:
             points, face_axis = ctx.saved_tensors
-            n_threads = max(1, min(len(points), numba.get_num_threads()))
             levels, size, n_feat = ctx.table_shape
-            tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
-            if len(points):
-                _backward_kernel(_numpy(points, torch.float32), _numpy(face_axis, torch.int8),
-                                 _numpy(grad_out, torch.float32), ctx.resolutions, tables)  # fmt: skip
-            grad = tables[0] if n_threads == 1 else tables.sum(0)
+            args = (_numpy(points, torch.float32), _numpy(face_axis, torch.int8), _numpy(grad_out, torch.float32), ctx.resolutions)
+            if ctx.backward_scatter == "row_ranges":
+                grad = np.empty((levels * size, n_feat), np.float32)
+                _backward_rows_kernel(*args, -(-numba.get_num_threads() // levels), grad)
+            else:  # "thread_tables": the earlier scatter, kept to measure against
+                n_threads = max(1, min(len(points), numba.get_num_threads()))
+                tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
+                if len(points):
+                    _backward_kernel(*args, tables)
+                grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
-        return None, None, grad_table, None
+        return None, None, grad_table, None, None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -288,6 +332,9 @@ class SparseHashGrid(nn.Module):
         init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
         self.table = nn.Parameter(init)  # [L, T, F]
         self._resolutions_np = np.asarray(self.resolutions, np.int64)
+        # CPU backward: "row_ranges" (threads own table rows) or "thread_tables" (a private table
+        # per thread, summed: the earlier scatter, kept to measure against); not stored in models.
+        self.backward_scatter = "row_ranges"
 
     def output_dim(self, max_points: int) -> int:
         return max_points * len(self.resolutions) * self.features_per_level
@@ -308,7 +355,7 @@ class SparseHashGrid(nn.Module):
 
             return sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
         if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
-            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np)
+            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter)
         return sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
 
     def _resolutions_on(self, device: torch.device) -> Tensor:
