@@ -7,7 +7,8 @@ Usage (rows merge into benchmarks/results/NAME.json, so runs can be split and re
     python benchmarks/bench_methods.py bunny00.off                       # the default variants
     python benchmarks/bench_methods.py armadillo.off --variants lsnif:hq nbvh:cpu:t15
     python benchmarks/bench_methods.py bunny00.off --train-only          # only train (models cached)
-    python benchmarks/bench_methods.py --plot                            # results/methods_flip_memory.png
+    python benchmarks/bench_methods.py bunny00.off --steps lsnif=2000 --batch nbvh=4096 --decimate
+    python benchmarks/bench_methods.py --plot --steps lsnif=2000 --batch nbvh=4096   # results/methods_flip_memory.png
 
 A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
 ``procedural:NAME:DETAIL`` (as in bench_lsnif.py). A variant is ``METHOD:PRESET[:tN]``: the
@@ -49,10 +50,16 @@ DEFAULT_VARIANTS = ["lsnif:hq", "nbvh:cpu:t15", "nbvh:cpu:t16", "nbvh:cpu:t18"]
 DEFAULT_MODELS = Path("/tmp/methods-models")
 
 
-def variant_config(variant: str, steps: dict[str, int]):
-    """``METHOD:PRESET[:tN]`` -> (method, config); ``steps`` maps a method to its training steps."""
+def per_method(items: list[str]) -> dict[str, int]:
+    """["lsnif=2000", "nbvh=1000"] -> {"lsnif": 2000, "nbvh": 1000} (``--steps`` / ``--batch``)."""
+    return {k: int(v) for k, v in (item.split("=") for item in items)}
+
+
+def variant_config(variant: str, steps: dict[str, int], batch: dict[str, int] | None = None):
+    """``METHOD:PRESET[:tN]`` -> (method, config); ``steps`` / ``batch`` map a method to its
+    training steps / rays per step (absent: the preset's)."""
     method, preset, *rest = variant.split(":")
-    cfg = get_method(method).config(preset, steps=steps.get(method))
+    cfg = get_method(method).config(preset, steps=steps.get(method), batch_size=(batch or {}).get(method))
     if rest:
         data = cfg.model_dump()
         data["encoding"]["log2_table_size"] = int(rest[0].removeprefix("t"))
@@ -156,7 +163,8 @@ def summary_row(r: dict) -> dict:
 
 
 def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
-    """FLIP against bytes: per mesh, LSNIF / N-BVH (table sizes) / decimation; per scene from the scenes JSON."""
+    """FLIP against bytes: per mesh, LSNIF / N-BVH (table sizes) / decimation (the rows in ``runs``);
+    per scene, every variant of the scenes JSON rows that have a decimation."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -210,6 +218,7 @@ def main() -> None:
     p.add_argument("meshes", nargs="*")
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, help="METHOD:PRESET[:tN] (default: %(default)s)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the preset's)")
+    p.add_argument("--batch", nargs="*", default=[], metavar="METHOD=N", help="training rays per step per method (default: the preset's)")
     p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
                    help="also decimate the mesh to the bytes of these variants (no names: every variant's)")
     p.add_argument("--eval-rays", type=int, default=1 << 17)
@@ -218,18 +227,28 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--models-dir", type=Path, default=DEFAULT_MODELS)
     p.add_argument("--train-only", action="store_true", help="only train (or find) the models")
-    p.add_argument("--plot", action="store_true", help="draw results/NAME_flip_memory.png from the JSON (and --scenes-json)")
+    p.add_argument("--plot", action="store_true",
+                   help="draw results/NAME_flip_memory.png from the JSON (rows trained as --steps/--batch say; and --scenes-json)")
     p.add_argument("--scenes-json", type=Path, default=RESULTS_DIR / "scenes_methods.json")
     p.add_argument("--name", default="methods", help="results file: benchmarks/results/NAME.json (rows merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
-    steps = {k: int(v) for k, v in (s.split("=") for s in args.steps)}
+    steps, batch = per_method(args.steps), per_method(args.batch)
 
     path = RESULTS_DIR / f"{args.name}.json"
     runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
     if args.plot:
         out = RESULTS_DIR / f"{args.name}_flip_memory.png"
-        plot(runs, args.scenes_json, out)
+        # Only models trained as --steps / --batch say (one consistent setting per method), and their decimations.
+        keep = {}
+        for key, r in runs.items():
+            if r["method"] == "decimation" or (args.meshes and r["mesh"] not in args.meshes):
+                continue
+            cfg = variant_config(r["variant"], steps, batch)[1].training
+            if (r["training"]["steps"], r["training"]["batch_size"]) == (cfg.steps, cfg.batch_size):
+                keep[key] = r
+                keep.update({k: v for k, v in runs.items() if k == f"{r['mesh']}|decimate@{r['variant']}"})
+        plot(keep, args.scenes_json, out)
         print(f"wrote {out}")
         return
 
@@ -240,19 +259,20 @@ def main() -> None:
         mesh = resolve_mesh(spec)
         classical = classical_memory(mesh).as_dict()
         for variant in args.variants:
-            _, cfg = variant_config(variant, steps)
+            _, cfg = variant_config(variant, steps, batch)
             model, info = train_or_load(mesh, cfg, args.models_dir, args.quiet)
             if args.train_only:
                 continue
             row = measure_model(spec, mesh, classical, variant, model, info, args)
             row["classical"] = classical
             row["load_average_1min_at_end"] = os.getloadavg()[0]
-            runs[f"{spec}|{variant}|{row['training']['steps']}"] = row
+            runs[f"{spec}|{variant}|{row['training']['steps']}x{row['training']['batch_size']}"] = row
             save()
             print_table([summary_row(row)], COLUMNS)
         if args.decimate is not None and not args.train_only:
             for variant in args.decimate or args.variants:
-                source = next(r for r in runs.values() if r["mesh"] == spec and r["variant"] == variant)
+                _, cfg = variant_config(variant, steps, batch)
+                source = runs[f"{spec}|{variant}|{cfg.training.steps}x{cfg.training.batch_size}"]
                 row = measure_decimation(spec, mesh, source["bytes"], variant, args)
                 runs[f"{spec}|decimate@{variant}"] = row
                 save()

@@ -99,11 +99,11 @@ def convert_variant(scene: str, output: Path, variant: str, args) -> dict:
     """Write ``output``: the scene with its large objects answered by ``variant``'s models
     (bench_methods' METHOD:PRESET[:tN], trained once per unique mesh and cached in --models-dir under
     the converter's names); returns {"bytes_by_mesh": ..., "train_s": summed recorded training time}."""
-    from bench_methods import train_or_load, variant_config
+    from bench_methods import per_method, train_or_load, variant_config
     from neuralrt.scene.scene import save_scene
 
     spec, meshes, chosen = scene_objects(scene, args.min_triangles)
-    _, cfg = variant_config(variant, {k: int(v) for k, v in (s.split("=") for s in args.steps)})
+    _, cfg = variant_config(variant, per_method(args.steps), per_method(args.batch))
     out_spec, trained, train_s = spec.model_copy(deep=True), {}, 0.0
     for i in chosen:
         if id(meshes[i]) not in trained:
@@ -237,6 +237,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--repeats", type=int, default=2, help="timed renders per scene and mode (best is kept)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the presets')")
+    p.add_argument("--batch", nargs="*", default=[], metavar="METHOD=N", help="training rays per step per method (default: the presets')")
     p.add_argument("--min-triangles", type=int, default=None)
     p.add_argument("--variants", nargs="+", default=["lsnif:hq", "lsnif:lq"],
                    help="METHOD:PRESET[:tN] answering the large objects (bench_methods.py's variants; default: %(default)s)")
