@@ -96,28 +96,61 @@ def _cut_on(cut, device):
     return CutArrays(*(getattr(cut, f).to(device) for f in ("lo", "hi", "children", "lod", "live")))
 
 
-@pytest.mark.parametrize("level", [0, 3, -1])
-def test_triton_traversal_lists_the_numba_leaves(ball_model, level):
-    from test_nbvh import _unit_rays
-
+def _assert_same_traversal(o, d, t_max, cut, lvl, dil):
     from neuralrt.methods.nbvh_traversal import first_leaves, list_leaves
     from neuralrt.methods.nbvh_traversal_triton import first_leaves_triton, list_leaves_triton
 
-    n = 300
-    o, d = _unit_rays(n, 2)
-    t_max = torch.full((n,), 0.9)
-    t_max[:20] = float("inf")
-    lvl = torch.full((n,), level, dtype=torch.int8)
-    lvl[::7] = 0 if level < 0 else -1  # levels per ray
-    dil = torch.full((n,), 1e-5)
-    cut = ball_model.cut_arrays()
     ref = list_leaves(o, d, t_max, cut, lvl, dil)  # numba
     dev = [x.to(DEVICE) for x in (o, d, t_max)] + [_cut_on(cut, DEVICE)] + [x.to(DEVICE) for x in (lvl, dil)]
     got = list_leaves_triton(*dev)
-    assert len(ref.node) > n and (ref.counts >= 4).sum() > 10  # several leaves per ray: the sort is exercised
     for field in ("start", "node", "t0", "t1"):
         assert torch.equal(getattr(got, field).cpu(), getattr(ref, field)), field
     node, t0, t1 = first_leaves_triton(*dev)
     rn, r0, r1 = first_leaves(o, d, t_max, cut, lvl, dil)
     assert torch.equal(node.cpu(), rn) and torch.equal(t0.cpu(), r0) and torch.equal(t1.cpu(), r1)
-    assert (rn < 0).any() and (rn >= 0).any()
+    return ref, rn
+
+
+def test_triton_traversal_lists_the_numba_leaves(ball_model):
+    """Random rays (outside, inside leaves, axis-parallel, unbounded) against a random cut: LoD 0,
+    LoD 3 and the live cut, one level per ray."""
+    from test_nbvh import _unit_rays
+
+    n = 240
+    o, d = _unit_rays(n, 2)
+    t_max = torch.full((n,), 0.9)
+    t_max[:20] = float("inf")
+    lvl = torch.tensor([0, 3, -1], dtype=torch.int8).repeat(n // 3)
+    dil = torch.full((n,), 1e-5)
+    ref, first = _assert_same_traversal(o, d, t_max, ball_model.cut_arrays(), lvl, dil)
+    assert len(ref.node) > n and (ref.counts >= 4).sum() > 10  # several leaves per ray: the sort is exercised
+    assert (first < 0).any() and (first >= 0).any()
+
+
+def test_triton_traversal_of_a_tree_deeper_than_its_short_stack(monkeypatch):
+    """A caterpillar tree 80 levels deep (node 2k + 2 splits again, 2k + 1 is a leaf), rays from
+    the far end, where every spine node is entered before its leaf: the walks go deeper than the
+    64-entry stack, so the kernels are run again with numba's 256."""
+    import neuralrt.methods.nbvh_traversal_triton as kernels
+    from neuralrt.methods.nbvh_traversal import NO_LOD, CutArrays
+
+    stacks = []
+    with_stack = kernels._with_stack
+    monkeypatch.setattr(kernels, "_with_stack", lambda *a: stacks.append(with_stack(*a)) or stacks[-1])
+    depth = 80
+    m = 2 * depth + 1
+    children = torch.full((m, 2), -1, dtype=torch.int32)
+    lo, hi = torch.zeros(m, 3), torch.ones(m, 3)
+    for k in range(depth):  # interior 2k (spine) -> spine 2k + 2 (popped first), leaf 2k + 1 (a slice at x ~ k / depth)
+        children[2 * k] = torch.tensor([2 * k + 2, 2 * k + 1])
+        lo[2 * k + 1, 0], hi[2 * k + 1, 0] = k / depth, (k + 1.5) / depth
+        lo[2 * k + 2, 0] = (k + 1) / depth
+    cut = CutArrays(lo, hi, children, torch.full((m,), NO_LOD, dtype=torch.int8), torch.zeros(m, dtype=torch.bool))
+    g = torch.Generator().manual_seed(0)
+    n = 16
+    o = torch.cat([torch.full((n, 1), 1.1), torch.rand(n, 2, generator=g)], 1)
+    d = torch.nn.functional.normalize(torch.cat([-torch.ones(n, 1), 0.05 * torch.randn(n, 2, generator=g)], 1), dim=1)
+    ref, first = _assert_same_traversal(o, d, torch.full((n,), float("inf")), cut, torch.zeros(n, dtype=torch.int8),
+                                        torch.full((n,), 1e-5))  # fmt: skip
+    assert ref.counts.max() > 64 and (first == 2 * depth - 1).all()  # the deepest leaf is entered first
+    assert stacks == [256, 256]  # list and first-leaf walks both overflowed the short stack
