@@ -81,7 +81,9 @@ def shared_scene(work: Path) -> Path | None:
 
 def variant_label(variant: str) -> str:
     """Row-key label of a variant: LSNIF presets keep their bare names (hq, lq: the earlier JSON's keys)."""
-    return variant.split(":")[1] if variant.startswith("lsnif:") and variant.count(":") == 1 else variant.replace(":", "_").replace("@", "_")
+    if variant.startswith("lsnif:") and variant.count(":") == 1 and "+" not in variant:
+        return variant.split(":")[1]
+    return variant.replace(":", "_").replace("+", "_")
 
 
 def scene_objects(scene: str, min_triangles: int | None):
@@ -153,10 +155,14 @@ def run_scene(scene: str, work: Path, args) -> dict:
     common = dict(spp=args.spp, max_depth=args.max_depth, progress=False)
 
     # Train (or reuse) every variant's models first, so renders are timed back to back.
+    # A variant ending in "+neural" is the same models answering camera rays too (--primary neural).
     labels = {variant: variant_label(variant) for variant in args.variants}
-    reports = {variant: convert_variant(scene, out / f"{labels[variant]}.toml", variant, args) for variant in args.variants}
+    bases = {variant: variant.removesuffix("+neural") for variant in args.variants}
+    converted = {base: convert_variant(scene, out / f"{variant_label(base)}.toml", base, args) for base in dict.fromkeys(bases.values())}
+    reports = {variant: converted[bases[variant]] for variant in args.variants}
     scenes = {"exact": load_scene(scene, resolution=res)}
-    scenes.update({labels[v]: load_scene(out / f"{labels[v]}.toml", resolution=res) for v in args.variants})
+    scenes.update({labels[v]: load_scene(out / f"{variant_label(bases[v])}.toml", resolution=res,
+                                         primary="neural" if v.endswith("+neural") else "exact") for v in args.variants})
     decimated = {}
     for source in args.decimate or []:
         label = f"decimate_{labels[source]}"
@@ -185,7 +191,7 @@ def run_scene(scene: str, work: Path, args) -> dict:
         else:
             row[f"train_{name}_s"] = reports[next(v for v, lb in labels.items() if lb == name)]["train_s"]
             row[f"neural_{name}_bytes"] = neural_bytes(scenes[name])
-    first = labels[args.variants[0]]
+    first = labels[next(v for v in args.variants if not v.endswith('+neural'))]
     memory = replaced_memory(scenes[first])  # every variant replaces the same meshes
     row["objects"] = sum(1 for i in scenes[first].accel.instances if is_neural(i.blas))
     row["unique"] = len(reports[args.variants[0]]["bytes_by_mesh"])
@@ -240,7 +246,8 @@ def main() -> None:
     p.add_argument("--batch", nargs="*", default=[], metavar="METHOD=N", help="training rays per step per method (default: the presets')")
     p.add_argument("--min-triangles", type=int, default=None)
     p.add_argument("--variants", nargs="+", default=["lsnif:hq", "lsnif:lq"],
-                   help="METHOD:PRESET[:tN] answering the large objects (bench_methods.py's variants; default: %(default)s)")
+                   help="METHOD:PRESET[:tN] answering the large objects (bench_methods.py's variants; default: %(default)s); "
+                        "a trailing +neural: the same models answer camera rays too (--primary neural)")
     p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
                    help="also render with each large mesh decimated to the bytes of these variants' models")
     p.add_argument("--models-dir", type=Path, default=None, help="model cache (default: WORK/models); bench_methods.py's is /tmp/methods-models")
