@@ -1,6 +1,11 @@
-"""Render time per sample per pixel of each built-in scene with both shading implementations in the
-same run (torch ops, the CPU path before the numba kernels, vs the fused numba kernels), split into
-ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
+"""Render time per sample per pixel of each built-in scene in three configurations in the same run,
+split into ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
+
+- ``torch``: torch shading ops and the TLAS broad phase testing every instance box (the CPU path
+  before the numba shading kernels and the instance BVH);
+- ``numba_all_boxes``: fused numba shading, broad phase testing every box (last state before the BVH);
+- ``numba``: fused numba shading and the broad phase walking a BVH over each group's instance
+  boxes (today's default).
 
     python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 
@@ -10,10 +15,12 @@ alternation so both see the same machine load); ``queries_s_per_spp``, the time 
 ``rest_s_per_spp``, everything else, of which ``shading_s_per_spp`` is inside the shading stages
 (shading, sampling, NEE, roulette, accumulation; the remainder is camera rays, random numbers and
 the film); ``blas_share``, the fraction inside `BLAS.intersect` / ``occluded`` alone.
-``speedup`` is torch s/spp over numba s/spp (wall clock), ``cpu_speedup`` the same for the CPU
+``speedup`` is torch s/spp over numba s/spp (wall clock), ``tlas_speedup`` numba_all_boxes s/spp
+over numba s/spp (the instance BVH's gain), ``cpu_speedup`` the same for the CPU
 seconds the process used (all threads; least of the repeats), which other jobs on a shared
 machine disturb less; ``pixels_differing`` the fraction of pixels whose
-values differ by more than 0.1% between the two (same seed).
+values differ by more than 0.1% between torch and numba (same seed); the two numba configurations
+must render the same image (checked).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
 average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
 machine torch's spinning worker threads cost far more than they give); the numba kernels are
@@ -36,15 +43,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import print_table, write_results  # noqa: E402
 
+from neuralrt.accel.tlas_stages import NumbaTLASStages  # noqa: E402
 from neuralrt.render import shading_stages  # noqa: E402
 from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.builtins import BUILTIN_SCENES  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
-BACKENDS = ("torch", "numba")
+# configuration -> (shading implementation, TLAS broad phase)
+CONFIGS = {"torch": ("torch", "all_boxes"), "numba_all_boxes": ("numba", "all_boxes"), "numba": ("numba", "bvh")}
+BACKENDS = tuple(CONFIGS)
 COLUMNS = ["scene", "instanced_tris", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup", "cpu_speedup",
            "torch_queries_s_per_spp", "torch_rest_s_per_spp", "torch_shading_s_per_spp", "numba_queries_s_per_spp",
-           "numba_rest_s_per_spp", "numba_shading_s_per_spp", "numba_query_share", "pixels_differing"]
+           "numba_rest_s_per_spp", "numba_shading_s_per_spp", "numba_query_share", "numba_all_boxes_s_per_spp",
+           "numba_all_boxes_queries_s_per_spp", "tlas_speedup", "pixels_differing"]
 
 
 class _Timer:
@@ -95,8 +106,10 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
                 stage_timer: _StageTimer) -> dict:
     scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
+    stages = {backend: NumbaTLASStages(scene.accel.table, broad_phase=CONFIGS[backend][1]) for backend in BACKENDS}
     for backend in BACKENDS:  # warm-up: allocator, first calls, numba's compiled-kernel cache
-        render(scene, spp=1, seed=123, progress=False, shading=backend)
+        scene.accel.stages = stages[backend]
+        render(scene, spp=1, seed=123, progress=False, shading=CONFIGS[backend][0])
     blas_timer = _Timer(unique.values())
     query_timer = _Timer([scene.accel])
     best: dict[str, tuple] = {}
@@ -108,7 +121,8 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
             stage_timer.seconds = 0.0
             torch.set_num_threads(threads)  # numba's OpenMP layer (Embree/TLAS kernels) may have reset it
             cpu0 = time.process_time()
-            result = render(scene, spp=spp, seed=0, progress=False, shading=backend)
+            scene.accel.stages = stages[backend]
+            result = render(scene, spp=spp, seed=0, progress=False, shading=CONFIGS[backend][0])
             cpu = time.process_time() - cpu0
             if backend not in best or result.seconds < best[backend][0].seconds:
                 best[backend] = (result, query_timer.seconds, blas_timer.seconds, query_timer.rays, stage_timer.seconds)
@@ -127,6 +141,10 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
     row["speedup"] = row["torch_s_per_spp"] / row["numba_s_per_spp"]
     row["cpu_speedup"] = row["torch_cpu_s_per_spp"] / row["numba_cpu_s_per_spp"]
     row["rest_speedup"] = row["torch_rest_s_per_spp"] / row["numba_rest_s_per_spp"]
+    row["tlas_speedup"] = row["numba_all_boxes_s_per_spp"] / row["numba_s_per_spp"]
+    row["tlas_queries_speedup"] = row["numba_all_boxes_queries_s_per_spp"] / row["numba_queries_s_per_spp"]
+    if not np.array_equal(best["numba"][0].image, best["numba_all_boxes"][0].image):
+        raise AssertionError(f"{name}: the instance BVH changed the image (the broad phase must give the same pairs)")
     # Same seed: the same paths through both, except where float32 (torch) and float64 (numba)
     # rounding of a direction makes a ray graze past or into thin geometry (a path then diverges).
     a, b = best["torch"][0].image, best["numba"][0].image
