@@ -152,3 +152,30 @@ def test_results_on_input_device(device):
     f = featurize_rays(o, d, torch.from_numpy(occ).to(device))
     assert f.points.device == o.device and f.count.item() == 5
     assert f[torch.tensor([True], device=device)].count.item() == f.count.item()
+
+
+@pytest.mark.parametrize("point_distances", [True, False])
+def test_select_network_rays_numba_matches_torch(point_distances):
+    """The CPU pass keeps the same rays and rows as the torch ops, and its point distances are
+    `point_local_distances` bit for bit."""
+    from dataclasses import fields
+
+    from neuralrt.methods.lsnif_features import point_local_distances, select_network_rays
+
+    g = torch.Generator().manual_seed(7)
+    occ = torch.rand(16, 16, 16, generator=g) < 0.15
+    o = torch.rand(4000, 3, generator=g) * 2 - 0.5
+    d = torch.randn(4000, 3, generator=g)
+    fp = featurize_rays(o, d, occ, 12)
+    keep, kept, ko, kd, dist = select_network_rays(fp, o, d, point_distances)
+    ref_keep = torch.nonzero(fp.count > 0).squeeze(1)
+    assert 500 < len(keep) < 4000 and torch.equal(keep, ref_keep)
+    ref = fp[ref_keep]
+    for f in fields(ref):
+        assert torch.equal(getattr(kept, f.name), getattr(ref, f.name)), f.name
+    assert torch.equal(ko, o[ref_keep]) and torch.equal(kd, d[ref_keep])
+    if point_distances:
+        expected = point_local_distances(ref, o[ref_keep], d[ref_keep])
+        assert torch.equal(dist, expected) and (dist > 0).float().mean() > 0.3
+    else:
+        assert dist is None

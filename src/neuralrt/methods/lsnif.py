@@ -37,7 +37,7 @@ from ..rays import AABB, Hits, Rays, face_forward, valid_ray_mask
 from ..training.step import StepResult
 from .base import NeuralBLAS, material_table
 from .lsnif_config import LSNIFConfig
-from .lsnif_features import RayFeaturePoints, featurize_rays
+from .lsnif_features import RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays
 
 __all__ = ["LSNIFConfig", "LSNIFModel", "LSNIFBLAS", "METHOD"]
 
@@ -67,6 +67,7 @@ class _Prepared:
     truncated: Tensor  # scalar: valid rays with more boundary points than H
     origins: Tensor  # [M, 3] unit-box origins (moved to t_min) of the active rays
     directions: Tensor  # [M, 3] unit-box directions of the active rays
+    distances: Tensor | None = None  # [M, H] `point_local_distances` (with ``features.point_distances``)
 
 
 class LSNIFModel(NeuralBLAS):
@@ -150,8 +151,8 @@ class LSNIFModel(NeuralBLAS):
         """Map valid rays to the unit box (origins moved to t_min) and featurize them, on the model's device."""
         unit = self._unit_rays(rays)
         fp = self._featurize(unit.origins, unit.directions)
-        keep = torch.nonzero(fp.count > 0).squeeze(1)
-        return _Prepared(unit.index[keep], fp[keep], unit.t_offset[keep], fp.truncated.sum(), unit.origins[keep], unit.directions[keep])
+        keep, kept, origins, directions, distances = select_network_rays(fp, unit.origins, unit.directions, self.config.features.point_distances)
+        return _Prepared(unit.index[keep], kept, unit.t_offset[keep], fp.truncated.sum(), origins, directions, distances)
 
     def _featurize(self, origins: Tensor, directions: Tensor) -> RayFeaturePoints:
         fc = self.config.features
@@ -171,7 +172,8 @@ class LSNIFModel(NeuralBLAS):
         fp = prep.features
         x = self.encoder(fp.points, fp.face_axis)
         if self.config.features.point_distances:
-            x = torch.cat([x, point_local_distances(fp, prep.origins, prep.directions)], dim=1)
+            distances = prep.distances if prep.distances is not None else point_local_distances(fp, prep.origins, prep.directions)
+            x = torch.cat([x, distances], dim=1)
         return x
 
     def _raw_outputs(self, prep: _Prepared, compute_dtype: torch.dtype) -> Tensor:
@@ -363,14 +365,6 @@ class LSNIFModel(NeuralBLAS):
 
 # LSNIFModel already is a BLAS (bounds, secondary_offset, intersect, occluded, memory_bytes).
 LSNIFBLAS = LSNIFModel
-
-
-def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Tensor) -> Tensor:
-    """[M, H] each point's ray parameter as a fraction of the ray's box interval (0 for padding)."""
-    t = ((fp.points - origins[:, None]) * directions[:, None]).sum(-1) / (directions * directions).sum(-1, keepdim=True)
-    span = (fp.t_exit - fp.t_enter).clamp(min=1e-12)
-    local = ((t - fp.t_enter[:, None]) / span[:, None]).clamp(0, 1)
-    return torch.where(fp.face_axis >= 0, local, torch.zeros_like(local))
 
 
 def _logit(p: float) -> float:

@@ -32,6 +32,10 @@ device: `featurize_rays_numba` (CPU, parallel over rays) and `featurize_rays_tri
 `featurize_rays_reference` is a slow, per-ray implementation written from the definition (sort
 every plane crossing, look up the voxel at each segment's midpoint) that the tests compare both
 kernels against.
+
+`select_network_rays` then keeps the rays with points (the ones the network sees) and, if asked,
+each point's distance along the ray (`point_local_distances`): one numba pass on the CPU instead
+of a gather per field and a chain of torch ops; torch ops elsewhere.
 """
 
 from __future__ import annotations
@@ -48,6 +52,8 @@ __all__ = [
     "featurize_rays",
     "featurize_rays_numba",
     "featurize_rays_reference",
+    "point_local_distances",
+    "select_network_rays",
     "PADDING",
     "ORIGIN_POINT",
 ]
@@ -387,3 +393,72 @@ def featurize_rays_reference(
             out.points[r, h] = torch.from_numpy(p.astype(np.float32))
             out.face_axis[r, h] = code
     return out.to(origins.device)
+
+
+# ---------------------------------------------------------------------------------------------
+# The rays that reach the network.
+
+
+def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Tensor) -> Tensor:
+    """[M, H] each point's ray parameter as a fraction of the ray's box interval (0 for padding)."""
+    t = ((fp.points - origins[:, None]) * directions[:, None]).sum(-1) / (directions * directions).sum(-1, keepdim=True)
+    span = (fp.t_exit - fp.t_enter).clamp(min=1e-12)
+    local = ((t - fp.t_enter[:, None]) / span[:, None]).clamp(0, 1)
+    return torch.where(fp.face_axis >= 0, local, torch.zeros_like(local))
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _select_kernel(pts, axes, counts, truncated, t_enter, t_exit, origins, directions, point_distances,
+                   keep, out_pts, out_axes, out_counts, out_truncated, out_t_enter, out_t_exit, out_origins,
+                   out_directions, out_distances):  # fmt: skip
+    """Rows with ``counts > 0`` copied in order into the ``out_*`` arrays (sized by the caller),
+    with `point_local_distances` in the same float32 operations as torch's."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    m = 0
+    for n in range(counts.shape[0]):
+        if counts[n] <= 0:
+            continue
+        keep[m] = n
+        out_pts[m] = pts[n]
+        out_axes[m] = axes[n]
+        out_counts[m], out_truncated[m] = counts[n], truncated[n]
+        te, tx = t_enter[n], t_exit[n]
+        out_t_enter[m], out_t_exit[m] = te, tx
+        ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
+        dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
+        out_origins[m, 0], out_origins[m, 1], out_origins[m, 2] = ox, oy, oz
+        out_directions[m, 0], out_directions[m, 1], out_directions[m, 2] = dx, dy, dz
+        if point_distances:
+            dd = dx * dx + dy * dy + dz * dz
+            span = max(tx - te, np.float32(1e-12))
+            for h in range(axes.shape[1]):
+                if axes[n, h] < 0:
+                    out_distances[m, h] = zero
+                    continue
+                t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
+                out_distances[m, h] = min(max((t - te) / span, zero), one)
+        m += 1
+
+
+def select_network_rays(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """The rays with at least one point, which the network answers: ``(keep [M] long, their
+    RayFeaturePoints, origins [M, 3], directions [M, 3], distances [M, H] or None)``, where
+    ``distances`` is `point_local_distances` (asked for by ``point_distances``). On the CPU one
+    numba pass (float32 arithmetic as torch's), elsewhere torch ops."""
+    if origins.device.type != "cpu":
+        keep = torch.nonzero(fp.count > 0).squeeze(1)
+        kept, o, d = fp[keep], origins[keep], directions[keep]
+        return keep, kept, o, d, point_local_distances(kept, o, d) if point_distances else None
+    counts = fp.count.numpy()
+    m, h = int(np.count_nonzero(counts > 0)), fp.max_points
+    keep = np.empty(m, np.int64)
+    out = RayFeaturePoints(np.empty((m, h, 3), np.float32), np.empty((m, h), np.int8), np.empty(m, np.int32),
+                           np.empty(m, np.bool_), np.empty(m, np.float32), np.empty(m, np.float32))  # fmt: skip
+    o, d = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
+    distances = np.empty((m, h) if point_distances else (0, h), np.float32)
+    _select_kernel(*(getattr(fp, f.name).numpy() for f in fields(fp)), origins.detach().contiguous().numpy(),
+                   directions.detach().contiguous().numpy(), bool(point_distances), keep,
+                   *(getattr(out, f.name) for f in fields(out)), o, d, distances)  # fmt: skip
+    kept = RayFeaturePoints(*(torch.from_numpy(getattr(out, f.name)) for f in fields(out)))
+    return (torch.from_numpy(keep), kept, torch.from_numpy(o), torch.from_numpy(d),
+            torch.from_numpy(distances) if point_distances else None)  # fmt: skip
