@@ -160,7 +160,7 @@ def test_select_network_rays_numba_matches_torch(point_distances):
     `point_local_distances` bit for bit."""
     from dataclasses import fields
 
-    from neuralrt.methods.lsnif_features import point_local_distances, select_network_rays
+    from neuralrt.methods.lsnif_features import point_local_distances, select_network_rays, select_network_rays_torch
 
     g = torch.Generator().manual_seed(7)
     occ = torch.rand(16, 16, 16, generator=g) < 0.15
@@ -168,7 +168,8 @@ def test_select_network_rays_numba_matches_torch(point_distances):
     d = torch.randn(4000, 3, generator=g)
     fp = featurize_rays(o, d, occ, 12)
     keep, kept, ko, kd, dist = select_network_rays(fp, o, d, point_distances)
-    ref_keep = torch.nonzero(fp.count > 0).squeeze(1)
+    ref_keep, *_ = select_network_rays_torch(fp, o, d, point_distances)
+    assert torch.equal(ref_keep, torch.nonzero(fp.count > 0).squeeze(1))
     assert 500 < len(keep) < 4000 and torch.equal(keep, ref_keep)
     ref = fp[ref_keep]
     for f in fields(ref):

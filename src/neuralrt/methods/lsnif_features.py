@@ -54,6 +54,8 @@ __all__ = [
     "featurize_rays_reference",
     "point_local_distances",
     "select_network_rays",
+    "select_network_rays_numba",
+    "select_network_rays_torch",
     "PADDING",
     "ORIGIN_POINT",
 ]
@@ -444,11 +446,20 @@ def select_network_rays(fp: RayFeaturePoints, origins: Tensor, directions: Tenso
     """The rays with at least one point, which the network answers: ``(keep [M] long, their
     RayFeaturePoints, origins [M, 3], directions [M, 3], distances [M, H] or None)``, where
     ``distances`` is `point_local_distances` (asked for by ``point_distances``). On the CPU one
-    numba pass (float32 arithmetic as torch's), elsewhere torch ops."""
-    if origins.device.type != "cpu":
-        keep = torch.nonzero(fp.count > 0).squeeze(1)
-        kept, o, d = fp[keep], origins[keep], directions[keep]
-        return keep, kept, o, d, point_local_distances(kept, o, d) if point_distances else None
+    numba pass (`select_network_rays_numba`), elsewhere torch ops (`select_network_rays_torch`)."""
+    implementation = select_network_rays_numba if origins.device.type == "cpu" else select_network_rays_torch
+    return implementation(fp, origins, directions, point_distances)
+
+
+def select_network_rays_torch(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """`select_network_rays` as torch ops (any device)."""
+    keep = torch.nonzero(fp.count > 0).squeeze(1)
+    kept, o, d = fp[keep], origins[keep], directions[keep]
+    return keep, kept, o, d, point_local_distances(kept, o, d) if point_distances else None
+
+
+def select_network_rays_numba(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """`select_network_rays` on CPU tensors: one numba pass, in torch's float32 operations."""
     counts = fp.count.numpy()
     m, h = int(np.count_nonzero(counts > 0)), fp.max_points
     keep = np.empty(m, np.int64)
