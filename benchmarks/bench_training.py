@@ -1,11 +1,18 @@
-"""LSNIF training throughput on the CPU: the step with and without drawing the next batch on a
-background thread (`neuralrt.training.prefetch.BatchSource`), alternating in one run.
+"""LSNIF training throughput on the CPU: today's step against the step before the CPU speed-ups,
+alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
 
+Configurations (both draw the next batch on a background thread, the default):
+- ``before``: the hash-grid backward with a private gradient table per thread, summed
+  (``backward_scatter="thread_tables"``), and the network rays selected by torch ops
+  (`select_network_rays_torch`: a gather per field, point distances as a chain of ops);
+- ``after``: threads owning ranges of table rows (``"row_ranges"``) and the one numba selection pass.
+
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
-compilation); rays/s is rays drawn / wall time of the whole loop. Also records a cProfile of one
-run with overlap, summarised as seconds per stage, and the 1-minute load average before and after.
+compilation); rays/s is rays drawn / wall time of the whole loop; ``paired`` ratios are each
+``after`` run over the ``before`` run just before it. Also records a cProfile of one run of each,
+summarised as seconds per stage, and the 1-minute load average before and after.
 Writes benchmarks/results/training_cpu.json.
 """
 
@@ -21,6 +28,7 @@ import time
 from pathlib import Path
 
 import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import numba
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -28,7 +36,9 @@ from _common import machine_info, print_table, write_results  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.geometry.mesh import load_mesh  # noqa: E402
+from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
+from neuralrt.methods.lsnif_features import select_network_rays, select_network_rays_torch  # noqa: E402
 from neuralrt.training.trainer import train_model  # noqa: E402
 
 # Stages of a step as cProfile names them (cumulative seconds of these functions).
@@ -39,12 +49,25 @@ _STAGES = {
     "MLP forward": "mlp.py:forward",
     "backward (all)": "_tensor.py:backward",
     "hash-grid backward kernel": "sparse_hash_grid.py:_backward_kernel",
+    "hash-grid backward kernel (row ranges)": "sparse_hash_grid.py:_backward_rows_kernel",
+    "select network rays": "lsnif_features.py:select_network_rays_numba",
+    "select network rays (torch)": "lsnif_features.py:select_network_rays_torch",
     "optimizer (fused Adam)": "adam.py:step",
 }
 
 
-def _train(mesh, truth, config, steps: int, overlap: bool) -> tuple[float, int]:
+CONFIGS = ("before", "after")
+
+
+def _configure(model: LSNIFModel, config: str) -> None:
+    """Switch the model's CPU training step to one configuration (see the module docstring)."""
+    model.encoder.backward_scatter = "thread_tables" if config == "before" else "row_ranges"
+    lsnif_module.select_network_rays = select_network_rays_torch if config == "before" else select_network_rays
+
+
+def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:
     model = LSNIFModel.from_mesh(mesh, config)
+    _configure(model, variant)
     rays = model.training_rays(truth, torch.device("cpu"))
     tc = config.training
     t0 = time.perf_counter()
@@ -54,10 +77,10 @@ def _train(mesh, truth, config, steps: int, overlap: bool) -> tuple[float, int]:
     return time.perf_counter() - t0, record.rays
 
 
-def _profile(mesh, truth, config, steps: int, overlap: bool) -> dict:
+def _profile(mesh, truth, config, steps: int, variant: str) -> dict:
     prof = cProfile.Profile()
     prof.enable()
-    wall, _ = _train(mesh, truth, config, steps, overlap)
+    wall, _ = _train(mesh, truth, config, steps, True, variant)
     prof.disable()
     stats = pstats.Stats(prof).stats
     stages = {}
@@ -79,28 +102,28 @@ def main() -> None:
     truth = MeshBLAS(mesh)
     config = LSNIFConfig.preset(args.preset)
     load_before = os.getloadavg()[0]
-    _train(mesh, truth, config, 5, True)  # warm-up: numba compilation, thread pools
+    for variant in CONFIGS:  # warm-up: numba compilation, thread pools
+        _train(mesh, truth, config, 5, True, variant)
     rows = []
     for rep in range(args.repeats):
-        for overlap in (False, True):
-            wall, n = _train(mesh, truth, config, args.steps, overlap)
-            rows.append({"repeat": rep, "overlap": overlap, "steps": args.steps, "batch": config.training.batch_size,
+        for variant in CONFIGS:
+            wall, n = _train(mesh, truth, config, args.steps, True, variant)
+            rows.append({"repeat": rep, "config": variant, "steps": args.steps, "batch": config.training.batch_size,
                          "wall_s": round(wall, 4), "rays_per_s": round(n / wall)})
-    profiles = {"serial": _profile(mesh, truth, config, args.steps, False),
-                "overlap": _profile(mesh, truth, config, args.steps, True)}
+    profiles = {variant: _profile(mesh, truth, config, args.steps, variant) for variant in CONFIGS}
     load_after = os.getloadavg()[0]
-    print_table(rows, ["repeat", "overlap", "steps", "batch", "wall_s", "rays_per_s"])
-    best = {o: max(r["rays_per_s"] for r in rows if r["overlap"] == o) for o in (False, True)}
-    median = {o: statistics.median(r["rays_per_s"] for r in rows if r["overlap"] == o) for o in (False, True)}
-    # Each overlapped run against the serial run just before it (same load, as near as we can get).
+    print_table(rows, ["repeat", "config", "steps", "batch", "wall_s", "rays_per_s"])
+    best = {c: max(r["rays_per_s"] for r in rows if r["config"] == c) for c in CONFIGS}
+    median = {c: statistics.median(r["rays_per_s"] for r in rows if r["config"] == c) for c in CONFIGS}
+    # Each "after" run against the "before" run just before it (same load, as near as we can get).
     paired = [b["rays_per_s"] / a["rays_per_s"] for a, b in zip(rows[::2], rows[1::2])]
     summary = {
         "mesh": Path(args.mesh).name, "triangles": int(len(mesh.faces)), "preset": args.preset,
-        "torch_threads": torch.get_num_threads(), "load_1min_before_after": [round(load_before, 2), round(load_after, 2)],
-        "best_rays_per_s": {"serial": best[False], "overlap": best[True]},
-        "overlap_over_serial_best": round(best[True] / best[False], 3),
-        "median_rays_per_s": {"serial": median[False], "overlap": median[True]},
-        "paired_ratios_overlap_over_serial": [round(r, 3) for r in paired],
+        "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+        "load_1min_before_after": [round(load_before, 2), round(load_after, 2)],
+        "best_rays_per_s": best, "after_over_before_best": round(best["after"] / best["before"], 3),
+        "median_rays_per_s": median,
+        "paired_ratios_after_over_before": [round(r, 3) for r in paired],
         "median_paired_ratio": round(statistics.median(paired), 3),
         "profile_cumulative_s": profiles,
     }
