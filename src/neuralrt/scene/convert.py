@@ -277,6 +277,7 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_t
     for k, (mesh_hash, (mesh, users)) in enumerate(jobs.items()):
         stem = stems[mesh_hash]
         if _cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
+            (models_dir / f"{stem}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
             if progress:
                 print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
             continue

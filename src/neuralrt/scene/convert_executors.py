@@ -318,7 +318,7 @@ class RayExecutor(Executor):
     # when there is something to train (a rerun with every model present never starts Ray).
     def __enter__(self):
         self._ray = _import_ray()
-        if self.options.address is not None and not self._ray.is_initialized():
+        if self.options.address is not None:
             _probe(self.options.address)
             self._connect()
         return self

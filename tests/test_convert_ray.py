@@ -1,0 +1,183 @@
+"""The Ray executor of `neuralrt convert` (issue 12) against the local one, on one shared local Ray
+instance with 2 CPUs: same model bits, finished models kept when interrupted, a killed worker
+retried and resumed from its checkpoint, nothing retrained on a rerun, one-line errors.
+"""
+
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from neuralrt.cli import main
+from neuralrt.io.model_file import read_model_file
+from neuralrt.scene.convert import convert_scene
+from neuralrt.scene.convert_executors import TrainedModel
+from neuralrt.scene.loader import load_scene
+from neuralrt.scene.scene import save_scene
+from neuralrt.scene.schema import CameraSpec, DiffuseMaterialSpec, EnvironmentSpec, GeneratorSpec, ObjectSpec, SceneSpec, TransformSpec
+
+ray = pytest.importorskip("ray")
+
+# Same threads in both executors: training is bit-reproducible for a fixed thread count.
+TRAIN = dict(preset="lq", steps=40, batch=1024, seed=0, min_triangles=100, progress=False, threads_per_model=2)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_instance():
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR")
+    yield
+    ray.shutdown()
+
+
+def _scene(folder: Path, generators: list[tuple[str, dict]], copies: int = 1) -> Path:
+    objects = [ObjectSpec(name=f"{name}{k}", generator=GeneratorSpec(name=name, params=params), material="white",
+                          transform=TransformSpec(translate=(2.0 * i, float(k), 0)))
+               for i, (name, params) in enumerate(generators) for k in range(copies)]
+    spec = SceneSpec(camera=CameraSpec(position=(0, 0.5, 6), look_at=(0, 0, 0), resolution=(16, 16)),
+                     materials=[DiffuseMaterialSpec(name="white", albedo=(0.7, 0.7, 0.7))], objects=objects,
+                     environment=EnvironmentSpec(color=(0.2, 0.2, 0.2)))
+    folder.mkdir(parents=True, exist_ok=True)
+    save_scene(spec, folder / "scene.toml")
+    return folder / "scene.toml"
+
+
+THREE = [("sphere", {"subdivisions": 3}), ("statue", {"detail": 1}), ("hairball", {"detail": 1})]
+
+
+def _without_timing(header: dict) -> dict:
+    """A model file's header minus what measures wall time (the only part two runs may differ in)."""
+    training = {k: v for k, v in header["training"].items() if k not in ("seconds", "rays_per_second")}
+    return {**header, "training": training}
+
+
+def _models(folder: Path) -> dict[str, dict]:
+    return {p.name: read_model_file(p).header for p in sorted(folder.glob("*.nrt"))}
+
+
+def _no_temporary_files(folder: Path) -> bool:
+    return not [p for p in folder.rglob("*") if ".tmp" in p.name]
+
+
+def test_ray_gives_the_local_models_keeps_finished_ones_when_interrupted_and_retrains_nothing(tmp_path, monkeypatch):
+    scene = _scene(tmp_path, THREE, copies=2)  # 6 objects, 3 unique meshes
+    local = convert_scene(scene, tmp_path / "local" / "scene.toml", **TRAIN)
+    assert [m.trained_on for m in local.models] == ["local"] * 3
+
+    # Interrupted (Ctrl-C) as the first model arrives: it stays, the scene file is not written,
+    # the other tasks are cancelled and leave no half-written file.
+    save = TrainedModel.save
+    def save_then_interrupt(self, path):
+        save(self, path)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(TrainedModel, "save", save_then_interrupt)
+    out = tmp_path / "ray" / "scene.toml"
+    with pytest.raises(KeyboardInterrupt):
+        convert_scene(scene, out, executor="ray", **TRAIN)
+    monkeypatch.setattr(TrainedModel, "save", save)
+    assert len(_models(out.parent / "models")) == 1 and not out.exists()
+    assert _no_temporary_files(out.parent)
+
+    again = convert_scene(scene, out, executor="ray", **TRAIN)
+    assert sorted(m.reused for m in again.models) == [False, False, True]
+    assert all(m.trained_on not in ("", "local") for m in again.models if not m.reused)  # a Ray node's address
+    ray_models, local_models = _models(out.parent / "models"), _models(tmp_path / "local" / "models")
+    assert list(ray_models) == list(local_models)  # same cache keys (mesh hash, config hash)
+    for name in local_models:
+        assert ray_models[name]["arrays_sha256"] == local_models[name]["arrays_sha256"], name
+        assert _without_timing(ray_models[name]) == _without_timing(local_models[name]), name
+    assert not list((out.parent / "models").glob("*.ckpt"))
+    assert len({id(i.blas) for i in load_scene(out).accel.instances}) == 3  # 6 instances of 3 models
+
+    stamps = {p: p.stat().st_mtime_ns for p in (out.parent / "models").glob("*.nrt")}
+    rerun = convert_scene(scene, out, executor="ray", **TRAIN)
+    assert all(m.reused and m.train_seconds == 0 and m.trained_on == "" for m in rerun.models)
+    assert stamps == {p: p.stat().st_mtime_ns for p in (out.parent / "models").glob("*.nrt")}
+
+
+def _kill_worker_after_first_checkpoint(models: Path, killed: list, timeout: float = 60.0) -> None:
+    """Wait for a checkpoint in ``models``, then SIGKILL the Ray worker running that training."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        ckpts = list(models.glob("*.ckpt")) if models.is_dir() else []
+        if ckpts:
+            title = f"ray::neuralrt-train:{ckpts[0].stem}".encode()
+            for pid in filter(str.isdigit, os.listdir("/proc")):
+                try:
+                    cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+                except OSError:
+                    continue
+                if cmdline.startswith(title):
+                    os.kill(int(pid), signal.SIGKILL)
+                    killed.append(int(pid))
+                    return
+        time.sleep(0.01)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker through /proc")
+def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(tmp_path):
+    # 400 steps with the preset's checkpoint every 200: the worker dies just after step 200.
+    options = {**TRAIN, "steps": 400, "batch": 512}
+    scene = _scene(tmp_path, [("statue", {"detail": 1})])
+    out = tmp_path / "ray" / "scene.toml"
+    killed: list[int] = []
+    killer = threading.Thread(target=_kill_worker_after_first_checkpoint, args=(out.parent / "models", killed))
+    killer.start()
+    report = convert_scene(scene, out, executor="ray", max_retries=2, **options)
+    killer.join()
+    assert killed, "the worker was never seen training"
+    assert out.exists() and not report.models[0].reused
+    header = read_model_file(report.models[0].model_path).header
+    assert header["training"]["resumed_from"] == 200 and header["training"]["steps"] == 400
+    # Resuming is exact: the same arrays as one uninterrupted run.
+    local = convert_scene(scene, tmp_path / "local" / "scene.toml", **options)
+    assert read_model_file(local.models[0].model_path).header["arrays_sha256"] == header["arrays_sha256"]
+
+
+def test_every_registered_method_trains_on_ray(tmp_path):
+    from neuralrt.methods import method_names
+
+    scene = _scene(tmp_path, [("statue", {"detail": 1})])
+    for method in method_names():
+        options = {**TRAIN, "preset": None, "method": method, "steps": 20}
+        ray_run = convert_scene(scene, tmp_path / method / "ray.toml", executor="ray", **options)
+        local = convert_scene(scene, tmp_path / method / "local.toml", models_dir=tmp_path / "local", **options)
+        a, b = (read_model_file(r.models[0].model_path).header for r in (ray_run, local))
+        assert a["method"] == method and a["arrays_sha256"] == b["arrays_sha256"], method
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("neuralrt: error: "), err
+    return err[0]
+
+
+def test_ray_not_installed_is_one_line_before_any_work(tmp_path, monkeypatch, capsys):
+    scene = _scene(tmp_path, THREE[:1])
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    out = tmp_path / "out" / "scene.toml"
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--quiet"]) == 2
+    assert "pip install 'neuralrt[cluster]'" in _one_error_line(capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
+    scene = _scene(tmp_path, THREE[:1])
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "out" / "scene.toml"
+    start = time.monotonic()
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--address", f"127.0.0.1:{port}"]) == 2
+    assert "ray start --head" in _one_error_line(capsys) and time.monotonic() - start < 10
+    for extra, words in [(["--address", "auto"], "only with --executor ray"),
+                         (["--executor", "ray", "--gpus-per-model", "1"], "needs --device cuda"),
+                         (["--executor", "ray", "--cpus-per-model", "0"], "--cpus-per-model:"),
+                         (["--executor", "ray", "--address", "nonsense"], "HOST:PORT")]:
+        assert main(["convert", str(scene), "-o", str(out), *extra]) == 2
+        assert words in _one_error_line(capsys), extra
+    assert not (tmp_path / "out").exists()
