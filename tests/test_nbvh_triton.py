@@ -128,16 +128,18 @@ def test_triton_traversal_lists_the_numba_leaves(ball_model):
 
 
 def test_triton_traversal_of_a_tree_deeper_than_its_short_stack(monkeypatch):
-    """A caterpillar tree 80 levels deep (node 2k + 2 splits again, 2k + 1 is a leaf), rays from
+    """A caterpillar tree 12 levels deep (node 2k + 2 splits again, 2k + 1 is a leaf), rays from
     the far end, where every spine node is entered before its leaf: the walks go deeper than the
-    64-entry stack, so the kernels are run again with numba's 256."""
+    short stack (8 here, 64 in use: the interpreter is slow), so the kernels are run again with
+    numba's 256."""
     import neuralrt.methods.nbvh_traversal_triton as kernels
     from neuralrt.methods.nbvh_traversal import NO_LOD, CutArrays
 
     stacks = []
     with_stack = kernels._with_stack
     monkeypatch.setattr(kernels, "_with_stack", lambda *a: stacks.append(with_stack(*a)) or stacks[-1])
-    depth = 80
+    monkeypatch.setattr(kernels, "_SHORT_STACK", 8)
+    depth = 12
     m = 2 * depth + 1
     children = torch.full((m, 2), -1, dtype=torch.int32)
     lo, hi = torch.zeros(m, 3), torch.ones(m, 3)
@@ -147,10 +149,40 @@ def test_triton_traversal_of_a_tree_deeper_than_its_short_stack(monkeypatch):
         lo[2 * k + 2, 0] = (k + 1) / depth
     cut = CutArrays(lo, hi, children, torch.full((m,), NO_LOD, dtype=torch.int8), torch.zeros(m, dtype=torch.bool))
     g = torch.Generator().manual_seed(0)
-    n = 16
+    n = 8
     o = torch.cat([torch.full((n, 1), 1.1), torch.rand(n, 2, generator=g)], 1)
     d = torch.nn.functional.normalize(torch.cat([-torch.ones(n, 1), 0.05 * torch.randn(n, 2, generator=g)], 1), dim=1)
     ref, first = _assert_same_traversal(o, d, torch.full((n,), float("inf")), cut, torch.zeros(n, dtype=torch.int8),
                                         torch.full((n,), 1e-5))  # fmt: skip
-    assert ref.counts.max() > 64 and (first == 2 * depth - 1).all()  # the deepest leaf is entered first
+    assert ref.counts.max() > 8 and (first == 2 * depth - 1).all()  # the deepest leaf is entered first
     assert stacks == [256, 256]  # list and first-leaf walks both overflowed the short stack
+
+
+def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypatch):
+    """`intersect` and `occluded` with the CUDA path's kernels (Triton traversal and hash grid, here
+    on CPU tensors) against the numba path: the same leaves and features, so the same answers up to
+    the MLP's float rounding. The cut is the random one of the traversal test; the model is untrained,
+    with a random table (U(-1, 1), so answers depend on the features) and its visibility bias set
+    so that about half the leaves accept a hit."""
+    import copy
+
+    import neuralrt.methods.nbvh as nbvh_module
+    from test_nbvh import _sphere_rays
+
+    from neuralrt.methods.nbvh_traversal_triton import list_leaves_triton
+
+    model = copy.deepcopy(ball_model)
+    with torch.no_grad():
+        model.encoder.table.copy_(torch.rand(model.encoder.table.shape, generator=torch.Generator().manual_seed(6)) * 2 - 1)
+        logits = model.network(model.encoder(torch.rand(512, 3, 3, generator=torch.Generator().manual_seed(7))))[:, 0]
+        model.network.output.bias[0] -= logits.median()
+    ball_model = model
+    rays = _sphere_rays(64, 11)
+    cpu, cpu_occ = ball_model.intersect(rays), ball_model.occluded(rays)
+    assert 0.2 < cpu.hit.float().mean() < 0.9
+    monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)
+    monkeypatch.setattr(HashGrid, "forward", lambda self, points: hash_grid_triton(points, self.table, self.layout))
+    tri, tri_occ = ball_model.intersect(rays), ball_model.occluded(rays)
+    assert torch.equal(tri.hit, cpu.hit) and torch.equal(tri_occ, cpu_occ)
+    torch.testing.assert_close(tri.t, cpu.t, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(tri.normal, cpu.normal, rtol=1e-4, atol=1e-5)

@@ -9,8 +9,9 @@ most the ray's level (level L >= 0: the registered cut of LoD L; level -1: the l
 training, flagged by ``live``).
 
 One contract, implementations chosen once by the tensors' device: a numba kernel on the CPU (a
-stack per ray, parallel over rays, two passes: count, then fill and sort), breadth-first frontier
-expansion in torch elsewhere. Both sort each ray's leaves by (t0, node index) and compute the slab
+stack per ray, parallel over rays, two passes: count, then fill and sort), the same walks as
+Triton kernels on CUDA (`nbvh_traversal_triton`: one ray per lane), breadth-first frontier
+expansion in torch elsewhere. All sort each ray's leaves by (t0, node index) and compute the slab
 test with the same float32 operations, so they give the same lists.
 """
 
@@ -273,6 +274,10 @@ def list_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArra
     ``t_max`` [N]; ``level`` [N] int (-1: the live cut); ``dilation`` [N] leaf-box growth."""
     if origins.device.type == "cpu":
         return _list_leaves_numba(origins, directions, t_max, cut, level, dilation)
+    if origins.device.type == "cuda":
+        from .nbvh_traversal_triton import list_leaves_triton
+
+        return list_leaves_triton(origins, directions, t_max, cut, level, dilation)
     return list_leaves_torch(origins, directions, t_max, cut, level, dilation)
 
 
@@ -291,4 +296,8 @@ def first_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArr
     """(node [N] (-1: none), t0 [N], t1 [N]): the first entry `list_leaves` would give each ray (training samples it)."""
     if origins.device.type == "cpu":
         return _first_leaves_numba(origins, directions, t_max, cut, level, dilation)
+    if origins.device.type == "cuda":
+        from .nbvh_traversal_triton import first_leaves_triton
+
+        return first_leaves_triton(origins, directions, t_max, cut, level, dilation)
     return first_leaves_torch(origins, directions, t_max, cut, level, dilation)

@@ -35,34 +35,28 @@ _BLOCK = 64
 
 
 @triton.jit
-def _min(a, b):
-    """numba's ``min(a, b)``: ``a`` unless ``b < a``."""
-    return tl.where(b < a, b, a)
-
-
-@triton.jit
-def _max(a, b):
-    return tl.where(b > a, b, a)
-
-
-@triton.jit
-def _slab_axis(o, inv, lo, hi, dil, tn, tf):
-    ta = ((lo - dil) - o) * inv
-    tb = ((hi + dil) - o) * inv
-    ta = tl.where(ta != ta, -_INF, ta)  # 0 * inf: the origin lies on the slab plane of a parallel ray
-    tb = tl.where(tb != tb, _INF, tb)
-    return _max(tn, _min(ta, tb)), _min(tf, _max(ta, tb))
-
-
-@triton.jit
 def _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, node, dil, mask):
-    """(t_near, t_far) of the dilated box of ``node`` [B] (float32, as numba's `_slab`)."""
+    """(t_near, t_far) of the dilated box of ``node`` [B] (float32, as numba's `_slab`: its
+    ``min(a, b)`` is ``a`` unless ``b < a``). Written out, not in helpers: the interpreter pays
+    for every nested jit call."""
     n3 = node.to(tl.int64) * 3
     tn = tl.zeros_like(ox) - _INF
     tf = tl.zeros_like(ox) + _INF
-    tn, tf = _slab_axis(ox, ix, tl.load(lo_ptr + n3, mask=mask, other=0.0), tl.load(hi_ptr + n3, mask=mask, other=0.0), dil, tn, tf)
-    tn, tf = _slab_axis(oy, iy, tl.load(lo_ptr + n3 + 1, mask=mask, other=0.0), tl.load(hi_ptr + n3 + 1, mask=mask, other=0.0), dil, tn, tf)
-    tn, tf = _slab_axis(oz, iz, tl.load(lo_ptr + n3 + 2, mask=mask, other=0.0), tl.load(hi_ptr + n3 + 2, mask=mask, other=0.0), dil, tn, tf)
+    for axis in tl.static_range(3):
+        if axis == 0:
+            o, inv = ox, ix
+        elif axis == 1:
+            o, inv = oy, iy
+        else:
+            o, inv = oz, iz
+        ta = ((tl.load(lo_ptr + n3 + axis, mask=mask, other=0.0) - dil) - o) * inv
+        tb = ((tl.load(hi_ptr + n3 + axis, mask=mask, other=0.0) + dil) - o) * inv
+        ta = tl.where(ta != ta, -_INF, ta)  # 0 * inf: the origin lies on the slab plane of a parallel ray
+        tb = tl.where(tb != tb, _INF, tb)
+        near = tl.where(tb < ta, tb, ta)
+        far = tl.where(tb > ta, tb, ta)
+        tn = tl.where(near > tn, near, tn)
+        tf = tl.where(far < tf, far, tf)
     return tn, tf
 
 
