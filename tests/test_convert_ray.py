@@ -119,9 +119,13 @@ def _kill_worker_after_first_checkpoint(models: Path, killed: list, timeout: flo
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker through /proc")
-def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(tmp_path):
-    # 400 steps with the preset's checkpoint every 200: the worker dies just after step 200.
-    options = {**TRAIN, "steps": 400, "batch": 512}
+def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+
+    # A checkpoint every 20 of 60 steps (the config travels to the worker with the job).
+    lq = LSNIFConfig.PRESETS["lq"]
+    monkeypatch.setitem(LSNIFConfig.PRESETS, "lq", lambda: lq().with_training(checkpoint_every=20))
+    options = {**TRAIN, "steps": 60, "batch": 512}
     scene = _scene(tmp_path, [("statue", {"detail": 1})])
     out = tmp_path / "ray" / "scene.toml"
     killed: list[int] = []
@@ -132,17 +136,17 @@ def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(tmp_path):
     assert killed, "the worker was never seen training"
     assert out.exists() and not report.models[0].reused
     header = read_model_file(report.models[0].model_path).header
-    assert header["training"]["resumed_from"] == 200 and header["training"]["steps"] == 400
+    assert header["training"]["resumed_from"] in (20, 40) and header["training"]["steps"] == 60
     # Resuming is exact: the same arrays as one uninterrupted run.
     local = convert_scene(scene, tmp_path / "local" / "scene.toml", **options)
     assert read_model_file(local.models[0].model_path).header["arrays_sha256"] == header["arrays_sha256"]
 
 
-def test_every_registered_method_trains_on_ray(tmp_path):
+def test_every_other_registered_method_trains_on_ray(tmp_path):
     from neuralrt.methods import method_names
 
     scene = _scene(tmp_path, [("statue", {"detail": 1})])
-    for method in method_names():
+    for method in set(method_names()) - {"lsnif"}:  # lsnif: the tests above
         options = {**TRAIN, "preset": None, "method": method, "steps": 20}
         ray_run = convert_scene(scene, tmp_path / method / "ray.toml", executor="ray", **options)
         local = convert_scene(scene, tmp_path / method / "local.toml", models_dir=tmp_path / "local", **options)
