@@ -200,3 +200,49 @@ def test_lazy_adam_numba_equals_torch_on_grid_batches():
         assert torch.allclose(opts[0].state[tables[0]][key], opts[1].state[tables[1]][key], rtol=1e-4, atol=1e-6)
     for opt, t in zip(opts, tables):  # the scratch is clean between steps
         assert not opt.state[t]["sum"].any() and not opt.state[t]["touched"].any()
+
+
+@pytest.mark.parametrize("kind", ["2d", "1d"])
+def test_numba_grid_lookup_equals_torch_values_and_sparse_gradients(kind):
+    from neuralrt.neural.dense_grid import DenseGrid1D, SphericalGrid2D
+
+    g = torch.Generator().manual_seed(5)
+    if kind == "2d":
+        grid, coords = SphericalGrid2D(3, 16, 3, 1.0, g, sparse=True), torch.rand(2000, 2, generator=g)
+        coords[:10, 0] = torch.tensor([0.0, 1.0]).repeat(5)  # both poles
+        coords[10:20, 1] = torch.tensor([0.0, 1.0 - 1e-7]).repeat(5)  # both sides of the azimuth seam
+    else:
+        grid, coords = DenseGrid1D(3, 16, 3, 1.0, g, sparse=True), torch.rand(2000, generator=g)
+        coords[:10] = torch.tensor([0.0, 1.0, -0.5, 1.5, 0.5]).repeat(2)  # ends and clamping
+    obj = torch.randint(0, 3, (2000,), generator=g)
+    weight = torch.randn(2000, 3, generator=g)
+    values, grads = [], []
+    for lookup in (grid.forward, grid.torch_forward):  # forward is numba for sparse CPU grids
+        grid.table.grad = None
+        y = lookup(obj, coords)
+        (y * weight).sum().backward()
+        assert grid.table.grad.is_sparse
+        values.append(y.detach())
+        grads.append(grid.table.grad.coalesce().to_dense())
+    assert torch.allclose(values[0], values[1], atol=1e-6)
+    assert torch.allclose(grads[0], grads[1], atol=1e-5)
+    assert grads[0].abs().sum() > 0
+
+
+def test_pair_fraction_trains_on_that_share_of_each_round():
+    g = torch.Generator().manual_seed(0)
+    box = AABB(torch.full((3,), -1.0), torch.full((3,), 1.0))
+    steps = []
+    for fraction in (1.0, 0.25):
+        cfg = NIFConfig(training=NIFTrainingConfig(pair_fraction=fraction, outer_batch=256, inner_batch=256, round_pairs=1 << 20))
+        net = NIFNetworks(cfg, [box])
+        trainer = NIFTrainer(net)
+        o = torch.randn(4096, 3, generator=g) * 3.0
+        pairs = NIFPairs(torch.zeros(4096, dtype=torch.long), o, -o, torch.zeros(4096), torch.ones(4096))
+        q = net.queries(pairs)
+        trainer.add(q, torch.rand(4096, generator=g) < 0.5)
+        trainer.finish()
+        steps.append((trainer.stats.outer_steps, trainer.stats.inner_steps, q.outer_pair.numel(), q.inner_pair.numel()))
+    (full_o, full_i, n_o, n_i), (part_o, part_i, _, _) = steps
+    assert (full_o, full_i) == (-(-n_o // 256), -(-n_i // 256))
+    assert (part_o, part_i) == (-(-(-(-n_o // 4)) // 256), -(-(-(-n_i // 4)) // 256))

@@ -14,6 +14,7 @@ view reaches have nothing to learn.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -112,9 +113,11 @@ class NIFTrainer:
         self.stats.seconds += time.perf_counter() - start
 
     def _pass(self, columns: list[Tensor], batch: int, optim: _Optimizers, logits_of, counter: str) -> float:
-        """One pass in a random order; returns the mean L2 loss over the pass."""
+        """One pass over a random ``pair_fraction`` of the pairs in a random order; returns the mean L2 loss over the pass."""
         n = columns[0].shape[0]
         order = torch.randperm(n, generator=self.generator, device=columns[0].device)
+        n = max(1, math.ceil(n * self.cfg.pair_fraction))
+        order = order[:n]
         total = torch.zeros((), device=columns[0].device)
         for lo in range(0, n, batch):
             idx = order[lo:lo + batch]

@@ -7,17 +7,24 @@ at the poles ``u = 0, 1`` (the first and last rows sit on the poles). `DenseGrid
 along one clamped axis. All objects' grids live in one table, so one gather answers any mix of
 objects (a per-query object index): NIF's "one grid gather per object" costs one call in total.
 
-Lookups are `torch.nn.functional.embedding` calls: any device, and with ``sparse=True`` the
-table's gradient is sparse (only the touched vertices' rows), for a lazy Adam (NIF's trainer):
-dense gradients and a dense Adam over a 256 x 256 x 3 table made a 2^11-pair training step 5x
-slower on 2 CPU cores (measured, docs/nif.md). Features start U(-init_scale, init_scale) from the
-given generator (NIF: 1e-4).
+Lookups have one contract in two implementations: torch ops around one
+`torch.nn.functional.embedding` gather (any device), and, for sparse grids on the CPU, numba
+kernels that compute each query's corner rows and bilinear weights and gather in one pass
+(`_WeightedRowGather`; its backward is two torch ops). With ``sparse=True`` the table's gradient
+is sparse (the touched vertices' rows, uncoalesced), for a lazy Adam (NIF's trainer): dense
+gradients and a dense Adam over a 256 x 256 x 3 table made a 2^11-pair training step 5x slower on
+2 CPU cores (measured, docs/nif.md). The numba path replaces ~a dozen small torch ops forward and
+backward per lookup (training steps are small: their per-op overhead dominated). Both agree to
+float32 rounding, values and gradients (tests/test_nif.py). Features start
+U(-init_scale, init_scale) from the given generator (NIF: 1e-4).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -34,6 +41,73 @@ def spherical_coords(v: Tensor) -> Tensor:
     theta = torch.acos(cos_theta)
     phi = torch.atan2(v[:, 2], v[:, 0])
     return torch.stack([theta / math.pi, (phi + math.pi) / (2.0 * math.pi)], dim=-1)
+
+
+@numba.njit(cache=True)
+def _corners_2d(obj, uv, r, corners, weights):
+    """Each query's 4 corner rows (top-left, top-right, bottom-left, bottom-right) and bilinear weights,
+    with `SphericalGrid2D`'s wrapping and clamping."""
+    one = np.float32(1.0)
+    for i in range(obj.shape[0]):
+        y = min(max(uv[i, 0] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
+        x = uv[i, 1] * np.float32(r)
+        y0 = min(math.floor(y), r - 2)
+        x0 = math.floor(x)
+        fy, fx = y - np.float32(y0), x - np.float32(x0)
+        ix0 = int(x0) % r
+        ix1 = (ix0 + 1) % r
+        base = obj[i] * (r * r) + int(y0) * r
+        corners[i, 0], corners[i, 1], corners[i, 2], corners[i, 3] = base + ix0, base + ix1, base + r + ix0, base + r + ix1
+        weights[i, 0], weights[i, 1] = (one - fx) * (one - fy), fx * (one - fy)
+        weights[i, 2], weights[i, 3] = (one - fx) * fy, fx * fy
+
+
+@numba.njit(cache=True)
+def _corners_1d(obj, s, r, corners, weights):
+    one = np.float32(1.0)
+    for i in range(obj.shape[0]):
+        x = min(max(s[i] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
+        x0 = min(math.floor(x), r - 2)
+        f = x - np.float32(x0)
+        corners[i, 0] = obj[i] * r + int(x0)
+        corners[i, 1] = corners[i, 0] + 1
+        weights[i, 0], weights[i, 1] = one - f, f
+
+
+@numba.njit(cache=True)
+def _weighted_gather(table, corners, weights, out):
+    for i in range(corners.shape[0]):
+        for f in range(table.shape[1]):
+            acc = np.float32(0.0)
+            for c in range(corners.shape[1]):
+                acc += weights[i, c] * table[corners[i, c], f]
+            out[i, f] = acc
+
+
+class _WeightedRowGather(torch.autograd.Function):
+    """``out[i] = sum_c weights[i, c] * table[corners[i, c]]`` (numba, CPU); the table's gradient is sparse."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, corners: Tensor, weights: Tensor) -> Tensor:
+        out = torch.empty(corners.shape[0], table.shape[1], dtype=table.dtype)
+        _weighted_gather(table.detach().numpy(), corners.numpy(), weights.numpy(), out.numpy())
+        ctx.save_for_backward(corners, weights)
+        ctx.table_shape = table.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        corners, weights = ctx.saved_tensors
+        values = (weights[:, :, None] * grad_out[:, None, :]).reshape(-1, grad_out.shape[1])
+        grad = torch.sparse_coo_tensor(corners.reshape(1, -1), values, ctx.table_shape, check_invariants=False)  # uncoalesced, as F.embedding's
+        return grad, None, None
+
+
+def _numba_lookup(table: Tensor, corners_of, obj: Tensor, coords: Tensor, r: int, k: int) -> Tensor:
+    m = obj.shape[0]
+    corners, weights = torch.empty(m, k, dtype=torch.int64), torch.empty(m, k, dtype=torch.float32)
+    corners_of(obj.contiguous().numpy(), coords.detach().float().contiguous().numpy(), r, corners.numpy(), weights.numpy())
+    return _WeightedRowGather.apply(table, corners, weights)
 
 
 def _init_table(shape: tuple[int, ...], init_scale: float, generator: torch.Generator | None) -> nn.Parameter:
@@ -55,6 +129,12 @@ class SphericalGrid2D(nn.Module):
 
     def forward(self, obj: Tensor, uv: Tensor) -> Tensor:
         """Features [M, N] at ``uv`` [M, 2] (from `spherical_coords`) of objects ``obj`` [M] int64."""
+        if self.sparse and self.table.device.type == "cpu":
+            return _numba_lookup(self.table, _corners_2d, obj, uv, self.resolution, 4)
+        return self.torch_forward(obj, uv)
+
+    def torch_forward(self, obj: Tensor, uv: Tensor) -> Tensor:
+        """`forward` in torch ops (any device)."""
         r = self.resolution
         y = (uv[:, 0] * (r - 1)).clamp(0.0, r - 1.0)  # theta: vertices on both poles, clamped
         x = uv[:, 1] * r  # phi: R vertices around, wrapping
@@ -88,6 +168,12 @@ class DenseGrid1D(nn.Module):
 
     def forward(self, obj: Tensor, s: Tensor) -> Tensor:
         """Features [M, N] at ``s`` [M] in [0, 1] (clamped) of objects ``obj`` [M] int64."""
+        if self.sparse and self.table.device.type == "cpu":
+            return _numba_lookup(self.table, _corners_1d, obj, s, self.resolution, 2)
+        return self.torch_forward(obj, s)
+
+    def torch_forward(self, obj: Tensor, s: Tensor) -> Tensor:
+        """`forward` in torch ops (any device)."""
         r = self.resolution
         x = (s * (r - 1)).clamp(0.0, r - 1.0)
         x0 = x.floor().clamp(max=r - 2)
