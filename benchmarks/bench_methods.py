@@ -173,8 +173,12 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
     meshes = list(dict.fromkeys(r["mesh"] for r in runs.values()))
     scene_rows = json.loads(scenes_json.read_text())["rows"] if scenes_json and scenes_json.is_file() else []
     scene_rows = [r for r in scene_rows if any(k.startswith("flip_decimate") for k in r)]
-    panels = len(meshes) + len(scene_rows)
-    fig, axes = plt.subplots(1, panels, figsize=(3.6 * panels, 3.6), dpi=110, squeeze=False)
+    cols, rows_n = max(len(meshes), len(scene_rows), 1), 1 + bool(scene_rows)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(3.6 * cols, 3.4 * rows_n), dpi=110, squeeze=False)
+    for ax in axes.flat[len(meshes):cols]:
+        ax.set_visible(False)
+    for ax in axes.flat[cols + len(scene_rows):]:
+        ax.set_visible(False)
     style = {"lsnif": ("o", "C0", "LSNIF"), "nbvh": ("s", "C1", "N-BVH"), "decimation": ("^", "C2", "decimation")}
     for ax, mesh in zip(axes[0], meshes):
         rows = [r for r in runs.values() if r["mesh"] == mesh]
@@ -191,7 +195,7 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
         ax.set_yscale("log")
         ax.set_title(mesh.replace("procedural:", ""), fontsize=9)
         ax.set_xlabel("bytes [MiB]")
-    for ax, r in zip(axes[0][len(meshes):], scene_rows):
+    for ax, r in zip(axes[-1], scene_rows):
         for key, value in r.items():
             if not key.startswith("flip_") or key == "flip_floor":
                 continue
@@ -202,11 +206,14 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
             ax.annotate(label, (r[f"neural_{label}_bytes"] / 2**20, value), fontsize=6, xytext=(3, 3), textcoords="offset points")
         ax.axhline(r["flip_floor"], color="gray", linestyle=":", label="noise floor")
         ax.set_xscale("log")
-        ax.set_title(f"scene {r['scene'].replace('builtin:', '')}", fontsize=9)
+        name = "shared" if r["scene"].endswith("shared_scene/scene.toml") else r["scene"].replace("builtin:", "")
+        ax.set_title(f"scene {name}", fontsize=9)
         ax.set_xlabel("bytes of the replaced objects [MiB]")
         ax.legend(fontsize=6)
-    axes[0][0].set_ylabel("normal-image FLIP vs exact (meshes); render FLIP (scenes)")
+    axes[0][0].set_ylabel("normal-image FLIP vs exact (4 orbit views)")
     axes[0][0].legend(fontsize=7)
+    if scene_rows:
+        axes[-1][0].set_ylabel("render FLIP vs exact")
     fig.tight_layout()
     fig.savefig(path)
 
