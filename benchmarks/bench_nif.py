@@ -172,6 +172,9 @@ def bench_scene(item: str, args) -> dict:
         "train_share_runs": shares,
         "nif_render_seconds_runs": totals,
         "training_runs": [r["training"] for r in timed],
+        "render_seconds_runs": [r["render_seconds"] for r in timed],
+        # collecting: the exact objects, stage 1, and labels + queries (training excluded), per timed run
+        "collect_seconds_runs": [{k: r["shadow_rays_training"][k] for k in ("exact_seconds", "stage1_seconds", "stage2_seconds")} for r in timed],
         "exact_render_seconds": other.seconds,
         "paper_kb": report["memory"]["paper_bytes"] / 1024,
         "real_kb": report["memory"]["real_bytes"] / 1024,
