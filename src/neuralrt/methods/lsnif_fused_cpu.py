@@ -28,19 +28,16 @@ import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
-from llvmlite import ir
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 from torch import Tensor
 
 from ..neural.mlp import MLP
-from ..neural.sparse_hash_grid import HASH_PRIMES, SparseHashGrid, _point_level, face_corners
+from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
+from ..neural.sparse_hash_grid import face_point_level as _face_point_level
+from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from .lsnif_features import ORIGIN_POINT, _check_rays, _emit, _plane_time, _slab, _start_index
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
 
-_P0, _P1, _P2 = HASH_PRIMES
 
 
 @dataclass
@@ -128,50 +125,6 @@ def _walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, sha
     if count < 0:
         return max_points, True, t_start, t_far
     return count, False, t_start, t_far
-
-
-@intrinsic
-def _prefetch_row(typingctx, array, row):
-    """Hint the CPU to bring ``array[row, 0]`` into the cache (LLVM's prefetch: read, keep)."""
-
-    def codegen(context, builder, sig, args):
-        array_type = sig.args[0]
-        data = context.make_array(array_type)(context, builder, args[0])
-        index = context.cast(builder, args[1], sig.args[1], types.intp)
-        ptr = cgutils.get_item_pointer2(
-            context, builder, data=data.data, shape=cgutils.unpack_tuple(builder, data.shape),
-            strides=cgutils.unpack_tuple(builder, data.strides), layout=array_type.layout,
-            inds=[index, context.get_constant(types.intp, 0)], wraparound=False, boundscheck=False,
-        )  # fmt: skip
-        byte_ptr, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, i32, i32, i32]), "llvm.prefetch.p0i8")
-        builder.call(fn, [builder.bitcast(ptr, byte_ptr), i32(0), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return types.void(array, row), codegen
-
-
-@numba.njit(cache=True, inline="always")
-def _face_point_level(px, py, pz, code, res, mask, base, slots, weights):
-    """`_point_level` for a face point (code 0/1/2), without branches on the face axis (it changes
-    from point to point along a ray, so branches on it mispredict). Same slots, same weights."""
-    r = np.float32(res)
-    pa = px if code == 0 else (py if code == 1 else pz)  # on the face plane
-    pu = py if code == 0 else px  # the two in-plane axes, in x, y, z order
-    pv = py if code == 2 else pz
-    prime_a = _P0 if code == 0 else (_P1 if code == 1 else _P2)
-    prime_u = _P1 if code == 0 else _P0
-    prime_v = _P1 if code == 2 else _P2
-    a = np.int64(min(max(int(np.rint(pa * r)), 0), res)) * prime_a
-    fu = pu * r
-    iu = min(max(int(np.floor(fu)), 0), res - 1)
-    wu = fu - np.float32(iu)
-    fv = pv * r
-    iv = min(max(int(np.floor(fv)), 0), res - 1)
-    wv = fv - np.float32(iv)
-    u0, u1 = np.int64(iu) * prime_u, np.int64(iu + 1) * prime_u
-    v0, v1 = np.int64(iv) * prime_v, np.int64(iv + 1) * prime_v
-    return face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights)
 
 
 @numba.njit(cache=True, fastmath={"contract"})
