@@ -116,7 +116,7 @@ def test_triton_traversal_lists_the_numba_leaves(ball_model):
     LoD 3 and the live cut, one level per ray."""
     from test_nbvh import _unit_rays
 
-    n = 240
+    n = 192
     o, d = _unit_rays(n, 2)
     t_max = torch.full((n,), 0.9)
     t_max[:20] = float("inf")
@@ -158,31 +158,63 @@ def test_triton_traversal_of_a_tree_deeper_than_its_short_stack(monkeypatch):
     assert stacks == [256, 256]  # list and first-leaf walks both overflowed the short stack
 
 
+def _random_answers(model, precision="fp32"):
+    """An untrained model whose answers depend on the features: a U(-1, 1) table, the visibility
+    bias set so that about half the leaves accept a hit; the MLP in ``precision`` (fp32: both
+    paths compute the same network on the same input bits)."""
+    inference = model.config.inference.model_copy(update={"compute_precision": precision})
+    model.config = model.config.model_copy(update={"inference": inference})
+    with torch.no_grad():
+        model.encoder.table.copy_(torch.rand(model.encoder.table.shape, generator=torch.Generator().manual_seed(6)) * 2 - 1)
+        logits = model.network(model.encoder(torch.rand(512, 3, 3, generator=torch.Generator().manual_seed(7))))[:, 0]
+        model.network.output.bias[0] -= logits.median()
+    return model
+
+
 def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypatch):
-    """`intersect` and `occluded` with the CUDA path's kernels (Triton traversal and hash grid, here
-    on CPU tensors) against the numba path: the same leaves and features, so the same answers up to
-    the MLP's float rounding. The cut is the random one of the traversal test; the model is untrained,
-    with a random table (U(-1, 1), so answers depend on the features) and its visibility bias set
-    so that about half the leaves accept a hit."""
+    """`intersect` and `occluded` through what CUDA runs (Triton leaf lists, Triton wavefront
+    steps; here on CPU tensors) against the numba path: the same leaves and features, so the same
+    answers up to the MLP's float rounding. The cut is the random one of the traversal test."""
     import copy
 
     import neuralrt.methods.nbvh as nbvh_module
     from test_nbvh import _sphere_rays
 
     from neuralrt.methods.nbvh_traversal_triton import list_leaves_triton
+    from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
 
-    model = copy.deepcopy(ball_model)
-    with torch.no_grad():
-        model.encoder.table.copy_(torch.rand(model.encoder.table.shape, generator=torch.Generator().manual_seed(6)) * 2 - 1)
-        logits = model.network(model.encoder(torch.rand(512, 3, 3, generator=torch.Generator().manual_seed(7))))[:, 0]
-        model.network.output.bias[0] -= logits.median()
-    ball_model = model
-    rays = _sphere_rays(64, 11)
+    ball_model = _random_answers(copy.deepcopy(ball_model))
+    rays = _sphere_rays(48, 11)
     cpu, cpu_occ = ball_model.intersect(rays), ball_model.occluded(rays)
     assert 0.2 < cpu.hit.float().mean() < 0.9
     monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)
-    monkeypatch.setattr(HashGrid, "forward", lambda self, points: hash_grid_triton(points, self.table, self.layout))
+    monkeypatch.setattr(nbvh_module.NBVHModel, "_closest", closest_hits_triton)
     tri, tri_occ = ball_model.intersect(rays), ball_model.occluded(rays)
     assert torch.equal(tri.hit, cpu.hit) and torch.equal(tri_occ, cpu_occ)
     torch.testing.assert_close(tri.t, cpu.t, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(tri.normal, cpu.normal, rtol=1e-4, atol=1e-5)
+
+
+def test_triton_wavefront_answers_as_the_torch_loop(ball_model):
+    """The CUDA wavefront (step kernels around the MLP) against the torch loop, both on the same
+    leaf lists, for closest and any hits."""
+    import copy
+
+    from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
+
+    model = _random_answers(copy.deepcopy(ball_model))
+    g = torch.Generator().manual_seed(12)
+    n = 64
+    o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    o[: n // 4] = 0.35 + 0.3 * torch.rand(n // 4, 3, generator=g)  # origins inside leaves: reversed chords
+    d = torch.nn.functional.normalize(0.5 + 0.2 * torch.randn(n, 3, generator=g) - o, dim=1)
+    t_max = torch.full((n,), 3.0)
+    t_max[::5] = 0.4
+    for any_hit in (False, True):
+        ref_t, ref_out = model._closest_torch(o, d, t_max, any_hit)
+        t, out = closest_hits_triton(model, o.to(DEVICE), d.to(DEVICE), t_max.to(DEVICE), any_hit)
+        hit = torch.isfinite(ref_t)
+        assert 0.2 < hit.float().mean() < 0.95
+        assert torch.equal(torch.isfinite(t).cpu(), hit)
+        torch.testing.assert_close(t.cpu()[hit], ref_t[hit], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(out.cpu(), ref_out, rtol=1e-4, atol=1e-5)

@@ -295,7 +295,15 @@ class NBVHModel(NeuralBLAS):
         return idx, o.contiguous(), (d / norm[:, None]).contiguous(), t_max.contiguous(), to_ray_t, t_off
 
     def _closest(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
-        """Wavefront over the cut: (t [K] unit, inf where missed; raw outputs of the accepted hit)."""
+        """Wavefront over the cut: (t [K] unit, inf where missed; raw outputs of the accepted hit).
+        On CUDA the per-step work runs in Triton kernels (`nbvh_wavefront_triton`), elsewhere in torch ops."""
+        if o.device.type == "cuda":
+            from .nbvh_wavefront_triton import closest_hits_triton
+
+            return closest_hits_triton(self, o, d, t_max, any_hit)
+        return self._closest_torch(o, d, t_max, any_hit)
+
+    def _closest_torch(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
         k, dev = len(o), o.device
         inf = self.config.inference
         leaves = self.leaf_list(o, d, t_max, torch.full((k,), inf.lod, dtype=torch.int8, device=dev),
