@@ -114,8 +114,10 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
     query_timer = _Timer([scene.accel])
     best: dict[str, tuple] = {}
     cpu_best: dict[str, float] = {}  # CPU seconds of the process (all its threads): less sensitive to other jobs
-    for _ in range(repeats):
-        for backend in BACKENDS:  # alternate, so a burst of load from other jobs hits both alike
+    for rep in range(repeats):
+        # Alternate, so that a burst of load from other jobs hits all alike, and rotate the order
+        # each repeat, so that no configuration always runs right after another.
+        for backend in BACKENDS[rep % len(BACKENDS):] + BACKENDS[:rep % len(BACKENDS)]:
             blas_timer.reset()
             query_timer.reset()
             stage_timer.seconds = 0.0
