@@ -85,7 +85,8 @@ def ball_model():
 
     base = sphere(subdivisions=3)
     ball = Mesh(base.vertices * RADIUS + CENTER, base.faces, vertex_normals=base.vertex_normals, name="ball")
-    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    # 3 grid levels (8^3 and 16^3 dense, 32^3 hashed at 2^14): the interpreter's time grows with the levels
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", encoding={"levels": 3}))
     _random_cut(model, seed=1)
     return model
 

@@ -6,7 +6,7 @@ with the per-step torch ops folded into two kernels, one active ray per lane:
 
 - `_step_input_kernel`: the ray's current leaf entry, its chord (reversed when the origin is
   inside the leaf), the 3 chord points, all 8 levels of each encoded in the hash grid
-  (`encode_points_all_levels`), written straight as the network input row in the compute dtype
+  (`encode_level`, one point per lane), written straight as the network input row in the compute dtype
   (the points and the fp32 features never go to global memory);
 - the MLP as torch GEMMs (`MLP.forward`, bf16 on CUDA);
 - `_step_decode_kernel`: LocalT decoding, the acceptance rules, the best hit and its output row
@@ -28,7 +28,7 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from ..neural.hash_grid_triton import encode_points_all_levels, layout_tensors
+from ..neural.hash_grid_triton import encode_level, layout_tensors
 
 __all__ = ["closest_hits_triton"]
 
@@ -38,7 +38,7 @@ _BLOCK = 64
 @triton.jit
 def _step_input_kernel(active_ptr, ptr_ptr, t0_ptr, t1_ptr, o_ptr, d_ptr, table_ptr, res_ptr, size_ptr, offset_ptr, dense_ptr,
                        x_ptr, n_active, frac0, frac1, frac2,
-                       L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
+                       L: tl.constexpr, F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
     k = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
     ok = k < n_active
     ray = tl.load(active_ptr + k, mask=ok, other=0)
@@ -54,11 +54,9 @@ def _step_input_kernel(active_ptr, ptr_ptr, t0_ptr, t1_ptr, o_ptr, d_ptr, table_
     dx = tl.load(d_ptr + ray * 3, mask=ok, other=0.0)
     dy = tl.load(d_ptr + ray * 3 + 1, mask=ok, other=0.0)
     dz = tl.load(d_ptr + ray * 3 + 2, mask=ok, other=0.0)
-    levels = tl.arange(0, LP)
     feats = tl.arange(0, FP)
-    cols = levels[None, :, None] * F + feats[None, None, :]
-    mask = ok[:, None, None] & (levels < L)[None, :, None] & (feats < F)[None, None, :]
-    row = x_ptr + k[:, None, None] * (3 * L * F)
+    mask = ok[:, None] & (feats < F)[None, :]
+    row = x_ptr + k[:, None] * (3 * L * F) + feats[None, :]
     for j in tl.static_range(3):
         if j == 0:
             frac = frac0
@@ -67,9 +65,12 @@ def _step_input_kernel(active_ptr, ptr_ptr, t0_ptr, t1_ptr, o_ptr, d_ptr, table_
         else:
             frac = frac2
         t = a + frac * (b - a)  # as torch: a + fractions * (b - a), then o + t * d
-        x = encode_points_all_levels(ox + t * dx, oy + t * dy, oz + t * dz, ok, table_ptr, res_ptr, size_ptr, offset_ptr,
-                                     dense_ptr, L, F, LP, FP)  # fmt: skip
-        tl.store(row + j * (L * F) + cols, x.to(x_ptr.dtype.element_ty), mask=mask)
+        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
+        for lvl in tl.static_range(L):
+            res, size = tl.load(res_ptr + lvl), tl.load(size_ptr + lvl)
+            offset, dense = tl.load(offset_ptr + lvl), tl.load(dense_ptr + lvl) != 0
+            x = encode_level(px, py, pz, ok, table_ptr, res, size, offset, dense, F, FP)
+            tl.store(row + (j * L + lvl) * F, x.to(x_ptr.dtype.element_ty), mask=mask)
 
 
 @triton.jit
@@ -137,7 +138,7 @@ def closest_hits_triton(model, o: Tensor, d: Tensor, t_max: Tensor, any_hit: boo
         x = torch.empty(n, 3 * levels * feats, dtype=dtype, device=dev)
         blocks = (triton.cdiv(n, _BLOCK),)
         _step_input_kernel[blocks](active, ptr, leaves.t0, leaves.t1, o, d, table, res, sizes, offsets, dense, x, n, *fractions,
-                                   L=levels, F=feats, LP=triton.next_power_of_2(levels), FP=triton.next_power_of_2(feats),
+                                   L=levels, F=feats, FP=triton.next_power_of_2(feats),
                                    BLOCK=_BLOCK)  # fmt: skip
         out = model.network(x, dtype).float().contiguous()
         keep = torch.empty(n, dtype=torch.int8, device=dev)

@@ -7,9 +7,11 @@ from zero), dense rows ``x + y res + z res^2`` where a level fits, the instant-n
 The hash keeps only the low log2(T) <= 26 bits, which 32-bit wrap-around products preserve, so
 it runs in uint32 (numba uses int64: same bits).
 
-Lanes are points (a ray's P points are P consecutive lanes); levels and features are the second
-and third tile dimensions (padded to powers of two), so every level of a point is encoded in one
-pass. Under ``TRITON_INTERPRET=1`` (numpy, no fused multiply-add) the forward pass is bit-identical
+Lanes are points (a ray's P points are P consecutive lanes), one point per lane: levels are an
+unrolled loop (their sizes read as scalars), the F features of a corner one contiguous row (a
+16-byte load for F = 4), so a thread holds one point's F accumulators. (A first version tiled
+[points, levels, features]: ptxas for sm_90 reported 6.8 KB of spills in the forward kernel and
+255 registers with spills in the backward.) Under ``TRITON_INTERPRET=1`` (numpy, no fused multiply-add) the forward pass is bit-identical
 to numba; compiled, the GPU may fuse multiply-adds (float32 rounding differences). The backward
 pass adds with atomics, so its summation order (and last bits) vary from run to run.
 """
@@ -23,28 +25,32 @@ from torch import Tensor
 
 from .hash_grid import HASH_PRIMES, HashGridLayout
 
-__all__ = ["hash_grid_triton", "encode_points_all_levels"]
+__all__ = ["hash_grid_triton", "encode_level", "level_cell", "level_rows_weights", "layout_tensors"]
 
 _P1, _P2 = (tl.constexpr(p) for p in HASH_PRIMES[1:])  # Triton reads globals only as constexpr; _P0 == 1
 
 
 @triton.jit
-def _level_terms(px, py, pz, res_ptr, LP: tl.constexpr, L: tl.constexpr):
-    """Per point [B] and level [LP]: base vertex (int32), trilinear fractions, resolution."""
-    levels = tl.arange(0, LP)
-    res = tl.load(res_ptr + levels, mask=levels < L, other=2)
-    scale = (res - 1).to(tl.float32)[None, :]
-    fx = tl.minimum(tl.maximum(px, 0.0), 1.0)[:, None] * scale + 0.5
-    fy = tl.minimum(tl.maximum(py, 0.0), 1.0)[:, None] * scale + 0.5
-    fz = tl.minimum(tl.maximum(pz, 0.0), 1.0)[:, None] * scale + 0.5
-    bx, by, bz = tl.floor(fx), tl.floor(fy), tl.floor(fz)
-    return bx.to(tl.int32), by.to(tl.int32), bz.to(tl.int32), fx - bx, fy - by, fz - bz, res[None, :]
+def _axis(x, res):
+    """Base vertex (int32) and trilinear fraction of coordinates [B] at a level of ``res`` vertices."""
+    f = tl.minimum(tl.maximum(x, 0.0), 1.0) * (res - 1).to(tl.float32) + 0.5
+    base = tl.floor(f)
+    return base.to(tl.int32), f - base
 
 
 @triton.jit
-def _corner_row_weight(terms, size, offset, dense, C: tl.constexpr):
-    """Table rows [B, LP] and weights [B, LP] of corner C (x fastest) at every level."""
-    ix, iy, iz, wx, wy, wz, res = terms
+def level_cell(px, py, pz, res):
+    """The cell of points [B] at a level: base vertex and fractions per axis."""
+    ix, wx = _axis(px, res)
+    iy, wy = _axis(py, res)
+    iz, wz = _axis(pz, res)
+    return ix, iy, iz, wx, wy, wz
+
+
+@triton.jit
+def level_rows_weights(cell, res, size, dense, C: tl.constexpr):
+    """Table row (within the level) and weight [B] of corner C (x fastest) of a `level_cell`."""
+    ix, iy, iz, wx, wy, wz = cell
     if C & 1:
         cx, fx = tl.minimum(ix + 1, res - 1), wx
     else:
@@ -57,29 +63,25 @@ def _corner_row_weight(terms, size, offset, dense, C: tl.constexpr):
         cz, fz = tl.minimum(iz + 1, res - 1), wz
     else:
         cz, fz = iz, 1.0 - wz
-    dense_idx = cx + cy * res + cz * res * res  # garbage (int32 overflow) on hashed levels, unused there
-    hashed = (cx.to(tl.uint32) ^ (cy.to(tl.uint32) * _P1) ^ (cz.to(tl.uint32) * _P2)) & (size - 1).to(tl.uint32)
-    idx = tl.where(dense, dense_idx, hashed.to(tl.int32))
-    return offset + idx, fx * fy * fz
+    if dense:
+        idx = cx + cy * res + cz * (res * res)
+    else:
+        idx = ((cx.to(tl.uint32) ^ (cy.to(tl.uint32) * _P1) ^ (cz.to(tl.uint32) * _P2)) & (size - 1).to(tl.uint32)).to(tl.int32)
+    return idx, fx * fy * fz
 
 
 @triton.jit
-def encode_points_all_levels(px, py, pz, valid, table_ptr, res_ptr, size_ptr, offset_ptr, dense_ptr,
-                             L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr):  # fmt: skip
-    """Features [B, LP, FP] (float32; zero outside L x F and for invalid lanes) of points [B]."""
-    levels = tl.arange(0, LP)
+def encode_level(px, py, pz, valid, table_ptr, res, size, offset, dense, F: tl.constexpr, FP: tl.constexpr):
+    """Features [B, FP] (float32; zero past F and for invalid lanes) of points [B] at one level:
+    one lane per point, its F features one contiguous row per corner (a vector load)."""
     feats = tl.arange(0, FP)
-    lmask = levels < L
-    size = tl.load(size_ptr + levels, mask=lmask, other=1)[None, :]
-    offset = tl.load(offset_ptr + levels, mask=lmask, other=0)[None, :]
-    dense = tl.load(dense_ptr + levels, mask=lmask, other=0)[None, :] != 0
-    terms = _level_terms(px, py, pz, res_ptr, LP, L)
-    mask = (valid[:, None] & lmask[None, :])[:, :, None] & (feats < F)[None, None, :]
-    acc = tl.zeros([px.shape[0], LP, FP], tl.float32)
+    mask = valid[:, None] & (feats < F)[None, :]
+    acc = tl.zeros([px.shape[0], FP], tl.float32)
+    cell = level_cell(px, py, pz, res)
     for c in tl.static_range(8):
-        row, w = _corner_row_weight(terms, size, offset, dense, c)
-        vals = tl.load(table_ptr + row[:, :, None] * F + feats[None, None, :], mask=mask, other=0.0)
-        acc += w[:, :, None] * vals.to(tl.float32)
+        idx, w = level_rows_weights(cell, res, size, dense, c)
+        vals = tl.load(table_ptr + (offset + idx)[:, None] * F + feats[None, :], mask=mask, other=0.0)
+        acc += w[:, None] * vals.to(tl.float32)
     return acc
 
 
@@ -94,40 +96,32 @@ def _load_points(pts_ptr, n_points, BLOCK: tl.constexpr):
 
 
 @triton.jit
-def _out_offsets(p, ok, L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr):
-    """Point-major output columns ``p * L * F + level * F + feature`` and their mask."""
-    levels = tl.arange(0, LP)
-    feats = tl.arange(0, FP)
-    offs = p[:, None, None] * (L * F) + levels[None, :, None] * F + feats[None, None, :]
-    inside = ok[:, None, None] & (levels < L)[None, :, None] & (feats < F)[None, None, :]
-    return offs, inside
-
-
-@triton.jit
 def _forward_kernel(pts_ptr, table_ptr, res_ptr, size_ptr, offset_ptr, dense_ptr, out_ptr, n_points,
-                    L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
+                    L: tl.constexpr, F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
     p, ok, px, py, pz = _load_points(pts_ptr, n_points, BLOCK)
-    acc = encode_points_all_levels(px, py, pz, ok, table_ptr, res_ptr, size_ptr, offset_ptr, dense_ptr, L, F, LP, FP)
-    offs, inside = _out_offsets(p, ok, L, F, LP, FP)
-    tl.store(out_ptr + offs, acc, mask=inside)
+    feats = tl.arange(0, FP)
+    mask = ok[:, None] & (feats < F)[None, :]
+    for lvl in tl.static_range(L):
+        res, size = tl.load(res_ptr + lvl), tl.load(size_ptr + lvl)
+        offset, dense = tl.load(offset_ptr + lvl), tl.load(dense_ptr + lvl) != 0
+        acc = encode_level(px, py, pz, ok, table_ptr, res, size, offset, dense, F, FP)
+        tl.store(out_ptr + p[:, None] * (L * F) + lvl * F + feats[None, :], acc, mask=mask)
 
 
 @triton.jit
 def _backward_kernel(pts_ptr, grad_out_ptr, res_ptr, size_ptr, offset_ptr, dense_ptr, grad_table_ptr, n_points,
-                     L: tl.constexpr, F: tl.constexpr, LP: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
+                     L: tl.constexpr, F: tl.constexpr, FP: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
     p, ok, px, py, pz = _load_points(pts_ptr, n_points, BLOCK)
-    offs, inside = _out_offsets(p, ok, L, F, LP, FP)
-    g = tl.load(grad_out_ptr + offs, mask=inside, other=0.0).to(tl.float32)
-    levels = tl.arange(0, LP)
-    lmask = levels < L
-    size = tl.load(size_ptr + levels, mask=lmask, other=1)[None, :]
-    offset = tl.load(offset_ptr + levels, mask=lmask, other=0)[None, :]
-    dense = tl.load(dense_ptr + levels, mask=lmask, other=0)[None, :] != 0
-    terms = _level_terms(px, py, pz, res_ptr, LP, L)
     feats = tl.arange(0, FP)
-    for c in tl.static_range(8):
-        row, w = _corner_row_weight(terms, size, offset, dense, c)
-        tl.atomic_add(grad_table_ptr + row[:, :, None] * F + feats[None, None, :], w[:, :, None] * g, mask=inside)
+    mask = ok[:, None] & (feats < F)[None, :]
+    for lvl in tl.static_range(L):
+        res, size = tl.load(res_ptr + lvl), tl.load(size_ptr + lvl)
+        offset, dense = tl.load(offset_ptr + lvl), tl.load(dense_ptr + lvl) != 0
+        g = tl.load(grad_out_ptr + p[:, None] * (L * F) + lvl * F + feats[None, :], mask=mask, other=0.0).to(tl.float32)
+        cell = level_cell(px, py, pz, res)
+        for c in tl.static_range(8):
+            idx, w = level_rows_weights(cell, res, size, dense, c)
+            tl.atomic_add(grad_table_ptr + (offset + idx)[:, None] * F + feats[None, :], w[:, None] * g, mask=mask)
 
 
 def _pow2(n: int) -> int:
@@ -154,7 +148,7 @@ class _HashGridTritonFunction(torch.autograd.Function):
         if m:
             _forward_kernel[(triton.cdiv(m, block),)](
                 pts, table.detach().contiguous(), res, sizes, offsets, dense, out, m,
-                L=n_levels, F=n_feat, LP=_pow2(n_levels), FP=_pow2(n_feat), BLOCK=block,
+                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=block,
             )  # fmt: skip
         ctx.save_for_backward(pts, res, sizes, offsets, dense)
         ctx.table_shape, ctx.table_dtype, ctx.block = tuple(table.shape), table.dtype, block
@@ -171,7 +165,7 @@ class _HashGridTritonFunction(torch.autograd.Function):
         if m:
             _backward_kernel[(triton.cdiv(m, ctx.block),)](
                 pts, grad_out.to(torch.float32).contiguous(), res, sizes, offsets, dense, grad, m,
-                L=n_levels, F=n_feat, LP=_pow2(n_levels), FP=_pow2(n_feat), BLOCK=ctx.block,
+                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=ctx.block,
             )  # fmt: skip
         return None, grad.to(ctx.table_dtype), None, None
 
