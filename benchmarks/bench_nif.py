@@ -1,6 +1,6 @@
 """NIF shadow rays against exact shadow rays, in the paper's Table 2 form, plus image quality.
 
-    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--repeats 3]
+    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--pair-fraction 1] [--repeats 3]
                                    [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
 
 Scenes: ``NAME:D`` is ``builtin:NAME?detail=D`` with NIF on every statue (cornell-statue detail 2 =
@@ -140,7 +140,7 @@ def bench_scene(item: str, args) -> dict:
         label = f"{builtin}?detail={int(detail or 2)}"
         scene, objects = builtin_scene(builtin, int(detail or 2), args)
     load_s = time.perf_counter() - t0
-    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp))
+    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp, pair_fraction=args.pair_fraction))
     render_nif(scene, objects, spp=2, train_spp=1, seed=0, progress=False, resolution=(16, 16))  # compile everything once
     kw = dict(spp=args.spp, seed=0, config=cfg, progress=False)
     nif, report = render_nif(scene, objects, audit=True, **kw)
@@ -195,6 +195,8 @@ def main() -> None:
     ap.add_argument("--train-spp", type=int, default=32)
     ap.add_argument("--passes", type=int, default=NIFTrainingConfig().passes_per_spp)
     ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
+    ap.add_argument("--pair-fraction", type=float, default=NIFTrainingConfig().pair_fraction,
+                    help="share of each round's pairs a training pass uses (NIFTrainingConfig.pair_fraction)")
     ap.add_argument("--repeats", type=int, default=3, help="NIF renders without the audit, for the training share (median)")
     ap.add_argument("--mesh-cache", default="/tmp/neuralrt-nif-meshes", help="where mesh:FILE@loopK scenes keep their subdivided meshes")
     ap.add_argument("--device", default="cpu")
@@ -207,7 +209,7 @@ def main() -> None:
         print_table(rows[-1:], COLUMNS)
     print()
     print_table(rows, COLUMNS)
-    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "repeats", "device")}
+    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "pair_fraction", "repeats", "device")}
     name = args.name or ("nif" if args.device == "cpu" else f"nif_{args.device}")
     path = write_results(name, rows, {"settings": settings, "load_average_1min": os.getloadavg()[0]})
     print(f"\nwrote {path}")
