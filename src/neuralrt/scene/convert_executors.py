@@ -251,8 +251,7 @@ class _StepReporter:
         if now - self.last < _PROGRESS_SECONDS and step + 1 < self.steps:
             return
         self.last = now
-        done = step + 1 - self.first[0]
-        rate = done * self.batch / (now - self.first[1]) if now > self.first[1] else 0.0
+        rate = (step - self.first[0]) * self.batch / (now - self.first[1]) if now > self.first[1] else 0.0
         self.board.report.remote(self.key, {"step": step + 1, "steps": self.steps, "rays_per_second": rate,
                                             "resumed_from": self.first[0] or None, "node": self.node, "pid": self.pid})
 
