@@ -164,3 +164,18 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
     (g_autograd,) = torch.autograd.grad((grid(f.points, f.face_axis) * upstream).sum(), grid.table)
     assert torch.equal(g_autograd.reshape(-1, 3), torch.from_numpy(serial[0]))
     assert (serial != 0).sum() > 1000
+
+
+def test_extra_columns_are_appended_without_changing_the_gradient():
+    f = _featurized_points(n=800, seed=4)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    extra = torch.rand(len(f.points), 12, generator=torch.Generator().manual_seed(0))
+    plain = grid(f.points, f.face_axis)
+    joined = grid(f.points, f.face_axis, extra)
+    assert torch.equal(joined, torch.cat([plain, extra], 1))
+    upstream = torch.randn_like(joined)
+    (g_joined,) = torch.autograd.grad((joined * upstream).sum(), grid.table)
+    (g_plain,) = torch.autograd.grad((plain * upstream[:, : plain.shape[1]]).sum(), grid.table)
+    assert torch.equal(g_joined, g_plain) and g_plain.abs().sum() > 0
+    with pytest.raises(ValueError, match="extra columns"):
+        grid(f.points, f.face_axis, extra[:-1])

@@ -170,11 +170,10 @@ class LSNIFModel(NeuralBLAS):
     def network_input(self, prep: _Prepared) -> Tensor:
         """[M, network_inputs]: encoded features of the active rays' points, in ray order."""
         fp = prep.features
-        x = self.encoder(fp.points, fp.face_axis)
+        distances = None
         if self.config.features.point_distances:
             distances = prep.distances if prep.distances is not None else point_local_distances(fp, prep.origins, prep.directions)
-            x = torch.cat([x, distances], dim=1)
-        return x
+        return self.encoder(fp.points, fp.face_axis, distances)
 
     def _raw_outputs(self, prep: _Prepared, compute_dtype: torch.dtype) -> Tensor:
         return self.network(self.network_input(prep), compute_dtype)

@@ -305,12 +305,17 @@ class _SparseHashGridFunction(torch.autograd.Function):
     """Fused numba forward/backward; differentiable in the table only (points are data)."""
 
     @staticmethod
-    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray, backward_scatter: str):
+    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray, backward_scatter: str,
+                extra: Tensor | None):  # fmt: skip
         pts = _numpy(points, torch.float32)
         axes = _numpy(face_axis, torch.int8)
         n_rays, n_points = axes.shape
         levels, _, n_feat = table.shape
-        out = np.empty((n_rays, n_points * levels * n_feat), np.float32)
+        width = n_points * levels * n_feat
+        # The extra columns are written in place: no concatenation after, no slice of the gradient before the backward.
+        out = np.empty((n_rays, width + (0 if extra is None else extra.shape[1])), np.float32)
+        if extra is not None:
+            out[:, width:] = _numpy(extra, torch.float32)
         if n_rays:
             n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
@@ -338,7 +343,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
                     _backward_kernel(*args, tables)
                 grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
-        return None, None, grad_table, None, None
+        return None, None, grad_table, None, None, None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,24 +421,29 @@ class SparseHashGrid(nn.Module):
     def output_dim(self, max_points: int) -> int:
         return max_points * len(self.resolutions) * self.features_per_level
 
-    def forward(self, points: Tensor, face_axis: Tensor) -> Tensor:
+    def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None) -> Tensor:
         """``points [N, H, 3]`` unit-box, ``face_axis [N, H]`` -> features ``[N, H * L * F]``.
 
         Layout is point-major: point 0 level 0 features, point 0 level 1, ..., point 1 ...;
-        padding points give zeros.
+        padding points give zeros. ``extra [N, E]`` (data, no gradient) is appended as E more
+        columns (on the CPU written into the same output, instead of a concatenation).
         """
         if points.ndim != 3 or points.shape[-1] != 3 or face_axis.shape != points.shape[:2]:
             raise ValueError(
                 f"expected points [N, H, 3] and face_axis [N, H], got {tuple(points.shape)} and "
                 f"{tuple(face_axis.shape)}"
             )
+        if extra is not None and (extra.ndim != 2 or len(extra) != len(points)):
+            raise ValueError(f"expected extra columns [N, E] for {len(points)} rays, got {tuple(extra.shape)}")
         if self.table.device.type == "cuda":
             from .sparse_hash_grid_triton import sparse_hash_grid_triton
 
-            return sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
-        if self.table.device.type == "cpu" and self.table.dtype == torch.float32:
-            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter)
-        return sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
+            features = sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
+        elif self.table.device.type == "cpu" and self.table.dtype == torch.float32:
+            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter, extra)
+        else:
+            features = sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
+        return features if extra is None else torch.cat([features, extra.to(features.dtype)], dim=1)
 
     def _resolutions_on(self, device: torch.device) -> Tensor:
         """The level resolutions as an int32 tensor on ``device`` (made once per device: no copy per call)."""
