@@ -334,9 +334,12 @@ class RayExecutor(Executor):
             else:
                 ray.init(address=self.options.address, logging_level=logging.WARNING)
         except (ConnectionError, RuntimeError, ValueError) as exc:
-            where = self.options.address or "a local instance"
-            raise ConfigError(f"--address {where}: could not connect to Ray ({str(exc).splitlines()[0]}); start a cluster "
-                              f"with `ray start --head`, or leave --address out for a local Ray instance") from None
+            if self.options.address is None:
+                raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
+            # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
+            raise ConfigError(f"--address {self.options.address}: could not connect to Ray ({str(exc).splitlines()[0]}); "
+                              f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
+                              f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node --address auto finds both") from None
         self._started = True
         nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
         if not any(r.get("CPU", 0) >= self.options.cpus_per_model and r.get("GPU", 0) >= self.gpus for r in nodes):
