@@ -118,10 +118,13 @@ def measure_model(spec: str, mesh: Mesh, classical: dict, variant: str, model, t
 
 def decimated_mesh(mesh: Mesh, target_bytes: int, tolerance: float = 0.05) -> tuple[Mesh, dict]:
     """Quadric decimation of ``mesh`` whose mesh bytes + BVH A bytes are within ``tolerance`` of
-    ``target_bytes`` (the triangle count is corrected a few times: bytes per triangle vary a little)."""
+    ``target_bytes`` (the triangle count is corrected a few times: bytes per triangle vary a little);
+    the mesh itself when its own bytes are within the target."""
     import fast_simplification
 
     full = classical_memory(mesh)
+    if full.mesh_bytes + full.bvh_a_bytes <= target_bytes:  # the whole mesh fits: nothing to decimate
+        return mesh, {**full.as_dict(), "bytes": full.mesh_bytes + full.bvh_a_bytes, "target_bytes": target_bytes}
     per_triangle = (full.mesh_bytes + full.bvh_a_bytes) / mesh.num_triangles
     target = max(4, int(target_bytes / per_triangle))
     for _ in range(4):
