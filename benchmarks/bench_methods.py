@@ -231,6 +231,7 @@ def main() -> None:
     p.add_argument("--batch", nargs="*", default=[], metavar="METHOD=N", help="training rays per step per method (default: the preset's)")
     p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
                    help="also decimate the mesh to the bytes of these variants (no names: every variant's)")
+    p.add_argument("--decimate-only", action="store_true", help="only the decimation rows (the variants' rows must exist)")
     p.add_argument("--eval-rays", type=int, default=1 << 17)
     p.add_argument("--image-resolution", type=int, default=256)
     p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
@@ -268,7 +269,7 @@ def main() -> None:
     for spec in args.meshes:
         mesh = resolve_mesh(spec)
         classical = classical_memory(mesh).as_dict()
-        for variant in args.variants:
+        for variant in [] if args.decimate_only else args.variants:
             _, cfg = variant_config(variant, steps, batch)
             model, info = train_or_load(mesh, cfg, args.models_dir, args.quiet)
             if args.train_only:
