@@ -64,9 +64,9 @@ class NIFTrainer:
         self.cfg = cfg
         adam = dict(lr=cfg.learning_rate, betas=tuple(cfg.adam_betas), eps=cfg.adam_eps)
         self.optim_outer = _Optimizers(LazyAdam(networks.outer_grids(), **adam),
-                                       torch.optim.Adam(networks.outer_mlp.parameters(), **adam, fused=True))
+                                       torch.optim.Adam(networks.outer_mlp.parameters(), **adam))
         self.optim_inner = _Optimizers(LazyAdam(networks.inner_grids(), **adam),
-                                       torch.optim.Adam(networks.inner_mlp.parameters(), **adam, fused=True))
+                                       torch.optim.Adam(networks.inner_mlp.parameters(), **adam))
         dev = networks.box_lo.device
         self.generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
         self._outer: list[tuple[Tensor, ...]] = []
