@@ -330,7 +330,9 @@ class RayExecutor(Executor):
             return  # a caller's own ray.init (tests, notebooks) is used as it is
         try:
             if self.options.address is None:
-                ray.init(include_dashboard=False, logging_level=logging.WARNING)
+                # "local": always a new instance (a bare ray.init() joins a cluster that `ray start`
+                # left on this machine, and hangs if that one is gone).
+                ray.init(address="local", include_dashboard=False, logging_level=logging.WARNING)
             else:
                 ray.init(address=self.options.address, logging_level=logging.WARNING)
         except (ConnectionError, RuntimeError, ValueError) as exc:
