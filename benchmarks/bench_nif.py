@@ -166,9 +166,9 @@ def bench_scene(item: str, args) -> dict:
         "visible_err": st["audit_blocked_by_nif_objects_only"] / rays,
         "psnr_same": vs_same.psnr, "flip_same": vs_same.flip,
         "psnr": vs_other.psnr, "psnr_floor": floor.psnr, "flip": vs_other.flip, "flip_floor": floor.flip,
-        "train_s_per_spp": statistics.median(r["training_seconds_per_spp"] for r in timed),
-        "train_share": statistics.median(shares),
-        "render_vs_exact": statistics.median(totals) / other.seconds,
+        "train_s_per_spp": statistics.median(r["training_seconds_per_spp"] for r in timed) if timed else None,
+        "train_share": statistics.median(shares) if timed else None,
+        "render_vs_exact": statistics.median(totals) / other.seconds if timed else None,
         "train_share_runs": shares,
         "nif_render_seconds_runs": totals,
         "training_runs": [r["training"] for r in timed],
@@ -197,7 +197,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
     ap.add_argument("--pair-fraction", type=float, default=NIFTrainingConfig().pair_fraction,
                     help="share of each round's pairs a training pass uses (NIFTrainingConfig.pair_fraction)")
-    ap.add_argument("--repeats", type=int, default=3, help="NIF renders without the audit, for the training share (median)")
+    ap.add_argument("--repeats", type=int, default=3, help="NIF renders without the audit, for the training share (median; 0: quality only)")
     ap.add_argument("--mesh-cache", default="/tmp/neuralrt-nif-meshes", help="where mesh:FILE@loopK scenes keep their subdivided meshes")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--name", help="results file name (default: nif, or nif_<device>)")
