@@ -29,7 +29,7 @@ TRAIN = dict(preset="lq", steps=40, batch=1024, seed=0, min_triangles=100, progr
 
 @pytest.fixture(scope="module", autouse=True)
 def ray_instance():
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="ERROR")
     yield
     ray.shutdown()
 
@@ -181,7 +181,9 @@ def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
     for extra, words in [(["--address", "auto"], "only with --executor ray"),
                          (["--executor", "ray", "--gpus-per-model", "1"], "needs --device cuda"),
                          (["--executor", "ray", "--cpus-per-model", "0"], "--cpus-per-model:"),
-                         (["--executor", "ray", "--address", "nonsense"], "HOST:PORT")]:
+                         (["--executor", "ray", "--address", "nonsense"], "HOST:PORT"),
+                         (["--executor", "ray", "--cpus-per-model", "3"], "no Ray node has 3 CPU"),  # the 2-CPU instance
+                         (["--executor", "ray", "--device", "cuda"], "no Ray node has 1 CPU and 1 GPU")]:
         assert main(["convert", str(scene), "-o", str(out), *extra]) == 2
         assert words in _one_error_line(capsys), extra
     assert not (tmp_path / "out").exists()

@@ -326,23 +326,23 @@ class RayExecutor(Executor):
         import logging
 
         ray = self._ray
-        if ray.is_initialized():
-            return  # a caller's own ray.init (tests, notebooks) is used as it is
-        try:
-            if self.options.address is None:
-                # "local": always a new instance (a bare ray.init() joins a cluster that `ray start`
-                # left on this machine, and hangs if that one is gone).
-                ray.init(address="local", include_dashboard=False, logging_level=logging.WARNING)
-            else:
-                ray.init(address=self.options.address, logging_level=logging.WARNING)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            if self.options.address is None:
-                raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
-            # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
-            raise ConfigError(f"--address {self.options.address}: could not connect to Ray ({str(exc).splitlines()[0]}); "
-                              f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
-                              f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node --address auto finds both") from None
-        self._started = True
+        if not ray.is_initialized():  # else: a caller's own ray.init (tests, notebooks), used as it is
+            try:
+                if self.options.address is None:
+                    # "local": always a new instance (a bare ray.init() joins a cluster that `ray start`
+                    # left on this machine, and hangs if that one is gone).
+                    ray.init(address="local", include_dashboard=False, logging_level=logging.WARNING)
+                else:
+                    ray.init(address=self.options.address, logging_level=logging.WARNING)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                if self.options.address is None:
+                    raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
+                # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
+                raise ConfigError(f"--address {self.options.address}: could not connect to Ray ({str(exc).splitlines()[0]}); "
+                                  f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
+                                  f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node --address auto finds both") from None
+            self._started = True
+        # Tasks no node can hold would wait forever: say so now.
         nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
         if not any(r.get("CPU", 0) >= self.options.cpus_per_model and r.get("GPU", 0) >= self.gpus for r in nodes):
             have = "; ".join(f"{r.get('CPU', 0):g} CPU, {r.get('GPU', 0):g} GPU" for r in nodes) or "no node"
