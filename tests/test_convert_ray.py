@@ -184,6 +184,6 @@ def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
                          (["--executor", "ray", "--address", "nonsense"], "HOST:PORT"),
                          (["--executor", "ray", "--cpus-per-model", "3"], "no Ray node has 3 CPU"),  # the 2-CPU instance
                          (["--executor", "ray", "--device", "cuda"], "no Ray node has 1 CPU and 1 GPU")]:
-        assert main(["convert", str(scene), "-o", str(out), *extra]) == 2
+        assert main(["convert", str(scene), "-o", str(out), "--min-triangles", "100", *extra]) == 2
         assert words in _one_error_line(capsys), extra
     assert not (tmp_path / "out").exists()

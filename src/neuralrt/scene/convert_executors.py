@@ -320,6 +320,12 @@ class RayExecutor(Executor):
         if self.options.address is not None:
             _probe(self.options.address)
             self._connect()
+        elif self._ray.is_initialized():
+            self._check_resources()
+        else:  # the local instance to come gets this machine's cores and GPUs
+            import torch
+
+            self._check_resources([{"CPU": os.cpu_count() or 1, "GPU": torch.cuda.device_count() if torch.cuda.is_available() else 0}])
         return self
 
     def _connect(self) -> None:
@@ -342,8 +348,12 @@ class RayExecutor(Executor):
                                   f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
                                   f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node --address auto finds both") from None
             self._started = True
-        # Tasks no node can hold would wait forever: say so now.
-        nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
+        self._check_resources()
+
+    def _check_resources(self, nodes: list[dict] | None = None) -> None:
+        """Tasks that no node can hold would wait forever: a one-line error instead."""
+        if nodes is None:
+            nodes = [n["Resources"] for n in self._ray.nodes() if n.get("Alive")]
         if not any(r.get("CPU", 0) >= self.options.cpus_per_model and r.get("GPU", 0) >= self.gpus for r in nodes):
             have = "; ".join(f"{r.get('CPU', 0):g} CPU, {r.get('GPU', 0):g} GPU" for r in nodes) or "no node"
             raise ConfigError(f"no Ray node has {self.options.cpus_per_model:g} CPU and {self.gpus:g} GPU for one model "
