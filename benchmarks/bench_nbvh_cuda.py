@@ -16,8 +16,9 @@
 
     python benchmarks/bench_nbvh_cuda.py [--mesh statue:2] [--steps 1000] [--rays-log2 22] [--repeats 20]
     python benchmarks/bench_nbvh_cuda.py --compile-only      # no GPU needed: compile for sm_90, ptxas registers/spills
-    TRITON_INTERPRET=1 python benchmarks/bench_nbvh_cuda.py --device cpu --preset cpu --steps 10 --rays-log2 8 \
-        --out /tmp/smoke.json                                # a smoke run of the script on the CPU (numbers meaningless)
+    TRITON_INTERPRET=1 python benchmarks/bench_nbvh_cuda.py --device cpu --preset cpu --steps 10 --rays-log2 7 \
+        --repeats 1 --out /tmp/smoke.json   # a smoke run of the script on the CPU: numbers meaningless (stages run
+                                            # under the interpreter, and "triton" whole queries are the numba path)
 """
 
 from __future__ import annotations
@@ -270,7 +271,8 @@ def compile_only(arch: int) -> list[dict]:
     for name, (module, kernel, sig, consts) in KERNELS.items():
         fn = getattr(importlib.import_module(module), kernel)
         signature = {**SIGNATURES[sig], **{k: "constexpr" for k in consts}}
-        compiled = triton.compile(ASTSource(fn, signature, consts), target=GPUTarget("cuda", arch, 32))
+        options = {"num_warps": max(1, consts["BLOCK"] // 32)}  # as the launches: one lane per thread
+        compiled = triton.compile(ASTSource(fn, signature, consts), target=GPUTarget("cuda", arch, 32), options=options)
         with tempfile.TemporaryDirectory() as tmp:
             ptx = Path(tmp) / "k.ptx"
             ptx.write_text(compiled.asm["ptx"])
@@ -298,49 +300,56 @@ def main() -> None:
     args = parser.parse_args()
     payload = {"benchmark": "nbvh_cuda", "machine": machine_info(), "load_before": os.getloadavg(),
                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    device = torch.device(args.device)
+    out = args.out or RESULTS_DIR / (f"nbvh_cuda_compile_sm{args.arch}.json" if args.compile_only else f"nbvh_cuda_{device.type}.json")
+
+    def save() -> None:  # after every section: a run cut short by its time limit keeps what it measured
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
+        tmp.replace(out)
+
     if args.compile_only:
         payload["kernels"] = compile_only(args.arch)
+        save()
         print_table(payload["kernels"], ["kernel", "num_warps", "registers", "spill_stores", "spill_loads"])
-        out = args.out or RESULTS_DIR / f"nbvh_cuda_compile_sm{args.arch}.json"
+        print(f"wrote {out}")
+        return
+    from bench_mesh_blas import random_rays
+
+    from neuralrt.methods import get_method, load_model
+    from neuralrt.training.api import train
+
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else payload["machine"]["cpu"]
+    payload["device"] = name
+    payload["torch"], payload["cuda"] = torch.__version__, torch.version.cuda
+    payload["ceilings"] = ceil = ceilings(device)
+    mesh = _mesh(args.mesh)
+    if args.model is not None:
+        model = load_model(args.model).to(device)
+        payload["train"] = {"model": str(args.model)}
     else:
-        from neuralrt.methods import get_method, load_model
-        from neuralrt.training.api import train
-
-        device = torch.device(args.device)
-        name = torch.cuda.get_device_name(device) if device.type == "cuda" else payload["machine"]["cpu"]
-        payload["device"] = name
-        payload["torch"], payload["cuda"] = torch.__version__, torch.version.cuda
-        payload["ceilings"] = ceil = ceilings(device)
-        mesh = _mesh(args.mesh)
-        if args.model is not None:
-            model = load_model(args.model).to(device)
-            payload["train"] = {"model": str(args.model)}
-        else:
-            config = get_method("nbvh").config(args.preset, device=device.type, steps=args.steps)
-            start = time.perf_counter()
-            model = train(mesh, config, progress=False, device=device)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            seconds = time.perf_counter() - start
-            tc = config.training
-            payload["train"] = {"preset": args.preset, "steps": tc.steps, "batch": tc.batch_size, "train_s": seconds,
-                                "s_per_1000_steps": 1000 * seconds / tc.steps, "nodes": model.num_nodes}  # fmt: skip
-        from bench_mesh_blas import random_rays
-
-        rays = random_rays(mesh, 1 << args.rays_log2).to(device)
-        with torch.no_grad():
-            payload["stages"] = bench_stages(model, rays, device, args.repeats, ceil)
-            payload["whole"] = bench_whole(model, mesh, rays, device, args.repeats, ceil)
-        payload["load_after"] = os.getloadavg()
-        print(f"{name} ({device.type}); train: {payload['train']}")
+        config = get_method("nbvh").config(args.preset, device=device.type, steps=args.steps)
+        start = time.perf_counter()
+        model = train(mesh, config, progress=False, device=device)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        seconds = time.perf_counter() - start
+        tc = config.training
+        payload["train"] = {"preset": args.preset, "steps": tc.steps, "batch": tc.batch_size, "train_s": seconds,
+                            "s_per_1000_steps": 1000 * seconds / tc.steps, "nodes": model.num_nodes}  # fmt: skip
+    save()
+    print(f"{name} ({device.type}); train: {payload['train']}")
+    rays = random_rays(mesh, 1 << args.rays_log2).to(device)
+    with torch.no_grad():
+        payload["stages"] = bench_stages(model, rays, device, args.repeats, ceil)
+        save()
         print_table(payload["stages"], STAGE_COLUMNS)
-        print()
-        print_table(payload["whole"], WHOLE_COLUMNS)
-        out = args.out or RESULTS_DIR / f"nbvh_cuda_{device.type}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
-    tmp.replace(out)
+        payload["whole"] = bench_whole(model, mesh, rays, device, args.repeats, ceil)
+    payload["load_after"] = os.getloadavg()
+    save()
+    print()
+    print_table(payload["whole"], WHOLE_COLUMNS)
     print(f"wrote {out}")
 
 

@@ -172,10 +172,24 @@ def _random_answers(model, precision="fp32"):
     return model
 
 
+def _assert_same_hits(t, t_ref, rtol=1e-5):
+    """Same hit/miss and distances. Compiled, fused multiply-adds move features and outputs by
+    float32 rounding, which may flip an answer right at the acceptance threshold: 1 ray in 64."""
+    t, hit_ref = t.cpu(), torch.isfinite(t_ref)
+    hit = torch.isfinite(t)
+    if CUDA:
+        assert (hit != hit_ref).sum() <= max(1, len(t) // 64)
+    else:
+        assert torch.equal(hit, hit_ref)
+    both = hit & hit_ref
+    torch.testing.assert_close(t[both], t_ref[both], rtol=rtol, atol=1e-6)
+    return both
+
+
 def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypatch):
     """`intersect` and `occluded` through what CUDA runs (Triton leaf lists, Triton wavefront
-    steps; here on CPU tensors) against the numba path: the same leaves and features, so the same
-    answers up to the MLP's float rounding. The cut is the random one of the traversal test."""
+    steps; without a GPU on CPU tensors) against the numba path: the same leaves and features, so
+    the same answers up to the MLP's float rounding. The cut is the random one of the traversal test."""
     import copy
 
     import neuralrt.methods.nbvh as nbvh_module
@@ -184,26 +198,28 @@ def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypat
     from neuralrt.methods.nbvh_traversal_triton import list_leaves_triton
     from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
 
-    ball_model = _random_answers(copy.deepcopy(ball_model))
+    cpu_model = _random_answers(copy.deepcopy(ball_model))
     rays = _sphere_rays(48, 11)
-    cpu, cpu_occ = ball_model.intersect(rays), ball_model.occluded(rays)
+    cpu, cpu_occ = cpu_model.intersect(rays), cpu_model.occluded(rays)
     assert 0.2 < cpu.hit.float().mean() < 0.9
-    monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)
+    monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)  # what CUDA rays take anyway
     monkeypatch.setattr(nbvh_module.NBVHModel, "_closest", closest_hits_triton)
-    tri, tri_occ = ball_model.intersect(rays), ball_model.occluded(rays)
-    assert torch.equal(tri.hit, cpu.hit) and torch.equal(tri_occ, cpu_occ)
-    torch.testing.assert_close(tri.t, cpu.t, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(tri.normal, cpu.normal, rtol=1e-4, atol=1e-5)
+    model = copy.deepcopy(cpu_model).to(DEVICE)
+    tri, tri_occ = model.intersect(rays.to(DEVICE)), model.occluded(rays.to(DEVICE))
+    both = _assert_same_hits(torch.where(tri.hit, tri.t, torch.inf), torch.where(cpu.hit, cpu.t, torch.inf))
+    torch.testing.assert_close(tri.normal.cpu()[both], cpu.normal[both], rtol=1e-4, atol=1e-5)
+    assert (tri_occ.cpu() != cpu_occ).sum() <= (1 if CUDA else 0)
 
 
 def test_triton_wavefront_answers_as_the_torch_loop(ball_model):
     """The CUDA wavefront (step kernels around the MLP) against the torch loop, both on the same
-    leaf lists, for closest and any hits."""
+    leaf lists, for closest and any hits; rays from outside and from inside leaves (reversed chords)."""
     import copy
 
     from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
 
     model = _random_answers(copy.deepcopy(ball_model))
+    on_device = copy.deepcopy(model).to(DEVICE)
     g = torch.Generator().manual_seed(12)
     n = 64
     o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
@@ -213,9 +229,7 @@ def test_triton_wavefront_answers_as_the_torch_loop(ball_model):
     t_max[::5] = 0.4
     for any_hit in (False, True):
         ref_t, ref_out = model._closest_torch(o, d, t_max, any_hit)
-        t, out = closest_hits_triton(model, o.to(DEVICE), d.to(DEVICE), t_max.to(DEVICE), any_hit)
-        hit = torch.isfinite(ref_t)
-        assert 0.2 < hit.float().mean() < 0.95
-        assert torch.equal(torch.isfinite(t).cpu(), hit)
-        torch.testing.assert_close(t.cpu()[hit], ref_t[hit], rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(out.cpu(), ref_out, rtol=1e-4, atol=1e-5)
+        t, out = closest_hits_triton(on_device, o.to(DEVICE), d.to(DEVICE), t_max.to(DEVICE), any_hit)
+        assert 0.2 < torch.isfinite(ref_t).float().mean() < 0.95
+        both = _assert_same_hits(t, ref_t)
+        torch.testing.assert_close(out.cpu()[both], ref_out[both], rtol=1e-4, atol=1e-5)

@@ -32,6 +32,7 @@ _INF = tl.constexpr(float("inf"))
 _SHORT_STACK, _NUMBA_STACK = 64, 256
 _PROGRAMS = 2048  # persistent grid: enough blocks in flight for any current GPU
 _BLOCK = 64
+_WARPS = _BLOCK // 32  # one ray per thread (more warps would hold each lane twice)
 
 
 @triton.jit
@@ -280,7 +281,7 @@ def list_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut: 
 
     def count(stack, overflow, size):
         _list_kernel[_grid(n)](*args, counts, start, empty_i, empty_f, empty_f, stack, overflow, n, _rounds(n),
-                               WRITE=False, STACK=size, BLOCK=_BLOCK)  # fmt: skip
+                               WRITE=False, STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)  # fmt: skip
 
     size = _with_stack(count, n, 1, dev)
     torch.cumsum(counts, 0, out=start[1:])
@@ -290,7 +291,7 @@ def list_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut: 
     if e:
         stack = torch.empty(_grid(n)[0] * size * _BLOCK, dtype=torch.int32, device=dev)
         overflow = torch.zeros(1, dtype=torch.int32, device=dev)
-        _list_kernel[_grid(n)](*args, counts, start, node, t0, t1, stack, overflow, n, _rounds(n), WRITE=True, STACK=size, BLOCK=_BLOCK)
+        _list_kernel[_grid(n)](*args, counts, start, node, t0, t1, stack, overflow, n, _rounds(n), WRITE=True, STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)
     return LeafList(start, node, t0, t1)
 
 
@@ -305,7 +306,7 @@ def first_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut:
     args = _rays_and_cut(origins, directions, t_max, cut, level, dilation)
 
     def first(stack, overflow, size):
-        _first_kernel[_grid(n)](*args, node, t0, t1, stack, stack.view(torch.float32), overflow, n, _rounds(n), STACK=size, BLOCK=_BLOCK)
+        _first_kernel[_grid(n)](*args, node, t0, t1, stack, stack.view(torch.float32), overflow, n, _rounds(n), STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)
 
     _with_stack(first, n, 3, dev)
     return node, t0, t1

@@ -33,6 +33,7 @@ from ..neural.hash_grid_triton import encode_level, layout_tensors
 __all__ = ["closest_hits_triton"]
 
 _BLOCK = 64
+_WARPS = _BLOCK // 32  # one ray per thread (more warps would hold each lane twice)
 
 
 @triton.jit
@@ -139,11 +140,11 @@ def closest_hits_triton(model, o: Tensor, d: Tensor, t_max: Tensor, any_hit: boo
         blocks = (triton.cdiv(n, _BLOCK),)
         _step_input_kernel[blocks](active, ptr, leaves.t0, leaves.t1, o, d, table, res, sizes, offsets, dense, x, n, *fractions,
                                    L=levels, F=feats, FP=triton.next_power_of_2(feats),
-                                   BLOCK=_BLOCK)  # fmt: skip
+                                   BLOCK=_BLOCK, num_warps=_WARPS)  # fmt: skip
         out = model.network(x, dtype).float().contiguous()
         keep = torch.empty(n, dtype=torch.int8, device=dev)
         _step_decode_kernel[blocks](active, ptr, leaves.start, leaves.t0, leaves.t1, t_max, out, best_t, best_out, keep, n,
                                     threshold, _DEPTH_PAD, _REVERSED_MIN, OUTPUTS=outputs, OP=triton.next_power_of_2(outputs),
-                                    ANY_HIT=any_hit, BLOCK=_BLOCK)  # fmt: skip
+                                    ANY_HIT=any_hit, BLOCK=_BLOCK, num_warps=_WARPS)  # fmt: skip
         active = active[keep.bool()]
     return best_t, best_out

@@ -148,7 +148,7 @@ class _HashGridTritonFunction(torch.autograd.Function):
         if m:
             _forward_kernel[(triton.cdiv(m, block),)](
                 pts, table.detach().contiguous(), res, sizes, offsets, dense, out, m,
-                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=block,
+                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=block, num_warps=max(1, block // 32),
             )  # fmt: skip
         ctx.save_for_backward(pts, res, sizes, offsets, dense)
         ctx.table_shape, ctx.table_dtype, ctx.block = tuple(table.shape), table.dtype, block
@@ -165,7 +165,7 @@ class _HashGridTritonFunction(torch.autograd.Function):
         if m:
             _backward_kernel[(triton.cdiv(m, ctx.block),)](
                 pts, grad_out.to(torch.float32).contiguous(), res, sizes, offsets, dense, grad, m,
-                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=ctx.block,
+                L=n_levels, F=n_feat, FP=_pow2(n_feat), BLOCK=ctx.block, num_warps=max(1, ctx.block // 32),
             )  # fmt: skip
         return None, grad.to(ctx.table_dtype), None, None
 
