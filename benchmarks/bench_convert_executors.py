@@ -33,7 +33,7 @@ from pathlib import Path
 import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_info, print_table, write_results  # noqa: E402
+from _common import print_table, write_results  # noqa: E402
 
 from neuralrt.io.model_file import read_header  # noqa: E402
 
