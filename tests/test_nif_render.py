@@ -126,7 +126,7 @@ def test_cli_rejects_bad_nif_before_rendering(tmp_path, capsys):
 
 def test_online_trained_render_answers_far_better_than_visible(tmp_path):
     scene = _scene(res=(64, 48))
-    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=8))  # small image, few pairs: more passes (docs/nif.md)
+    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=8, pair_fraction=1.0))  # small image, few pairs: more passes, every pair (docs/nif.md)
     result, report = render_nif(scene, "ball,cube", spp=36, train_spp=32, config=cfg, progress=False, audit=True)
     st = report["shadow_rays"]
     baseline = st["audit_blocked_by_nif_objects_only"]  # errors of answering every NIF pair "visible"
