@@ -266,18 +266,23 @@ def compile_only(arch: int) -> list[dict]:
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    ptxas = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "ptxas"
+    bin_dir = Path(triton.__file__).parent / "backends" / "nvidia" / "bin"
     rows = []
     for name, (module, kernel, sig, consts) in KERNELS.items():
         fn = getattr(importlib.import_module(module), kernel)
         signature = {**SIGNATURES[sig], **{k: "constexpr" for k in consts}}
         options = {"num_warps": max(1, consts["BLOCK"] // 32)}  # as the launches: one lane per thread
         compiled = triton.compile(ASTSource(fn, signature, consts), target=GPUTarget("cuda", arch, 32), options=options)
+        report = ""
         with tempfile.TemporaryDirectory() as tmp:
             ptx = Path(tmp) / "k.ptx"
             ptx.write_text(compiled.asm["ptx"])
-            report = subprocess.run([str(ptxas), f"-arch=sm_{arch}{'a' if arch >= 90 else ''}", "-v", str(ptx), "-o", str(Path(tmp) / "k.cubin")],
-                                    capture_output=True, text=True).stderr  # fmt: skip
+            for ptxas in (bin_dir / "ptxas", bin_dir / "ptxas-blackwell"):  # newer Triton's PTX needs the newer ptxas
+                run = subprocess.run([str(ptxas), f"-arch=sm_{arch}{'a' if arch >= 90 else ''}", "-v", str(ptx), "-o",
+                                      str(Path(tmp) / "k.cubin")], capture_output=True, text=True)  # fmt: skip
+                if run.returncode == 0:
+                    report = run.stderr
+                    break
         regs = re.search(r"Used (\d+) registers", report)
         spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", report)
         rows.append({"kernel": name, "num_warps": compiled.metadata.num_warps, "registers": int(regs.group(1)) if regs else None,
@@ -310,6 +315,9 @@ def main() -> None:
         tmp.replace(out)
 
     if args.compile_only:
+        import triton
+
+        payload["triton"] = triton.__version__
         payload["kernels"] = compile_only(args.arch)
         save()
         print_table(payload["kernels"], ["kernel", "num_warps", "registers", "spill_stores", "spill_loads"])
