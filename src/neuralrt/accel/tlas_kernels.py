@@ -1,7 +1,7 @@
 """Numba passes of the scene TLAS on the CPU: the broad phase (ray validity + slab test against
 every instance box, fused; or a walk of a BVH over the instance boxes that emits the overlapping
 (ray, instance) pairs directly), the mapping of (ray, instance) pairs to object space, normals back to
-world space, and the choice of the closest pair per ray.
+world space, and the choice of the closest pair per ray with its write into the scene's hits.
 
 They replace chains of torch ops (each allocating [N, I] or [P, 4, 4] temporaries) and compute
 exactly what those ops computed, in the same float32 order, so the TLAS answers bit-identically.
@@ -15,7 +15,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-__all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "normals_to_world", "merge_every_ray", "closest_pair_per_ray"]
+__all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -268,16 +268,6 @@ def _world_normal(m, identity, nx, ny, nz):
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
-def normals_to_world(normals, inst_idx, world_to_object, is_identity, out) -> None:
-    """``out[p] = normalize(normals[p] @ world_to_object[inst_idx[p], :3, :3])`` (the inverse
-    transpose applied to a normal), as torch computes it."""
-    for p in range(normals.shape[0]):
-        k = inst_idx[p]
-        x, y, z = _world_normal(world_to_object[k], is_identity[k], normals[p, 0], normals[p, 1], normals[p, 2])
-        out[p, 0], out[p, 1], out[p, 2] = x, y, z
-
-
-@numba.njit(nogil=True, cache=True, error_model="numpy")
 def merge_every_ray(
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, overlap, has_best,
     k, material_map, world_to_object, identity,
@@ -319,14 +309,20 @@ def merge_every_ray(
             best_instance_id[r] = -1
 
 
-@numba.njit(cache=True)
-def closest_pair_per_ray(ray_idx, hit, t, best_t, winner) -> int:
-    """``winner[r]``: the pair (index into ``ray_idx``) that hits ray ``r`` closest and strictly
-    before ``best_t[r]``, or -1; returns the number of rays with a winner.
-
-    Exact ties between pairs go to the later pair, as the scatter this replaces left them.
-    """
-    winner[:] = -1
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def merge_pairs(
+    ray_idx, inst_idx, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id,
+    material_maps, world_to_object, is_identity,
+    best_hit, best_t, best_normal, best_geometric_normal, best_uv, best_albedo, best_material_id,
+    best_primitive_id, best_instance_id,
+) -> int:  # fmt: skip
+    """Pair ``p`` = (ray ``ray_idx[p]``, instance ``inst_idx[p]``) with object-space answer row ``p``
+    of the first group of arrays: each ray's closest pair that hits strictly before ``best_t``
+    (exact ties to the later pair, as the scatter this replaces left them) is written into the
+    ``best_*`` rows in world space (normals by the inverse transpose, ``material_maps`` applied);
+    returns the number of rays written."""
+    n_map = material_maps.shape[1]
+    winner = np.full(best_t.shape[0], -1, np.int64)
     closest = best_t.copy()
     found = 0
     for p in range(ray_idx.shape[0]):
@@ -335,4 +331,21 @@ def closest_pair_per_ray(ray_idx, hit, t, best_t, winner) -> int:
             found += winner[r] < 0
             winner[r] = p
             closest[r] = t[p]
+    for p in range(ray_idx.shape[0]):
+        r = ray_idx[p]
+        if winner[r] != p:
+            continue
+        k = inst_idx[p]
+        m, identity = world_to_object[k], is_identity[k]
+        best_hit[r] = True
+        best_t[r] = t[p]
+        x, y, z = _world_normal(m, identity, normal[p, 0], normal[p, 1], normal[p, 2])
+        best_normal[r, 0], best_normal[r, 1], best_normal[r, 2] = x, y, z
+        x, y, z = _world_normal(m, identity, geometric_normal[p, 0], geometric_normal[p, 1], geometric_normal[p, 2])
+        best_geometric_normal[r, 0], best_geometric_normal[r, 1], best_geometric_normal[r, 2] = x, y, z
+        best_uv[r, 0], best_uv[r, 1] = uv[p, 0], uv[p, 1]
+        best_albedo[r, 0], best_albedo[r, 1], best_albedo[r, 2] = albedo[p, 0], albedo[p, 1], albedo[p, 2]
+        best_material_id[r] = material_maps[k, min(max(material_id[p], 0), n_map - 1)]
+        best_primitive_id[r] = primitive_id[p]
+        best_instance_id[r] = k
     return found

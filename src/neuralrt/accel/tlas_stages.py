@@ -199,22 +199,13 @@ class NumbaTLASStages:
         return out
 
     def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
-        winner = np.empty(len(best), np.int64)
-        found = kernels.closest_pair_per_ray(ray_idx.numpy(), local.hit.numpy(), local.t.detach().numpy(), best.t.detach().numpy(), winner)
-        if found == 0:
-            return best
-        winner_t = torch.from_numpy(winner)
-        rays_won = torch.nonzero(winner_t >= 0).squeeze(1)
-        pairs = winner_t[rays_won]
-        inst_idx, local = inst_idx[pairs], local[pairs]
-        idx = inst_idx.contiguous().numpy()
-        for name in ("normal", "geometric_normal"):
-            world = np.empty((len(idx), 3), np.float32)
-            kernels.normals_to_world(getattr(local, name).detach().contiguous().numpy(), idx, self._world_to_object, self._is_identity, world)
-            setattr(local, name, torch.from_numpy(world))
-        local.material_id = self.t.material_maps[inst_idx, _local_material_index(local.material_id, self.t.material_maps)]
-        local.instance_id = inst_idx
-        return best.scatter_(rays_won, local)
+        kernels.merge_pairs(
+            ray_idx.contiguous().numpy(), inst_idx.contiguous().numpy(),
+            *(getattr(local, f.name).detach().contiguous().numpy() for f in fields(Hits) if f.name != "instance_id"),
+            self._material_maps, self._world_to_object, self._is_identity,
+            *(getattr(best, f.name).numpy() for f in fields(Hits)),
+        )  # fmt: skip
+        return best
 
 
 def stages_for(table: InstanceTable) -> NumbaTLASStages | TorchTLASStages:
