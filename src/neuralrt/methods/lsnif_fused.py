@@ -126,8 +126,8 @@ def _fused_lsnif_kernel(
         zeros = tl.zeros([BLOCK, LP, FP], tl.float32).to(out_ptr.dtype.element_ty)
         zero_row = tl.zeros([BLOCK], tl.float32).to(out_ptr.dtype.element_ty)
         for hz in range(MAX_POINTS):
-            pad = hz >= h
-            tl.store(out_ptr + r64[:, None, None] * INPUTS + hz * (L * F) + in_cols, zeros, mask=in_mask & pad)
+            pad = (rays * 0 + hz) >= h  # a lane vector: Triton 3.9's interpreter takes no scalar bool in a mask
+            tl.store(out_ptr + r64[:, None, None] * INPUTS + hz * (L * F) + in_cols, zeros, mask=in_mask & pad[:, None, None])
             if POINT_DISTANCES:
                 tl.store(out_ptr + r64 * INPUTS + MAX_POINTS * L * F + hz, zero_row, mask=lane_ok & pad)
     else:
@@ -226,7 +226,7 @@ def _fused_input_per_ray_kernel(
     # Slots no ray of the block reached are padding: zero features, zero distance.
     zero = tl.zeros([BLOCK], tl.float32).to(out_ptr.dtype.element_ty)
     for hz in range(MAX_POINTS):
-        pad = lane_ok & (hz >= h)
+        pad = lane_ok & ((rays * 0 + hz) >= h)  # a lane vector: Triton 3.9's interpreter takes no scalar bool in a mask
         if PACK:
             for c in tl.static_range(L * F // 2):
                 tl.store(words + hz * (L * F // 2) + c, tl.zeros([BLOCK], tl.uint32), mask=pad)
