@@ -38,8 +38,7 @@ _WARPS = _BLOCK // 32  # one ray per thread (more warps would hold each lane twi
 @triton.jit
 def _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, node, dil, mask):
     """(t_near, t_far) of the dilated box of ``node`` [B] (float32, as numba's `_slab`: its
-    ``min(a, b)`` is ``a`` unless ``b < a``). Written out, not in helpers: the interpreter pays
-    for every nested jit call."""
+    ``min(a, b)`` is ``a`` unless ``b < a``, ``max`` likewise)."""
     n3 = node.to(tl.int64) * 3
     tn = tl.zeros_like(ox) - _INF
     tf = tl.zeros_like(ox) + _INF
