@@ -24,7 +24,9 @@
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
+import inspect
 import json
 import os
 import re
@@ -271,8 +273,14 @@ def compile_only(arch: int) -> list[dict]:
     for name, (module, kernel, sig, consts) in KERNELS.items():
         fn = getattr(importlib.import_module(module), kernel)
         signature = {**SIGNATURES[sig], **{k: "constexpr" for k in consts}}
-        options = {"num_warps": max(1, consts["BLOCK"] // 32)}  # as the launches: one lane per thread
-        compiled = triton.compile(ASTSource(fn, signature, consts), target=GPUTarget("cuda", arch, 32), options=options)
+        # As the launches: one lane per thread, pointers 16-byte aligned (the JIT specializes fresh
+        # torch tensors so; without it no load is vectorized).
+        params = list(inspect.signature(fn.fn).parameters)
+        attrs = {(params.index(a),): [["tt.divisibility", 16]] for a, t in signature.items() if t.startswith("*")}
+        options = {"num_warps": max(1, consts["BLOCK"] // 32)}
+        compiled = triton.compile(ASTSource(fn, signature, consts, attrs), target=GPUTarget("cuda", arch, 32), options=options)
+        ptx_ops = collections.Counter(re.findall(r"^\s*(?:@%p\d+\s+)?((?:atom|red|ld\.global|st\.global|ld\.shared|ld\.local)[\w.]*)",
+                                                 compiled.asm["ptx"], re.M))  # fmt: skip
         report = ""
         with tempfile.TemporaryDirectory() as tmp:
             ptx = Path(tmp) / "k.ptx"
@@ -286,7 +294,8 @@ def compile_only(arch: int) -> list[dict]:
         regs = re.search(r"Used (\d+) registers", report)
         spill = re.search(r"(\d+) bytes spill stores, (\d+) bytes spill loads", report)
         rows.append({"kernel": name, "num_warps": compiled.metadata.num_warps, "registers": int(regs.group(1)) if regs else None,
-                     "spill_stores": int(spill.group(1)) if spill else None, "spill_loads": int(spill.group(2)) if spill else None})  # fmt: skip
+                     "spill_stores": int(spill.group(1)) if spill else None, "spill_loads": int(spill.group(2)) if spill else None,
+                     "memory_ops": " ".join(f"{k} x{v}" for k, v in sorted(ptx_ops.items()))})  # fmt: skip
     return rows
 
 
@@ -320,7 +329,7 @@ def main() -> None:
         payload["triton"] = triton.__version__
         payload["kernels"] = compile_only(args.arch)
         save()
-        print_table(payload["kernels"], ["kernel", "num_warps", "registers", "spill_stores", "spill_loads"])
+        print_table(payload["kernels"], ["kernel", "num_warps", "registers", "spill_stores", "spill_loads", "memory_ops"])
         print(f"wrote {out}")
         return
     from bench_mesh_blas import random_rays

@@ -121,7 +121,8 @@ def _backward_kernel(pts_ptr, grad_out_ptr, res_ptr, size_ptr, offset_ptr, dense
         cell = level_cell(px, py, pz, res)
         for c in tl.static_range(8):
             idx, w = level_rows_weights(cell, res, size, dense, c)
-            tl.atomic_add(grad_table_ptr + (offset + idx)[:, None] * F + feats[None, :], w[:, None] * g, mask=mask)
+            # relaxed: a sum needs no ordering (the default acq_rel orders every add)
+            tl.atomic_add(grad_table_ptr + (offset + idx)[:, None] * F + feats[None, :], w[:, None] * g, mask=mask, sem="relaxed")
 
 
 def _pow2(n: int) -> int:
