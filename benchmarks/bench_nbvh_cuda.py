@@ -7,7 +7,7 @@
    that both give the same answer and the floor of each stage (bytes through device memory over the
    measured copy bandwidth, FLOPs over the measured bf16 GEMM rate; the hash table and the cut's
    nodes are counted as cache-resident, their gathers are reported apart as ``l2_bytes``):
-   ``list_leaves`` and ``first_leaves`` on 2^``--rays-log2`` rays (identical lists required), the
+   ``list_leaves`` and ``first_leaves`` on one inference chunk of the rays (identical lists required), the
    hash grid forward on the first leaves' chord points and forward + backward on a training batch
    (2^18 queries of 3 points), and the whole ``intersect`` / ``occluded`` of the model: Triton path
    (what CUDA runs now), the earlier torch path (torch traversal, torch grid, torch wavefront), and
@@ -133,6 +133,7 @@ def bench_stages(model, rays, device, repeats: int, ceil: dict) -> list[dict]:
     from neuralrt.neural.hash_grid_triton import hash_grid_triton
 
     rows = []
+    rays = rays[: model.config.inference.chunk_size]  # what one inference call hands the stages (2^20 in `paper`)
     _, o, d, t_max, _, _ = model._unit_rays(rays)
     n = len(o)
     inf = model.config.inference
