@@ -2,8 +2,10 @@
 
 Pairs arrive as the first samples per pixel are rendered with exact shadow rays. They are buffered
 (outer and inner apart) and, once ``round_pairs`` have gathered (and at `finish`), trained on in a
-round: ``passes_per_spp`` passes, each over the round's pairs in a fresh random order, in batches
-of ``outer_batch`` / ``inner_batch`` (the last batch of a pass may be smaller). Loss: L2 between
+round: ``passes_per_spp`` passes, each over a fresh random ``pair_fraction`` of the round's pairs
+(default half: training costs about as much per pair as rendering a path sample on the CPU, and
+half keeps the quality targets, docs/nif.md) in random order, in batches of ``outer_batch`` /
+``inner_batch`` (the last batch of a pass may be smaller). Loss: L2 between
 the sigmoid output and the label (1 = visible); Adam (lr 0.005, betas 0.9/0.999, eps 1e-15) per
 network kind, so an outer step never moves inner parameters. The grids' Adam is lazy
 (`nif_optim.LazyAdam`: only the vertices a batch touched move, their moments decay only when
