@@ -2,7 +2,7 @@
 this machine: wall time and CPU utilisation of the whole command.
 
     flock /tmp/neuralrt-bench.lock python benchmarks/bench_convert_executors.py [--steps 300] [--preset hq]
-        [--runs local,ray,ray-2cpu]
+        [--runs local,ray,ray-2cpu] [--repeats 2]
 
 Each run is the real command in a fresh process (`python -m neuralrt convert ... --quiet --json`,
 its own empty models folder), so each pays what a user pays: imports, numba's cached kernels,
@@ -174,6 +174,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300, help="training steps per model (preset's batch)")
     parser.add_argument("--preset", default="hq")
     parser.add_argument("--runs", default="local,ray,ray-2cpu", help=f"comma-separated, from {', '.join(RUNS)}")
+    parser.add_argument("--repeats", type=int, default=1, help="rounds; every other round runs in reverse order")
     args = parser.parse_args()
     names = [n for n in args.runs.split(",") if n]
     unknown = set(names) - set(RUNS)
@@ -183,18 +184,21 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-convert-") as tmp:
         folder = Path(tmp)
         scene = write_scene(folder)
-        for name in names:
-            print(f"{name} ...", flush=True)
-            rows.append(run_once(name, scene, folder, args))
-    base = next((r for r in rows if r["run"] == "local"), rows[0])
-    for r in rows:
-        r["wall_vs_local"] = r["wall_s"] / base["wall_s"]
-        r["same_arrays_as_local"] = r["arrays"] == base["arrays"]
-    print_table(rows, ["run", "wall_s", "wall_vs_local", "train_s_sum", "cpu_s", "cpu_utilisation", "machine_busy",
+        for round_ in range(args.repeats):
+            for name in names if round_ % 2 == 0 else names[::-1]:
+                print(f"round {round_}: {name} ...", flush=True)
+                rows.append({"round": round_, **run_once(f"{name}", scene, folder / f"r{round_}", args)})
+    for round_ in range(args.repeats):  # ratios against the local run of the same round
+        same = [r for r in rows if r["round"] == round_]
+        base = next((r for r in same if r["run"] == "local"), same[0])
+        for r in same:
+            r["wall_vs_local"] = r["wall_s"] / base["wall_s"]
+            r["same_arrays_as_local"] = r["arrays"] == base["arrays"]
+    print_table(rows, ["round", "run", "wall_s", "wall_vs_local", "train_s_sum", "cpu_s", "cpu_utilisation", "machine_busy",
                        "processes", "load_before", "same_arrays_as_local"])
     path = write_results("convert_executors", rows, {
         "meshes": [f"{n}({', '.join(f'{k}={v}' for k, v in p.items())})" for n, p in MESHES],
-        "preset": args.preset, "steps": args.steps,
+        "preset": args.preset, "steps": args.steps, "repeats": args.repeats,
         "notes": "wall and CPU of the whole command in a fresh process; cpu_utilisation = process-tree CPU seconds / "
                  "(wall x cores); machine_busy = all cores' busy fraction (includes other users)",
     })
