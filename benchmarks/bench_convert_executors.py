@@ -163,7 +163,7 @@ def run_once(name: str, scene: Path, folder: Path, args) -> dict:
         "models": len(models),
         "load_before": load,
         "load_after": os.getloadavg()[0],
-        "per_model_s": {m["mesh_name"]: round(m["train_seconds"], 2) for m in models},
+        "per_model_s": {Path(m["model_path"]).stem: round(m["train_seconds"], 2) for m in models},
         "arrays": {Path(m["model_path"]).name: read_header(m["model_path"])["arrays_sha256"] for m in models},
         "command": " ".join(cmd[1:]),
     }
