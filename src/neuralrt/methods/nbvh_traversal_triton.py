@@ -173,7 +173,8 @@ def _enterable(tn, tf, tmax, leaf):
 
 @triton.jit
 def _first_kernel(o_ptr, inv_ptr, tmax_ptr, level_ptr, dil_ptr, lo_ptr, hi_ptr, children_ptr, lod_ptr, live_ptr,
-                  node_out, t0_out, t1_out, stack_ptr, stack_f_ptr, overflow_ptr, n, rounds, STACK: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
+                  node_out, t0_out, t1_out, stack_ptr, stack_f_ptr, overflow_ptr, n, rounds,
+                  STACK: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
     """Per ray, the leaf with the smallest (t0, node): numba's `_first_kernel`, lane by lane."""
     pid = tl.program_id(0)
     n_programs = tl.num_programs(0)
@@ -244,7 +245,8 @@ def _rays_and_cut(origins, directions, t_max, cut: CutArrays, level, dilation) -
     inv = 1.0 / directions.to(f32)  # IEEE division (Triton's fp32 '/' may be approximate)
     return (origins.to(f32).contiguous(), inv.contiguous(), t_max.to(f32).contiguous(), level.to(torch.int8).contiguous(),
             dilation.to(f32).contiguous(), cut.lo.to(f32).contiguous(), cut.hi.to(f32).contiguous(),
-            cut.children.to(torch.int32).contiguous(), cut.lod.to(torch.int8).contiguous(), cut.live.to(torch.int8).contiguous())  # fmt: skip
+            cut.children.to(torch.int32).contiguous(), cut.lod.to(torch.int8).contiguous(),
+            cut.live.to(torch.int8).contiguous())  # fmt: skip
 
 
 def _grid(n: int) -> tuple[int]:
@@ -290,11 +292,13 @@ def list_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut: 
     if e:
         stack = torch.empty(_grid(n)[0] * size * _BLOCK, dtype=torch.int32, device=dev)
         overflow = torch.zeros(1, dtype=torch.int32, device=dev)
-        _list_kernel[_grid(n)](*args, counts, start, node, t0, t1, stack, overflow, n, _rounds(n), WRITE=True, STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)
+        _list_kernel[_grid(n)](*args, counts, start, node, t0, t1, stack, overflow, n, _rounds(n),
+                               WRITE=True, STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)  # fmt: skip
     return LeafList(start, node, t0, t1)
 
 
-def first_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArrays, level: Tensor, dilation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def first_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArrays, level: Tensor,
+                        dilation: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
     """`first_leaves` on the rays' device with a Triton kernel: (node [N] (-1: none), t0 [N], t1 [N])."""
     n, dev = len(origins), origins.device
     node = torch.full((n,), -1, dtype=torch.int64, device=dev)
@@ -305,7 +309,8 @@ def first_leaves_triton(origins: Tensor, directions: Tensor, t_max: Tensor, cut:
     args = _rays_and_cut(origins, directions, t_max, cut, level, dilation)
 
     def first(stack, overflow, size):
-        _first_kernel[_grid(n)](*args, node, t0, t1, stack, stack.view(torch.float32), overflow, n, _rounds(n), STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)
+        _first_kernel[_grid(n)](*args, node, t0, t1, stack, stack.view(torch.float32), overflow, n, _rounds(n),
+                                STACK=size, BLOCK=_BLOCK, num_warps=_WARPS)  # fmt: skip
 
     _with_stack(first, n, 3, dev)
     return node, t0, t1

@@ -11,9 +11,11 @@ Lanes are points (a ray's P points are P consecutive lanes), one point per lane:
 unrolled loop (their sizes read as scalars), the F features of a corner one contiguous row (a
 16-byte load for F = 4), so a thread holds one point's F accumulators. (A first version tiled
 [points, levels, features]: ptxas for sm_90 reported 6.8 KB of spills in the forward kernel and
-255 registers with spills in the backward.) Under ``TRITON_INTERPRET=1`` (numpy, no fused multiply-add) the forward pass is bit-identical
-to numba; compiled, the GPU may fuse multiply-adds (float32 rounding differences). The backward
-pass adds with atomics, so its summation order (and last bits) vary from run to run.
+255 registers with spills in the backward.)
+
+Under ``TRITON_INTERPRET=1`` (numpy, no fused multiply-add) the forward pass is bit-identical to
+numba; compiled, the GPU may fuse multiply-adds (float32 rounding differences). The backward
+pass adds with relaxed atomics, so its summation order (and last bits) vary from run to run.
 """
 
 from __future__ import annotations
