@@ -33,11 +33,11 @@ from ..geometry.mesh import Mesh
 from ..geometry.voxelize import pack_occupancy, unpack_occupancy, voxelize_triangles
 from ..neural.mlp import MLP
 from ..neural.sparse_hash_grid import SparseHashGrid
-from ..rays import AABB, Hits, Rays, face_forward, valid_ray_mask
+from ..rays import AABB, Hits, Rays, face_forward
 from ..training.step import StepResult
 from .base import NeuralBLAS, material_table
 from .lsnif_config import LSNIFConfig
-from .lsnif_features import RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays
+from .lsnif_features import RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays, unit_box_rays
 
 __all__ = ["LSNIFConfig", "LSNIFModel", "LSNIFBLAS", "METHOD"]
 
@@ -139,12 +139,7 @@ class LSNIFModel(NeuralBLAS):
 
     def _unit_rays(self, rays: Rays) -> _UnitRays:
         """The one map from object space to the unit box: ``(p - box_lo) / box_extent`` (t unchanged)."""
-        valid = valid_ray_mask(rays)
-        t_off = torch.where(torch.isfinite(rays.t_min) & (rays.t_min > 0), rays.t_min, torch.zeros_like(rays.t_min))
-        idx = torch.nonzero(valid).squeeze(1)
-        o, d, t_off = rays.origins[idx], rays.directions[idx], t_off[idx]
-        ext = self.box_extent
-        return _UnitRays(idx, ((o + t_off[:, None] * d - self.box_lo) / ext).contiguous(), (d / ext).contiguous(), t_off)
+        return _UnitRays(*unit_box_rays(rays, self.box_lo, self.box_extent))
 
     # -- featurization -----------------------------------------------------------------------------
     def _prepare(self, rays: Rays) -> _Prepared:

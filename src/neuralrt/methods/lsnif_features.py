@@ -33,7 +33,8 @@ device: `featurize_rays_numba` (CPU, parallel over rays) and `featurize_rays_tri
 every plane crossing, look up the voxel at each segment's midpoint) that the tests compare both
 kernels against.
 
-`select_network_rays` then keeps the rays with points (the ones the network sees) and, if asked,
+`unit_box_rays` maps valid object-space rays into the unit box before the walk (one numba pass on
+the CPU, torch ops elsewhere). `select_network_rays` then keeps the rays with points (the ones the network sees) and, if asked,
 each point's distance along the ray (`point_local_distances`): one numba pass on the CPU instead
 of a gather per field and a chain of torch ops; torch ops elsewhere.
 """
@@ -47,6 +48,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..rays import Rays, valid_ray_mask
+
 __all__ = [
     "RayFeaturePoints",
     "featurize_rays",
@@ -56,6 +59,9 @@ __all__ = [
     "select_network_rays",
     "select_network_rays_numba",
     "select_network_rays_torch",
+    "unit_box_rays",
+    "unit_box_rays_numba",
+    "unit_box_rays_torch",
     "PADDING",
     "ORIGIN_POINT",
 ]
@@ -473,3 +479,65 @@ def select_network_rays_numba(fp: RayFeaturePoints, origins: Tensor, directions:
     kept = RayFeaturePoints(*(torch.from_numpy(getattr(out, f.name)) for f in fields(out)))
     return (torch.from_numpy(keep), kept, torch.from_numpy(o), torch.from_numpy(d),
             torch.from_numpy(distances) if point_distances else None)  # fmt: skip
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, index, out_origins, out_directions, t_offset) -> int:
+    """Valid rays (as `neuralrt.rays.valid_ray_mask`) in order: their index, origin moved to a
+    positive finite ``t_min`` and mapped by ``(p - box_lo) / box_extent``, direction divided by
+    ``box_extent``, and the ``t_min`` shift; the same float32 operations as `unit_box_rays`'s torch
+    path. Returns how many."""
+    zero = np.float32(0.0)
+    m = 0
+    for n in range(origins.shape[0]):
+        ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
+        dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
+        valid = (
+            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
+            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
+            and (dx != 0 or dy != 0 or dz != 0)
+            and t_max[n] > t_min[n]
+        )  # fmt: skip
+        if not valid:
+            continue
+        t = t_min[n]
+        t = t if (np.isfinite(t) and t > zero) else zero
+        index[m] = n
+        t_offset[m] = t
+        out_origins[m, 0] = ((ox + t * dx) - box_lo[0]) / box_extent[0]
+        out_origins[m, 1] = ((oy + t * dy) - box_lo[1]) / box_extent[1]
+        out_origins[m, 2] = ((oz + t * dz) - box_lo[2]) / box_extent[2]
+        out_directions[m, 0] = dx / box_extent[0]
+        out_directions[m, 1] = dy / box_extent[1]
+        out_directions[m, 2] = dz / box_extent[2]
+        m += 1
+    return m
+
+
+def unit_box_rays(rays: Rays, box_lo: Tensor, box_extent: Tensor):
+    """The valid rays (`neuralrt.rays.valid_ray_mask`) mapped into the unit box: ``(index [K] long,
+    origins [K, 3], directions [K, 3], t_offset [K])``, where each origin is first moved to the
+    ray's ``t_min`` when that is positive and finite (``t_offset``; t is unchanged by the map
+    ``(p - box_lo) / box_extent``). One numba pass on the CPU (`unit_box_rays_numba`), torch ops
+    elsewhere (`unit_box_rays_torch`)."""
+    cpu = rays.device.type == "cpu" and box_lo.dtype == torch.float32
+    return (unit_box_rays_numba if cpu else unit_box_rays_torch)(rays, box_lo, box_extent)
+
+
+def unit_box_rays_torch(rays: Rays, box_lo: Tensor, box_extent: Tensor):
+    """`unit_box_rays` as torch ops (any device)."""
+    t_min = rays.t_min
+    t_off = torch.where(torch.isfinite(t_min) & (t_min > 0), t_min, torch.zeros_like(t_min))
+    idx = torch.nonzero(valid_ray_mask(rays)).squeeze(1)
+    o, d, t_off = rays.origins[idx], rays.directions[idx], t_off[idx]
+    return idx, ((o + t_off[:, None] * d - box_lo) / box_extent).contiguous(), (d / box_extent).contiguous(), t_off
+
+
+def unit_box_rays_numba(rays: Rays, box_lo: Tensor, box_extent: Tensor):
+    """`unit_box_rays` on float32 CPU tensors: one numba pass, in torch's float32 operations."""
+    n = len(rays)
+    index, t_offset = np.empty(n, np.int64), np.empty(n, np.float32)
+    o, d = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    arrays = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max, box_lo, box_extent))
+    m = _unit_box_kernel(*arrays, index, o, d, t_offset)
+    return torch.from_numpy(index[:m]), torch.from_numpy(o[:m]), torch.from_numpy(d[:m]), torch.from_numpy(t_offset[:m])
