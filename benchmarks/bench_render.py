@@ -1,8 +1,8 @@
 """Render time per sample per pixel of each built-in scene in three configurations in the same run,
 split into ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
 
-- ``torch``: torch shading ops and the TLAS broad phase testing every instance box (the CPU path
-  before the numba shading kernels and the instance BVH);
+- ``torch``: torch shading ops and the TLAS broad phase testing every instance box (the shading
+  before the numba kernels; the other TLAS stages are today's numba passes);
 - ``numba_all_boxes``: fused numba shading, broad phase testing every box (last state before the BVH);
 - ``numba``: fused numba shading and the broad phase walking a BVH over each group's instance
   boxes (today's default).
@@ -10,15 +10,15 @@ split into ray queries and the rest. Prints a table and writes benchmarks/result
     python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 
 Per scene and implementation: ``s_per_spp`` (the fastest of ``--repeats`` renders, taken in
-alternation so both see the same machine load); ``queries_s_per_spp``, the time inside
+alternation, in a rotated order, so all see the same machine load); ``queries_s_per_spp``, the time inside
 `SceneAccel.intersect` / ``occluded`` (TLAS + BLAS: Embree and its bookkeeping);
 ``rest_s_per_spp``, everything else, of which ``shading_s_per_spp`` is inside the shading stages
 (shading, sampling, NEE, roulette, accumulation; the remainder is camera rays, random numbers and
 the film); ``blas_share``, the fraction inside `BLAS.intersect` / ``occluded`` alone.
-``speedup`` is torch s/spp over numba s/spp (wall clock), ``tlas_speedup`` numba_all_boxes s/spp
-over numba s/spp (the instance BVH's gain), ``cpu_speedup`` the same for the CPU
+``speedup`` is torch s/spp over numba s/spp (wall clock), ``cpu_speedup`` the same for the CPU
 seconds the process used (all threads; least of the repeats), which other jobs on a shared
-machine disturb less; ``pixels_differing`` the fraction of pixels whose
+machine disturb less; ``tlas_speedup`` numba_all_boxes s/spp over numba s/spp (the instance
+BVH's gain; ``tlas_queries_speedup`` the same for the query time); ``pixels_differing`` the fraction of pixels whose
 values differ by more than 0.1% between torch and numba (same seed); the two numba configurations
 must render the same image (checked).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
