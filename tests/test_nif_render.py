@@ -151,6 +151,6 @@ def test_cli_render_with_nif_reports_it(tmp_path, capsys):
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     nif = result["nif"]
-    assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2
+    assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2 and nif["pair_fraction"] == 0.5
     assert nif["shadow_rays"]["shadow_rays"] > 0 and nif["training"]["outer_pairs"] + nif["training"]["inner_pairs"] > 0
     assert nif["memory"]["paper_bytes_per_object"] == 327_680 and out.exists()

@@ -148,6 +148,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         "spp": spp,
         "train_spp": train_spp,
         "passes_per_spp": config.training.passes_per_spp,
+        "pair_fraction": config.training.pair_fraction,
         "answer": answer,
         "training": tr.as_dict(),
         "training_seconds": tr.seconds,
