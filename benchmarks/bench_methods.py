@@ -172,6 +172,7 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import ticker
 
     meshes = list(dict.fromkeys(r["mesh"] for r in runs.values()))
     scene_rows = json.loads(scenes_json.read_text())["rows"] if scenes_json and scenes_json.is_file() else []
@@ -196,6 +197,10 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
                     ax.annotate(v.split(":", 1)[1], (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points", color=color)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # plain numbers: the ranges are too narrow for powers of ten
+            axis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
+            axis.set_minor_formatter(ticker.FormatStrFormatter("%.3g"))
+        ax.tick_params(which="minor", labelsize=6)
         ax.set_title(mesh.replace("procedural:", ""), fontsize=9)
         ax.set_xlabel("bytes [MiB]")
     for ax, r in zip(axes[-1], scene_rows):
@@ -208,7 +213,6 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
             ax.scatter(r[f"neural_{label}_bytes"] / 2**20, value, marker=marker, color=color)
             ax.annotate(label, (r[f"neural_{label}_bytes"] / 2**20, value), fontsize=6, xytext=(3, 3), textcoords="offset points")
         ax.axhline(r["flip_floor"], color="gray", linestyle=":", label="noise floor")
-        ax.set_xscale("log")
         name = "shared" if r["scene"].endswith("shared_scene/scene.toml") else r["scene"].replace("builtin:", "")
         ax.set_title(f"scene {name}", fontsize=9)
         ax.set_xlabel("bytes of the replaced objects [MiB]")
