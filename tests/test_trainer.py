@@ -78,6 +78,28 @@ def test_interrupted_overlapped_run_resumes_bit_exact(tmp_path):
     _assert_same_parameters(straight, resumed)
 
 
+def test_resuming_a_finished_run_keeps_its_record(tmp_path):
+    """A run whose checkpoint is already at its last step (the model file was lost after training)
+    trains nothing on resume and keeps the checkpoint's loss, accuracy and statistics."""
+    mesh = sphere(2)
+    ckpt = tmp_path / "run.nrt"
+
+    def run(resume):
+        model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq"))
+        rays = BoxRayDistribution(MeshBLAS(mesh), model.box, pool_size=1024, seed=0)
+        record = train_model(model, rays, steps=4, batch_size=256, learning_rate=0.01, progress=False,
+                             checkpoint=ckpt, checkpoint_every=2, resume=resume)
+        return model.state_dict(), record
+
+    first_params, first = run(resume=False)
+    again_params, again = run(resume=True)
+    _assert_same_parameters(first_params, again_params)
+    assert again.steps == 4 and again.resumed_from == 4
+    assert again.final_loss == first.final_loss and again.final_loss == again.final_loss  # not NaN
+    assert again.hit_accuracy == first.hit_accuracy and again.final_losses == first.final_losses
+    assert again.extra == first.extra and set(again.extra) == {"truncated_fraction"}
+
+
 def test_model_dependent_sampler_is_not_drawn_ahead():
     """Samplers without ``model_independent`` (N-BVH's follow the model) are drawn on the loop's thread, in turn."""
     mesh = sphere(2)

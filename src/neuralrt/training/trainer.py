@@ -189,7 +189,8 @@ def train_model(
     finally:
         batches.close()
         bar.close()
-    _finish(record, running, steps if steps > start else start)
+    if steps > start:  # a run resumed at (or past) its last step trained nothing: keep the checkpoint's figures
+        _finish(record, running, steps)
     if ckpt is not None:
         save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
     model.eval()
