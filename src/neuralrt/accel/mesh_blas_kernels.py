@@ -15,6 +15,8 @@ import math
 import numba
 import numpy as np
 
+from ..rays_kernels import valid_ray
+
 __all__ = ["prepare_embree_rays", "placeholder_directions", "closest_hit_attributes", "occlusion_result"]
 
 # Embree works in float32; "infinite" t_max is passed as a large finite value.
@@ -36,13 +38,7 @@ def prepare_embree_rays(origins, directions, t_min, t_max, shifted, tfar, valid)
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         t0, t1 = t_min[i], t_max[i]
-        # NaN fails every comparison, so `t1 > t0` also rejects NaN t_min / t_max.
-        ok = (
-            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
-            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-            and (dx != 0 or dy != 0 or dz != 0)
-            and t1 > t0
-        )  # fmt: skip
+        ok = valid_ray(origins, directions, t_min, t_max, i)
         valid[i] = ok
         if not ok:
             # A harmless placeholder that Embree skips (t_far < t_near = 0).

@@ -15,6 +15,8 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from ..rays_kernels import valid_ray
+
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
@@ -44,18 +46,12 @@ def instance_overlaps(origins, directions, t_min, t_max, t_limit, lo, hi, overla
     n, g = overlap.shape
     total = 0
     for i in range(n):
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        valid = (
-            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
-            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-            and (dx != 0 or dy != 0 or dz != 0)
-            and t_max[i] > t_min[i]
-        )  # fmt: skip
-        if not valid:
+        if not valid_ray(origins, directions, t_min, t_max, i):
             for k in range(g):
                 overlap[i, k] = False
             continue
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         one = np.float32(1.0)
         inv = (one / dx, one / dy, one / dz)
         o = (ox, oy, oz)
@@ -129,16 +125,10 @@ def instance_pairs(origins, directions, t_min, t_max, t_limit, lo, hi, node_lo, 
     total = 0
     one = np.float32(1.0)
     for i in range(n):
+        if not valid_ray(origins, directions, t_min, t_max, i):
+            continue
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        valid = (
-            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
-            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-            and (dx != 0 or dy != 0 or dz != 0)
-            and t_max[i] > t_min[i]
-        )  # fmt: skip
-        if not valid:
-            continue
         ix, iy, iz = one / dx, one / dy, one / dz
         t0, t1 = t_min[i], t_limit[i]
         m = 0

@@ -49,6 +49,7 @@ import torch
 from torch import Tensor
 
 from ..rays import Rays, valid_ray_mask
+from ..rays_kernels import valid_ray
 
 __all__ = [
     "RayFeaturePoints",
@@ -490,16 +491,10 @@ def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, inde
     zero = np.float32(0.0)
     m = 0
     for n in range(origins.shape[0]):
+        if not valid_ray(origins, directions, t_min, t_max, n):
+            continue
         ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
         dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
-        valid = (
-            np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)
-            and np.isfinite(dx) and np.isfinite(dy) and np.isfinite(dz)
-            and (dx != 0 or dy != 0 or dz != 0)
-            and t_max[n] > t_min[n]
-        )  # fmt: skip
-        if not valid:
-            continue
         t = t_min[n]
         t = t if (np.isfinite(t) and t > zero) else zero
         index[m] = n
