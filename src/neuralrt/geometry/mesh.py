@@ -10,6 +10,7 @@ import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..errors import MeshError
@@ -132,22 +133,67 @@ def validate_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
         raise MeshError(
             f"{name}: face indices out of range [0, {len(vertices) - 1}] (found {faces.min()}..{faces.max()})"
         )
-    tri = vertices[faces].astype(np.float64)
-    areas = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if not (areas > 0).any():
+    if not any((_cross_lengths(vertices, faces[s:s + _CHUNK]) > 0).any() for s in range(0, len(faces), _CHUNK)):
         raise MeshError(f"{name}: mesh is degenerate (all {len(faces)} triangles have zero area)")
+
+
+# Faces per step of the per-face passes: bounds their float64 temporaries (~300 B per face) to ~80 MB
+# whatever the mesh size, instead of [F, 3, 3] arrays over the whole mesh.
+_CHUNK = 1 << 18
+
+
+def _cross_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[F] float64 |(b - a) x (c - a)| (twice the area) of the given faces."""
+    tri = vertices[faces].astype(np.float64)
+    return np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
 def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals; vertices of only degenerate faces get +z."""
-    tri = vertices[faces].astype(np.float64)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
     vn = np.zeros((len(vertices), 3))
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
+    for s in range(0, len(faces), _CHUNK):
+        f = faces[s:s + _CHUNK]
+        tri = vertices[f].astype(np.float64)
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+        for k in range(3):
+            np.add.at(vn, f[:, k], fn)
     length = np.linalg.norm(vn, axis=1, keepdims=True)
     vn = np.where(length > 0, vn / np.where(length > 0, length, 1), [0.0, 0.0, 1.0])
     return vn.astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _add_weighted_face_normals(summed, faces, weights, face_normals, use):
+    """summed[faces[f, k]] += weights[f, k] * face_normals[f] for the faces with ``use``, in face
+    order: the order scipy's sparse product sums them in (trimesh), so the results match bitwise."""
+    for f in range(faces.shape[0]):
+        if use[f]:
+            for k in range(3):
+                v = faces[f, k]
+                for c in range(3):
+                    summed[v, c] += weights[f, k] * face_normals[f, c]
+
+
+def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[V, 3] float32 vertex normals weighted by corner angle, as trimesh's ``vertex_normals``
+    computes them for a file without normals (same per-face formulas, same summation order), in
+    chunks of faces instead of trimesh's cached [F, 3, 3] float64 arrays and sparse matrix.
+    Unreferenced vertices get zero."""
+    from trimesh import triangles, util
+
+    summed = np.zeros((len(vertices), 3))
+    for s in range(0, len(faces), _CHUNK):
+        f = faces[s:s + _CHUNK]
+        tri = vertices[f].astype(np.float64)
+        unit, valid = triangles.normals(crosses=triangles.cross(tri))
+        fn = np.zeros((len(f), 3))
+        fn[valid] = unit
+        use = (fn ** 2).sum(axis=1) > 0.5  # trimesh skips faces without a valid normal
+        _add_weighted_face_normals(summed, f, triangles.angles(tri), fn, use)
+    unit = np.empty((len(vertices), 3), np.float32)
+    for s in range(0, len(summed), _CHUNK):  # row-wise, so chunks give the same values
+        unit[s:s + _CHUNK] = util.unitize(summed[s:s + _CHUNK])
+    return unit
 
 
 # --- loading --------------------------------------------------------------------------------
@@ -206,16 +252,19 @@ def load_mesh(path: str | Path) -> Mesh:
     if not parts:
         raise MeshError(f"{path}: file contains no triangles")
 
+    loaded = None  # the parts hold what is needed; drop the rest before the per-face passes
+
     verts, faces, normals, uvs, colors, mat_ids, materials = [], [], [], [], [], [], []
     names: dict[str, int] = {}
     offset = 0
     any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
     any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts)
-    for i, part in enumerate(parts):
+    for i in range(len(parts)):
+        part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = np.asarray(part.vertices, np.float32)
-        f = np.asarray(part.faces, np.int64)
+        f = np.asarray(part.faces).astype(np.int32)
         try:
-            validate_arrays(v, f.astype(np.int32) if f.size else f.reshape(-1, 3).astype(np.int32), str(path))
+            validate_arrays(v, f, str(path))
         except MeshError:
             if len(parts) == 1:
                 raise
@@ -227,22 +276,33 @@ def load_mesh(path: str | Path) -> Mesh:
             materials.append(material)
         mat_ids.append(np.full(len(f), names[key], np.int32))
         verts.append(v)
-        faces.append(f + offset)
-        # trimesh returns the file's normals when present, else smooth ones it computes
-        vn = np.asarray(part.vertex_normals, np.float32)
-        normals.append(vn if vn is not None and vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f))
+        faces.append(f + np.int32(offset) if offset else f)
+        file_normals = "vertex_normals" in part._cache
+        vn = np.asarray(part.vertex_normals, np.float32) if file_normals else None
+        vertices64 = np.asarray(part.vertices)
+        del part  # frees trimesh's int64 faces before the normals pass
+        if file_normals:
+            normals.append(vn if vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f))
+        else:  # what trimesh would compute, from its float64 vertices, without its caches
+            normals.append(angle_weighted_vertex_normals(vertices64, f))
+        del vertices64
         uvs.append(uv if uv is not None and len(uv) == len(v) else np.zeros((len(v), 2), np.float32))
         colors.append(col if col is not None and len(col) == len(v) else np.ones((len(v), 3), np.float32))
         offset += len(v)
     if not verts:
         raise MeshError(f"{path}: no valid triangle part in file")
     return Mesh(
-        vertices=np.concatenate(verts),
-        faces=np.concatenate(faces).astype(np.int32),
-        vertex_normals=np.concatenate(normals),
-        uvs=np.concatenate(uvs) if any_uv else None,
-        vertex_colors=np.concatenate(colors) if any_color else None,
-        face_material_ids=np.concatenate(mat_ids),
+        vertices=_joined(verts),
+        faces=_joined(faces),
+        vertex_normals=_joined(normals),
+        uvs=_joined(uvs) if any_uv else None,
+        vertex_colors=_joined(colors) if any_color else None,
+        face_material_ids=_joined(mat_ids),
         materials=materials,
         name=path.stem,
     )
+
+
+def _joined(arrays: list[np.ndarray]) -> np.ndarray:
+    """The arrays concatenated; one array as it is (no copy of a single-part mesh)."""
+    return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
