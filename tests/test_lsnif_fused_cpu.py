@@ -10,6 +10,7 @@ from neuralrt.accel.mesh_blas import MeshBLAS
 from neuralrt.geometry.procedural import statue
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel, point_local_distances
 from neuralrt.methods.lsnif_features import featurize_rays_numba
+from neuralrt.methods import lsnif_fused_cpu as fused
 from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu
 from neuralrt.rays import Rays
 from neuralrt.training.ray_distribution import BoxRayDistribution
@@ -197,3 +198,19 @@ def test_hidden_buffer_is_reused_per_thread_and_large_ones_are_not_kept():
     big = fused._hidden_buffer(fused._KEPT_BYTES // 16 + 1, 4, np.float32)
     again = fused._hidden_buffer(10, 4, np.float32)
     assert big.shape == (fused._KEPT_BYTES // 16 + 1, 4) and not np.shares_memory(big, again)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_rest_of_network_is_the_mlps_layers_bit_for_bit_and_its_result_outlives_the_buffers(figure, precision):
+    network, dtype = _model(figure, precision).network, PRECISION[precision]
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(300, network.hidden[0].in_features, generator=g)
+    with torch.no_grad():
+        w, b = (network.hidden[0].weight, network.hidden[0].bias) if dtype == torch.float32 else network._cast_weights(dtype)[0]
+        first = torch.nn.functional.leaky_relu(torch.nn.functional.linear(x.to(dtype), w, b), network.slope)
+        active = torch.arange(0, 300, 3)
+        values = fused.rest_of_network(network, first, active, dtype)
+        assert torch.equal(values, network(x[active], dtype))
+        kept = values.clone()
+        fused.rest_of_network(network, -first, torch.arange(300), dtype)  # reuses the per-thread buffers
+    assert torch.equal(values, kept)

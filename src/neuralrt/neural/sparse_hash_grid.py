@@ -184,6 +184,25 @@ def _rows_of(px, py, pz, code, res, mask, base, slots, weights):
     return face_point_level(px, py, pz, code, res, mask, base, slots, weights)
 
 
+@numba.njit(cache=True, inline="always")
+def read_rows(table, slots, weights, k, out, col):
+    """``out[col + f] = sum_c weights[c] * table[slots[c], f]`` over the point's ``k`` rows, summed
+    in row order from 0. Face points (k = 4) have their rows and weights loaded once and the 4
+    reads of a feature written out together (measured ~2x faster than the loop, same bits)."""
+    n_feat = table.shape[1]
+    if k == 4:
+        s0, s1, s2, s3 = slots[0], slots[1], slots[2], slots[3]
+        c0, c1, c2, c3 = weights[0], weights[1], weights[2], weights[3]
+        for f in range(n_feat):
+            out[col + f] = (((np.float32(0.0) + c0 * table[s0, f]) + c1 * table[s1, f]) + c2 * table[s2, f]) + c3 * table[s3, f]
+        return
+    for f in range(n_feat):
+        acc = np.float32(0.0)  # padding points (k = 0): zero features
+        for c in range(k):
+            acc += weights[c] * table[slots[c], f]
+        out[col + f] = acc
+
+
 @numba.njit(parallel=True, cache=True)
 def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
     """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F]``. Per group of
@@ -217,14 +236,10 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
                         e += 1
             e = 0
             for n in range(first, last):
+                row = out[n]
                 for h in range(n_points):
                     for lvl in range(n_levels):
-                        col = h * stride + lvl * n_feat
-                        for f in range(n_feat):
-                            acc = np.float32(0.0)  # padding points: zero features
-                            for c in range(reads[e]):
-                                acc += weights[e, c] * table[slots[e, c], f]
-                            out[n, col + f] = acc
+                        read_rows(table, slots[e], weights[e], reads[e], row, h * stride + lvl * n_feat)
                         e += 1
 
 
