@@ -201,7 +201,7 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
             axis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
             axis.set_minor_formatter(ticker.FormatStrFormatter("%.3g"))
         ax.tick_params(which="minor", labelsize=6)
-        ax.set_title(mesh.replace("procedural:", ""), fontsize=9)
+        ax.set_title(mesh.split("/")[-1].replace("procedural:", ""), fontsize=9)
         ax.set_xlabel("bytes [MiB]")
     for ax, r in zip(axes[-1], scene_rows):
         for key, value in r.items():
