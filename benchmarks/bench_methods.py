@@ -69,19 +69,19 @@ def variant_config(variant: str, steps: dict[str, int], batch: dict[str, int] | 
 
 def cached_model_path(mesh: Mesh, cfg, models_dir: Path) -> Path:
     """The scene converter's cache name for (mesh, config), so its scenes reuse these models."""
-    from neuralrt.scene.convert import _config_hash, _safe_name  # its naming, not a copy of it
+    from neuralrt.scene.convert import model_file_stem
 
-    return models_dir / f"{_safe_name(mesh.name)}-{mesh.content_hash()[:10]}-{_config_hash(cfg)[:8]}.nrt"
+    return models_dir / f"{model_file_stem(mesh.name, mesh.content_hash(), cfg)}.nrt"
 
 
 def train_or_load(mesh: Mesh, cfg, models_dir: Path, quiet: bool):
     """(model, training info): the cached model when its file matches, else a freshly trained one
     (the wall time and the load average before/after are kept beside it in ``*.train.json``)."""
-    from neuralrt.scene.convert import _cached_model_is_valid
+    from neuralrt.scene.convert import cached_model_is_valid
 
     path = cached_model_path(mesh, cfg, models_dir)
     side = path.with_suffix(".train.json")
-    if _cached_model_is_valid(path, mesh.content_hash(), cfg) and side.is_file():
+    if cached_model_is_valid(path, mesh.content_hash(), cfg) and side.is_file():
         return load_model(path), {**json.loads(side.read_text()), "reused_model": str(path)}
     load_before = os.getloadavg()
     t0 = time.perf_counter()

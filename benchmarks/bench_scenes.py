@@ -88,13 +88,13 @@ def variant_label(variant: str) -> str:
 
 def scene_objects(scene: str, min_triangles: int | None):
     """(spec, per-object meshes, indices of the objects a conversion replaces): the converter's own choice."""
-    from neuralrt.scene.convert import _selected  # the converter's selection rule, not a copy of it
+    from neuralrt.scene.convert import selected_objects  # the converter's selection rule
     from neuralrt.scene.loader import load_scene_spec, shape_for
 
     spec, _, label = load_scene_spec(scene)
     shapes: dict = {}
     meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
-    return spec, meshes, _selected(spec, meshes, None, min_triangles)
+    return spec, meshes, selected_objects(spec, meshes, None, min_triangles)
 
 
 def convert_variant(scene: str, output: Path, variant: str, args) -> dict:

@@ -33,7 +33,7 @@ from .material_rules import is_emissive, material_index, scene_material_for
 from .schema import ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
-__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
+__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "model_file_stem", "cached_model_is_valid", "selected_objects", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
 
 # Objects smaller than this stay triangles unless selected by name: a model costs ~1.5 MB, a
 # 10k-triangle mesh with its BVH about as much, so smaller meshes gain nothing.
@@ -81,7 +81,7 @@ def _config_hash(config: MethodConfig) -> str:
     return hashlib.sha256(json.dumps(config.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
 
 
-def _cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
+def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
     """The file exists, is a readable model of this config's method, of this mesh, with this exact config."""
     if not path.is_file():
         return False
@@ -97,12 +97,17 @@ def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "mesh"
 
 
+def model_file_stem(mesh_name: str, mesh_hash: str, config: MethodConfig) -> str:
+    """The models folder's cache name of (mesh, config), without suffix: ``name-meshhash-confighash``."""
+    return f"{_safe_name(mesh_name)}-{mesh_hash[:10]}-{_config_hash(config)[:8]}"
+
+
 def _object_names(spec: SceneSpec) -> list[str]:
     """Each object's name as the loader names its instance."""
     return [obj.name or f"object{i}" for i, obj in enumerate(spec.objects)]
 
 
-def _selected(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | None, min_triangles: int | None) -> list[int]:
+def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[str] | None, min_triangles: int | None) -> list[int]:
     """Indices of the objects to convert; errors name unknown or unconvertible selections."""
     names = _object_names(spec)
     if select:
@@ -229,22 +234,21 @@ def convert_scene(
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
-    config_hash = _config_hash(config)
     # Checked before the scene loads: Ray installed, a given cluster reachable, the options valid.
     runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
                            address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
                            max_retries=max_retries)
     with runner:
         return _convert(scene, output, runner, models_dir=models_dir, select=select, min_triangles=min_triangles,
-                        config=config, config_hash=config_hash, preset=preset, group=group, detail=detail, progress=progress)
+                        config=config, preset=preset, group=group, detail=detail, progress=progress)
 
 
 def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_triangles, config: MethodConfig,
-             config_hash: str, preset: str, group: bool, detail, progress: bool) -> ConversionReport:
+             preset: str, group: bool, detail, progress: bool) -> ConversionReport:
     spec, _, label = load_scene_spec(scene, detail=detail)
     shapes: dict = {}  # instances of one mesh share one load
     meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
-    chosen = _selected(spec, meshes, select, min_triangles)
+    chosen = selected_objects(spec, meshes, select, min_triangles)
     if not chosen:
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "
                          f"{DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles} triangles)")
@@ -271,12 +275,12 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_t
                 hashes[id(meshes[i])] = meshes[i].content_hash()
             jobs.setdefault(hashes[id(meshes[i])], (meshes[i], []))[1].append(i)
 
-    stems = {h: f"{_safe_name(mesh.name)}-{h[:10]}-{config_hash[:8]}" for h, (mesh, _) in jobs.items()}
+    stems = {h: model_file_stem(mesh.name, h, config) for h, (mesh, _) in jobs.items()}
     method = get_method(config.method)
     to_train: list[TrainingJob] = []
     for k, (mesh_hash, (mesh, users)) in enumerate(jobs.items()):
         stem = stems[mesh_hash]
-        if _cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
+        if cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
             (models_dir / f"{stem}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
             if progress:
                 print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
