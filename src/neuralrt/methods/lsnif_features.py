@@ -156,98 +156,103 @@ def _plane_time(o, inv, i, s, planes):
     return (planes[i + 1 if s > 0 else i] - o) * inv
 
 
+@numba.njit(cache=True, inline="always")
+def walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, share, pts, axes, row):
+    """The voxel DDA of one ray (float64 scalars, unit box), writing its points into ``pts[row]`` /
+    ``axes[row]``. Returns (count, truncated, t_enter, t_exit); rays that miss the box or are not
+    valid give (0, False, inf, inf). Shared by `featurize_rays_numba` and the fused CPU pass."""
+    # Scalars rather than small arrays throughout: they stay in registers (2-3x faster).
+    inf = np.inf
+    res = occ.shape[0]
+    if not (np.isfinite(ox + oy + oz + dx + dy + dz)) or (dx == 0.0 and dy == 0.0 and dz == 0.0):
+        return 0, False, inf, inf
+    sx, inv_x, nx, fx, okx = _slab(ox, dx)
+    sy, inv_y, ny, fy, oky = _slab(oy, dy)
+    sz, inv_z, nz, fz, okz = _slab(oz, dz)
+    if not (okx and oky and okz):
+        return 0, False, inf, inf
+    # Entry: the last slab entered (first axis on ties); exit: the first slab left.
+    t_near, near_axis = nx, 0
+    if ny > t_near:
+        t_near, near_axis = ny, 1
+    if nz > t_near:
+        t_near, near_axis = nz, 2
+    t_far = min(fx, min(fy, fz))
+    inside = t_near < 0.0
+    t_cur = 0.0 if inside else t_near
+    if not t_cur < t_far:
+        return 0, False, inf, inf
+    t_start = t_cur
+    ix = _start_index(ox, dx, t_cur, sx, res, not inside and near_axis == 0)
+    iy = _start_index(oy, dy, t_cur, sy, res, not inside and near_axis == 1)
+    iz = _start_index(oz, dz, t_cur, sz, res, not inside and near_axis == 2)
+    # Next plane time per axis, always from the plane equation (never accumulated, so the
+    # reference reproduces it exactly); only the stepped axis is recomputed.
+    tx = _plane_time(ox, inv_x, ix, sx, planes)
+    ty = _plane_time(oy, inv_y, iy, sy, planes)
+    tz = _plane_time(oz, inv_z, iz, sz, planes)
+    entry_code = ORIGIN_POINT if inside else near_axis
+    count = 0
+    last_t = -inf
+    while True:
+        # Closest plane; strict < so ties go to the lower axis, as in the reference.
+        if ty < tx:
+            axis, t_next = (2, tz) if tz < ty else (1, ty)
+        else:
+            axis, t_next = (2, tz) if tz < tx else (0, tx)
+        if t_next == inf:  # plane times overflowed (denormal direction): nothing to walk
+            break
+        t_next = max(t_next, t_cur)  # rounding at the start can put a plane behind us
+        if occ[ix, iy, iz] and t_next > t_cur:
+            skip_entry = (share and t_cur == last_t) or (entry_code == ORIGIN_POINT and not origin_point)
+            if not skip_entry:
+                count = _emit(pts, axes, row, count, max_points, t_cur, entry_code, False,
+                              ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
+                if count < 0:
+                    break
+            count = _emit(pts, axes, row, count, max_points, t_next, axis, True,
+                          ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
+            if count < 0:
+                break
+            last_t = t_next
+        if axis == 0:
+            ix += sx
+            if ix < 0 or ix >= res:
+                break
+            tx = _plane_time(ox, inv_x, ix, sx, planes)
+        elif axis == 1:
+            iy += sy
+            if iy < 0 or iy >= res:
+                break
+            ty = _plane_time(oy, inv_y, iy, sy, planes)
+        else:
+            iz += sz
+            if iz < 0 or iz >= res:
+                break
+            tz = _plane_time(oz, inv_z, iz, sz, planes)
+        t_cur = t_next
+        entry_code = axis
+    if count < 0:
+        return max_points, True, t_start, t_far
+    return count, False, t_start, t_far
+
+
+
 @numba.njit(parallel=True, cache=True)
 def _featurize_kernel(
     origins, directions, occ, planes, max_points, origin_point, share, n_chunks,
     pts, axes, counts, truncated, t_enter, t_exit,
 ):  # fmt: skip
-    # Scalars rather than small arrays throughout: they stay in registers (2-3x faster).
     n_rays = origins.shape[0]
-    res = occ.shape[0]
-    inf = np.inf
     for chunk in numba.prange(n_chunks):
         for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
-            counts[n] = 0
-            truncated[n] = False
-            t_enter[n] = inf
-            t_exit[n] = inf
-            ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
-            dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
-            if not (np.isfinite(ox + oy + oz + dx + dy + dz)) or (dx == 0.0 and dy == 0.0 and dz == 0.0):
-                continue
-            sx, inv_x, nx, fx, okx = _slab(ox, dx)
-            sy, inv_y, ny, fy, oky = _slab(oy, dy)
-            sz, inv_z, nz, fz, okz = _slab(oz, dz)
-            if not (okx and oky and okz):
-                continue
-            # Entry: the last slab entered (first axis on ties); exit: the first slab left.
-            t_near, near_axis = nx, 0
-            if ny > t_near:
-                t_near, near_axis = ny, 1
-            if nz > t_near:
-                t_near, near_axis = nz, 2
-            t_far = min(fx, min(fy, fz))
-            inside = t_near < 0.0
-            t_cur = 0.0 if inside else t_near
-            if not t_cur < t_far:
-                continue
-            t_enter[n] = t_cur
-            t_exit[n] = t_far
-            ix = _start_index(ox, dx, t_cur, sx, res, not inside and near_axis == 0)
-            iy = _start_index(oy, dy, t_cur, sy, res, not inside and near_axis == 1)
-            iz = _start_index(oz, dz, t_cur, sz, res, not inside and near_axis == 2)
-            # Next plane time per axis, always from the plane equation (never accumulated, so the
-            # reference reproduces it exactly); only the stepped axis is recomputed.
-            tx = _plane_time(ox, inv_x, ix, sx, planes)
-            ty = _plane_time(oy, inv_y, iy, sy, planes)
-            tz = _plane_time(oz, inv_z, iz, sz, planes)
-            entry_code = ORIGIN_POINT if inside else near_axis
-            count = 0
-            last_t = -inf
-            while True:
-                # Closest plane; strict < so ties go to the lower axis, as in the reference.
-                if ty < tx:
-                    axis, t_next = (2, tz) if tz < ty else (1, ty)
-                else:
-                    axis, t_next = (2, tz) if tz < tx else (0, tx)
-                if t_next == inf:  # plane times overflowed (denormal direction): nothing to walk
-                    break
-                t_next = max(t_next, t_cur)  # rounding at the start can put a plane behind us
-                if occ[ix, iy, iz] and t_next > t_cur:
-                    skip_entry = (share and t_cur == last_t) or (
-                        entry_code == ORIGIN_POINT and not origin_point
-                    )
-                    if not skip_entry:
-                        count = _emit(pts, axes, n, count, max_points, t_cur, entry_code, False,
-                                      ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
-                        if count < 0:
-                            break
-                    count = _emit(pts, axes, n, count, max_points, t_next, axis, True,
-                                  ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
-                    if count < 0:
-                        break
-                    last_t = t_next
-                if axis == 0:
-                    ix += sx
-                    if ix < 0 or ix >= res:
-                        break
-                    tx = _plane_time(ox, inv_x, ix, sx, planes)
-                elif axis == 1:
-                    iy += sy
-                    if iy < 0 or iy >= res:
-                        break
-                    ty = _plane_time(oy, inv_y, iy, sy, planes)
-                else:
-                    iz += sz
-                    if iz < 0 or iz >= res:
-                        break
-                    tz = _plane_time(oz, inv_z, iz, sz, planes)
-                t_cur = t_next
-                entry_code = axis
-            if count < 0:
-                truncated[n] = True
-                count = max_points
+            count, cut, t0, t1 = walk_ray(
+                origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1], directions[n, 2],
+                occ, planes, max_points, origin_point, share, pts, axes, n)  # fmt: skip
             counts[n] = count
+            truncated[n] = cut
+            t_enter[n] = t0
+            t_exit[n] = t1
 
 
 def _as_occupancy(occupancy) -> np.ndarray:

@@ -35,7 +35,7 @@ from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
 from ..neural.sparse_hash_grid import face_point_level as _face_point_level
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_rows as _read_rows
-from .lsnif_features import ORIGIN_POINT, _check_rays, _emit, _plane_time, _slab, _start_index
+from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
 
@@ -51,81 +51,6 @@ class FusedCPUOutputs:
     count: Tensor  # [N] int32
     t_enter: Tensor  # [N] float32
     t_exit: Tensor  # [N] float32
-
-
-@numba.njit(cache=True, inline="always")
-def _walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, share, pts, axes):
-    """The DDA of `lsnif_features._featurize_kernel` for one ray, writing its points into the
-    scratch ``pts[0]``/``axes[0]``. Returns (count, truncated, t_enter, t_exit)."""
-    inf = np.inf
-    res = occ.shape[0]
-    if not (np.isfinite(ox + oy + oz + dx + dy + dz)) or (dx == 0.0 and dy == 0.0 and dz == 0.0):
-        return 0, False, inf, inf
-    sx, inv_x, nx, fx, okx = _slab(ox, dx)
-    sy, inv_y, ny, fy, oky = _slab(oy, dy)
-    sz, inv_z, nz, fz, okz = _slab(oz, dz)
-    if not (okx and oky and okz):
-        return 0, False, inf, inf
-    t_near, near_axis = nx, 0
-    if ny > t_near:
-        t_near, near_axis = ny, 1
-    if nz > t_near:
-        t_near, near_axis = nz, 2
-    t_far = min(fx, min(fy, fz))
-    inside = t_near < 0.0
-    t_cur = 0.0 if inside else t_near
-    if not t_cur < t_far:
-        return 0, False, inf, inf
-    t_start = t_cur
-    ix = _start_index(ox, dx, t_cur, sx, res, not inside and near_axis == 0)
-    iy = _start_index(oy, dy, t_cur, sy, res, not inside and near_axis == 1)
-    iz = _start_index(oz, dz, t_cur, sz, res, not inside and near_axis == 2)
-    tx = _plane_time(ox, inv_x, ix, sx, planes)
-    ty = _plane_time(oy, inv_y, iy, sy, planes)
-    tz = _plane_time(oz, inv_z, iz, sz, planes)
-    entry_code = ORIGIN_POINT if inside else near_axis
-    count = 0
-    last_t = -inf
-    while True:
-        if ty < tx:
-            axis, t_next = (2, tz) if tz < ty else (1, ty)
-        else:
-            axis, t_next = (2, tz) if tz < tx else (0, tx)
-        if t_next == inf:
-            break
-        t_next = max(t_next, t_cur)
-        if occ[ix, iy, iz] and t_next > t_cur:
-            skip_entry = (share and t_cur == last_t) or (entry_code == ORIGIN_POINT and not origin_point)
-            if not skip_entry:
-                count = _emit(pts, axes, 0, count, max_points, t_cur, entry_code, False,
-                              ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
-                if count < 0:
-                    break
-            count = _emit(pts, axes, 0, count, max_points, t_next, axis, True,
-                          ox, oy, oz, dx, dy, dz, ix, iy, iz, sx, sy, sz, planes)  # fmt: skip
-            if count < 0:
-                break
-            last_t = t_next
-        if axis == 0:
-            ix += sx
-            if ix < 0 or ix >= res:
-                break
-            tx = _plane_time(ox, inv_x, ix, sx, planes)
-        elif axis == 1:
-            iy += sy
-            if iy < 0 or iy >= res:
-                break
-            ty = _plane_time(oy, inv_y, iy, sy, planes)
-        else:
-            iz += sz
-            if iz < 0 or iz >= res:
-                break
-            tz = _plane_time(oz, inv_z, iz, sz, planes)
-        t_cur = t_next
-        entry_code = axis
-    if count < 0:
-        return max_points, True, t_start, t_far
-    return count, False, t_start, t_far
 
 
 @numba.njit(cache=True, fastmath={"contract"})
@@ -192,9 +117,9 @@ def _fused_kernel(
                 n = start + g
                 ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
                 dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
-                count, _, t0, t1 = _walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                             np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                             occ, planes, max_points, origin_point, share, pts[g:], axes[g:])  # fmt: skip
+                count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                            np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                            occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
                 counts[n] = count
                 t_enter[n] = t0
                 t_exit[n] = t1
