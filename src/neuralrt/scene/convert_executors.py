@@ -27,6 +27,7 @@ import os
 import socket
 import tempfile
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -123,7 +124,7 @@ def _train_job(job: TrainingJob, mesh: Mesh, device: str, *, threads: int | None
     return model, time.perf_counter() - start, used
 
 
-class Executor:
+class Executor(ABC):
     """Contract: ``with executor: for result in executor.run(jobs): ...`` trains every job and
     yields each `TrainedModel` as it finishes (any order). Entering checks that the executor can
     run (before any long work); leaving stops whatever is still running."""
@@ -136,8 +137,9 @@ class Executor:
     def __exit__(self, *exc) -> None:
         pass
 
+    @abstractmethod
     def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
-        raise NotImplementedError  # pragma: no cover - abstract
+        """Train every job; yield each result as it finishes."""
 
 
 class LocalExecutor(Executor):
