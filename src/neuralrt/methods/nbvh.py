@@ -246,8 +246,10 @@ class NBVHModel(NeuralBLAS):
             loss = loss + w.material * parts["material"]
         self._batch_losses = (bce + depth + normal + rel).detach()  # the sample's 8 channel losses, summed
         with torch.no_grad():
-            correct = int(((out[:, _VIS] > 0) == hit).sum())
-        return StepResult(loss, {k: float(v.detach()) for k, v in parts.items()}, correct, n, n, {})
+            # One device-to-host read for every figure (float64 holds each float32 part and the count exactly).
+            correct = ((out[:, _VIS] > 0) == hit).sum()
+            figures = torch.stack([v.detach().double() for v in parts.values()] + [correct.double()]).tolist()
+        return StepResult(loss, dict(zip(parts, figures[:-1])), int(figures[-1]), n, n, {})
 
     @torch.no_grad()
     def after_training_step(self, step: int, optimizer: torch.optim.Optimizer) -> None:
@@ -262,7 +264,7 @@ class NBVHModel(NeuralBLAS):
         h = self.node_heuristic()
         cut, steps = self.config.cut, self.config.training.steps
         count = split_count(step, cut, steps)
-        if cut.target_nodes is not None:
+        if count > 0 and cut.target_nodes is not None:  # (live_nodes reads the device: only on split steps)
             count = min(count, (cut.target_nodes - self.live_nodes()) // 2)
         if count > 0:
             chosen = choose_splits(h, self.live, self.node_children[:, 0] >= 0, count)
@@ -278,7 +280,11 @@ class NBVHModel(NeuralBLAS):
             self.registered[lod] = True
         if self._batch is not None:
             # Over the leaves just trained: nodes split long ago keep their early, large h frozen.
-            self.h_max.fill_(float(h[self._batch[0]].max()) if len(self._batch[0]) else 0.0)
+            # (On the device, read by the next draw there: no host sync.)
+            if len(self._batch[0]):
+                self.h_max.copy_(h[self._batch[0]].max())
+            else:
+                self.h_max.zero_()
         self._batch, self._batch_losses, self._h = None, None, None
 
     # -- inference ---------------------------------------------------------------------------------

@@ -10,6 +10,11 @@ exit; its truth is the first exact hit along the chord, so it does not depend on
 Samples are kept with probability p = max(h / h_max, 0.005) (h: the leaf's heuristic, h_max: the
 largest h so far; a leaf never sampled has p = 1) by drawing more rays than needed and keeping
 the accepted ones: no slot ever holds a stale sample.
+
+One contract, two implementations, chosen once by the device: on the CPU torch draws and the
+numba first-leaf walk, a host loop of oversampled rounds (`_draw_cpu`); on CUDA one Triton kernel
+(`nbvh_rays_triton`: draws, walk, acceptance and packing on the device, a fixed-size output, no
+host sync). Both are tested against each other (tests/test_nbvh_rays_triton.py).
 """
 
 from __future__ import annotations
@@ -35,14 +40,25 @@ def morton_codes(points: Tensor, bits: int = 10) -> Tensor:
 
 class NBVHRayDistribution:
     """Draws `TrainingBatch`es of leaf chords (object space: origin at the chord start, unit
-    direction, ``t_max`` = chord length) and tells ``model`` which leaf each one trains."""
+    direction, ``t_max`` = chord length) and tells ``model`` which leaf each one trains.
 
-    def __init__(self, model, truth, device: torch.device):
+    ``implementation``: ``"cpu"`` (torch + numba) or ``"triton"`` (the CUDA kernel; on CPU tensors
+    it needs ``TRITON_INTERPRET=1``); default: ``"triton"`` on CUDA, ``"cpu"`` elsewhere.
+    """
+
+    def __init__(self, model, truth, device: torch.device, implementation: str | None = None):
         self.model = model
         self.truth = truth
         self.device = torch.device(device)
         self.generator = torch.Generator(device=self.device).manual_seed(model.config.training.seed)
         self._yield = 0.5  # running share of candidate rays that become samples (sizes the next draw)
+        self.implementation = implementation or ("triton" if self.device.type == "cuda" else "cpu")
+        if self.implementation not in ("cpu", "triton"):
+            raise ValueError(f"unknown N-BVH ray sampler {self.implementation!r} (cpu or triton)")
+        self._draws = 0  # Triton draws so far: each its own Philox stream (checkpointed)
+        self._depth: int | None = None  # the base tree's depth (sizes the kernel's stack)
+        self._flags: list[tuple[Tensor, object]] = []  # Triton draws' flags, read once their copy has landed
+        self._last_draw: tuple[int, Tensor, int] | None = None  # the last Triton draw: (samples, rounds per program, block)
 
     def _candidates(self, m: int):
         model, tc, g = self.model, self.model.config.training, self.generator
@@ -61,7 +77,8 @@ class NBVHRayDistribution:
         start = origins[idx] + t0[keep, None] * directions[idx]
         return start, directions[idx], (t1 - t0)[keep], node[keep]
 
-    def sample(self, n: int) -> TrainingBatch:
+    def _draw_cpu(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(chord starts (unit cube), directions, lengths, leaves) of ``n`` samples in spatial order."""
         parts, have, rounds = [], 0, 0
         while have < n:
             # Draw about as many as the last rounds' yield says are needed (at most 64 n at once).
@@ -77,7 +94,57 @@ class NBVHRayDistribution:
         # Spatial order (Morton code of the chord midpoints): nearby samples read nearby hash-table
         # rows, 1.4x faster encoding forward + backward on the CPU (measured on the bunny's chords).
         order = torch.argsort(morton_codes(start + 0.5 * length[:, None] * d))
-        start, d, length, node = start[order], d[order], length[order], node[order]
+        return start[order], d[order], length[order], node[order]
+
+    def _draw_triton(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """`_draw_cpu` on the device: one kernel (`sample_leaf_chords_triton`), then the Morton order."""
+        from .nbvh_rays_triton import sample_leaf_chords_triton, tree_depth
+
+        self._check_flags(wait=False)
+        if self._depth is None:
+            self._depth = tree_depth(self.model.node_children)  # once: the tree's shape never changes
+        chords = sample_leaf_chords_triton(self.model, n, self.model.config.training.seed, self._draws, self._depth)
+        self._draws += 1
+        self._watch(chords.flag)
+        self._last_draw = (n, chords.rounds, chords.block)
+        order = torch.argsort(chords.code, stable=True)
+        return chords.start[order], chords.direction[order], chords.length[order], chords.node[order]
+
+    def last_yield(self) -> float:
+        """Share of the candidate rays that became samples: the last Triton draw's (waits for it), else the running CPU estimate."""
+        if self._last_draw is None:
+            return self._yield
+        n, rounds, block = self._last_draw
+        return n / max(int(rounds.sum()) * block, 1)
+
+    def _watch(self, flag: Tensor) -> None:
+        """Keep a draw's flag to read later: a copy to pinned memory on CUDA (no wait), at once elsewhere."""
+        if flag.device.type == "cuda":
+            host = torch.empty(1, dtype=torch.int32, pin_memory=True)
+            host.copy_(flag, non_blocking=True)
+            done = torch.cuda.Event()
+            done.record()
+            self._flags.append((host, done))
+        else:
+            self._flags.append((flag, None))
+            self._check_flags(wait=True)
+
+    def _check_flags(self, wait: bool) -> None:
+        """Raise for a draw that could not fill its batch (or overflowed its stack), once its flag is readable."""
+        from .nbvh_rays_triton import OVERFLOW, UNFILLED
+
+        while self._flags and (wait or self._flags[0][1] is None or self._flags[0][1].query()):
+            flag, done = self._flags.pop(0)
+            if done is not None:
+                done.synchronize()
+            value = int(flag[0])
+            if value & UNFILLED:
+                raise RuntimeError("N-BVH training rays: no sampled ray crosses a leaf of the cut")
+            if value & OVERFLOW:
+                raise RuntimeError("N-BVH training rays: the first-leaf walk overflowed its stack (a bug)")
+
+    def sample(self, n: int) -> TrainingBatch:
+        start, d, length, node = self._draw_triton(n) if self.implementation == "triton" else self._draw_cpu(n)
         model = self.model
         rays = Rays(model.unit_lo + start * model.unit_scale, d, torch.zeros_like(length), length * model.unit_scale)
         truth = self.truth.intersect(rays)
@@ -88,8 +155,9 @@ class NBVHRayDistribution:
         return TrainingBatch(rays, torch.zeros(len(rays), dtype=torch.bool, device=self.device), truth)
 
     def state_dict(self) -> tuple[dict, dict]:
-        return {"yield": self._yield}, {"generator": self.generator.get_state()}
+        return {"yield": self._yield, "draws": self._draws}, {"generator": self.generator.get_state()}
 
     def load_state_dict(self, meta: dict, arrays: dict) -> None:
         self.generator.set_state(arrays["generator"])
         self._yield = float(meta["yield"])
+        self._draws = int(meta.get("draws", 0))

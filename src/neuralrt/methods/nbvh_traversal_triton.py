@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .nbvh_traversal import CutArrays, LeafList
 
-__all__ = ["list_leaves_triton", "first_leaves_triton"]
+__all__ = ["list_leaves_triton", "first_leaves_triton", "first_leaf_walk"]
 
 _ENTER_MIN = tl.constexpr(1e-4)  # as nbvh_traversal (Triton reads globals only as constexpr)
 _EXIT_MIN = tl.constexpr(1e-3)
@@ -172,6 +172,61 @@ def _enterable(tn, tf, tmax, leaf):
 
 
 @triton.jit
+def first_leaf_walk(ox, oy, oz, ix, iy, iz, tmax, lvl, dil, ok, lo_ptr, hi_ptr, children_ptr, lod_ptr, live_ptr,
+                    stack_node, stack_t0, stack_t1, STACK: tl.constexpr):  # fmt: skip
+    """(node (-1: none), t0, t1, overflowed) of the leaf with the smallest (t0, node) of each lane's
+    ray [B]: numba's `_first_kernel`. ``stack_*``: each lane's slot 0 of its node, t0, t1 stacks
+    (slot s at ``+ s * B``); a push past STACK is dropped and flagged."""
+    BLOCK: tl.constexpr = ox.shape[0]
+    overflowed = tl.zeros([BLOCK], tl.int32)
+    best_node = tl.zeros([BLOCK], tl.int32) - 1
+    best_t0 = tl.zeros([BLOCK], tl.float32) + _INF
+    best_t1 = tl.zeros([BLOCK], tl.float32) + _INF
+    root = tl.zeros([BLOCK], tl.int32)
+    tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, root, dil, ok)
+    _, _, leaf = _children_and_leaf(root, lvl, children_ptr, lod_ptr, live_ptr, ok)
+    push = ok & _enterable(tn, tf, tmax, leaf)
+    tl.store(stack_node, root, mask=push)
+    tl.store(stack_t0, tn, mask=push)
+    tl.store(stack_t1, tf, mask=push)
+    sp = push.to(tl.int32)
+    while tl.max(sp, axis=0) > 0:
+        act = sp > 0
+        sp = tl.where(act, sp - 1, sp)
+        node = tl.load(stack_node + sp * BLOCK, mask=act, other=0)
+        tn = tl.load(stack_t0 + sp * BLOCK, mask=act, other=0.0)
+        tf = tl.load(stack_t1 + sp * BLOCK, mask=act, other=0.0)
+        act = act & ~(tn > best_t0)
+        a, b, leaf = _children_and_leaf(node, lvl, children_ptr, lod_ptr, live_ptr, act)
+        better = act & leaf & ((tn < best_t0) | (node < best_node))  # tn == best_t0 here unless smaller
+        best_node = tl.where(better, node, best_node)
+        best_t0 = tl.where(better, tn, best_t0)
+        best_t1 = tl.where(better, tf, best_t1)
+        inner = act & ~leaf
+        ta0, ta1 = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, a, dil, inner)
+        tb0, tb1 = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, b, dil, inner)
+        _, _, leaf_a = _children_and_leaf(a, lvl, children_ptr, lod_ptr, live_ptr, inner)
+        _, _, leaf_b = _children_and_leaf(b, lvl, children_ptr, lod_ptr, live_ptr, inner)
+        use_a = inner & _enterable(ta0, ta1, tmax, leaf_a) & (ta0 <= best_t0)
+        use_b = inner & _enterable(tb0, tb1, tmax, leaf_b) & (tb0 <= best_t0)
+        room = sp + 2 <= STACK
+        overflowed = overflowed | (inner & ~room).to(tl.int32)
+        use_a = use_a & room
+        use_b = use_b & room
+        swap = use_a & use_b & (tb0 < ta0)  # far child below, near child on top
+        lower = use_a | use_b
+        upper = use_a & use_b
+        tl.store(stack_node + sp * BLOCK, tl.where(swap | ~use_b, a, b), mask=lower)
+        tl.store(stack_t0 + sp * BLOCK, tl.where(swap | ~use_b, ta0, tb0), mask=lower)
+        tl.store(stack_t1 + sp * BLOCK, tl.where(swap | ~use_b, ta1, tb1), mask=lower)
+        tl.store(stack_node + (sp + 1) * BLOCK, tl.where(swap, b, a), mask=upper)
+        tl.store(stack_t0 + (sp + 1) * BLOCK, tl.where(swap, tb0, ta0), mask=upper)
+        tl.store(stack_t1 + (sp + 1) * BLOCK, tl.where(swap, tb1, ta1), mask=upper)
+        sp += lower.to(tl.int32) + upper.to(tl.int32)
+    return best_node, best_t0, best_t1, overflowed
+
+
+@triton.jit
 def _first_kernel(o_ptr, inv_ptr, tmax_ptr, level_ptr, dil_ptr, lo_ptr, hi_ptr, children_ptr, lod_ptr, live_ptr,
                   node_out, t0_out, t1_out, stack_ptr, stack_f_ptr, overflow_ptr, n, rounds,
                   STACK: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
@@ -190,50 +245,10 @@ def _first_kernel(o_ptr, inv_ptr, tmax_ptr, level_ptr, dil_ptr, lo_ptr, hi_ptr, 
         k += 1
         ok = i < n
         ox, oy, oz, ix, iy, iz, tmax, lvl, dil = _load_ray(i, ok, o_ptr, inv_ptr, tmax_ptr, level_ptr, dil_ptr)
-        best_node = tl.zeros([BLOCK], tl.int32) - 1
-        best_t0 = tl.zeros([BLOCK], tl.float32) + _INF
-        best_t1 = tl.zeros([BLOCK], tl.float32) + _INF
-        root = tl.zeros([BLOCK], tl.int32)
-        tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, root, dil, ok)
-        _, _, leaf = _children_and_leaf(root, lvl, children_ptr, lod_ptr, live_ptr, ok)
-        push = ok & _enterable(tn, tf, tmax, leaf)
-        tl.store(stack_node, root, mask=push)
-        tl.store(stack_t0, tn, mask=push)
-        tl.store(stack_t1, tf, mask=push)
-        sp = push.to(tl.int32)
-        while tl.max(sp, axis=0) > 0:
-            act = sp > 0
-            sp = tl.where(act, sp - 1, sp)
-            node = tl.load(stack_node + sp * BLOCK, mask=act, other=0)
-            tn = tl.load(stack_t0 + sp * BLOCK, mask=act, other=0.0)
-            tf = tl.load(stack_t1 + sp * BLOCK, mask=act, other=0.0)
-            act = act & ~(tn > best_t0)
-            a, b, leaf = _children_and_leaf(node, lvl, children_ptr, lod_ptr, live_ptr, act)
-            better = act & leaf & ((tn < best_t0) | (node < best_node))  # tn == best_t0 here unless smaller
-            best_node = tl.where(better, node, best_node)
-            best_t0 = tl.where(better, tn, best_t0)
-            best_t1 = tl.where(better, tf, best_t1)
-            inner = act & ~leaf
-            ta0, ta1 = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, a, dil, inner)
-            tb0, tb1 = _slab(ox, oy, oz, ix, iy, iz, lo_ptr, hi_ptr, b, dil, inner)
-            _, _, leaf_a = _children_and_leaf(a, lvl, children_ptr, lod_ptr, live_ptr, inner)
-            _, _, leaf_b = _children_and_leaf(b, lvl, children_ptr, lod_ptr, live_ptr, inner)
-            use_a = inner & _enterable(ta0, ta1, tmax, leaf_a) & (ta0 <= best_t0)
-            use_b = inner & _enterable(tb0, tb1, tmax, leaf_b) & (tb0 <= best_t0)
-            room = sp + 2 <= STACK
-            overflowed = overflowed | (inner & ~room).to(tl.int32)
-            use_a = use_a & room
-            use_b = use_b & room
-            swap = use_a & use_b & (tb0 < ta0)  # far child below, near child on top
-            lower = use_a | use_b
-            upper = use_a & use_b
-            tl.store(stack_node + sp * BLOCK, tl.where(swap | ~use_b, a, b), mask=lower)
-            tl.store(stack_t0 + sp * BLOCK, tl.where(swap | ~use_b, ta0, tb0), mask=lower)
-            tl.store(stack_t1 + sp * BLOCK, tl.where(swap | ~use_b, ta1, tb1), mask=lower)
-            tl.store(stack_node + (sp + 1) * BLOCK, tl.where(swap, b, a), mask=upper)
-            tl.store(stack_t0 + (sp + 1) * BLOCK, tl.where(swap, tb0, ta0), mask=upper)
-            tl.store(stack_t1 + (sp + 1) * BLOCK, tl.where(swap, tb1, ta1), mask=upper)
-            sp += lower.to(tl.int32) + upper.to(tl.int32)
+        best_node, best_t0, best_t1, over = first_leaf_walk(ox, oy, oz, ix, iy, iz, tmax, lvl, dil, ok, lo_ptr, hi_ptr,
+                                                            children_ptr, lod_ptr, live_ptr, stack_node, stack_t0, stack_t1,
+                                                            STACK)  # fmt: skip
+        overflowed = overflowed | over
         tl.store(node_out + i, best_node.to(tl.int64), mask=ok)
         tl.store(t0_out + i, best_t0, mask=ok)
         tl.store(t1_out + i, best_t1, mask=ok)
