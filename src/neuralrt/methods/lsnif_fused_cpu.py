@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..neural.bf16_dot import bf16_bits, bf16_pairs, dot_rows_bf16
 from ..neural.mlp import MLP
 from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
 from ..neural.sparse_hash_grid import face_point_level as _face_point_level
@@ -76,6 +77,46 @@ def _add_inputs(acc, w1, xs, n_inputs):
             acc[j] += x0 * w1[i, j]
 
 
+@numba.njit(cache=True)
+def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, rows, dots, hidden_bf16, start):
+    """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
+    each ray's inputs rounded to bf16 pairs (zero past its own), the rays with points ordered by
+    point count (most first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU
+    and the rounding to bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]``."""
+    width = b1.shape[0]
+    n_pairs = xp.shape[1]
+    m = 0
+    for g in range(n_group):
+        count = group_count[g]
+        if count == 0:
+            continue
+        used = (count * block + 1) // 2
+        xs_g = xs[g]
+        for p in range(used):
+            lo, hi = 2 * p, 2 * p + 1
+            x_hi = xs_g[hi] if hi < count * block else np.float32(0.0)
+            xp[g, p] = bf16_bits(xs_g[lo]) | (bf16_bits(x_hi) << np.uint32(16))
+        for p in range(used, n_pairs):
+            xp[g, p] = 0
+        i = m  # insertion by count, descending (stable)
+        while i > 0 and group_count[order[i - 1]] < count:
+            order[i] = order[i - 1]
+            i -= 1
+        order[i] = g
+        m += 1
+    for q in range(0, m, 4):
+        n_rows = min(4, m - q)
+        for i in range(4):
+            rows[i] = order[q + min(i, n_rows - 1)]  # a short pass repeats its last ray
+        dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, width, dots)
+        for i in range(n_rows):
+            n = start + rows[i]
+            for j in range(width):
+                y = dots[i * width + j] + b1[j]
+                y = y if y >= 0 else y * slope
+                hidden_bf16[n, j] = np.uint16(bf16_bits(y))
+
+
 # Rays walked before their points are encoded: the table reads of a whole group are then
 # independent of each other and many are in flight at once (the table is larger than L2).
 _GROUP = 16
@@ -83,14 +124,17 @@ _GROUP = 16
 
 @numba.njit(parallel=True, cache=True)
 def _fused_kernel(
-    origins, directions, occ, planes, table, resolutions, w1, b1, slope,
-    max_points, origin_point, share, point_distances, to_bf16, n_chunks,
+    origins, directions, occ, planes, table, resolutions, w1, w1_pairs, b1, slope,
+    max_points, origin_point, share, point_distances, to_bf16, pairs, n_chunks,
     hidden_f32, hidden_bf16, counts, t_enter, t_exit,
 ):  # fmt: skip
     """``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
     ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
     are the first ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``)
-    ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were."""
+    ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were.
+    With ``pairs`` (bf16, width a multiple of 16) the first layer is `dot_rows_bf16` over the
+    group's rays, 4 at a time, from the bf16 pairs ``w1_pairs`` (``w1`` rounded, flat
+    ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -108,6 +152,11 @@ def _fused_kernel(
         xs = np.empty((_GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
         acc = np.empty(width, np.float32)
         acc_bits = acc.view(np.uint32)
+        n_pairs = (max_points * block + 1) // 2
+        xp = np.zeros((_GROUP, n_pairs), np.uint32)  # the inputs as bf16 pairs (pairs path)
+        order = np.empty(_GROUP, np.int64)  # the group's rays with points, most points first
+        rows = np.empty(4, np.int64)
+        dots = np.empty(4 * width, np.float32)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         for start in range(first, last, _GROUP):
             stop = min(start + _GROUP, last)
@@ -154,6 +203,10 @@ def _fused_kernel(
                         col += n_feat
                         e += 1
             # 3. the first layer
+            if pairs:
+                _first_layer_pairs(xs, xp, group_count, stop - start, block, w1_pairs, b1, slope, order, rows, dots,
+                                   hidden_bf16, start)  # fmt: skip
+                continue
             for g in range(stop - start):
                 count = group_count[g]
                 if count == 0:
@@ -173,6 +226,10 @@ def _fused_kernel(
                     for j in range(width):
                         hidden_f32[n, j] = acc[j]
 
+
+# The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16; False:
+# the fp32 per-ray first layer (`_add_inputs`) for every dtype (for comparisons and tests).
+BF16_DOT_FIRST_LAYER = True
 
 _scratch = threading.local()
 _KEPT_BYTES = 64 << 20  # larger buffers are allocated per call rather than kept by the thread
@@ -263,6 +320,8 @@ def fused_network_outputs_cpu(
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
     width = b1.shape[0]
     to_bf16 = compute_dtype == torch.bfloat16
+    pairs = BF16_DOT_FIRST_LAYER and to_bf16 and width % 16 == 0  # else fp32 per ray
+    w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     # One output buffer is used, the other stays empty: numba compiles one kernel for both dtypes.
     hidden_f32 = _hidden_buffer(0 if to_bf16 else n, width, np.float32, "first")
     hidden_bf16 = _hidden_buffer(n if to_bf16 else 0, width, np.uint16, "first")
@@ -275,9 +334,9 @@ def fused_network_outputs_cpu(
         # one thread may be descheduled; with the default static split the other waits for it.
         n_chunks = max(1, min(n, 32 * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
-            _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, b1, np.float32(network.slope),
+            _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, np.float32(network.slope),
                           int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
-                          to_bf16, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
+                          to_bf16, pairs, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
     hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)

@@ -1,0 +1,220 @@
+"""bf16 dot products in numba kernels: 16 fp32 lanes, each accumulating a pair of bf16 products.
+
+numba has no vector types and LLVM (through llvmlite) no ``bfloat`` type, so the AVX512-BF16
+instruction ``vdpbf16ps`` is reached here through a small vector type (`f32x16`, an LLVM
+``<16 x float>`` held in registers) and inline assembly. On a CPU without AVX512-BF16 the same
+intrinsic compiles to a portable emulation (the two bf16 halves widened to fp32 by shifts, two
+fused multiply-adds), which is also available under its own name so that it is tested anywhere.
+numba's cache is keyed on the host CPU's features, so a kernel cached on one kind of CPU is not
+reused on the other.
+
+The layout: an input pair ``(x[2p], x[2p+1])`` is one uint32 (low half: ``x[2p]``, bf16 bits);
+the weights of that pair for output column j are one uint32 ``w[p, j]`` (low half: the row
+``2p``). ``acc[j] += x[2p] * w[2p, j] + x[2p+1] * w[2p+1, j]`` for 16 columns per instruction.
+"""
+
+from __future__ import annotations
+
+import llvmlite.binding as llvm
+import numba
+import numpy as np
+import torch
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic, models, register_model
+
+__all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
+           "bf16_bits", "bf16_pairs", "dot_rows_bf16"]
+
+
+def _host_has_avx512_bf16() -> bool:
+    try:
+        return bool(llvm.get_host_cpu_features().get("avx512bf16", False))
+    except RuntimeError:  # features unknown on this host: use the portable path
+        return False
+
+
+HAS_AVX512_BF16 = _host_has_avx512_bf16()
+if HAS_AVX512_BF16:
+    llvm.initialize_native_asmparser()  # numba's JIT does not: inline assembly needs it
+
+_F32X16 = ir.VectorType(ir.FloatType(), 16)
+_I32X16 = ir.VectorType(ir.IntType(32), 16)
+
+
+class F32x16(types.Type):
+    """16 fp32 lanes in one vector register (only inside numba kernels)."""
+
+    def __init__(self):
+        super().__init__(name="f32x16")
+
+
+f32x16 = F32x16()
+
+
+@register_model(F32x16)
+class _F32x16Model(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _F32X16)
+
+
+def _vector_pointer(context, builder, array_type, array, start, vector_type):
+    """Pointer to ``array[start]`` (1D, contiguous) as a pointer to ``vector_type``."""
+    data = context.make_array(array_type)(context, builder, array)
+    index = context.cast(builder, start, types.intp, types.intp)
+    return builder.bitcast(builder.gep(data.data, [index]), vector_type.as_pointer())
+
+
+def _check_array(array, dtype) -> bool:
+    return isinstance(array, types.Array) and array.ndim == 1 and array.layout == "C" and array.dtype == dtype
+
+
+@intrinsic
+def zeros16(typingctx):
+    """16 zero lanes."""
+
+    def codegen(context, builder, sig, args):
+        return ir.Constant(_F32X16, [0.0] * 16)
+
+    return f32x16(), codegen
+
+
+@intrinsic
+def load16(typingctx, array, start):
+    """``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."""
+    if not (_check_array(array, types.float32) and isinstance(start, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.load(_vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
+
+    return f32x16(array, types.intp), codegen
+
+
+@intrinsic
+def store16(typingctx, array, start, value):
+    """``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."""
+    if not (_check_array(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        builder.store(args[2], _vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
+        return context.get_dummy_value()
+
+    return types.void(array, types.intp, f32x16), codegen
+
+
+def _emulated(builder, acc, x, w):
+    """``acc + lo(x) * lo(w) + hi(x) * hi(w)`` per lane, the bf16 halves widened to fp32 exactly
+    (each product is exact in fp32; the order of the additions is vdpbf16ps's: high pair first)."""
+    mask = ir.Constant(_I32X16, [0xFFFF0000] * 16)
+    sixteen = ir.Constant(_I32X16, [16] * 16)
+    lo_x, hi_x = builder.bitcast(builder.shl(x, sixteen), _F32X16), builder.bitcast(builder.and_(x, mask), _F32X16)
+    lo_w, hi_w = builder.bitcast(builder.shl(w, sixteen), _F32X16), builder.bitcast(builder.and_(w, mask), _F32X16)
+    fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_F32X16, [_F32X16] * 3), "llvm.fma.v16f32")
+    return builder.call(fma, [lo_x, lo_w, builder.call(fma, [hi_x, hi_w, acc])])
+
+
+def _dot_intrinsic(native: bool):
+    def typer(typingctx, acc, x_pair, w_pairs, start):
+        """``acc + x_pair . w_pairs[start : start + 16]`` per lane: ``x_pair`` a uint32 (two bf16),
+        broadcast to all lanes; ``w_pairs`` 1D contiguous uint32 (two bf16 per column)."""
+        if not (acc == f32x16 and isinstance(x_pair, types.Integer) and _check_array(w_pairs, types.uint32)
+                and isinstance(start, types.Integer)):  # fmt: skip
+            return None
+
+        def codegen(context, builder, sig, args):
+            acc_v, x, w_array, start_v = args
+            x32 = context.cast(builder, x, sig.args[1], types.uint32)
+            xv = builder.shuffle_vector(builder.insert_element(ir.Constant(_I32X16, None), x32, ir.Constant(ir.IntType(32), 0)),
+                                        ir.Constant(_I32X16, None), ir.Constant(_I32X16, [0] * 16))  # fmt: skip
+            w = builder.load(_vector_pointer(context, builder, sig.args[2], w_array, start_v, _I32X16), align=4)
+            if native:
+                # AT&T order: vdpbf16ps src2, src1, dst  (dst += src1 . src2); $3 (acc) is tied to $0.
+                fnty = ir.FunctionType(_F32X16, [_I32X16, _I32X16, _F32X16])
+                return builder.asm(fnty, "vdpbf16ps $2, $1, $0", "=v,v,v,0", [xv, w, acc_v], False, name="dpbf16")
+            return _emulated(builder, acc_v, xv, w)
+
+        return f32x16(f32x16, x_pair, w_pairs, types.intp), codegen
+
+    return typer
+
+
+dot_bf16_pairs = intrinsic(_dot_intrinsic(HAS_AVX512_BF16))
+dot_bf16_pairs.__doc__ = "``vdpbf16ps`` where the host has AVX512-BF16, else `dot_bf16_pairs_emulated`."
+dot_bf16_pairs_emulated = intrinsic(_dot_intrinsic(False))
+
+
+@intrinsic
+def _f32_bits(typingctx, value):
+    """The bits of an fp32 ``value`` as a uint32."""
+    if value != types.float32:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+
+    return types.uint32(types.float32), codegen
+
+
+@numba.njit(cache=True, inline="always")
+def bf16_bits(value):
+    """The bf16 bits (a uint32 below 2^16) of fp32 ``value``, rounded to nearest even as torch's
+    float -> bf16 (finite values)."""
+    bits = _f32_bits(value)
+    return (bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16)
+
+
+def bf16_pairs(rows: np.ndarray) -> np.ndarray:
+    """``[K, W]`` fp32 -> ``[ceil(K / 2), W]`` uint32: rows 2p and 2p + 1 rounded to bf16 (as torch)
+    and packed into one word per column, row 2p in the low half (a zero row pads an odd K)."""
+    k, width = rows.shape
+    padded = np.zeros((k + k % 2, width), np.float32)
+    padded[:k] = rows
+    bits = torch.from_numpy(padded).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16).astype(np.uint32)
+    return np.ascontiguousarray(bits[0::2] | (bits[1::2] << np.uint32(16)))
+
+
+@numba.njit(cache=True)
+def dot_rows_bf16(xp, rows, n_pairs, w, width, out):
+    """``out[i * width + j] = sum(p < n_pairs) xp[rows[i], p] . w[p * width + j]`` for the 4 rows
+    ``rows[0..3]`` of ``xp`` (``[G, P]`` uint32 input pairs; a row may repeat) and ``width`` (a
+    multiple of 16) columns of ``w`` (flat ``[P * width]`` uint32 weight pairs); ``out`` flat fp32.
+
+    Register-blocked: 4 rows x 64 columns (16 accumulators) per pass over the pairs, so each
+    weight vector loaded serves 4 rows (the weights are read once per 4 rows, not once per row)."""
+    r0, r1, r2, r3 = rows[0], rows[1], rows[2], rows[3]
+    c = 0
+    while c + 64 <= width:
+        a00, a01, a02, a03 = zeros16(), zeros16(), zeros16(), zeros16()
+        a10, a11, a12, a13 = zeros16(), zeros16(), zeros16(), zeros16()
+        a20, a21, a22, a23 = zeros16(), zeros16(), zeros16(), zeros16()
+        a30, a31, a32, a33 = zeros16(), zeros16(), zeros16(), zeros16()
+        for p in range(n_pairs):
+            k = p * width + c
+            x0, x1, x2, x3 = xp[r0, p], xp[r1, p], xp[r2, p], xp[r3, p]
+            a00, a01 = dot_bf16_pairs(a00, x0, w, k), dot_bf16_pairs(a01, x0, w, k + 16)
+            a02, a03 = dot_bf16_pairs(a02, x0, w, k + 32), dot_bf16_pairs(a03, x0, w, k + 48)
+            a10, a11 = dot_bf16_pairs(a10, x1, w, k), dot_bf16_pairs(a11, x1, w, k + 16)
+            a12, a13 = dot_bf16_pairs(a12, x1, w, k + 32), dot_bf16_pairs(a13, x1, w, k + 48)
+            a20, a21 = dot_bf16_pairs(a20, x2, w, k), dot_bf16_pairs(a21, x2, w, k + 16)
+            a22, a23 = dot_bf16_pairs(a22, x2, w, k + 32), dot_bf16_pairs(a23, x2, w, k + 48)
+            a30, a31 = dot_bf16_pairs(a30, x3, w, k), dot_bf16_pairs(a31, x3, w, k + 16)
+            a32, a33 = dot_bf16_pairs(a32, x3, w, k + 32), dot_bf16_pairs(a33, x3, w, k + 48)
+        store16(out, c, a00), store16(out, c + 16, a01), store16(out, c + 32, a02), store16(out, c + 48, a03)
+        o = width + c
+        store16(out, o, a10), store16(out, o + 16, a11), store16(out, o + 32, a12), store16(out, o + 48, a13)
+        o += width
+        store16(out, o, a20), store16(out, o + 16, a21), store16(out, o + 32, a22), store16(out, o + 48, a23)
+        o += width
+        store16(out, o, a30), store16(out, o + 16, a31), store16(out, o + 32, a32), store16(out, o + 48, a33)
+        c += 64
+    while c + 16 <= width:
+        a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
+        for p in range(n_pairs):
+            k = p * width + c
+            a0, a1 = dot_bf16_pairs(a0, xp[r0, p], w, k), dot_bf16_pairs(a1, xp[r1, p], w, k)
+            a2, a3 = dot_bf16_pairs(a2, xp[r2, p], w, k), dot_bf16_pairs(a3, xp[r3, p], w, k)
+        store16(out, c, a0), store16(out, width + c, a1), store16(out, 2 * width + c, a2), store16(out, 3 * width + c, a3)
+        c += 16
