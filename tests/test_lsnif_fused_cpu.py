@@ -214,3 +214,42 @@ def test_rest_of_network_is_the_mlps_layers_bit_for_bit_and_its_result_outlives_
         kept = values.clone()
         fused.rest_of_network(network, -first, torch.arange(300), dtype)  # reuses the per-thread buffers
     assert torch.equal(values, kept)
+
+
+@pytest.mark.parametrize("width", [64, 128])
+def test_bf16_dot_first_layer_matches_the_fp32_first_layer_and_the_unfused_path(figure, width, monkeypatch):
+    """The bf16 first layer (`dot_rows_bf16`: 64-column passes; hq and lq widths) against the
+    fp32 per-ray one and the unfused bf16 GEMMs: outputs within bf16 rounding of the inputs and
+    weights, hits flip only where the occlusion logit is within that of the threshold."""
+    config = LSNIFConfig.preset(
+        "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+        network={"hidden_width": width}, features={"max_points": 9}, inference={"compute_precision": "bf16"},
+    )  # fmt: skip
+    model = LSNIFModel.from_mesh(figure, config)
+    with torch.no_grad():
+        model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(3))
+    unit = model._unit_rays(_mixed_rays(model, 800, seed=11))
+
+    def outputs(pairs: bool):
+        monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", pairs)
+        return fused_network_outputs_cpu(unit.origins, unit.directions, model.occupancy, model.encoder, model.network,
+                                         max_points=9, compute_dtype=torch.bfloat16)  # fmt: skip
+
+    dot, per_ray = outputs(True), outputs(False)
+    assert torch.equal(dot.active, per_ray.active) and len(dot.active) > 200
+    scale = per_ray.values.abs().max()
+    assert not torch.equal(dot.values, per_ray.values)  # the two paths are both run
+    assert (dot.values - per_ray.values).abs().max() <= 3e-2 * scale
+    monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", True)
+    rays = BoxRayDistribution(MeshBLAS(figure), model.box, seed=5, pool_size=4096).sample(4000).rays
+    hits, unfused = model.intersect(rays), _unfused(model, rays)
+    with torch.no_grad():
+        prep = model._prepare(rays)
+        logits = torch.zeros(len(rays))
+        logits[prep.active] = model._raw_outputs(prep, torch.bfloat16)[:, 0]
+    differ = hits.hit != unfused.hit
+    assert not (differ & ~(logits.abs() < 5e-2)).any()
+    assert differ.sum() <= max(2, 0.002 * len(rays))
+    both = hits.hit & unfused.hit
+    assert both.sum() > 100
+    assert ((hits.t[both] - unfused.t[both]).abs() / float(model.box.diagonal)).max() <= 2e-2

@@ -1,0 +1,82 @@
+"""bf16 dot products in numba (`neural.bf16_dot`): vdpbf16ps, its portable emulation, the 4-row kernel."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+from neuralrt.neural.bf16_dot import (
+    HAS_AVX512_BF16, bf16_bits, bf16_pairs, dot_bf16_pairs, dot_bf16_pairs_emulated, dot_rows_bf16, store16, zeros16,
+)  # fmt: skip
+
+
+@numba.njit
+def _dot(x_pairs, w_pairs, emulated):
+    acc = zeros16()
+    for p in range(x_pairs.shape[0]):
+        if emulated:
+            acc = dot_bf16_pairs_emulated(acc, x_pairs[p], w_pairs, p * 16)
+        else:
+            acc = dot_bf16_pairs(acc, x_pairs[p], w_pairs, p * 16)
+    out = np.empty(16, np.float32)
+    store16(out, 0, acc)
+    return out
+
+
+@numba.njit
+def _bits(values):
+    out = np.empty(values.shape[0], np.uint32)
+    for i in range(values.shape[0]):
+        out[i] = bf16_bits(values[i])
+    return out
+
+
+def _bf16(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(a).to(torch.bfloat16).double()
+
+
+def test_bf16_bits_round_as_torch():
+    values = (np.random.default_rng(0).standard_normal(4096) * 10.0 ** np.arange(-4, 4).repeat(512)).astype(np.float32)
+    ties = np.array([1.00390625, 1.01171875, -1.00390625, 0.0, -0.0], np.float32)  # exactly halfway: to even
+    values = np.concatenate([values, ties])
+    expected = torch.from_numpy(values).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+    assert np.array_equal(_bits(values), expected.astype(np.uint32))
+
+
+def test_pairs_layout_low_half_is_the_even_row():
+    rows = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], np.float32)  # odd: a zero row is added
+    pairs = bf16_pairs(rows)
+    assert pairs.shape == (2, 2) and pairs.dtype == np.uint32
+    assert (pairs[0, 0] & 0xFFFF) == 0x3F80 and (pairs[0, 0] >> 16) == 0x4040  # 1.0, 3.0
+    assert (pairs[1, 1] & 0xFFFF) == 0x40C0 and (pairs[1, 1] >> 16) == 0  # 6.0, padding
+
+
+def test_dot_and_its_emulation_equal_the_bf16_products_summed_in_fp64():
+    rng = np.random.default_rng(1)
+    x, w = rng.standard_normal(96).astype(np.float32), rng.standard_normal((96, 16)).astype(np.float32)
+    x_pairs, w_pairs = bf16_pairs(x[:, None])[:, 0].copy(), bf16_pairs(w).reshape(-1)
+    exact = (_bf16(x) @ _bf16(w)).numpy()
+    emulated = _dot(x_pairs, w_pairs, True)
+    native = _dot(x_pairs, w_pairs, False)  # vdpbf16ps where the CPU has it, else the emulation again
+    scale = np.abs(_bf16(x)[:, None] * _bf16(w)).sum(0).numpy()
+    assert (np.abs(emulated - exact) <= 1e-6 * scale).all()  # fp32 accumulation of exact products
+    assert (np.abs(native - exact) <= 1e-6 * scale).all()
+    if HAS_AVX512_BF16:  # the instruction is reached (it differs from the emulation only in rounding)
+        assert not np.array_equal(native, np.zeros(16, np.float32))
+
+
+def test_dot_rows_equals_the_bf16_product_for_each_row_and_width():
+    rng = np.random.default_rng(2)
+    for width in (16, 64, 80, 128):  # the 64-column passes, the 16-column remainder, both
+        x = rng.standard_normal((6, 45)).astype(np.float32)
+        w = rng.standard_normal((45, width)).astype(np.float32)
+        xp, wp = bf16_pairs(x.T).T.copy(), bf16_pairs(w).reshape(-1)
+        rows = np.array([4, 0, 5, 5], np.int64)  # any rows, repeats allowed
+        out = np.full(4 * width, np.nan, np.float32)
+        for n_pairs in (23, 10):  # all pairs; a prefix (rays with fewer inputs)
+            dot_rows_bf16(xp, rows, n_pairs, wp, width, out)
+            k = min(2 * n_pairs, 45)
+            exact = (_bf16(x[rows, :k]) @ _bf16(w[:k])).numpy()
+            scale = (np.abs(_bf16(x[rows, :k])) @ np.abs(_bf16(w[:k]))).numpy()
+            assert (np.abs(out.reshape(4, width) - exact) <= 1e-6 * scale + 1e-30).all()
