@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["LazyAdam", "lazy_adam_rows_torch", "lazy_adam_rows_numba", "lazy_adam_rows_for"]
+__all__ = ["LazyAdam", "lazy_adam_rows_torch", "lazy_adam_rows_numba", "lazy_adam_rows_for", "lazy_adam_weighted_numba"]
 
 
 @torch.no_grad()
@@ -46,19 +46,10 @@ def lazy_adam_rows_torch(p: Tensor, m: Tensor, v: Tensor, grad_sum: Tensor, touc
     p.index_add_(0, rows, (mr / bias1).div_((vr / bias2).sqrt_().add_(eps)).mul_(-lr))
 
 
-@numba.njit(cache=True)
-def _lazy_adam_rows(p, m, v, grad_sum, touched, index, values, lr, b1, b2, eps, bias1, bias2):
+@numba.njit(cache=True, inline="always")
+def _adam_touched_rows(p, m, v, grad_sum, touched, rows, n, lr, b1, b2, eps, bias1, bias2):
+    """Adam on the ``n`` rows ``rows[:n]`` of the scratch sums; clears the scratch behind it."""
     n_features = p.shape[1]
-    rows = np.empty(index.size, np.int64)
-    n = 0
-    for k in range(index.size):
-        r = index[k]
-        if not touched[r]:
-            touched[r] = True
-            rows[n] = r
-            n += 1
-        for f in range(n_features):
-            grad_sum[r, f] += values[k, f]
     # float32 throughout, as the torch version
     b1, b2, eps, lr = np.float32(b1), np.float32(b2), np.float32(eps), np.float32(lr)
     one = np.float32(1.0)
@@ -74,6 +65,43 @@ def _lazy_adam_rows(p, m, v, grad_sum, touched, index, values, lr, b1, b2, eps, 
             m[r, f] = mr
             v[r, f] = vr
             p[r, f] += (mr / bias1) / (np.float32(math.sqrt(vr / bias2)) + eps) * -lr
+
+
+@numba.njit(cache=True)
+def _lazy_adam_rows(p, m, v, grad_sum, touched, index, values, lr, b1, b2, eps, bias1, bias2):
+    n_features = p.shape[1]
+    rows = np.empty(index.size, np.int64)
+    n = 0
+    for k in range(index.size):
+        r = index[k]
+        if not touched[r]:
+            touched[r] = True
+            rows[n] = r
+            n += 1
+        for f in range(n_features):
+            grad_sum[r, f] += values[k, f]
+    _adam_touched_rows(p, m, v, grad_sum, touched, rows, n, lr, b1, b2, eps, bias1, bias2)
+
+
+@numba.njit(cache=True)
+def lazy_adam_weighted_numba(p, m, v, grad_sum, touched, corners, weights, grad_x, col, lr, b1, b2, eps, bias1, bias2):
+    """The update for a bilinear lookup's gradient without building it: row ``corners[i, c]`` gets
+    ``weights[i, c] * grad_x[i, col:col + N]`` (the sparse gradient `F.embedding` would give, in
+    the same order), then `lazy_adam_rows_numba`'s Adam on the touched rows. numpy arrays."""
+    n_features = p.shape[1]
+    rows = np.empty(corners.size, np.int64)
+    n = 0
+    for i in range(corners.shape[0]):
+        for c in range(corners.shape[1]):
+            r = corners[i, c]
+            if not touched[r]:
+                touched[r] = True
+                rows[n] = r
+                n += 1
+            w = weights[i, c]
+            for f in range(n_features):
+                grad_sum[r, f] += w * grad_x[i, col + f]
+    _adam_touched_rows(p, m, v, grad_sum, touched, rows, n, lr, b1, b2, eps, bias1, bias2)
 
 
 @torch.no_grad()

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from .nif import NIFNetworks, NIFQueries
 from .nif_optim import LazyAdam
+from .nif_step import nif_step_for
 
 __all__ = ["NIFTrainer", "NIFTrainingStats", "LazyAdam"]
 
@@ -44,31 +45,16 @@ class NIFTrainingStats:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-class _Optimizers:
-    """Several optimizers stepped as one."""
-
-    def __init__(self, *optimizers: torch.optim.Optimizer):
-        self.optimizers = optimizers
-
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        for o in self.optimizers:
-            o.zero_grad(set_to_none=set_to_none)
-
-    def step(self) -> None:
-        for o in self.optimizers:
-            o.step()
-
-
 class NIFTrainer:
-    def __init__(self, networks: NIFNetworks):
+    def __init__(self, networks: NIFNetworks, step=None):
+        """``step``: the training step implementation (`nif_step`); default the device's (numba on the CPU)."""
         self.networks = networks
         cfg = networks.config.training
         self.cfg = cfg
+        step = step or nif_step_for(networks.box_lo.device)
         adam = dict(lr=cfg.learning_rate, betas=tuple(cfg.adam_betas), eps=cfg.adam_eps)
-        self.optim_outer = _Optimizers(LazyAdam(networks.outer_grids(), **adam),
-                                       torch.optim.Adam(networks.outer_mlp.parameters(), **adam))
-        self.optim_inner = _Optimizers(LazyAdam(networks.inner_grids(), **adam),
-                                       torch.optim.Adam(networks.inner_mlp.parameters(), **adam))
+        self.step_outer = step(networks.outer_mlp, [networks.outer_position, networks.outer_direction], **adam)
+        self.step_inner = step(networks.inner_mlp, [networks.inner_position, networks.inner_direction, networks.inner_distance], **adam)
         dev = networks.box_lo.device
         self.generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
         self._outer: list[tuple[Tensor, ...]] = []
@@ -99,35 +85,28 @@ class NIFTrainer:
         outer = [torch.cat(cols) for cols in zip(*self._outer)] if self._outer else None
         inner = [torch.cat(cols) for cols in zip(*self._inner)] if self._inner else None
         self._outer, self._inner, self._buffered = [], [], 0
-        net = self.networks
-        with torch.enable_grad():
-            for p in range(self.cfg.passes_per_spp):
-                last = p == self.cfg.passes_per_spp - 1
-                if outer is not None:
-                    loss = self._pass(outer, self.cfg.outer_batch, self.optim_outer, lambda c: net.outer_logits(*c), "outer_steps")
-                    if last:
-                        self.stats.loss_outer.append(loss)
-                if inner is not None:
-                    loss = self._pass(inner, self.cfg.inner_batch, self.optim_inner, lambda c: net.inner_logits(*c), "inner_steps")
-                    if last:
-                        self.stats.loss_inner.append(loss)
+        for p in range(self.cfg.passes_per_spp):
+            last = p == self.cfg.passes_per_spp - 1
+            if outer is not None:
+                loss = self._pass(outer, self.cfg.outer_batch, self.step_outer, "outer_steps")
+                if last:
+                    self.stats.loss_outer.append(loss)
+            if inner is not None:
+                loss = self._pass(inner, self.cfg.inner_batch, self.step_inner, "inner_steps")
+                if last:
+                    self.stats.loss_inner.append(loss)
         self.stats.rounds += 1
         self.stats.seconds += time.perf_counter() - start
 
-    def _pass(self, columns: list[Tensor], batch: int, optim: _Optimizers, logits_of, counter: str) -> float:
+    def _pass(self, columns: list[Tensor], batch: int, step, counter: str) -> float:
         """One pass over a random ``pair_fraction`` of the pairs in a random order; returns the mean L2 loss over the pass."""
         n = columns[0].shape[0]
         order = torch.randperm(n, generator=self.generator, device=columns[0].device)
         n = max(1, math.ceil(n * self.cfg.pair_fraction))
         order = order[:n]
-        total = torch.zeros((), device=columns[0].device)
+        total = 0.0
         for lo in range(0, n, batch):
             idx = order[lo:lo + batch]
-            *inputs, label = (c[idx] for c in columns)
-            loss = (torch.sigmoid(logits_of(inputs)) - label).square().mean()
-            optim.zero_grad(set_to_none=True)
-            loss.backward()
-            optim.step()
-            total += loss.detach() * idx.numel()
+            total = total + step(columns, idx) * idx.numel()  # a float (numba) or a 0-d tensor (no sync per step)
             setattr(self.stats, counter, getattr(self.stats, counter) + 1)
         return float(total) / max(n, 1)
