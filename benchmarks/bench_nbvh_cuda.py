@@ -1,9 +1,18 @@
-"""N-BVH on CUDA: the Triton kernels against the torch ops they replaced, and against OptiX, on the same rays.
+"""N-BVH on CUDA: the training step and its pieces, the Triton kernels against the torch ops they replaced, and OptiX.
 
-1. **train**: the ``--preset`` (default ``paper``: 2^18 rays per step) for ``--steps`` on ``--mesh``
-   with the current (Triton) path: wall time, nodes (issue 9's target: 10,000 steps in <= 2 min on
-   an H100). ``--model FILE`` loads a trained model instead.
-2. **stages**, each timed with device events (median of ``--repeats``), Triton vs torch, with a check
+1. **train**: ``--steps`` steps (default 10,000) of the ``--preset``'s schedule (default ``paper``:
+   2^18 rays per step, splits until 3,000) on ``--mesh``, stopped at ``--train-budget-s`` (the
+   steps done and their time are reported, with the 10,000-step time projected from the
+   steady-state step below); issue 9's target: 10,000 steps in <= 2 min on an H100.
+   ``--model FILE`` loads a trained model instead.
+2. **step**: ``--step-repeats`` training steps after the cut is complete (what 7,000 of the
+   paper's 10,000 steps are), each cut into its pieces by device events (median per piece, and
+   host time per piece): ``draw`` (the sampler without its ground truth: the Triton kernel, the
+   Morton sort, object-space rays), ``truth`` (OptiX closest hits and their attributes),
+   ``forward`` (chord points, hash grid, MLP, loss), ``backward``, ``optimizer`` (fused Adam),
+   ``stats`` (node statistics, h_max), ``read`` (the trainer's one ``loss.item()``); host syncs
+   per piece (``torch.cuda.set_sync_debug_mode``) and the sampler's yield.
+3. **stages**, each timed with device events (median of ``--repeats``), Triton vs torch, with a check
    that both give the same answer and the floor of each stage (bytes through device memory over the
    measured copy bandwidth, FLOPs over the measured bf16 GEMM rate; the hash table and the cut's
    nodes are counted as cache-resident, their gathers are reported apart as ``l2_bytes``):
@@ -12,13 +21,18 @@
    (2^18 queries of 3 points), and the whole ``intersect`` / ``occluded`` of the model: Triton path
    (what CUDA runs now), the earlier torch path (torch traversal, torch grid, torch wavefront), and
    OptiX closest / any hit on the same rays (Mitsuba 3).
-3. JSON: benchmarks/results/nbvh_cuda_<device>.json (or ``--out``), with machine, versions, load.
+4. JSON: benchmarks/results/nbvh_cuda_<device>.json (or ``--out``), with machine, versions, load;
+   written after every section.
 
-    python benchmarks/bench_nbvh_cuda.py [--mesh statue:2] [--steps 1000] [--rays-log2 22] [--repeats 20]
+    python benchmarks/bench_nbvh_cuda.py [--mesh statue:2] [--steps 10000] [--train-budget-s 240] [--rays-log2 22]
     python benchmarks/bench_nbvh_cuda.py --compile-only      # no GPU needed: compile for sm_90, ptxas registers/spills
+    TRITON_INTERPRET=1 python benchmarks/bench_nbvh_cuda.py --count-step --device cpu   # no GPU needed: torch ops,
+        # Triton launches and host syncs of one `paper`-shaped training step (small batch) per piece, the CUDA code
+        # path on CPU tensors under the interpreter (launch and sync counts do not depend on the device)
     TRITON_INTERPRET=1 python benchmarks/bench_nbvh_cuda.py --device cpu --preset cpu --steps 10 --rays-log2 7 \
-        --repeats 1 --out /tmp/smoke.json   # a smoke run of the script on the CPU: numbers meaningless (stages run
-                                            # under the interpreter, and "triton" whole queries are the numba path)
+        --repeats 1 --step-repeats 2 --out /tmp/smoke.json   # a smoke run of the script on the CPU: numbers
+                                            # meaningless (stages run under the interpreter, and "triton" whole
+                                            # queries are the numba path)
 """
 
 from __future__ import annotations
@@ -231,6 +245,207 @@ def bench_whole(model, mesh, rays, device, repeats: int, ceil: dict) -> list[dic
     return whole
 
 
+STEP_PIECES = ["draw", "truth", "forward", "backward", "optimizer", "stats", "read"]
+
+
+class _TruthPieces:
+    """The sampler's exact BLAS, with ``mark("truth")`` before its query and ``mark("draw")`` after."""
+
+    def __init__(self, truth, mark):
+        self.truth, self.mark = truth, mark
+
+    def intersect(self, rays):
+        self.mark("truth")
+        hits = self.truth.intersect(rays)
+        self.mark("draw")
+        return hits
+
+
+def training_step_in_pieces(model, sampler, opt, step: int, batch: int, mark) -> float:
+    """One step of `train_model` (draw, loss, backward, Adam, the model's statistics, the loss read)
+    with ``mark(piece)`` where each piece starts; returns the loss."""
+    truth = sampler.truth
+    sampler.truth = _TruthPieces(truth, mark)
+    try:
+        mark("draw")
+        b = sampler.sample(batch)
+        mark("forward")
+        result = model.training_step(b.rays, b.truth)
+        mark("backward")
+        opt.zero_grad(set_to_none=True)
+        result.loss.backward()
+        mark("optimizer")
+        opt.step()
+        mark("stats")
+        model.after_training_step(step, opt)
+        mark("read")
+        loss = result.loss.item()
+        mark(None)
+    finally:
+        sampler.truth = truth
+    return loss
+
+
+def _optimizer(model):
+    tc = model.config.training
+    return torch.optim.Adam(model.parameters(), lr=tc.learning_rate, betas=tuple(tc.adam_betas), eps=tc.adam_eps,
+                            fused=next(model.parameters()).device.type in ("cuda", "cpu"))  # fmt: skip
+
+
+def bench_step(model, mesh, device, repeats: int) -> dict:
+    """Median device time (events) and host time of each piece of a training step after the cut is complete."""
+    import warnings
+
+    from neuralrt.accel.mesh_blas import MeshBLAS
+
+    model.train()
+    sampler = model.training_rays(MeshBLAS(mesh, device=device), device)
+    opt = _optimizer(model)
+    batch = model.config.training.batch_size
+    step = model.config.training.steps  # past the last split: the schedule adds nothing
+    rows = []
+    cuda = device.type == "cuda"
+    for k in range(repeats + 2):
+        events, host = [], []
+
+        def mark(piece):
+            if cuda:
+                e = torch.cuda.Event(enable_timing=True)
+                e.record()
+                events.append((piece, e))
+            host.append((piece, time.perf_counter()))
+
+        training_step_in_pieces(model, sampler, opt, step + k, batch, mark)
+        if cuda:
+            torch.cuda.synchronize(device)
+        if k < 2:  # warm-up: compilation, allocator
+            continue
+        row = collections.defaultdict(float)
+        for (piece, t0), (_, t1) in zip(host[:-1], host[1:]):
+            row[f"{piece}_host_ms"] += 1e3 * (t1 - t0)
+        if cuda:
+            for (piece, e0), (_, e1) in zip(events[:-1], events[1:]):
+                row[f"{piece}_ms"] += e0.elapsed_time(e1)
+            row["step_ms"] = events[0][1].elapsed_time(events[-1][1])
+        row["step_host_ms"] = 1e3 * (host[-1][1] - host[0][1])
+        rows.append(row)
+    out = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
+    out["steps_timed"], out["batch"], out["yield"] = len(rows), batch, sampler.last_yield()
+    if cuda:  # host syncs per piece, as torch sees them (OptiX's own waits are not torch's)
+        syncs = collections.Counter()
+        piece = [None]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+
+            def mark_syncs(p):
+                for w in caught:
+                    if "synchroniz" in str(w.message):
+                        syncs[piece[0]] += 1
+                caught.clear()
+                piece[0] = p
+
+            try:
+                training_step_in_pieces(model, sampler, opt, step + repeats + 2, batch, mark_syncs)
+            finally:
+                torch.cuda.set_sync_debug_mode(0)
+        out["torch_syncs"] = dict(syncs)
+    model.eval()
+    return out
+
+
+_NO_LAUNCH = re.compile(r"^(view|_unsafe_view|alias|detach|empty|empty_like|empty_strided|new_empty|new_empty_strided|as_strided|expand|"
+                        r"reshape|_reshape_alias|unsqueeze|squeeze|select|slice|t|transpose|permute|split|split_with_sizes|unbind|"
+                        r"lift_fresh|set_|resize_|_to_copy_noop|result_type|is_same_size|sym_size|sym_stride|sym_numel|"
+                        r"_has_compatible_shallow_copy_type|unfold|diagonal|narrow|chunk|view_as|expand_as|"
+                        r"_local_scalar_dense)$")  # fmt: skip
+_SYNC_OPS = {"_local_scalar_dense", "nonzero", "masked_select", "is_nonzero", "repeat_interleave", "_unique2", "unique_dim",
+             "unique_consecutive", "nonzero_static"}  # fmt: skip
+
+
+def count_step(args) -> dict:
+    """Torch ops (about one kernel launch each on CUDA; views and allocations excluded), Triton
+    launches and host syncs per piece of one training step, the CUDA code path run on CPU tensors
+    under the interpreter: the sampler's Triton implementation (when this checkout has one, else
+    the old host loop with the Triton first-leaf walk), the Triton hash grid. The exact BLAS is
+    Embree here (OptiX on CUDA): its row is not the CUDA one."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    import neuralrt.methods.nbvh as nbvh_module
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.methods import get_method
+    from neuralrt.methods.nbvh_traversal_triton import first_leaves_triton
+    from neuralrt.neural.hash_grid import HashGrid
+    from neuralrt.neural.hash_grid_triton import hash_grid_triton
+
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        raise SystemExit("neuralrt: error: --count-step runs the CUDA path on CPU tensors: set TRITON_INTERPRET=1")
+    mesh = _mesh(args.mesh)
+    config = get_method("nbvh").config(args.preset, device="cpu", batch_size=args.count_batch)
+    config = config.model_copy(update={"encoding": config.encoding.model_copy(update={"levels": 3})})  # the interpreter's time
+    model = get_method("nbvh").model_class.from_mesh(mesh, config)
+    nbvh_module.first_leaves = first_leaves_triton  # what CUDA rays take
+    HashGrid.forward = lambda self, points: hash_grid_triton(points, self.table, self.layout)
+    sampler = model.training_rays(MeshBLAS(mesh, device="cpu"), torch.device("cpu"))
+    if hasattr(sampler, "implementation"):
+        sampler.implementation = "triton"
+    opt = _optimizer(model)
+    from neuralrt.methods import nbvh_traversal_triton
+
+    kernel_type = type(nbvh_traversal_triton._first_kernel)
+    counts = collections.defaultdict(collections.Counter)
+    piece = [None]
+    run = kernel_type.run
+
+    def counting_run(self, *a, **k):
+        counts[piece[0]]["triton_launches"] += 1
+        return run(self, *a, **k)
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, a=(), kw=None):
+            name = func.__name__.split(".")[0]
+            c = counts[piece[0]]
+            if not _NO_LAUNCH.match(name):
+                c["torch_ops"] += 1
+            if name in _SYNC_OPS or (name in ("index", "index_put", "index_put_") and any(
+                    isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (a[1] if len(a) > 1 else []) if i is not None)):
+                c["syncs"] += 1
+                c[f"sync:{name}"] += 1
+            return func(*a, **(kw or {}))
+
+    def mark(p):
+        piece[0] = p
+
+    tolist, to_numpy = torch.Tensor.tolist, torch.Tensor.numpy
+
+    def host_read(method):  # reads that bypass the dispatcher: a sync on CUDA each
+        def read(self, *a, **k):
+            counts[piece[0]]["syncs"] += 1
+            counts[piece[0]][f"sync:{method.__name__}"] += 1
+            return method(self, *a, **k)
+
+        return read
+
+    kernel_type.run = counting_run
+    torch.Tensor.tolist, torch.Tensor.numpy = host_read(tolist), host_read(to_numpy)
+    try:
+        # Step 1 first: the tree depth, the level cache and compilation happen once; the counted step is the second.
+        training_step_in_pieces(model, sampler, opt, 1, args.count_batch, mark)
+        counts.clear()
+        with Count():
+            training_step_in_pieces(model, sampler, opt, 2, args.count_batch, mark)
+    finally:
+        kernel_type.run = run
+        torch.Tensor.tolist, torch.Tensor.numpy = tolist, to_numpy
+    rows = []
+    for p in STEP_PIECES:
+        c = counts.get(p, collections.Counter())
+        rows.append({"piece": p, "torch_ops": c["torch_ops"], "triton_launches": c["triton_launches"], "syncs": c["syncs"],
+                     "sync_ops": " ".join(f"{k[5:]} x{v}" for k, v in sorted(c.items()) if k.startswith("sync:"))})  # fmt: skip
+    total = {"piece": "total", **{k: sum(r[k] for r in rows) for k in ("torch_ops", "triton_launches", "syncs")}, "sync_ops": ""}
+    return {"rows": rows + [total], "batch": args.count_batch, "sampler": getattr(sampler, "implementation", "cpu loop (old)")}
+
+
 KERNELS = {  # (module, kernel, signature, constexprs) for --compile-only
     "list count": ("neuralrt.methods.nbvh_traversal_triton", "_list_kernel", "list", {"WRITE": False, "STACK": 64, "BLOCK": 64}),
     "list fill+sort": ("neuralrt.methods.nbvh_traversal_triton", "_list_kernel", "list", {"WRITE": True, "STACK": 64, "BLOCK": 64}),
@@ -240,6 +455,7 @@ KERNELS = {  # (module, kernel, signature, constexprs) for --compile-only
     "step input (bf16)": ("neuralrt.methods.nbvh_wavefront_triton", "_step_input_kernel", "step_in", dict(L=8, F=4, FP=4, BLOCK=64)),
     "step decode": ("neuralrt.methods.nbvh_wavefront_triton", "_step_decode_kernel", "step_out",
                     dict(OUTPUTS=8, OP=8, ANY_HIT=False, BLOCK=64)),
+    "training sampler": ("neuralrt.methods.nbvh_rays_triton", "_sample_kernel", "sample", {"STACK": 40, "BLOCK": 64}),
 }
 _RAYS_CUT = dict(o_ptr="*fp32", inv_ptr="*fp32", tmax_ptr="*fp32", level_ptr="*i8", dil_ptr="*fp32", lo_ptr="*fp32", hi_ptr="*fp32",
                  children_ptr="*i32", lod_ptr="*i8", live_ptr="*i8")  # fmt: skip
@@ -253,6 +469,12 @@ SIGNATURES = {
     "hash_bwd": {"pts_ptr": "*fp32", "grad_out_ptr": "*fp32", **_HASH, "grad_table_ptr": "*fp32", "n_points": "i32"},
     "step_in": {"active_ptr": "*i64", "ptr_ptr": "*i64", "t0_ptr": "*fp32", "t1_ptr": "*fp32", "o_ptr": "*fp32", "d_ptr": "*fp32",
                 "table_ptr": "*fp32", **_HASH, "x_ptr": "*bf16", "n_active": "i32", "frac0": "fp32", "frac1": "fp32", "frac2": "fp32"},
+    "sample": {"center_ptr": "*fp32", "extent_ptr": "*fp32", "reg_ptr": "*i8", "box_scale": "fp32", "dil_base": "fp32",
+               "dil_jitter": "fp32", "lo_ptr": "*fp32", "hi_ptr": "*fp32", "children_ptr": "*i32", "lod_ptr": "*i8", "live_ptr": "*i8",
+               "loss_sum_ptr": "*fp64", "samples_ptr": "*fp64", "alive_ptr": "*fp64", "h_max_ptr": "*fp64", "min_acceptance": "fp32",
+               "start_out": "*fp32", "dir_out": "*fp32", "length_out": "*fp32", "node_out": "*i64", "code_out": "*i32",
+               "rounds_out": "*i32", "flag_ptr": "*i32", "stack_ptr": "*i32", "stack_f_ptr": "*fp32", "n": "i32", "quota": "i32",
+               "seed": "i32", "call_base": "i64", "max_rounds": "i32"},
     "step_out": {"active_ptr": "*i64", "ptr_ptr": "*i64", "start_ptr": "*i64", "t0_ptr": "*fp32", "t1_ptr": "*fp32",
                  "t_max_ptr": "*fp32", "out_ptr": "*fp32", "best_t_ptr": "*fp32", "best_out_ptr": "*fp32", "keep_ptr": "*i8",
                  "n_active": "i32", "threshold": "fp32", "depth_pad": "fp32", "reversed_min": "fp32"},
@@ -300,12 +522,56 @@ def compile_only(arch: int) -> list[dict]:
     return rows
 
 
+class _Budget(Exception):
+    pass
+
+
+def train_with_budget(mesh, args, device) -> tuple:
+    """`neuralrt.training.api.train` for ``--steps`` steps of the preset's schedule, stopped after
+    ``--train-budget-s`` seconds: (model, figures)."""
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.methods import get_method
+    from neuralrt.training.trainer import train_model
+
+    spec = get_method("nbvh")
+    config = spec.config(args.preset, device=device.type)
+    tc = config.training
+    model = spec.model_class.from_mesh(mesh, config).to(device)
+    sampler = model.training_rays(MeshBLAS(mesh, device=device), device)
+    done = [0]
+    start = time.perf_counter()
+
+    def on_step(step, opt):
+        model.after_training_step(step, opt)
+        done[0] = step + 1
+        if time.perf_counter() - start > args.train_budget_s and done[0] < args.steps:
+            raise _Budget
+
+    record = None
+    with contextlib.suppress(_Budget):
+        record = train_model(model, sampler, steps=min(args.steps, tc.steps), batch_size=tc.batch_size, learning_rate=tc.learning_rate,
+                             adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final, progress=False,
+                             on_step=on_step)  # fmt: skip
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    seconds = time.perf_counter() - start
+    model.eval()
+    info = {"preset": args.preset, "schedule_steps": tc.steps, "steps_done": done[0], "batch": tc.batch_size, "train_s": seconds,
+            "s_per_1000_steps": 1000 * seconds / max(done[0], 1), "live_nodes": model.live_nodes(), "stopped_by_budget": record is None,
+            "hit_accuracy": record.hit_accuracy if record else None}  # fmt: skip
+    return model, info
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--mesh", default="statue:2", help="procedural mesh (name:detail)")
     parser.add_argument("--preset", default="paper")
-    parser.add_argument("--steps", type=int, default=1000, help="training steps (the paper preset has 10,000)")
+    parser.add_argument("--steps", type=int, default=10_000, help="training steps to run of the preset's schedule")
+    parser.add_argument("--train-budget-s", type=float, default=240.0, help="stop training after this many seconds")
+    parser.add_argument("--step-repeats", type=int, default=20, help="training steps timed piece by piece")
+    parser.add_argument("--count-step", action="store_true", help="count ops, launches and syncs of one step (CPU, interpreter)")
+    parser.add_argument("--count-batch", type=int, default=1024, help="with --count-step: rays per step")
     parser.add_argument("--model", type=Path, default=None, help="a trained .nrt of --mesh instead of training")
     parser.add_argument("--rays-log2", type=int, default=22)
     parser.add_argument("--repeats", type=int, default=20)
@@ -324,6 +590,13 @@ def main() -> None:
         tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
         tmp.replace(out)
 
+    if args.count_step:
+        payload["count"] = count_step(args)
+        out = args.out or Path("/tmp/nbvh_count_step.json")
+        save()
+        print(f"sampler: {payload['count']['sampler']}, batch {args.count_batch}")
+        print_table(payload["count"]["rows"], ["piece", "torch_ops", "triton_launches", "syncs", "sync_ops"])
+        return
     if args.compile_only:
         import triton
 
@@ -335,8 +608,7 @@ def main() -> None:
         return
     from bench_mesh_blas import random_rays
 
-    from neuralrt.methods import get_method, load_model
-    from neuralrt.training.api import train
+    from neuralrt.methods import load_model
 
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else payload["machine"]["cpu"]
     payload["device"] = name
@@ -347,17 +619,15 @@ def main() -> None:
         model = load_model(args.model).to(device)
         payload["train"] = {"model": str(args.model)}
     else:
-        config = get_method("nbvh").config(args.preset, device=device.type, steps=args.steps)
-        start = time.perf_counter()
-        model = train(mesh, config, progress=False, device=device)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        seconds = time.perf_counter() - start
-        tc = config.training
-        payload["train"] = {"preset": args.preset, "steps": tc.steps, "batch": tc.batch_size, "train_s": seconds,
-                            "s_per_1000_steps": 1000 * seconds / tc.steps, "nodes": model.num_nodes}  # fmt: skip
+        model, payload["train"] = train_with_budget(mesh, args, device)
     save()
     print(f"{name} ({device.type}); train: {payload['train']}")
+    payload["step"] = step = bench_step(model, mesh, device, args.step_repeats)
+    train_info = payload["train"]
+    if "steps_done" in train_info and "step_ms" in step:  # the rest of the schedule at the steady-state step time
+        train_info["projected_s_for_schedule"] = train_info["train_s"] + (train_info["schedule_steps"] - train_info["steps_done"]) * step["step_ms"] / 1e3
+    save()
+    print_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in step.items() if not isinstance(v, dict)}], [k for k, v in step.items() if not isinstance(v, dict)])
     rays = random_rays(mesh, 1 << args.rays_log2).to(device)
     with torch.no_grad():
         payload["stages"] = bench_stages(model, rays, device, args.repeats, ceil)
