@@ -3,7 +3,8 @@
 For each mesh and preset, one untrained model on the mesh's real occupancy (the speed does not
 depend on the weights; the hash table is filled with random values so no feature is 0) answers
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
-with ``intersect`` through the fused kernel (the CPU default) and through the unfused path
+with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
+layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
 inference precision, and the fused kernel's own time (walk + encoding + first layer). Best of
@@ -32,11 +33,12 @@ from bench_lsnif import resolve_mesh  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_config import LSNIFConfig  # noqa: E402
+from neuralrt.methods import lsnif_fused_cpu  # noqa: E402
 from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -54,6 +56,13 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(n_rays).rays
     def fused_intersect():
         model.intersect(rays)
+
+    def fused_fp32_first_layer_intersect():  # the fused pass with the earlier fp32 per-ray first layer
+        lsnif_fused_cpu.BF16_DOT_FIRST_LAYER = False
+        try:
+            model.intersect(rays)
+        finally:
+            lsnif_fused_cpu.BF16_DOT_FIRST_LAYER = True
 
     def unfused_intersect():
         model._network_answers = model._network_answers_unfused  # the instance attribute wins over the method
@@ -77,12 +86,13 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         with torch.no_grad():
             model.network(x, dtype)
 
-    for fn in (fused_intersect, unfused_intersect, mlp_only):  # compile / warm caches
+    for fn in (fused_intersect, fused_fp32_first_layer_intersect, unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "fused": [], "unfused": [], "fused_network": [], "mlp": []}
+    times = {"embree": [], "fused": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
         times["fused"].append(seconds(fused_intersect))
+        times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
         times["unfused"].append(seconds(unfused_intersect))
         times["fused_network"].append(seconds(kernel_and_gemms))
         times["mlp"].append(seconds(mlp_only))
@@ -90,7 +100,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "fused", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "fused", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -107,6 +117,9 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "fused_vs_embree": rate["fused"] / rate["embree"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],
         "fused_vs_unfused": rate["fused"] / rate["unfused"],
+        # the same fused pass with the fp32 per-ray first layer (before the bf16 dot products)
+        "fused_fp32_l1_vs_embree": rate["fused_fp32_l1"] / rate["embree"],
+        "bf16_l1_gain": rate["fused"] / rate["fused_fp32_l1"],
         # share of intersect spent in the fused kernel + the GEMMs (the rest: ray mapping, decoding, scatter)
         "kernel_share": best["fused_network"] / best["fused"],
         # network rays/s of the whole pipeline over the MLP alone (as bench_lsnif.py)
