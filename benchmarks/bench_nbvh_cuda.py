@@ -625,9 +625,12 @@ def main() -> None:
     payload["step"] = step = bench_step(model, mesh, device, args.step_repeats)
     train_info = payload["train"]
     if "steps_done" in train_info and "step_ms" in step:  # the rest of the schedule at the steady-state step time
-        train_info["projected_s_for_schedule"] = train_info["train_s"] + (train_info["schedule_steps"] - train_info["steps_done"]) * step["step_ms"] / 1e3
+        rest = train_info["schedule_steps"] - train_info["steps_done"]
+        train_info["projected_s_for_schedule"] = train_info["train_s"] + rest * step["step_ms"] / 1e3
     save()
-    print_table([{k: (round(v, 3) if isinstance(v, float) else v) for k, v in step.items() if not isinstance(v, dict)}], [k for k, v in step.items() if not isinstance(v, dict)])
+    flat = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in step.items() if not isinstance(v, dict)}
+    print_table([flat], list(flat))
+    print(f"torch syncs per piece: {step.get('torch_syncs')}; train: {train_info}")
     rays = random_rays(mesh, 1 << args.rays_log2).to(device)
     with torch.no_grad():
         payload["stages"] = bench_stages(model, rays, device, args.repeats, ceil)

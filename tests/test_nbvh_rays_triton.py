@@ -106,22 +106,19 @@ def test_candidates_follow_the_papers_distribution(model, kernels):
 
 def _expected_leaf_shares(model, m=400_000, seed=11):
     """P(leaf) of an accepted sample, from many CPU candidates: P(first leaf) x p(leaf), normalised."""
-    from neuralrt.methods.nbvh_rays import NBVHRayDistribution
-
-    cpu_model = model.cpu() if CUDA else model
-    sampler = NBVHRayDistribution(cpu_model, None, "cpu")
-    sampler.generator.manual_seed(seed)
-    g, tc = sampler.generator, cpu_model.config.training
-    origins = cpu_model.unit_center + (torch.rand(m, 3, generator=g) - 0.5) * (tc.origin_box_scale * cpu_model.unit_extent)
     from neuralrt.training.ray_distribution import uniform_sphere_points
 
+    cpu_model = model.cpu() if CUDA else model  # (in place: moved back below)
+    g, tc = torch.Generator().manual_seed(seed), cpu_model.config.training
+    origins = cpu_model.unit_center + (torch.rand(m, 3, generator=g) - 0.5) * (tc.origin_box_scale * cpu_model.unit_extent)
     directions = uniform_sphere_points(m, g, "cpu")
     levels = cpu_model.training_levels()
     level = levels[torch.randint(0, len(levels), (m,), generator=g)]
     dil = tc.dilation + tc.dilation_jitter * torch.rand(m, generator=g)
     node, _, _ = cpu_model.first_leaf(origins, directions, torch.full((m,), float("inf")), level, dil)
     node = node[node >= 0]
-    weight = torch.bincount(node, minlength=len(cpu_model.node_lo)).double() * cpu_model.acceptance(torch.arange(len(cpu_model.node_lo))).double()
+    nodes = len(cpu_model.node_lo)
+    weight = torch.bincount(node, minlength=nodes).double() * cpu_model.acceptance(torch.arange(nodes)).double()
     if CUDA:
         model.to(DEVICE)
     return weight / weight.sum()

@@ -111,7 +111,7 @@ def _morton(x, y, z):
     return _spread10(qx) | (_spread10(qy) << 1) | (_spread10(qz) << 2)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["n", "quota", "seed", "call_base", "max_rounds"])  # one compiled kernel whatever their values
 def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jitter,
                    lo_ptr, hi_ptr, children_ptr, lod_ptr, live_ptr,
                    loss_sum_ptr, samples_ptr, alive_ptr, h_max_ptr, min_acceptance,
