@@ -11,7 +11,9 @@ network kind, so an outer step never moves inner parameters. The grids' Adam is 
 (`nif_optim.LazyAdam`: only the vertices a batch touched move, their moments decay only when
 touched): an outer step took 36 ms with dense gradients and Adam, 22 ms with
 `torch.optim.SparseAdam`, 7 ms with `LazyAdam` (2 CPU cores, docs/nif.md); vertices no ray of the
-view reaches have nothing to learn.
+view reaches have nothing to learn. Each batch is one call of the device's training step
+(`nif_step`: numba with the backward by hand on the CPU, half the time of autograd there; autograd
+and torch optimizers elsewhere).
 """
 
 from __future__ import annotations
