@@ -50,11 +50,13 @@ def shared_scene(work: Path) -> Path | None:
         return None
     folder = work / "shared_scene"
     folder.mkdir(parents=True, exist_ok=True)
+    extent = {}  # largest side of each file: the devil's is ~42 units (the bunny's ~1), so its scale is per unit of it
     for name, (file, loops) in sources.items():
         target = folder / f"{name}_loop{loops}.ply"
         if not target.is_file():
             mesh = load_mesh(SHARED / file).subdivided(loops)
             trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(target)
+        extent[name] = float(trimesh.load(target, process=False).extents.max())
     spec = SceneSpec(
         camera=CameraSpec(position=(0.0, 0.6, 3.2), look_at=(0.0, -0.2, 0.0), fov=40.0),
         materials=[PlasticMaterialSpec(name="clay", albedo=(0.7, 0.55, 0.45), roughness=0.3),
@@ -66,7 +68,7 @@ def shared_scene(work: Path) -> Path | None:
             ObjectSpec(name="bunny2", mesh=str(folder / "bunny_loop2.ply"), material="clay",
                        transform=TransformSpec(translate=(0.2, -0.75, -0.8), rotate=(0, -60, 0), scale=0.5)),
             ObjectSpec(name="devil", mesh=str(folder / "devil_loop3.ply"), material="clay",
-                       transform=TransformSpec(translate=(0.6, -0.55, 0.2), rotate=(-90, 0, 0), scale=0.9)),
+                       transform=TransformSpec(translate=(0.6, -0.52, 0.2), rotate=(-90, 0, 0), scale=0.9 / extent["devil"])),
             ObjectSpec(name="floor", generator=GeneratorSpec(name="plane", params={"size": 8.0}), material="floor",
                        transform=TransformSpec(translate=(0.0, -1.0, 0.0))),
             ObjectSpec(name="light", generator=GeneratorSpec(name="plane", params={"size": 1.5}), material="light",
@@ -176,7 +178,10 @@ def run_scene(scene: str, work: Path, args) -> dict:
             images[name], seconds[name] = result.image, min(seconds[name], result.seconds)
     floor = render(scenes["exact"], seed=args.seed + 1, **common)
     write_png(out / "exact.png", images["exact"])
+    import hashlib
+
     row = {"scene": scene, "res": args.res, "spp": args.spp, "exact_s": seconds["exact"],
+           "scene_sha256": hashlib.sha256(Path(scene).read_bytes()).hexdigest() if Path(scene).is_file() else None,
            "flip_floor": compare_images(images["exact"], floor.image).flip}
     for name in scenes:
         if name == "exact":
@@ -202,6 +207,26 @@ def run_scene(scene: str, work: Path, args) -> dict:
         row[f"bvh_b_ratio_{name}"] = row["bvh_b_bytes"] / row[f"neural_{name}_bytes"]
     row["load_average_1min_at_end"] = os.getloadavg()[0]
     return row
+
+
+SCENE_WIDE = ("scene", "res", "spp", "scene_sha256", "exact_s", "flip_floor", "objects", "unique", "triangles", "bvh_a_bytes",
+              "bvh_b_bytes", "load_average_1min_at_end", "wall_s", "later_runs")
+
+
+def merge_row(rows: list[dict], row: dict, scene: str) -> list[dict]:
+    """``rows`` with ``row`` merged into the scene's row: a later run of other variants adds their
+    columns (FLIP vs the same seed's exact image; time ratios to that run's own exact render) and
+    keeps the first run's scene-wide figures, the later run's going to ``later_runs``; a run at
+    another resolution, spp or scene file (``scene_sha256``) replaces the row."""
+    old = next((r for r in rows if short_name(r["scene"]) == short_name(scene)), None)
+    rest = [r for r in rows if r is not old]
+    if old is None or (old["res"], old["spp"], old.get("scene_sha256")) != (row["res"], row["spp"], row.get("scene_sha256")):
+        return rest + [row]
+    later = {k: row[k] for k in SCENE_WIDE if k in row and k not in ("scene", "later_runs")}
+    later["variants"] = sorted({k.removeprefix("flip_") for k in row if k.startswith("flip_") and k != "flip_floor"})
+    merged = {**old, **{k: v for k, v in row.items() if k not in SCENE_WIDE}}
+    merged["later_runs"] = old.get("later_runs", []) + [later]
+    return rest + [merged]
 
 
 def short_name(scene: str) -> str:
@@ -270,7 +295,7 @@ def main() -> None:
         start = time.perf_counter()
         row = run_scene(scene, args.work, args)
         row["wall_s"] = time.perf_counter() - start
-        rows = [r for r in rows if short_name(r["scene"]) != short_name(scene)] + [row]
+        rows = merge_row(rows, row, scene)
         path = write_results(args.name, rows, {"settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}})
         print_table([row], [k for k in row if k.startswith(("flip", "neural_", "time_"))])
     labels = [variant_label(v) for v in args.variants] + [f"decimate_{variant_label(v)}" for v in args.decimate or []]
