@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..neural.dense_grid import SphericalGrid2D
+from ..neural.dense_grid import SphericalGrid2D, corner_rows_1d, corner_rows_2d
 from .nif_optim import LazyAdam, lazy_adam_weighted_numba
 
 __all__ = ["TorchNIFStep", "NumbaNIFStep", "nif_step_for"]
@@ -58,46 +58,31 @@ class TorchNIFStep:
 # -- numba kernels (CPU) ----------------------------------------------------------------------------
 @numba.njit(cache=True)
 def _lookup_2d(table, r, obj, uv, idx, x, col, corners, weights):
-    """Batch rows ``idx`` of a `SphericalGrid2D` lookup (its wrapping and clamping, float32) into
+    """Batch rows ``idx`` of a `SphericalGrid2D` lookup (`corner_rows_2d`) into
     ``x[:, col:col + N]``, keeping each row's 4 corner rows and bilinear weights for the backward."""
-    one = np.float32(1.0)
     for i in range(idx.shape[0]):
         p = idx[i]
-        y = min(max(uv[p, 0] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
-        xx = uv[p, 1] * np.float32(r)
-        y0 = min(math.floor(y), r - 2)
-        x0 = math.floor(xx)
-        fy, fx = y - np.float32(y0), xx - np.float32(x0)
-        ix0 = int(x0) % r
-        ix1 = (ix0 + 1) % r
-        base = obj[p] * (r * r) + int(y0) * r
-        corners[i, 0], corners[i, 1], corners[i, 2], corners[i, 3] = base + ix0, base + ix1, base + r + ix0, base + r + ix1
-        weights[i, 0], weights[i, 1] = (one - fx) * (one - fy), fx * (one - fy)
-        weights[i, 2], weights[i, 3] = (one - fx) * fy, fx * fy
-        for f in range(table.shape[1]):
-            acc = np.float32(0.0)
-            for c in range(4):
-                acc += weights[i, c] * table[corners[i, c], f]
-            x[i, col + f] = acc
+        (corners[i, 0], corners[i, 1], corners[i, 2], corners[i, 3],
+         weights[i, 0], weights[i, 1], weights[i, 2], weights[i, 3]) = corner_rows_2d(obj[p], uv[p, 0], uv[p, 1], r)
+        _gather_row(table, corners, weights, i, 4, x, col)
 
 
 @numba.njit(cache=True)
 def _lookup_1d(table, r, obj, s, idx, x, col, corners, weights):
-    """`_lookup_2d` for a `DenseGrid1D` (2 corners)."""
-    one = np.float32(1.0)
+    """`_lookup_2d` for a `DenseGrid1D` (`corner_rows_1d`, 2 corners)."""
     for i in range(idx.shape[0]):
         p = idx[i]
-        xs = min(max(s[p] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
-        x0 = min(math.floor(xs), r - 2)
-        f = xs - np.float32(x0)
-        corners[i, 0] = obj[p] * r + int(x0)
-        corners[i, 1] = corners[i, 0] + 1
-        weights[i, 0], weights[i, 1] = one - f, f
-        for k in range(table.shape[1]):
-            acc = np.float32(0.0)
-            for c in range(2):
-                acc += weights[i, c] * table[corners[i, c], k]
-            x[i, col + k] = acc
+        corners[i, 0], corners[i, 1], weights[i, 0], weights[i, 1] = corner_rows_1d(obj[p], s[p], r)
+        _gather_row(table, corners, weights, i, 2, x, col)
+
+
+@numba.njit(cache=True)
+def _gather_row(table, corners, weights, i, n_corners, x, col):
+    for f in range(table.shape[1]):
+        acc = np.float32(0.0)
+        for c in range(n_corners):
+            acc += weights[i, c] * table[corners[i, c], f]
+        x[i, col + f] = acc
 
 
 @numba.njit(cache=True)

@@ -44,34 +44,45 @@ def spherical_coords(v: Tensor) -> Tensor:
 
 
 @numba.njit(cache=True)
-def _corners_2d(obj, uv, r, corners, weights):
-    """Each query's 4 corner rows (top-left, top-right, bottom-left, bottom-right) and bilinear weights,
-    with `SphericalGrid2D`'s wrapping and clamping."""
+def corner_rows_2d(obj, u, v, r):
+    """One query's 4 table rows (top-left, top-right, bottom-left, bottom-right) and bilinear
+    weights in a `SphericalGrid2D` table: periodic in ``v``, clamped at the poles (float32)."""
     one = np.float32(1.0)
+    y = min(max(u * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
+    x = v * np.float32(r)
+    y0 = min(math.floor(y), r - 2)
+    x0 = math.floor(x)
+    fy, fx = y - np.float32(y0), x - np.float32(x0)
+    ix0 = int(x0) % r
+    ix1 = (ix0 + 1) % r
+    base = obj * (r * r) + int(y0) * r
+    return (base + ix0, base + ix1, base + r + ix0, base + r + ix1,
+            (one - fx) * (one - fy), fx * (one - fy), (one - fx) * fy, fx * fy)
+
+
+@numba.njit(cache=True)
+def corner_rows_1d(obj, s, r):
+    """One query's 2 table rows and linear weights in a clamped `DenseGrid1D` table (float32)."""
+    x = min(max(s * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
+    x0 = min(math.floor(x), r - 2)
+    f = x - np.float32(x0)
+    row = obj * r + int(x0)
+    return row, row + 1, np.float32(1.0) - f, f
+
+
+@numba.njit(cache=True)
+def _corners_2d(obj, uv, r, corners, weights):
+    """Every query's `corner_rows_2d`."""
     for i in range(obj.shape[0]):
-        y = min(max(uv[i, 0] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
-        x = uv[i, 1] * np.float32(r)
-        y0 = min(math.floor(y), r - 2)
-        x0 = math.floor(x)
-        fy, fx = y - np.float32(y0), x - np.float32(x0)
-        ix0 = int(x0) % r
-        ix1 = (ix0 + 1) % r
-        base = obj[i] * (r * r) + int(y0) * r
-        corners[i, 0], corners[i, 1], corners[i, 2], corners[i, 3] = base + ix0, base + ix1, base + r + ix0, base + r + ix1
-        weights[i, 0], weights[i, 1] = (one - fx) * (one - fy), fx * (one - fy)
-        weights[i, 2], weights[i, 3] = (one - fx) * fy, fx * fy
+        (corners[i, 0], corners[i, 1], corners[i, 2], corners[i, 3],
+         weights[i, 0], weights[i, 1], weights[i, 2], weights[i, 3]) = corner_rows_2d(obj[i], uv[i, 0], uv[i, 1], r)
 
 
 @numba.njit(cache=True)
 def _corners_1d(obj, s, r, corners, weights):
-    one = np.float32(1.0)
+    """Every query's `corner_rows_1d`."""
     for i in range(obj.shape[0]):
-        x = min(max(s[i] * np.float32(r - 1), np.float32(0.0)), np.float32(r - 1))
-        x0 = min(math.floor(x), r - 2)
-        f = x - np.float32(x0)
-        corners[i, 0] = obj[i] * r + int(x0)
-        corners[i, 1] = corners[i, 0] + 1
-        weights[i, 0], weights[i, 1] = one - f, f
+        corners[i, 0], corners[i, 1], weights[i, 0], weights[i, 1] = corner_rows_1d(obj[i], s[i], r)
 
 
 @numba.njit(cache=True)
