@@ -59,7 +59,7 @@ def test_dot_and_its_emulation_equal_the_bf16_products_summed_in_fp64():
     exact = (_bf16(x) @ _bf16(w)).numpy()
     emulated = _dot(x_pairs, w_pairs, True)
     native = _dot(x_pairs, w_pairs, False)  # vdpbf16ps where the CPU has it, else the emulation again
-    scale = np.abs(_bf16(x)[:, None] * _bf16(w)).sum(0).numpy()
+    scale = (_bf16(x)[:, None] * _bf16(w)).abs().sum(0).numpy()
     assert (np.abs(emulated - exact) <= 1e-6 * scale).all()  # fp32 accumulation of exact products
     assert (np.abs(native - exact) <= 1e-6 * scale).all()
     if HAS_AVX512_BF16:  # the instruction is reached (it differs from the emulation only in rounding)
@@ -78,5 +78,5 @@ def test_dot_rows_equals_the_bf16_product_for_each_row_and_width():
             dot_rows_bf16(xp, rows, n_pairs, wp, width, out)
             k = min(2 * n_pairs, 45)
             exact = (_bf16(x[rows, :k]) @ _bf16(w[:k])).numpy()
-            scale = (np.abs(_bf16(x[rows, :k])) @ np.abs(_bf16(w[:k]))).numpy()
+            scale = (_bf16(x[rows, :k]).abs() @ _bf16(w[:k]).abs()).numpy()
             assert (np.abs(out.reshape(4, width) - exact) <= 1e-6 * scale + 1e-30).all()
