@@ -9,14 +9,19 @@
 #       intersect / occluded rays/s against OptiX on the same rays. NBVH_ARGS are passed on.
 #   bash benchmarks/run_gpu.sh tests     # ~420 s: the cuda tests, then the N-BVH Triton tests compiled for the GPU
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
+#   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
+#       on statue(5) (4.8M triangles) and statue(6) (4x that, procedural: ../shared does not travel), one process
+#       each, each under its own timeout (bench_nif writes its JSON at the end). Not run yet: the times are limits.
 #
 # Why stages: one device call runs at most 600 s, and a session has 30 device-minutes; a fresh machine
 # takes 1-2 min to start and is given back 30 s after a call, so count each call as its run + 2 min:
-# nbvh 11.5 + tests 9 + devices 8 = 28.5 min. Every stage's timeouts add up to less than 600 s, and every
+# nbvh 11.5 + tests 9 + devices 8 = 28.5 min; `nif` (11.5) needs a second session, or replaces `devices`. Every stage's timeouts add up to less than 600 s, and every
 # benchmark writes its JSON after each section, so a stage cut short still returns what it measured.
 # Logs and JSON go to $OUT (default ./gpu-out), at most 8 files per call.
 set -uo pipefail
-STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices}
+STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices|nif}
+case "$STAGE" in nbvh|tests|devices|nif) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices or nif)" >&2; exit 2 ;; esac
+[ -d .gpu-deps ] || { echo "neuralrt: error: .gpu-deps missing: run bash ../shared/tools/gpu-bundle.sh .gpu-deps and carry it" >&2; exit 2; }
 OUT=${OUT:-gpu-out}; mkdir -p "$OUT"
 mkdir -p /tmp/site
 tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
@@ -40,8 +45,12 @@ devices)
     timeout "${BENCH_SECONDS:-330}" python3 benchmarks/bench_devices.py --device cuda --out "$OUT/devices_cuda.json" "$@" 2>&1 \
         | tee "$OUT/bench.log"
     ;;
-*)
-    echo "neuralrt: error: unknown stage $STAGE (nbvh, tests or devices)" >&2
-    exit 2
+nif)
+    for scene in cornell-statue:5 cornell-statue:6; do
+        name="nif_cuda_${scene/:/_}"
+        timeout 270 python3 benchmarks/bench_nif.py --device cuda --resolution 256 --spp 64 --train-spp 32 --repeats 2 \
+            --scenes "$scene" --name "$name" 2>&1 | tee -a "$OUT/nif.log"
+        cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no $name.json (cut short?)" | tee -a "$OUT/nif.log"
+    done
     ;;
 esac
