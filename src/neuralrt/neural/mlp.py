@@ -18,8 +18,12 @@ class MLP(nn.Module):
     """``in_features`` -> ``hidden_layers`` x ``hidden_width`` (leaky ReLU) -> ``out_features`` (linear).
 
     Parameters are fp32; ``generator`` seeds the Kaiming-uniform init (biases start at 0); the
-    global torch RNG is not used.
+    global torch RNG is not used. ``low_precision_training`` picks how bf16 hidden layers train:
+    ``"function"`` (one autograd function, `_LowPrecisionHidden`) or ``"autocast"`` (the same
+    values, bit for bit, with more work around the GEMMs; kept as its reference).
     """
+
+    low_precision_training = "function"
 
     def __init__(self, in_features: int, out_features: int, hidden_width: int = 128, hidden_layers: int = 2, slope: float = 0.01,
                  generator: torch.Generator | None = None):
@@ -44,10 +48,17 @@ class MLP(nn.Module):
             for w, b in self._cast_weights(compute_dtype):
                 x = F.leaky_relu(F.linear(x, w, b), self.slope)
             return self.output(x.float())
-        with torch.autocast(device_type=x.device.type, dtype=compute_dtype, enabled=compute_dtype != torch.float32):
-            for layer in self.hidden:
-                x = F.leaky_relu(layer(x), self.slope)
-        return self.output(x.float())
+        if compute_dtype != torch.float32 and self.low_precision_training == "autocast":
+            with torch.autocast(device_type=x.device.type, dtype=compute_dtype):
+                for layer in self.hidden:
+                    x = F.leaky_relu(layer(x), self.slope)
+            return self.output(x.float())
+        if compute_dtype != torch.float32:
+            weights = [p for layer in self.hidden for p in (layer.weight, layer.bias)]
+            return self.output(_LowPrecisionHidden.apply(x, compute_dtype, self.slope, *weights).float())
+        for layer in self.hidden:
+            x = F.leaky_relu(layer(x), self.slope)
+        return self.output(x)
 
     def _cast_weights(self, dtype: torch.dtype) -> list[tuple[Tensor, Tensor]]:
         # Keyed on each parameter's storage and version counter: any update (optimizer step,
@@ -57,3 +68,37 @@ class MLP(nn.Module):
             self._cast = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype)) for layer in self.hidden]
             self._cast_key = key
         return self._cast
+
+
+class _LowPrecisionHidden(torch.autograd.Function):
+    """The hidden layers in ``dtype`` for training, as autocast computes them (same casts, GEMMs and
+    sums, bit-equal), with less around them: each weight cast once for forward and backward, the
+    activation applied in place, and the backward's slope mask taken from the layer outputs
+    (output > 0 exactly where the pre-activation is, for slope >= 0), so no pre-activations are kept."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, dtype: torch.dtype, slope: float, *weights: Tensor) -> Tensor:
+        h = x.to(dtype)
+        saved = [h]
+        cast = []
+        for w, b in zip(weights[::2], weights[1::2]):
+            wc = w.to(dtype)
+            h = F.leaky_relu_(torch.addmm(b.to(dtype), h, wc.t()), slope)
+            saved.append(h)
+            cast.append(wc)
+        ctx.save_for_backward(*saved, *cast)
+        ctx.slope, ctx.layers, ctx.x_dtype = slope, len(cast), x.dtype
+        return h
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        tensors = ctx.saved_tensors
+        acts, cast = tensors[: ctx.layers + 1], tensors[ctx.layers + 1:]
+        g = grad.to(acts[-1].dtype)
+        grads = []
+        for i in reversed(range(ctx.layers)):
+            g = torch.ops.aten.leaky_relu_backward(g, acts[i + 1], ctx.slope, True)
+            grads.append((g.sum(0).float(), (g.t() @ acts[i]).float()))
+            g = g @ cast[i] if i > 0 or ctx.needs_input_grad[0] else None
+        flat = [t for gb, gw in reversed(grads) for t in (gw, gb)]
+        return (g.to(ctx.x_dtype) if g is not None else None), None, None, *flat
