@@ -209,7 +209,7 @@ def run_scene(scene: str, work: Path, args) -> dict:
     return row
 
 
-SCENE_WIDE = ("scene", "res", "spp", "scene_sha256", "exact_s", "flip_floor", "objects", "unique", "triangles", "bvh_a_bytes",
+SCENE_WIDE = ("scene", "settings", "res", "spp", "scene_sha256", "exact_s", "flip_floor", "objects", "unique", "triangles", "bvh_a_bytes",
               "bvh_b_bytes", "load_average_1min_at_end", "wall_s", "later_runs")
 
 
@@ -284,7 +284,12 @@ def main() -> None:
     path = RESULTS_DIR / f"{args.name}.json"
     import json
 
-    rows = json.loads(path.read_text())["rows"] if path.exists() else []
+    previous = json.loads(path.read_text()) if path.exists() else {}
+    rows = previous.get("rows", [])
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    # Rows carry the settings they were measured with; the file's earlier run-level settings are kept
+    # (files from before per-row settings describe only their last run there).
+    earlier = previous.get("earlier_settings", []) + ([previous["settings"]] if previous.get("settings") else [])
     for scene in args.scenes:
         if scene == "shared":
             path = shared_scene(args.work)
@@ -295,8 +300,9 @@ def main() -> None:
         start = time.perf_counter()
         row = run_scene(scene, args.work, args)
         row["wall_s"] = time.perf_counter() - start
+        row["settings"] = settings
         rows = merge_row(rows, row, scene)
-        path = write_results(args.name, rows, {"settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}})
+        path = write_results(args.name, rows, {"settings": settings, "earlier_settings": earlier})
         print_table([row], [k for k in row if k.startswith(("flip", "neural_", "time_"))])
     labels = [variant_label(v) for v in args.variants] + [f"decimate_{variant_label(v)}" for v in args.decimate or []]
     columns = ["scene", "objects", "unique", "triangles", "bvh_a_bytes", "bvh_b_bytes", "exact_s", "flip_floor"]
