@@ -151,7 +151,6 @@ def _fused_kernel(
         reads = np.empty(_GROUP * max_points * n_levels, np.int64)  # 4 (face) or 8 (origin) per entry
         xs = np.empty((_GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
         acc = np.empty(width, np.float32)
-        acc_bits = acc.view(np.uint32)
         n_pairs = (max_points * block + 1) // 2
         xp = np.zeros((_GROUP, n_pairs), np.uint32)  # the inputs as bf16 pairs (pairs path)
         order = np.empty(_GROUP, np.int64)  # the group's rays with points, most points first
@@ -219,9 +218,8 @@ def _fused_kernel(
                     acc[j] = y if y >= 0 else y * slope
                 n = start + g
                 if to_bf16:
-                    for j in range(width):  # round to nearest even, as torch's float -> bf16
-                        bits = acc_bits[j]
-                        hidden_bf16[n, j] = np.uint16((bits + np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+                    for j in range(width):
+                        hidden_bf16[n, j] = np.uint16(bf16_bits(acc[j]))
                 else:
                     for j in range(width):
                         hidden_f32[n, j] = acc[j]
