@@ -43,13 +43,12 @@ _WARPS = _BLOCK // 32  # one candidate per thread
 _MAX_ROUNDS = 1 << 16  # per program: 4M candidates; only a cut that (almost) no ray can be kept from reaches it
 _TWO_PI = tl.constexpr(2 * math.pi)
 _INF = tl.constexpr(float("inf"))
-_NO_LEVELS = 7  # LoDs 0..6
 
 
 @triton.jit
-def _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base, dil_jitter):
+def _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base, dil_jitter, LEVELS: tl.constexpr):
     """Candidate rays for the Philox counters [B] (int64): origin, unit direction, level, dilation,
-    and the uniform number that decides acceptance."""
+    and the uniform number that decides acceptance. ``reg_ptr``: the model's LEVELS registered flags."""
     a0, a1, a2, a3 = tl.randint4x(seed, counter)
     b0, b1, b2, b3 = tl.randint4x(seed, counter + 1)
     ox = cx + (tl.random.uint_to_uniform_float(a0) - 0.5) * ex
@@ -63,14 +62,14 @@ def _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base, dil_ji
     dy = r * tl.sin(phi)
     # The level: uniform among the registered LoDs (ascending), then -1 (the live cut) while LoD 0 is missing.
     count = tl.load(reg_ptr).to(tl.int32) * 0
-    for lvl in tl.static_range(7):
+    for lvl in tl.static_range(LEVELS):
         count += tl.load(reg_ptr + lvl).to(tl.int32)
     live_too = 1 - tl.load(reg_ptr).to(tl.int32)
     choices = count + live_too
     pick = tl.minimum((tl.random.uint_to_uniform_float(b1) * choices.to(tl.float32)).to(tl.int32), choices - 1)
     level = tl.zeros_like(pick) - 1
     seen = tl.zeros_like(pick)
-    for lvl in tl.static_range(7):
+    for lvl in tl.static_range(LEVELS):
         on = tl.load(reg_ptr + lvl).to(tl.int32)
         level = tl.where((on != 0) & (seen == pick), lvl, level)
         seen += on
@@ -117,7 +116,7 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
                    loss_sum_ptr, samples_ptr, alive_ptr, h_max_ptr, min_acceptance,
                    start_out, dir_out, length_out, node_out, code_out, rounds_out, flag_ptr, stack_ptr, stack_f_ptr,
                    n, quota, seed, call_base, max_rounds,
-                   STACK: tl.constexpr, BLOCK: tl.constexpr):  # fmt: skip
+                   STACK: tl.constexpr, BLOCK: tl.constexpr, LEVELS: tl.constexpr):  # fmt: skip
     pid = tl.program_id(0)
     lanes = tl.arange(0, BLOCK)
     first = pid * quota
@@ -137,7 +136,8 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
         # Two Philox counters per candidate: (program, round, lane) below 2^40, above them the call.
         cand = (pid.to(tl.int64) * max_rounds + r) * BLOCK + lanes
         counter = call_base + 2 * cand
-        ox, oy, oz, dx, dy, dz, lvl, dil, u_keep = _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base, dil_jitter)
+        ox, oy, oz, dx, dy, dz, lvl, dil, u_keep = _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base,
+                                                               dil_jitter, LEVELS)  # fmt: skip
         ix, iy, iz = tl.math.div_rn(1.0, dx), tl.math.div_rn(1.0, dy), tl.math.div_rn(1.0, dz)  # IEEE, as torch's 1 / d
         node, t0, t1, over = first_leaf_walk(ox, oy, oz, ix, iy, iz, tmax, lvl, dil, ok, lo_ptr, hi_ptr, children_ptr, lod_ptr,
                                              live_ptr, stack_node, stack_t0, stack_t1, STACK)  # fmt: skip
@@ -169,13 +169,13 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
 
 @triton.jit
 def _candidates_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jitter, origin_out, dir_out, level_out, dil_out,
-                       u_out, n, seed, call_base, BLOCK: tl.constexpr):  # fmt: skip
+                       u_out, n, seed, call_base, BLOCK: tl.constexpr, LEVELS: tl.constexpr):  # fmt: skip
     i = (tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)).to(tl.int64)
     ok = i < n
     cx, cy, cz = tl.load(center_ptr), tl.load(center_ptr + 1), tl.load(center_ptr + 2)
     ex, ey, ez = tl.load(extent_ptr) * box_scale, tl.load(extent_ptr + 1) * box_scale, tl.load(extent_ptr + 2) * box_scale
     ox, oy, oz, dx, dy, dz, lvl, dil, u = _candidates(seed, call_base + 2 * i, cx, cy, cz, ex, ey, ez, reg_ptr,
-                                                      dil_base, dil_jitter)  # fmt: skip
+                                                      dil_base, dil_jitter, LEVELS)  # fmt: skip
     for axis in tl.static_range(3):
         if axis == 0:
             o, d = ox, dx
@@ -209,10 +209,6 @@ class LeafChords:
     def __init__(self, start, direction, length, node, code, rounds, flag, block):
         self.start, self.direction, self.length, self.node, self.code = start, direction, length, node, code
         self.rounds, self.flag, self.block = rounds, flag, block
-
-    def candidates(self) -> Tensor:
-        """Candidate rays drawn (a device scalar): ``n / candidates`` is the yield."""
-        return self.rounds.sum() * self.block
 
 
 def _level_flags(model) -> Tensor:
@@ -252,7 +248,8 @@ def sample_leaf_chords_triton(model, n: int, seed: int, call: int, stack_depth: 
         model.node_lo, model.node_hi, model.node_children, model.node_lod, model.live.view(torch.int8),
         model.loss_sum, model.samples, model.alive_steps, model.h_max, float(tc.min_acceptance),
         start, direction, length, node, code, rounds, flag, scratch, scratch.view(torch.float32),
-        n, quota, int(seed), _call_base(call), int(max_rounds), STACK=stack, BLOCK=_BLOCK, num_warps=_WARPS,
+        n, quota, int(seed), _call_base(call), int(max_rounds), STACK=stack, BLOCK=_BLOCK, LEVELS=model.registered.numel(),
+        num_warps=_WARPS,
     )  # fmt: skip
     return LeafChords(start, direction, length, node, code, rounds, flag, _BLOCK)
 
@@ -269,6 +266,7 @@ def draw_candidates_triton(model, n: int, seed: int, call: int) -> tuple[Tensor,
         _candidates_kernel[(triton.cdiv(n, block),)](
             model.unit_center.float().contiguous(), model.unit_extent.float().contiguous(), _level_flags(model),
             float(tc.origin_box_scale), float(tc.dilation), float(tc.dilation_jitter), origin, direction, level, dil, u,
-            n, int(seed), _call_base(call), BLOCK=block, num_warps=max(1, block // 32) if dev.type != "cpu" else 1,
+            n, int(seed), _call_base(call), BLOCK=block, LEVELS=model.registered.numel(),
+            num_warps=max(1, block // 32) if dev.type != "cpu" else 1,
         )  # fmt: skip
     return origin, direction, level, dil, u
