@@ -455,7 +455,7 @@ KERNELS = {  # (module, kernel, signature, constexprs) for --compile-only
     "step input (bf16)": ("neuralrt.methods.nbvh_wavefront_triton", "_step_input_kernel", "step_in", dict(L=8, F=4, FP=4, BLOCK=64)),
     "step decode": ("neuralrt.methods.nbvh_wavefront_triton", "_step_decode_kernel", "step_out",
                     dict(OUTPUTS=8, OP=8, ANY_HIT=False, BLOCK=64)),
-    "training sampler": ("neuralrt.methods.nbvh_rays_triton", "_sample_kernel", "sample", {"STACK": 40, "BLOCK": 64}),
+    "training sampler": ("neuralrt.methods.nbvh_rays_triton", "_sample_kernel", "sample", {"STACK": 40, "BLOCK": 64, "LEVELS": 7}),
 }
 _RAYS_CUT = dict(o_ptr="*fp32", inv_ptr="*fp32", tmax_ptr="*fp32", level_ptr="*i8", dil_ptr="*fp32", lo_ptr="*fp32", hi_ptr="*fp32",
                  children_ptr="*i32", lod_ptr="*i8", live_ptr="*i8")  # fmt: skip
