@@ -131,7 +131,8 @@ class NumbaNIFStep:
         self.slope = float(mlp.slope)
         self.grids = grids
         self.lr, (self.b1, self.b2), self.eps = float(lr), (float(betas[0]), float(betas[1])), float(eps)
-        self.mlp_state = [(p, torch.zeros_like(p), torch.zeros_like(p)) for layer in self.layers for p in (layer.weight, layer.bias)]
+        # per layer: Adam's moments of its weight and of its bias
+        self.mlp_moments = [tuple((torch.zeros_like(p), torch.zeros_like(p)) for p in (layer.weight, layer.bias)) for layer in self.layers]
         # per grid: moments and the lazy update's scratch (all zero / False between steps)
         self.grid_state = [(torch.zeros_like(g.table), torch.zeros_like(g.table), torch.zeros_like(g.table),
                             torch.zeros(g.table.shape[0], dtype=torch.bool)) for g in grids]
@@ -178,8 +179,7 @@ class NumbaNIFStep:
             grad_in = torch.mm(grad, layer.weight)  # before the weight moves
             if k > 0:
                 _leaky_relu_backward_(grad_in.numpy(), a.numpy(), self.slope)
-            for p, gp in ((layer.weight, g_w), (layer.bias, g_b)):
-                _, m, v = self.mlp_state[2 * k + (p is layer.bias)]
+            for p, gp, (m, v) in zip((layer.weight, layer.bias), (g_w, g_b), self.mlp_moments[k]):
                 _adam_(p.detach().view(-1).numpy(), gp.reshape(-1).numpy(), m.view(-1).numpy(), v.view(-1).numpy(),
                        self.lr, self.b1, self.b2, self.eps, bias1, bias2)
             grad = grad_in
