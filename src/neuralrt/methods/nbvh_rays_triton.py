@@ -92,6 +92,14 @@ def _acceptance(node, found, loss_sum_ptr, samples_ptr, alive_ptr, h_max, min_ac
 
 
 @triton.jit
+def _store_xyz(ptr, i, x, y, z, mask):
+    """Rows ``i`` [B] of a [n, 3] float32 array set to (x, y, z)."""
+    tl.store(ptr + i * 3, x, mask=mask)
+    tl.store(ptr + i * 3 + 1, y, mask=mask)
+    tl.store(ptr + i * 3 + 2, z, mask=mask)
+
+
+@triton.jit
 def _spread10(v):
     """The low 10 bits of v [B] (int32) moved to bits 0, 3, 6, ... (Morton interleave)."""
     v = (v | (v << 16)) & 0x030000FF
@@ -150,12 +158,8 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
         slot = (first + pos).to(tl.int64)
         sx, sy, sz = ox + t0 * dx, oy + t0 * dy, oz + t0 * dz
         length = t1 - t0
-        tl.store(start_out + slot * 3, sx, mask=write)
-        tl.store(start_out + slot * 3 + 1, sy, mask=write)
-        tl.store(start_out + slot * 3 + 2, sz, mask=write)
-        tl.store(dir_out + slot * 3, dx, mask=write)
-        tl.store(dir_out + slot * 3 + 1, dy, mask=write)
-        tl.store(dir_out + slot * 3 + 2, dz, mask=write)
+        _store_xyz(start_out, slot, sx, sy, sz, write)
+        _store_xyz(dir_out, slot, dx, dy, dz, write)
         tl.store(length_out + slot, length, mask=write)
         tl.store(node_out + slot, node.to(tl.int64), mask=write)
         half = 0.5 * length
@@ -176,15 +180,8 @@ def _candidates_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil
     ex, ey, ez = tl.load(extent_ptr) * box_scale, tl.load(extent_ptr + 1) * box_scale, tl.load(extent_ptr + 2) * box_scale
     ox, oy, oz, dx, dy, dz, lvl, dil, u = _candidates(seed, call_base + 2 * i, cx, cy, cz, ex, ey, ez, reg_ptr,
                                                       dil_base, dil_jitter, LEVELS)  # fmt: skip
-    for axis in tl.static_range(3):
-        if axis == 0:
-            o, d = ox, dx
-        elif axis == 1:
-            o, d = oy, dy
-        else:
-            o, d = oz, dz
-        tl.store(origin_out + i * 3 + axis, o, mask=ok)
-        tl.store(dir_out + i * 3 + axis, d, mask=ok)
+    _store_xyz(origin_out, i, ox, oy, oz, ok)
+    _store_xyz(dir_out, i, dx, dy, dz, ok)
     tl.store(level_out + i, lvl.to(tl.int8), mask=ok)
     tl.store(dil_out + i, dil, mask=ok)
     tl.store(u_out + i, u, mask=ok)
