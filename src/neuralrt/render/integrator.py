@@ -19,8 +19,9 @@ Secondary rays start at the hit point moved along the face-forwarded geometric n
 instance's `Scene.instance_offsets` (its BLAS ``secondary_offset`` scaled to world); shadow rays
 stop short of their light point by a relative ``1e-3`` of its distance. The integrator only calls
 ``scene.accel.intersect`` / ``occluded``: it never knows which kind of BLAS answered.
-Randomness comes from one torch generator per wavefront seeded from (``seed``, wavefront index),
-so a given seed and settings give the same image; each bounce draws one row of 8 uniforms per
+Randomness comes from one stream per wavefront seeded from (``seed``, wavefront index): a torch
+generator's, drawn by torch or, with the numba stages, the same numbers by a numba pass
+(`rng`), so a given seed and settings give the same image; each bounce draws one row of 8 uniforms per
 sample of the wavefront, so a path's random numbers do not depend on the other paths.
 """
 
@@ -34,7 +35,6 @@ from torch import Tensor
 
 from ..rays import resolve_device
 from .film import Film, RenderResult
-from .sampling import make_generator, uniform
 from .shading_stages import PathState, WavefrontFilm, shading_stages_for
 
 __all__ = ["render", "IntegratorSettings", "PathTracer"]
@@ -65,12 +65,12 @@ class PathTracer:
         self.settings = settings
         self.stages = shading_stages_for(scene, settings, settings.shading)
 
-    def generate_camera_rays(self, pixel: Tensor, g: torch.Generator) -> PathState:
-        return self.stages.camera_paths(pixel, uniform((pixel.numel(), 2), g, pixel.device))
+    def generate_camera_rays(self, pixel: Tensor, g) -> PathState:
+        return self.stages.camera_paths(pixel, g.uniform((pixel.numel(), 2)))
 
-    def trace(self, pixel: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def trace(self, pixel: Tensor, g) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Radiance, albedo, normal [n, 3], depth [n] and camera-ray hit [n] bool for one sample
-        through each entry of ``pixel`` [n]."""
+        through each entry of ``pixel`` [n], drawing from ``g`` (the stages' ``uniforms(seed)``)."""
         n, dev = pixel.numel(), pixel.device
         film = WavefrontFilm.zeros(n, dev)
         paths = self.generate_camera_rays(pixel, g)
@@ -82,7 +82,7 @@ class PathTracer:
             if bounce < self.settings.max_depth and bool(hits.hit.any()):
                 # One row of uniforms per sample of the wavefront, looked up by the path's sample: a
                 # path's random numbers do not depend on which other paths are still alive.
-                u = uniform((n, 8), g, dev)
+                u = g.uniform((n, 8))
             shadow, paths = self.stages.shade(paths, hits, u, bounce, film)
             if shadow is not None:
                 blocked = self.scene.accel.occluded(shadow.rays)  # NEE shadow rays: the one visibility query
@@ -151,7 +151,7 @@ def render(
             k = min(per_pass, spp - done)
             samples = torch.arange(n_pixels, device=dev).repeat(k)  # pixel index of each path
             for lo in range(0, samples.numel(), chunk):
-                g = make_generator(seed * 1_000_003 + wavefront, dev)
+                g = tracer.stages.uniforms(seed * 1_000_003 + wavefront)
                 wavefront += 1
                 pixel = samples[lo:lo + chunk]
                 film.add(pixel, *tracer.trace(pixel, g))

@@ -8,6 +8,8 @@ chunks of rows on numba's thread count (they release the GIL); the result does n
 
 The contract, for the live paths of a wavefront and their closest hits:
 
+- ``uniforms(seed)``: the random stream of one wavefront (``.uniform(shape)`` float32 tensors); both
+  implementations give the same numbers (`rng`).
 - ``camera_paths(pixel, jitter)``: paths starting with the camera rays through pixels ``pixel``
   [n] (row-major) at offsets ``jitter`` [n, 2] (`Camera.generate_rays`), sample ``k`` in row k.
 - ``shade(paths, hits, u, bounce, film)``: adds escaped radiance (environment, MIS) and emission
@@ -35,6 +37,7 @@ from torch import Tensor
 from ..rays import Hits, Rays
 from .lights import LightSet
 from .materials import MaterialTable
+from .rng import NumbaUniforms, TorchUniforms
 from .sampling import power_heuristic
 
 __all__ = ["PathState", "ShadowQueries", "WavefrontFilm", "TorchShadingStages", "NumbaShadingStages", "shading_stages_for",
@@ -118,6 +121,9 @@ class TorchShadingStages:
         self.materials: MaterialTable = scene.materials
         self.lights: LightSet = scene.lights
         self._has_emitters = bool(self.materials.emissive_mask.any())
+
+    def uniforms(self, seed: int) -> TorchUniforms:
+        return TorchUniforms(seed, self.scene.device)
 
     def camera_paths(self, pixel: Tensor, jitter: Tensor) -> PathState:
         n, dev = pixel.numel(), pixel.device
@@ -296,6 +302,9 @@ class NumbaShadingStages:
         self.has_area = scene.lights.area is not None
         self.has_lights = bool(scene.lights)
         self.camera = scene.camera
+
+    def uniforms(self, seed: int) -> NumbaUniforms:
+        return NumbaUniforms(seed)
 
     def camera_paths(self, pixel: Tensor, jitter: Tensor) -> PathState:
         n, cam = pixel.numel(), self.camera
