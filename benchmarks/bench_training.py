@@ -1,16 +1,17 @@
-"""LSNIF training throughput on the CPU: today's step against the step before the last CPU speed-up,
+"""LSNIF training throughput on the CPU: today's step against the step before a CPU speed-up,
 alternating in one run.
 
-    python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq] [--previous]
-        [--name training_cpu_mlp]
+    python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
+        [--pair step|mlp|previous] [--name training_cpu_step]
 
-Configurations (both draw the next batch on a background thread, the default):
-- ``before``: the bf16 hidden layers trained under ``torch.autocast`` (``MLP.low_precision_training
-  = "autocast"``);
-- ``after``: the same layers as one autograd function (``"function"``: weights cast once, activation
-  in place, backward mask from the outputs; bit-equal values).
-(The earlier pair, per-thread gradient tables and the torch selection against row ranges and the
-numba selection, is in both today's; ``--previous`` measures that pair again.)
+Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
+- ``step`` (default): ``before`` computes the loss with torch ops (`lsnif_loss.training_loss_torch`),
+  ``after`` with the one numba pass (`training_loss_numba`: terms, figures and gradient together);
+- ``mlp``: ``before`` trains the bf16 hidden layers under ``torch.autocast``
+  (``MLP.low_precision_training = "autocast"``), ``after`` as one autograd function (bit-equal);
+- ``previous``: per-thread gradient tables and the torch selection against row ranges and the
+  numba selection.
+The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
 compilation); rays/s is rays drawn / wall time of the whole loop; ``paired`` ratios are each
@@ -42,6 +43,7 @@ from neuralrt.geometry.mesh import load_mesh  # noqa: E402
 from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_features import select_network_rays, select_network_rays_torch  # noqa: E402
+from neuralrt.methods.lsnif_loss import training_loss, training_loss_torch  # noqa: E402
 from neuralrt.training.trainer import train_model  # noqa: E402
 
 # Stages of a step as cProfile names them (cumulative seconds of these functions).
@@ -57,22 +59,27 @@ _STAGES = {
     "select network rays": "lsnif_features.py:select_network_rays_numba",
     "select network rays (torch)": "lsnif_features.py:select_network_rays_torch",
     "optimizer (fused Adam)": "adam.py:step",
+    "loss (torch ops, forward)": "lsnif_loss.py:training_loss_torch",
+    "loss (numba pass, forward)": "lsnif_loss.py:training_loss_numba",
 }
 
 
 CONFIGS = ("before", "after")
 
 
-PREVIOUS = False  # --previous: the earlier pair (scatter and selection) instead of the MLP pair
+PAIR = "step"  # --pair
 
 
 def _configure(model: LSNIFModel, config: str) -> None:
     """Switch the model's CPU training step to one configuration (see the module docstring)."""
-    if PREVIOUS:
-        model.encoder.backward_scatter = "thread_tables" if config == "before" else "row_ranges"
-        lsnif_module.select_network_rays = select_network_rays_torch if config == "before" else select_network_rays
+    before = config == "before"
+    if PAIR == "previous":
+        model.encoder.backward_scatter = "thread_tables" if before else "row_ranges"
+        lsnif_module.select_network_rays = select_network_rays_torch if before else select_network_rays
+    elif PAIR == "mlp":
+        model.network.low_precision_training = "autocast" if before else "function"
     else:
-        model.network.low_precision_training = "autocast" if config == "before" else "function"
+        lsnif_module.training_loss = training_loss_torch if before else training_loss
 
 
 def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:
@@ -107,11 +114,11 @@ def main() -> None:
     ap.add_argument("--preset", default="hq")
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--name", default="training_cpu_mlp")
-    ap.add_argument("--previous", action="store_true", help="measure the earlier scatter/selection pair instead")
+    ap.add_argument("--name", default="training_cpu_step")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
-    global PREVIOUS
-    PREVIOUS = args.previous
+    global PAIR
+    PAIR = args.pair
     mesh = load_mesh(args.mesh)
     truth = MeshBLAS(mesh)
     config = LSNIFConfig.preset(args.preset)
@@ -132,7 +139,7 @@ def main() -> None:
     # Each "after" run against the "before" run just before it (same load, as near as we can get).
     paired = [b["rays_per_s"] / a["rays_per_s"] for a, b in zip(rows[::2], rows[1::2])]
     summary = {
-        "mesh": Path(args.mesh).name, "triangles": int(len(mesh.faces)), "preset": args.preset,
+        "mesh": Path(args.mesh).name, "triangles": int(len(mesh.faces)), "preset": args.preset, "pair": args.pair,
         "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
         "load_1min_before_after": [round(load_before, 2), round(load_after, 2)],
         "best_rays_per_s": best, "after_over_before_best": round(best["after"] / best["before"], 3),

@@ -33,10 +33,11 @@ from ..geometry.mesh import Mesh
 from ..geometry.voxelize import pack_occupancy, unpack_occupancy, voxelize_triangles
 from ..neural.mlp import MLP
 from ..neural.sparse_hash_grid import SparseHashGrid
-from ..rays import AABB, Hits, Rays, face_forward
+from ..rays import AABB, Hits, Rays
 from ..training.step import StepResult
 from .base import NeuralBLAS, material_table
 from .lsnif_config import LSNIFConfig
+from .lsnif_loss import training_loss
 from .lsnif_features import RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays, unit_box_rays
 
 __all__ = ["LSNIFConfig", "LSNIFModel", "LSNIFBLAS", "METHOD"]
@@ -178,39 +179,12 @@ class LSNIFModel(NeuralBLAS):
         """Loss of one batch against exact hits (paper Sec. 5.3); certain misses are skipped."""
         n = len(rays)
         prep = self._prepare(rays)
-        fp, act = prep.features, prep.active
+        fp = prep.features
         out = self._raw_outputs(prep, self.compute_dtype(training=True))
-        hit = truth.hit[act]
-        w = self.config.loss
-        occ_loss = F.binary_cross_entropy_with_logits(out[:, _OCC], hit.float()) if len(act) else out.sum() * 0
-        loss = w.occlusion * occ_loss
-        parts = {"occlusion": occ_loss}  # loss terms, read back to the host once, below
-        # Rows of the active rays that hit (one device sync here, instead of one per masked tensor).
-        hit_rows = torch.nonzero(hit).squeeze(1)
-        if len(hit_rows):
-            ray_rows = act[hit_rows]  # the same rays as rows of the batch
-            o = out[hit_rows]
-            t_enter, t_exit = fp.t_enter[hit_rows], fp.t_exit[hit_rows]
-            t_local = (truth.t[ray_rows] - prep.t_offset[hit_rows] - t_enter) / torch.clamp(t_exit - t_enter, min=1e-12)
-            dist_loss = (torch.sigmoid(o[:, _DIST]) - t_local.clamp(0, 1)).abs().mean()
-            n_true = face_forward(truth.normal[ray_rows], rays.directions[ray_rows])
-            normal_loss = (1 - F.cosine_similarity(o[:, _NORMAL], n_true, dim=-1, eps=1e-8)).mean()
-            albedo = torch.sigmoid(o[:, _ALBEDO])
-            albedo_loss = ((albedo - truth.albedo[ray_rows]) ** 2 / (albedo.detach() ** 2 + 1e-2)).mean()
-            loss = loss + w.distance * dist_loss + w.normal * normal_loss + w.albedo * albedo_loss
-            parts.update(distance=dist_loss, normal=normal_loss, albedo=albedo_loss)
-            if self.num_materials > 1:
-                mat_loss = F.cross_entropy(o[:, _MAT:], truth.material_id[ray_rows].clamp(0, self.num_materials - 1))
-                loss = loss + w.material * mat_loss
-                parts["material"] = mat_loss
-        with torch.no_grad():
-            predicted = out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)
-            # Certain misses are right unless the exact tracer hit there (impossible with exact voxels).
-            counts = torch.stack([(predicted != hit).sum(), truth.hit.sum() - hit.sum(), prep.truncated]).tolist()
-            values = torch.stack([v.detach().float() for v in parts.values()]).tolist()  # one device->host copy each
-        wrong_net, missed_outside, truncated = counts
-        parts = dict(zip(parts, values))
-        return StepResult(loss, parts, n - wrong_net - missed_outside, n, len(act), {"truncated": truncated})
+        terms = training_loss(out, prep.active, prep.t_offset, fp.t_enter, fp.t_exit, rays.directions, truth, self.config.loss,
+                              self.num_materials, _logit(self.config.inference.occlusion_threshold), prep.truncated)  # fmt: skip
+        correct = n - terms.wrong_network - terms.missed_outside
+        return StepResult(terms.loss, terms.parts, correct, n, len(prep.active), {"truncated": terms.truncated})
 
     # -- inference ---------------------------------------------------------------------------------
     def _intersect_chunk(self, rays: Rays) -> Hits:
