@@ -4,7 +4,9 @@ For each mesh and preset, one untrained model on the mesh's real occupancy (the 
 depend on the weights; the hash table is filled with random values so no feature is 0) answers
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
-layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products) and through the unfused path
+layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
+decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass), with
+``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
 inference precision, and the fused kernel's own time (walk + encoding + first layer). Best of
@@ -38,7 +40,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -64,6 +66,16 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         finally:
             lsnif_fused_cpu.BF16_DOT_FIRST_LAYER = True
 
+    def fused_torch_decode_intersect():  # the fused pass, decoded by torch ops (before the numba decoding)
+        lsnif_fused_cpu.WRITE_HITS = False
+        try:
+            model.intersect(rays)
+        finally:
+            lsnif_fused_cpu.WRITE_HITS = True
+
+    def fused_occluded():
+        model.occluded(rays)
+
     def unfused_intersect():
         model._network_answers = model._network_answers_unfused  # the instance attribute wins over the method
         try:
@@ -86,12 +98,17 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         with torch.no_grad():
             model.network(x, dtype)
 
-    for fn in (fused_intersect, fused_fp32_first_layer_intersect, unfused_intersect, mlp_only):  # compile / warm caches
+    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_occluded,
+               unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "fused": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}
+    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
+             "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
+        times["embree_occluded"].append(seconds(lambda: exact.occluded(rays)))
         times["fused"].append(seconds(fused_intersect))
+        times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
+        times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
         times["unfused"].append(seconds(unfused_intersect))
         times["fused_network"].append(seconds(kernel_and_gemms))
@@ -100,7 +117,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "fused", "fused_fp32_l1", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -115,12 +132,16 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "fused_network_Mrays/s": rate["fused_network"] / 1e6,
         "mlp_only_Mrows/s": mlp_rate / 1e6,
         "fused_vs_embree": rate["fused"] / rate["embree"],
+        "occluded_vs_embree": rate["occluded"] / rate["embree_occluded"],
+        # the numba decoding pass (with the output layer) over the torch decoding of the raw outputs
+        "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],
         "fused_vs_unfused": rate["fused"] / rate["unfused"],
         # the same fused pass with the fp32 per-ray first layer (before the bf16 dot products)
         "fused_fp32_l1_vs_embree": rate["fused_fp32_l1"] / rate["embree"],
         "bf16_l1_gain": rate["fused"] / rate["fused_fp32_l1"],
-        # share of intersect spent in the fused kernel + the GEMMs (the rest: ray mapping, decoding, scatter)
+        # share of intersect in fused_network_outputs_cpu (kernel + GEMMs + torch output layer; the
+        # intersect path now runs the output layer in its decoding pass instead)
         "kernel_share": best["fused_network"] / best["fused"],
         # network rays/s of the whole pipeline over the MLP alone (as bench_lsnif.py)
         "fraction_of_mlp_limit": rate["fused"] * network_fraction / mlp_rate,

@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from neuralrt.neural.bf16_dot import (
-    HAS_AVX512_BF16, bf16_bits, bf16_pairs, dot_bf16_pairs, dot_bf16_pairs_emulated, dot_rows_bf16, store16, zeros16,
+    HAS_AVX512_BF16, bf16_bits, bf16_pairs, bf16_value, dot_bf16_pairs, dot_bf16_pairs_emulated, dot_rows_bf16, fma16,
+    fma_f32, load16, store16, zeros16,
 )  # fmt: skip
 
 
@@ -80,3 +81,33 @@ def test_dot_rows_equals_the_bf16_product_for_each_row_and_width():
             exact = (_bf16(x[rows, :k]) @ _bf16(w[:k])).numpy()
             scale = (_bf16(x[rows, :k]).abs() @ _bf16(w[:k]).abs()).numpy()
             assert (np.abs(out.reshape(4, width) - exact) <= 1e-6 * scale + 1e-30).all()
+
+
+@numba.njit
+def _fmas(a, b, c, bits):
+    scalar = np.empty(a.shape[0], np.float32)
+    for i in range(a.shape[0]):
+        scalar[i] = fma_f32(a[i], b[i], c[i])
+    vector = np.empty(a.shape[0], np.float32)  # lane j: c[j] + a[0] * b[j], 16 at a time
+    for s in range(0, a.shape[0], 16):
+        v = fma16(load16(c, s), a[0], b, s)
+        store16(vector, s, v)
+    values = np.empty(bits.shape[0], np.float32)
+    for i in range(bits.shape[0]):
+        values[i] = bf16_value(bits[i])
+    return scalar, vector, values
+
+
+def test_fma_and_bf16_value_helpers():
+    """fma_f32 / fma16 round once (exactly the fp64 product-sum rounded, when that is exact);
+    bf16_value is torch's bf16 -> fp32."""
+    rng = np.random.default_rng(4)
+    a, b = (rng.integers(-2**11, 2**11, 64) / 2**6).astype(np.float32), (rng.integers(-2**11, 2**11, 64) / 2**7).astype(np.float32)
+    c = rng.standard_normal(64).astype(np.float32)
+    bits = rng.integers(0, 2**16, 4096).astype(np.uint16)
+    bits = bits[(bits & 0x7F80) != 0x7F80]  # finite values
+    scalar, vector, values = _fmas(a, b, c, bits)
+    exact = (a.astype(np.float64) * b + c).astype(np.float32)  # products exact, one rounding of a 53-bit sum
+    assert np.array_equal(scalar, exact)
+    assert np.array_equal(vector, (np.float64(a[0]) * b.astype(np.float64) + c).astype(np.float32))
+    assert np.array_equal(values, torch.from_numpy(bits.view(np.int16)).view(torch.bfloat16).float().numpy())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -115,20 +117,20 @@ def test_model_answers_match_the_unfused_path(figure, precision):
     assert torch.isinf(fused.t[~fused.hit]).all()
 
 
-def test_rays_crossing_no_occupied_voxel_never_reach_the_network(figure):
+@pytest.mark.parametrize("write_hits", [True, False])
+def test_rays_crossing_no_occupied_voxel_never_reach_the_network(figure, write_hits, monkeypatch):
+    monkeypatch.setattr(fused, "WRITE_HITS", write_hits)
     model = _model(figure, "fp32")
     rays = _mixed_rays(model, 400, seed=9)
     # and rays that pass beside the box, parallel to an axis
     beside = Rays(origins=model.box.hi + torch.tensor([[0.5, 0.5, 0.0]]).expand(50, 3).clone() * float(model.box.diagonal),
                   directions=torch.tensor([[0.0, 0.0, -1.0]]).expand(50, 3).clone())  # fmt: skip
     rays = Rays(origins=torch.cat([rays.origins, beside.origins]), directions=torch.cat([rays.directions, beside.directions]))
-    rows = []
-    hook = model.network.output.register_forward_hook(lambda module, inputs, output: rows.append(len(inputs[0])))
-    try:
-        hits = model.intersect(rays)
-        miss_only = model.intersect(beside)
-    finally:
-        hook.remove()
+    rows = []  # rows reaching the GEMMs after the first layer (both decodings run them)
+    layers = fused.hidden_layers
+    monkeypatch.setattr(fused, "hidden_layers", lambda network, hidden, active, dtype: rows.append(len(active)) or layers(network, hidden, active, dtype))
+    hits = model.intersect(rays)
+    miss_only = model.intersect(beside)
     unit = model._unit_rays(rays)
     count = featurize_rays_numba(unit.origins, unit.directions, model.occupancy, 8).count
     crossing = torch.zeros(len(rays), dtype=torch.bool)
@@ -253,3 +255,105 @@ def test_bf16_dot_first_layer_matches_the_fp32_first_layer_and_the_unfused_path(
     both = hits.hit & unfused.hit
     assert both.sum() > 100
     assert ((hits.t[both] - unfused.t[both]).abs() / float(model.box.diagonal)).max() <= 2e-2
+
+
+@pytest.fixture(scope="module")
+def trained_cornell():
+    """A small model trained briefly on a mesh with 4 materials (argmax over material logits)."""
+    from neuralrt.geometry.procedural import cornell_box
+    from neuralrt.training.api import train
+
+    config = LSNIFConfig.preset(
+        "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+        network={"hidden_width": 32}, features={"max_points": 8},
+    ).with_training(steps=100, batch_size=2048, seed=0, lr_decay_final=1.0)  # fmt: skip
+    model = train(cornell_box(), config, progress=False)
+    assert model.num_materials == 4
+    return model
+
+
+def _decoding_rays(model: LSNIFModel, n: int, seed: int) -> Rays:
+    """`_mixed_rays` with ray intervals that cut hits off (t_max short, t_min long), and rays with
+    NaN origins and zero directions."""
+    rays = _mixed_rays(model, n, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    t_max = torch.where(torch.rand(n, generator=g) < 0.2, torch.rand(n, generator=g) * 2, torch.full((n,), float("inf")))
+    t_min = torch.where(torch.rand(n, generator=g) < 0.2, torch.rand(n, generator=g) * 0.5, torch.zeros(n))
+    origins, directions = rays.origins.clone(), rays.directions.clone()
+    origins[:20, 1] = float("nan")
+    directions[20:40] = 0.0
+    return Rays(origins=origins, directions=directions, t_min=t_min, t_max=t_max)
+
+
+def _hits_with(model, rays, monkeypatch, **flags):
+    for name, value in flags.items():
+        monkeypatch.setattr(fused, name, value)
+    return model.intersect(rays), model.occluded(rays)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_numba_decoding_matches_the_torch_decoding(trained_cornell, precision, monkeypatch):
+    """`fused_hits_cpu` (numba decoding, with the output layer in torch or in the decoding pass)
+    against `_intersect_chunk`'s torch decoding of `fused_network_outputs_cpu`'s outputs.
+    From the same raw outputs: hits, normals and materials bit-equal, t and albedo within the
+    sigmoid's 3 ulp (libm exp here, torch's vectorised exp there). With the output layer in numba
+    (another summation order): hits and materials equal except where the deciding logits are
+    within 1e-4 of each other, t, normals and albedo within 1e-5."""
+    model, dtype = trained_cornell, PRECISION[precision]
+    monkeypatch.setattr(model, "compute_dtype", lambda training=False: dtype)
+    rays = _decoding_rays(model, 6000, seed=21)
+    reference, reference_occluded = _hits_with(model, rays, monkeypatch, WRITE_HITS=False)
+    assert torch.equal(reference_occluded, reference.hit)  # the base class's occluded: intersect's hits
+    with torch.no_grad():
+        act, raw, t_enter, t_exit, t_offset = model._network_answers_fused_cpu(rays)
+    logit = torch.full((len(rays),), float("inf"))
+    logit[act] = raw[:, 0] - math.log(model.config.inference.occlusion_threshold / (1 - model.config.inference.occlusion_threshold))
+    t_raw = torch.full((len(rays),), float("inf"))
+    t_raw[act] = t_offset + t_enter + torch.sigmoid(raw[:, 1]) * (t_exit - t_enter)
+    top2 = torch.full((len(rays),), float("inf"))
+    top2[act] = raw[:, 8:].topk(2, dim=1).values.diff(dim=1).abs().squeeze(1)
+    # misses of every kind occur: no occupied voxel, NaN/zero rays, cut off by the interval, predicted misses
+    cut = (logit > 0) & ((t_raw >= rays.t_max) | (t_raw <= rays.t_min))
+    assert len(act) < len(rays) - 500 and cut.sum() > 50 and ((logit < 0) & torch.isfinite(logit)).sum() > 50
+    assert reference.hit.sum() > 500 and len(reference.material_id[reference.hit].unique()) >= 3
+    scale = float(rays.t_max[torch.isfinite(rays.t_max)].max())
+    near_limit = ((t_raw - rays.t_max).abs() <= 1e-5 * scale) | ((t_raw - rays.t_min).abs() <= 1e-5 * scale)
+    for output_layer_in_decode in (False, True):
+        hits, occluded = _hits_with(model, rays, monkeypatch, WRITE_HITS=True, OUTPUT_LAYER_IN_DECODE=output_layer_in_decode)
+        assert torch.equal(occluded, hits.hit)  # the decision alone: the same as intersect's
+        differ = hits.hit != reference.hit
+        if output_layer_in_decode:
+            assert not (differ & ~(near_limit | (logit.abs() < 1e-4))).any()
+        else:
+            assert not (differ & ~near_limit).any()
+        assert differ.sum() <= 2
+        both = hits.hit & reference.hit
+        miss = ~hits.hit
+        assert torch.isinf(hits.t[miss]).all() and (hits.material_id[miss] == -1).all()
+        assert (hits.normal[miss] == 0).all() and (hits.geometric_normal[miss] == 0).all() and (hits.albedo[miss] == 1).all()
+        assert (hits.primitive_id == -1).all() and (hits.uv == 0).all()
+        assert torch.equal(hits.normal, hits.geometric_normal)
+        if output_layer_in_decode:
+            t_tol, tol = 1e-5 * scale, 1e-5
+            tie = top2 < 1e-4
+            assert torch.equal(hits.material_id[both & ~tie], reference.material_id[both & ~tie])
+        else:
+            t_tol, tol = 4 * 1.2e-7 * scale, 4 * 1.2e-7  # 3 ulp of the sigmoid, times the span
+            assert torch.equal(hits.material_id[both], reference.material_id[both])
+            assert torch.equal(hits.normal[both], reference.normal[both])
+        assert (hits.t[both] - reference.t[both]).abs().max() <= t_tol
+        assert (hits.normal[both] - reference.normal[both]).abs().max() <= tol
+        assert (hits.albedo[both] - reference.albedo[both]).abs().max() <= tol
+
+
+def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell, monkeypatch):
+    """More rays than a chunk: `occluded` (the decision-only pass) gives intersect's hits for all."""
+    model = trained_cornell
+    rays = _decoding_rays(model, 3000, seed=23)
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    calls = []
+    original = fused.fused_occluded_cpu
+    monkeypatch.setattr(fused, "fused_occluded_cpu", lambda *a, **k: calls.append(1) or original(*a, **k))
+    occluded = model.occluded(rays)
+    assert len(calls) == 3
+    assert torch.equal(occluded, model.intersect(rays).hit) and occluded.sum() > 300

@@ -249,8 +249,16 @@ class LSNIFModel(NeuralBLAS):
         return unit.index[keep], fused.values[keep], fused.t_enter[keep], fused.t_exit[keep], unit.t_offset[keep]
 
     def _network_answers_as_hits(self, rays: Rays, hits: Hits) -> bool:
-        """On CUDA with ``lsnif_fused.DEFAULT_LAUNCH["write_hits"]``: `_network_answers_fused_hits`
-        writes the chunk's answers into ``hits``; returns whether it did."""
+        """Where a fused pass decodes the hits itself (CUDA with ``lsnif_fused.DEFAULT_LAUNCH
+        ["write_hits"]``, the CPU with ``lsnif_fused_cpu.WRITE_HITS``), it writes the chunk's
+        answers into ``hits``; returns whether it did."""
+        if rays.device.type == "cpu":
+            from . import lsnif_fused_cpu
+
+            if not lsnif_fused_cpu.WRITE_HITS:
+                return False
+            self._network_answers_fused_cpu_hits(rays, hits)
+            return True
         if rays.device.type != "cuda":
             return False
         from .lsnif_fused import DEFAULT_LAUNCH  # imports triton: CUDA only
@@ -259,6 +267,43 @@ class LSNIFModel(NeuralBLAS):
             return False
         self._network_answers_fused_hits(rays, hits)
         return True
+
+    def _fused_cpu_arguments(self, rays: Rays) -> tuple[tuple, dict]:
+        """The arguments `lsnif_fused_cpu.fused_hits_cpu` / `fused_occluded_cpu` share for a chunk."""
+        unit = self._unit_rays(rays)
+        fc = self.config.features
+        return (unit.origins, unit.directions, self.occupancy, self.encoder, self.network), dict(
+            index=unit.index, t_offset=unit.t_offset, t_min=rays.t_min, t_max=rays.t_max,
+            occlusion_logit=_logit(self.config.inference.occlusion_threshold),
+            max_points=fc.max_points, origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points,
+            point_distances=fc.point_distances, compute_dtype=self.compute_dtype(),
+        )  # fmt: skip
+
+    def _network_answers_fused_cpu_hits(self, rays: Rays, hits: Hits) -> None:
+        """The decoded answers of `_intersect_chunk`, written into ``hits`` by `lsnif_fused_cpu.fused_hits_cpu`."""
+        from .lsnif_fused_cpu import fused_hits_cpu
+
+        args, kwargs = self._fused_cpu_arguments(rays)
+        fused_hits_cpu(*args, hits=hits, num_materials=self.num_materials, **kwargs)
+
+    @torch.no_grad()
+    def occluded(self, rays: Rays) -> Tensor:
+        """[N] bool: the model predicts a hit within (t_min, t_max), the same decision as
+        `intersect`. On the CPU (``lsnif_fused_cpu.WRITE_HITS``) only that decision is decoded
+        (`lsnif_fused_cpu.fused_occluded_cpu`: no normals, albedo or materials)."""
+        from . import lsnif_fused_cpu
+
+        if rays.device.type != "cpu" or not lsnif_fused_cpu.WRITE_HITS:
+            return super().occluded(rays)
+        self._check_device(rays)
+        n = len(rays)
+        hit = torch.zeros(n, dtype=torch.bool)
+        chunk = self.config.inference.chunk_size
+        for start in range(0, n, chunk):
+            part = rays if n <= chunk else rays[slice(start, start + chunk)]
+            args, kwargs = self._fused_cpu_arguments(part)
+            lsnif_fused_cpu.fused_occluded_cpu(*args, hit=hit[start : start + len(part)], **kwargs)
+        return hit
 
     def _network_answers_fused_hits(self, rays: Rays, hits: Hits) -> None:
         """The decoded answers of `_intersect_chunk`, written into ``hits`` by `lsnif_fused.fused_hits`."""

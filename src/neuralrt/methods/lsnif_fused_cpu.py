@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..neural.bf16_dot import bf16_bits, bf16_pairs, dot_rows_bf16
+from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, load16, store16
 from ..neural.mlp import MLP
 from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
 from ..neural.sparse_hash_grid import face_point_level as _face_point_level
@@ -38,7 +38,7 @@ from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
 
-__all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "first_layer_blocks"]
+__all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
 
 
 
@@ -268,12 +268,14 @@ def first_layer_blocks(network: MLP, max_points: int, block: int, point_distance
     return rows.contiguous().numpy(), network.hidden[0].bias.detach().float().contiguous().numpy()
 
 
-def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
-    """The MLP after its first hidden layer on rows ``active`` of ``hidden`` (activations in
-    ``compute_dtype``) -> [M, outputs] fp32, the same operations and bits as `MLP.forward` in
-    inference, but every intermediate written into a per-thread buffer and the leaky ReLU applied
-    in place: fresh [M, W] tensors cost a page fault per 4 KiB and an out-of-place activation
-    another pass (measured on hairball(6) `hq`, one thread: 800 -> 340 ns per network ray)."""
+def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
+    """The MLP's hidden layers after the first on rows ``active`` of ``hidden`` (activations in
+    ``compute_dtype``) -> the last hidden layer's activations ``[M, W]`` in ``compute_dtype``, in a
+    per-thread buffer (valid until the next call on this thread): the same operations and bits as
+    `MLP.forward` in inference, but every intermediate written into a per-thread buffer and the
+    leaky ReLU applied in place: fresh [M, W] tensors cost a page fault per 4 KiB and an
+    out-of-place activation another pass (measured on hairball(6) `hq`, one thread: 800 -> 340 ns
+    per network ray)."""
     if compute_dtype == torch.float32:
         layers = [(layer.weight, layer.bias) for layer in network.hidden[1:]]
     else:
@@ -283,13 +285,19 @@ def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype:
     for i, (w, b) in enumerate(layers):
         x = torch.addmm(b, x, w.t(), out=_buffer_tensor(m, w.shape[0], x.dtype, f"layer {i % 2}"))
         F.leaky_relu_(x, network.slope)
+    return x
+
+
+def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
+    """`hidden_layers` then the output layer -> [M, outputs] fp32 (a fresh tensor), the same
+    operations and bits as `MLP.forward` in inference."""
+    x = hidden_layers(network, hidden, active, compute_dtype)
     if x.dtype != torch.float32:
-        x = _buffer_tensor(m, x.shape[1], torch.float32, "fp32").copy_(x)
+        x = _buffer_tensor(len(active), x.shape[1], torch.float32, "fp32").copy_(x)
     return network.output(x)  # a fresh tensor: the caller keeps it
 
 
-@torch.no_grad()
-def fused_network_outputs_cpu(
+def _first_hidden_layer(
     origins: Tensor,
     directions: Tensor,
     occupancy: Tensor,
@@ -297,13 +305,13 @@ def fused_network_outputs_cpu(
     network: MLP,
     *,
     max_points: int,
-    origin_point: bool = True,
-    share_boundary_points: bool = True,
-    point_distances: bool = True,
-    compute_dtype: torch.dtype = torch.float32,
-) -> FusedCPUOutputs:
-    """Raw MLP outputs of unit-box rays (``origins``/``directions`` ``[N, 3]`` fp32 CPU), with the
-    walk, the encoding and the first layer fused in one numba pass; see the module docstring."""
+    origin_point: bool,
+    share_boundary_points: bool,
+    point_distances: bool,
+    compute_dtype: torch.dtype,
+) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
+    """The fused pass: (first hidden layer ``[N, W]`` in ``compute_dtype``, valid in the rows with
+    points; per ray ``count``, ``t_enter``, ``t_exit`` as numpy arrays)."""
     _check_rays(origins, directions, max_points)
     if compute_dtype not in (torch.float32, torch.bfloat16):
         raise ValueError(f"compute dtype must be float32 or bfloat16, got {compute_dtype}")
@@ -335,8 +343,238 @@ def fused_network_outputs_cpu(
             _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, np.float32(network.slope),
                           int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
                           to_bf16, pairs, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
+    hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
+    return hidden, counts, t_enter, t_exit
+
+
+@torch.no_grad()
+def fused_network_outputs_cpu(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: MLP,
+    *,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.float32,
+) -> FusedCPUOutputs:
+    """Raw MLP outputs of unit-box rays (``origins``/``directions`` ``[N, 3]`` fp32 CPU), with the
+    walk, the encoding and the first layer fused in one numba pass; see the module docstring."""
+    hidden, counts, t_enter, t_exit = _first_hidden_layer(
+        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
+        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
+    )  # fmt: skip
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
-    hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
     values = rest_of_network(network, hidden, active, compute_dtype)
     return FusedCPUOutputs(active, values, count, torch.from_numpy(t_enter), torch.from_numpy(t_exit))
+
+
+# `LSNIFModel.intersect` on the CPU decodes in `fused_hits_cpu` (numba) and `occluded` decodes only
+# the decision (`fused_occluded_cpu`); False: the raw outputs of `fused_network_outputs_cpu`
+# decoded by torch ops in `LSNIFModel._intersect_chunk` (the reference; comparisons and tests).
+WRITE_HITS = True
+
+# The output layer inside the decoding pass (`_decode_kernel`, fp32 from the last hidden layer's
+# activations as they are); False: torch's addmm (`network.output`) on an fp32 copy, then the
+# decoding pass from its raw outputs (for comparisons and tests).
+OUTPUT_LAYER_IN_DECODE = True
+
+
+def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
+    """The output layer as ``wo [W, P]`` fp32, input-major, and the bias ``[P]``, both padded with
+    zero columns to P = a multiple of 16 (one `f32x16` per 16 outputs)."""
+    weight = network.output.weight.detach().float()  # [O, W]
+    outputs, width = weight.shape
+    padded = -(-outputs // 16) * 16
+    wo = np.zeros((width, padded), np.float32)
+    wo[:, :outputs] = weight.T.numpy()
+    bo = np.zeros(padded, np.float32)
+    bo[:outputs] = network.output.bias.detach().float().numpy()
+    return wo, bo
+
+
+@numba.njit(cache=True, inline="always")
+def _sigmoid(x):
+    """torch.sigmoid's formula in fp32 (torch's vectorised exp differs from libm's by <= 3 ulp)."""
+    return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
+
+
+# Rows of the output layer computed together: each weight vector loaded serves 8 rows, and the 8
+# accumulator chains hide the fused multiply-add latency (one chain of 128 dependent FMAs per row
+# measured ~2x slower than the whole decoding otherwise takes).
+_OUT_ROWS = 8
+
+
+@numba.njit(cache=True)
+def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
+    """``out[r, :columns] = bo + rows[r] @ wo`` for the `_OUT_ROWS` rows of ``rows [8, W]`` fp32
+    (``wo_flat`` the flat ``[W, n_padded]`` weights; ``columns`` a multiple of 16)."""
+    width = rows.shape[1]
+    for v in range(0, columns, 16):
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = load16(bo, v)
+        for k in range(width):
+            j = k * n_padded + v
+            a0, a1 = fma16(a0, rows[0, k], wo_flat, j), fma16(a1, rows[1, k], wo_flat, j)
+            a2, a3 = fma16(a2, rows[2, k], wo_flat, j), fma16(a3, rows[3, k], wo_flat, j)
+            a4, a5 = fma16(a4, rows[4, k], wo_flat, j), fma16(a5, rows[5, k], wo_flat, j)
+            a6, a7 = fma16(a6, rows[6, k], wo_flat, j), fma16(a7, rows[7, k], wo_flat, j)
+        store16(out[0], v, a0), store16(out[1], v, a1), store16(out[2], v, a2), store16(out[3], v, a3)
+        store16(out[4], v, a4), store16(out[5], v, a5), store16(out[6], v, a6), store16(out[7], v, a7)
+
+
+@numba.njit(parallel=True, cache=True)
+def _decode_kernel(
+    x_f32, x_bf16, wo, bo, output_layer, active, index, t_enter, t_exit, t_offset, t_min, t_max,
+    occlusion_logit, n_materials, occlusion_only, n_chunks,
+    hit, t_hit, normal, geometric_normal, albedo, material,
+):  # fmt: skip
+    """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network, written into
+    the chunk's hit records at rows ``index[active[i]]``: row i of ``x_f32``/``x_bf16`` (the other
+    is empty) is the last hidden layer (``output_layer``: the output layer ``wo``/``bo`` is
+    applied here, fp32, `_OUT_ROWS` rows at a time) or the raw outputs. ``occlusion_only`` writes
+    ``hit`` alone (the other records may be empty arrays) and computes only the first 16 outputs.
+    Same operations as the torch decoding, in fp32; the norm of the normal is torch's (fused
+    multiply-adds from x^2); the sigmoid differs from torch's by <= 3 ulp."""
+    m = active.shape[0]
+    width, n_padded = wo.shape
+    to_f32 = x_bf16.shape[0] > 0
+    wo_flat = wo.reshape(-1)
+    columns = 16 if occlusion_only else n_padded
+    inf = np.float32(np.inf)
+    for chunk in numba.prange(n_chunks):
+        rows = np.empty((_OUT_ROWS, width if output_layer else 0), np.float32)
+        outs = np.empty((_OUT_ROWS, n_padded), np.float32)
+        first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
+        for block in range(first, last, _OUT_ROWS):
+            n_rows = min(_OUT_ROWS, last - block)
+            if output_layer:
+                for b in range(_OUT_ROWS):
+                    i = block + min(b, n_rows - 1)  # a short block repeats its last row
+                    if to_f32:
+                        for k in range(width):
+                            rows[b, k] = bf16_value(x_bf16[i, k])
+                    else:
+                        for k in range(width):
+                            rows[b, k] = x_f32[i, k]
+                _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
+            else:
+                for b in range(n_rows):
+                    for j in range(x_f32.shape[1]):
+                        outs[b, j] = x_f32[block + b, j]
+            for b in range(n_rows):
+                out = outs[b]
+                r = active[block + b]
+                ray = index[r]
+                te = t_enter[r]
+                t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
+                h = out[0] > occlusion_logit and t < t_max[ray] and t > t_min[ray]
+                hit[ray] = h
+                if occlusion_only:
+                    continue
+                t_hit[ray] = t if h else inf
+                nx, ny, nz = out[2], out[3], out[4]
+                norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
+                zero = np.float32(0.0)
+                nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
+                normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
+                geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
+                if h:
+                    for c in range(3):
+                        albedo[ray, c] = _sigmoid(out[5 + c])
+                best = 0
+                for j in range(1, n_materials):  # argmax: the first of equal logits
+                    if out[8 + j] > out[8 + best]:
+                        best = j
+                material[ray] = best if h else -1
+
+
+def _decode(network: MLP, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray,
+            compute_dtype: torch.dtype, index: Tensor, t_offset: Tensor, t_min: Tensor, t_max: Tensor,
+            occlusion_logit: float, num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
+    """The layers after the first on the rays with points, then `_decode_kernel` into ``records``."""
+    active = np.flatnonzero(counts > 0)
+    if len(active) == 0:
+        return
+    x = hidden_layers(network, hidden, torch.from_numpy(active), compute_dtype)
+    wo, bo = output_layer_columns(network)
+    if not OUTPUT_LAYER_IN_DECODE:
+        x = network.output(x.float())  # raw outputs: the decoding pass only decodes
+    x_np = x.view(torch.int16).numpy().view(np.uint16) if x.dtype == torch.bfloat16 else x.numpy()
+    x_f32 = np.zeros((0, 1), np.float32) if x_np.dtype == np.uint16 else x_np
+    x_bf16 = x_np if x_np.dtype == np.uint16 else np.zeros((0, 1), np.uint16)
+    arrays = [a.detach().contiguous().numpy() for a in (index, t_offset.float(), t_min.float(), t_max.float())]
+    n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
+    _decode_kernel(x_f32, x_bf16, wo, bo, OUTPUT_LAYER_IN_DECODE, active, arrays[0], t_enter, t_exit, *arrays[1:],
+                   np.float32(occlusion_logit), int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
+
+
+@torch.no_grad()
+def fused_hits_cpu(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: MLP,
+    *,
+    index: Tensor,
+    t_offset: Tensor,
+    t_min: Tensor,
+    t_max: Tensor,
+    hits,
+    occlusion_logit: float,
+    num_materials: int,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.float32,
+) -> None:
+    """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk,
+    CPU): the fused pass, the hidden layers as torch GEMMs, then the output layer and the decoding
+    in one numba pass (`_decode_kernel`) at rows ``index`` (the chunk rays of the unit-box
+    ``origins``; ``t_min``/``t_max`` are the chunk's). The CPU counterpart of `lsnif_fused.fused_hits`."""
+    hidden, counts, t_enter, t_exit = _first_hidden_layer(
+        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
+        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
+    )  # fmt: skip
+    records = (hits.hit.numpy(), hits.t.numpy(), hits.normal.numpy(), hits.geometric_normal.numpy(), hits.albedo.numpy(),
+               hits.material_id.numpy())  # fmt: skip
+    _decode(network, hidden, counts, t_enter, t_exit, compute_dtype, index, t_offset, t_min, t_max, occlusion_logit,
+            num_materials, records, occlusion_only=False)  # fmt: skip
+
+
+@torch.no_grad()
+def fused_occluded_cpu(
+    origins: Tensor,
+    directions: Tensor,
+    occupancy: Tensor,
+    encoder: SparseHashGrid,
+    network: MLP,
+    *,
+    index: Tensor,
+    t_offset: Tensor,
+    t_min: Tensor,
+    t_max: Tensor,
+    hit: Tensor,
+    occlusion_logit: float,
+    max_points: int,
+    origin_point: bool = True,
+    share_boundary_points: bool = True,
+    point_distances: bool = True,
+    compute_dtype: torch.dtype = torch.float32,
+) -> None:
+    """`fused_hits_cpu`'s ``hit`` decisions alone, written into ``hit`` ([chunk] bool, all False
+    on entry): the output layer computes only its first 16 columns (occlusion and distance are
+    among them) and nothing else is decoded."""
+    hidden, counts, t_enter, t_exit = _first_hidden_layer(
+        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
+        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
+    )  # fmt: skip
+    empty3 = np.zeros((0, 3), np.float32)
+    records = (hit.numpy(), np.zeros(0, np.float32), empty3, empty3, empty3, np.zeros(0, np.int64))
+    _decode(network, hidden, counts, t_enter, t_exit, compute_dtype, index, t_offset, t_min, t_max, occlusion_logit,
+            0, records, occlusion_only=True)  # fmt: skip

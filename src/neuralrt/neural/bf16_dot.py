@@ -25,7 +25,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic, models, register_model
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
-           "bf16_bits", "bf16_pairs", "dot_rows_bf16"]
+           "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value"]
 
 
 def _host_has_avx512_bf16() -> bool:
@@ -105,6 +105,37 @@ def store16(typingctx, array, start, value):
     return types.void(array, types.intp, f32x16), codegen
 
 
+@intrinsic
+def fma16(typingctx, acc, x, array, start):
+    """``acc + x * array[start : start + 16]`` per lane, one rounding (``x`` an fp32 scalar,
+    broadcast; ``array`` 1D contiguous fp32; no bounds check)."""
+    if not (acc == f32x16 and x == types.float32 and _check_array(array, types.float32) and isinstance(start, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        acc_v, xs, array_v, start_v = args
+        xv = builder.shuffle_vector(builder.insert_element(ir.Constant(_F32X16, None), xs, ir.Constant(ir.IntType(32), 0)),
+                                    ir.Constant(_F32X16, None), ir.Constant(_I32X16, [0] * 16))  # fmt: skip
+        w = builder.load(_vector_pointer(context, builder, sig.args[2], array_v, start_v, _F32X16), align=4)
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_F32X16, [_F32X16] * 3), "llvm.fma.v16f32")
+        return builder.call(fma, [xv, w, acc_v])
+
+    return f32x16(f32x16, types.float32, array, types.intp), codegen
+
+
+@intrinsic
+def fma_f32(typingctx, a, b, c):
+    """``a * b + c`` in fp32 with one rounding (LLVM's fma; a vfmadd instruction on x86-64)."""
+    if not (a == types.float32 and b == types.float32 and c == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.FloatType(), [ir.FloatType()] * 3), "llvm.fma.f32")
+        return builder.call(fma, list(args))
+
+    return types.float32(types.float32, types.float32, types.float32), codegen
+
+
 def _emulated(builder, acc, x, w):
     """``acc + lo(x) * lo(w) + hi(x) * hi(w)`` per lane, the bf16 halves widened to fp32 exactly
     (each product is exact in fp32; the order of the additions is vdpbf16ps's: high pair first)."""
@@ -156,6 +187,24 @@ def _f32_bits(typingctx, value):
         return builder.bitcast(args[0], ir.IntType(32))
 
     return types.uint32(types.float32), codegen
+
+
+@intrinsic
+def _bits_f32(typingctx, bits):
+    """The fp32 value of the low 32 bits of the integer ``bits`` (32 or 64 bits wide)."""
+    if not (isinstance(bits, types.Integer) and bits.bitwidth >= 32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(builder.trunc(args[0], ir.IntType(32)) if bits.bitwidth > 32 else args[0], ir.FloatType())
+
+    return types.float32(bits), codegen
+
+
+@numba.njit(cache=True, inline="always")
+def bf16_value(bits):
+    """The fp32 value of bf16 ``bits`` (a uint16): exact, as torch's bf16 -> fp32."""
+    return _bits_f32(np.uint32(bits) << np.uint32(16))  # (numba widens the shift to 64 bits)
 
 
 @numba.njit(cache=True, inline="always")
