@@ -1,11 +1,14 @@
 """Render time per sample per pixel of each built-in scene in three configurations in the same run,
 split into ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
 
-- ``torch``: torch shading ops and the TLAS broad phase testing every instance box (the shading
-  before the numba kernels; the other TLAS stages are today's numba passes);
-- ``numba_all_boxes``: fused numba shading, broad phase testing every box (last state before the BVH);
-- ``numba``: fused numba shading and the broad phase walking a BVH over each group's instance
-  boxes (today's default).
+- ``torch``: torch shading ops and random numbers, the TLAS broad phase testing every instance box
+  and each BLAS computing hit attributes for all its rays (the shading before the numba kernels;
+  the other TLAS stages are today's numba passes);
+- ``numba_all_boxes``: fused numba shading, broad phase testing every box, attributes per BLAS
+  (last state before the BVH);
+- ``numba``: fused numba shading and random numbers, the broad phase walking a BVH over each
+  group's instance boxes, and scenes of Embree meshes answered by the TLAS's fused path
+  (`NumbaTLASStages.intersect_meshes`: attributes only for each ray's final hit) (today's default).
 
     python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 
@@ -14,11 +17,12 @@ alternation, in a rotated order, so all see the same machine load); ``queries_s_
 `SceneAccel.intersect` / ``occluded`` (TLAS + BLAS: Embree and its bookkeeping);
 ``rest_s_per_spp``, everything else, of which ``shading_s_per_spp`` is inside the shading stages
 (shading, sampling, NEE, roulette, accumulation; the remainder is camera rays, random numbers and
-the film); ``blas_share``, the fraction inside `BLAS.intersect` / ``occluded`` alone.
+the film); ``blas_share``, the fraction inside `BLAS.intersect` / ``occluded`` alone (and
+`EmbreeMeshBLAS.trace_closest`, Embree's own closest-hit call in the fused path).
 ``speedup`` is torch s/spp over numba s/spp (wall clock), ``cpu_speedup`` the same for the CPU
 seconds the process used (all threads; least of the repeats), which other jobs on a shared
-machine disturb less; ``tlas_speedup`` numba_all_boxes s/spp over numba s/spp (the instance
-BVH's gain; ``tlas_queries_speedup`` the same for the query time); ``pixels_differing`` the fraction of pixels whose
+machine disturb less; ``tlas_speedup`` numba_all_boxes s/spp over numba s/spp (the gain of the
+instance BVH and the fused TLAS path; ``tlas_queries_speedup`` the same for the query time); ``pixels_differing`` the fraction of pixels whose
 values differ by more than 0.1% between torch and numba (same seed); the two numba configurations
 must render the same image (checked).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
@@ -49,8 +53,8 @@ from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.builtins import BUILTIN_SCENES  # noqa: E402
 from neuralrt.scene.loader import load_scene  # noqa: E402
 
-# configuration -> (shading implementation, TLAS broad phase)
-CONFIGS = {"torch": ("torch", "all_boxes"), "numba_all_boxes": ("numba", "all_boxes"), "numba": ("numba", "bvh")}
+# configuration -> (shading implementation, TLAS broad phase, TLAS fused path for Embree meshes)
+CONFIGS = {"torch": ("torch", "all_boxes", False), "numba_all_boxes": ("numba", "all_boxes", False), "numba": ("numba", "bvh", True)}
 BACKENDS = tuple(CONFIGS)
 COLUMNS = ["scene", "instanced_tris", "rays_per_spp", "torch_s_per_spp", "numba_s_per_spp", "speedup", "cpu_speedup",
            "torch_queries_s_per_spp", "torch_rest_s_per_spp", "torch_shading_s_per_spp", "numba_queries_s_per_spp",
@@ -65,8 +69,9 @@ class _Timer:
         self.seconds = 0.0
         self.rays = 0
         for obj in objects:
-            for name in ("intersect", "occluded"):
-                setattr(obj, name, self._wrap(getattr(obj, name)))
+            for name in ("intersect", "occluded", "trace_closest"):
+                if hasattr(obj, name):
+                    setattr(obj, name, self._wrap(getattr(obj, name)))
 
     def _wrap(self, fn):
         def timed(rays, *args, **kwargs):
@@ -106,7 +111,8 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
                 stage_timer: _StageTimer) -> dict:
     scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
-    stages = {backend: NumbaTLASStages(scene.accel.table, broad_phase=CONFIGS[backend][1]) for backend in BACKENDS}
+    stages = {backend: NumbaTLASStages(scene.accel.table, broad_phase=CONFIGS[backend][1], fused_meshes=CONFIGS[backend][2])
+              for backend in BACKENDS}
     for backend in BACKENDS:  # warm-up: allocator, first calls, numba's compiled-kernel cache
         scene.accel.stages = stages[backend]
         render(scene, spp=1, seed=123, progress=False, shading=CONFIGS[backend][0])
@@ -146,7 +152,7 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
     row["tlas_speedup"] = row["numba_all_boxes_s_per_spp"] / row["numba_s_per_spp"]
     row["tlas_queries_speedup"] = row["numba_all_boxes_queries_s_per_spp"] / row["numba_queries_s_per_spp"]
     if not np.array_equal(best["numba"][0].image, best["numba_all_boxes"][0].image):
-        raise AssertionError(f"{name}: the instance BVH changed the image (the broad phase must give the same pairs)")
+        raise AssertionError(f"{name}: the instance BVH or the fused TLAS path changed the image (both must give the same hits)")
     # Same seed: the same paths through both, except where float32 (torch) and float64 (numba)
     # rounding of a direction makes a ray graze past or into thin geometry (a path then diverges).
     a, b = best["torch"][0].image, best["numba"][0].image

@@ -191,3 +191,40 @@ def test_bvh_broad_phase_gives_the_brute_force_pairs(n_boxes):
 def test_unknown_broad_phase_is_refused():
     with pytest.raises(ValueError, match="broad_phase must be"):
         NumbaTLASStages(_box_table(9, seed=0), broad_phase="grid")
+
+
+@pytest.fixture(scope="module")
+def coloured_blases():
+    """A torus with uvs, vertex colours and coloured materials, and the same torus textured."""
+    rng = np.random.default_rng(3)
+    t = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=24, minor_sections=12)
+    v = np.asarray(t.vertices, np.float32)
+    extra = dict(face_material_ids=rng.integers(0, 2, len(t.faces)), uvs=rng.uniform(0, 1, (len(v), 2)).astype(np.float32),
+                 vertex_colors=rng.uniform(0.2, 1.4, (len(v), 3)).astype(np.float32))
+    plain = [MeshMaterial("a", np.array([0.9, 0.5, 0.2], np.float32)), MeshMaterial("b", np.array([0.3, 1.2, 0.6], np.float32))]
+    texture = rng.uniform(0, 1, (8, 8, 3)).astype(np.float32)
+    textured = [plain[0], MeshMaterial("b", np.array([0.3, 1.2, 0.6], np.float32), texture)]
+    return MeshBLAS(Mesh(v, t.faces, materials=plain, **extra)), MeshBLAS(Mesh(v, t.faces, materials=textured, **extra))
+
+
+@pytest.mark.parametrize("kind", ["identity", "moved", "grid16", "mixed"])
+@pytest.mark.parametrize("inside", [False, True])
+def test_fused_mesh_path_matches_group_by_group(kind, inside, blases, coloured_blases):
+    """`NumbaTLASStages.intersect_meshes` (Embree's raw answers merged, attributes of the final hits
+    only) gives the Hits of the group-by-group stages bit for bit: one-instance groups, gathered
+    pairs (grid16: a BVH over 16 boxes; mixed: every box), uvs and vertex colours; a textured mesh
+    takes the group-by-group path."""
+    coloured, textured = coloured_blases
+    table = _scene(kind, coloured, blases[1]).table
+    rays = _rays(6000, seed=7, inside=inside)
+    if kind == "moved" and inside:
+        rays = MOVED.apply_rays(rays)
+    fused = NumbaTLASStages(table)
+    assert fused.fused_meshes and fused.intersect_meshes(rays, _scene(kind, coloured, blases[1])._groups[False]) is not None
+    got = _scene(kind, coloured, blases[1], stages=NumbaTLASStages).intersect(rays)
+    ref = _scene(kind, coloured, blases[1], stages=lambda t: NumbaTLASStages(t, fused_meshes=False)).intersect(rays)
+    assert ref.hit.sum() > 200 and (ref.albedo[ref.hit] != ref.albedo[ref.hit][:1]).any(dim=1).any()
+    for f in fields(ref):
+        assert torch.equal(getattr(got, f.name), getattr(ref, f.name)), f.name
+    with_texture = _scene(kind, textured, blases[1])
+    assert with_texture.stages.intersect_meshes(rays, with_texture._groups[False]) is None

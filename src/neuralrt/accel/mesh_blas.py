@@ -255,6 +255,27 @@ class EmbreeMeshBLAS(MeshBLAS):
             instance_id=torch.from_numpy(np.full(n, -1, np.int64)).to(dev),  # numpy: no torch thread wake-up
         )
 
+    # -- raw queries (the scene TLAS's fused path: attributes only for the closest hit over all instances)
+    @property
+    def textured(self) -> bool:
+        return any(material.texture is not None for material in self.mesh.materials)
+
+    def trace_closest(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Embree's closest hits of prepared rays (`mesh_blas_kernels.prepare_embree_rays`'s
+        outputs, all valid): primID (-1: miss), t_far from the shifted origin, u, v; ``tfar`` is
+        overwritten. Releases the GIL, like `intersect`'s chunks."""
+        res = self._scene.run(shifted, directions, dists=tfar, output=1)
+        return res["primID"], res["tfar"], res["u"], res["v"]
+
+    def surface_tables(self) -> tuple:
+        """The mesh arrays `mesh_blas_kernels.surface_at` reads after ``(p, u, v)``: faces, face
+        normals, vertex normals, face material ids, uvs, vertex colours, material base colours (read
+        now: materials may be edited), use_uvs, use_vertex_colors."""
+        m = self.mesh
+        return (m.faces, self._face_normals, m.vertex_normals, m.face_material_ids,
+                m.uvs if m.uvs is not None else _NO_ATTRIBUTE, m.vertex_colors if m.vertex_colors is not None else _NO_ATTRIBUTE,
+                self._material_albedo(), m.uvs is not None, m.vertex_colors is not None)  # fmt: skip
+
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any triangle lie within (t_min, t_max)?"""
         n = len(rays)

@@ -124,6 +124,9 @@ class SceneAccel:
         n, stages = len(rays), self.stages
         if n == 0:
             return Hits.empty(0, rays.device)
+        fused = stages.intersect_meshes(rays, self._groups[camera_rays])
+        if fused is not None:
+            return fused
         best: Hits | None = None  # Hits.empty(n) until a group hits something
         valid = stages.valid_mask(rays)
         for group in self._groups[camera_rays]:

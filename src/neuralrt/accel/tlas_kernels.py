@@ -16,8 +16,10 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray
+from .mesh_blas_kernels import surface_at
 
-__all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs"]
+__all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
+           "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -339,3 +341,167 @@ def merge_pairs(
         best_primitive_id[r] = primitive_id[p]
         best_instance_id[r] = k
     return found
+
+
+# --- fused path for scenes of Embree meshes: Embree's raw answers merged, attributes of the winners ---
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _embree_ray(ox, oy, oz, dx, dy, dz, t0, t1, out_origins, out_directions, out_tfar, j) -> bool:
+    """`mesh_blas_kernels.prepare_embree_rays` for one object-space ray with interval (t0, t1), into
+    row ``j``; False (nothing written) for an invalid ray, which Embree need not see."""
+    ok = (np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz) and np.isfinite(dx) and np.isfinite(dy)
+          and np.isfinite(dz) and (dx != 0 or dy != 0 or dz != 0) and t1 > t0)  # fmt: skip
+    if not ok:
+        return False
+    start = t0 if np.isfinite(t0) else np.float32(0.0)
+    out_origins[j, 0] = ox + start * dx
+    out_origins[j, 1] = oy + start * dy
+    out_origins[j, 2] = oz + start * dz
+    out_directions[j, 0], out_directions[j, 1], out_directions[j, 2] = dx, dy, dz
+    length = t1 - t0
+    if not (length <= _EMBREE_TFAR_MAX):
+        length = _EMBREE_TFAR_MAX
+    out_tfar[j] = length
+    return True
+
+
+_EMBREE_TFAR_MAX = np.float32(1e37)  # as mesh_blas_kernels.EMBREE_TFAR_MAX
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def instance_embree_rays(origins, directions, t_min, t_max, best_t, has_best, lo, hi, world_to_object, identity,
+                         out_origins, out_directions, out_tfar, out_ray) -> int:  # fmt: skip
+    """A one-instance group's broad phase, ray mapping and Embree preparation in one pass: rays
+    that are valid and whose interval ``(t_min, t_limit)`` meets the instance's box (``lo``/``hi``
+    [1, 3]; ``t_limit`` = ``t_max``, or ``min(t_max, best_t)`` with ``has_best``) and that are valid in
+    object space get Embree's inputs (origin moved to t_min, direction, t_far), compacted, with
+    their row in ``out_ray``; returns their count. The same float32 values as `instance_overlaps`,
+    `transform_rays` and `prepare_embree_rays` in sequence."""
+    count = 0
+    one = np.float32(1.0)
+    for i in range(origins.shape[0]):
+        if not valid_ray(origins, directions, t_min, t_max, i):
+            continue
+        limit = t_max[i]
+        if has_best:
+            limit = min(limit, best_t[i])  # best_t is never NaN, so this is torch.minimum
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        if not _box_overlap(ox, oy, oz, one / dx, one / dy, one / dz, lo, hi, 0, t_min[i], limit):
+            continue
+        if not identity:
+            m = world_to_object
+            ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
+                                      _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
+                                      _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
+        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], limit, out_origins, out_directions, out_tfar, count):
+            out_ray[count] = i
+            count += 1
+    return count
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def pair_embree_rays(origins, directions, t_min, t_limit, ray_idx, inst_idx, world_to_object, is_identity,
+                     out_origins, out_directions, out_tfar, out_pair) -> int:  # fmt: skip
+    """(ray, instance) pairs: `object_space_rays` and Embree's preparation (interval ``(t_min,
+    t_limit)`` of the ray) in one pass, the pairs valid in object space compacted with their index
+    in ``out_pair``; returns their count."""
+    count = 0
+    for p in range(ray_idx.shape[0]):
+        r, k = ray_idx[p], inst_idx[p]
+        ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
+        dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
+        if not is_identity[k]:
+            m = world_to_object[k]
+            ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
+                                      _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
+                                      _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
+        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[r], t_limit[r], out_origins, out_directions, out_tfar, count):
+            out_pair[count] = p
+            count += 1
+    return count
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def merge_instance_hits(out_ray, prim, tfar, bary_u, bary_v, t_min, has_best, k, best_t, best_prim, best_u, best_v,
+                        best_instance) -> None:  # fmt: skip
+    """Embree's answers (row ``j`` for ray ``out_ray[j]`` of a one-instance group ``k``): a hit's t
+    (Embree's t_far from the origin moved to t_min) replaces the ray's best where it is closer
+    (anywhere without ``has_best``), as `merge_every_ray` decides."""
+    zero = np.float32(0.0)
+    for j in range(out_ray.shape[0]):
+        p = prim[j]
+        if p < 0:
+            continue
+        r = out_ray[j]
+        t = tfar[j] + (t_min[r] if np.isfinite(t_min[r]) else zero)
+        if has_best and not (t < best_t[r]):
+            continue
+        best_t[r], best_prim[r], best_u[r], best_v[r], best_instance[r] = t, p, bary_u[j], bary_v[j], k
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def merge_pair_hits(out_pair, prim, tfar, bary_u, bary_v, ray_idx, inst_idx, t_min, best_t, best_prim, best_u, best_v,
+                    best_instance) -> None:  # fmt: skip
+    """Embree's answers for pairs (row ``j`` for pair ``out_pair[j]``): each ray's closest hit
+    strictly before ``best_t``, exact ties to the later pair, as `merge_pairs` decides."""
+    zero = np.float32(0.0)
+    winner = np.full(best_t.shape[0], -1, np.int64)  # per ray: the row of its closest improving pair
+    closest = np.empty(best_t.shape[0], np.float32)
+    for j in range(out_pair.shape[0]):
+        if prim[j] < 0:
+            continue
+        r = ray_idx[out_pair[j]]
+        t = tfar[j] + (t_min[r] if np.isfinite(t_min[r]) else zero)
+        if t < best_t[r] and (winner[r] < 0 or t <= closest[r]):
+            winner[r] = j
+            closest[r] = t
+    for j in range(out_pair.shape[0]):
+        r = ray_idx[out_pair[j]]
+        if prim[j] >= 0 and winner[r] == j:
+            best_t[r], best_prim[r], best_u[r], best_v[r], best_instance[r] = closest[r], prim[j], bary_u[j], bary_v[j], inst_idx[out_pair[j]]
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def finish_hits(
+    best_t, best_prim, best_u, best_v, best_instance, instance_group, group, write_misses,
+    faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo, use_uvs, use_vertex_colors,
+    material_maps, world_to_object, is_identity,
+    hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id,
+):  # fmt: skip
+    """The world-space hit records of the rays whose winning instance is in ``group`` (its mesh's
+    tables), as `closest_hit_attributes` then `merge_every_ray` / `merge_pairs` write them; with
+    ``write_misses`` also the rows of `Hits.empty` for rays that hit nothing."""
+    n_map = material_maps.shape[1]
+    for r in range(best_t.shape[0]):
+        k = best_instance[r]
+        if k < 0:
+            if write_misses:
+                hit[r] = False
+                t[r] = np.inf
+                for c in range(3):
+                    normal[r, c] = 0.0
+                    geometric_normal[r, c] = 0.0
+                    albedo[r, c] = 1.0
+                uv[r, 0], uv[r, 1] = 0.0, 0.0
+                material_id[r] = -1
+                primitive_id[r] = -1
+                instance_id[r] = -1
+            continue
+        if instance_group[k] != group:
+            continue
+        p = best_prim[r]
+        sx, sy, sz, gx, gy, gz, m, u0, u1, ar, ag, ab = surface_at(
+            p, best_u[r], best_v[r], faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors,
+            material_albedo, use_uvs, use_vertex_colors, True)  # fmt: skip
+        w2o, identity = world_to_object[k], is_identity[k]
+        hit[r] = True
+        t[r] = best_t[r]
+        normal[r, 0], normal[r, 1], normal[r, 2] = _world_normal(w2o, identity, sx, sy, sz)
+        geometric_normal[r, 0], geometric_normal[r, 1], geometric_normal[r, 2] = _world_normal(w2o, identity, gx, gy, gz)
+        uv[r, 0], uv[r, 1] = u0, u1
+        albedo[r, 0], albedo[r, 1], albedo[r, 2] = ar, ag, ab
+        material_id[r] = material_maps[k, min(max(m, 0), n_map - 1)]
+        primitive_id[r] = p
+        instance_id[r] = k

@@ -20,6 +20,9 @@ Every stage sees the instance table the accelerator was built with (`InstanceTab
   answers ray r; keep it in world space where it hits (inside ``overlap``) closer than ``best``.
 - ``merge_pairs(best, local, ray_idx, inst_idx)``: each ray's closest improving pair of ``local``,
   in world space, written into ``best``; exact ties go to the later pair.
+- ``intersect_meshes(rays, groups)``: the whole closest-hit query at once where a fused path
+  exists (every group an untextured Embree mesh: `NumbaTLASStages`), else None (the caller runs
+  the stages above group by group). Same answers, bit for bit.
 """
 
 from __future__ import annotations
@@ -117,6 +120,9 @@ class TorchTLASStages:
         self._to_world_(local, inst_idx)
         return best.scatter_(ray_idx, local)
 
+    def intersect_meshes(self, rays: Rays, groups) -> Hits | None:
+        return None  # no fused path: the stages above, group by group
+
     def _to_world_(self, hits: Hits, inst_idx: Tensor) -> None:
         """Object-space hit records to world space (normals by the inverse transpose), in place."""
         w2o = self.t.world_to_object[inst_idx, :3, :3]  # normal_world = normalize(n^T M^-1)
@@ -129,7 +135,7 @@ class TorchTLASStages:
 class NumbaTLASStages:
     """The stages as fused numba passes over CPU arrays (one sweep each instead of chains of ops)."""
 
-    def __init__(self, table: InstanceTable, broad_phase: str = "bvh"):
+    def __init__(self, table: InstanceTable, broad_phase: str = "bvh", fused_meshes: bool = True):
         if broad_phase not in ("bvh", "all_boxes"):
             raise ValueError(f"broad_phase must be 'bvh' or 'all_boxes', got {broad_phase!r}")
         if table.box_lo.device.type != "cpu":
@@ -142,6 +148,9 @@ class NumbaTLASStages:
         self._is_identity = table.is_identity.numpy()
         self.broad_phase = broad_phase  # "all_boxes": every ray against every box (kept to measure against)
         self._bvhs: dict[bytes, BVH] = {}
+        # Scenes of Embree meshes answer closest hits through `intersect_meshes` (False: group by
+        # group, each BLAS computing attributes for all its rays, kept to measure against).
+        self.fused_meshes = fused_meshes
 
     def valid_mask(self, rays: Rays) -> Tensor | None:
         return None  # fused into the broad phase
@@ -196,6 +205,77 @@ class NumbaTLASStages:
             k, self._material_maps[k], self._world_to_object[k], bool(self._is_identity[k]),
             *(getattr(out, f.name).numpy() for f in fields(Hits)),
         )  # fmt: skip
+        return out
+
+    def intersect_meshes(self, rays: Rays, groups) -> Hits | None:
+        """Closest hits over groups that are all untextured `EmbreeMeshBLAS`es (else None): per group,
+        one pass per chunk of rays does the broad phase, the object-space mapping and Embree's
+        preparation (one-instance groups; pairs from `candidate_pairs` otherwise), Embree answers,
+        and only (t, triangle, u, v, instance) is merged; hit attributes are computed once, for each
+        ray's final hit (`BLAS.intersect` computes them for every ray of every group, and merging
+        copies them). The same float32 operations as the group-by-group stages: the same Hits."""
+        from .mesh_blas import EmbreeMeshBLAS, _run_in_chunks
+
+        if not self.fused_meshes or not all(type(g.blas) is EmbreeMeshBLAS and not g.blas.textured for g in groups):
+            return None
+        n = len(rays)
+        o, d, t_min, t_max = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
+        best_t = np.full(n, np.inf, np.float32)
+        best_prim = np.full(n, -1, np.int32)
+        best_u, best_v = np.empty(n, np.float32), np.empty(n, np.float32)
+        best_instance = np.full(n, -1, np.int64)
+        for gi, group in enumerate(groups):
+            blas, ids, has_best = group.blas, group.instance_ids.numpy(), gi > 0
+            if ids.shape[0] == 1:
+                k = int(ids[0])
+
+                def trace(chunk: slice) -> None:
+                    m = chunk.stop - chunk.start
+                    so, sd, tfar, row = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m, np.int64)
+                    count = kernels.instance_embree_rays(o[chunk], d[chunk], t_min[chunk], t_max[chunk], best_t[chunk], has_best,
+                                                         self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
+                                                         bool(self._is_identity[k]), so, sd, tfar, row)  # fmt: skip
+                    if count:
+                        prim, tfar_out, u, v = blas.trace_closest(so[:count], sd[:count], tfar[:count])
+                        kernels.merge_instance_hits(row[:count], prim, tfar_out, u, v, t_min[chunk], has_best, k, best_t[chunk],
+                                                    best_prim[chunk], best_u[chunk], best_v[chunk], best_instance[chunk])  # fmt: skip
+
+                _run_in_chunks(trace, n, blas.threads)
+                continue
+            t_limit = torch.from_numpy(t_max if not has_best else np.minimum(t_max, best_t))
+            ray_idx, inst_idx, _ = self.candidate_pairs(rays, group.instance_ids, t_limit, None)
+            if ray_idx is None or ray_idx.numel() == 0:  # (candidate_pairs gives pairs for groups of several instances)
+                continue
+            ray_np, inst_np, limit = ray_idx.numpy(), inst_idx.contiguous().numpy(), t_limit.numpy()
+            p = ray_np.shape[0]
+            so, sd, tfar, pair = np.empty((p, 3), np.float32), np.empty((p, 3), np.float32), np.empty(p, np.float32), np.empty(p, np.int64)
+            count = kernels.pair_embree_rays(o, d, t_min, limit, ray_np, inst_np, self._world_to_object, self._is_identity,
+                                             so, sd, tfar, pair)  # fmt: skip
+            prim, tfar_out, u, v = (np.empty(count, np.int32), np.empty(count, np.float32), np.empty(count, np.float32),
+                                    np.empty(count, np.float32))  # fmt: skip
+
+            def trace_pairs(chunk: slice) -> None:
+                prim[chunk], tfar_out[chunk], u[chunk], v[chunk] = blas.trace_closest(so[chunk], sd[chunk], tfar[chunk])
+
+            _run_in_chunks(trace_pairs, count, blas.threads)
+            kernels.merge_pair_hits(pair[:count], prim, tfar_out, u, v, ray_np, inst_np, t_min, best_t, best_prim, best_u,
+                                    best_v, best_instance)  # fmt: skip
+        template = Hits.empty(0)
+        out = Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype)
+                      for f in fields(Hits)})  # fmt: skip
+        instance_group = np.full(len(self._is_identity), -1, np.int64)
+        for gi, group in enumerate(groups):
+            instance_group[group.instance_ids.numpy()] = gi
+        records = [getattr(out, f.name).numpy() for f in fields(Hits)]
+        for gi, group in enumerate(groups):
+            tables = group.blas.surface_tables()
+
+            def finish(chunk: slice) -> None:
+                kernels.finish_hits(best_t[chunk], best_prim[chunk], best_u[chunk], best_v[chunk], best_instance[chunk],
+                                    instance_group, gi, gi == 0, *tables, self._material_maps, self._world_to_object,
+                                    self._is_identity, *(x[chunk] for x in records))  # fmt: skip
+
+            _run_in_chunks(finish, n, groups[0].blas.threads)
         return out
 
     def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
