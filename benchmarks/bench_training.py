@@ -5,8 +5,10 @@ alternating in one run.
         [--pair step|mlp|previous] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
-- ``step`` (default): ``before`` computes the loss with torch ops (`lsnif_loss.training_loss_torch`),
-  ``after`` with the one numba pass (`training_loss_numba`: terms, figures and gradient together);
+- ``step`` (default): ``before`` computes the loss with torch ops (`lsnif_loss.training_loss_torch`)
+  and casts the encoder's fp32 output to the MLP's bf16 (``SparseHashGrid.low_precision_output =
+  False``); ``after`` computes the loss in one numba pass (`training_loss_numba`: terms, figures and
+  gradient together) and the encoder writes bf16 itself (and reads the bf16 gradient as it is);
 - ``mlp``: ``before`` trains the bf16 hidden layers under ``torch.autocast``
   (``MLP.low_precision_training = "autocast"``), ``after`` as one autograd function (bit-equal);
 - ``previous``: per-thread gradient tables and the torch selection against row ranges and the
@@ -80,6 +82,7 @@ def _configure(model: LSNIFModel, config: str) -> None:
         model.network.low_precision_training = "autocast" if before else "function"
     else:
         lsnif_module.training_loss = training_loss_torch if before else training_loss
+        model.encoder.low_precision_output = not before
 
 
 def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:

@@ -179,3 +179,27 @@ def test_extra_columns_are_appended_without_changing_the_gradient():
     assert torch.equal(g_joined, g_plain) and g_plain.abs().sum() > 0
     with pytest.raises(ValueError, match="extra columns"):
         grid(f.points, f.face_axis, extra[:-1])
+
+
+def test_bf16_output_is_the_cast_of_the_fp32_one_bit_for_bit():
+    """``dtype=torch.bfloat16``: the CPU kernel's own rounding gives the bits of ``.to(torch.bfloat16)``
+    of the fp32 features (extra columns too), and the backward, handed the bf16 gradient, gives the
+    table gradient of its fp32 widening exactly."""
+    f = _featurized_points(n=1500, seed=5)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    extra = torch.rand(len(f.points), 12, generator=torch.Generator().manual_seed(1))
+    fp32 = grid(f.points, f.face_axis, extra)
+    low = grid(f.points, f.face_axis, extra, torch.bfloat16)
+    assert low.dtype == torch.bfloat16 and low.shape == fp32.shape
+    assert torch.equal(low.view(torch.int16), fp32.to(torch.bfloat16).view(torch.int16))
+    # The rounding is real (almost every nonzero feature changes) and goes both ways in magnitude.
+    nonzero = fp32 != 0
+    assert (fp32 != low.float())[nonzero].float().mean() > 0.9
+    grew = low.float().abs() > fp32.abs()
+    assert 0.3 < grew[nonzero].float().mean() < 0.7
+    upstream = torch.randn(fp32.shape, generator=torch.Generator().manual_seed(2)).to(torch.bfloat16)
+    (g_low,) = torch.autograd.grad((low * upstream).sum(), grid.table)  # bf16 gradient into the backward
+    (g_ref,) = torch.autograd.grad((fp32 * upstream.float()).sum(), grid.table)
+    assert torch.equal(g_low, g_ref) and g_ref.abs().sum() > 0
+    grid.low_precision_output = False  # the earlier path: fp32 features, then the cast
+    assert torch.equal(grid(f.points, f.face_axis, extra, torch.bfloat16).view(torch.int16), low.view(torch.int16))

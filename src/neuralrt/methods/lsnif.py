@@ -163,13 +163,13 @@ class LSNIFModel(NeuralBLAS):
         h = self.config.features.max_points
         return self.encoder.output_dim(h) + (h if self.config.features.point_distances else 0)
 
-    def network_input(self, prep: _Prepared) -> Tensor:
-        """[M, network_inputs]: encoded features of the active rays' points, in ray order."""
+    def network_input(self, prep: _Prepared, dtype: torch.dtype = torch.float32) -> Tensor:
+        """[M, network_inputs] in ``dtype``: encoded features of the active rays' points, in ray order."""
         fp = prep.features
         distances = None
         if self.config.features.point_distances:
             distances = prep.distances if prep.distances is not None else point_local_distances(fp, prep.origins, prep.directions)
-        return self.encoder(fp.points, fp.face_axis, distances)
+        return self.encoder(fp.points, fp.face_axis, distances, dtype)
 
     def _raw_outputs(self, prep: _Prepared, compute_dtype: torch.dtype) -> Tensor:
         return self.network(self.network_input(prep), compute_dtype)
@@ -180,7 +180,9 @@ class LSNIFModel(NeuralBLAS):
         n = len(rays)
         prep = self._prepare(rays)
         fp = prep.features
-        out = self._raw_outputs(prep, self.compute_dtype(training=True))
+        dtype = self.compute_dtype(training=True)
+        # The encoder hands the MLP its input in the hidden layers' dtype (bf16 on the CPU: written so, no cast).
+        out = self.network(self.network_input(prep, dtype), dtype)
         terms = training_loss(out, prep.active, prep.t_offset, fp.t_enter, fp.t_exit, rays.directions, truth, self.config.loss,
                               self.num_materials, _logit(self.config.inference.occlusion_threshold), prep.truncated)  # fmt: skip
         correct = n - terms.wrong_network - terms.missed_outside

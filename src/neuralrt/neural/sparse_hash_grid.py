@@ -34,8 +34,10 @@ import torch
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 from torch import Tensor, nn
+
+from .bf16_dot import bf16_bits
 
 __all__ = [
     "SparseHashGrid",
@@ -115,6 +117,19 @@ def prefetch_row(typingctx, array, row):
         return context.get_dummy_value()
 
     return types.void(array, row), codegen
+
+
+@intrinsic
+def _bf16_as_f32(typingctx, bits):
+    """The fp32 value of bf16 ``bits`` (a uint16): the bits shifted into the high half (exact)."""
+    if bits != types.uint16:
+        return None
+
+    def codegen(context, builder, sig, args):
+        i32 = ir.IntType(32)
+        return builder.bitcast(builder.shl(builder.zext(args[0], i32), i32(16)), ir.FloatType())
+
+    return types.float32(bits), codegen
 
 
 @numba.njit(cache=True, inline="always")
@@ -204,19 +219,23 @@ def read_rows(table, slots, weights, k, out, col):
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
-    """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F]``. Per group of
-    `_GROUP` rays: every point's rows and weights first (prefetching the rows), then the reads."""
+def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16):
+    """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F (+ extra)]`` fp32, or,
+    when ``out_bf16`` has rows, ``out_bf16`` is (uint16 bf16 bits, rounded as torch's cast) and
+    ``out`` is unused. Per group of `_GROUP` rays: every point's rows and weights first
+    (prefetching the rows), then the reads."""
     n_rays, n_points = axes.shape
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
     table_size = table.shape[0] // n_levels
     mask = np.int64(table_size - 1)
     stride = n_levels * n_feat
+    low_precision = out_bf16.shape[0] > 0
     for chunk in numba.prange(n_chunks):
         slots = np.empty((_GROUP * n_points * n_levels, 8), np.int64)
         weights = np.empty((_GROUP * n_points * n_levels, 8), np.float32)
         reads = np.empty(_GROUP * n_points * n_levels, np.int64)
+        scratch = np.empty(n_points * stride, np.float32)  # one ray's fp32 features before rounding
         stop = (chunk + 1) * n_rays // n_chunks
         for first in range(chunk * n_rays // n_chunks, stop, _GROUP):
             last = min(first + _GROUP, stop)
@@ -236,11 +255,14 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out):
                         e += 1
             e = 0
             for n in range(first, last):
-                row = out[n]
+                row = scratch if low_precision else out[n]
                 for h in range(n_points):
                     for lvl in range(n_levels):
                         read_rows(table, slots[e], weights[e], reads[e], row, h * stride + lvl * n_feat)
                         e += 1
+                if low_precision:
+                    for j in range(n_points * stride):
+                        out_bf16[n, j] = bf16_bits(scratch[j])
 
 
 @numba.njit(parallel=True, cache=True)
@@ -309,7 +331,19 @@ def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level,
                     if row_lo <= row < row_hi:
                         w = weights[c]
                         for f in range(n_feat):
-                            grad_table[row, f] += w * grad_out[n, col + f]
+                            grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
+
+
+def _grad_value(g):
+    """An output gradient as fp32: fp32 as is, bf16 bits (uint16) widened (exact, as torch's cast)."""
+    raise NotImplementedError("numba only")
+
+
+@overload(_grad_value, inline="always")
+def _grad_value_overload(g):
+    if g == types.uint16:
+        return lambda g: _bf16_as_f32(g)
+    return lambda g: g
 
 
 def _numpy(t: Tensor, dtype) -> np.ndarray:
@@ -317,29 +351,37 @@ def _numpy(t: Tensor, dtype) -> np.ndarray:
 
 
 class _SparseHashGridFunction(torch.autograd.Function):
-    """Fused numba forward/backward; differentiable in the table only (points are data)."""
+    """Fused numba forward/backward; differentiable in the table only (points are data). With
+    ``dtype=torch.bfloat16`` the features come out rounded to bf16 (as ``.to(torch.bfloat16)`` of
+    the fp32 ones: same bits) and the backward reads the bf16 output gradient as it is."""
 
     @staticmethod
     def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray, backward_scatter: str,
-                extra: Tensor | None):  # fmt: skip
+                extra: Tensor | None, dtype: torch.dtype):  # fmt: skip
         pts = _numpy(points, torch.float32)
         axes = _numpy(face_axis, torch.int8)
         n_rays, n_points = axes.shape
         levels, _, n_feat = table.shape
         width = n_points * levels * n_feat
+        shape = (n_rays, width + (0 if extra is None else extra.shape[1]))
         # The extra columns are written in place: no concatenation after, no slice of the gradient before the backward.
-        out = np.empty((n_rays, width + (0 if extra is None else extra.shape[1])), np.float32)
-        if extra is not None:
-            out[:, width:] = _numpy(extra, torch.float32)
+        if dtype == torch.bfloat16:
+            out, bits = np.empty((0, shape[1]), np.float32), np.empty(shape, np.uint16)
+            if extra is not None:
+                bits[:, width:] = extra.detach().to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+        else:
+            out, bits = np.empty(shape, np.float32), np.empty((0, shape[1]), np.uint16)
+            if extra is not None:
+                out[:, width:] = _numpy(extra, torch.float32)
         if n_rays:
             n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
-            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out)
+            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out, bits)
         ctx.save_for_backward(points, face_axis)
         ctx.resolutions = resolutions
         ctx.table_shape = tuple(table.shape)
         ctx.backward_scatter = backward_scatter
-        return torch.from_numpy(out)
+        return torch.from_numpy(bits).view(torch.bfloat16) if dtype == torch.bfloat16 else torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
@@ -347,18 +389,23 @@ class _SparseHashGridFunction(torch.autograd.Function):
         if ctx.needs_input_grad[2]:
             points, face_axis = ctx.saved_tensors
             levels, size, n_feat = ctx.table_shape
-            args = (_numpy(points, torch.float32), _numpy(face_axis, torch.int8), _numpy(grad_out, torch.float32), ctx.resolutions)
+            if grad_out.dtype == torch.bfloat16:
+                grad = grad_out.contiguous().view(torch.int16).numpy().view(np.uint16)
+            else:
+                grad = _numpy(grad_out, torch.float32)
+            args = (_numpy(points, torch.float32), _numpy(face_axis, torch.int8), grad, ctx.resolutions)
             if ctx.backward_scatter == "row_ranges":
                 grad = np.empty((levels * size, n_feat), np.float32)
                 _backward_rows_kernel(*args, -(-numba.get_num_threads() // levels), grad)
             else:  # "thread_tables": the earlier scatter, kept to measure against
+                args = (*args[:2], _numpy(grad_out, torch.float32), args[3])
                 n_threads = max(1, min(len(points), numba.get_num_threads()))
                 tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
                 if len(points):
                     _backward_kernel(*args, tables)
                 grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
-        return None, None, grad_table, None, None, None
+        return None, None, grad_table, None, None, None, None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -432,16 +479,21 @@ class SparseHashGrid(nn.Module):
         # CPU backward: "row_ranges" (threads own table rows) or "thread_tables" (a private table
         # per thread, summed: the earlier scatter, kept to measure against); not stored in models.
         self.backward_scatter = "row_ranges"
+        # CPU forward with ``dtype=torch.bfloat16``: the kernel writes bf16 (True) or fp32 that is
+        # then cast (False: the earlier path, kept to measure against); same values either way.
+        self.low_precision_output = True
 
     def output_dim(self, max_points: int) -> int:
         return max_points * len(self.resolutions) * self.features_per_level
 
-    def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None) -> Tensor:
+    def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None, dtype: torch.dtype = torch.float32) -> Tensor:
         """``points [N, H, 3]`` unit-box, ``face_axis [N, H]`` -> features ``[N, H * L * F]``.
 
         Layout is point-major: point 0 level 0 features, point 0 level 1, ..., point 1 ...;
         padding points give zeros. ``extra [N, E]`` (data, no gradient) is appended as E more
-        columns (on the CPU written into the same output, instead of a concatenation).
+        columns (on the CPU written into the same output, instead of a concatenation). ``dtype``:
+        the output's, the fp32 features cast to it (the CPU kernel writes bf16 itself, no fp32
+        copy, with ``low_precision_output``).
         """
         if points.ndim != 3 or points.shape[-1] != 3 or face_axis.shape != points.shape[:2]:
             raise ValueError(
@@ -455,10 +507,13 @@ class SparseHashGrid(nn.Module):
 
             features = sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
         elif self.table.device.type == "cpu" and self.table.dtype == torch.float32:
-            return _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter, extra)
+            kernel_dtype = torch.bfloat16 if dtype == torch.bfloat16 and self.low_precision_output else torch.float32
+            features = _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter,
+                                                     extra, kernel_dtype)  # fmt: skip
+            return features.to(dtype)
         else:
             features = sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
-        return features if extra is None else torch.cat([features, extra.to(features.dtype)], dim=1)
+        return (features if extra is None else torch.cat([features, extra.to(features.dtype)], dim=1)).to(dtype)
 
     def _resolutions_on(self, device: torch.device) -> Tensor:
         """The level resolutions as an int32 tensor on ``device`` (made once per device: no copy per call)."""
