@@ -211,7 +211,7 @@ def coloured_blases():
 @pytest.mark.parametrize("inside", [False, True])
 def test_fused_mesh_path_matches_group_by_group(kind, inside, blases, coloured_blases):
     """`NumbaTLASStages.intersect_meshes` (Embree's raw answers merged, attributes of the final hits
-    only) gives the Hits of the group-by-group stages bit for bit: one-instance groups, gathered
+    only) gives the Hits of the group-by-group stages bit for bit, `occluded_meshes` their shadow answers: one-instance groups, gathered
     pairs (grid16: a BVH over 16 boxes; mixed: every box), uvs and vertex colours; a textured mesh
     takes the group-by-group path."""
     coloured, textured = coloured_blases
@@ -221,10 +221,18 @@ def test_fused_mesh_path_matches_group_by_group(kind, inside, blases, coloured_b
         rays = MOVED.apply_rays(rays)
     fused = NumbaTLASStages(table)
     assert fused.fused_meshes and fused.intersect_meshes(rays, _scene(kind, coloured, blases[1])._groups[False]) is not None
-    got = _scene(kind, coloured, blases[1], stages=NumbaTLASStages).intersect(rays)
-    ref = _scene(kind, coloured, blases[1], stages=lambda t: NumbaTLASStages(t, fused_meshes=False)).intersect(rays)
+    fused_scene = _scene(kind, coloured, blases[1], stages=NumbaTLASStages)
+    ref_scene = _scene(kind, coloured, blases[1], stages=lambda t: NumbaTLASStages(t, fused_meshes=False))
+    got, ref = fused_scene.intersect(rays), ref_scene.intersect(rays)
     assert ref.hit.sum() > 200 and (ref.albedo[ref.hit] != ref.albedo[ref.hit][:1]).any(dim=1).any()
     for f in fields(ref):
         assert torch.equal(getattr(got, f.name), getattr(ref, f.name)), f.name
+    # Shadow rays: finite intervals ending short of and beyond the surfaces.
+    shadow = Rays(rays.origins, rays.directions, rays.t_min, torch.where(torch.arange(len(rays)) % 2 == 0, ref.t * 0.999, ref.t * 1.5 + 0.1))
+    assert fused_scene.stages.occluded_meshes(shadow, fused_scene._groups[False]) is not None
+    blocked = ref_scene.occluded(shadow)
+    assert 100 < int(blocked.sum()) < len(rays) - 100
+    assert torch.equal(fused_scene.occluded(shadow), blocked)
+    assert torch.equal(fused_scene.occluded(rays), ref_scene.occluded(rays))
     with_texture = _scene(kind, textured, blases[1])
     assert with_texture.stages.intersect_meshes(rays, with_texture._groups[False]) is None

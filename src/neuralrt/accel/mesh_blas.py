@@ -267,6 +267,10 @@ class EmbreeMeshBLAS(MeshBLAS):
         res = self._scene.run(shifted, directions, dists=tfar, output=1)
         return res["primID"], res["tfar"], res["u"], res["v"]
 
+    def trace_occluded(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
+        """Embree's occlusion answers for prepared valid rays: geomID per ray (>= 0: blocked)."""
+        return self._scene.run(shifted, directions, dists=tfar, query="OCCLUDED")
+
     def surface_tables(self) -> tuple:
         """The mesh arrays `mesh_blas_kernels.surface_at` reads after ``(p, u, v)``: faces, face
         normals, vertex normals, face material ids, uvs, vertex colours, material base colours (read

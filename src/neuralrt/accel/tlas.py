@@ -147,6 +147,9 @@ class SceneAccel:
         stages = self.stages
         if len(rays) == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
+        fused = stages.occluded_meshes(rays, self._groups[False])
+        if fused is not None:
+            return fused
         blocked: Tensor | None = None  # all False until a group blocks something
         valid = stages.valid_mask(rays)
         for group in self._groups[False]:

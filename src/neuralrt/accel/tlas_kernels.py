@@ -19,7 +19,8 @@ from ..rays_kernels import valid_ray
 from .mesh_blas_kernels import surface_at
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
-           "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits"]
+           "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits",
+           "instance_occlusion_rays", "mark_blocked"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -505,3 +506,36 @@ def finish_hits(
         material_id[r] = material_maps[k, min(max(m, 0), n_map - 1)]
         primitive_id[r] = p
         instance_id[r] = k
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def instance_occlusion_rays(origins, directions, t_min, t_max, blocked, lo, hi, world_to_object, identity,
+                            out_origins, out_directions, out_tfar, out_ray) -> int:  # fmt: skip
+    """`instance_embree_rays` for shadow rays: rays not yet ``blocked`` whose interval (t_min, t_max)
+    meets the box, valid in object space, compacted for Embree's occlusion query."""
+    count = 0
+    one = np.float32(1.0)
+    for i in range(origins.shape[0]):
+        if blocked[i] or not valid_ray(origins, directions, t_min, t_max, i):
+            continue
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        if not _box_overlap(ox, oy, oz, one / dx, one / dy, one / dz, lo, hi, 0, t_min[i], t_max[i]):
+            continue
+        if not identity:
+            m = world_to_object
+            ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
+                                      _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
+                                      _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
+        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], t_max[i], out_origins, out_directions, out_tfar, count):
+            out_ray[count] = i
+            count += 1
+    return count
+
+
+@numba.njit(nogil=True, cache=True)
+def mark_blocked(out_ray, geom_id, blocked) -> None:
+    """``blocked[out_ray[j]]`` where Embree reported a blocker for row ``j``."""
+    for j in range(out_ray.shape[0]):
+        if geom_id[j] >= 0:
+            blocked[out_ray[j]] = True

@@ -23,6 +23,7 @@ Every stage sees the instance table the accelerator was built with (`InstanceTab
 - ``intersect_meshes(rays, groups)``: the whole closest-hit query at once where a fused path
   exists (every group an untextured Embree mesh: `NumbaTLASStages`), else None (the caller runs
   the stages above group by group). Same answers, bit for bit.
+- ``occluded_meshes(rays, groups)``: the same for the shadow-ray query ([N] bool, or None).
 """
 
 from __future__ import annotations
@@ -122,6 +123,9 @@ class TorchTLASStages:
 
     def intersect_meshes(self, rays: Rays, groups) -> Hits | None:
         return None  # no fused path: the stages above, group by group
+
+    def occluded_meshes(self, rays: Rays, groups) -> Tensor | None:
+        return None
 
     def _to_world_(self, hits: Hits, inst_idx: Tensor) -> None:
         """Object-space hit records to world space (normals by the inverse transpose), in place."""
@@ -277,6 +281,52 @@ class NumbaTLASStages:
 
             _run_in_chunks(finish, n, groups[0].blas.threads)
         return out
+
+    def occluded_meshes(self, rays: Rays, groups) -> Tensor | None:
+        """`intersect_meshes` for shadow rays: per group, one pass per chunk does the broad phase
+        (rays already blocked drop out), the mapping and Embree's preparation, then Embree's
+        occlusion query marks the blocked rays. The same answers as the group-by-group stages."""
+        from .mesh_blas import EmbreeMeshBLAS, _run_in_chunks
+
+        if not self.fused_meshes or not all(type(g.blas) is EmbreeMeshBLAS for g in groups):
+            return None
+        n = len(rays)
+        o, d, t_min, t_max = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
+        blocked = np.zeros(n, np.bool_)
+        for gi, group in enumerate(groups):
+            blas, ids = group.blas, group.instance_ids.numpy()
+            if ids.shape[0] == 1:
+                k = int(ids[0])
+
+                def trace(chunk: slice) -> None:
+                    m = chunk.stop - chunk.start
+                    so, sd, tfar, row = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m, np.int64)
+                    count = kernels.instance_occlusion_rays(o[chunk], d[chunk], t_min[chunk], t_max[chunk], blocked[chunk],
+                                                            self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
+                                                            bool(self._is_identity[k]), so, sd, tfar, row)  # fmt: skip
+                    if count:
+                        kernels.mark_blocked(row[:count], blas.trace_occluded(so[:count], sd[:count], tfar[:count]), blocked[chunk])
+
+                _run_in_chunks(trace, n, blas.threads)
+                continue
+            t_limit = torch.from_numpy(t_max if gi == 0 else np.where(blocked, np.float32(-np.inf), t_max))
+            ray_idx, inst_idx, _ = self.candidate_pairs(rays, group.instance_ids, t_limit, None)
+            if ray_idx.numel() == 0:
+                continue
+            ray_np, inst_np = ray_idx.numpy(), inst_idx.contiguous().numpy()
+            p = ray_np.shape[0]
+            so, sd, tfar, pair = np.empty((p, 3), np.float32), np.empty((p, 3), np.float32), np.empty(p, np.float32), np.empty(p, np.int64)
+            # The pairs' own interval (t_min, t_max), as the group-by-group `occluded` passes it.
+            count = kernels.pair_embree_rays(o, d, t_min, t_max, ray_np, inst_np, self._world_to_object, self._is_identity,
+                                             so, sd, tfar, pair)  # fmt: skip
+            geom = np.empty(count, np.int32)
+
+            def trace_pairs(chunk: slice) -> None:
+                geom[chunk] = blas.trace_occluded(so[chunk], sd[chunk], tfar[chunk])
+
+            _run_in_chunks(trace_pairs, count, blas.threads)
+            kernels.mark_blocked(ray_np[pair[:count]], geom, blocked)
+        return torch.from_numpy(blocked)
 
     def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
         kernels.merge_pairs(
