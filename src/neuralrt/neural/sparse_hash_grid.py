@@ -37,7 +37,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic, overload
 from torch import Tensor, nn
 
-from .bf16_dot import bf16_bits
+from .bf16_dot import bf16_bits, bf16_value
 
 __all__ = [
     "SparseHashGrid",
@@ -117,19 +117,6 @@ def prefetch_row(typingctx, array, row):
         return context.get_dummy_value()
 
     return types.void(array, row), codegen
-
-
-@intrinsic
-def _bf16_as_f32(typingctx, bits):
-    """The fp32 value of bf16 ``bits`` (a uint16): the bits shifted into the high half (exact)."""
-    if bits != types.uint16:
-        return None
-
-    def codegen(context, builder, sig, args):
-        i32 = ir.IntType(32)
-        return builder.bitcast(builder.shl(builder.zext(args[0], i32), i32(16)), ir.FloatType())
-
-    return types.float32(bits), codegen
 
 
 @numba.njit(cache=True, inline="always")
@@ -342,7 +329,7 @@ def _grad_value(g):
 @overload(_grad_value, inline="always")
 def _grad_value_overload(g):
     if g == types.uint16:
-        return lambda g: _bf16_as_f32(g)
+        return lambda g: bf16_value(g)
     return lambda g: g
 
 
