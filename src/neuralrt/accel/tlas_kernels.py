@@ -236,6 +236,33 @@ def _fma32(typingctx, a, b, c):
     return sig, codegen
 
 
+@intrinsic
+def _prefetch_row(typingctx, arr, row):
+    """A hint: start loading the cache line of ``arr[row, 0]`` (or ``arr[row]``) now. Rows of mesh
+    tables read in random order (closest hits scatter over the mesh) otherwise each wait for
+    memory in turn; a few rows ahead, their loads overlap."""
+    sig = types.void(arr, row)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        index = [context.cast(builder, args[1], signature.args[1], types.intp)]
+        index += [context.get_constant(types.intp, 0)] * (aryty.ndim - 1)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, index, wraparound=False)
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        prefetch = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                                  "llvm.prefetch.p0i8")  # fmt: skip
+        # read, high temporal locality, data cache
+        builder.call(prefetch, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+_FACE_AHEAD = 16  # rows ahead whose face records are prefetched
+_VERTEX_AHEAD = 8  # rows ahead whose vertex rows are prefetched (their face records arrived by then)
+
+
 @numba.njit(cache=True, inline="always", error_model="numpy")
 def _world_normal(m, identity, nx, ny, nz):
     """``normalize(n @ m[:3, :3])`` bit for bit as torch computes it on the CPU: the small batched
@@ -475,7 +502,23 @@ def finish_hits(
     tables), as `closest_hit_attributes` then `merge_every_ray` / `merge_pairs` write them; with
     ``write_misses`` also the rows of `Hits.empty` for rays that hit nothing."""
     n_map = material_maps.shape[1]
-    for r in range(best_t.shape[0]):
+    n = best_t.shape[0]
+    for r in range(n):
+        ahead = r + _FACE_AHEAD
+        if ahead < n and best_instance[ahead] >= 0 and instance_group[best_instance[ahead]] == group:
+            q = best_prim[ahead]
+            _prefetch_row(faces, q)
+            _prefetch_row(face_normals, q)
+            _prefetch_row(face_material_ids, q)
+        ahead = r + _VERTEX_AHEAD
+        if ahead < n and best_instance[ahead] >= 0 and instance_group[best_instance[ahead]] == group:
+            q = best_prim[ahead]
+            for c in range(3):
+                _prefetch_row(vertex_normals, faces[q, c])
+                if use_uvs:
+                    _prefetch_row(uvs, faces[q, c])
+                if use_vertex_colors:
+                    _prefetch_row(vertex_colors, faces[q, c])
         k = best_instance[r]
         if k < 0:
             if write_misses:
