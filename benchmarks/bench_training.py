@@ -5,10 +5,11 @@ alternating in one run.
         [--pair step|mlp|previous] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
-- ``step`` (default): ``before`` computes the loss with torch ops (`lsnif_loss.training_loss_torch`)
-  and casts the encoder's fp32 output to the MLP's bf16 (``SparseHashGrid.low_precision_output =
-  False``); ``after`` computes the loss in one numba pass (`training_loss_numba`: terms, figures and
-  gradient together) and the encoder writes bf16 itself (and reads the bf16 gradient as it is);
+- ``step`` (default): ``before`` runs the output layer and the loss as torch ops
+  (`lsnif_loss.training_loss_torch`) and casts the encoder's fp32 output to the MLP's bf16
+  (``SparseHashGrid.low_precision_output = False``); ``after`` runs them as numba passes
+  (`training_loss_numba`: outputs, terms, figures and the gradients of the hidden activations and
+  the output layer together) and the encoder writes bf16 itself (and reads the bf16 gradient as it is);
 - ``mlp``: ``before`` trains the bf16 hidden layers under ``torch.autocast``
   (``MLP.low_precision_training = "autocast"``), ``after`` as one autograd function (bit-equal);
 - ``previous``: per-thread gradient tables and the torch selection against row ranges and the
@@ -61,8 +62,9 @@ _STAGES = {
     "select network rays": "lsnif_features.py:select_network_rays_numba",
     "select network rays (torch)": "lsnif_features.py:select_network_rays_torch",
     "optimizer (fused Adam)": "adam.py:step",
-    "loss (torch ops, forward)": "lsnif_loss.py:training_loss_torch",
-    "loss (numba pass, forward)": "lsnif_loss.py:training_loss_numba",
+    "MLP hidden layers forward": "mlp.py:hidden_forward",
+    "output layer + loss (torch ops, forward)": "lsnif_loss.py:training_loss_torch",
+    "output layer + loss (numba passes, forward)": "lsnif_loss.py:training_loss_numba",
 }
 
 

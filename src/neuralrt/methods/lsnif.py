@@ -181,10 +181,12 @@ class LSNIFModel(NeuralBLAS):
         prep = self._prepare(rays)
         fp = prep.features
         dtype = self.compute_dtype(training=True)
-        # The encoder hands the MLP its input in the hidden layers' dtype (bf16 on the CPU: written so, no cast).
-        out = self.network(self.network_input(prep, dtype), dtype)
-        terms = training_loss(out, prep.active, prep.t_offset, fp.t_enter, fp.t_exit, rays.directions, truth, self.config.loss,
-                              self.num_materials, _logit(self.config.inference.occlusion_threshold), prep.truncated)  # fmt: skip
+        # The encoder hands the MLP its input in the hidden layers' dtype (bf16 on the CPU: written so,
+        # no cast); the loss runs the output layer (on the CPU in the same pass as the loss terms).
+        hidden = self.network.hidden_forward(self.network_input(prep, dtype), dtype)
+        terms = training_loss(hidden, self.network.output, prep.active, prep.t_offset, fp.t_enter, fp.t_exit, rays.directions,
+                              truth, self.config.loss, self.num_materials, _logit(self.config.inference.occlusion_threshold),
+                              prep.truncated)  # fmt: skip
         correct = n - terms.wrong_network - terms.missed_outside
         return StepResult(terms.loss, terms.parts, correct, n, len(prep.active), {"truncated": terms.truncated})
 

@@ -1,4 +1,4 @@
-"""LSNIF's training loss (paper Sec. 5.3) over the network's raw outputs, with the step's figures.
+"""LSNIF's training loss (paper Sec. 5.3) from the MLP's last hidden layer, with the step's figures.
 
 Five terms, each weighted by `LossConfig`: occlusion BCE with logits over the network rays;
 over the network rays that hit, distance L1 between the sigmoid output and the hit's fraction of
@@ -6,11 +6,14 @@ the ray's box interval, normal ``1 - cos`` against the exact normal turned towar
 albedo relative L2 (``(a - y)^2 / (a^2 + 0.01)``, the denominator held constant) and, with more
 than one material, material cross-entropy.
 
-Two implementations, chosen once by device (`training_loss`): torch ops (`training_loss_torch`,
-any device: the reference and the CUDA path) and, on the CPU, one numba pass
-(`training_loss_numba`) that computes the terms, the figures and d loss / d outputs together;
-its autograd function's backward only scales that stored gradient. The two agree within fp32
-rounding (the numba pass sums in float64; tested against each other).
+The loss takes the last hidden activations and the (fp32) output layer, so that the CPU can run
+the output layer and the loss as one pass. Two implementations, chosen once by device
+(`training_loss`): torch ops (`training_loss_torch`, any device: the output layer as
+`MLP.forward` runs it, then the terms; the reference and the CUDA path) and, on the CPU, one
+numba pass (`training_loss_numba`) that computes per ray the outputs (16-lane fp32 FMAs), the
+terms and figures, and the gradients of the hidden activations and of the output layer's weight
+and bias; its autograd function's backward only scales those. The two agree to fp32 rounding
+(sums in another order; the hidden gradient to one bf16 rounding step; tested against each other).
 """
 
 from __future__ import annotations
@@ -21,8 +24,11 @@ import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from numba import types
+from numba.extending import overload
+from torch import Tensor, nn
 
+from ..neural.bf16_dot import bf16_bits, bf16_value, fma16, load16, store16, zeros16
 from ..rays import Hits, face_forward
 from .lsnif_config import LossConfig
 
@@ -42,21 +48,24 @@ class TrainingLoss:
     truncated: int  # the ``truncated`` count handed in, read back with the rest
 
 
-def training_loss(out: Tensor, active: Tensor, t_offset: Tensor, t_enter: Tensor, t_exit: Tensor, directions: Tensor,
-                  truth: Hits, weights: LossConfig, num_materials: int, occlusion_logit: float,
+def training_loss(hidden: Tensor, output_layer: nn.Linear, active: Tensor, t_offset: Tensor, t_enter: Tensor, t_exit: Tensor,
+                  directions: Tensor, truth: Hits, weights: LossConfig, num_materials: int, occlusion_logit: float,
                   truncated: Tensor) -> TrainingLoss:  # fmt: skip
-    """The loss of the network rays ``active`` (rows of the batch) with raw outputs ``out [M, 8 +
-    materials]``; ``t_offset``/``t_enter``/``t_exit [M]`` place each ray's box interval, ``directions``
-    and ``truth`` are the whole batch's. On the CPU one numba pass, elsewhere torch ops."""
-    implementation = training_loss_numba if out.device.type == "cpu" else training_loss_torch
-    return implementation(out, active, t_offset, t_enter, t_exit, directions, truth, weights, num_materials,
+    """The loss of the network rays ``active`` (rows of the batch) whose last hidden activations are
+    ``hidden [M, W]`` (fp32 or bf16); ``output_layer`` (fp32) maps them to the raw outputs ``[M, 8 +
+    materials]`` (as `MLP.forward`). ``t_offset``/``t_enter``/``t_exit [M]`` place each ray's box
+    interval, ``directions`` and ``truth`` are the whole batch's. On the CPU one numba pass for the
+    output layer and the loss, elsewhere torch ops."""
+    implementation = training_loss_numba if hidden.device.type == "cpu" else training_loss_torch
+    return implementation(hidden, output_layer, active, t_offset, t_enter, t_exit, directions, truth, weights, num_materials,
                           occlusion_logit, truncated)  # fmt: skip
 
 
-def training_loss_torch(out: Tensor, active: Tensor, t_offset: Tensor, t_enter: Tensor, t_exit: Tensor, directions: Tensor,
-                        truth: Hits, weights: LossConfig, num_materials: int, occlusion_logit: float,
-                        truncated: Tensor) -> TrainingLoss:  # fmt: skip
+def training_loss_torch(hidden: Tensor, output_layer: nn.Linear, active: Tensor, t_offset: Tensor, t_enter: Tensor,
+                        t_exit: Tensor, directions: Tensor, truth: Hits, weights: LossConfig, num_materials: int,
+                        occlusion_logit: float, truncated: Tensor) -> TrainingLoss:  # fmt: skip
     """`training_loss` as torch ops (any device); one device->host read-back for all figures."""
+    out = output_layer(hidden.float())  # the output layer in fp32, as `MLP.forward`
     w = weights
     hit = truth.hit[active]
     occ_loss = F.binary_cross_entropy_with_logits(out[:, _OCC], hit.float()) if len(active) else out.sum() * 0
@@ -88,103 +97,210 @@ def training_loss_torch(out: Tensor, active: Tensor, t_offset: Tensor, t_enter: 
     return TrainingLoss(loss, dict(zip(parts, values)), *counts)
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def _sigmoid(x):
-    return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
+def _widen(x):
+    """A hidden activation as fp32: fp32 as is, bf16 bits (uint16) widened exactly."""
+    raise NotImplementedError("numba only")
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def _loss_kernel(out, active, t_offset, t_enter, t_exit, directions, hit, t_true, normal, albedo, material, weights,
-                 num_materials, occlusion_logit, grad, sums, counts):  # fmt: skip
-    """One pass over the network rays: ``sums[term]`` (float64, not yet divided by the ray count),
-    ``counts = (network rays that hit, wrong predictions, all hits of the batch)`` and ``grad [M, C]``
-    = d (weighted total) / d out, with the same formulas as `training_loss_torch`."""
+@overload(_widen, inline="always")
+def _widen_overload(x):
+    if x == types.uint16:
+        return lambda x: bf16_value(x)
+    return lambda x: x
+
+
+def _narrow(dst, i, j, value):
+    """``dst[i, j] = value`` in ``dst``'s precision: fp32 as is, bf16 bits rounded as torch's cast."""
+    raise NotImplementedError("numba only")
+
+
+@overload(_narrow, inline="always")
+def _narrow_overload(dst, i, j, value):
+    if dst.dtype == types.uint16:
+
+        def store_bf16(dst, i, j, value):
+            dst[i, j] = np.uint16(bf16_bits(value))
+
+        return store_bf16
+
+    def store(dst, i, j, value):
+        dst[i, j] = value
+
+    return store
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _row_loss(row, sig, softplus, y, t_local, nx, ny, nz, ax, ay, az, target, num_materials, occlusion_logit, scale, g,
+              sums):  # fmt: skip
+    """One network ray's terms added into ``sums`` and d (weighted total) / d outputs written into
+    ``g`` (``scale[term]`` = weight / ray count of the term); returns whether the hit/miss
+    prediction is wrong. ``row``: the outputs, ``sig``: their sigmoids, ``softplus``: log(1 +
+    exp(-|row[0]|)); ``y``: the ray hits; the rest is read only when it does."""
     one, zero = np.float32(1.0), np.float32(0.0)
-    n_net = out.shape[0]
+    x = row[0]
+    # BCE with logits, stable form: max(x, 0) - x y + log(1 + exp(-|x|)).
+    sums[0] += max(x, zero) - (x if y else zero) + softplus
+    g[0] = (sig[0] - (one if y else zero)) * scale[0]
+    wrong = (x > occlusion_logit) != y
+    if not y:
+        return wrong
+    # Distance: L1 between sigmoid(out) and the hit's fraction of [t_enter, t_exit].
+    s = sig[1]
+    d = s - t_local
+    sums[1] += abs(d)
+    g[1] = (one if d > 0 else (-one if d < 0 else zero)) * s * (one - s) * scale[1]
+    # Normal: 1 - cos(out, exact normal facing the ray); norms clamped at eps as torch does.
+    px, py, pz = row[2], row[3], row[4]
+    eps = np.float32(1e-8)
+    p_norm = max(np.sqrt(px * px + py * py + pz * pz), eps)
+    n_norm = max(np.sqrt(nx * nx + ny * ny + nz * nz), eps)
+    ux, uy, uz = nx / n_norm, ny / n_norm, nz / n_norm
+    cos = (px / p_norm) * ux + (py / p_norm) * uy + (pz / p_norm) * uz
+    sums[2] += one - cos
+    # d cos / d p = (u - cos p / |p|) / |p| (the clamped norm is constant below eps).
+    shrink = cos / p_norm if p_norm > eps else zero
+    g[2] = -(ux - shrink * px) / p_norm * scale[2]
+    g[3] = -(uy - shrink * py) / p_norm * scale[2]
+    g[4] = -(uz - shrink * pz) / p_norm * scale[2]
+    # Albedo: relative L2, the denominator held constant.
+    for c in range(3):
+        a = sig[5 + c]
+        diff = a - (ax if c == 0 else (ay if c == 1 else az))
+        den = a * a + np.float32(1e-2)
+        sums[3] += diff * diff / den
+        g[5 + c] = np.float32(2.0) * diff / den * a * (one - a) * scale[3]
+    if num_materials > 1:
+        m = row[8]
+        for k in range(1, num_materials):
+            m = max(m, row[8 + k])
+        total = np.float64(0.0)
+        for k in range(num_materials):
+            total += np.exp(np.float64(row[8 + k] - m))
+        lse = np.float64(m) + np.log(total)
+        sums[4] += lse - row[8 + target]
+        for k in range(num_materials):
+            p = np.float32(np.exp(np.float64(row[8 + k]) - lse))
+            g[8 + k] = (p - (one if k == target else zero)) * scale[4]
+    return wrong
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _output_layer_kernel(hidden, weight_t, bias, out):
+    """``out [M, C] = hidden @ W^T + b`` in fp32, ``hidden [M, W]`` fp32 or bf16 bits (uint16),
+    ``weight_t`` W^T zero-padded to ``[Wp, Cp]`` (multiples of 16) and flattened. 4 rows at once
+    (4 independent FMA chains; each row's sum in j order), 16 outputs at a time; past the last row
+    the last one repeats."""
+    n_net, width = hidden.shape
+    n_out = bias.shape[0]
+    padded_out = weight_t.shape[0] // (-(-width // 16) * 16)
+    h32 = np.zeros((4, width), np.float32)
+    group_out = np.zeros((4, padded_out), np.float32)
+    for first in range(0, n_net, 4):
+        for p in range(4):
+            row_index = min(first + p, n_net - 1)
+            for j in range(width):
+                h32[p, j] = _widen(hidden[row_index, j])
+        h0, h1, h2, h3 = h32[0], h32[1], h32[2], h32[3]
+        for cb in range(0, padded_out, 16):
+            a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
+            for j in range(width):
+                at = j * padded_out + cb
+                a0, a1 = fma16(a0, h0[j], weight_t, at), fma16(a1, h1[j], weight_t, at)
+                a2, a3 = fma16(a2, h2[j], weight_t, at), fma16(a3, h3[j], weight_t, at)
+            store16(group_out[0], cb, a0), store16(group_out[1], cb, a1)
+            store16(group_out[2], cb, a2), store16(group_out[3], cb, a3)
+        for p in range(min(4, n_net - first)):
+            for k in range(n_out):
+                out[first + p, k] = group_out[p, k] + bias[k]
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_enter, t_exit, directions, hit, t_true, normal,
+                      albedo, material, weights, num_materials, occlusion_logit, grad_hidden, grad_weight, grad_bias, sums,
+                      counts):  # fmt: skip
+    """The loss and the gradients from the output layer's outputs ``out [M, C]`` (their sigmoids
+    ``sig`` and the BCE's ``softplus`` = log(1 + exp(-|out[:, 0]|)) computed beforehand, vectorized):
+    the terms of `training_loss_torch` summed into ``sums`` (float64, not divided by the counts),
+    ``counts`` = (network rays that hit, wrong predictions, all hits of the batch); d loss / d
+    hidden into ``grad_hidden`` (hidden's dtype, rounded as torch's cast), d loss / d W
+    (``grad_weight``, ``[C, Wp]`` flattened, ``weight`` the same layout) and d loss / d b."""
+    n_net, width = hidden.shape
+    n_out = out.shape[1]
+    padded_width = weight.shape[0] // n_out
     n_hit = 0
     for i in range(n_net):
         n_hit += hit[active[i]]
     all_hits = 0
     for r in range(hit.shape[0]):
         all_hits += hit[r]
+    scale = np.empty(5, np.float32)
+    scale[0] = weights[0] / max(n_net, 1)
+    scale[1] = weights[1] / max(n_hit, 1)
+    scale[2] = weights[2] / max(n_hit, 1)
+    scale[3] = weights[3] / max(3 * n_hit, 1)
+    scale[4] = weights[4] / max(n_hit, 1)
+    row32 = np.zeros(padded_width, np.float32)
+    g = np.zeros(n_out, np.float32)
+    dh = np.zeros(padded_width, np.float32)
+    grad_weight[:] = 0.0
+    bias_sum = np.zeros(n_out, np.float64)
     wrong = 0
-    g_occ = np.float32(weights[0] / max(n_net, 1))
-    g_dist = np.float32(weights[1] / max(n_hit, 1))
-    g_normal = np.float32(weights[2] / max(n_hit, 1))
-    g_albedo = np.float32(weights[3] / max(3 * n_hit, 1))
-    g_mat = np.float32(weights[4] / max(n_hit, 1))
+    one, zero = np.float32(1.0), np.float32(0.0)
     for i in range(n_net):
         r = active[i]
-        row = out[i]
-        g = grad[i]
-        g[:] = zero
         y = hit[r]
-        x = row[0]
-        # BCE with logits, stable form: max(x, 0) - x y + log(1 + exp(-|x|)).
-        sums[0] += max(x, zero) - (x if y else zero) + np.log1p(np.exp(-abs(x)))
-        g[0] = (_sigmoid(x) - (one if y else zero)) * g_occ
-        wrong += (x > occlusion_logit) != y
-        if not y:
-            continue
-        # Distance: L1 between sigmoid(out) and the hit's fraction of [t_enter, t_exit].
-        te, tx = t_enter[i], t_exit[i]
-        t_local = (t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(1e-12))
-        t_local = min(max(t_local, zero), one)
-        s = _sigmoid(row[1])
-        d = s - t_local
-        sums[1] += abs(d)
-        g[1] = (one if d > 0 else (-one if d < 0 else zero)) * s * (one - s) * g_dist
-        # Normal: 1 - cos(out, exact normal facing the ray); norms clamped at eps as torch does.
-        nx, ny, nz = normal[r, 0], normal[r, 1], normal[r, 2]
-        if nx * directions[r, 0] + ny * directions[r, 1] + nz * directions[r, 2] > 0:
-            nx, ny, nz = -nx, -ny, -nz
-        px, py, pz = row[2], row[3], row[4]
-        eps = np.float32(1e-8)
-        p_norm = max(np.sqrt(px * px + py * py + pz * pz), eps)
-        n_norm = max(np.sqrt(nx * nx + ny * ny + nz * nz), eps)
-        ux, uy, uz = nx / n_norm, ny / n_norm, nz / n_norm
-        cos = (px / p_norm) * ux + (py / p_norm) * uy + (pz / p_norm) * uz
-        sums[2] += one - cos
-        # d cos / d p = (u - cos p / |p|) / |p| (the clamped norm is constant below eps).
-        shrink = cos / p_norm if p_norm > eps else zero
-        g[2] = -(ux - shrink * px) / p_norm * g_normal
-        g[3] = -(uy - shrink * py) / p_norm * g_normal
-        g[4] = -(uz - shrink * pz) / p_norm * g_normal
-        # Albedo: relative L2, the denominator held constant.
-        for c in range(3):
-            a = _sigmoid(row[5 + c])
-            diff = a - albedo[r, c]
-            den = a * a + np.float32(1e-2)
-            sums[3] += diff * diff / den
-            g[5 + c] = np.float32(2.0) * diff / den * a * (one - a) * g_albedo
-        if num_materials > 1:
+        t_local = zero
+        nx = ny = nz = ax = ay = az = zero
+        target = 0
+        if y:
+            te, tx = t_enter[i], t_exit[i]
+            t_local = min(max((t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(1e-12)), zero), one)
+            nx, ny, nz = normal[r, 0], normal[r, 1], normal[r, 2]
+            if nx * directions[r, 0] + ny * directions[r, 1] + nz * directions[r, 2] > 0:
+                nx, ny, nz = -nx, -ny, -nz
+            ax, ay, az = albedo[r, 0], albedo[r, 1], albedo[r, 2]
             target = min(max(material[r], 0), num_materials - 1)
-            m = row[8]
-            for k in range(1, num_materials):
-                m = max(m, row[8 + k])
-            total = np.float64(0.0)
-            for k in range(num_materials):
-                total += np.exp(np.float64(row[8 + k] - m))
-            lse = np.float64(m) + np.log(total)
-            sums[4] += lse - row[8 + target]
-            for k in range(num_materials):
-                p = np.float32(np.exp(np.float64(row[8 + k]) - lse))
-                g[8 + k] = (p - (one if k == target else zero)) * g_mat
+        g[:] = zero
+        wrong += _row_loss(out[i], sig[i], softplus[i], y, t_local, nx, ny, nz, ax, ay, az, target, num_materials,
+                           occlusion_logit, scale, g, sums)  # fmt: skip
+        # d hidden = g @ W and d W += g^T h, 16 hidden units at a time, over the nonzero g only.
+        for jb in range(0, padded_width, 16):
+            acc = zeros16()
+            for k in range(n_out):
+                if g[k] != zero:
+                    acc = fma16(acc, g[k], weight, k * padded_width + jb)
+            store16(dh, jb, acc)
+        for j in range(width):
+            _narrow(grad_hidden, i, j, dh[j])
+            row32[j] = _widen(hidden[i, j])
+        for k in range(n_out):
+            gk = g[k]
+            if gk != zero:
+                bias_sum[k] += gk
+                for jb in range(0, padded_width, 16):
+                    at = k * padded_width + jb
+                    store16(grad_weight, at, fma16(load16(grad_weight, at), gk, row32, jb))
+    for k in range(n_out):
+        grad_bias[k] = bias_sum[k]
     counts[0], counts[1], counts[2] = n_hit, wrong, all_hits
 
 
-class _LossFromGradient(torch.autograd.Function):
-    """A loss whose gradient in ``out`` was computed with it (the numba pass): backward scales it."""
+class _HeadLoss(torch.autograd.Function):
+    """The output layer plus the loss, whose gradients in the hidden activations and the output
+    layer's weight and bias were computed with it (the numba pass): backward only scales them."""
 
     @staticmethod
-    def forward(ctx, out: Tensor, value: float, grad: Tensor) -> Tensor:
-        ctx.save_for_backward(grad)
-        return out.new_tensor(value)
+    def forward(ctx, hidden: Tensor, weight: Tensor, bias: Tensor, value: float, grad_hidden: Tensor, grad_weight: Tensor,
+                grad_bias: Tensor) -> Tensor:  # fmt: skip
+        ctx.save_for_backward(grad_hidden, grad_weight, grad_bias)
+        return hidden.new_tensor(value, dtype=torch.float32)
 
     @staticmethod
     def backward(ctx, g: Tensor):
-        (grad,) = ctx.saved_tensors
-        return grad * g, None, None
+        grads = ctx.saved_tensors
+        if float(g) != 1.0:  # (the training loop's backward() hands in 1: no pass over [M, W])
+            grads = [t * g for t in grads]
+        return (*grads, None, None, None, None)
 
 
 def _array(t: Tensor, dtype=None) -> np.ndarray:
@@ -192,19 +308,43 @@ def _array(t: Tensor, dtype=None) -> np.ndarray:
     return (t if dtype is None else t.to(dtype)).contiguous().numpy()
 
 
-def training_loss_numba(out: Tensor, active: Tensor, t_offset: Tensor, t_enter: Tensor, t_exit: Tensor, directions: Tensor,
-                        truth: Hits, weights: LossConfig, num_materials: int, occlusion_logit: float,
-                        truncated: Tensor) -> TrainingLoss:  # fmt: skip
-    """`training_loss` on CPU tensors: one numba pass (terms, figures and the gradient together)."""
+def _padded16(n: int) -> int:
+    return -(-n // 16) * 16
+
+
+def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor, t_offset: Tensor, t_enter: Tensor,
+                        t_exit: Tensor, directions: Tensor, truth: Hits, weights: LossConfig, num_materials: int,
+                        occlusion_logit: float, truncated: Tensor) -> TrainingLoss:  # fmt: skip
+    """`training_loss` on CPU tensors: the output layer and the loss in one numba pass (outputs,
+    terms, figures and the gradients of the hidden activations and the output layer together)."""
     w = np.array([weights.occlusion, weights.distance, weights.normal, weights.albedo, weights.material], np.float64)
-    grad = np.empty(tuple(out.shape), np.float32)
+    n_net, width = hidden.shape
+    n_out = output_layer.out_features
+    padded_width, padded_out = _padded16(width), _padded16(n_out)
+    weight = output_layer.weight.detach()
+    weight_t = np.zeros((padded_width, padded_out), np.float32)
+    weight_t[:width, :n_out] = weight.t().numpy()
+    weight_rows = np.zeros((n_out, padded_width), np.float32)
+    weight_rows[:, :width] = weight.numpy()
+    low = hidden.dtype == torch.bfloat16
+    hidden_np = hidden.detach().contiguous().view(torch.int16).numpy().view(np.uint16) if low else _array(hidden, torch.float32)
+    grad_hidden = np.empty((n_net, width), hidden_np.dtype)
+    grad_weight = np.empty(n_out * padded_width, np.float32)
+    grad_bias = np.empty(n_out, np.float32)
+    out = np.empty((n_net, n_out), np.float32)
+    bias = _array(output_layer.bias)
+    _output_layer_kernel(hidden_np, weight_t.reshape(-1), bias, out)
+    # The sigmoids and the BCE's softplus as vectorized torch ops (numba has no vector exp here).
+    out_t = torch.from_numpy(out)
+    sig = torch.sigmoid(out_t).numpy()
+    softplus = torch.log1p(torch.exp(-out_t[:, 0].abs())).numpy()
     sums = np.zeros(5, np.float64)
     counts = np.zeros(3, np.int64)
-    _loss_kernel(_array(out, torch.float32), _array(active, torch.int64), _array(t_offset), _array(t_enter), _array(t_exit),
-                 _array(directions), _array(truth.hit), _array(truth.t), _array(truth.normal), _array(truth.albedo),
-                 _array(truth.material_id, torch.int64), w, num_materials, np.float32(occlusion_logit), grad, sums,
-                 counts)  # fmt: skip
-    n_net, (n_hit, wrong, all_hits) = len(active), counts.tolist()
+    _head_loss_kernel(hidden_np, weight_rows.reshape(-1), out, sig, softplus, _array(active, torch.int64), _array(t_offset),
+                      _array(t_enter), _array(t_exit), _array(directions), _array(truth.hit), _array(truth.t),
+                      _array(truth.normal), _array(truth.albedo), _array(truth.material_id, torch.int64), w, num_materials,
+                      np.float32(occlusion_logit), grad_hidden, grad_weight, grad_bias, sums, counts)  # fmt: skip
+    n_hit, wrong, all_hits = counts.tolist()
     terms = ["occlusion"]
     if n_hit:
         terms += ["distance", "normal", "albedo"] + (["material"] if num_materials > 1 else [])
@@ -214,5 +354,10 @@ def training_loss_numba(out: Tensor, active: Tensor, t_offset: Tensor, t_enter: 
     # Each term as the fp32 value torch's mean would give (to rounding); the total from those.
     parts = {k: float(np.float32(means[k])) for k in terms}
     value = sum(float(w[_TERMS.index(k)]) * parts[k] for k in terms)
-    loss = _LossFromGradient.apply(out, value, torch.from_numpy(grad))
+    grad_hidden_t = torch.from_numpy(grad_hidden)
+    if low:
+        grad_hidden_t = grad_hidden_t.view(torch.bfloat16)
+    grad_weight_t = torch.from_numpy(grad_weight.reshape(n_out, padded_width)[:, :width].copy())
+    loss = _HeadLoss.apply(hidden, output_layer.weight, output_layer.bias, value, grad_hidden_t, grad_weight_t,
+                           torch.from_numpy(grad_bias))  # fmt: skip
     return TrainingLoss(loss, parts, wrong, all_hits - n_hit, int(truncated))

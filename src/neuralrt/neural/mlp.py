@@ -48,17 +48,22 @@ class MLP(nn.Module):
             for w, b in self._cast_weights(compute_dtype):
                 x = F.leaky_relu(F.linear(x, w, b), self.slope)
             return self.output(x.float())
+        return self.output(self.hidden_forward(x, compute_dtype).float())
+
+    def hidden_forward(self, x: Tensor, compute_dtype: torch.dtype = torch.float32) -> Tensor:
+        """The last hidden layer's activations [M, hidden_width] in ``compute_dtype`` (training: what
+        `forward` hands the fp32 output layer; a loss may run that layer itself)."""
         if compute_dtype != torch.float32 and self.low_precision_training == "autocast":
             with torch.autocast(device_type=x.device.type, dtype=compute_dtype):
                 for layer in self.hidden:
                     x = F.leaky_relu(layer(x), self.slope)
-            return self.output(x.float())
+            return x
         if compute_dtype != torch.float32:
             weights = [p for layer in self.hidden for p in (layer.weight, layer.bias)]
-            return self.output(_LowPrecisionHidden.apply(x, compute_dtype, self.slope, *weights).float())
+            return _LowPrecisionHidden.apply(x, compute_dtype, self.slope, *weights)
         for layer in self.hidden:
             x = F.leaky_relu(layer(x), self.slope)
-        return self.output(x)
+        return x
 
     def _cast_weights(self, dtype: torch.dtype) -> list[tuple[Tensor, Tensor]]:
         # Keyed on each parameter's storage and version counter: any update (optimizer step,
