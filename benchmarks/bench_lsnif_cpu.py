@@ -5,7 +5,8 @@ depend on the weights; the hash table is filled with random values so no feature
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
-decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass), with
+decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; and stage by
+stage, ``THREADED_PIPELINE = False``), with
 ``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
@@ -40,7 +41,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -73,6 +74,13 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         finally:
             lsnif_fused_cpu.WRITE_HITS = True
 
+    def fused_stagewise_intersect():  # each stage parallel over the chunk (before the threaded pipeline)
+        lsnif_fused_cpu.THREADED_PIPELINE = False
+        try:
+            model.intersect(rays)
+        finally:
+            lsnif_fused_cpu.THREADED_PIPELINE = True
+
     def fused_occluded():
         model.occluded(rays)
 
@@ -98,16 +106,17 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         with torch.no_grad():
             model.network(x, dtype)
 
-    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_occluded,
+    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_stagewise_intersect, fused_occluded,
                unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
+    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_stagewise": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
              "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
         times["embree_occluded"].append(seconds(lambda: exact.occluded(rays)))
         times["fused"].append(seconds(fused_intersect))
         times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
+        times["fused_stagewise"].append(seconds(fused_stagewise_intersect))
         times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
         times["unfused"].append(seconds(unfused_intersect))
@@ -117,7 +126,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_stagewise", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -135,6 +144,8 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "occluded_vs_embree": rate["occluded"] / rate["embree_occluded"],
         # the numba decoding pass (with the output layer) over the torch decoding of the raw outputs
         "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
+        # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
+        "threaded_gain": rate["fused"] / rate["fused_stagewise"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],
         "fused_vs_unfused": rate["fused"] / rate["unfused"],
         # the same fused pass with the fp32 per-ray first layer (before the bf16 dot products)

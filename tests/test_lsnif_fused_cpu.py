@@ -130,14 +130,15 @@ def test_rays_crossing_no_occupied_voxel_never_reach_the_network(figure, write_h
     layers = fused.hidden_layers
     monkeypatch.setattr(fused, "hidden_layers", lambda network, hidden, active, dtype: rows.append(len(active)) or layers(network, hidden, active, dtype))
     hits = model.intersect(rays)
+    crossing_rows, rows[:] = sum(rows), []  # (the threaded pipeline: one call per part)
     miss_only = model.intersect(beside)
     unit = model._unit_rays(rays)
     count = featurize_rays_numba(unit.origins, unit.directions, model.occupancy, 8).count
     crossing = torch.zeros(len(rays), dtype=torch.bool)
     crossing[unit.index] = count > 0
     assert 0 < crossing.sum() < len(rays) - 60
-    assert rows[0] == int(crossing.sum())  # only rays with points reached the GEMMs
-    assert rows[1:] in ([], [0])  # a batch that crosses nothing: no network rows at all
+    assert crossing_rows == int(crossing.sum())  # only rays with points reached the GEMMs
+    assert sum(rows) == 0  # a batch that crosses nothing: no network rows at all
     assert not hits.hit[~crossing].any() and not miss_only.hit.any()
 
 
@@ -357,3 +358,28 @@ def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell
     occluded = model.occluded(rays)
     assert len(calls) == 3
     assert torch.equal(occluded, model.intersect(rays).hit) and occluded.sum() > 300
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained_cornell, precision, monkeypatch):
+    """`THREADED_PIPELINE`: each thread runs every stage on its part of the chunk; answers equal."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads")
+    model, dtype = trained_cornell, PRECISION[precision]
+    monkeypatch.setattr(model, "compute_dtype", lambda training=False: dtype)
+    rays = _decoding_rays(model, 5001, seed=25)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(2)
+    try:
+        answers = {}
+        for threaded in (False, True):
+            monkeypatch.setattr(fused, "THREADED_PIPELINE", threaded)
+            answers[threaded] = (model.intersect(rays), model.occluded(rays))
+    finally:
+        numba.set_num_threads(threads)
+    (hits, occluded), (reference, reference_occluded) = answers[True], answers[False]
+    assert reference.hit.sum() > 500 and torch.equal(occluded, reference_occluded)
+    for name in ("hit", "t", "normal", "geometric_normal", "albedo", "material_id"):
+        assert torch.equal(getattr(hits, name), getattr(reference, name)), name

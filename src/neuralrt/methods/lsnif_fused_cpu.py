@@ -22,6 +22,7 @@ The CUDA counterpart is `lsnif_fused` (Triton); `LSNIFModel._network_answers` pi
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
@@ -122,7 +123,7 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
 _GROUP = 16
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
     origins, directions, occ, planes, table, resolutions, w1, w1_pairs, b1, slope,
     max_points, origin_point, share, point_distances, to_bf16, pairs, n_chunks,
@@ -297,37 +298,51 @@ def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype:
     return network.output(x)  # a fresh tensor: the caller keeps it
 
 
-def _first_hidden_layer(
-    origins: Tensor,
-    directions: Tensor,
-    occupancy: Tensor,
-    encoder: SparseHashGrid,
-    network: MLP,
-    *,
-    max_points: int,
-    origin_point: bool,
-    share_boundary_points: bool,
-    point_distances: bool,
-    compute_dtype: torch.dtype,
-) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
-    """The fused pass: (first hidden layer ``[N, W]`` in ``compute_dtype``, valid in the rows with
-    points; per ray ``count``, ``t_enter``, ``t_exit`` as numpy arrays)."""
-    _check_rays(origins, directions, max_points)
+@dataclass
+class _Pass:
+    """What the fused pass and the decoding need besides the rays, prepared once per call."""
+
+    network: MLP
+    compute_dtype: torch.dtype
+    occ: np.ndarray
+    planes: np.ndarray
+    table: np.ndarray
+    resolutions: np.ndarray
+    w1: np.ndarray
+    w1_pairs: np.ndarray
+    b1: np.ndarray
+    max_points: int
+    origin_point: bool
+    share: bool
+    point_distances: bool
+    pairs: bool
+
+
+def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max_points: int, origin_point: bool,
+                  share_boundary_points: bool, point_distances: bool, compute_dtype: torch.dtype) -> _Pass:  # fmt: skip
     if compute_dtype not in (torch.float32, torch.bfloat16):
         raise ValueError(f"compute dtype must be float32 or bfloat16, got {compute_dtype}")
-    n = origins.shape[0]
-    o = origins.detach().to(torch.float32).contiguous().numpy()
-    d = directions.detach().to(torch.float32).contiguous().numpy()
     occ = occupancy.detach().contiguous().numpy()
     if occ.ndim != 3 or len(set(occ.shape)) != 1:
         raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
     levels, _, n_feat = encoder.table.shape
     table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
-    width = b1.shape[0]
-    to_bf16 = compute_dtype == torch.bfloat16
-    pairs = BF16_DOT_FIRST_LAYER and to_bf16 and width % 16 == 0  # else fp32 per ray
+    pairs = BF16_DOT_FIRST_LAYER and compute_dtype == torch.bfloat16 and b1.shape[0] % 16 == 0  # else fp32 per ray
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
+    if compute_dtype != torch.float32:
+        network._cast_weights(compute_dtype)  # the cached bf16 weights, made here once rather than in several threads
+    planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
+    return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, int(max_points),
+                 bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+
+
+def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
+    """The fused pass on unit-box rays ``o``/``d`` (``[N, 3]`` fp32): (first hidden layer ``[N, W]``
+    in the compute dtype, valid in the rows with points; per ray ``count``, ``t_enter``,
+    ``t_exit`` as numpy arrays)."""
+    n, width = o.shape[0], p.b1.shape[0]
+    to_bf16 = p.compute_dtype == torch.bfloat16
     # One output buffer is used, the other stays empty: numba compiles one kernel for both dtypes.
     hidden_f32 = _hidden_buffer(0 if to_bf16 else n, width, np.float32, "first")
     hidden_bf16 = _hidden_buffer(n if to_bf16 else 0, width, np.uint16, "first")
@@ -335,16 +350,20 @@ def _first_hidden_layer(
     t_enter = np.full(n, np.inf, np.float32)
     t_exit = np.full(n, np.inf, np.float32)
     if n:
-        planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
         # Many small chunks handed out one at a time: rays vary in length, and on a shared machine
         # one thread may be descheduled; with the default static split the other waits for it.
         n_chunks = max(1, min(n, 32 * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
-            _fused_kernel(o, d, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, np.float32(network.slope),
-                          int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances),
-                          to_bf16, pairs, n_chunks, hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
+            _fused_kernel(o, d, p.occ, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
+                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, n_chunks,
+                          hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
     hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
     return hidden, counts, t_enter, t_exit
+
+
+def _rays_numpy(origins: Tensor, directions: Tensor, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    _check_rays(origins, directions, max_points)
+    return (origins.detach().to(torch.float32).contiguous().numpy(), directions.detach().to(torch.float32).contiguous().numpy())
 
 
 @torch.no_grad()
@@ -363,10 +382,11 @@ def fused_network_outputs_cpu(
 ) -> FusedCPUOutputs:
     """Raw MLP outputs of unit-box rays (``origins``/``directions`` ``[N, 3]`` fp32 CPU), with the
     walk, the encoding and the first layer fused in one numba pass; see the module docstring."""
-    hidden, counts, t_enter, t_exit = _first_hidden_layer(
-        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
-        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
-    )  # fmt: skip
+    o, d = _rays_numpy(origins, directions, max_points)
+    p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
+                      share_boundary_points=share_boundary_points, point_distances=point_distances,
+                      compute_dtype=compute_dtype)  # fmt: skip
+    hidden, counts, t_enter, t_exit = _first_hidden_layer(p, o, d)
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
     values = rest_of_network(network, hidden, active, compute_dtype)
@@ -426,7 +446,7 @@ def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
         store16(out[4], v, a4), store16(out[5], v, a5), store16(out[6], v, a6), store16(out[7], v, a7)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
     x_f32, x_bf16, wo, bo, output_layer, active, index, t_enter, t_exit, t_offset, t_min, t_max,
     occlusion_logit, n_materials, occlusion_only, n_chunks,
@@ -492,24 +512,76 @@ def _decode_kernel(
                 material[ray] = best if h else -1
 
 
-def _decode(network: MLP, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray,
-            compute_dtype: torch.dtype, index: Tensor, t_offset: Tensor, t_min: Tensor, t_max: Tensor,
-            occlusion_logit: float, num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
+def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, index: np.ndarray,
+            t_offset: np.ndarray, t_min: np.ndarray, t_max: np.ndarray, occlusion_logit: float, num_materials: int,
+            records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
     """The layers after the first on the rays with points, then `_decode_kernel` into ``records``."""
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
-    x = hidden_layers(network, hidden, torch.from_numpy(active), compute_dtype)
-    wo, bo = output_layer_columns(network)
+    x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
+    wo, bo = output_layer_columns(p.network)
     if not OUTPUT_LAYER_IN_DECODE:
-        x = network.output(x.float())  # raw outputs: the decoding pass only decodes
+        x = p.network.output(x.float())  # raw outputs: the decoding pass only decodes
     x_np = x.view(torch.int16).numpy().view(np.uint16) if x.dtype == torch.bfloat16 else x.numpy()
     x_f32 = np.zeros((0, 1), np.float32) if x_np.dtype == np.uint16 else x_np
     x_bf16 = x_np if x_np.dtype == np.uint16 else np.zeros((0, 1), np.uint16)
-    arrays = [a.detach().contiguous().numpy() for a in (index, t_offset.float(), t_min.float(), t_max.float())]
     n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
-    _decode_kernel(x_f32, x_bf16, wo, bo, OUTPUT_LAYER_IN_DECODE, active, arrays[0], t_enter, t_exit, *arrays[1:],
+    _decode_kernel(x_f32, x_bf16, wo, bo, OUTPUT_LAYER_IN_DECODE, active, index, t_enter, t_exit, t_offset, t_min, t_max,
                    np.float32(occlusion_logit), int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
+
+
+# Each of the calling thread's numba threads (T) runs the whole pipeline -- the fused pass, the
+# torch layers, the decoding -- on 1/T of the chunk's rays, with one numba and one torch thread
+# (a pool of Python threads; the kernels release the GIL, torch's ops do). Stage by stage, each
+# stage parallel over the whole chunk, the torch layers and the short stages scaled worst
+# (hairball(6) 2^17 rays, 2 threads, load 1.5-2.1: best of 7-15 1.03-1.20x `hq`, 1.13-1.21x `lq`;
+# same bits). More parts than threads (2 or 4 per thread, handed out as threads free up) measured
+# no better (paired medians 0.995x / 0.949x). False: stage by stage.
+THREADED_PIPELINE = True
+
+_pool: ThreadPoolExecutor | None = None
+
+
+def _one_thread_each() -> None:
+    numba.set_num_threads(1)  # both are per-thread settings: the pool's threads only
+    torch.set_num_threads(1)
+
+
+def _in_parts(run, n: int) -> None:
+    """``run(slice)`` over ``range(n)``: in T parts on the pool's threads (`THREADED_PIPELINE`,
+    T = the caller's numba thread count > 1), else at once on this thread."""
+    global _pool
+    threads = numba.get_num_threads()
+    if not THREADED_PIPELINE or threads < 2 or n < 2 * threads * _GROUP:
+        run(slice(0, n))
+        return
+    if _pool is None or _pool._max_workers != threads:
+        if _pool is not None:
+            _pool.shutdown(wait=True)
+        _pool = ThreadPoolExecutor(threads, thread_name_prefix="lsnif-cpu", initializer=_one_thread_each)
+    for future in [_pool.submit(run, slice(i * n // threads, (i + 1) * n // threads)) for i in range(threads)]:
+        future.result()
+
+
+def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
+               index: Tensor, t_offset: Tensor, t_min: Tensor, t_max: Tensor, occlusion_logit: float,
+               num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool, max_points: int,
+               origin_point: bool, share_boundary_points: bool, point_distances: bool, compute_dtype: torch.dtype) -> None:  # fmt: skip
+    o, d = _rays_numpy(origins, directions, max_points)
+    p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
+                      share_boundary_points=share_boundary_points, point_distances=point_distances,
+                      compute_dtype=compute_dtype)  # fmt: skip
+    index_np, t_offset_np = index.contiguous().numpy(), t_offset.float().contiguous().numpy()
+    t_min_np, t_max_np = t_min.float().contiguous().numpy(), t_max.float().contiguous().numpy()
+
+    @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
+    def run(part: slice) -> None:
+        hidden, counts, t_enter, t_exit = _first_hidden_layer(p, o[part], d[part])
+        _decode(p, hidden, counts, t_enter, t_exit, index_np[part], t_offset_np[part], t_min_np, t_max_np,
+                occlusion_logit, num_materials, records, occlusion_only)  # fmt: skip
+
+    _in_parts(run, o.shape[0])
 
 
 @torch.no_grad()
@@ -536,15 +608,14 @@ def fused_hits_cpu(
     """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk,
     CPU): the fused pass, the hidden layers as torch GEMMs, then the output layer and the decoding
     in one numba pass (`_decode_kernel`) at rows ``index`` (the chunk rays of the unit-box
-    ``origins``; ``t_min``/``t_max`` are the chunk's). The CPU counterpart of `lsnif_fused.fused_hits`."""
-    hidden, counts, t_enter, t_exit = _first_hidden_layer(
-        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
-        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
-    )  # fmt: skip
+    ``origins``; ``t_min``/``t_max`` are the chunk's); see `THREADED_PIPELINE`. The CPU
+    counterpart of `lsnif_fused.fused_hits`."""
     records = (hits.hit.numpy(), hits.t.numpy(), hits.normal.numpy(), hits.geometric_normal.numpy(), hits.albedo.numpy(),
                hits.material_id.numpy())  # fmt: skip
-    _decode(network, hidden, counts, t_enter, t_exit, compute_dtype, index, t_offset, t_min, t_max, occlusion_logit,
-            num_materials, records, occlusion_only=False)  # fmt: skip
+    _hits_pass(origins, directions, occupancy, encoder, network, index=index, t_offset=t_offset, t_min=t_min, t_max=t_max,
+               occlusion_logit=occlusion_logit, num_materials=num_materials, records=records, occlusion_only=False,
+               max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
+               point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
 
 
 @torch.no_grad()
@@ -570,11 +641,9 @@ def fused_occluded_cpu(
     """`fused_hits_cpu`'s ``hit`` decisions alone, written into ``hit`` ([chunk] bool, all False
     on entry): the output layer computes only its first 16 columns (occlusion and distance are
     among them) and nothing else is decoded."""
-    hidden, counts, t_enter, t_exit = _first_hidden_layer(
-        origins, directions, occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
-        share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype,
-    )  # fmt: skip
     empty3 = np.zeros((0, 3), np.float32)
     records = (hit.numpy(), np.zeros(0, np.float32), empty3, empty3, empty3, np.zeros(0, np.int64))
-    _decode(network, hidden, counts, t_enter, t_exit, compute_dtype, index, t_offset, t_min, t_max, occlusion_logit,
-            0, records, occlusion_only=True)  # fmt: skip
+    _hits_pass(origins, directions, occupancy, encoder, network, index=index, t_offset=t_offset, t_min=t_min, t_max=t_max,
+               occlusion_logit=occlusion_logit, num_materials=0, records=records, occlusion_only=True,
+               max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
+               point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
