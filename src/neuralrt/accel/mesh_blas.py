@@ -272,7 +272,7 @@ class EmbreeMeshBLAS(MeshBLAS):
         return self._scene.run(shifted, directions, dists=tfar, query="OCCLUDED")
 
     def surface_tables(self) -> tuple:
-        """The mesh arrays `mesh_blas_kernels.surface_at` reads after ``(p, u, v)``: faces, face
+        """The mesh arrays the hit attributes read after ``(p, u, v)`` (`tlas_kernels.finish_hits`): faces, face
         normals, vertex normals, face material ids, uvs, vertex colours, material base colours (read
         now: materials may be edited), use_uvs, use_vertex_colors."""
         m = self.mesh

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..rays_kernels import valid_ray
 
-__all__ = ["prepare_embree_rays", "placeholder_directions", "closest_hit_attributes", "surface_at", "occlusion_result"]
+__all__ = ["prepare_embree_rays", "placeholder_directions", "closest_hit_attributes", "occlusion_result"]
 
 # Embree works in float32; "infinite" t_max is passed as a large finite value.
 EMBREE_TFAR_MAX = np.float32(1e37)
@@ -76,42 +76,6 @@ def occlusion_result(geom_id, valid, out) -> None:
         out[i] = geom_id[i] >= 0 and valid[i]
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def surface_at(p, bu, bv, faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
-               use_uvs, use_vertex_colors, finish_albedo):  # fmt: skip
-    """Triangle ``p``'s surface at Embree's (u, v) = (``bu``, ``bv``) (weights of its vertices 1 and 2):
-    shading normal (x, y, z), geometric normal (x, y, z), material id, uv (2), albedo (3), as
-    `closest_hit_attributes` documents (shared, so every caller computes the same float32 values)."""
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    bw = one - bu - bv
-    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
-    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
-    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
-    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
-    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
-    # float32 square root of a float32 sum, as np.linalg.norm computes it.
-    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))
-    if length > _NORMAL_EPS:
-        sx, sy, sz = sx / length, sy / length, sz / length
-    else:
-        sx, sy, sz = gx, gy, gz
-    m = face_material_ids[p]
-    u0, u1 = zero, zero
-    if use_uvs:
-        u0 = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
-        u1 = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
-    k = min(max(m, 0), material_albedo.shape[0] - 1)
-    r, g, bl = material_albedo[k, 0], material_albedo[k, 1], material_albedo[k, 2]
-    if finish_albedo:
-        if use_vertex_colors:
-            r = r * (bw * vertex_colors[a, 0] + bu * vertex_colors[b, 0] + bv * vertex_colors[c3, 0])
-            g = g * (bw * vertex_colors[a, 1] + bu * vertex_colors[b, 1] + bv * vertex_colors[c3, 1])
-            bl = bl * (bw * vertex_colors[a, 2] + bu * vertex_colors[b, 2] + bv * vertex_colors[c3, 2])
-        r, g, bl = min(max(r, zero), one), min(max(g, zero), one), min(max(bl, zero), one)
-    return sx, sy, sz, gx, gy, gz, m, u0, u1, r, g, bl
-
-
 @numba.njit(nogil=True, cache=True)
 def closest_hit_attributes(
     prim_id, tfar, bary_u, bary_v, valid, t_min,
@@ -150,7 +114,35 @@ def closest_hit_attributes(
         # Embree measured from the origin moved to t_min (to the origin itself when t_min = -inf).
         t[i] = tfar[i] + (t_min[i] if np.isfinite(t_min[i]) else zero)
         primitive_id[i] = p
-        (normal[i, 0], normal[i, 1], normal[i, 2], geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2],
-         material_id[i], uv[i, 0], uv[i, 1], albedo[i, 0], albedo[i, 1], albedo[i, 2]) = surface_at(
-            p, bary_u[i], bary_v[i], faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors,
-            material_albedo, use_uvs, use_vertex_colors, finish_albedo)  # fmt: skip
+        # Embree's (u, v) weight vertices 1 and 2 of the triangle.
+        bu, bv = bary_u[i], bary_v[i]
+        bw = one - bu - bv
+        a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
+        sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
+        sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
+        sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
+        gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
+        geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2] = gx, gy, gz
+        # float32 square root of a float32 sum, as np.linalg.norm computes it.
+        length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))
+        if length > _NORMAL_EPS:
+            normal[i, 0], normal[i, 1], normal[i, 2] = sx / length, sy / length, sz / length
+        else:
+            normal[i, 0], normal[i, 1], normal[i, 2] = gx, gy, gz
+        m = face_material_ids[p]
+        material_id[i] = m
+        if use_uvs:
+            uv[i, 0] = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
+            uv[i, 1] = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
+        else:
+            uv[i, 0] = zero
+            uv[i, 1] = zero
+        k = min(max(m, 0), n_materials - 1)
+        for c in range(3):
+            value = material_albedo[k, c]
+            if finish_albedo:
+                if use_vertex_colors:
+                    cv = bw * vertex_colors[a, c] + bu * vertex_colors[b, c] + bv * vertex_colors[c3, c]
+                    value = value * cv
+                value = min(max(value, zero), one)
+            albedo[i, c] = value

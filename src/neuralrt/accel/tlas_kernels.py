@@ -9,6 +9,8 @@ exactly what those ops computed, in the same float32 order, so the TLAS answers 
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 from llvmlite import ir
@@ -16,7 +18,6 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray
-from .mesh_blas_kernels import surface_at
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
            "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits",
@@ -491,6 +492,43 @@ def merge_pair_hits(out_pair, prim, tfar, bary_u, bary_v, ray_idx, inst_idx, t_m
             best_t[r], best_prim[r], best_u[r], best_v[r], best_instance[r] = closest[r], prim[j], bary_u[j], bary_v[j], inst_idx[out_pair[j]]
 
 
+@numba.njit(cache=True, inline="always")
+def _surface_at(p, bu, bv, faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
+                use_uvs, use_vertex_colors):  # fmt: skip
+    """Triangle ``p``'s object-space surface at Embree's (u, v) = (``bu``, ``bv``): shading normal,
+    geometric normal, material id, uv, albedo, with the float32 operations of
+    `mesh_blas_kernels.closest_hit_attributes` (finished albedo: untextured meshes), so the fused
+    path's hits equal `MeshBLAS.intersect`'s bit for bit (tests compare them)."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    bw = one - bu - bv
+    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
+    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
+    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
+    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
+    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
+    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))  # float32 root of a float32 sum, as np.linalg.norm
+    if length > _NORMAL_EPS:
+        sx, sy, sz = sx / length, sy / length, sz / length
+    else:
+        sx, sy, sz = gx, gy, gz
+    m = face_material_ids[p]
+    u0, u1 = zero, zero
+    if use_uvs:
+        u0 = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
+        u1 = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
+    k = min(max(m, 0), material_albedo.shape[0] - 1)
+    r, g, bl = material_albedo[k, 0], material_albedo[k, 1], material_albedo[k, 2]
+    if use_vertex_colors:
+        r = r * (bw * vertex_colors[a, 0] + bu * vertex_colors[b, 0] + bv * vertex_colors[c3, 0])
+        g = g * (bw * vertex_colors[a, 1] + bu * vertex_colors[b, 1] + bv * vertex_colors[c3, 1])
+        bl = bl * (bw * vertex_colors[a, 2] + bu * vertex_colors[b, 2] + bv * vertex_colors[c3, 2])
+    return sx, sy, sz, gx, gy, gz, m, u0, u1, min(max(r, zero), one), min(max(g, zero), one), min(max(bl, zero), one)
+
+
+_NORMAL_EPS = np.float32(1e-12)  # as mesh_blas_kernels: below it the interpolated normal counts as vanished
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def finish_hits(
     best_t, best_prim, best_u, best_v, best_instance, instance_group, group, write_misses,
@@ -536,9 +574,9 @@ def finish_hits(
         if instance_group[k] != group:
             continue
         p = best_prim[r]
-        sx, sy, sz, gx, gy, gz, m, u0, u1, ar, ag, ab = surface_at(
+        sx, sy, sz, gx, gy, gz, m, u0, u1, ar, ag, ab = _surface_at(
             p, best_u[r], best_v[r], faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors,
-            material_albedo, use_uvs, use_vertex_colors, True)  # fmt: skip
+            material_albedo, use_uvs, use_vertex_colors)  # fmt: skip
         w2o, identity = world_to_object[k], is_identity[k]
         hit[r] = True
         t[r] = best_t[r]
