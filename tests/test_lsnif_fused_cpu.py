@@ -26,10 +26,10 @@ def figure():
     return statue(0)
 
 
-def _model(mesh, precision: str, max_points: int = 8, **features) -> LSNIFModel:
+def _model(mesh, precision: str, max_points: int = 8, hidden_width: int = 32, **features) -> LSNIFModel:
     config = LSNIFConfig.preset(
         "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
-        network={"hidden_width": 32}, features={"max_points": max_points, **features},
+        network={"hidden_width": hidden_width}, features={"max_points": max_points, **features},
         inference={"compute_precision": precision},
     )  # fmt: skip
     model = LSNIFModel.from_mesh(mesh, config)
@@ -383,3 +383,41 @@ def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained
     assert reference.hit.sum() > 500 and torch.equal(occluded, reference_occluded)
     for name in ("hit", "t", "normal", "geometric_normal", "albedo", "material_id"):
         assert torch.equal(getattr(hits, name), getattr(reference, name)), name
+
+
+_EMULATED_RUN = """
+import sys, numpy as np, torch
+sys.path.insert(0, {tests!r})
+from neuralrt.neural import bf16_dot
+from neuralrt.geometry.procedural import statue
+from test_lsnif_fused_cpu import _model, _mixed_rays
+assert not bf16_dot.HAS_AVX512_BF16
+model = _model(statue(0), "bf16", max_points=9, hidden_width=64)
+hits = model.intersect(_mixed_rays(model, 3000, seed=31))
+np.savez({out!r}, t=hits.t.numpy(), normal=hits.normal.numpy(), hit=hits.hit.numpy())
+"""
+
+
+def test_bf16_dot_emulation_gives_the_instructions_bits_end_to_end(figure, tmp_path):
+    """The fused pass compiled without AVX512-BF16 (``NUMBA_CPU_FEATURES`` with ``-avx512bf16``, a
+    fresh process: the path of CPUs without the instruction) answers as this process does, bit for
+    bit (the emulation is exact; on a host without the instruction both runs emulate)."""
+    import os
+    import subprocess
+    import sys
+
+    import llvmlite.binding as llvm
+
+    features = ",".join(f"-{name}" if name == "avx512bf16" else f"{'+' if on else '-'}{name}"
+                         for name, on in llvm.get_host_cpu_features().items())  # fmt: skip
+    out = tmp_path / "emulated.npz"
+    env = {**os.environ, "NUMBA_CPU_FEATURES": features}
+    script = _EMULATED_RUN.format(tests=os.path.dirname(__file__), out=str(out))
+    subprocess.run([sys.executable, "-c", script], env=env, check=True, timeout=600)
+    model = _model(figure, "bf16", max_points=9, hidden_width=64)
+    hits = model.intersect(_mixed_rays(model, 3000, seed=31))
+    emulated = np.load(out)
+    assert hits.hit.sum() > 100
+    assert np.array_equal(emulated["hit"], hits.hit.numpy())
+    assert np.array_equal(emulated["t"].view(np.uint32), hits.t.numpy().view(np.uint32))
+    assert np.array_equal(emulated["normal"].view(np.uint32), hits.normal.numpy().view(np.uint32))

@@ -5,8 +5,9 @@ instruction ``vdpbf16ps`` is reached here through a small vector type (`f32x16`,
 ``<16 x float>`` held in registers) and inline assembly. On a CPU without AVX512-BF16 the same
 intrinsic compiles to a portable emulation (the two bf16 halves widened to fp32 by shifts, two
 fused multiply-adds), which is also available under its own name so that it is tested anywhere.
-numba's cache is keyed on the host CPU's features, so a kernel cached on one kind of CPU is not
-reused on the other.
+numba's cache is keyed on the CPU features it compiles for, so a kernel cached on one kind of CPU
+is not reused on the other; ``NUMBA_CPU_FEATURES`` without ``+avx512bf16`` forces the emulation
+(`_host_has_avx512_bf16`).
 
 The layout: an input pair ``(x[2p], x[2p+1])`` is one uint32 (low half: ``x[2p]``, bf16 bits);
 the weights of that pair for output column j are one uint32 ``w[p, j]`` (low half: the row
@@ -29,6 +30,11 @@ __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf1
 
 
 def _host_has_avx512_bf16() -> bool:
+    """Whether numba compiles for AVX512-BF16: the CPU features it targets, ``NUMBA_CPU_FEATURES``
+    where set (numba keys its cache on them), else the host's. So the emulation can be forced on
+    any CPU, without stale cached kernels: ``NUMBA_CPU_FEATURES=<the host's, with -avx512bf16>``."""
+    if numba.config.CPU_FEATURES is not None:
+        return "+avx512bf16" in numba.config.CPU_FEATURES.split(",")
     try:
         return bool(llvm.get_host_cpu_features().get("avx512bf16", False))
     except RuntimeError:  # features unknown on this host: use the portable path
