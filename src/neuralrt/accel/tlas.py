@@ -11,7 +11,10 @@ The integrator only sees `intersect` / `occluded`; it never knows which kind of 
 The whole-batch stages (broad phase, ray mapping, merging) have two implementations with one
 contract (`tlas_stages`): fused numba passes on the CPU, torch ops elsewhere, picked once when the
 accelerator is built. A single-instance group that most rays overlap takes every ray as is (no
-gather, no scatter), and an identity instance skips the matrix products.
+gather, no scatter), and an identity instance skips the matrix products. On the CPU a scene whose
+groups are all Embree meshes answers through a fused path instead (`NumbaTLASStages.intersect_meshes`
+/ ``occluded_meshes``: only overlapping rays reach Embree, hit attributes only for each ray's final
+hit), with the same answers bit for bit.
 """
 
 from __future__ import annotations
