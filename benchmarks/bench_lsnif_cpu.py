@@ -5,8 +5,8 @@ depend on the weights; the hash table is filled with random values so no feature
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
-decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; and stage by
-stage, ``THREADED_PIPELINE = False``), with
+decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; and with the
+pipeline per thread, ``THREADED_PIPELINE = True``), with
 ``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
@@ -74,22 +74,24 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         finally:
             lsnif_fused_cpu.WRITE_HITS = True
 
-    def fused_stagewise_intersect():  # each stage parallel over the chunk (before the threaded pipeline)
-        lsnif_fused_cpu.THREADED_PIPELINE = False
+    def fused_threaded_intersect():  # the whole pipeline per thread on 1/T of the chunk (not the default)
+        lsnif_fused_cpu.THREADED_PIPELINE = True
         try:
             model.intersect(rays)
         finally:
-            lsnif_fused_cpu.THREADED_PIPELINE = True
+            lsnif_fused_cpu.THREADED_PIPELINE = False
 
     def fused_occluded():
         model.occluded(rays)
 
-    def unfused_intersect():
+    def unfused_intersect():  # featurize -> encode -> MLP, decoded by torch
         model._network_answers = model._network_answers_unfused  # the instance attribute wins over the method
+        lsnif_fused_cpu.WRITE_HITS = False
         try:
             model.intersect(rays)
         finally:
             del model._network_answers
+            lsnif_fused_cpu.WRITE_HITS = True
 
     unit = model._unit_rays(rays)
     fc, dtype = model.config.features, model.compute_dtype()
@@ -106,17 +108,17 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         with torch.no_grad():
             model.network(x, dtype)
 
-    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_stagewise_intersect, fused_occluded,
+    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_threaded_intersect, fused_occluded,
                unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_stagewise": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
+    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_threaded": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
              "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
         times["embree_occluded"].append(seconds(lambda: exact.occluded(rays)))
         times["fused"].append(seconds(fused_intersect))
         times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
-        times["fused_stagewise"].append(seconds(fused_stagewise_intersect))
+        times["fused_threaded"].append(seconds(fused_threaded_intersect))
         times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
         times["unfused"].append(seconds(unfused_intersect))
@@ -126,7 +128,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_stagewise", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_threaded", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -145,7 +147,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         # the numba decoding pass (with the output layer) over the torch decoding of the raw outputs
         "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
-        "threaded_gain": rate["fused"] / rate["fused_stagewise"],
+        "threaded_gain": rate["fused_threaded"] / rate["fused"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],
         "fused_vs_unfused": rate["fused"] / rate["unfused"],
         # the same fused pass with the fp32 per-ray first layer (before the bf16 dot products)

@@ -39,11 +39,14 @@ def _model(mesh, precision: str, max_points: int = 8, hidden_width: int = 32, **
 
 
 def _unfused(model: LSNIFModel, rays: Rays):
+    """featurize -> encode -> MLP, decoded by torch (not by `fused_hits_cpu`)."""
     model._network_answers = model._network_answers_unfused  # the instance attribute wins over the method
+    write_hits, fused.WRITE_HITS = fused.WRITE_HITS, False
     try:
         return model.intersect(rays)
     finally:
         del model._network_answers
+        fused.WRITE_HITS = write_hits
 
 
 def _mixed_rays(model: LSNIFModel, n: int, seed: int) -> Rays:

@@ -533,12 +533,12 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
 
 # Each of the calling thread's numba threads (T) runs the whole pipeline -- the fused pass, the
 # torch layers, the decoding -- on 1/T of the chunk's rays, with one numba and one torch thread
-# (a pool of Python threads; the kernels release the GIL, torch's ops do). Stage by stage, each
-# stage parallel over the whole chunk, the torch layers and the short stages scaled worst
-# (hairball(6) 2^17 rays, 2 threads, load 1.5-2.1: best of 7-15 1.03-1.20x `hq`, 1.13-1.21x `lq`;
-# same bits). More parts than threads (2 or 4 per thread, handed out as threads free up) measured
-# no better (paired medians 0.995x / 0.949x). False: stage by stage.
-THREADED_PIPELINE = True
+# (a pool of Python threads; the kernels release the GIL, torch's ops do); same bits (tested).
+# Off by default: on the shared 2-core machine it measured no consistent gain over stage by stage
+# (each stage parallel over the whole chunk; the torch layers scale worst): hairball(6) 2^17 rays,
+# paired medians 0.98-1.08x over 21 rounds (load 1.5-2.5), 0.91-1.07x in bench_lsnif_cpu.py; 2 or
+# 4 parts per thread no better. Kept for hosts with more cores (issue 11's scaling target).
+THREADED_PIPELINE = False
 
 _pool: ThreadPoolExecutor | None = None
 
