@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
@@ -13,7 +13,9 @@ Configurations (both draw the next batch on a background thread, the default), b
 - ``mlp``: ``before`` trains the bf16 hidden layers under ``torch.autocast``
   (``MLP.low_precision_training = "autocast"``), ``after`` as one autograd function (bit-equal);
 - ``previous``: per-thread gradient tables and the torch selection against row ranges and the
-  numba selection.
+  numba selection;
+- ``saved_rows``: the encoder backward hashing every point again (``backward_scatter =
+  "row_ranges"``) against scattering from the rows and weights the forward saved (``"saved_rows"``).
 The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
@@ -59,6 +61,7 @@ _STAGES = {
     "backward (all)": "_tensor.py:backward",
     "hash-grid backward kernel": "sparse_hash_grid.py:_backward_kernel",
     "hash-grid backward kernel (row ranges)": "sparse_hash_grid.py:_backward_rows_kernel",
+    "hash-grid backward kernel (saved rows)": "sparse_hash_grid.py:_backward_saved_kernel",
     "select network rays": "lsnif_features.py:select_network_rays_numba",
     "select network rays (torch)": "lsnif_features.py:select_network_rays_torch",
     "optimizer (fused Adam)": "adam.py:step",
@@ -80,6 +83,8 @@ def _configure(model: LSNIFModel, config: str) -> None:
     if PAIR == "previous":
         model.encoder.backward_scatter = "thread_tables" if before else "row_ranges"
         lsnif_module.select_network_rays = select_network_rays_torch if before else select_network_rays
+    elif PAIR == "saved_rows":
+        model.encoder.backward_scatter = "row_ranges" if before else "saved_rows"
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
@@ -120,7 +125,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair

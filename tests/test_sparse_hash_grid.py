@@ -147,8 +147,9 @@ def test_runs_on_device(device):
 
 
 def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
-    """The row-owning backward gives the serial per-thread-table scatter's gradient exactly, for
-    any number of row ranges per level (the thread count sets it), and is what autograd returns."""
+    """The row-owning backward (hashing the points again, or from the rows and weights the forward
+    saved) gives the serial per-thread-table scatter's gradient exactly, for any number of row
+    ranges per level (the thread count sets it), and is what autograd returns with each scatter."""
     from neuralrt.neural import sparse_hash_grid as shg
 
     f = _featurized_points(n=2500, seed=3)
@@ -161,8 +162,31 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
         got = np.full((3 * 2**12, 3), np.nan, np.float32)  # the kernel zeroes every row it owns
         shg._backward_rows_kernel(*args, ranges, got)
         assert np.array_equal(got, serial[0]), ranges
-    (g_autograd,) = torch.autograd.grad((grid(f.points, f.face_axis) * upstream).sum(), grid.table)
-    assert torch.equal(g_autograd.reshape(-1, 3), torch.from_numpy(serial[0]))
+    # The backward from the rows and weights the forward saved (face points; origin points hashed again).
+    n, h = f.face_axis.shape
+    valid = (f.face_axis >= 0).numpy()
+    offsets = np.concatenate([[0], np.cumsum(valid.sum(1))])
+    saved = np.full((3, offsets[-1], 4), -1, np.int32), np.full((3, offsets[-1], 4), np.nan, np.float32)
+    flat = grid.table.detach().numpy().reshape(-1, 3)
+    out = np.empty((n, grid.output_dim(h)), np.float32)
+    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), flat, grid._resolutions_np, 7, out, np.empty((0, out.shape[1]), np.uint16),
+                        offsets, *saved)  # fmt: skip
+    face = f.face_axis.numpy()[valid] < 3  # packed in ray order: face points saved, origin points not
+    assert (saved[0][:, face] >= 0).all() and (saved[0][:, ~face] == -1).all() and (~face).any()
+    for ranges in (1, 2, 5):
+        got = np.full((3 * 2**12, 3), np.nan, np.float32)
+        shg._backward_saved_kernel(*args, ranges, *saved, got)
+        assert np.array_equal(got, serial[0]), ranges
+    rehash = shg._backward_rows_kernel
+    for scatter in ("saved_rows", "row_ranges"):  # (thread_tables sums per-thread tables: not serial)
+        grid.backward_scatter = scatter
+        if scatter == "saved_rows":  # autograd must take the saved rows, not hash again
+            shg._backward_rows_kernel = None
+        try:
+            (g_autograd,) = torch.autograd.grad((grid(f.points, f.face_axis) * upstream).sum(), grid.table)
+        finally:
+            shg._backward_rows_kernel = rehash
+        assert torch.equal(g_autograd.reshape(-1, 3), torch.from_numpy(serial[0])), scatter
     assert (serial != 0).sum() > 1000
 
 

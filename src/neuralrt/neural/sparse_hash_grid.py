@@ -206,11 +206,13 @@ def read_rows(table, slots, weights, k, out, col):
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16):
+def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16, point_offsets, saved_slots, saved_weights):
     """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F (+ extra)]`` fp32, or,
     when ``out_bf16`` has rows, ``out_bf16`` is (uint16 bf16 bits, rounded as torch's cast) and
     ``out`` is unused. Per group of `_GROUP` rays: every point's rows and weights first
-    (prefetching the rows), then the reads."""
+    (prefetching the rows), then the reads. When ``saved_slots``/``saved_weights`` (``[L, P, 4]``)
+    have rows, each face point's 4 rows and weights are kept there for the backward, packed: ray
+    n's j-th valid point at ``point_offsets[n] + j`` (origin points, 8 rows, are recomputed)."""
     n_rays, n_points = axes.shape
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -218,6 +220,7 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16):
     mask = np.int64(table_size - 1)
     stride = n_levels * n_feat
     low_precision = out_bf16.shape[0] > 0
+    save = point_offsets.shape[0] > 0
     for chunk in numba.prange(n_chunks):
         slots = np.empty((_GROUP * n_points * n_levels, 8), np.int64)
         weights = np.empty((_GROUP * n_points * n_levels, 8), np.float32)
@@ -240,6 +243,18 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16):
                                 prefetch_row(table, slots[e, c])
                         reads[e] = k
                         e += 1
+            if save:  # a loop of its own (in the one above it measured ~2x the cost)
+                e = 0
+                for n in range(first, last):
+                    p = point_offsets[n]
+                    for h in range(n_points):
+                        for lvl in range(n_levels):
+                            if reads[e] == 4:
+                                for c in range(4):
+                                    saved_slots[lvl, p, c] = slots[e, c]
+                                    saved_weights[lvl, p, c] = weights[e, c]
+                            e += 1
+                        p += 0 <= axes[n, h] <= _ORIGIN_POINT
             e = 0
             for n in range(first, last):
                 row = scratch if low_precision else out[n]
@@ -321,6 +336,53 @@ def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level,
                             grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
 
 
+@numba.njit(parallel=True, cache=True)
+def _backward_saved_kernel(points, axes, grad_out, resolutions, ranges_per_level, saved_slots, saved_weights, grad_table):
+    """`_backward_rows_kernel` reading each face point's rows and weights as the forward saved them
+    (``[L, P, 4]``, the valid points packed in ray order) instead of hashing the point again; origin
+    points (8 rows) are recomputed.
+    Same contributions in the same order: the same gradient, bit for bit."""
+    n_rays, n_points = axes.shape
+    n_levels = resolutions.shape[0]
+    n_feat = grad_table.shape[1]
+    table_size = grad_table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
+    stride = n_levels * n_feat
+    for task in numba.prange(n_levels * ranges_per_level):
+        lvl, r = task // ranges_per_level, task % ranges_per_level
+        base = lvl * table_size
+        row_lo = base + r * table_size // ranges_per_level
+        row_hi = base + (r + 1) * table_size // ranges_per_level
+        grad_table[row_lo:row_hi] = 0.0
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        res = resolutions[lvl]
+        level_slots, level_weights = saved_slots[lvl], saved_weights[lvl]
+        p = -1
+        for n in range(n_rays):
+            for h in range(n_points):
+                code = axes[n, h]
+                if code < 0 or code > _ORIGIN_POINT:
+                    continue
+                p += 1
+                col = h * stride + lvl * n_feat
+                if code == _ORIGIN_POINT:
+                    k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code, res, mask, base, slots, weights)
+                    for c in range(k):
+                        row = slots[c]
+                        if row_lo <= row < row_hi:
+                            w = weights[c]
+                            for f in range(n_feat):
+                                grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
+                    continue
+                for c in range(4):
+                    row = level_slots[p, c]
+                    if row_lo <= row < row_hi:
+                        w = level_weights[p, c]
+                        for f in range(n_feat):
+                            grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
+
+
 def _grad_value(g):
     """An output gradient as fp32: fp32 as is, bf16 bits (uint16) widened (exact, as torch's cast)."""
     raise NotImplementedError("numba only")
@@ -360,10 +422,20 @@ class _SparseHashGridFunction(torch.autograd.Function):
             out, bits = np.empty(shape, np.float32), np.empty((0, shape[1]), np.uint16)
             if extra is not None:
                 out[:, width:] = _numpy(extra, torch.float32)
+        # "saved_rows": the backward scatters from the rows and weights the forward found (int32 +
+        # fp32, 4 per valid point and level, packed: 32 * L bytes a point; a bunny hq step's
+        # ~30,000 points of 5,400 rays: ~1.9 MiB). (The caller decides: grad mode is off here.)
+        save = backward_scatter == "saved_rows"
+        offsets = np.zeros(n_rays + 1 if save else 0, np.int64)
+        if save:
+            np.cumsum(np.count_nonzero((axes >= 0) & (axes <= _ORIGIN_POINT), axis=1), out=offsets[1:])
+        saved_shape = (levels, int(offsets[-1]) if save else 0, 4)
+        saved_slots, saved_weights = np.empty(saved_shape, np.int32), np.empty(saved_shape, np.float32)
         if n_rays:
             n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
-            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out, bits)
+            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out, bits, offsets, saved_slots, saved_weights)
+        ctx.saved_rows = (saved_slots, saved_weights) if save else None
         ctx.save_for_backward(points, face_axis)
         ctx.resolutions = resolutions
         ctx.table_shape = tuple(table.shape)
@@ -381,7 +453,11 @@ class _SparseHashGridFunction(torch.autograd.Function):
             else:
                 grad = _numpy(grad_out, torch.float32)
             args = (_numpy(points, torch.float32), _numpy(face_axis, torch.int8), grad, ctx.resolutions)
-            if ctx.backward_scatter == "row_ranges":
+            if ctx.saved_rows is not None:
+                grad = np.empty((levels * size, n_feat), np.float32)
+                _backward_saved_kernel(*args, -(-numba.get_num_threads() // levels), *ctx.saved_rows, grad)
+                ctx.saved_rows = None
+            elif ctx.backward_scatter in ("row_ranges", "saved_rows"):
                 grad = np.empty((levels * size, n_feat), np.float32)
                 _backward_rows_kernel(*args, -(-numba.get_num_threads() // levels), grad)
             else:  # "thread_tables": the earlier scatter, kept to measure against
@@ -463,9 +539,10 @@ class SparseHashGrid(nn.Module):
         init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
         self.table = nn.Parameter(init)  # [L, T, F]
         self._resolutions_np = np.asarray(self.resolutions, np.int64)
-        # CPU backward: "row_ranges" (threads own table rows) or "thread_tables" (a private table
-        # per thread, summed: the earlier scatter, kept to measure against); not stored in models.
-        self.backward_scatter = "row_ranges"
+        # CPU backward: "saved_rows" (threads own table rows, scattering from the rows and weights
+        # the forward saved), "row_ranges" (the same, hashing each point again) or "thread_tables"
+        # (a private table per thread, summed); the last two kept to measure against; not stored in models.
+        self.backward_scatter = "saved_rows"
         # CPU forward with ``dtype=torch.bfloat16``: the kernel writes bf16 (True) or fp32 that is
         # then cast (False: the earlier path, kept to measure against); same values either way.
         self.low_precision_output = True
@@ -495,7 +572,10 @@ class SparseHashGrid(nn.Module):
             features = sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
         elif self.table.device.type == "cpu" and self.table.dtype == torch.float32:
             kernel_dtype = torch.bfloat16 if dtype == torch.bfloat16 and self.low_precision_output else torch.float32
-            features = _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, self.backward_scatter,
+            scatter = self.backward_scatter
+            if scatter == "saved_rows" and not (torch.is_grad_enabled() and self.table.requires_grad):
+                scatter = "row_ranges"  # no backward to come: nothing to save
+            features = _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, scatter,
                                                      extra, kernel_dtype)  # fmt: skip
             return features.to(dtype)
         else:
