@@ -194,7 +194,7 @@ class LSNIFModel(NeuralBLAS):
     def _intersect_chunk(self, rays: Rays) -> Hits:
         n = len(rays)
         hits = Hits.empty(n, rays.device)
-        if self._network_answers_as_hits(rays, hits):  # CUDA, when the fused kernels decode the hits themselves
+        if self._network_answers_as_hits(rays, hits):  # where a fused pass decodes the hits itself (CPU, CUDA)
             return hits
         act, out, t_enter, t_exit, t_offset = self._network_answers(rays)
         if len(act) == 0:
