@@ -182,6 +182,25 @@ def test_select_network_rays_numba_matches_torch(point_distances):
         assert dist is None
 
 
+@pytest.mark.parametrize("point_distances", [True, False])
+def test_select_network_rows_is_select_network_rays_without_the_copies(point_distances):
+    """The index-only selection (the encoder reads the points through it) gives the same rays,
+    box intervals and point distances bit for bit, on the numba and the torch path."""
+    from neuralrt.methods.lsnif_features import select_network_rays_torch, select_network_rows_numba, select_network_rows_torch
+
+    g = torch.Generator().manual_seed(8)
+    occ = torch.rand(16, 16, 16, generator=g) < 0.15
+    o = torch.rand(4000, 3, generator=g) * 2 - 0.5
+    d = torch.randn(4000, 3, generator=g)
+    fp = featurize_rays(o, d, occ, 12)
+    ref_keep, ref, _, _, ref_dist = select_network_rays_torch(fp, o, d, point_distances)
+    assert 500 < len(ref_keep) < 4000
+    for implementation in (select_network_rows_numba, select_network_rows_torch):
+        keep, t_enter, t_exit, dist = implementation(fp, o, d, point_distances)
+        assert torch.equal(keep, ref_keep) and torch.equal(t_enter, ref.t_enter) and torch.equal(t_exit, ref.t_exit)
+        assert torch.equal(dist, ref_dist) if point_distances else dist is None
+
+
 def test_unit_box_rays_numba_matches_torch():
     """The CPU pass keeps the same valid rays and maps them with torch's float32 operations bit
     for bit; bad rays (NaN, zero direction, empty or NaN interval) are dropped."""

@@ -169,13 +169,14 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
     saved = np.full((3, offsets[-1], 4), -1, np.int32), np.full((3, offsets[-1], 4), np.nan, np.float32)
     flat = grid.table.detach().numpy().reshape(-1, 3)
     out = np.empty((n, grid.output_dim(h)), np.float32)
-    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), flat, grid._resolutions_np, 7, out, np.empty((0, out.shape[1]), np.uint16),
+    every = np.arange(n, dtype=np.int64)
+    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), every, flat, grid._resolutions_np, 7, out, np.empty((0, out.shape[1]), np.uint16),
                         offsets, *saved)  # fmt: skip
     face = f.face_axis.numpy()[valid] < 3  # packed in ray order: face points saved, origin points not
     assert (saved[0][:, face] >= 0).all() and (saved[0][:, ~face] == -1).all() and (~face).any()
     for ranges in (1, 2, 5):
         got = np.full((3 * 2**12, 3), np.nan, np.float32)
-        shg._backward_saved_kernel(*args, ranges, *saved, got)
+        shg._backward_saved_kernel(*args[:2], every, *args[2:], ranges, *saved, got)
         assert np.array_equal(got, serial[0]), ranges
     rehash = shg._backward_rows_kernel
     for scatter in ("saved_rows", "row_ranges"):  # (thread_tables sums per-thread tables: not serial)
@@ -227,3 +228,26 @@ def test_bf16_output_is_the_cast_of_the_fp32_one_bit_for_bit():
     assert torch.equal(g_low, g_ref) and g_ref.abs().sum() > 0
     grid.low_precision_output = False  # the earlier path: fp32 features, then the cast
     assert torch.equal(grid(f.points, f.face_axis, extra, torch.bfloat16).view(torch.int16), low.view(torch.int16))
+
+
+@pytest.mark.parametrize("scatter", ["saved_rows", "row_ranges", "thread_tables"])
+def test_rows_encode_the_selected_rays_as_their_copy_bit_for_bit(scatter):
+    """``rows``: the kernels read the selected rays through the index; features (fp32 and bf16,
+    extra columns too) and table gradients are those of the copied selection, bit for bit."""
+    f = _featurized_points(n=2000, seed=6)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    grid.backward_scatter = scatter
+    rows = torch.nonzero(f.count > 0).squeeze(1)[torch.randperm(int((f.count > 0).sum()), generator=torch.Generator().manual_seed(0))][:900]
+    extra = torch.rand(len(rows), 12, generator=torch.Generator().manual_seed(1))
+    for dtype in (torch.float32, torch.bfloat16):
+        copied = grid(f.points[rows], f.face_axis[rows], extra, dtype)
+        indexed = grid(f.points, f.face_axis, extra, dtype, rows=rows)
+        assert torch.equal(indexed, copied) and copied.abs().sum() > 0
+        upstream = torch.randn(copied.shape, generator=torch.Generator().manual_seed(2)).to(dtype)
+        (g_copied,) = torch.autograd.grad((copied * upstream).sum(), grid.table)
+        (g_indexed,) = torch.autograd.grad((grid(f.points, f.face_axis, extra, dtype, rows=rows) * upstream).sum(), grid.table)
+        assert torch.equal(g_indexed, g_copied) and g_copied.abs().sum() > 0
+    reference = sparse_hash_grid_reference(f.points[rows], f.face_axis[rows], grid.table.detach(), grid.resolutions)
+    torch.testing.assert_close(grid(f.points, f.face_axis, rows=rows).detach(), reference, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="rows"):
+        grid(f.points, f.face_axis, rows=torch.tensor([len(f.points)]))

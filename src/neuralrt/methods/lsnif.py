@@ -38,7 +38,8 @@ from ..training.step import StepResult
 from .base import NeuralBLAS, material_table
 from .lsnif_config import LSNIFConfig
 from .lsnif_loss import training_loss
-from .lsnif_features import RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays, unit_box_rays
+from .lsnif_features import (RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays, select_network_rows,
+                             unit_box_rays)  # fmt: skip
 
 __all__ = ["LSNIFConfig", "LSNIFModel", "LSNIFBLAS", "METHOD"]
 
@@ -107,6 +108,9 @@ class LSNIFModel(NeuralBLAS):
             self.network_inputs, 8 + self.num_materials, net.hidden_width, net.hidden_layers, net.leaky_relu_slope,
             generator=torch.Generator().manual_seed(config.training.seed),
         )
+        # Training: the encoder reads the network rays through their index (True) or a copy of their
+        # points is made first (False: the earlier path, kept to measure against); not stored in models.
+        self.training_rows_by_index = True
 
     # -- construction ----------------------------------------------------------------------------
     @classmethod
@@ -178,17 +182,28 @@ class LSNIFModel(NeuralBLAS):
     def training_step(self, rays: Rays, truth: Hits) -> StepResult:
         """Loss of one batch against exact hits (paper Sec. 5.3); certain misses are skipped."""
         n = len(rays)
-        prep = self._prepare(rays)
-        fp = prep.features
         dtype = self.compute_dtype(training=True)
+        point_distances = self.config.features.point_distances
+        if self.training_rows_by_index:
+            # The encoder reads the network rays' points through their index: no copy of the batch's points.
+            unit = self._unit_rays(rays)
+            fp = self._featurize(unit.origins, unit.directions)
+            keep, t_enter, t_exit, distances = select_network_rows(fp, unit.origins, unit.directions, point_distances)
+            active, t_offset, truncated = unit.index[keep], unit.t_offset[keep], fp.truncated.sum()
+            features = self.encoder(fp.points, fp.face_axis, distances, dtype, rows=keep)
+        else:  # the network rays' points copied first (`_prepare`), kept to measure against
+            prep = self._prepare(rays)
+            active, t_offset, truncated = prep.active, prep.t_offset, prep.truncated
+            t_enter, t_exit = prep.features.t_enter, prep.features.t_exit
+            features = self.network_input(prep, dtype)
         # The encoder hands the MLP its input in the hidden layers' dtype (bf16 on the CPU: written so,
         # no cast); the loss runs the output layer (on the CPU in the same pass as the loss terms).
-        hidden = self.network.hidden_forward(self.network_input(prep, dtype), dtype)
-        terms = training_loss(hidden, self.network.output, prep.active, prep.t_offset, fp.t_enter, fp.t_exit, rays.directions,
+        hidden = self.network.hidden_forward(features, dtype)
+        terms = training_loss(hidden, self.network.output, active, t_offset, t_enter, t_exit, rays.directions,
                               truth, self.config.loss, self.num_materials, _logit(self.config.inference.occlusion_threshold),
-                              prep.truncated)  # fmt: skip
+                              truncated)  # fmt: skip
         correct = n - terms.wrong_network - terms.missed_outside
-        return StepResult(terms.loss, terms.parts, correct, n, len(prep.active), {"truncated": terms.truncated})
+        return StepResult(terms.loss, terms.parts, correct, n, len(active), {"truncated": terms.truncated})
 
     # -- inference ---------------------------------------------------------------------------------
     def _intersect_chunk(self, rays: Rays) -> Hits:

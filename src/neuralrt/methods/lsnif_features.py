@@ -58,6 +58,9 @@ __all__ = [
     "featurize_rays_reference",
     "point_local_distances",
     "select_network_rays",
+    "select_network_rows",
+    "select_network_rows_numba",
+    "select_network_rows_torch",
     "select_network_rays_numba",
     "select_network_rays_torch",
     "unit_box_rays",
@@ -484,6 +487,61 @@ def select_network_rays_numba(fp: RayFeaturePoints, origins: Tensor, directions:
                    *(getattr(out, f.name) for f in fields(out)), o, d, distances)  # fmt: skip
     kept = RayFeaturePoints(*(torch.from_numpy(getattr(out, f.name)) for f in fields(out)))
     return (torch.from_numpy(keep), kept, torch.from_numpy(o), torch.from_numpy(d),
+            torch.from_numpy(distances) if point_distances else None)  # fmt: skip
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _network_rows_kernel(pts, axes, counts, t_enter, t_exit, origins, directions, point_distances,
+                         keep, out_t_enter, out_t_exit, out_distances):  # fmt: skip
+    """`_select_kernel` without the copies: the index of the rows with ``counts > 0``, their box
+    interval and `point_local_distances` (same float32 operations)."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    m = 0
+    for n in range(counts.shape[0]):
+        if counts[n] <= 0:
+            continue
+        keep[m] = n
+        te, tx = t_enter[n], t_exit[n]
+        out_t_enter[m], out_t_exit[m] = te, tx
+        if point_distances:
+            ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
+            dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
+            dd = dx * dx + dy * dy + dz * dz
+            span = max(tx - te, np.float32(1e-12))
+            for h in range(axes.shape[1]):
+                if axes[n, h] < 0:
+                    out_distances[m, h] = zero
+                    continue
+                t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
+                out_distances[m, h] = min(max((t - te) / span, zero), one)
+        m += 1
+
+
+def select_network_rows(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """`select_network_rays` for a caller that reads the points through the index (the encoder's
+    ``rows``): ``(keep [M] long, t_enter [M], t_exit [M], distances [M, H] or None)``, no copy of
+    the point arrays. One numba pass on the CPU (`select_network_rows_numba`), torch ops elsewhere
+    (`select_network_rows_torch`)."""
+    implementation = select_network_rows_numba if origins.device.type == "cpu" else select_network_rows_torch
+    return implementation(fp, origins, directions, point_distances)
+
+
+def select_network_rows_torch(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """`select_network_rows` as torch ops (any device)."""
+    keep, kept, o, d, distances = select_network_rays_torch(fp, origins, directions, point_distances)
+    return keep, kept.t_enter, kept.t_exit, distances
+
+
+def select_network_rows_numba(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
+    """`select_network_rows` on CPU tensors: one numba pass, in torch's float32 operations."""
+    counts = fp.count.numpy()
+    m, h = int(np.count_nonzero(counts > 0)), fp.max_points
+    keep, t_enter, t_exit = np.empty(m, np.int64), np.empty(m, np.float32), np.empty(m, np.float32)
+    distances = np.empty((m, h) if point_distances else (0, h), np.float32)
+    _network_rows_kernel(fp.points.numpy(), fp.face_axis.numpy(), counts, fp.t_enter.numpy(), fp.t_exit.numpy(),
+                         origins.detach().contiguous().numpy(), directions.detach().contiguous().numpy(), bool(point_distances),
+                         keep, t_enter, t_exit, distances)  # fmt: skip
+    return (torch.from_numpy(keep), torch.from_numpy(t_enter), torch.from_numpy(t_exit),
             torch.from_numpy(distances) if point_distances else None)  # fmt: skip
 
 

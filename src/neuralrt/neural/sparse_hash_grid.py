@@ -206,14 +206,15 @@ def read_rows(table, slots, weights, k, out, col):
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16, point_offsets, saved_slots, saved_weights):
+def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_bf16, point_offsets, saved_slots, saved_weights):
     """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F (+ extra)]`` fp32, or,
     when ``out_bf16`` has rows, ``out_bf16`` is (uint16 bf16 bits, rounded as torch's cast) and
     ``out`` is unused. Per group of `_GROUP` rays: every point's rows and weights first
     (prefetching the rows), then the reads. When ``saved_slots``/``saved_weights`` (``[L, P, 4]``)
     have rows, each face point's 4 rows and weights are kept there for the backward, packed: ray
-    n's j-th valid point at ``point_offsets[n] + j`` (origin points, 8 rows, are recomputed)."""
-    n_rays, n_points = axes.shape
+    n's j-th valid point at ``point_offsets[n] + j`` (origin points, 8 rows, are recomputed).
+    Output row n encodes the points of input row ``rows[n]`` (the caller's selection, no copy)."""
+    n_rays, n_points = rows.shape[0], axes.shape[1]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
     table_size = table.shape[0] // n_levels
@@ -231,13 +232,14 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16, p
             last = min(first + _GROUP, stop)
             e = 0
             for n in range(first, last):
+                src = rows[n]
                 for h in range(n_points):
-                    code = axes[n, h]
+                    code = axes[src, h]
                     valid = 0 <= code <= _ORIGIN_POINT
                     for lvl in range(n_levels):
                         k = 0
                         if valid:
-                            k = _rows_of(points[n, h, 0], points[n, h, 1], points[n, h, 2], code,
+                            k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code,
                                          resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])  # fmt: skip
                             for c in range(k):
                                 prefetch_row(table, slots[e, c])
@@ -254,7 +256,7 @@ def _forward_kernel(points, axes, table, resolutions, n_chunks, out, out_bf16, p
                                     saved_slots[lvl, p, c] = slots[e, c]
                                     saved_weights[lvl, p, c] = weights[e, c]
                             e += 1
-                        p += 0 <= axes[n, h] <= _ORIGIN_POINT
+                        p += 0 <= axes[rows[n], h] <= _ORIGIN_POINT
             e = 0
             for n in range(first, last):
                 row = scratch if low_precision else out[n]
@@ -337,10 +339,10 @@ def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level,
 
 
 @numba.njit(parallel=True, cache=True)
-def _backward_saved_kernel(points, axes, grad_out, resolutions, ranges_per_level, saved_slots, saved_weights, grad_table):
+def _backward_saved_kernel(points, axes, rows, grad_out, resolutions, ranges_per_level, saved_slots, saved_weights, grad_table):
     """`_backward_rows_kernel` reading each face point's rows and weights as the forward saved them
     (``[L, P, 4]``, the valid points packed in ray order) instead of hashing the point again; origin
-    points (8 rows) are recomputed.
+    points (8 rows) are recomputed; gradient row n belongs to input row ``rows[n]``.
     Same contributions in the same order: the same gradient, bit for bit."""
     n_rays, n_points = axes.shape
     n_levels = resolutions.shape[0]
@@ -359,15 +361,16 @@ def _backward_saved_kernel(points, axes, grad_out, resolutions, ranges_per_level
         res = resolutions[lvl]
         level_slots, level_weights = saved_slots[lvl], saved_weights[lvl]
         p = -1
-        for n in range(n_rays):
+        for n in range(rows.shape[0]):
+            src = rows[n]
             for h in range(n_points):
-                code = axes[n, h]
+                code = axes[src, h]
                 if code < 0 or code > _ORIGIN_POINT:
                     continue
                 p += 1
                 col = h * stride + lvl * n_feat
                 if code == _ORIGIN_POINT:
-                    k = _point_level(points[n, h, 0], points[n, h, 1], points[n, h, 2], code, res, mask, base, slots, weights)
+                    k = _point_level(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, res, mask, base, slots, weights)
                     for c in range(k):
                         row = slots[c]
                         if row_lo <= row < row_hi:
@@ -405,11 +408,13 @@ class _SparseHashGridFunction(torch.autograd.Function):
     the fp32 ones: same bits) and the backward reads the bf16 output gradient as it is."""
 
     @staticmethod
-    def forward(ctx, points: Tensor, face_axis: Tensor, table: Tensor, resolutions: np.ndarray, backward_scatter: str,
-                extra: Tensor | None, dtype: torch.dtype):  # fmt: skip
+    def forward(ctx, points: Tensor, face_axis: Tensor, rows: Tensor | None, table: Tensor, resolutions: np.ndarray,
+                backward_scatter: str, extra: Tensor | None, dtype: torch.dtype):  # fmt: skip
         pts = _numpy(points, torch.float32)
         axes = _numpy(face_axis, torch.int8)
-        n_rays, n_points = axes.shape
+        # Output row n encodes input row rows[n] (all rows in order without ``rows``).
+        index = np.arange(len(axes), dtype=np.int64) if rows is None else _numpy(rows, torch.int64)
+        n_rays, n_points = len(index), axes.shape[1]
         levels, _, n_feat = table.shape
         width = n_points * levels * n_feat
         shape = (n_rays, width + (0 if extra is None else extra.shape[1]))
@@ -428,14 +433,16 @@ class _SparseHashGridFunction(torch.autograd.Function):
         save = backward_scatter == "saved_rows"
         offsets = np.zeros(n_rays + 1 if save else 0, np.int64)
         if save:
-            np.cumsum(np.count_nonzero((axes >= 0) & (axes <= _ORIGIN_POINT), axis=1), out=offsets[1:])
+            selected = axes if rows is None else axes[index]
+            np.cumsum(np.count_nonzero((selected >= 0) & (selected <= _ORIGIN_POINT), axis=1), out=offsets[1:])
         saved_shape = (levels, int(offsets[-1]) if save else 0, 4)
         saved_slots, saved_weights = np.empty(saved_shape, np.int32), np.empty(saved_shape, np.float32)
         if n_rays:
             n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
-            _forward_kernel(pts, axes, flat, resolutions, n_chunks, out, bits, offsets, saved_slots, saved_weights)
+            _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, out, bits, offsets, saved_slots, saved_weights)
         ctx.saved_rows = (saved_slots, saved_weights) if save else None
+        ctx.index = index
         ctx.save_for_backward(points, face_axis)
         ctx.resolutions = resolutions
         ctx.table_shape = tuple(table.shape)
@@ -445,30 +452,36 @@ class _SparseHashGridFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         grad_table = None
-        if ctx.needs_input_grad[2]:
+        if ctx.needs_input_grad[3]:
             points, face_axis = ctx.saved_tensors
             levels, size, n_feat = ctx.table_shape
             if grad_out.dtype == torch.bfloat16:
                 grad = grad_out.contiguous().view(torch.int16).numpy().view(np.uint16)
             else:
                 grad = _numpy(grad_out, torch.float32)
-            args = (_numpy(points, torch.float32), _numpy(face_axis, torch.int8), grad, ctx.resolutions)
+            pts, axes = _numpy(points, torch.float32), _numpy(face_axis, torch.int8)
             if ctx.saved_rows is not None:
-                grad = np.empty((levels * size, n_feat), np.float32)
-                _backward_saved_kernel(*args, -(-numba.get_num_threads() // levels), *ctx.saved_rows, grad)
+                table_grad = np.empty((levels * size, n_feat), np.float32)
+                _backward_saved_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-numba.get_num_threads() // levels),
+                                       *ctx.saved_rows, table_grad)  # fmt: skip
                 ctx.saved_rows = None
-            elif ctx.backward_scatter in ("row_ranges", "saved_rows"):
+                grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
+                return None, None, None, grad_table, None, None, None, None
+            if len(ctx.index) != len(axes) or not np.array_equal(ctx.index, np.arange(len(axes))):
+                pts, axes = pts[ctx.index], axes[ctx.index]  # the scatters kept to measure against take the selected rows
+            args = (pts, axes, grad, ctx.resolutions)
+            if ctx.backward_scatter in ("row_ranges", "saved_rows"):
                 grad = np.empty((levels * size, n_feat), np.float32)
                 _backward_rows_kernel(*args, -(-numba.get_num_threads() // levels), grad)
             else:  # "thread_tables": the earlier scatter, kept to measure against
                 args = (*args[:2], _numpy(grad_out, torch.float32), args[3])
-                n_threads = max(1, min(len(points), numba.get_num_threads()))
+                n_threads = max(1, min(len(axes), numba.get_num_threads()))
                 tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
-                if len(points):
+                if len(axes):
                     _backward_kernel(*args, tables)
                 grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
-        return None, None, grad_table, None, None, None, None
+        return None, None, None, grad_table, None, None, None, None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -550,32 +563,41 @@ class SparseHashGrid(nn.Module):
     def output_dim(self, max_points: int) -> int:
         return max_points * len(self.resolutions) * self.features_per_level
 
-    def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None, dtype: torch.dtype = torch.float32) -> Tensor:
+    def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None, dtype: torch.dtype = torch.float32,
+                rows: Tensor | None = None) -> Tensor:  # fmt: skip
         """``points [N, H, 3]`` unit-box, ``face_axis [N, H]`` -> features ``[N, H * L * F]``.
 
         Layout is point-major: point 0 level 0 features, point 0 level 1, ..., point 1 ...;
         padding points give zeros. ``extra [N, E]`` (data, no gradient) is appended as E more
         columns (on the CPU written into the same output, instead of a concatenation). ``dtype``:
         the output's, the fp32 features cast to it (the CPU kernel writes bf16 itself, no fp32
-        copy, with ``low_precision_output``).
+        copy, with ``low_precision_output``). ``rows [M]`` (long): encode only those rays, in that
+        order, as ``points[rows], face_axis[rows]`` would (``extra`` then has M rows); the CPU kernels
+        read the points through the index (no copy).
         """
         if points.ndim != 3 or points.shape[-1] != 3 or face_axis.shape != points.shape[:2]:
             raise ValueError(
                 f"expected points [N, H, 3] and face_axis [N, H], got {tuple(points.shape)} and "
                 f"{tuple(face_axis.shape)}"
             )
-        if extra is not None and (extra.ndim != 2 or len(extra) != len(points)):
-            raise ValueError(f"expected extra columns [N, E] for {len(points)} rays, got {tuple(extra.shape)}")
+        n_out = len(points) if rows is None else len(rows)
+        if extra is not None and (extra.ndim != 2 or len(extra) != n_out):
+            raise ValueError(f"expected extra columns [N, E] for {n_out} rays, got {tuple(extra.shape)}")
+        if rows is not None and (rows.ndim != 1 or (len(rows) and not 0 <= int(rows.min()) <= int(rows.max()) < len(points))):
+            raise ValueError(f"rows must be a 1-D index into the {len(points)} rays")
+        cpu_kernels = self.table.device.type == "cpu" and self.table.dtype == torch.float32
+        if rows is not None and not cpu_kernels:
+            points, face_axis = points[rows], face_axis[rows]
         if self.table.device.type == "cuda":
             from .sparse_hash_grid_triton import sparse_hash_grid_triton
 
             features = sparse_hash_grid_triton(points, face_axis, self.table, self._resolutions_on(self.table.device))
-        elif self.table.device.type == "cpu" and self.table.dtype == torch.float32:
+        elif cpu_kernels:
             kernel_dtype = torch.bfloat16 if dtype == torch.bfloat16 and self.low_precision_output else torch.float32
             scatter = self.backward_scatter
             if scatter == "saved_rows" and not (torch.is_grad_enabled() and self.table.requires_grad):
                 scatter = "row_ranges"  # no backward to come: nothing to save
-            features = _SparseHashGridFunction.apply(points, face_axis, self.table, self._resolutions_np, scatter,
+            features = _SparseHashGridFunction.apply(points, face_axis, rows, self.table, self._resolutions_np, scatter,
                                                      extra, kernel_dtype)  # fmt: skip
             return features.to(dtype)
         else:
