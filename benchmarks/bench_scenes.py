@@ -217,16 +217,25 @@ def merge_row(rows: list[dict], row: dict, scene: str) -> list[dict]:
     """``rows`` with ``row`` merged into the scene's row: a later run of other variants adds their
     columns (FLIP vs the same seed's exact image; time ratios to that run's own exact render) and
     keeps the first run's scene-wide figures, the later run's going to ``later_runs``; a run at
-    another resolution, spp or scene file (``scene_sha256``) replaces the row."""
+    another resolution, spp or scene file (``scene_sha256``), or a re-run of every variant the row
+    holds, replaces the row (else its scene-wide figures would be an earlier run's, beside ratios
+    to this run's exact render)."""
     old = next((r for r in rows if short_name(r["scene"]) == short_name(scene)), None)
     rest = [r for r in rows if r is not old]
     if old is None or (old["res"], old["spp"], old.get("scene_sha256")) != (row["res"], row["spp"], row.get("scene_sha256")):
         return rest + [row]
+    if _variants(old) <= _variants(row):
+        return rest + [row]
     later = {k: row[k] for k in SCENE_WIDE if k in row and k not in ("scene", "later_runs")}
-    later["variants"] = sorted({k.removeprefix("flip_") for k in row if k.startswith("flip_") and k != "flip_floor"})
+    later["variants"] = sorted(_variants(row))
     merged = {**old, **{k: v for k, v in row.items() if k not in SCENE_WIDE}}
     merged["later_runs"] = old.get("later_runs", []) + [later]
     return rest + [merged]
+
+
+def _variants(row: dict) -> set[str]:
+    """The variant labels whose figures ``row`` holds (its ``flip_<label>`` columns)."""
+    return {k.removeprefix("flip_") for k in row if k.startswith("flip_") and k != "flip_floor"}
 
 
 def short_name(scene: str) -> str:
