@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
@@ -17,7 +17,8 @@ Configurations (both draw the next batch on a background thread, the default), b
 - ``saved_rows``: the encoder backward hashing every point again (``backward_scatter =
   "row_ranges"``) against scattering from the rows and weights the forward saved (``"saved_rows"``);
 - ``rows``: the network rays' points copied before the encoder (``LSNIFModel.training_rows_by_index
-  = False``) against the encoder reading them through their index (``True``).
+  = False``) against the encoder reading them through their index (``True``);
+- ``saved_rows_and_index``: both of the two above together.
 The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
@@ -88,8 +89,10 @@ def _configure(model: LSNIFModel, config: str) -> None:
         lsnif_module.select_network_rays = select_network_rays_torch if before else select_network_rays
     elif PAIR == "saved_rows":
         model.encoder.backward_scatter = "row_ranges" if before else "saved_rows"
-    elif PAIR == "rows":
+    elif PAIR in ("rows", "saved_rows_and_index"):
         model.training_rows_by_index = not before
+        if PAIR == "saved_rows_and_index":
+            model.encoder.backward_scatter = "row_ranges" if before else "saved_rows"
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
@@ -130,7 +133,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair

@@ -552,10 +552,11 @@ class SparseHashGrid(nn.Module):
         init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
         self.table = nn.Parameter(init)  # [L, T, F]
         self._resolutions_np = np.asarray(self.resolutions, np.int64)
-        # CPU backward: "saved_rows" (threads own table rows, scattering from the rows and weights
-        # the forward saved), "row_ranges" (the same, hashing each point again) or "thread_tables"
+        # CPU backward: "row_ranges" (threads own table rows, hashing each point again), "saved_rows"
+        # (the same, scattering from the rows and weights the forward saved: the backward ~0.8 ms
+        # faster, the forward ~0.4 ms slower, no gain in the step, docs/lsnif.md) or "thread_tables"
         # (a private table per thread, summed); the last two kept to measure against; not stored in models.
-        self.backward_scatter = "saved_rows"
+        self.backward_scatter = "row_ranges"
         # CPU forward with ``dtype=torch.bfloat16``: the kernel writes bf16 (True) or fp32 that is
         # then cast (False: the earlier path, kept to measure against); same values either way.
         self.low_precision_output = True
