@@ -28,7 +28,7 @@ from numba import types
 from numba.extending import overload
 from torch import Tensor, nn
 
-from ..neural.bf16_dot import bf16_bits, bf16_value, fma16, load16, store16, zeros16
+from ..neural.bf16_dot import as_fp32, bf16_bits, fma16, load16, store16, zeros16
 from ..rays import Hits, face_forward
 from .lsnif_config import LossConfig
 
@@ -95,18 +95,6 @@ def training_loss_torch(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
         counts = torch.stack([(predicted != hit).sum(), truth.hit.sum() - hit.sum(), truncated]).tolist()
         values = torch.stack([v.detach().float() for v in parts.values()]).tolist()  # one device->host copy each
     return TrainingLoss(loss, dict(zip(parts, values)), *counts)
-
-
-def _widen(x):
-    """A hidden activation as fp32: fp32 as is, bf16 bits (uint16) widened exactly."""
-    raise NotImplementedError("numba only")
-
-
-@overload(_widen, inline="always")
-def _widen_overload(x):
-    if x == types.uint16:
-        return lambda x: bf16_value(x)
-    return lambda x: x
 
 
 def _narrow(dst, i, j, value):
@@ -199,7 +187,7 @@ def _output_layer_kernel(hidden, weight_t, bias, out):
         for p in range(4):
             row_index = min(first + p, n_net - 1)
             for j in range(width):
-                h32[p, j] = _widen(hidden[row_index, j])
+                h32[p, j] = as_fp32(hidden[row_index, j])
         h0, h1, h2, h3 = h32[0], h32[1], h32[2], h32[3]
         for cb in range(0, padded_out, 16):
             a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
@@ -272,7 +260,7 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
             store16(dh, jb, acc)
         for j in range(width):
             _narrow(grad_hidden, i, j, dh[j])
-            row32[j] = _widen(hidden[i, j])
+            row32[j] = as_fp32(hidden[i, j])
         for k in range(n_out):
             gk = g[k]
             if gk != zero:

@@ -23,10 +23,10 @@ import torch
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic, models, register_model
+from numba.extending import intrinsic, models, overload, register_model
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
-           "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value"]
+           "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32"]
 
 
 def _host_has_avx512_bf16() -> bool:
@@ -211,6 +211,20 @@ def _bits_f32(typingctx, bits):
 def bf16_value(bits):
     """The fp32 value of bf16 ``bits`` (a uint16): exact, as torch's bf16 -> fp32."""
     return _bits_f32(np.uint32(bits) << np.uint32(16))  # (numba widens the shift to 64 bits)
+
+
+def as_fp32(x):
+    """``x`` as fp32 in a numba kernel that takes fp32 or bf16 arrays: fp32 as is, bf16 bits
+    (uint16) widened exactly (`bf16_value`). Typed per call site by the overload below; plain
+    Python never calls it."""
+    raise NotImplementedError("as_fp32 is for numba kernels (an @overload)")
+
+
+@overload(as_fp32, inline="always")
+def _as_fp32_overload(x):
+    if x == types.uint16:
+        return lambda x: bf16_value(x)
+    return lambda x: x
 
 
 @numba.njit(cache=True, inline="always")

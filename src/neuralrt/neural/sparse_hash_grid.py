@@ -34,10 +34,10 @@ import torch
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic, overload
+from numba.extending import intrinsic
 from torch import Tensor, nn
 
-from .bf16_dot import bf16_bits, bf16_value
+from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
     "SparseHashGrid",
@@ -335,7 +335,7 @@ def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level,
                     if row_lo <= row < row_hi:
                         w = weights[c]
                         for f in range(n_feat):
-                            grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
+                            grad_table[row, f] += w * as_fp32(grad_out[n, col + f])
 
 
 @numba.njit(parallel=True, cache=True)
@@ -376,26 +376,14 @@ def _backward_saved_kernel(points, axes, rows, grad_out, resolutions, ranges_per
                         if row_lo <= row < row_hi:
                             w = weights[c]
                             for f in range(n_feat):
-                                grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
+                                grad_table[row, f] += w * as_fp32(grad_out[n, col + f])
                     continue
                 for c in range(4):
                     row = level_slots[p, c]
                     if row_lo <= row < row_hi:
                         w = level_weights[p, c]
                         for f in range(n_feat):
-                            grad_table[row, f] += w * _grad_value(grad_out[n, col + f])
-
-
-def _grad_value(g):
-    """An output gradient as fp32: fp32 as is, bf16 bits (uint16) widened (exact, as torch's cast)."""
-    raise NotImplementedError("numba only")
-
-
-@overload(_grad_value, inline="always")
-def _grad_value_overload(g):
-    if g == types.uint16:
-        return lambda g: bf16_value(g)
-    return lambda g: g
+                            grad_table[row, f] += w * as_fp32(grad_out[n, col + f])
 
 
 def _numpy(t: Tensor, dtype) -> np.ndarray:
