@@ -288,6 +288,21 @@ def _world_normal(m, identity, nx, ny, nz):
     return nx / length, ny / length, nz / length
 
 
+@numba.njit(cache=True, inline="always")
+def _write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id):
+    """Row ``r`` of the hit columns as `Hits.empty` writes it (a miss)."""
+    hit[r] = False
+    t[r] = np.inf
+    for c in range(3):
+        normal[r, c] = 0.0
+        geometric_normal[r, c] = 0.0
+        albedo[r, c] = 1.0
+    uv[r, 0], uv[r, 1] = 0.0, 0.0
+    material_id[r] = -1
+    primitive_id[r] = -1
+    instance_id[r] = -1
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def merge_every_ray(
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, overlap, has_best,
@@ -317,17 +332,9 @@ def merge_every_ray(
             best_material_id[r] = material_map[min(max(material_id[r], 0), n_map - 1)]
             best_primitive_id[r] = primitive_id[r]
             best_instance_id[r] = k
-        elif not has_best:  # the rows of Hits.empty
-            best_hit[r] = False
-            best_t[r] = np.inf
-            for c in range(3):
-                best_normal[r, c] = 0.0
-                best_geometric_normal[r, c] = 0.0
-                best_albedo[r, c] = 1.0
-            best_uv[r, 0], best_uv[r, 1] = 0.0, 0.0
-            best_material_id[r] = -1
-            best_primitive_id[r] = -1
-            best_instance_id[r] = -1
+        elif not has_best:
+            _write_miss(r, best_hit, best_t, best_normal, best_geometric_normal, best_uv, best_albedo, best_material_id,
+                        best_primitive_id, best_instance_id)  # fmt: skip
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
@@ -560,16 +567,7 @@ def finish_hits(
         k = best_instance[r]
         if k < 0:
             if write_misses:
-                hit[r] = False
-                t[r] = np.inf
-                for c in range(3):
-                    normal[r, c] = 0.0
-                    geometric_normal[r, c] = 0.0
-                    albedo[r, c] = 1.0
-                uv[r, 0], uv[r, 1] = 0.0, 0.0
-                material_id[r] = -1
-                primitive_id[r] = -1
-                instance_id[r] = -1
+                _write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id)
             continue
         if instance_group[k] != group:
             continue
