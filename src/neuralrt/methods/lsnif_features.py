@@ -424,13 +424,26 @@ def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Ten
     return torch.where(fp.face_axis >= 0, local, torch.zeros_like(local))
 
 
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _local_distances(pts, axes, n, ox, oy, oz, dx, dy, dz, te, tx, out_distances, m):
+    """``out_distances[m]``: `point_local_distances` of ray n's points in torch's float32 operations."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    dd = dx * dx + dy * dy + dz * dz
+    span = max(tx - te, np.float32(1e-12))
+    for h in range(axes.shape[1]):
+        if axes[n, h] < 0:
+            out_distances[m, h] = zero
+            continue
+        t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
+        out_distances[m, h] = min(max((t - te) / span, zero), one)
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def _select_kernel(pts, axes, counts, truncated, t_enter, t_exit, origins, directions, point_distances,
                    keep, out_pts, out_axes, out_counts, out_truncated, out_t_enter, out_t_exit, out_origins,
                    out_directions, out_distances):  # fmt: skip
     """Rows with ``counts > 0`` copied in order into the ``out_*`` arrays (sized by the caller),
     with `point_local_distances` in the same float32 operations as torch's."""
-    zero, one = np.float32(0.0), np.float32(1.0)
     m = 0
     for n in range(counts.shape[0]):
         if counts[n] <= 0:
@@ -446,14 +459,7 @@ def _select_kernel(pts, axes, counts, truncated, t_enter, t_exit, origins, direc
         out_origins[m, 0], out_origins[m, 1], out_origins[m, 2] = ox, oy, oz
         out_directions[m, 0], out_directions[m, 1], out_directions[m, 2] = dx, dy, dz
         if point_distances:
-            dd = dx * dx + dy * dy + dz * dz
-            span = max(tx - te, np.float32(1e-12))
-            for h in range(axes.shape[1]):
-                if axes[n, h] < 0:
-                    out_distances[m, h] = zero
-                    continue
-                t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
-                out_distances[m, h] = min(max((t - te) / span, zero), one)
+            _local_distances(pts, axes, n, ox, oy, oz, dx, dy, dz, te, tx, out_distances, m)
         m += 1
 
 
@@ -495,7 +501,6 @@ def _network_rows_kernel(pts, axes, counts, t_enter, t_exit, origins, directions
                          keep, out_t_enter, out_t_exit, out_distances):  # fmt: skip
     """`_select_kernel` without the copies: the index of the rows with ``counts > 0``, their box
     interval and `point_local_distances` (same float32 operations)."""
-    zero, one = np.float32(0.0), np.float32(1.0)
     m = 0
     for n in range(counts.shape[0]):
         if counts[n] <= 0:
@@ -504,16 +509,8 @@ def _network_rows_kernel(pts, axes, counts, t_enter, t_exit, origins, directions
         te, tx = t_enter[n], t_exit[n]
         out_t_enter[m], out_t_exit[m] = te, tx
         if point_distances:
-            ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
-            dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
-            dd = dx * dx + dy * dy + dz * dz
-            span = max(tx - te, np.float32(1e-12))
-            for h in range(axes.shape[1]):
-                if axes[n, h] < 0:
-                    out_distances[m, h] = zero
-                    continue
-                t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
-                out_distances[m, h] = min(max((t - te) / span, zero), one)
+            _local_distances(pts, axes, n, origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0],
+                             directions[n, 1], directions[n, 2], te, tx, out_distances, m)  # fmt: skip
         m += 1
 
 
