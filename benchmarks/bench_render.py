@@ -7,8 +7,8 @@ split into ray queries and the rest. Prints a table and writes benchmarks/result
 - ``numba_all_boxes``: fused numba shading, broad phase testing every box, attributes per BLAS
   (last state before the BVH);
 - ``numba``: fused numba shading and random numbers, the broad phase walking a BVH over each
-  group's instance boxes, and scenes of Embree meshes answered by the TLAS's fused path
-  (`NumbaTLASStages.intersect_meshes`: attributes only for each ray's final hit) (today's default).
+  group's instance boxes, and scenes with Embree meshes answered by the TLAS's fused path
+  (`NumbaTLASStages.intersect_fused`: attributes only for each ray's final hit) (today's default).
 
     python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
 

@@ -210,17 +210,17 @@ def coloured_blases():
 @pytest.mark.parametrize("kind", ["identity", "moved", "grid16", "mixed"])
 @pytest.mark.parametrize("inside", [False, True])
 def test_fused_mesh_path_matches_group_by_group(kind, inside, blases, coloured_blases):
-    """`NumbaTLASStages.intersect_meshes` (Embree's raw answers merged, attributes of the final hits
-    only) gives the Hits of the group-by-group stages bit for bit, `occluded_meshes` their shadow answers: one-instance groups, gathered
-    pairs (grid16: a BVH over 16 boxes; mixed: every box), uvs and vertex colours; a textured mesh
-    takes the group-by-group path."""
+    """`NumbaTLASStages.intersect_fused` (Embree's raw answers merged, attributes of the final hits
+    only) gives the Hits of the group-by-group stages bit for bit, `occluded_fused` their shadow answers: one-instance groups, gathered
+    pairs (grid16: a BVH over 16 boxes; mixed: every box), uvs and vertex colours; a scene of
+    textured meshes alone takes the group-by-group path."""
     coloured, textured = coloured_blases
     table = _scene(kind, coloured, blases[1]).table
     rays = _rays(6000, seed=7, inside=inside)
     if kind == "moved" and inside:
         rays = MOVED.apply_rays(rays)
     fused = NumbaTLASStages(table)
-    assert fused.fused_meshes and fused.intersect_meshes(rays, _scene(kind, coloured, blases[1])._groups[False]) is not None
+    assert fused.fused_meshes and fused.intersect_fused(rays, _scene(kind, coloured, blases[1])._groups[False]) is not None
     fused_scene = _scene(kind, coloured, blases[1], stages=NumbaTLASStages)
     ref_scene = _scene(kind, coloured, blases[1], stages=lambda t: NumbaTLASStages(t, fused_meshes=False))
     got, ref = fused_scene.intersect(rays), ref_scene.intersect(rays)
@@ -229,10 +229,63 @@ def test_fused_mesh_path_matches_group_by_group(kind, inside, blases, coloured_b
         assert torch.equal(getattr(got, f.name), getattr(ref, f.name)), f.name
     # Shadow rays: finite intervals ending short of and beyond the surfaces.
     shadow = Rays(rays.origins, rays.directions, rays.t_min, torch.where(torch.arange(len(rays)) % 2 == 0, ref.t * 0.999, ref.t * 1.5 + 0.1))
-    assert fused_scene.stages.occluded_meshes(shadow, fused_scene._groups[False]) is not None
+    assert fused_scene.stages.occluded_fused(shadow, fused_scene._groups[False]) is not None
     blocked = ref_scene.occluded(shadow)
     assert 100 < int(blocked.sum()) < len(rays) - 100
     assert torch.equal(fused_scene.occluded(shadow), blocked)
     assert torch.equal(fused_scene.occluded(rays), ref_scene.occluded(rays))
     with_texture = _scene(kind, textured, blases[1])
-    assert with_texture.stages.intersect_meshes(rays, with_texture._groups[False]) is None
+    assert (with_texture.stages.intersect_fused(rays, with_texture._groups[False]) is None) == (kind != "mixed")
+
+
+@pytest.fixture(scope="module")
+def neural_blas():
+    """An untrained LSNIF model of a sphere (random table): a BLAS the fused path does not trace."""
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.8)
+    config = LSNIFConfig.preset("lq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+                                features={"max_points": 8})  # fmt: skip
+    model = LSNIFModel.from_mesh(Mesh(s.vertices, s.faces), config)
+    with torch.no_grad():  # network rays both hit (~55%) and miss
+        model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(3))
+        model.network.output.bias[0] = 0.3
+    return model
+
+
+@pytest.mark.parametrize("layout", ["neural_first", "neural_between", "grid_and_neural", "textured_and_neural"])
+def test_fused_path_with_other_blases_matches_group_by_group(layout, blases, coloured_blases, neural_blas):
+    """Scenes mixing Embree meshes with neural models (and textured meshes) answer through the fused
+    path, the other groups taking their group-by-group step in their turn: the same Hits bit for
+    bit and the same shadow answers as group by group, whatever the groups' order."""
+    coloured, textured = coloured_blases
+    sphere = blases[1]
+    layouts = {
+        "neural_first": [(neural_blas, Transform(), [0]), (coloured, MOVED, [1, 2]), (sphere, TILTED, [3])],
+        "neural_between": [(coloured, Transform(), [0, 1]), (neural_blas, MOVED, [2]), (neural_blas, TILTED, [3]),
+                           (sphere, Transform.translate([0.3, -0.4, 0.2]), [1])],
+        "grid_and_neural": [(coloured, xf, [k % 3]) for k, xf in enumerate(GRID[:6])]
+                           + [(neural_blas, xf, [3]) for xf in GRID[6:]],
+        "textured_and_neural": [(textured, TILTED, [0, 1]), (neural_blas, Transform(), [2]), (coloured, MOVED, [3, 1])],
+    }
+
+    def scene(fused: bool) -> SceneAccel:
+        instances = [Instance(b, xf, torch.tensor(m), name=str(i)) for i, (b, xf, m) in enumerate(layouts[layout])]
+        return SceneAccel(instances, stages=lambda t: NumbaTLASStages(t, fused_meshes=fused))
+
+    fused_scene, ref_scene = scene(True), scene(False)
+    for inside in (False, True):
+        rays = _rays(6000, seed=11, inside=inside)
+        assert fused_scene.stages.intersect_fused(rays, fused_scene._groups[False]) is not None
+        got, ref = fused_scene.intersect(rays), ref_scene.intersect(rays)
+        from_model = torch.tensor([isinstance(fused_scene.instances[int(k)].blas, type(neural_blas)) for k in ref.instance_id[ref.hit]])
+        assert int(from_model.sum()) > 30 and int((~from_model).sum()) > 30  # both kinds win rays
+        for f in fields(ref):
+            assert torch.equal(getattr(got, f.name), getattr(ref, f.name)), f.name
+        t_end = torch.where(ref.hit, ref.t, 5.0)
+        shadow = Rays(rays.origins, rays.directions, rays.t_min, torch.where(torch.arange(len(rays)) % 2 == 0, t_end * 0.999, t_end * 1.5 + 0.1))
+        assert fused_scene.stages.occluded_fused(shadow, fused_scene._groups[False]) is not None
+        blocked = ref_scene.occluded(shadow)
+        assert 100 < int(blocked.sum()) < len(rays) - 100
+        assert torch.equal(fused_scene.occluded(shadow), blocked)
+        assert torch.equal(fused_scene.occluded(rays), ref_scene.occluded(rays))

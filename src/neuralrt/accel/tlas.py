@@ -11,10 +11,10 @@ The integrator only sees `intersect` / `occluded`; it never knows which kind of 
 The whole-batch stages (broad phase, ray mapping, merging) have two implementations with one
 contract (`tlas_stages`): fused numba passes on the CPU, torch ops elsewhere, picked once when the
 accelerator is built. A single-instance group that most rays overlap takes every ray as is (no
-gather, no scatter), and an identity instance skips the matrix products. On the CPU a scene whose
-groups are all Embree meshes answers through a fused path instead (`NumbaTLASStages.intersect_meshes`
-/ ``occluded_meshes``: only overlapping rays reach Embree, hit attributes only for each ray's final
-hit), with the same answers bit for bit.
+gather, no scatter), and an identity instance skips the matrix products. On the CPU a scene with
+Embree meshes answers through a fused path instead (`NumbaTLASStages.intersect_fused` /
+``occluded_fused``: only overlapping rays reach Embree, hit attributes only for each ray's final
+hit; neural groups take their usual step in their turn), with the same answers bit for bit.
 """
 
 from __future__ import annotations
@@ -27,14 +27,9 @@ from torch import Tensor
 from ..errors import DeviceError
 from ..rays import AABB, Hits, Rays, Transform, resolve_device
 from .blas import BLAS, MemoryReport
-from .tlas_stages import InstanceTable, stages_for
+from .tlas_stages import InstanceTable, intersect_group, occluded_group, stages_for
 
 __all__ = ["Instance", "SceneAccel"]
-
-def _only(t_max: Tensor, overlap: Tensor | None) -> Tensor:
-    """``t_max`` where ``overlap``, else -inf (an empty interval); unchanged without a mask."""
-    return t_max if overlap is None else torch.where(overlap, t_max, -torch.inf)
-
 
 @dataclass
 class Instance:
@@ -127,7 +122,7 @@ class SceneAccel:
         n, stages = len(rays), self.stages
         if n == 0:
             return Hits.empty(0, rays.device)
-        fused = stages.intersect_meshes(rays, self._groups[camera_rays])
+        fused = stages.intersect_fused(rays, self._groups[camera_rays])
         if fused is not None:
             return fused
         best: Hits | None = None  # Hits.empty(n) until a group hits something
@@ -135,13 +130,7 @@ class SceneAccel:
         for group in self._groups[camera_rays]:
             # Rays already closer than a box cannot improve: the box test uses the current best t.
             t_limit = rays.t_max if best is None else torch.minimum(rays.t_max, best.t)
-            ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
-            if ray_idx is None:  # every ray, one instance: no gathers
-                local = group.blas.intersect(stages.object_space_rays(rays, None, inst_idx, _only(t_limit, overlap)))
-                best = stages.merge_every_ray(best, local, int(inst_idx[0]), overlap)
-            elif ray_idx.numel():
-                local = group.blas.intersect(stages.object_space_rays(rays, ray_idx, inst_idx, t_limit[ray_idx]))
-                best = stages.merge_pairs(Hits.empty(n, rays.device) if best is None else best, local, ray_idx, inst_idx)
+            best = intersect_group(stages, rays, group, t_limit, valid, best)
         return Hits.empty(n, rays.device) if best is None else best
 
     def occluded(self, rays: Rays) -> Tensor:
@@ -150,26 +139,13 @@ class SceneAccel:
         stages = self.stages
         if len(rays) == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
-        fused = stages.occluded_meshes(rays, self._groups[False])
+        fused = stages.occluded_fused(rays, self._groups[False])
         if fused is not None:
             return fused
         blocked: Tensor | None = None  # all False until a group blocks something
         valid = stages.valid_mask(rays)
         for group in self._groups[False]:
-            # Done rays drop out of the broad phase.
-            t_limit = rays.t_max if blocked is None else torch.where(blocked, -torch.inf, rays.t_max)
-            ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
-            if ray_idx is None:  # every ray, one instance: no gathers
-                hit = group.blas.occluded(stages.object_space_rays(rays, None, inst_idx, _only(rays.t_max, overlap)))
-                hit = hit if overlap is None else hit & overlap
-                blocked = hit if blocked is None else blocked | hit
-                continue
-            if ray_idx.numel() == 0:
-                continue
-            hit = group.blas.occluded(stages.object_space_rays(rays, ray_idx, inst_idx, rays.t_max[ray_idx]))
-            if blocked is None:
-                blocked = torch.zeros(len(rays), dtype=torch.bool, device=rays.device)
-            blocked[ray_idx[hit]] = True
+            blocked = occluded_group(stages, rays, group, valid, blocked)
         return torch.zeros(len(rays), dtype=torch.bool, device=rays.device) if blocked is None else blocked
 
     def memory_bytes(self) -> MemoryReport:

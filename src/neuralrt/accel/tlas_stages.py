@@ -20,10 +20,11 @@ Every stage sees the instance table the accelerator was built with (`InstanceTab
   answers ray r; keep it in world space where it hits (inside ``overlap``) closer than ``best``.
 - ``merge_pairs(best, local, ray_idx, inst_idx)``: each ray's closest improving pair of ``local``,
   in world space, written into ``best``; exact ties go to the later pair.
-- ``intersect_meshes(rays, groups)``: the whole closest-hit query at once where a fused path
-  exists (every group an untextured Embree mesh: `NumbaTLASStages`), else None (the caller runs
-  the stages above group by group). Same answers, bit for bit.
-- ``occluded_meshes(rays, groups)``: the same for the shadow-ray query ([N] bool, or None).
+- ``intersect_fused(rays, groups)``: the whole closest-hit query at once where a fused path
+  exists (`NumbaTLASStages`, a scene with an untextured Embree mesh among its groups: Embree's
+  raw answers merged, the other groups' steps of `intersect_group` in their turn), else None (the
+  caller runs `intersect_group` group by group). Same answers, bit for bit.
+- ``occluded_fused(rays, groups)``: the same for the shadow-ray query ([N] bool, or None).
 """
 
 from __future__ import annotations
@@ -64,6 +65,43 @@ class InstanceTable:
 def _local_material_index(material_id: Tensor, material_maps: Tensor) -> Tensor:
     """BLAS-local material ids clamped into the map (misses and out-of-range ids map to slot 0 / K-1)."""
     return material_id.clamp(0, material_maps.shape[1] - 1)
+
+
+def only_within(t_max: Tensor, overlap: Tensor | None) -> Tensor:
+    """``t_max`` where ``overlap``, else -inf (an empty interval); unchanged without a mask."""
+    return t_max if overlap is None else torch.where(overlap, t_max, -torch.inf)
+
+
+def intersect_group(stages, rays: Rays, group, t_limit: Tensor, valid: Tensor | None, best: Hits | None) -> Hits | None:
+    """One group's step of the closest-hit query, group by group: its BLAS answers the (ray,
+    instance) pairs whose interval ``(t_min, t_limit)`` meets the instance's box, and the closer
+    answers are merged into ``best`` (None: nothing hit yet); returns the merged `Hits`."""
+    ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
+    if ray_idx is None:  # every ray, one instance: no gathers
+        local = group.blas.intersect(stages.object_space_rays(rays, None, inst_idx, only_within(t_limit, overlap)))
+        return stages.merge_every_ray(best, local, int(inst_idx[0]), overlap)
+    if ray_idx.numel() == 0:
+        return best
+    local = group.blas.intersect(stages.object_space_rays(rays, ray_idx, inst_idx, t_limit[ray_idx]))
+    return stages.merge_pairs(Hits.empty(len(rays), rays.device) if best is None else best, local, ray_idx, inst_idx)
+
+
+def occluded_group(stages, rays: Rays, group, valid: Tensor | None, blocked: Tensor | None) -> Tensor | None:
+    """One group's step of the shadow-ray query: ``blocked`` ([N] bool, None: nothing blocked yet)
+    with the rays this group's BLAS blocks added; rays already blocked drop out of the broad phase."""
+    t_limit = rays.t_max if blocked is None else torch.where(blocked, -torch.inf, rays.t_max)
+    ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
+    if ray_idx is None:  # every ray, one instance: no gathers
+        hit = group.blas.occluded(stages.object_space_rays(rays, None, inst_idx, only_within(rays.t_max, overlap)))
+        hit = hit if overlap is None else hit & overlap
+        return hit if blocked is None else blocked | hit
+    if ray_idx.numel() == 0:
+        return blocked
+    hit = group.blas.occluded(stages.object_space_rays(rays, ray_idx, inst_idx, rays.t_max[ray_idx]))
+    if blocked is None:
+        blocked = torch.zeros(len(rays), dtype=torch.bool, device=rays.device)
+    blocked[ray_idx[hit]] = True
+    return blocked
 
 
 class TorchTLASStages:
@@ -121,10 +159,10 @@ class TorchTLASStages:
         self._to_world_(local, inst_idx)
         return best.scatter_(ray_idx, local)
 
-    def intersect_meshes(self, rays: Rays, groups) -> Hits | None:
+    def intersect_fused(self, rays: Rays, groups) -> Hits | None:
         return None  # no fused path: the stages above, group by group
 
-    def occluded_meshes(self, rays: Rays, groups) -> Tensor | None:
+    def occluded_fused(self, rays: Rays, groups) -> Tensor | None:
         return None
 
     def _to_world_(self, hits: Hits, inst_idx: Tensor) -> None:
@@ -152,8 +190,8 @@ class NumbaTLASStages:
         self._is_identity = table.is_identity.numpy()
         self.broad_phase = broad_phase  # "all_boxes": every ray against every box (kept to measure against)
         self._bvhs: dict[bytes, BVH] = {}
-        # Scenes of Embree meshes answer closest hits through `intersect_meshes` (False: group by
-        # group, each BLAS computing attributes for all its rays, kept to measure against).
+        # Scenes with Embree meshes answer through `intersect_fused` / `occluded_fused` (False: group
+        # by group, each BLAS computing attributes for all its rays, kept to measure against).
         self.fused_meshes = fused_meshes
 
     def valid_mask(self, rays: Rays) -> Tensor | None:
@@ -211,25 +249,45 @@ class NumbaTLASStages:
         )  # fmt: skip
         return out
 
-    def intersect_meshes(self, rays: Rays, groups) -> Hits | None:
-        """Closest hits over groups that are all untextured `EmbreeMeshBLAS`es (else None): per group,
-        one pass per chunk of rays does the broad phase, the object-space mapping and Embree's
-        preparation (one-instance groups; pairs from `candidate_pairs` otherwise), Embree answers,
-        and only (t, triangle, u, v, instance) is merged; hit attributes are computed once, for each
-        ray's final hit (`BLAS.intersect` computes them for every ray of every group, and merging
-        copies them). The same float32 operations as the group-by-group stages: the same Hits."""
-        from .mesh_blas import EmbreeMeshBLAS, _run_in_chunks
+    @staticmethod
+    def _embree_closest(group) -> bool:
+        """Does the fused path answer this group's closest hits itself (an untextured Embree mesh)?"""
+        from .mesh_blas import EmbreeMeshBLAS
 
-        if not self.fused_meshes or not all(type(g.blas) is EmbreeMeshBLAS and not g.blas.textured for g in groups):
+        return type(group.blas) is EmbreeMeshBLAS and not group.blas.textured
+
+    def intersect_fused(self, rays: Rays, groups) -> Hits | None:
+        """Closest hits of a scene with at least one untextured `EmbreeMeshBLAS` group (else None).
+        Per such group, one pass per chunk of rays does the broad phase, the object-space mapping
+        and Embree's preparation (one-instance groups; pairs from `candidate_pairs` otherwise),
+        Embree answers, and only (t, triangle, u, v, instance) is merged; hit attributes are
+        computed once, for each ray's final hit (`BLAS.intersect` computes them for every ray of
+        every group, and merging copies them). Other groups (neural models, textured meshes) take
+        their group-by-group step (`intersect_group`) in their turn, merged into the same records.
+        The same float32 operations as the group-by-group stages: the same Hits."""
+        from .mesh_blas import _run_in_chunks
+
+        embree = [self._embree_closest(g) for g in groups]
+        if not self.fused_meshes or not any(embree):
             return None
         n = len(rays)
         o, d, t_min, t_max = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
-        best_t = np.full(n, np.inf, np.float32)
+        template = Hits.empty(0)
+        out = Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype)
+                      for f in fields(Hits)})  # fmt: skip
+        # The running best t and winning instance are the output's own columns: a model's merged
+        # answer (complete records) and Embree's raw answers (finished below) share them.
+        best_t, best_instance = out.t.numpy(), out.instance_id.numpy()
+        best_t.fill(np.inf)
+        best_instance.fill(-1)
         best_prim = np.full(n, -1, np.int32)
         best_u, best_v = np.empty(n, np.float32), np.empty(n, np.float32)
-        best_instance = np.full(n, -1, np.int64)
         for gi, group in enumerate(groups):
             blas, ids, has_best = group.blas, group.instance_ids.numpy(), gi > 0
+            if not embree[gi]:
+                t_limit = rays.t_max if not has_best else torch.minimum(rays.t_max, out.t)
+                intersect_group(self, rays, group, t_limit, None, out)  # merges into out (as a previous best)
+                continue
             if ids.shape[0] == 1:
                 k = int(ids[0])
 
@@ -264,37 +322,43 @@ class NumbaTLASStages:
             _run_in_chunks(trace_pairs, count, blas.threads)
             kernels.merge_pair_hits(pair[:count], prim, tfar_out, u, v, ray_np, inst_np, t_min, best_t, best_prim, best_u,
                                     best_v, best_instance)  # fmt: skip
-        template = Hits.empty(0)
-        out = Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype)
-                      for f in fields(Hits)})  # fmt: skip
         instance_group = np.full(len(self._is_identity), -1, np.int64)
         for gi, group in enumerate(groups):
             instance_group[group.instance_ids.numpy()] = gi
         records = [getattr(out, f.name).numpy() for f in fields(Hits)]
+        first = embree.index(True)  # its pass also writes the rows of the rays that hit nothing
         for gi, group in enumerate(groups):
+            if not embree[gi]:  # a model's winning rows are complete already
+                continue
             tables = group.blas.surface_tables()
 
             def finish(chunk: slice) -> None:
                 kernels.finish_hits(best_t[chunk], best_prim[chunk], best_u[chunk], best_v[chunk], best_instance[chunk],
-                                    instance_group, gi, gi == 0, *tables, self._material_maps, self._world_to_object,
+                                    instance_group, gi, gi == first, *tables, self._material_maps, self._world_to_object,
                                     self._is_identity, *(x[chunk] for x in records))  # fmt: skip
 
-            _run_in_chunks(finish, n, groups[0].blas.threads)
+            _run_in_chunks(finish, n, group.blas.threads)
         return out
 
-    def occluded_meshes(self, rays: Rays, groups) -> Tensor | None:
-        """`intersect_meshes` for shadow rays: per group, one pass per chunk does the broad phase
-        (rays already blocked drop out), the mapping and Embree's preparation, then Embree's
-        occlusion query marks the blocked rays. The same answers as the group-by-group stages."""
+    def occluded_fused(self, rays: Rays, groups) -> Tensor | None:
+        """`intersect_fused` for shadow rays, for scenes with at least one `EmbreeMeshBLAS` group:
+        per such group, one pass per chunk does the broad phase (rays already blocked drop out),
+        the mapping and Embree's preparation, then Embree's occlusion query marks the blocked
+        rays; other groups take their group-by-group step (`occluded_group`). The same answers as
+        the group-by-group stages."""
         from .mesh_blas import EmbreeMeshBLAS, _run_in_chunks
 
-        if not self.fused_meshes or not all(type(g.blas) is EmbreeMeshBLAS for g in groups):
+        embree = [type(g.blas) is EmbreeMeshBLAS for g in groups]
+        if not self.fused_meshes or not any(embree):
             return None
         n = len(rays)
         o, d, t_min, t_max = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
         blocked = np.zeros(n, np.bool_)
         for gi, group in enumerate(groups):
             blas, ids = group.blas, group.instance_ids.numpy()
+            if not embree[gi]:
+                blocked = occluded_group(self, rays, group, None, torch.from_numpy(blocked)).numpy()
+                continue
             if ids.shape[0] == 1:
                 k = int(ids[0])
 
