@@ -1,5 +1,7 @@
-"""Render time per sample per pixel of each built-in scene in three configurations in the same run,
-split into ray queries and the rest. Prints a table and writes benchmarks/results/render.json.
+"""Render time per sample per pixel of each built-in scene (or scene file: a converted scene renders
+hybrid, its models answering the rays other than camera rays) in three configurations in the same
+run, split into ray queries and the rest. Prints a table and writes benchmarks/results/NAME.json
+(default render.json).
 
 - ``torch``: torch shading ops and random numbers, the TLAS broad phase testing every instance box
   and each BLAS computing hit attributes for all its rays (the shading before the numba kernels;
@@ -11,6 +13,7 @@ split into ray queries and the rest. Prints a table and writes benchmarks/result
   (`NumbaTLASStages.intersect_fused`: attributes only for each ray's final hit) (today's default).
 
     python benchmarks/bench_render.py [--resolution 256] [--spp 4] [--repeats 3] [--threads 1] [--detail N] [--scenes a,b]
+    python benchmarks/bench_render.py --scenes converted/scene.toml --name render_hybrid   # after `neuralrt convert`
 
 Per scene and implementation: ``s_per_spp`` (the fastest of ``--repeats`` renders, taken in
 alternation, in a rotated order, so all see the same machine load); ``queries_s_per_spp``, the time inside
@@ -27,8 +30,8 @@ values differ by more than 0.1% between torch and numba (same seed); the two num
 must render the same image (checked).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
 average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
-machine torch's spinning worker threads cost far more than they give); the numba kernels are
-single-threaded; Embree uses its own threads.
+machine torch's spinning worker threads cost far more than they give); the shading kernels are
+single-threaded; Embree, the TLAS broad phase and the neural models' kernels use their own threads.
 """
 
 from __future__ import annotations
@@ -109,7 +112,9 @@ class _StageTimer:
 
 def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int,
                 stage_timer: _StageTimer) -> dict:
-    scene = load_scene(f"builtin:{name}", resolution=(resolution, resolution), detail=detail)
+    # A built-in name, or a scene file (e.g. one `neuralrt convert` wrote: neural models beside meshes).
+    is_file = name.endswith((".toml", ".json"))
+    scene = load_scene(name if is_file else f"builtin:{name}", resolution=(resolution, resolution), detail=None if is_file else detail)
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
     stages = {backend: NumbaTLASStages(scene.accel.table, broad_phase=CONFIGS[backend][1], fused_meshes=CONFIGS[backend][2])
               for backend in BACKENDS}
@@ -135,8 +140,9 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
             if backend not in best or result.seconds < best[backend][0].seconds:
                 best[backend] = (result, query_timer.seconds, blas_timer.seconds, query_timer.rays, stage_timer.seconds)
             cpu_best[backend] = min(cpu_best.get(backend, float("inf")), cpu)
-    row = {"scene": name, "instanced_tris": sum(i.blas.mesh.num_triangles for i in scene.accel.instances),
-           "instances": len(scene.accel.instances), "rays_per_spp": best["numba"][3] / spp}
+    meshes = [i.blas.mesh for i in scene.accel.instances if hasattr(i.blas, "mesh")]
+    row = {"scene": name, "instanced_tris": sum(m.num_triangles for m in meshes), "instances": len(scene.accel.instances),
+           "neural_instances": len(scene.accel.instances) - len(meshes), "rays_per_spp": best["numba"][3] / spp}
     for backend in BACKENDS:
         result, query_s, blas_s, _, shading_s = best[backend]
         row[f"{backend}_s_per_spp"] = result.seconds / spp
@@ -166,8 +172,10 @@ def main(argv=None) -> None:
     parser.add_argument("--resolution", type=int, default=256)
     parser.add_argument("--spp", type=int, default=4)
     parser.add_argument("--detail", type=int, default=None, help="procedural detail (default: each scene's)")
-    parser.add_argument("--scenes", default=",".join(BUILTIN_SCENES))
+    parser.add_argument("--scenes", default=",".join(BUILTIN_SCENES),
+                        help="built-in names and/or scene files (.toml/.json, e.g. converted hybrid scenes), comma-separated")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--name", default="render", help="results file: benchmarks/results/NAME.json")
     parser.add_argument("--repeats", type=int, default=3, help="renders per scene and implementation; the fastest is reported")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -181,7 +189,7 @@ def main(argv=None) -> None:
           f"torch threads = {args.threads}, load average {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores, "
           f"{time.perf_counter() - start:.0f} s")
     print_table(rows, COLUMNS)
-    path = write_results("render", rows, {"resolution": args.resolution, "spp": args.spp, "detail": args.detail,
+    path = write_results(args.name, rows, {"resolution": args.resolution, "spp": args.spp, "detail": args.detail,
                                           "torch_threads": args.threads, "repeats": args.repeats,
                                           "load_average_1min_before": load_before, "load_average_1min_after": load_after})
     print(f"wrote {path}")

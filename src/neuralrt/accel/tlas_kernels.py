@@ -38,41 +38,38 @@ def _slab_limit(t, nan_value):
     return t
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
+@numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
 def instance_overlaps(origins, directions, t_min, t_max, t_limit, lo, hi, overlap) -> int:
     """``overlap[n, g]``: ray ``n`` is valid and its interval ``(t_min, t_limit)`` meets box ``g``
     (``lo``/``hi`` [G, 3]); returns the number of true entries.
 
     Valid as in `neuralrt.rays.valid_ray_mask` (``t_max`` is the ray's own); the box test is
     `neuralrt.rays.ray_box_intervals` with ``t_enter <= t_exit``, ``t_exit >= t_min`` and
-    ``t_enter <= t_limit``.
+    ``t_enter <= t_limit``. Parallel over chunks of rays (a render's one-box groups test every
+    ray of the wavefront here).
     """
     n, g = overlap.shape
-    total = 0
-    for i in range(n):
-        if not valid_ray(origins, directions, t_min, t_max, i):
-            for k in range(g):
-                overlap[i, k] = False
-            continue
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        one = np.float32(1.0)
-        inv = (one / dx, one / dy, one / dz)
-        o = (ox, oy, oz)
+    n_chunks = min(n, _CHUNKS) if n >= _PARALLEL_MIN_RAYS else min(n, 1)
+    counts = np.zeros(n_chunks, np.int64)
+    for chunk in numba.prange(n_chunks):
         count = 0
-        for k in range(g):
-            t_enter = -np.inf
-            t_exit = np.inf
-            for a in range(3):
-                t0 = _slab_limit((lo[k, a] - o[a]) * inv[a], -np.inf)
-                t1 = _slab_limit((hi[k, a] - o[a]) * inv[a], np.inf)
-                t_enter = max(t_enter, min(t0, t1))
-                t_exit = min(t_exit, max(t0, t1))
-            hit = t_enter <= t_exit and t_exit >= t_min[i] and t_enter <= t_limit[i]
-            overlap[i, k] = hit
-            count += hit
-        total += count
-    return total
+        for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
+            if not valid_ray(origins, directions, t_min, t_max, i):
+                for k in range(g):
+                    overlap[i, k] = False
+                continue
+            one = np.float32(1.0)
+            ix, iy, iz = one / directions[i, 0], one / directions[i, 1], one / directions[i, 2]
+            for k in range(g):
+                hit = _box_overlap(origins[i, 0], origins[i, 1], origins[i, 2], ix, iy, iz, lo, hi, k, t_min[i], t_limit[i])
+                overlap[i, k] = hit
+                count += hit
+        counts[chunk] = count
+    return counts.sum()
+
+
+_PARALLEL_MIN_RAYS = 1 << 14  # fewer rays: one chunk (the threads' start costs more than they save)
+_CHUNKS = 64  # chunks handed out to the threads (enough for 16)
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
