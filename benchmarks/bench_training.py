@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
@@ -18,7 +18,9 @@ Configurations (both draw the next batch on a background thread, the default), b
   "row_ranges"``) against scattering from the rows and weights the forward saved (``"saved_rows"``);
 - ``rows``: the network rays' points copied before the encoder (``LSNIFModel.training_rows_by_index
   = False``) against the encoder reading them through their index (``True``);
-- ``saved_rows_and_index``: both of the two above together.
+- ``saved_rows_and_index``: both of the two above together;
+- ``prepare_ahead``: the voxel walk and the network-ray selection inside the step against computed
+  with the batch on its drawing thread (`LSNIFModel.prepare_training_batch`).
 The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
@@ -93,6 +95,9 @@ def _configure(model: LSNIFModel, config: str) -> None:
         model.training_rows_by_index = not before
         if PAIR == "saved_rows_and_index":
             model.encoder.backward_scatter = "row_ranges" if before else "saved_rows"
+    elif PAIR == "prepare_ahead":
+        if before:
+            model.prepare_training_batch = lambda rays: None  # the loop hands nothing: the step computes it
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
@@ -133,7 +138,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair

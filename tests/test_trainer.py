@@ -36,8 +36,10 @@ def test_training_runs_on_every_device(device):
     assert model.training_record["steps"] == 5 and model.training_record["compute_precision"] in ("bf16", "fp32")
 
 
-def _short_run(mesh, steps, **kw):
+def _short_run(mesh, steps, on_model=None, **kw):
     model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq"))
+    if on_model is not None:
+        on_model(model)
     rays = BoxRayDistribution(MeshBLAS(mesh), model.box, pool_size=1024, seed=0)
     train_model(model, rays, steps=steps, batch_size=256, learning_rate=0.01, progress=False, **kw)
     return model.state_dict()
@@ -57,6 +59,29 @@ def test_overlapped_sampling_trains_the_same_model():
     _assert_same_parameters(serial, overlapped)
     # The comparison can tell runs apart: one step fewer moves the weights elsewhere.
     assert not torch.equal(serial["network.hidden.0.weight"], _short_run(mesh, 4)["network.hidden.0.weight"])
+
+
+def test_batches_prepared_on_the_drawing_thread_train_the_same_model(monkeypatch):
+    """LSNIF's voxel walk and network-ray selection, computed with each batch on the thread that
+    draws it (`prepare_training_batch`), train the same parameters as computed inside the step."""
+    mesh = sphere(2)
+    threads = []
+    prepare = LSNIFModel.prepare_training_batch
+
+    def spy(self, rays):
+        threads.append(threading.current_thread().name)
+        return prepare(self, rays)
+
+    monkeypatch.setattr(LSNIFModel, "prepare_training_batch", spy)
+    ahead = _short_run(mesh, 5)
+    assert len(threads) == 5 and all(name.startswith("neuralrt-batches") for name in threads[1:])
+
+    def inside_the_step(model):
+        model.prepare_training_batch = lambda rays: None  # the loop hands nothing: the step computes it
+
+    inside = _short_run(mesh, 5, on_model=inside_the_step)
+    assert len(threads) == 5
+    _assert_same_parameters(ahead, inside)
 
 
 def test_interrupted_overlapped_run_resumes_bit_exact(tmp_path):

@@ -8,7 +8,10 @@ A method subclasses `NeuralBLAS` and provides:
 - ``memory_bytes()``: run-time bytes, itemised;
 - ``_arrays()`` / ``_from_arrays(config, bounds, materials, arrays)``: what its model file stores
   besides the common header, and how a model is rebuilt from it;
-- optionally ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut), ``box``
+- optionally ``prepare_training_batch(rays)`` (the part of a step that depends on the batch alone,
+  which the training loop may compute on the thread that draws the batch, handing it to
+  ``training_step(rays, truth, prepared)``; LSNIF: the voxel walk and the network rays),
+  ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut), ``box``
   (the region training rays aim at; default: the bounds) and ``training_rays(truth, device)`` (the
   training ray distribution; default: `BoxRayDistribution` around ``box``).
 
@@ -138,6 +141,14 @@ class NeuralBLAS(nn.Module, ABC):
     @abstractmethod
     def _from_arrays(cls, config: MethodConfig, bounds: AABB, materials: list[dict], arrays: dict[str, Tensor]) -> "NeuralBLAS":
         """Rebuild a model from a file's arrays; raise ValueError/KeyError for missing or mis-shaped ones."""
+
+    def prepare_training_batch(self, rays: Rays):
+        """What ``training_step`` computes from the batch alone, never from the parameters, or None
+        when it has nothing such (the default): the training loop may run this on the thread that
+        draws the next batch while the current step runs, and passes the result to
+        ``training_step(rays, truth, prepared)``. Runs beside a training step: reads only state
+        that training does not change."""
+        return None
 
     def after_training_step(self, step: int, optimizer: torch.optim.Optimizer) -> None:
         """Called by the training loop after each optimizer step (e.g. to refine a BVH cut). Default: nothing."""

@@ -72,6 +72,22 @@ class _Prepared:
     distances: Tensor | None = None  # [M, H] `point_local_distances` (with ``features.point_distances``)
 
 
+@dataclass
+class _TrainingRows:
+    """What a training step needs of its batch before the network (`LSNIFModel.prepare_training_batch`):
+    the batch's voxel-boundary points and, for the rays that reach the network, their index into
+    the points and the batch, t shift, box interval and point distances."""
+
+    features: RayFeaturePoints  # every valid ray's points (the encoder reads rows ``keep``)
+    keep: Tensor  # [M] long: the network rays' rows of ``features``
+    active: Tensor  # [M] long: the network rays' indices into the batch
+    t_offset: Tensor  # [M]
+    t_enter: Tensor  # [M]
+    t_exit: Tensor  # [M]
+    distances: Tensor | None  # [M, H] point distances (with ``features.point_distances``)
+    truncated: Tensor  # scalar: valid rays with more boundary points than H
+
+
 class LSNIFModel(NeuralBLAS):
     """A trained (or training) LSNIF for one object; implements the `BLAS` protocol.
 
@@ -179,18 +195,30 @@ class LSNIFModel(NeuralBLAS):
         return self.network(self.network_input(prep), compute_dtype)
 
     # -- training ------------------------------------------------------------------------------------
-    def training_step(self, rays: Rays, truth: Hits) -> StepResult:
-        """Loss of one batch against exact hits (paper Sec. 5.3); certain misses are skipped."""
+    def prepare_training_batch(self, rays: Rays) -> _TrainingRows | None:
+        """The unit-box map, the voxel walk and the network rays' selection of a batch: they depend on
+        the batch, the box and the occupancy alone, so the training loop computes them with the
+        batch on its drawing thread (None on the earlier copy-the-points path)."""
+        return self._training_rows(rays)
+
+    def _training_rows(self, rays: Rays) -> _TrainingRows | None:
+        if not self.training_rows_by_index:
+            return None
+        unit = self._unit_rays(rays)
+        fp = self._featurize(unit.origins, unit.directions)
+        keep, t_enter, t_exit, distances = select_network_rows(fp, unit.origins, unit.directions, self.config.features.point_distances)
+        return _TrainingRows(fp, keep, unit.index[keep], unit.t_offset[keep], t_enter, t_exit, distances, fp.truncated.sum())
+
+    def training_step(self, rays: Rays, truth: Hits, prepared: _TrainingRows | None = None) -> StepResult:
+        """Loss of one batch against exact hits (paper Sec. 5.3); certain misses are skipped.
+        ``prepared``: `prepare_training_batch` of these rays, when the loop computed it ahead."""
         n = len(rays)
         dtype = self.compute_dtype(training=True)
-        point_distances = self.config.features.point_distances
-        if self.training_rows_by_index:
+        rows = prepared if prepared is not None else self._training_rows(rays)
+        if rows is not None:
             # The encoder reads the network rays' points through their index: no copy of the batch's points.
-            unit = self._unit_rays(rays)
-            fp = self._featurize(unit.origins, unit.directions)
-            keep, t_enter, t_exit, distances = select_network_rows(fp, unit.origins, unit.directions, point_distances)
-            active, t_offset, truncated = unit.index[keep], unit.t_offset[keep], fp.truncated.sum()
-            features = self.encoder(fp.points, fp.face_axis, distances, dtype, rows=keep)
+            active, t_offset, truncated, t_enter, t_exit = rows.active, rows.t_offset, rows.truncated, rows.t_enter, rows.t_exit
+            features = self.encoder(rows.features.points, rows.features.face_axis, rows.distances, dtype, rows=rows.keep)
         else:  # the network rays' points copied first (`_prepare`), kept to measure against
             prep = self._prepare(rays)
             active, t_offset, truncated = prep.active, prep.t_offset, prep.truncated

@@ -241,7 +241,7 @@ def walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, shar
 
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _featurize_kernel(
     origins, directions, occ, planes, max_points, origin_point, share, n_chunks,
     pts, axes, counts, truncated, t_enter, t_exit,

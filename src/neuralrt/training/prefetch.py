@@ -7,36 +7,44 @@ that declare ``model_independent = True`` are drawn ahead: their batches depend 
 generator and state, never on the model (N-BVH's do: they follow the BVH cut the model refines).
 The distribution is called in exactly the same order as without the thread, so a seed gives the
 same batches; callers pass ``ahead=False`` before a checkpoint, so the saved distribution state
-is never one batch ahead of the saved step.
+is never one batch ahead of the saved step. A ``prepare`` function (the model's
+``prepare_training_batch``: for LSNIF the voxel walk and the network rays, which depend on the
+batch alone) runs on the same thread right after the batch is drawn.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 __all__ = ["BatchSource"]
 
 
 class BatchSource:
-    """``next(ahead)`` returns the next batch of ``batch_size`` rays from ``sampler``; with
+    """``next(ahead)`` returns the next batch of ``batch_size`` rays from ``sampler`` and what
+    ``prepare`` made of its rays (None without ``prepare``) as ``(batch, prepared)``; with
     ``ahead=True`` it also starts drawing the one after it on a background thread."""
 
-    def __init__(self, sampler, batch_size: int, *, overlap: bool = True):
-        self.sampler, self.batch_size = sampler, batch_size
+    def __init__(self, sampler, batch_size: int, *, overlap: bool = True, prepare: Callable | None = None):
+        self.sampler, self.batch_size, self.prepare = sampler, batch_size, prepare
         self.overlap = overlap and bool(getattr(sampler, "model_independent", False))
         self._executor: ThreadPoolExecutor | None = None
         self._pending: Future | None = None
 
     def next(self, ahead: bool):
         if self._pending is not None:
-            batch, self._pending = self._pending.result(), None  # re-raises the thread's exception here
+            drawn, self._pending = self._pending.result(), None  # re-raises the thread's exception here
         else:
-            batch = self.sampler.sample(self.batch_size)
+            drawn = self._draw()
         if ahead and self.overlap:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(1, thread_name_prefix="neuralrt-batches")
-            self._pending = self._executor.submit(self.sampler.sample, self.batch_size)
-        return batch
+            self._pending = self._executor.submit(self._draw)
+        return drawn
+
+    def _draw(self) -> tuple:
+        batch = self.sampler.sample(self.batch_size)
+        return batch, (None if self.prepare is None else self.prepare(batch.rays))
 
     def close(self) -> None:
         """Waits for a batch still being drawn (so the sampler is left quiet) and stops the thread."""

@@ -1,7 +1,8 @@
 """The training loop shared by neural intersectors: Adam, progress bar, checkpoints, resume.
 
 A model plugs in by offering ``training_step(rays, truth) -> StepResult`` (loss plus hit/miss
-counts); a ray distribution by offering ``sample(n) -> TrainingBatch`` and ``state_dict``/
+counts), and optionally ``prepare_training_batch(rays)`` (what a step computes from the batch
+alone: drawn ahead with the batch, then ``training_step(rays, truth, prepared)``); a ray distribution by offering ``sample(n) -> TrainingBatch`` and ``state_dict``/
 ``load_state_dict``. ``on_step(step, optimizer)`` runs after every optimizer step (N-BVH refines
 its BVH cut there). Checkpoints are `.nrt` files (method ``"checkpoint"``) holding the model's
 state, Adam's moments, the step and the ray distribution's state (its own generator and surface
@@ -157,7 +158,8 @@ def train_model(
     model.train()
     bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
     step = start
-    batches = BatchSource(sampler, batch_size, overlap=overlap_sampling)
+    prepare = getattr(model, "prepare_training_batch", None)
+    batches = BatchSource(sampler, batch_size, overlap=overlap_sampling, prepare=prepare)
     try:
         for step in range(start, steps):
             for g in opt.param_groups:
@@ -165,8 +167,11 @@ def train_model(
             checkpoint_after = ckpt is not None and (step + 1) % checkpoint_every == 0 and step + 1 < steps
             t0 = time.perf_counter()
             # Not ahead of a checkpoint: the saved sampler state must be the one before the next batch.
-            batch = batches.next(ahead=step + 1 < steps and not checkpoint_after)
-            result = model.training_step(batch.rays, batch.truth)
+            batch, prepared = batches.next(ahead=step + 1 < steps and not checkpoint_after)
+            if prepared is None:
+                result = model.training_step(batch.rays, batch.truth)
+            else:
+                result = model.training_step(batch.rays, batch.truth, prepared)
             opt.zero_grad(set_to_none=True)
             result.loss.backward()
             opt.step()
