@@ -30,8 +30,9 @@ values differ by more than 0.1% between torch and numba (same seed); the two num
 must render the same image (checked).
 The machines are shared, so compare ratios of one run, not seconds across runs; the 1-minute load
 average is recorded. ``--threads`` sets torch's intra-op threads (default 1: on an oversubscribed
-machine torch's spinning worker threads cost far more than they give); the shading kernels are
-single-threaded; Embree, the TLAS broad phase and the neural models' kernels use their own threads.
+machine torch's spinning worker threads cost far more than they give); the numba shading kernels
+run on chunks of rows over numba's threads; Embree, the TLAS broad phase and the neural models'
+kernels use their own threads.
 """
 
 from __future__ import annotations
