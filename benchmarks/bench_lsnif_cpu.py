@@ -5,8 +5,10 @@ depend on the weights; the hash table is filled with random values so no feature
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
-decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; and with the
-pipeline per thread, ``THREADED_PIPELINE = True``), with
+decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; with
+torch's GEMMs for the hidden layers after the first, ``HIDDEN_LAYERS_IN_DECODE = False``, the code
+before they moved into the decoding pass; and with the pipeline per thread, ``THREADED_PIPELINE =
+True``), with
 ``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
@@ -41,7 +43,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "hidden_in_decode_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -73,6 +75,13 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
             model.intersect(rays)
         finally:
             lsnif_fused_cpu.WRITE_HITS = True
+
+    def fused_torch_hidden_intersect():  # torch's GEMMs for the later hidden layers (before they joined the decoding pass)
+        lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = False
+        try:
+            model.intersect(rays)
+        finally:
+            lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = True
 
     def fused_threaded_intersect():  # the whole pipeline per thread on 1/T of the chunk (not the default)
         lsnif_fused_cpu.THREADED_PIPELINE = True
@@ -108,16 +117,17 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         with torch.no_grad():
             model.network(x, dtype)
 
-    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_threaded_intersect, fused_occluded,
-               unfused_intersect, mlp_only):  # compile / warm caches
+    for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_torch_hidden_intersect,
+               fused_threaded_intersect, fused_occluded, unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_threaded": [], "occluded": [], "fused_fp32_l1": [], "unfused": [],
-             "fused_network": [], "mlp": []}  # fmt: skip
+    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_torch_hidden": [], "fused_threaded": [],
+             "occluded": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
         times["embree_occluded"].append(seconds(lambda: exact.occluded(rays)))
         times["fused"].append(seconds(fused_intersect))
         times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
+        times["fused_torch_hidden"].append(seconds(fused_torch_hidden_intersect))
         times["fused_threaded"].append(seconds(fused_threaded_intersect))
         times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
@@ -128,7 +138,8 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_threaded", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_torch_hidden", "fused_threaded",
+                                          "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -146,6 +157,8 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "occluded_vs_embree": rate["occluded"] / rate["embree_occluded"],
         # the numba decoding pass (with the output layer) over the torch decoding of the raw outputs
         "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
+        # the later hidden layers in the decoding pass over torch's GEMMs for them
+        "hidden_in_decode_gain": rate["fused"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],

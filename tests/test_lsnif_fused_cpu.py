@@ -323,7 +323,9 @@ def test_numba_decoding_matches_the_torch_decoding(trained_cornell, precision, m
     scale = float(rays.t_max[torch.isfinite(rays.t_max)].max())
     near_limit = ((t_raw - rays.t_max).abs() <= 1e-5 * scale) | ((t_raw - rays.t_min).abs() <= 1e-5 * scale)
     for output_layer_in_decode in (False, True):
-        hits, occluded = _hits_with(model, rays, monkeypatch, WRITE_HITS=True, OUTPUT_LAYER_IN_DECODE=output_layer_in_decode)
+        # (the hidden layers stay torch's here: `test_hidden_layers_in_the_decoding_pass_...` checks them)
+        hits, occluded = _hits_with(model, rays, monkeypatch, WRITE_HITS=True, OUTPUT_LAYER_IN_DECODE=output_layer_in_decode,
+                                    HIDDEN_LAYERS_IN_DECODE=False)
         assert torch.equal(occluded, hits.hit)  # the decision alone: the same as intersect's
         differ = hits.hit != reference.hit
         if output_layer_in_decode:
@@ -348,6 +350,45 @@ def test_numba_decoding_matches_the_torch_decoding(trained_cornell, precision, m
         assert (hits.t[both] - reference.t[both]).abs().max() <= t_tol
         assert (hits.normal[both] - reference.normal[both]).abs().max() <= tol
         assert (hits.albedo[both] - reference.albedo[both]).abs().max() <= tol
+
+
+@pytest.mark.parametrize("width, layers", [(32, 2), (64, 3), (128, 2)])
+def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, monkeypatch):
+    """bf16, widths of 16s: the hidden layers after the first in the decoding pass (4 rays per
+    weight pass) against torch's bf16 GEMMs: the same hits except where the occlusion logit is
+    within bf16 rounding of the threshold, t, normals and albedo within it; torch's layers are
+    not called."""
+    from neuralrt.geometry.procedural import statue
+
+    config = LSNIFConfig.preset(
+        "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+        network={"hidden_width": width, "hidden_layers": layers}, features={"max_points": 8},
+        inference={"compute_precision": "bf16"},
+    )  # fmt: skip
+    model = LSNIFModel.from_mesh(statue(0), config)
+    with torch.no_grad():
+        model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(3))
+        for layer in model.network.hidden:  # biases start at zero: give them values, so a dropped one shows
+            layer.bias.uniform_(-0.3, 0.3, generator=torch.Generator().manual_seed(4))
+        model.network.output.bias[0] = 0.5  # network rays both hit and miss
+    rays = _decoding_rays(model, 5000, seed=31)
+    reference, reference_occluded = _hits_with(model, rays, monkeypatch, HIDDEN_LAYERS_IN_DECODE=False)
+    with torch.no_grad():
+        act, raw, *_ = model._network_answers_fused_cpu(rays)  # raw outputs through torch's layers
+    monkeypatch.setattr(fused, "hidden_layers", lambda *args: pytest.fail("torch's hidden layers ran"))
+    hits, occluded = _hits_with(model, rays, monkeypatch, HIDDEN_LAYERS_IN_DECODE=True)
+    assert 300 < int(reference.hit.sum()) < len(rays) - 1000
+    logit = torch.full((len(rays),), float("inf"))
+    logit[act] = raw[:, 0]
+    for got, ref in ((hits.hit, reference.hit), (occluded, reference_occluded)):
+        differ = got != ref
+        assert not (differ & ~(logit.abs() < 5e-2)).any()
+        assert differ.sum() <= max(2, 0.002 * len(rays))
+    both = hits.hit & reference.hit
+    assert not torch.equal(hits.t[both], reference.t[both])  # both paths ran
+    assert ((hits.t[both] - reference.t[both]).abs() / float(model.box.diagonal)).max() <= 1e-2
+    assert (hits.normal[both] - reference.normal[both]).abs().max() <= 5e-2
+    assert (hits.albedo[both] - reference.albedo[both]).abs().max() <= 2e-2
 
 
 def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell, monkeypatch):

@@ -311,6 +311,8 @@ class _Pass:
     w1: np.ndarray
     w1_pairs: np.ndarray
     b1: np.ndarray
+    hidden_pairs: np.ndarray  # [L - 1, W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else [0, 0]
+    hidden_bias: np.ndarray  # [L - 1, W] fp32: their biases, rounded to bf16 as torch's cast weights
     max_points: int
     origin_point: bool
     share: bool
@@ -332,9 +334,10 @@ def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, m
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     if compute_dtype != torch.float32:
         network._cast_weights(compute_dtype)  # the cached bf16 weights, made here once rather than in several threads
+    hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros((0, 0), np.uint32), np.zeros((0, 0), np.float32))
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
-    return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, int(max_points),
-                 bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+    return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
+                 int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
 
 
 def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
@@ -403,6 +406,14 @@ WRITE_HITS = True
 # decoding pass from its raw outputs (for comparisons and tests).
 OUTPUT_LAYER_IN_DECODE = True
 
+# With the bf16 pairs path (bf16, width a multiple of 16) and the output layer in the pass, the
+# hidden layers after the first run there too (`_later_hidden_rows`: 4 rays per weight pass, no
+# [M, W] gather or GEMM output; not torch's summation order or its double rounding of negative
+# activations, so answers differ from it within bf16 rounding); False: torch's bf16 GEMMs
+# (`hidden_layers`). Hairball(6) `hq` render rays, the layer alone (ad hoc): 177 vs 265 ns per
+# network ray on one thread, 99 vs 156 on two.
+HIDDEN_LAYERS_IN_DECODE = True
+
 
 def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
     """The output layer as ``wo [W, P]`` fp32, input-major, and the bias ``[P]``, both padded with
@@ -415,6 +426,20 @@ def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
     bo = np.zeros(padded, np.float32)
     bo[:outputs] = network.output.bias.detach().float().numpy()
     return wo, bo
+
+
+def later_hidden_layers(network: MLP) -> tuple[np.ndarray, np.ndarray]:
+    """The hidden layers after the first as ``[L - 1, W / 2 * W]`` uint32 bf16 pairs (input-major,
+    `bf16_pairs` of each ``W^T``) and their biases ``[L - 1, W]`` fp32 holding bf16 values (the
+    bf16 copies torch's layers use)."""
+    cast = network._cast_weights(torch.bfloat16)[1:]
+    width = network.hidden[0].weight.shape[0]
+    pairs = np.zeros((len(cast), width // 2 * width), np.uint32)
+    bias = np.zeros((len(cast), width), np.float32)
+    for i, (w, b) in enumerate(cast):
+        pairs[i] = bf16_pairs(w.float().T.contiguous().numpy()).reshape(-1)
+        bias[i] = b.float().numpy()
+    return pairs, bias
 
 
 @numba.njit(cache=True, inline="always")
@@ -446,32 +471,71 @@ def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
         store16(out[4], v, a4), store16(out[5], v, a5), store16(out[6], v, a6), store16(out[7], v, a7)
 
 
+@numba.njit(cache=True, inline="always")
+def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows):
+    """`_OUT_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
+    the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows per weight pass; fp32 sums,
+    bias, leaky ReLU, then one rounding to bf16): from the first layer's bf16 pairs
+    ``first_pairs[active[i]]`` to the last hidden layer's activations, widened into ``rows`` fp32."""
+    half = first_pairs.shape[1]
+    width = 2 * half
+    for b in range(_OUT_ROWS):
+        src = active[block + min(b, n_rows - 1)]
+        for q in range(half):
+            xp[b, q] = first_pairs[src, q]
+    for layer in range(hidden_pairs.shape[0]):
+        for g in range(0, _OUT_ROWS, 4):
+            for i in range(4):
+                quad[i] = g + i
+            dot_rows_bf16(xp, quad, half, hidden_pairs[layer], width, dots)
+            for i in range(4):  # these rows' inputs are read: overwrite them with the layer's outputs
+                for q in range(half):
+                    y0 = dots[i * width + 2 * q] + hidden_bias[layer, 2 * q]
+                    y1 = dots[i * width + 2 * q + 1] + hidden_bias[layer, 2 * q + 1]
+                    y0 = y0 if y0 >= 0 else y0 * slope
+                    y1 = y1 if y1 >= 0 else y1 * slope
+                    xp[g + i, q] = bf16_bits(y0) | (bf16_bits(y1) << np.uint32(16))
+    for b in range(_OUT_ROWS):
+        for q in range(half):
+            rows[b, 2 * q] = bf16_value(np.uint16(xp[b, q] & np.uint32(0xFFFF)))
+            rows[b, 2 * q + 1] = bf16_value(np.uint16(xp[b, q] >> np.uint32(16)))
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
-    x_f32, x_bf16, wo, bo, output_layer, active, index, t_enter, t_exit, t_offset, t_min, t_max,
-    occlusion_logit, n_materials, occlusion_only, n_chunks,
+    x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, index, t_enter, t_exit,
+    t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network, written into
     the chunk's hit records at rows ``index[active[i]]``: row i of ``x_f32``/``x_bf16`` (the other
     is empty) is the last hidden layer (``output_layer``: the output layer ``wo``/``bo`` is
-    applied here, fp32, `_OUT_ROWS` rows at a time) or the raw outputs. ``occlusion_only`` writes
-    ``hit`` alone (the other records may be empty arrays) and computes only the first 16 outputs.
-    Same operations as the torch decoding, in fp32; the norm of the normal is torch's (fused
-    multiply-adds from x^2); the sigmoid differs from torch's by <= 3 ulp."""
+    applied here, fp32, `_OUT_ROWS` rows at a time) or the raw outputs; or, where ``first_pairs``
+    (the first hidden layer's bf16 activations as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``)
+    is not empty, the later hidden layers run here too (`_later_hidden_rows`). ``occlusion_only``
+    writes ``hit`` alone (the other records may be empty arrays) and computes only the first 16
+    outputs. Same operations as the torch decoding, in fp32; the norm of the normal is torch's
+    (fused multiply-adds from x^2); the sigmoid differs from torch's by <= 3 ulp."""
     m = active.shape[0]
     width, n_padded = wo.shape
     to_f32 = x_bf16.shape[0] > 0
+    hidden_here = first_pairs.shape[0] > 0
     wo_flat = wo.reshape(-1)
     columns = 16 if occlusion_only else n_padded
     inf = np.float32(np.inf)
     for chunk in numba.prange(n_chunks):
         rows = np.empty((_OUT_ROWS, width if output_layer else 0), np.float32)
         outs = np.empty((_OUT_ROWS, n_padded), np.float32)
+        xp = np.empty((_OUT_ROWS, first_pairs.shape[1]), np.uint32)
+        quad = np.empty(4, np.int64)
+        dots = np.empty(4 * width, np.float32)
         first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
         for block in range(first, last, _OUT_ROWS):
             n_rows = min(_OUT_ROWS, last - block)
-            if output_layer:
+            if hidden_here:
+                _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows)
+                _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
+            elif output_layer:
                 for b in range(_OUT_ROWS):
                     i = block + min(b, n_rows - 1)  # a short block repeats its last row
                     if to_f32:
@@ -519,16 +583,23 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
-    x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
     wo, bo = output_layer_columns(p.network)
-    if not OUTPUT_LAYER_IN_DECODE:
-        x = p.network.output(x.float())  # raw outputs: the decoding pass only decodes
-    x_np = x.view(torch.int16).numpy().view(np.uint16) if x.dtype == torch.bfloat16 else x.numpy()
-    x_f32 = np.zeros((0, 1), np.float32) if x_np.dtype == np.uint16 else x_np
-    x_bf16 = x_np if x_np.dtype == np.uint16 else np.zeros((0, 1), np.uint16)
+    x_f32, x_bf16 = np.zeros((0, 1), np.float32), np.zeros((0, 1), np.uint16)
+    first_pairs = np.zeros((0, max(p.b1.shape[0] // 2, 1)), np.uint32)
+    if p.pairs and HIDDEN_LAYERS_IN_DECODE and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
+        first_pairs = hidden.view(torch.int16).numpy().view(np.uint16).view(np.uint32)
+    else:
+        x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
+        if not OUTPUT_LAYER_IN_DECODE:
+            x = p.network.output(x.float())  # raw outputs: the decoding pass only decodes
+        if x.dtype == torch.bfloat16:
+            x_bf16 = x.view(torch.int16).numpy().view(np.uint16)
+        else:
+            x_f32 = x.numpy()
     n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
-    _decode_kernel(x_f32, x_bf16, wo, bo, OUTPUT_LAYER_IN_DECODE, active, index, t_enter, t_exit, t_offset, t_min, t_max,
-                   np.float32(occlusion_logit), int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
+    _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), wo, bo,
+                   OUTPUT_LAYER_IN_DECODE, active, index, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
+                   int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
 
 
 # Each of the calling thread's numba threads (T) runs the whole pipeline -- the fused pass, the
