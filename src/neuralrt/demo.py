@@ -24,7 +24,7 @@ __all__ = ["DemoSettings", "DEMO_DEFAULT", "DEMO_QUICK", "run_demo"]
 @dataclass(frozen=True)
 class DemoSettings:
     """What the demo converts and renders. Defaults finish in 2-3 minutes on 2 CPU cores (measured:
-    1 min 57 s at load ~1, of which 71 s training; 3 min 2 s on a busier machine; numba kernels
+    1 min 56 s at load 1.2-2.0, of which 71 s training; 3 min 2 s on a busier machine; numba kernels
     cached); 256 spp keep the noise floor (exact vs exact at another seed: FLIP 0.018) low enough
     to show the model's error beside it (FLIP 0.007).
 
