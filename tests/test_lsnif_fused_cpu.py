@@ -404,6 +404,23 @@ def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell
     assert torch.equal(occluded, model.intersect(rays).hit) and occluded.sum() > 300
 
 
+@pytest.mark.parametrize("write_hits", [True, False])
+def test_chunks_written_in_place_answer_as_one_chunk(trained_cornell, write_hits, monkeypatch):
+    """More rays than a chunk: each chunk's records are written into the batch's rows in place (the
+    fused pass) or copied there (the torch decoding); every field equals the one-chunk answer."""
+    from dataclasses import fields
+
+    model = trained_cornell
+    monkeypatch.setattr(fused, "WRITE_HITS", write_hits)
+    rays = _decoding_rays(model, 3000, seed=29)
+    whole = model.intersect(rays)
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    chunked = model.intersect(rays)
+    assert whole.hit.sum() > 300
+    for f in fields(whole):
+        assert torch.equal(getattr(chunked, f.name), getattr(whole, f.name)), f.name
+
+
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained_cornell, precision, monkeypatch):
     """`THREADED_PIPELINE`: each thread runs every stage on its part of the chunk; answers equal."""

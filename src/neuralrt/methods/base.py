@@ -226,8 +226,14 @@ class NeuralBLAS(nn.Module, ABC):
         out = Hits.empty(n, rays.device)
         for start in range(0, n, chunk):
             part = rays[slice(start, start + chunk)]
-            out.scatter_(torch.arange(start, start + len(part), device=rays.device), self._intersect_chunk(part))
+            self._intersect_chunk_into(part, out[start:start + len(part)])
         return out
+
+    def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
+        """`_intersect_chunk`'s answers written into ``hits`` (all-miss records, views of the rows of
+        a larger batch). Default: computed, then copied; a method whose pass writes records in place
+        overrides it (no per-chunk records, no copy)."""
+        hits.scatter_(slice(None), self._intersect_chunk(rays))
 
     @torch.no_grad()
     def occluded(self, rays: Rays) -> Tensor:

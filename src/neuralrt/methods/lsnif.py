@@ -234,6 +234,10 @@ class LSNIFModel(NeuralBLAS):
         return StepResult(terms.loss, terms.parts, correct, n, len(active), {"truncated": terms.truncated})
 
     # -- inference ---------------------------------------------------------------------------------
+    def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
+        if not self._network_answers_as_hits(rays, hits):  # a fused pass writes the records in place (CPU, CUDA)
+            super()._intersect_chunk_into(rays, hits)
+
     def _intersect_chunk(self, rays: Rays) -> Hits:
         n = len(rays)
         hits = Hits.empty(n, rays.device)
