@@ -67,7 +67,7 @@ def _local_material_index(material_id: Tensor, material_maps: Tensor) -> Tensor:
     return material_id.clamp(0, material_maps.shape[1] - 1)
 
 
-def only_within(t_max: Tensor, overlap: Tensor | None) -> Tensor:
+def _only_within(t_max: Tensor, overlap: Tensor | None) -> Tensor:
     """``t_max`` where ``overlap``, else -inf (an empty interval); unchanged without a mask."""
     return t_max if overlap is None else torch.where(overlap, t_max, -torch.inf)
 
@@ -78,7 +78,7 @@ def intersect_group(stages, rays: Rays, group, t_limit: Tensor, valid: Tensor | 
     answers are merged into ``best`` (None: nothing hit yet); returns the merged `Hits`."""
     ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
     if ray_idx is None:  # every ray, one instance: no gathers
-        local = group.blas.intersect(stages.object_space_rays(rays, None, inst_idx, only_within(t_limit, overlap)))
+        local = group.blas.intersect(stages.object_space_rays(rays, None, inst_idx, _only_within(t_limit, overlap)))
         return stages.merge_every_ray(best, local, int(inst_idx[0]), overlap)
     if ray_idx.numel() == 0:
         return best
@@ -92,7 +92,7 @@ def occluded_group(stages, rays: Rays, group, valid: Tensor | None, blocked: Ten
     t_limit = rays.t_max if blocked is None else torch.where(blocked, -torch.inf, rays.t_max)
     ray_idx, inst_idx, overlap = stages.candidate_pairs(rays, group.instance_ids, t_limit, valid)
     if ray_idx is None:  # every ray, one instance: no gathers
-        hit = group.blas.occluded(stages.object_space_rays(rays, None, inst_idx, only_within(rays.t_max, overlap)))
+        hit = group.blas.occluded(stages.object_space_rays(rays, None, inst_idx, _only_within(rays.t_max, overlap)))
         hit = hit if overlap is None else hit & overlap
         return hit if blocked is None else blocked | hit
     if ray_idx.numel() == 0:

@@ -234,18 +234,18 @@ class LSNIFModel(NeuralBLAS):
         return StepResult(terms.loss, terms.parts, correct, n, len(active), {"truncated": terms.truncated})
 
     # -- inference ---------------------------------------------------------------------------------
-    def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
-        if not self._network_answers_as_hits(rays, hits):  # a fused pass writes the records in place (CPU, CUDA)
-            super()._intersect_chunk_into(rays, hits)
-
     def _intersect_chunk(self, rays: Rays) -> Hits:
-        n = len(rays)
-        hits = Hits.empty(n, rays.device)
+        hits = Hits.empty(len(rays), rays.device)
+        self._intersect_chunk_into(rays, hits)
+        return hits
+
+    def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
+        """The chunk's answers written into ``hits`` (all-miss records, possibly views of a larger batch's rows)."""
         if self._network_answers_as_hits(rays, hits):  # where a fused pass decodes the hits itself (CPU, CUDA)
-            return hits
+            return
         act, out, t_enter, t_exit, t_offset = self._network_answers(rays)
         if len(act) == 0:
-            return hits
+            return
         t = t_offset + t_enter + torch.sigmoid(out[:, _DIST]) * (t_exit - t_enter)
         hit = (out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)) & (t < rays.t_max[act]) & (t > rays.t_min[act])
         normal = F.normalize(out[:, _NORMAL], dim=-1)
@@ -257,7 +257,6 @@ class LSNIFModel(NeuralBLAS):
         hits.albedo[act] = torch.where(hit[:, None], torch.sigmoid(out[:, _ALBEDO]), hits.albedo[act])
         material = out[:, _MAT:].argmax(-1) if self.num_materials > 1 else torch.zeros_like(act)
         hits.material_id[act] = torch.where(hit, material, torch.full_like(material, -1))
-        return hits
 
     def _network_answers(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """(indices, raw outputs, t_enter, t_exit, t_offset) of the rays that reach the network, from
