@@ -1,0 +1,136 @@
+"""How LSNIF's CPU training and inference scale with cores: the same work at 1, 2, 4, 8, 16 threads.
+
+    python benchmarks/bench_scaling.py [--threads 1 2 4 8 16] [--train-mesh procedural:statue:2]
+        [--infer-mesh procedural:hairball:6] [--presets hq lq] [--steps 40] [--rays 262144]
+        [--repeats 5] [--name scaling_cpu]
+
+Each thread count runs in its own process, pinned to that many cores (``os.sched_setaffinity``
+before torch and numba load) with ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` set, so numba's
+kernels, torch's GEMMs and the Embree chunks (which follow numba's thread count) all see the same
+machine size. In each process:
+- training: a fresh model per preset (same seed) trained ``--steps`` steps after a 5-step warm-up,
+  the batch drawn on its background thread as in ``neuralrt train``; best of 2 runs, rays/s =
+  rays drawn / wall time of the loop (as bench_training.py);
+- inference: an untrained model on the mesh's real occupancy (random table: the speed does not
+  depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
+  best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both.
+The table gives each figure's speed-up over the 2-thread process (the issue's "2-core rate") and
+over 1 thread. Writes benchmarks/results/<--name>.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+
+def _child(args) -> dict:
+    """One thread count: pin, then import and measure (runs in its own process)."""
+    import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+    import numba
+    import torch
+
+    sys.path.insert(0, str(HERE))
+    from bench_lsnif import resolve_mesh
+    from bench_training import _train
+
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+    from neuralrt.training.ray_distribution import BoxRayDistribution
+
+    torch.set_num_threads(args.child)
+    row: dict = {"threads": args.child, "numba_threads": numba.get_num_threads(), "torch_threads": torch.get_num_threads(),
+                 "cores_pinned": len(os.sched_getaffinity(0)), "load_before": os.getloadavg()[0]}
+    train_mesh = resolve_mesh(args.train_mesh)
+    train_truth = MeshBLAS(train_mesh)
+    for preset in args.presets:
+        config = LSNIFConfig.preset(preset)
+        _train(train_mesh, train_truth, config, 5, True)  # warm-up: numba compilation, thread pools
+        runs = [_train(train_mesh, train_truth, config, args.steps, True) for _ in range(2)]
+        row[f"train_{preset}_rays/s"] = max(n / wall for wall, n in runs)
+
+    mesh = resolve_mesh(args.infer_mesh)
+    exact = MeshBLAS(mesh)
+    for preset in args.presets:
+        model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset(preset))
+        with torch.no_grad():
+            model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+        rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays
+        calls = {"lsnif_intersect": lambda: model.intersect(rays), "lsnif_occluded": lambda: model.occluded(rays),
+                 "embree_intersect": lambda: exact.intersect(rays), "embree_occluded": lambda: exact.occluded(rays)}
+        for fn in calls.values():  # compile / warm caches
+            fn()
+        best = dict.fromkeys(calls, float("inf"))
+        for _ in range(args.repeats):
+            for key, fn in calls.items():
+                t0 = time.perf_counter()
+                fn()
+                best[key] = min(best[key], time.perf_counter() - t0)
+        for key, seconds in best.items():
+            row[f"{key}_{preset}_rays/s"] = args.rays / seconds  # Embree per preset too: each preset draws its own rays
+    row["load_after"] = os.getloadavg()[0]
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    ap.add_argument("--train-mesh", default="procedural:statue:2")
+    ap.add_argument("--infer-mesh", default="procedural:hairball:6")
+    ap.add_argument("--presets", nargs="+", default=["hq", "lq"])
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--rays", type=int, default=1 << 18)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--name", default="scaling_cpu")
+    ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print("RESULT " + json.dumps(_child(args)), flush=True)
+        return
+
+    cores = sorted(os.sched_getaffinity(0))
+    counts = [n for n in args.threads if n <= len(cores)]
+    if not counts:
+        sys.exit(f"neuralrt: error: no thread count in {args.threads} fits this machine's {len(cores)} cores")
+    rows = []
+    for n in counts:
+        env = dict(os.environ, NUMBA_NUM_THREADS=str(n), OMP_NUM_THREADS=str(n), MKL_NUM_THREADS=str(n))
+        pin = f"import os, sys, runpy; os.sched_setaffinity(0, {cores[:n]}); sys.argv = {[str(Path(__file__))] + sys.argv[1:] + ['--child', str(n)]}; runpy.run_path(sys.argv[0], run_name='__main__')"
+        t0 = time.perf_counter()
+        done = subprocess.run([sys.executable, "-c", pin], env=env, capture_output=True, text=True)
+        lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+        if done.returncode or not lines:
+            sys.stderr.write(done.stdout[-4000:] + done.stderr[-4000:])
+            sys.exit(f"neuralrt: error: the {n}-thread process failed (exit {done.returncode})")
+        row = json.loads(lines[-1][len("RESULT "):])
+        row["process_s"] = time.perf_counter() - t0
+        rows.append(row)
+        print(f"{n:3d} threads: " + ", ".join(f"{k} {v:,.0f}" for k, v in row.items() if k.endswith("rays/s")), flush=True)
+
+    sys.path.insert(0, str(HERE))
+    from _common import machine_info, print_table, write_results
+
+    figures = [k for k in rows[0] if "rays/s" in k]
+    base2 = next((r for r in rows if r["threads"] == 2), None)
+    base1 = next((r for r in rows if r["threads"] == 1), None)
+    table = []
+    for r in rows:
+        for k in figures:
+            table.append({"threads": r["threads"], "figure": k, "rays/s": r[k],
+                          "vs_2_threads": r[k] / base2[k] if base2 else None, "vs_1_thread": r[k] / base1[k] if base1 else None})
+    print_table(table, ["threads", "figure", "rays/s", "vs_2_threads", "vs_1_thread"])
+    path = write_results(args.name, table, {"machine": machine_info(), "per_process": rows,
+                                            "settings": {k: v for k, v in vars(args).items() if k != "child"}})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
