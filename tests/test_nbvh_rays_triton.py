@@ -60,11 +60,11 @@ def kernels():
     kernels._BLOCK, kernels._WARPS = saved
 
 
-def _distribution(model, implementation):
+def _distribution(model, implementation, device=DEVICE):
     from neuralrt.accel.mesh_blas import MeshBLAS
     from neuralrt.methods.nbvh_rays import NBVHRayDistribution
 
-    return NBVHRayDistribution(model, MeshBLAS(model._ball, device=DEVICE), DEVICE, implementation=implementation)
+    return NBVHRayDistribution(model, MeshBLAS(model._ball, device=device), device, implementation=implementation)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def test_triton_sampler_draws_the_cpu_samplers_distribution(model, triton_draw):
     against P(first leaf) x p from 400k CPU candidates, for both samplers; chord lengths and
     directions against the CPU sampler's (two-sample KS)."""
     _, start, d, length, node = triton_draw
-    cpu_start, cpu_d, cpu_length, cpu_node = _distribution(model.cpu() if CUDA else model, "cpu")._draw_cpu(N)
+    cpu_start, cpu_d, cpu_length, cpu_node = _distribution(model.cpu() if CUDA else model, "cpu", "cpu")._draw_cpu(N)
     if CUDA:
         model.to(DEVICE)
     shares = _expected_leaf_shares(model)
@@ -174,6 +174,7 @@ def test_every_slot_holds_a_fresh_chord_of_its_leaf(model, triton_draw, kernels)
     assert ((start >= lo - 1e-6) & (start <= hi + 1e-6)).all() and ((end >= lo - 1e-6) & (end <= hi + 1e-6)).all()
     codes = morton_codes(start + 0.5 * length[:, None] * d)
     assert (codes[1:] >= codes[:-1]).float().mean() > 0.99  # sorted (float rounding may move a code by one cell)
+    sampler._check_flags(wait=True)  # on CUDA the flags' copy lands later: read them all (a flag raises)
     assert sampler._flags == []
     depth = kernels.tree_depth(model.node_children)
     again = kernels.sample_leaf_chords_triton(model, 600, model.config.training.seed, 0, depth)

@@ -52,8 +52,11 @@ def test_triton_hash_grid_matches_numba_and_reference(levels, base, features, lo
     table = grid.table.detach().to(DEVICE).requires_grad_()
     out = hash_grid_triton(pts.to(DEVICE), table, grid.layout, block=BLOCK)
     assert out.shape == numba_out.shape == (150, 3 * levels * features) and out.device == table.device
-    if CUDA:  # fused multiply-adds on the GPU
-        torch.testing.assert_close(out.detach().cpu(), numba_out.detach(), atol=1e-6, rtol=1e-5)
+    if CUDA:  # fused multiply-adds on the GPU round the vertex positions otherwise: each side is within
+        # ~eps * res of the float64 reference (below), so they differ by up to twice that (measured on
+        # an H100: up to 6.3e-6, on 0.1% of the elements)
+        bound = 4 * np.finfo(np.float32).eps * max(grid.layout.resolutions)
+        torch.testing.assert_close(out.detach().cpu(), numba_out.detach(), atol=bound, rtol=0)
     else:
         assert torch.equal(out.detach(), numba_out.detach())
     ref = hash_grid_reference(pts.numpy(), grid.table.detach().numpy(), grid.layout)
