@@ -61,14 +61,13 @@ def grid_transforms(side: int = 4) -> list[Transform]:
     ]
 
 
-def embree_direct(scene, o: np.ndarray, d: np.ndarray, query: str, pool: ThreadPoolExecutor | None):
+def embree_direct(scene, o: np.ndarray, d: np.ndarray, query: str, pool: ThreadPoolExecutor | None, threads: int = 1):
     """What a caller gets from embreex alone: one `run`, or chunks of `run` on a thread pool."""
     tfar = np.full(len(o), 1e37, np.float32)
     kwargs = {"output": 1} if query == "intersect" else {"query": "OCCLUDED"}
     if pool is None:
         return lambda: scene.run(o, d, dists=tfar.copy(), **kwargs)
-    step = mesh_blas_module._CHUNK_RAYS
-    chunks = [slice(s, s + step) for s in range(0, len(o), step)]
+    chunks = mesh_blas_module.chunk_slices(len(o), threads)
 
     def run():
         futures = [pool.submit(lambda c=c: scene.run(o[c], d[c], dists=tfar[c].copy(), **kwargs)) for c in chunks]
@@ -128,7 +127,7 @@ def main() -> None:
         for query in ("intersect", "occluded"):
             cases = {
                 "embreex direct": embree_direct(blas._scene, o, d, query, None),
-                f"embreex direct, {threads} threads": embree_direct(blas._scene, o, d, query, pool),
+                f"embreex direct, {threads} threads": embree_direct(blas._scene, o, d, query, pool, threads),
                 "MeshBLAS": lambda: getattr(blas, query)(rays),
                 "SceneAccel identity": lambda: getattr(identity, query)(rays),
                 "SceneAccel transformed": lambda: getattr(moved, query)(world_rays),

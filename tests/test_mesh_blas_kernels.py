@@ -116,6 +116,16 @@ def test_thread_count_does_not_change_results():
     assert torch.equal(one.occluded(rays), four.occluded(rays))
 
 
+@pytest.mark.parametrize("n, threads", [(0, 2), (1, 16), (5000, 2), (1 << 18, 2), (1 << 18, 16), (3 * (1 << 15) + 5, 1)])
+def test_chunks_cover_the_batch_and_feed_every_thread(n, threads):
+    chunks = mesh_blas.chunk_slices(n, threads)
+    bounds = [0] + [c.stop for c in chunks]
+    assert [c.start for c in chunks] == bounds[:-1] and bounds[-1] == n  # consecutive, whole batch
+    assert all(c.stop - c.start <= mesh_blas._CHUNK_RAYS for c in chunks)
+    if n >= 2 * threads * mesh_blas._MIN_CHUNK_RAYS:
+        assert len(chunks) >= 2 * threads  # 2^18 rays on 16 threads: 32 chunks, not 8
+
+
 def test_strided_inputs_match_contiguous():
     blas = MeshBLAS(_mesh("plain"))
     rays = _rays(5000, seed=3)
