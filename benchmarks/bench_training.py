@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
@@ -21,6 +21,10 @@ Configurations (both draw the next batch on a background thread, the default), b
 - ``saved_rows_and_index``: both of the two above together;
 - ``prepare_ahead``: the voxel walk and the network-ray selection inside the step against computed
   with the batch on its drawing thread (`LSNIFModel.prepare_training_batch`).
+- ``draw_priority``: the batches drawn by a thread of normal priority against one of idle priority
+  (`prefetch.IDLE_PRIORITY`; Linux);
+- ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
+  step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
@@ -54,6 +58,8 @@ from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_features import select_network_rays, select_network_rays_torch  # noqa: E402
 from neuralrt.methods.lsnif_loss import training_loss, training_loss_torch  # noqa: E402
+from neuralrt.neural import mlp as mlp_module  # noqa: E402
+from neuralrt.training import prefetch as prefetch_module  # noqa: E402
 from neuralrt.training.trainer import train_model  # noqa: E402
 
 # Stages of a step as cProfile names them (cumulative seconds of these functions).
@@ -98,6 +104,10 @@ def _configure(model: LSNIFModel, config: str) -> None:
     elif PAIR == "prepare_ahead":
         if before:
             model.prepare_training_batch = lambda rays: None  # the loop hands nothing: the step computes it
+    elif PAIR == "draw_priority":
+        prefetch_module.IDLE_PRIORITY = not before
+    elif PAIR == "row_bucket":
+        mlp_module.ROW_BUCKET["cpu"] = 1 if before else 256
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
@@ -138,7 +148,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from neuralrt.neural import mlp as mlp_module
 from neuralrt.neural.mlp import MLP
 
 
@@ -35,3 +36,30 @@ def test_function_matches_autocast_bit_for_bit(slope, input_grad):
         assert a.dtype == b.dtype == torch.float32
         assert torch.equal(a, b)
     assert any(p.abs().sum() > 0 for p in new[2])
+
+
+@pytest.mark.parametrize("rows", [1, 255, 301, 5391])
+def test_rows_padded_for_the_gemms_change_nothing(rows, monkeypatch):
+    """bf16 GEMMs on the CPU run on rows padded to a bucket (oneDNN keeps a kernel per shape): the
+    answers are those of the unpadded rows, and the zero-gradient padding rows add nothing to the
+    weights' gradients (a 4096-row bucket makes 301 rows 93% padding)."""
+    g = torch.Generator().manual_seed(5)
+    mlp = MLP(37, 5, hidden_width=64, hidden_layers=3, generator=g)
+    with torch.no_grad():
+        for layer in mlp.hidden:
+            layer.bias.normal_(0, 0.5, generator=g)  # padding rows' activations are leaky(bias), not 0
+    x = torch.randn(rows, 37, generator=g)
+    results = []
+    for bucket in (1, 256, 4096):
+        monkeypatch.setitem(mlp_module.ROW_BUCKET, "cpu", bucket)
+        assert mlp_module.padded_rows(rows, torch.device("cpu")) % bucket == 0
+        with torch.no_grad():
+            inference = mlp(x, torch.bfloat16)
+        results.append((inference, *_forward_backward(mlp, x, "function", True)))
+    reference = results[0]
+    for inference, out, x_grad, grads in results[1:]:
+        assert inference.shape == out.shape == (rows, 5)
+        assert torch.equal(inference, reference[0]) and torch.equal(out, reference[1])  # rows are independent
+        assert torch.equal(x_grad, reference[2])
+        for a, b in zip(grads, reference[3]):  # sums over rows: the order may differ with their count
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)

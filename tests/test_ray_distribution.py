@@ -77,3 +77,24 @@ def test_own_generator_leaves_the_global_rng_alone(ball):
 def test_bad_surface_fraction(ball):
     with pytest.raises(ValueError, match="surface_fraction"):
         BoxRayDistribution(MeshBLAS(ball), surface_fraction=1.5)
+
+
+@pytest.mark.parametrize("surface_fraction", [0.5, 0.0, 1.0])
+def test_cpu_passes_match_the_torch_path(ball, surface_fraction):
+    """On the CPU the rays are made and the pool refilled by numba passes from the same draws as
+    the torch path: the same rays up to float rounding (sin/cos/sqrt may differ in the last ulp),
+    the same pool, the same generator state, batch after batch (the pool wraps around)."""
+    exact = MeshBLAS(ball)
+    fast = BoxRayDistribution(exact, pool_size=3000, surface_fraction=surface_fraction, seed=4)
+    ref = BoxRayDistribution(exact, pool_size=3000, surface_fraction=surface_fraction, seed=4)
+    assert fast._sample == fast._sample_cpu
+    ref._sample = ref._sample_torch
+    for _ in range(4):
+        a, b = fast.sample(2500), ref.sample(2500)
+        torch.testing.assert_close(a.rays.origins, b.rays.origins, rtol=0, atol=2e-6)
+        torch.testing.assert_close(a.rays.directions, b.rays.directions, rtol=0, atol=2e-6)
+        assert torch.equal(a.from_surface, b.from_surface) and int(a.from_surface.sum()) == round(2500 * surface_fraction)
+        assert (a.truth.hit == b.truth.hit).float().mean() > 0.999
+        torch.testing.assert_close(fast.pool_points, ref.pool_points, rtol=0, atol=1e-5)
+        assert torch.equal(fast.pool_normals, ref.pool_normals) and fast._pool_cursor == ref._pool_cursor
+        assert torch.equal(fast.generator.get_state(), ref.generator.get_state())

@@ -1,12 +1,16 @@
 """The shared training loop: the per-step hook, method statistics in the record's extra dict."""
 
+import os
 import threading
+import time
 
+import pytest
 import torch
 
 from neuralrt.accel.mesh_blas import MeshBLAS
 from neuralrt.geometry.procedural import sphere
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+from neuralrt.training import prefetch
 from neuralrt.training.ray_distribution import BoxRayDistribution
 from neuralrt.training.trainer import train_model
 
@@ -140,3 +144,50 @@ def test_model_dependent_sampler_is_not_drawn_ahead():
     train_model(model, FollowsModel(), steps=3, batch_size=256, learning_rate=0.01, progress=False,
                 on_step=lambda step, opt: events.append(("step", step)))
     assert events == [("sample", True), ("step", 0), ("sample", True), ("step", 1), ("sample", True), ("step", 2)]
+
+
+class _Recorded:
+    """A model-independent sampler that records the drawing thread's scheduling policy."""
+
+    model_independent = True
+
+    def __init__(self, delay: float = 0.0):
+        self.delay, self.policies, self.threads = delay, [], []
+
+    def sample(self, n):
+        self.policies.append(os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None)
+        self.threads.append(threading.get_ident())
+        time.sleep(self.delay)
+        return n
+
+
+@pytest.mark.skipif(not prefetch.IDLE_PRIORITY, reason="no SCHED_IDLE on this OS")
+def test_batches_are_drawn_at_idle_priority_until_the_step_starves():
+    """The drawing thread runs at idle priority, so it takes no core from the step's parallel
+    regions; when the step keeps waiting for batches (here a sampler slower than the step), later
+    batches come from a fresh thread of normal priority, and the batches stay the same, in order."""
+    fast = _Recorded()
+    source = prefetch.BatchSource(fast, 8)
+    assert [source.next(ahead=True)[0] for _ in range(5)] == [8] * 5
+    source.close()
+    assert fast.policies[0] == os.sched_getscheduler(0) != os.SCHED_IDLE  # the first batch: the loop's thread
+    assert set(fast.policies[1:]) == {os.SCHED_IDLE} and len(set(fast.threads[1:])) == 1
+
+    slow = _Recorded(delay=0.004)
+    source = prefetch.BatchSource(slow, 8)
+    for _ in range(3 * prefetch._WINDOW):
+        assert source.next(ahead=True)[0] == 8  # the step takes no time: all of it is waiting
+    source.close()
+    assert not source.idle_priority
+    starved = slow.policies.index(os.sched_getscheduler(0), 1)  # the first batch back at normal priority
+    assert set(slow.policies[1:starved]) == {os.SCHED_IDLE} and starved <= prefetch._WINDOW + 2
+    assert set(slow.policies[starved:]) == {os.sched_getscheduler(0)} and slow.threads[starved] != slow.threads[1]
+
+
+def test_idle_priority_can_be_turned_off():
+    recorded = _Recorded()
+    source = prefetch.BatchSource(recorded, 4, idle_priority=False)
+    for _ in range(3):
+        source.next(ahead=True)
+    source.close()
+    assert len(set(recorded.policies)) == 1

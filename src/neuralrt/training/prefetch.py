@@ -10,14 +10,28 @@ same batches; callers pass ``ahead=False`` before a checkpoint, so the saved dis
 is never one batch ahead of the saved step. A ``prepare`` function (the model's
 ``prepare_training_batch``: for LSNIF the voxel walk and the network rays, which depend on the
 batch alone) runs on the same thread right after the batch is drawn.
+
+The drawing thread runs at idle priority (Linux ``SCHED_IDLE``) where the OS has it: on a machine
+with few cores, a drawing thread of normal priority took cores from the step's parallel regions
+(torch's GEMMs, the numba encoder), whose threads then waited for each other a scheduler slice at a
+time; at idle priority it runs only in the step's serial gaps (bunny `hq`, 2 cores: 17-20 ms ->
+~16 ms a step, docs/lsnif.md). An idle thread starves when other processes keep every core busy: if
+the step then waits for its batches (more than `STARVED_SHARE` of the time, over a window of
+steps), the later batches are drawn by a fresh thread of normal priority.
 """
 
 from __future__ import annotations
 
+import os
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 __all__ = ["BatchSource"]
+
+IDLE_PRIORITY = hasattr(os, "SCHED_IDLE")  # Linux; elsewhere the thread keeps its normal priority
+STARVED_SHARE = 0.1  # waiting for batches over this share of the loop's time: give up idle priority
+_WINDOW = 20  # steps per check of that share
 
 
 class BatchSource:
@@ -25,22 +39,42 @@ class BatchSource:
     ``prepare`` made of its rays (None without ``prepare``) as ``(batch, prepared)``; with
     ``ahead=True`` it also starts drawing the one after it on a background thread."""
 
-    def __init__(self, sampler, batch_size: int, *, overlap: bool = True, prepare: Callable | None = None):
+    def __init__(self, sampler, batch_size: int, *, overlap: bool = True, prepare: Callable | None = None,
+                 idle_priority: bool | None = None):
         self.sampler, self.batch_size, self.prepare = sampler, batch_size, prepare
         self.overlap = overlap and bool(getattr(sampler, "model_independent", False))
+        self.idle_priority = IDLE_PRIORITY if idle_priority is None else idle_priority and IDLE_PRIORITY
         self._executor: ThreadPoolExecutor | None = None
         self._pending: Future | None = None
+        self._since = time.perf_counter()  # start of the current window of steps
+        self._waited, self._steps = 0.0, 0
 
     def next(self, ahead: bool):
         if self._pending is not None:
+            start = time.perf_counter()
             drawn, self._pending = self._pending.result(), None  # re-raises the thread's exception here
+            self._count_wait(time.perf_counter() - start)
         else:
             drawn = self._draw()
         if ahead and self.overlap:
             if self._executor is None:
-                self._executor = ThreadPoolExecutor(1, thread_name_prefix="neuralrt-batches")
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="neuralrt-batches",
+                                                    initializer=_lower_priority if self.idle_priority else None)
             self._pending = self._executor.submit(self._draw)
         return drawn
+
+    def _count_wait(self, waited: float) -> None:
+        """Over each window of steps, the share of time spent waiting for batches; a starved idle
+        thread is replaced by one of normal priority (the threads the loop makes inherit its own)."""
+        self._waited, self._steps = self._waited + waited, self._steps + 1
+        if self._steps < _WINDOW:
+            return
+        now = time.perf_counter()
+        if self.idle_priority and self._waited > STARVED_SHARE * (now - self._since):
+            self.idle_priority = False
+            self._executor.shutdown(wait=False)  # idle: nothing is pending
+            self._executor = None
+        self._since, self._waited, self._steps = now, 0.0, 0
 
     def _draw(self) -> tuple:
         batch = self.sampler.sample(self.batch_size)
@@ -54,3 +88,11 @@ class BatchSource:
         if self._executor is not None:
             self._executor.shutdown(wait=True)
             self._executor = None
+
+
+def _lower_priority() -> None:
+    """The calling thread to idle priority (Linux: ``sched_setscheduler`` of pid 0 is this thread)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except OSError:  # not permitted here (a container's seccomp policy): keep normal priority
+        pass

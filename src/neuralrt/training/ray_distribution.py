@@ -20,9 +20,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from . import ray_distribution_cpu as cpu
 from ..accel.blas import BLAS
 from ..rays import AABB, Hits, Rays, face_forward
 
@@ -104,6 +106,8 @@ class BoxRayDistribution:
         self.pool_points = torch.zeros(0, 3, device=self.device)  # [P, 3] surface points, P <= pool_size
         self.pool_normals = torch.zeros(0, 3, device=self.device)  # [P, 3] their normals, facing the arriving ray
         self._pool_cursor = 0  # next ring-buffer slot once the pool is full
+        # Chosen once: numba passes on the CPU, torch ops elsewhere (the same draws either way).
+        self._sample = self._sample_cpu if self.device.type == "cpu" else self._sample_torch
         self._fill_pool()
 
     # -- outside rays ----------------------------------------------------------------------
@@ -151,6 +155,9 @@ class BoxRayDistribution:
     # -- batches -----------------------------------------------------------------------------
     def sample(self, n: int) -> TrainingBatch:
         """A batch of ``n`` rays (outside first, then surface) with exact ground truth."""
+        return self._sample(n)
+
+    def _sample_torch(self, n: int) -> TrainingBatch:
         n_surface = int(round(n * self.surface_fraction))
         outside = self.outside_rays(n - n_surface)
         surface = self.surface_rays(n_surface)
@@ -159,6 +166,30 @@ class BoxRayDistribution:
         self._add_to_pool(rays[: n - n_surface], truth[: n - n_surface])
         from_surface = torch.arange(n, device=self.device) >= n - n_surface
         return TrainingBatch(rays, from_surface, truth)
+
+    def _sample_cpu(self, n: int) -> TrainingBatch:
+        """`_sample_torch` with the rays made and the full pool refilled by numba passes
+        (`ray_distribution_cpu`) from the same random draws, taken in the same order."""
+        n_surface = int(round(n * self.surface_fraction))
+        n_outside = n - n_surface
+        g = self.generator
+        normals, outside_u = torch.randn(n_outside, 3, generator=g), torch.rand(n_outside, 2, generator=g)
+        picks = torch.randint(0, len(self.pool_points), (n_surface,), generator=g)
+        surface_u = torch.rand(n_surface, 2, generator=g)
+        origins, directions = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        center = self.center.numpy()
+        cpu.outside_rays(normals.numpy(), outside_u.numpy(), center, np.float32(self.radius), origins, directions)
+        cpu.surface_rays(picks.numpy(), surface_u.numpy(), self.pool_points.numpy(), self.pool_normals.numpy(),
+                         np.float32(self.surface_offset), origins, directions, n_outside)  # fmt: skip
+        rays = Rays(torch.from_numpy(origins), torch.from_numpy(directions))
+        truth = self.truth.intersect(rays)
+        if len(self.pool_points) == self._pool_size:
+            hit, t, normal = (x[:n_outside].contiguous().numpy() for x in (truth.hit, truth.t, truth.geometric_normal))
+            self._pool_cursor = int(cpu.refill_pool(origins, directions, hit, t, normal, self.pool_points.numpy(),
+                                                    self.pool_normals.numpy(), self._pool_cursor))  # fmt: skip
+        else:  # still filling (a pool larger than what the constructor's rays found): the torch path grows it
+            self._add_to_pool(rays[:n_outside], truth[:n_outside])
+        return TrainingBatch(rays, torch.from_numpy(np.arange(n) >= n_outside), truth)
 
     # -- checkpointing -------------------------------------------------------------------------
     def state_dict(self) -> tuple[dict, dict[str, Tensor]]:
