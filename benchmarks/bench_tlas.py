@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import print_table, write_results  # noqa: E402
 
-from neuralrt.accel import mesh_blas as mesh_blas_module  # noqa: E402
+from neuralrt import host_threads  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.accel.tlas import Instance, SceneAccel  # noqa: E402
 from neuralrt.geometry.procedural import statue  # noqa: E402
@@ -67,7 +67,7 @@ def embree_direct(scene, o: np.ndarray, d: np.ndarray, query: str, pool: ThreadP
     kwargs = {"output": 1} if query == "intersect" else {"query": "OCCLUDED"}
     if pool is None:
         return lambda: scene.run(o, d, dists=tfar.copy(), **kwargs)
-    chunks = mesh_blas_module.chunk_slices(len(o), threads)
+    chunks = host_threads.chunk_slices(len(o), threads)
 
     def run():
         futures = [pool.submit(lambda c=c: scene.run(o[c], d[c], dists=tfar[c].copy(), **kwargs)) for c in chunks]

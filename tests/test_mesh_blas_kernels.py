@@ -5,8 +5,7 @@ import pytest
 import torch
 import trimesh
 
-from neuralrt import Mesh, MeshBLAS, Rays
-from neuralrt.accel import mesh_blas
+from neuralrt import Mesh, MeshBLAS, Rays, host_threads
 from neuralrt.accel.mesh_blas import sample_texture_bilinear
 from neuralrt.geometry.mesh import MeshMaterial
 
@@ -95,7 +94,7 @@ def _rays(n: int, seed: int) -> Rays:
 
 @pytest.mark.parametrize("kind", ["plain", "colours", "textured"])
 def test_intersect_bit_identical_to_numpy_reference(kind):
-    rays = _rays(3 * mesh_blas._CHUNK_RAYS + 123, seed=1)  # several chunks, a partial last one
+    rays = _rays(3 * host_threads.CHUNK_ROWS + 123, seed=1)  # several chunks, a partial last one
     blas = MeshBLAS(_mesh(kind), threads=2)
     got, ref = blas.intersect(rays), reference_intersect(blas, rays)
     assert 0.2 < ref["hit"].mean() < 0.8
@@ -108,7 +107,7 @@ def test_intersect_bit_identical_to_numpy_reference(kind):
 
 
 def test_thread_count_does_not_change_results():
-    mesh, rays = _mesh("colours"), _rays(2 * mesh_blas._CHUNK_RAYS + 7, seed=2)
+    mesh, rays = _mesh("colours"), _rays(2 * host_threads.CHUNK_ROWS + 7, seed=2)
     one, four = MeshBLAS(mesh, threads=1), MeshBLAS(mesh, threads=4)
     a, b = one.intersect(rays), four.intersect(rays)
     for name in ("hit", "t", "normal", "uv", "albedo", "material_id", "primitive_id"):
@@ -118,11 +117,11 @@ def test_thread_count_does_not_change_results():
 
 @pytest.mark.parametrize("n, threads", [(0, 2), (1, 16), (5000, 2), (1 << 18, 2), (1 << 18, 16), (3 * (1 << 15) + 5, 1)])
 def test_chunks_cover_the_batch_and_feed_every_thread(n, threads):
-    chunks = mesh_blas.chunk_slices(n, threads)
+    chunks = host_threads.chunk_slices(n, threads)
     bounds = [0] + [c.stop for c in chunks]
     assert [c.start for c in chunks] == bounds[:-1] and bounds[-1] == n  # consecutive, whole batch
-    assert all(c.stop - c.start <= mesh_blas._CHUNK_RAYS for c in chunks)
-    if n >= 2 * threads * mesh_blas._MIN_CHUNK_RAYS:
+    assert all(c.stop - c.start <= host_threads.CHUNK_ROWS for c in chunks)
+    if n >= 2 * threads * host_threads.MIN_CHUNK_ROWS:
         assert len(chunks) >= 2 * threads  # 2^18 rays on 16 threads: 32 chunks, not 8
 
 

@@ -9,10 +9,8 @@ Every backend answers the same contract, tested against each other in tests/test
 
 from __future__ import annotations
 
-import os
 import sys
 from abc import ABC, abstractmethod
-from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -20,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
+from ..host_threads import chunk_slices, thread_pool
 from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
@@ -30,13 +29,6 @@ __all__ = ["MeshBLAS", "EmbreeMeshBLAS"]
 _NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
 
 
-# Rays per chunk: enough to amortise a thread hand-off (~50 us), few enough to balance the
-# threads and keep a chunk's Embree results in cache for the attribute pass. On a host with many
-# threads a batch is cut finer (down to _MIN_CHUNK_RAYS), so that every thread gets work: with
-# 2^15-ray chunks, 2^18 rays left half of 16 threads idle (Embree flat from 8 to 16 threads).
-_CHUNK_RAYS = 1 << 15
-_MIN_CHUNK_RAYS = 1 << 12
-_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (process id, workers, pool)
 _fallback_noticed = False  # the CUDA-without-Mitsuba notice is printed once per process
 
 FALLBACK_NOTICE = ("neuralrt: note: Mitsuba 3 is not installed (pip install 'neuralrt[gpu]'): "
@@ -47,21 +39,6 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     """float32 CPU numpy views of origins, directions, t_min, t_max (no copies on CPU)."""
     return tuple(x.detach().cpu().numpy().astype(np.float32, copy=False)
                  for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
-
-
-def _thread_pool(workers: int) -> ThreadPoolExecutor:
-    """One shared pool per process (a forked child must not reuse its parent's dead threads)."""
-    global _pool
-    if _pool is None or _pool[0] != os.getpid() or _pool[1] != workers:
-        _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, thread_name_prefix="neuralrt-embree"))
-    return _pool[2]
-
-
-def chunk_slices(n: int, threads: int) -> list[slice]:
-    """Consecutive chunks of ``range(n)``: at most _CHUNK_RAYS rays, and at least two per thread
-    where that leaves _MIN_CHUNK_RAYS or more in each (balance on hosts with many threads)."""
-    size = min(_CHUNK_RAYS, max(_MIN_CHUNK_RAYS, -(-n // (2 * max(1, threads)))))
-    return [slice(s, min(n, s + size)) for s in range(0, n, size)]
 
 
 def _run_in_chunks(trace, n: int, threads: int | None) -> None:
@@ -76,7 +53,7 @@ def _run_in_chunks(trace, n: int, threads: int | None) -> None:
         for chunk in chunks:
             trace(chunk)
         return
-    for future in [_thread_pool(threads).submit(trace, chunk) for chunk in chunks]:
+    for future in [thread_pool("embree", threads).submit(trace, chunk) for chunk in chunks]:
         future.result()  # re-raises a worker's exception here
 
 

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..host_threads import chunk_slices, thread_pool
 from ..rays import Hits, Rays
 from .lights import LightSet
 from .materials import MaterialTable
@@ -357,34 +358,18 @@ def _c(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
-# Rows per chunk of a numba pass: enough to amortise a thread hand-off, small enough to balance threads.
-_CHUNK_ROWS = 1 << 15
-_pool: tuple[int, int, "ThreadPoolExecutor"] | None = None  # (process id, workers, pool)
-
-
 def _run_in_chunks(run, n: int) -> list[tuple[tuple[int, int], int]]:
     """``run(lo, hi)`` over consecutive row chunks on numba's thread count (the kernels release the
     GIL); returns each chunk's ``run`` result with its first row, in row order. One chunk (or one
     thread) runs on the calling thread."""
     import numba
 
-    bounds = [(lo, min(n, lo + _CHUNK_ROWS)) for lo in range(0, n, _CHUNK_ROWS)] or [(0, 0)]
     threads = numba.get_num_threads()
+    bounds = [(c.start, c.stop) for c in chunk_slices(n, threads)] or [(0, 0)]
     if threads == 1 or len(bounds) == 1:
         return [(run(0, n), 0)]
-    results = [_thread_pool(threads).submit(run, lo, hi) for lo, hi in bounds]
+    results = [thread_pool("shading", threads).submit(run, lo, hi) for lo, hi in bounds]
     return [(future.result(), lo) for future, (lo, _) in zip(results, bounds)]
-
-
-def _thread_pool(workers: int):
-    """One shared pool per process (a forked child must not reuse its parent's dead threads)."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
-    global _pool
-    if _pool is None or _pool[0] != os.getpid() or _pool[1] != workers:
-        _pool = (os.getpid(), workers, ThreadPoolExecutor(workers, thread_name_prefix="neuralrt-shading"))
-    return _pool[2]
 
 
 def _gather(out: np.ndarray, chunks: list[tuple[tuple[int, int], int]], which: int) -> Tensor:
