@@ -2,9 +2,10 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap] [--name training_cpu_step]
 
-Configurations (both draw the next batch on a background thread, the default), by ``--pair``:
+Configurations (both draw the next batch on a background thread, the default, except in
+``overlap``), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
   (`lsnif_loss.training_loss_torch`) and casts the encoder's fp32 output to the MLP's bf16
   (``SparseHashGrid.low_precision_output = False``); ``after`` runs them as numba passes
@@ -23,6 +24,8 @@ Configurations (both draw the next batch on a background thread, the default), b
   with the batch on its drawing thread (`LSNIFModel.prepare_training_batch`).
 - ``draw_priority``: the batches drawn by a thread of normal priority against one of idle priority
   (`prefetch.IDLE_PRIORITY`; Linux);
+- ``overlap``: each batch drawn in turn by the loop's thread (``train_model(overlap_sampling=False)``)
+  against drawn ahead on the background thread (the default);
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -108,6 +111,8 @@ def _configure(model: LSNIFModel, config: str) -> None:
         prefetch_module.IDLE_PRIORITY = not before
     elif PAIR == "row_bucket":
         mlp_module.ROW_BUCKET["cpu"] = 1 if before else 256
+    elif PAIR == "overlap":
+        pass  # the loop's own switch (`_train`)
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
@@ -116,6 +121,7 @@ def _configure(model: LSNIFModel, config: str) -> None:
 
 
 def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:
+    overlap = overlap and not (PAIR == "overlap" and variant == "before")
     model = LSNIFModel.from_mesh(mesh, config)
     _configure(model, variant)
     rays = model.training_rays(truth, torch.device("cpu"))
@@ -148,7 +154,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair
