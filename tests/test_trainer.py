@@ -175,13 +175,32 @@ def test_batches_are_drawn_at_idle_priority_until_the_step_starves():
 
     slow = _Recorded(delay=0.004)
     source = prefetch.BatchSource(slow, 8)
-    for _ in range(3 * prefetch._WINDOW):
+    windows = prefetch.STARVED_WINDOWS
+    for _ in range((windows + 1) * prefetch._WINDOW):
         assert source.next(ahead=True)[0] == 8  # the step takes no time: all of it is waiting
     source.close()
     assert not source.idle_priority
     starved = slow.policies.index(os.sched_getscheduler(0), 1)  # the first batch back at normal priority
-    assert set(slow.policies[1:starved]) == {os.SCHED_IDLE} and starved <= prefetch._WINDOW + 2
+    assert set(slow.policies[1:starved]) == {os.SCHED_IDLE}
+    assert windows * prefetch._WINDOW <= starved <= windows * prefetch._WINDOW + 2  # not before the last starved window
     assert set(slow.policies[starved:]) == {os.sched_getscheduler(0)} and slow.threads[starved] != slow.threads[1]
+
+
+@pytest.mark.skipif(not prefetch.IDLE_PRIORITY, reason="no SCHED_IDLE on this OS")
+def test_one_starved_window_keeps_idle_priority(monkeypatch):
+    """A single window of waiting (a brief hiccup of the machine) leaves the thread at idle
+    priority: only STARVED_WINDOWS starved windows in a row give it up."""
+    sampler = _Recorded()
+    source = prefetch.BatchSource(sampler, 8)
+    # One window of batches far slower than the step (a 4 ms step), then batches that take no time.
+    delays = iter([0.02] * prefetch._WINDOW + [0.0] * (prefetch.STARVED_WINDOWS * prefetch._WINDOW))
+    monkeypatch.setattr(sampler, "sample", lambda n, _sample=sampler.sample: (time.sleep(next(delays, 0.0)), _sample(n))[1])
+    for _ in range((prefetch.STARVED_WINDOWS + 1) * prefetch._WINDOW):
+        assert source.next(ahead=True)[0] == 8
+        time.sleep(0.004)  # the step
+    source.close()
+    assert source._starved_windows == 0  # the first window was starved, the later ones not
+    assert source.idle_priority and set(sampler.policies[1:]) == {os.SCHED_IDLE}
 
 
 def test_idle_priority_can_be_turned_off():

@@ -16,8 +16,11 @@ with few cores, a drawing thread of normal priority took cores from the step's p
 (torch's GEMMs, the numba encoder), whose threads then waited for each other a scheduler slice at a
 time; at idle priority it runs only in the step's serial gaps (bunny `hq`, 2 cores: 17-20 ms ->
 ~16 ms a step, docs/lsnif.md). An idle thread starves when other processes keep every core busy: if
-the step then waits for its batches (more than `STARVED_SHARE` of the time, over a window of
-steps), the later batches are drawn by a fresh thread of normal priority.
+the step then waits for its batches (more than `STARVED_SHARE` of the time in `STARVED_WINDOWS`
+windows of steps in a row), the later batches are drawn by a fresh thread of normal priority. One
+window is not enough: an idle 2-core machine waits up to ~8% of a window, and a single 10.1% window
+once sent a whole run to normal priority (456k vs ~500k rays/s, docs/lsnif.md); a starved thread
+waits ~90%.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 __all__ = ["BatchSource"]
 
 IDLE_PRIORITY = hasattr(os, "SCHED_IDLE")  # Linux; elsewhere the thread keeps its normal priority
-STARVED_SHARE = 0.1  # waiting for batches over this share of the loop's time: give up idle priority
+STARVED_SHARE = 0.1  # waiting for batches over this share of the loop's time ...
+STARVED_WINDOWS = 3  # ... in this many windows in a row: give up idle priority
 _WINDOW = 20  # steps per check of that share
 
 
@@ -48,6 +52,7 @@ class BatchSource:
         self._pending: Future | None = None
         self._since = time.perf_counter()  # start of the current window of steps
         self._waited, self._steps = 0.0, 0
+        self._starved_windows = 0  # windows in a row over STARVED_SHARE
 
     def next(self, ahead: bool):
         if self._pending is not None:
@@ -64,13 +69,16 @@ class BatchSource:
         return drawn
 
     def _count_wait(self, waited: float) -> None:
-        """Over each window of steps, the share of time spent waiting for batches; a starved idle
-        thread is replaced by one of normal priority (the threads the loop makes inherit its own)."""
+        """Over each window of steps, the share of time spent waiting for batches; an idle thread
+        starved for STARVED_WINDOWS windows in a row is replaced by one of normal priority (the
+        threads the loop makes inherit its own)."""
         self._waited, self._steps = self._waited + waited, self._steps + 1
         if self._steps < _WINDOW:
             return
         now = time.perf_counter()
-        if self.idle_priority and self._waited > STARVED_SHARE * (now - self._since):
+        starved = self._waited > STARVED_SHARE * (now - self._since)
+        self._starved_windows = self._starved_windows + 1 if starved else 0
+        if self.idle_priority and self._starved_windows >= STARVED_WINDOWS:
             self.idle_priority = False
             self._executor.shutdown(wait=False)  # idle: nothing is pending
             self._executor = None
