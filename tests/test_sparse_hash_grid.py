@@ -206,6 +206,22 @@ def test_extra_columns_are_appended_without_changing_the_gradient():
         grid(f.points, f.face_axis, extra[:-1])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_padding_slots_anywhere_encode_zeros(dtype):
+    """The kernel writes the padding after a ray's last point as zeros at once; padding between
+    points (not made by `featurize_rays`, but valid input) is encoded as zeros in place, and the
+    points after it are still encoded, as the reference does."""
+    grid = SparseHashGrid(resolutions=(64, 128), init_scale=1.0)
+    points = torch.tensor([[[0.25, 0.3, 0.7], [0.1, 0.5, 0.2], [0.6, 0.45, 0.5], [0.0, 0.0, 0.0]],
+                           [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]])
+    face_axis = torch.tensor([[0, -1, 2, -1], [-1, -1, -1, -1]], dtype=torch.int8)
+    out = grid(points, face_axis, dtype=dtype).float().reshape(2, 4, 2, 3)
+    ref = sparse_hash_grid_reference(points, face_axis, grid.table, grid.resolutions).reshape(2, 4, 2, 3)
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-2  # the reference sums in another order; bf16 rounds
+    torch.testing.assert_close(out, ref, atol=tolerance, rtol=tolerance)
+    assert (out[0, [1, 3]] == 0).all() and (out[0, [0, 2]] != 0).all() and (out[1] == 0).all()
+
+
 def test_bf16_output_is_the_cast_of_the_fp32_one_bit_for_bit():
     """``dtype=torch.bfloat16``: the CPU kernel's own rounding gives the bits of ``.to(torch.bfloat16)``
     of the fp32 features (extra columns too), and the backward, handed the bf16 gradient, gives the

@@ -227,13 +227,20 @@ def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_b
         weights = np.empty((_GROUP * n_points * n_levels, 8), np.float32)
         reads = np.empty(_GROUP * n_points * n_levels, np.int64)
         scratch = np.empty(n_points * stride, np.float32)  # one ray's fp32 features before rounding
+        used = np.empty(_GROUP, np.int64)  # per ray of the group: slots up to its last valid point
         stop = (chunk + 1) * n_rays // n_chunks
         for first in range(chunk * n_rays // n_chunks, stop, _GROUP):
             last = min(first + _GROUP, stop)
             e = 0
             for n in range(first, last):
                 src = rows[n]
-                for h in range(n_points):
+                # Rays fill their slots from the first (`featurize_rays`); the padding after the
+                # last valid point (~2/3 of a bunny ray's 18 slots) is written as zeros at once.
+                h_used = n_points
+                while h_used > 0 and not (0 <= axes[src, h_used - 1] <= _ORIGIN_POINT):
+                    h_used -= 1
+                used[n - first] = h_used
+                for h in range(h_used):
                     code = axes[src, h]
                     valid = 0 <= code <= _ORIGIN_POINT
                     for lvl in range(n_levels):
@@ -249,7 +256,7 @@ def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_b
                 e = 0
                 for n in range(first, last):
                     p = point_offsets[n]
-                    for h in range(n_points):
+                    for h in range(used[n - first]):
                         for lvl in range(n_levels):
                             if reads[e] == 4:
                                 for c in range(4):
@@ -260,13 +267,19 @@ def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_b
             e = 0
             for n in range(first, last):
                 row = scratch if low_precision else out[n]
-                for h in range(n_points):
+                h_used = used[n - first]
+                for h in range(h_used):
                     for lvl in range(n_levels):
                         read_rows(table, slots[e], weights[e], reads[e], row, h * stride + lvl * n_feat)
                         e += 1
                 if low_precision:
-                    for j in range(n_points * stride):
+                    for j in range(h_used * stride):
                         out_bf16[n, j] = bf16_bits(scratch[j])
+                    for j in range(h_used * stride, n_points * stride):
+                        out_bf16[n, j] = 0  # bf16_bits(0.0)
+                else:
+                    for j in range(h_used * stride, n_points * stride):
+                        out[n, j] = np.float32(0.0)
 
 
 @numba.njit(parallel=True, cache=True)
