@@ -1,12 +1,14 @@
 """Host threads for CPU kernels that release the GIL (Embree, the TLAS and shading passes): a batch
-cut into balanced chunks, and one shared thread pool per purpose and process."""
+cut into balanced chunks, run on one shared thread pool per purpose and process."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
 
-__all__ = ["chunk_slices", "thread_pool"]
+__all__ = ["chunk_slices", "run_chunks", "thread_pool"]
 
 # Rows per chunk: enough to amortise a thread hand-off (~50 us), few enough to balance the threads
 # and keep a chunk's results in cache. A batch is cut into at least two chunks per thread down to
@@ -15,6 +17,7 @@ __all__ = ["chunk_slices", "thread_pool"]
 CHUNK_ROWS = 1 << 15
 MIN_CHUNK_ROWS = 1 << 12
 
+T = TypeVar("T")
 _pools: dict[str, tuple[int, int, ThreadPoolExecutor]] = {}  # purpose -> (process id, workers, pool)
 
 
@@ -23,6 +26,15 @@ def chunk_slices(n: int, threads: int) -> list[slice]:
     where that leaves MIN_CHUNK_ROWS or more in each."""
     size = min(CHUNK_ROWS, max(MIN_CHUNK_ROWS, -(-n // (2 * max(1, threads)))))
     return [slice(s, min(n, s + size)) for s in range(0, n, size)]
+
+
+def run_chunks(fn: Callable[[slice], T], chunks: list[slice], threads: int, purpose: str) -> list[T]:
+    """``fn(chunk)`` for each chunk, results in chunk order: on the calling thread for one thread or
+    one chunk, else on the ``purpose`` pool of ``threads`` threads (a worker's exception re-raises here)."""
+    if threads == 1 or len(chunks) == 1:
+        return [fn(chunk) for chunk in chunks]
+    futures = [thread_pool(purpose, threads).submit(fn, chunk) for chunk in chunks]
+    return [future.result() for future in futures]
 
 
 def thread_pool(purpose: str, workers: int) -> ThreadPoolExecutor:

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
-from ..host_threads import chunk_slices, thread_pool
+from ..host_threads import chunk_slices, run_chunks
 from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
@@ -48,13 +48,7 @@ def _run_in_chunks(trace, n: int, threads: int | None) -> None:
     writes its own rows of the outputs, so the result does not depend on the thread count.
     """
     threads = max(1, numba.get_num_threads() if threads is None else int(threads))
-    chunks = chunk_slices(n, threads)
-    if threads == 1 or len(chunks) == 1:
-        for chunk in chunks:
-            trace(chunk)
-        return
-    for future in [thread_pool("embree", threads).submit(trace, chunk) for chunk in chunks]:
-        future.result()  # re-raises a worker's exception here
+    run_chunks(trace, chunk_slices(n, threads), threads, "embree")
 
 
 def _backend_for(device: torch.device) -> type["MeshBLAS"]:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..host_threads import chunk_slices, thread_pool
+from ..host_threads import chunk_slices, run_chunks
 from ..rays import Hits, Rays
 from .lights import LightSet
 from .materials import MaterialTable
@@ -365,11 +365,11 @@ def _run_in_chunks(run, n: int) -> list[tuple[tuple[int, int], int]]:
     import numba
 
     threads = numba.get_num_threads()
-    bounds = [(c.start, c.stop) for c in chunk_slices(n, threads)] or [(0, 0)]
-    if threads == 1 or len(bounds) == 1:
-        return [(run(0, n), 0)]
-    results = [thread_pool("shading", threads).submit(run, lo, hi) for lo, hi in bounds]
-    return [(future.result(), lo) for future, (lo, _) in zip(results, bounds)]
+    chunks = chunk_slices(n, threads) if threads > 1 else []
+    if len(chunks) <= 1:
+        chunks = [slice(0, n)]
+    return [(result, chunk.start) for result, chunk in
+            zip(run_chunks(lambda c: run(c.start, c.stop), chunks, threads, "shading"), chunks)]
 
 
 def _gather(out: np.ndarray, chunks: list[tuple[tuple[int, int], int]], which: int) -> Tensor:
