@@ -2,7 +2,7 @@
 
     python benchmarks/bench_scaling.py [--threads 1 2 4 8 16] [--train-mesh procedural:statue:2]
         [--infer-mesh procedural:hairball:6] [--presets hq lq] [--steps 40] [--rays 262144]
-        [--repeats 5] [--name scaling_cpu]
+        [--repeats 5] [--train-batches 32768 65536] [--profile] [--name scaling_cpu]
 
 Each thread count runs in its own process, pinned to that many cores (``os.sched_setaffinity``
 before torch and numba load) with ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` set, so numba's
@@ -10,7 +10,10 @@ kernels, torch's GEMMs and the Embree chunks (which follow numba's thread count)
 machine size. In each process:
 - training: a fresh model per preset (same seed) trained ``--steps`` steps after a 5-step warm-up,
   the batch drawn on its background thread as in ``neuralrt train``; best of 2 runs, rays/s =
-  rays drawn / wall time of the loop (as bench_training.py);
+  rays drawn / wall time of the loop (as bench_training.py); with ``--train-batches``, also at
+  those batch sizes, drawing the same rays in fewer steps (a step's fixed costs, paid once per
+  step on the loop's thread, shrink per ray); with ``--profile``, seconds per stage of one
+  training run at the default batch (cProfile of the loop's thread, as bench_training.py);
 - inference: an untrained model on the mesh's real occupancy (random table: the speed does not
   depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
   best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both.
@@ -39,7 +42,7 @@ def _child(args) -> dict:
 
     sys.path.insert(0, str(HERE))
     from bench_lsnif import resolve_mesh
-    from bench_training import _train
+    from bench_training import _profile, _train
 
     from neuralrt.accel.mesh_blas import MeshBLAS
     from neuralrt.methods.lsnif import LSNIFModel
@@ -56,6 +59,20 @@ def _child(args) -> dict:
         _train(train_mesh, train_truth, config, 5, True)  # warm-up: numba compilation, thread pools
         runs = [_train(train_mesh, train_truth, config, args.steps, True) for _ in range(2)]
         row[f"train_{preset}_rays/s"] = max(n / wall for wall, n in runs)
+        default_batch = config.training.batch_size
+        for batch in args.train_batches:
+            if batch == default_batch:
+                continue
+            # The same rays drawn as at the default batch: fewer, larger steps.
+            sized = config.model_copy(update={"training": config.training.model_copy(update={"batch_size": batch})})
+            steps = max(8, args.steps * default_batch // batch)
+            _train(train_mesh, train_truth, sized, 2, True)  # warm-up at this batch (oneDNN kernels for its row counts)
+            runs = [_train(train_mesh, train_truth, sized, steps, True) for _ in range(2)]
+            row[f"train_{preset}_batch{batch}_rays/s"] = max(n / wall for wall, n in runs)
+        if args.profile:
+            profile = _profile(train_mesh, train_truth, config, args.steps, "after")
+            row[f"train_{preset}_profile"] = {"wall_s": profile["wall_s"], "steps": profile["steps"],
+                                              "cumulative_s": {k: v for k, v in profile["cumulative_s"].items() if v}}
 
     mesh = resolve_mesh(args.infer_mesh)
     exact = MeshBLAS(mesh)
@@ -80,6 +97,25 @@ def _child(args) -> dict:
     return row
 
 
+def _write(args, rows: list[dict], show: bool) -> Path:
+    """The table (each figure against the 2-thread and 1-thread processes, where run) and the JSON."""
+    sys.path.insert(0, str(HERE))
+    from _common import machine_info, print_table, write_results
+
+    figures = [k for k in rows[0] if k.endswith("rays/s")]
+    base2 = next((r for r in rows if r["threads"] == 2), None)
+    base1 = next((r for r in rows if r["threads"] == 1), None)
+    table = []
+    for r in rows:
+        for k in figures:
+            table.append({"threads": r["threads"], "figure": k, "rays/s": r[k],
+                          "vs_2_threads": r[k] / base2[k] if base2 else None, "vs_1_thread": r[k] / base1[k] if base1 else None})
+    if show:
+        print_table(table, ["threads", "figure", "rays/s", "vs_2_threads", "vs_1_thread"])
+    return write_results(args.name, table, {"machine": machine_info(), "per_process": rows,
+                                            "settings": {k: v for k, v in vars(args).items() if k != "child"}})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
@@ -87,6 +123,9 @@ def main() -> None:
     ap.add_argument("--infer-mesh", default="procedural:hairball:6")
     ap.add_argument("--presets", nargs="+", default=["hq", "lq"])
     ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--train-batches", type=int, nargs="*", default=[],
+                    help="training rays/s also at these batch sizes (the same rays drawn: fewer steps)")
+    ap.add_argument("--profile", action="store_true", help="a cProfile of one training run per preset: seconds per stage")
     ap.add_argument("--rays", type=int, default=1 << 18)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--name", default="scaling_cpu")
@@ -114,22 +153,8 @@ def main() -> None:
         row["process_s"] = time.perf_counter() - t0
         rows.append(row)
         print(f"{n:3d} threads: " + ", ".join(f"{k} {v:,.0f}" for k, v in row.items() if k.endswith("rays/s")), flush=True)
-
-    sys.path.insert(0, str(HERE))
-    from _common import machine_info, print_table, write_results
-
-    figures = [k for k in rows[0] if "rays/s" in k]
-    base2 = next((r for r in rows if r["threads"] == 2), None)
-    base1 = next((r for r in rows if r["threads"] == 1), None)
-    table = []
-    for r in rows:
-        for k in figures:
-            table.append({"threads": r["threads"], "figure": k, "rays/s": r[k],
-                          "vs_2_threads": r[k] / base2[k] if base2 else None, "vs_1_thread": r[k] / base1[k] if base1 else None})
-    print_table(table, ["threads", "figure", "rays/s", "vs_2_threads", "vs_1_thread"])
-    path = write_results(args.name, table, {"machine": machine_info(), "per_process": rows,
-                                            "settings": {k: v for k, v in vars(args).items() if k != "child"}})
-    print(f"wrote {path}")
+        _write(args, rows, show=False)  # after each process: a run cut short keeps what it measured
+    print(f"wrote {_write(args, rows, show=True)}")
 
 
 if __name__ == "__main__":

@@ -8,6 +8,11 @@
 #       to 10,000 steps, the training step in pieces (device events), the kernels against the torch path, and
 #       intersect / occluded rays/s against OptiX on the same rays. NBVH_ARGS are passed on.
 #   bash benchmarks/run_gpu.sh tests     # ~420 s: the cuda tests, then the N-BVH Triton tests compiled for the GPU
+#       (TESTS_S seconds at most for each of the two, default 200)
+#   bash benchmarks/run_gpu.sh scaling   # <= 330 s: issue 11's 16-core figures, on the machine's host CPU (no GPU):
+#       benchmarks/bench_scaling.py at 2, 16, 8 and 4 threads (the 2-thread process is the baseline; each
+#       process's row is written as soon as it ends), training also at 2^15- and 2^17-ray batches, with a
+#       per-stage profile of the training loop at each thread count.
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
 #   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
 #       on statue(5) (4.8M triangles) and instances:6 (12 instances of statue(5) sharing one NIF object, 58M
@@ -21,8 +26,8 @@
 # benchmark writes its JSON after each section, so a stage cut short still returns what it measured.
 # Logs and JSON go to $OUT (default ./gpu-out), at most 8 files per call.
 set -uo pipefail
-STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices|nif}
-case "$STAGE" in nbvh|tests|devices|nif) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices or nif)" >&2; exit 2 ;; esac
+STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices|nif|scaling}
+case "$STAGE" in nbvh|tests|devices|nif|scaling) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices, nif or scaling)" >&2; exit 2 ;; esac
 [ -d .gpu-deps ] || { echo "neuralrt: error: .gpu-deps missing: run bash ../shared/tools/gpu-bundle.sh .gpu-deps and carry it" >&2; exit 2; }
 OUT=${OUT:-gpu-out}; mkdir -p "$OUT"
 mkdir -p /tmp/site
@@ -38,14 +43,20 @@ nbvh)
         --out "$OUT/nbvh_cuda.json" ${NBVH_ARGS:-} 2>&1 | tee "$OUT/nbvh_cuda.log"
     ;;
 tests)
-    timeout 200 python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$OUT/tests.log" | tail -40
-    timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_nbvh_triton.py tests/test_nbvh_rays_triton.py 2>&1 \
+    timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider -k cuda tests 2>&1 | tee "$OUT/tests.log" | tail -40
+    timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider tests/test_nbvh_triton.py tests/test_nbvh_rays_triton.py 2>&1 \
         | tee "$OUT/tests_nbvh_triton.log" | tail -20
     ;;
 devices)
     shift
     timeout "${BENCH_SECONDS:-330}" python3 benchmarks/bench_devices.py --device cuda --out "$OUT/devices_cuda.json" "$@" 2>&1 \
         | tee "$OUT/bench.log"
+    ;;
+scaling)
+    lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
+    timeout 330 python3 benchmarks/bench_scaling.py --threads 2 16 8 4 --steps 40 --repeats 4 \
+        --train-batches 32768 131072 --profile --name scaling_cpu_16_s22 2>&1 | tee "$OUT/scaling.log"
+    cp benchmarks/results/scaling_cpu_16_s22.json "$OUT/" 2>/dev/null || echo "no scaling JSON (cut short before the first process ended?)"
     ;;
 nif)
     for scene in cornell-statue:5 instances:6; do
