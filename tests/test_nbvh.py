@@ -160,6 +160,24 @@ def test_statistics_acceptance_and_splits(ball):
     assert (model.node_lod[model.live] == 1).all()
 
 
+def test_acceptance_follows_the_model_to_its_device(ball, device):
+    """h is cached from the statistics buffers; moving the model recomputes it where they went
+    (a cache left behind made acceptance() fail on CUDA indices after model.cpu().to("cuda"))."""
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", cut={"splitting_interval": 5}, training={"steps": 30}))
+    model.remember_batch_leaves(torch.tensor([0, 0]))
+    model._batch_losses = torch.tensor([1.0, 3.0])
+    model.after_training_step(0, None)
+    kids = model.node_children[0].long()
+    model.remember_batch_leaves(kids)
+    model._batch_losses = torch.tensor([8.0, 0.0001])
+    model.after_training_step(1, None)
+    on_cpu = model.acceptance(kids)  # caches h on the CPU
+    model.to(device)
+    assert model._h is None
+    moved = model.acceptance(kids.to(device))
+    assert moved.device.type == torch.device(device).type and torch.equal(moved.cpu(), on_cpu)
+
+
 @pytest.fixture(scope="module")
 def trained(ball, tmp_path_factory):
     before = torch.get_num_threads()

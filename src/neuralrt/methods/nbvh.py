@@ -99,6 +99,11 @@ class NBVHModel(NeuralBLAS):
         self._h: Tensor | None = None
         self._lod_views: dict[int, NBVHModel] = {}
 
+    def _apply(self, fn, recurse=True):
+        # .to() / .cuda() move the buffers; h, cached from them, is recomputed where they now are.
+        self._h = None
+        return super()._apply(fn, recurse)
+
     # -- construction ----------------------------------------------------------------------------
     @classmethod
     def from_mesh(cls, mesh: Mesh, config: NBVHConfig | None = None) -> "NBVHModel":
