@@ -88,3 +88,23 @@ def test_every_weight_is_used(term):
     assert float(new[0].loss.detach()) == pytest.approx(float(ref[0].loss.detach()), rel=1e-5)
     for r, n in zip(ref[1:], new[1:]):
         torch.testing.assert_close(n, r, rtol=1e-4, atol=1e-6)
+
+
+def test_numba_loss_is_the_same_on_any_thread_count():
+    """The rows run in fixed chunks whose partials are added in chunk order: one thread and all of
+    them give the same loss and gradients, bit for bit (more rows than one chunk)."""
+    import numba
+
+    hidden, layer, rest = _batch(6000, 4500, 4, width=64, seed=2)
+    hidden = hidden.to(torch.bfloat16)
+    weights = LossConfig()
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = _run(training_loss_numba, hidden, layer, rest, weights, 4)
+    finally:
+        numba.set_num_threads(threads)
+    every = _run(training_loss_numba, hidden, layer, rest, weights, 4)
+    assert one[0].parts == every[0].parts and one[0].wrong_network == every[0].wrong_network
+    for a, b in zip(one[1:], every[1:]):
+        assert torch.equal(a, b)

@@ -12,8 +12,10 @@ the output layer and the loss as one pass. Two implementations, chosen once by d
 `MLP.forward` runs it, then the terms; the reference and the CUDA path) and, on the CPU, one
 numba pass (`training_loss_numba`) that computes per ray the outputs (16-lane fp32 FMAs), the
 terms and figures, and the gradients of the hidden activations and of the output layer's weight
-and bias; its autograd function's backward only scales those. The two agree to fp32 rounding
-(sums in another order; the hidden gradient to one bf16 rounding step; tested against each other).
+and bias; its autograd function's backward only scales those. The numba passes run fixed
+1,024-row chunks on the host's threads (the chunks' partial sums added in chunk order: the same
+result on any thread count). The two agree to fp32 rounding (sums in another order; the hidden
+gradient to one bf16 rounding step; tested against each other).
 """
 
 from __future__ import annotations
@@ -172,37 +174,45 @@ def _row_loss(row, sig, softplus, y, t_local, nx, ny, nz, ax, ay, az, target, nu
     return wrong
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
+# Rows per task of the two passes below. Fixed, not per thread: the chunk partials of the loss
+# pass are summed in chunk order, so the sums are the same whatever the thread count.
+_CHUNK_ROWS = 1024
+
+
+@numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _output_layer_kernel(hidden, weight_t, bias, out):
     """``out [M, C] = hidden @ W^T + b`` in fp32, ``hidden [M, W]`` fp32 or bf16 bits (uint16),
     ``weight_t`` W^T zero-padded to ``[Wp, Cp]`` (multiples of 16) and flattened. 4 rows at once
     (4 independent FMA chains; each row's sum in j order), 16 outputs at a time; past the last row
-    the last one repeats."""
+    of a chunk the last one repeats. Rows in chunks of `_CHUNK_ROWS` over the threads."""
     n_net, width = hidden.shape
     n_out = bias.shape[0]
     padded_out = weight_t.shape[0] // (-(-width // 16) * 16)
-    h32 = np.zeros((4, width), np.float32)
-    group_out = np.zeros((4, padded_out), np.float32)
-    for first in range(0, n_net, 4):
-        for p in range(4):
-            row_index = min(first + p, n_net - 1)
-            for j in range(width):
-                h32[p, j] = as_fp32(hidden[row_index, j])
-        h0, h1, h2, h3 = h32[0], h32[1], h32[2], h32[3]
-        for cb in range(0, padded_out, 16):
-            a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
-            for j in range(width):
-                at = j * padded_out + cb
-                a0, a1 = fma16(a0, h0[j], weight_t, at), fma16(a1, h1[j], weight_t, at)
-                a2, a3 = fma16(a2, h2[j], weight_t, at), fma16(a3, h3[j], weight_t, at)
-            store16(group_out[0], cb, a0), store16(group_out[1], cb, a1)
-            store16(group_out[2], cb, a2), store16(group_out[3], cb, a3)
-        for p in range(min(4, n_net - first)):
-            for k in range(n_out):
-                out[first + p, k] = group_out[p, k] + bias[k]
+    for chunk in numba.prange(-(-n_net // _CHUNK_ROWS)):
+        lo = chunk * _CHUNK_ROWS
+        hi = min(lo + _CHUNK_ROWS, n_net)
+        h32 = np.zeros((4, width), np.float32)
+        group_out = np.zeros((4, padded_out), np.float32)
+        for first in range(lo, hi, 4):
+            for p in range(4):
+                row_index = min(first + p, hi - 1)
+                for j in range(width):
+                    h32[p, j] = as_fp32(hidden[row_index, j])
+            h0, h1, h2, h3 = h32[0], h32[1], h32[2], h32[3]
+            for cb in range(0, padded_out, 16):
+                a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
+                for j in range(width):
+                    at = j * padded_out + cb
+                    a0, a1 = fma16(a0, h0[j], weight_t, at), fma16(a1, h1[j], weight_t, at)
+                    a2, a3 = fma16(a2, h2[j], weight_t, at), fma16(a3, h3[j], weight_t, at)
+                store16(group_out[0], cb, a0), store16(group_out[1], cb, a1)
+                store16(group_out[2], cb, a2), store16(group_out[3], cb, a3)
+            for p in range(min(4, hi - first)):
+                for k in range(n_out):
+                    out[first + p, k] = group_out[p, k] + bias[k]
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
+@numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_enter, t_exit, directions, hit, t_true, normal,
                       albedo, material, weights, num_materials, occlusion_logit, grad_hidden, grad_weight, grad_bias, sums,
                       counts):  # fmt: skip
@@ -211,7 +221,9 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
     the terms of `training_loss_torch` summed into ``sums`` (float64, not divided by the counts),
     ``counts`` = (network rays that hit, wrong predictions, all hits of the batch); d loss / d
     hidden into ``grad_hidden`` (hidden's dtype, rounded as torch's cast), d loss / d W
-    (``grad_weight``, ``[C, Wp]`` flattened, ``weight`` the same layout) and d loss / d b."""
+    (``grad_weight``, ``[C, Wp]`` flattened, ``weight`` the same layout) and d loss / d b.
+    Rows in chunks of `_CHUNK_ROWS` over the threads; each chunk's sums, d W and d b are partials
+    (float64) added up in chunk order afterwards."""
     n_net, width = hidden.shape
     n_out = out.shape[1]
     padded_width = weight.shape[0] // n_out
@@ -227,47 +239,66 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
     scale[2] = weights[2] / max(n_hit, 1)
     scale[3] = weights[3] / max(3 * n_hit, 1)
     scale[4] = weights[4] / max(n_hit, 1)
-    row32 = np.zeros(padded_width, np.float32)
-    g = np.zeros(n_out, np.float32)
-    dh = np.zeros(padded_width, np.float32)
-    grad_weight[:] = 0.0
+    n_chunks = -(-n_net // _CHUNK_ROWS)
+    chunk_sums = np.zeros((n_chunks, 5), np.float64)
+    chunk_wrong = np.zeros(n_chunks, np.int64)
+    chunk_bias = np.zeros((n_chunks, n_out), np.float64)
+    chunk_weight = np.zeros((n_chunks, n_out * padded_width), np.float32)
+    one, zero = np.float32(1.0), np.float32(0.0)
+    for chunk in numba.prange(n_chunks):
+        row32 = np.zeros(padded_width, np.float32)
+        g = np.zeros(n_out, np.float32)
+        dh = np.zeros(padded_width, np.float32)
+        part_sums, part_weight, part_bias = chunk_sums[chunk], chunk_weight[chunk], chunk_bias[chunk]
+        wrong = 0
+        for i in range(chunk * _CHUNK_ROWS, min((chunk + 1) * _CHUNK_ROWS, n_net)):
+            r = active[i]
+            y = hit[r]
+            t_local = zero
+            nx = ny = nz = ax = ay = az = zero
+            target = 0
+            if y:
+                te, tx = t_enter[i], t_exit[i]
+                t_local = min(max((t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(1e-12)), zero), one)
+                nx, ny, nz = normal[r, 0], normal[r, 1], normal[r, 2]
+                if nx * directions[r, 0] + ny * directions[r, 1] + nz * directions[r, 2] > 0:
+                    nx, ny, nz = -nx, -ny, -nz
+                ax, ay, az = albedo[r, 0], albedo[r, 1], albedo[r, 2]
+                target = min(max(material[r], 0), num_materials - 1)
+            g[:] = zero
+            wrong += _row_loss(out[i], sig[i], softplus[i], y, t_local, nx, ny, nz, ax, ay, az, target, num_materials,
+                               occlusion_logit, scale, g, part_sums)  # fmt: skip
+            # d hidden = g @ W and d W += g^T h, 16 hidden units at a time, over the nonzero g only.
+            for jb in range(0, padded_width, 16):
+                acc = zeros16()
+                for k in range(n_out):
+                    if g[k] != zero:
+                        acc = fma16(acc, g[k], weight, k * padded_width + jb)
+                store16(dh, jb, acc)
+            for j in range(width):
+                _narrow(grad_hidden, i, j, dh[j])
+                row32[j] = as_fp32(hidden[i, j])
+            for k in range(n_out):
+                gk = g[k]
+                if gk != zero:
+                    part_bias[k] += gk
+                    for jb in range(0, padded_width, 16):
+                        at = k * padded_width + jb
+                        store16(part_weight, at, fma16(load16(part_weight, at), gk, row32, jb))
+        chunk_wrong[chunk] = wrong
+    weight_sum = np.zeros(n_out * padded_width, np.float64)
     bias_sum = np.zeros(n_out, np.float64)
     wrong = 0
-    one, zero = np.float32(1.0), np.float32(0.0)
-    for i in range(n_net):
-        r = active[i]
-        y = hit[r]
-        t_local = zero
-        nx = ny = nz = ax = ay = az = zero
-        target = 0
-        if y:
-            te, tx = t_enter[i], t_exit[i]
-            t_local = min(max((t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(1e-12)), zero), one)
-            nx, ny, nz = normal[r, 0], normal[r, 1], normal[r, 2]
-            if nx * directions[r, 0] + ny * directions[r, 1] + nz * directions[r, 2] > 0:
-                nx, ny, nz = -nx, -ny, -nz
-            ax, ay, az = albedo[r, 0], albedo[r, 1], albedo[r, 2]
-            target = min(max(material[r], 0), num_materials - 1)
-        g[:] = zero
-        wrong += _row_loss(out[i], sig[i], softplus[i], y, t_local, nx, ny, nz, ax, ay, az, target, num_materials,
-                           occlusion_logit, scale, g, sums)  # fmt: skip
-        # d hidden = g @ W and d W += g^T h, 16 hidden units at a time, over the nonzero g only.
-        for jb in range(0, padded_width, 16):
-            acc = zeros16()
-            for k in range(n_out):
-                if g[k] != zero:
-                    acc = fma16(acc, g[k], weight, k * padded_width + jb)
-            store16(dh, jb, acc)
-        for j in range(width):
-            _narrow(grad_hidden, i, j, dh[j])
-            row32[j] = as_fp32(hidden[i, j])
+    for chunk in range(n_chunks):
+        for t in range(5):
+            sums[t] += chunk_sums[chunk, t]
         for k in range(n_out):
-            gk = g[k]
-            if gk != zero:
-                bias_sum[k] += gk
-                for jb in range(0, padded_width, 16):
-                    at = k * padded_width + jb
-                    store16(grad_weight, at, fma16(load16(grad_weight, at), gk, row32, jb))
+            bias_sum[k] += chunk_bias[chunk, k]
+        for a in range(n_out * padded_width):
+            weight_sum[a] += chunk_weight[chunk, a]
+        wrong += chunk_wrong[chunk]
+    for a in range(n_out * padded_width):
+        grad_weight[a] = weight_sum[a]
     for k in range(n_out):
         grad_bias[k] = bias_sum[k]
     counts[0], counts[1], counts[2] = n_hit, wrong, all_hits
