@@ -12,8 +12,9 @@ machine size. In each process:
   the batch drawn on its background thread as in ``neuralrt train``; best of 2 runs, rays/s =
   rays drawn / wall time of the loop (as bench_training.py); with ``--train-batches``, also at
   those batch sizes, drawing the same rays in fewer steps (a step's fixed costs, paid once per
-  step on the loop's thread, shrink per ray); with ``--profile``, seconds per stage of one
-  training run at the default batch (cProfile of the loop's thread, as bench_training.py);
+  step on the loop's thread, shrink per ray); with ``--profile``, one more run per batch size
+  under `StageTimer`: ms per step in each stage, on the loop's thread and on the drawing one;
+  with ``--scatters``, the encoder's backward alone on one batch of each size, per scatter;
 - inference: an untrained model on the mesh's real occupancy (random table: the speed does not
   depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
   best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both.
@@ -24,6 +25,7 @@ over 1 thread. Writes benchmarks/results/<--name>.json.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import subprocess
@@ -34,6 +36,105 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+class StageTimer:
+    """Milliseconds per step in each stage of LSNIF training, per thread (the loop's or the batch
+    drawing one), from wrappers around the stages' functions: cProfile cannot say this (on Python
+    3.12 it sees neither numba's kernels nor which thread a call ran on). Nested stages are inside
+    their parents' time; ``other`` is the loop's wall time outside its top-level stages."""
+
+    # (label, owner, attribute, top-level on the loop's thread)
+    def _targets(self):
+        import torch
+
+        from neuralrt.methods import lsnif, lsnif_loss
+        from neuralrt.neural import mlp, sparse_hash_grid
+        from neuralrt.training import prefetch, ray_distribution
+
+        return [("wait for the batch", prefetch.BatchSource, "next", True),
+                ("draw (rays + Embree)", ray_distribution.BoxRayDistribution, "sample", False),
+                ("prepare (walk + selection)", lsnif.LSNIFModel, "prepare_training_batch", False),
+                ("forward + loss", lsnif.LSNIFModel, "training_step", True),
+                ("  encoder forward", sparse_hash_grid._SparseHashGridFunction, "forward", False),
+                ("  hidden layers forward", mlp._LowPrecisionHidden, "forward", False),
+                ("  output layer + loss", lsnif_loss, "training_loss_numba", False),  # (bench_training sets lsnif.training_loss)
+                ("backward", torch.Tensor, "backward", True),
+                ("  encoder backward", sparse_hash_grid._SparseHashGridFunction, "backward", False),
+                ("  hidden layers backward", mlp._LowPrecisionHidden, "backward", False),
+                ("optimizer", torch.optim.Adam, "step", True),
+                ("after the step", lsnif.LSNIFModel, "after_training_step", True)]
+
+    def __enter__(self):
+        import threading
+
+        self.seconds: dict[tuple[str, str], float] = {}
+        self._saved = []
+        main = threading.main_thread()
+        for label, owner, name, _ in self._targets():
+            raw = inspect.getattr_static(owner, name)  # (may be inherited: restored by deleting ours)
+            fn = raw.__func__ if isinstance(raw, staticmethod) else raw
+
+            def timed(*a, _fn=fn, _label=label, **k):
+                t0 = time.perf_counter()
+                try:
+                    return _fn(*a, **k)
+                finally:
+                    where = "loop" if threading.current_thread() is main else "drawing thread"
+                    key = (_label, where)
+                    self.seconds[key] = self.seconds.get(key, 0.0) + time.perf_counter() - t0
+
+            setattr(owner, name, staticmethod(timed) if isinstance(raw, staticmethod) else timed)
+            self._saved.append((owner, name, raw if name in vars(owner) else None))
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, raw in reversed(self._saved):
+            if raw is None:
+                delattr(owner, name)
+            else:
+                setattr(owner, name, raw)
+
+    def per_step(self, wall: float, steps: int) -> dict:
+        order = [t[0] for t in self._targets()]
+        keys = sorted(self.seconds, key=lambda k: (k[1] != "loop", order.index(k[0])))
+        out = {f"{label} [{where}]": round(1e3 * self.seconds[(label, where)] / steps, 3) for label, where in keys}
+        top = sum(s for (label, where), s in self.seconds.items()
+                  if where == "loop" and any(t[0] == label and t[3] for t in self._targets()))
+        out["other [loop]"] = round(1e3 * (wall - top) / steps, 3)
+        out["wall"] = round(1e3 * wall / steps, 3)
+        return out
+
+
+def _scatter_times(mesh, truth, config, args) -> dict:
+    """The encoder's backward (autograd into the table) of one real batch per training batch size,
+    with each of ``--scatters``; best of 7, ms. Every scatter's gradient is checked equal to the first's."""
+    import torch
+
+    from neuralrt.methods.lsnif import LSNIFModel
+
+    model = LSNIFModel.from_mesh(mesh, config)
+    draw = model.training_rays(truth, torch.device("cpu"))
+    encoder = model.encoder
+    times = {}
+    for batch in sorted({config.training.batch_size, *args.train_batches}):
+        rows = model.prepare_training_batch(draw.sample(batch).rays)
+        inputs = (rows.features.points, rows.features.face_axis, rows.distances, torch.bfloat16)
+        upstream = torch.randn(encoder(*inputs, rows=rows.keep).shape, generator=torch.Generator().manual_seed(0)).to(torch.bfloat16)
+        first = None
+        for scatter in args.scatters:
+            encoder.backward_scatter = scatter
+            best = float("inf")
+            for _ in range(8):  # the first compiles / warms
+                out = encoder(*inputs, rows=rows.keep)
+                t0 = time.perf_counter()
+                (grad,) = torch.autograd.grad(out, encoder.table, upstream)
+                best = min(best, time.perf_counter() - t0)
+            first = grad if first is None else first
+            if not torch.equal(grad, first):
+                raise SystemExit(f"neuralrt: error: the {scatter} scatter's gradient differs from the {args.scatters[0]} one's")
+            times[f"batch{batch}_{scatter}"] = round(1e3 * best, 3)
+    return times
+
+
 def _child(args) -> dict:
     """One thread count: pin, then import and measure (runs in its own process)."""
     import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
@@ -42,7 +143,7 @@ def _child(args) -> dict:
 
     sys.path.insert(0, str(HERE))
     from bench_lsnif import resolve_mesh
-    from bench_training import _profile, _train
+    from bench_training import _train
 
     from neuralrt.accel.mesh_blas import MeshBLAS
     from neuralrt.methods.lsnif import LSNIFModel
@@ -70,9 +171,15 @@ def _child(args) -> dict:
             runs = [_train(train_mesh, train_truth, sized, steps, True) for _ in range(2)]
             row[f"train_{preset}_batch{batch}_rays/s"] = max(n / wall for wall, n in runs)
         if args.profile:
-            profile = _profile(train_mesh, train_truth, config, args.steps, "after")
-            row[f"train_{preset}_profile"] = {"wall_s": profile["wall_s"], "steps": profile["steps"],
-                                              "cumulative_s": {k: v for k, v in profile["cumulative_s"].items() if v}}
+            for batch in sorted({default_batch, *args.train_batches}):
+                sized = config.model_copy(update={"training": config.training.model_copy(update={"batch_size": batch})})
+                steps = max(8, args.steps * default_batch // batch)
+                with StageTimer() as timer:
+                    wall, _ = _train(train_mesh, train_truth, sized, steps, True)
+                row[f"train_{preset}_batch{batch}_stages_ms_per_step"] = timer.per_step(wall, steps)
+
+        if args.scatters:
+            row[f"encoder_backward_{preset}_ms"] = _scatter_times(train_mesh, train_truth, config, args)
 
     mesh = resolve_mesh(args.infer_mesh)
     exact = MeshBLAS(mesh)
@@ -125,7 +232,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--train-batches", type=int, nargs="*", default=[],
                     help="training rays/s also at these batch sizes (the same rays drawn: fewer steps)")
-    ap.add_argument("--profile", action="store_true", help="a cProfile of one training run per preset: seconds per stage")
+    ap.add_argument("--profile", action="store_true",
+                    help="one more training run per preset and batch size with stage timers: ms per step in each stage")
+    ap.add_argument("--scatters", nargs="*", default=[],
+                    help="also time the encoder's backward with these table-gradient scatters (row_ranges, buckets, saved_rows)")
     ap.add_argument("--rays", type=int, default=1 << 18)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--name", default="scaling_cpu")

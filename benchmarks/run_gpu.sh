@@ -9,10 +9,10 @@
 #       intersect / occluded rays/s against OptiX on the same rays. NBVH_ARGS are passed on.
 #   bash benchmarks/run_gpu.sh tests     # ~420 s: the cuda tests, then the N-BVH Triton tests compiled for the GPU
 #       (TESTS_S seconds at most for each of the two, default 200)
-#   bash benchmarks/run_gpu.sh scaling   # <= 330 s: issue 11's 16-core figures, on the machine's host CPU (no GPU):
-#       benchmarks/bench_scaling.py at 2, 16, 8 and 4 threads (the 2-thread process is the baseline; each
-#       process's row is written as soon as it ends), training also at 2^15- and 2^17-ray batches, with a
-#       per-stage profile of the training loop at each thread count.
+#   bash benchmarks/run_gpu.sh scaling   # <= SCALING_S (330) s: issue 11's 16-core figures, on the host CPU (no GPU):
+#       benchmarks/bench_scaling.py at SCALING_THREADS (2 16 8 4; the 2-thread process is the baseline, each
+#       process's row written as soon as it ends), training also at 2^15- and 2^17-ray batches, ms per step in
+#       each stage at every batch size, the encoder backward per table-gradient scatter; JSON SCALING_NAME.
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
 #   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
 #       on statue(5) (4.8M triangles) and instances:6 (12 instances of statue(5) sharing one NIF object, 58M
@@ -54,9 +54,11 @@ devices)
     ;;
 scaling)
     lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
-    timeout 330 python3 benchmarks/bench_scaling.py --threads 2 16 8 4 --steps 40 --repeats 4 \
-        --train-batches 32768 131072 --profile --name scaling_cpu_16_s22 2>&1 | tee "$OUT/scaling.log"
-    cp benchmarks/results/scaling_cpu_16_s22.json "$OUT/" 2>/dev/null || echo "no scaling JSON (cut short before the first process ended?)"
+    name=${SCALING_NAME:-scaling_cpu_16}
+    # shellcheck disable=SC2086  # SCALING_THREADS: words on purpose
+    timeout "${SCALING_S:-330}" python3 benchmarks/bench_scaling.py --threads ${SCALING_THREADS:-2 16 8 4} --steps 40 --repeats 4 \
+        --train-batches 32768 131072 --profile --scatters row_ranges buckets saved_rows --name "$name" 2>&1 | tee "$OUT/scaling.log"
+    cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no scaling JSON (cut short before the first process ended?)"
     ;;
 nif)
     for scene in cornell-statue:5 instances:6; do

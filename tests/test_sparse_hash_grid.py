@@ -178,8 +178,13 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
         got = np.full((3 * 2**12, 3), np.nan, np.float32)
         shg._backward_saved_kernel(*args[:2], every, *args[2:], ranges, *saved, got)
         assert np.array_equal(got, serial[0]), ranges
+    # Bucketed by row range (counted, then written, per chunk of rays): any ranges, any chunks.
+    for ranges, chunks in ((1, 1), (2, 3), (5, 7), (7, 64)):
+        got = np.full((3 * 2**12, 3), np.nan, np.float32)
+        shg._backward_buckets_kernel(*args[:2], every, *args[2:], ranges, chunks, got)
+        assert np.array_equal(got, serial[0]), (ranges, chunks)
     rehash = shg._backward_rows_kernel
-    for scatter in ("saved_rows", "row_ranges"):  # (thread_tables sums per-thread tables: not serial)
+    for scatter in ("saved_rows", "row_ranges", "buckets"):  # (thread_tables sums per-thread tables: not serial)
         grid.backward_scatter = scatter
         if scatter == "saved_rows":  # autograd must take the saved rows, not hash again
             shg._backward_rows_kernel = None
@@ -246,7 +251,7 @@ def test_bf16_output_is_the_cast_of_the_fp32_one_bit_for_bit():
     assert torch.equal(grid(f.points, f.face_axis, extra, torch.bfloat16).view(torch.int16), low.view(torch.int16))
 
 
-@pytest.mark.parametrize("scatter", ["saved_rows", "row_ranges", "thread_tables"])
+@pytest.mark.parametrize("scatter", ["saved_rows", "row_ranges", "thread_tables", "buckets"])
 def test_rows_encode_the_selected_rays_as_their_copy_bit_for_bit(scatter):
     """``rows``: the kernels read the selected rays through the index; features (fp32 and bf16,
     extra columns too) and table gradients are those of the copied selection, bit for bit."""

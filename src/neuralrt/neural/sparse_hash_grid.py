@@ -399,6 +399,94 @@ def _backward_saved_kernel(points, axes, rows, grad_out, resolutions, ranges_per
                             grad_table[row, f] += w * as_fp32(grad_out[n, col + f])
 
 
+@numba.njit(cache=True, inline="always")
+def _range_of(row, base, table_size, ranges_per_level):
+    """Which of its level's ``ranges_per_level`` equal row ranges a table row falls in."""
+    return (row - base) * ranges_per_level // table_size
+
+
+@numba.njit(parallel=True, cache=True)
+def _backward_buckets_kernel(points, axes, rows, grad_out, resolutions, ranges_per_level, n_chunks, grad_table):
+    """`_backward_rows_kernel`'s result (bit for bit) with work that shrinks with the thread count:
+    each of ``n_chunks`` chunks of rays counts, then writes, its contributions ``w * grad`` into the
+    bucket of the row range they land in (one pass to count, one to write, both hashing the point;
+    buckets keep ray order: chunk order, then ray, point, corner), and each (level, range) task
+    zeroes its rows and adds its bucket in that order. The rows-owned-by-a-task scatter instead
+    hashes every point of its level in every task: with R ranges per level R times the work, so it
+    gains nothing past one task per level (2 levels: 2 threads). Gradient row n belongs to input
+    row ``rows[n]`` (no copy of the selected rays)."""
+    n_rays, n_points = rows.shape[0], axes.shape[1]
+    n_levels = resolutions.shape[0]
+    n_feat = grad_table.shape[1]
+    table_size = grad_table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
+    stride = n_levels * n_feat
+    n_buckets = n_levels * ranges_per_level
+    per_chunk = -(-n_rays // n_chunks)
+    counts = np.zeros((n_chunks, n_buckets), np.int64)
+    for chunk in numba.prange(n_chunks):
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        for n in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays)):
+            src = rows[n]
+            for h in range(n_points):
+                code = axes[src, h]
+                if code < 0 or code > _ORIGIN_POINT:
+                    continue
+                for lvl in range(n_levels):
+                    base = lvl * table_size
+                    k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, resolutions[lvl], mask, base,
+                                 slots, weights)  # fmt: skip
+                    for c in range(k):
+                        counts[chunk, lvl * ranges_per_level + _range_of(slots[c], base, table_size, ranges_per_level)] += 1
+    # Bucket-major offsets: bucket b holds chunk 0's entries of b, then chunk 1's, ...
+    starts = np.empty(n_buckets + 1, np.int64)
+    cursor = np.empty((n_chunks, n_buckets), np.int64)
+    total = 0
+    for b in range(n_buckets):
+        starts[b] = total
+        for chunk in range(n_chunks):
+            cursor[chunk, b] = total
+            total += counts[chunk, b]
+    starts[n_buckets] = total
+    entry_rows = np.empty(total, np.int64)
+    entry_values = np.empty((total, n_feat), np.float32)
+    for chunk in numba.prange(n_chunks):
+        slots = np.empty(8, np.int64)
+        weights = np.empty(8, np.float32)
+        at = cursor[chunk]
+        for n in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays)):
+            src = rows[n]
+            for h in range(n_points):
+                code = axes[src, h]
+                if code < 0 or code > _ORIGIN_POINT:
+                    continue
+                for lvl in range(n_levels):
+                    base = lvl * table_size
+                    k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, resolutions[lvl], mask, base,
+                                 slots, weights)  # fmt: skip
+                    col = h * stride + lvl * n_feat
+                    for c in range(k):
+                        b = lvl * ranges_per_level + _range_of(slots[c], base, table_size, ranges_per_level)
+                        e = at[b]
+                        at[b] = e + 1
+                        entry_rows[e] = slots[c]
+                        w = weights[c]
+                        for f in range(n_feat):
+                            entry_values[e, f] = w * as_fp32(grad_out[n, col + f])
+    for b in numba.prange(n_buckets):
+        lvl, r = b // ranges_per_level, b % ranges_per_level
+        base = lvl * table_size
+        # Range r is the rows x (from base) with x * R // T == r: from ceil(r T / R) on.
+        lo = base + (r * table_size + ranges_per_level - 1) // ranges_per_level
+        hi = base + ((r + 1) * table_size + ranges_per_level - 1) // ranges_per_level
+        grad_table[lo:hi] = 0.0
+        for e in range(starts[b], starts[b + 1]):
+            row = entry_rows[e]
+            for f in range(n_feat):
+                grad_table[row, f] += entry_values[e, f]
+
+
 def _numpy(t: Tensor, dtype) -> np.ndarray:
     return t.detach().to(dtype).contiguous().numpy()
 
@@ -468,6 +556,13 @@ class _SparseHashGridFunction(torch.autograd.Function):
                 ctx.saved_rows = None
                 grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
                 return None, None, None, grad_table, None, None, None, None
+            if ctx.backward_scatter == "buckets":
+                table_grad = np.empty((levels * size, n_feat), np.float32)
+                threads = numba.get_num_threads()
+                n_chunks = max(1, min(len(ctx.index), 4 * threads))
+                _backward_buckets_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-2 * threads // levels), n_chunks,
+                                         table_grad)  # fmt: skip
+                return None, None, None, torch.from_numpy(table_grad.reshape(ctx.table_shape)), None, None, None, None
             if len(ctx.index) != len(axes) or not np.array_equal(ctx.index, np.arange(len(axes))):
                 pts, axes = pts[ctx.index], axes[ctx.index]  # the scatters kept to measure against take the selected rows
             args = (pts, axes, grad, ctx.resolutions)
