@@ -201,6 +201,7 @@ def _child(args) -> dict:
         for key, seconds in best.items():
             row[f"{key}_{preset}_rays/s"] = args.rays / seconds  # Embree per preset too: each preset draws its own rays
     row["load_after"] = os.getloadavg()[0]
+    row["numba_threading_layer"] = numba.threading_layer()  # (known once a parallel kernel has run)
     return row
 
 
