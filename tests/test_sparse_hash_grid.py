@@ -272,3 +272,27 @@ def test_rows_encode_the_selected_rays_as_their_copy_bit_for_bit(scatter):
     torch.testing.assert_close(grid(f.points, f.face_axis, rows=rows).detach(), reference, atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match="rows"):
         grid(f.points, f.face_axis, rows=torch.tensor([len(f.points)]))
+
+
+def test_auto_scatter_buckets_on_hosts_with_many_threads_per_level(monkeypatch):
+    """``backward_scatter = "auto"`` (the default) takes the bucketed scatter from
+    `BUCKETS_FROM_THREADS_PER_LEVEL` threads per level on, the row-range one below: same gradient."""
+    from neuralrt.neural import sparse_hash_grid as shg
+
+    f = _featurized_points(n=600, seed=7)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    assert grid.backward_scatter == "auto"
+    upstream = torch.randn(len(f.points), grid.output_dim(f.points.shape[1]), generator=torch.Generator().manual_seed(3))
+
+    def table_grad():
+        return torch.autograd.grad((grid(f.points, f.face_axis) * upstream).sum(), grid.table)[0]
+
+    grid.backward_scatter = "row_ranges"
+    expected = table_grad()
+    grid.backward_scatter = "auto"
+    monkeypatch.setattr(shg, "_backward_rows_kernel", None)  # the row-range scatter cannot run
+    monkeypatch.setattr(shg, "BUCKETS_FROM_THREADS_PER_LEVEL", 0)  # any host has "many" threads
+    assert torch.equal(table_grad(), expected) and expected.abs().sum() > 0
+    monkeypatch.setattr(shg, "BUCKETS_FROM_THREADS_PER_LEVEL", 10**6)  # no host has: row ranges
+    with pytest.raises(TypeError):
+        table_grad()

@@ -19,7 +19,9 @@ a grid plane of every level (`check_resolutions`).
 One contract, implementations chosen once by the table's device: on the CPU (fp32 table), fused
 numba kernels (the forward parallel over rays; the backward parallel over table rows: each thread
 owns a range of one level's rows and adds the contributions that land there, so there are no
-atomics, no per-thread tables to sum, and the sums are the serial ones); on CUDA, Triton kernels (`sparse_hash_grid_triton`:
+atomics, no per-thread tables to sum, and the sums are the serial ones; on hosts with many threads
+per level the contributions are first bucketed by row range, so that the work still divides); on
+CUDA, Triton kernels (`sparse_hash_grid_triton`:
 gather forward, atomic-add backward); elsewhere the vectorized pure-torch
 `sparse_hash_grid_reference`, which is also the reference the tests compare the kernels against.
 """
@@ -617,6 +619,12 @@ def sparse_hash_grid_reference(
 # ---------------------------------------------------------------------------------------------
 
 
+# The encoder backward alone (bench_scaling.py --scatters, 16-core host, hq, 2 levels), ms, row
+# ranges vs buckets: 2 threads 1.76 vs 3.71 (2^13 rays), 27.9 vs 64.6 (2^17); 16 threads 2.17 vs
+# 1.19, 31.3 vs 20.5. Between 2 and 16 unmeasured: buckets from 4 threads per level (8 for 2 levels).
+BUCKETS_FROM_THREADS_PER_LEVEL = 4
+
+
 class SparseHashGrid(nn.Module):
     """Multi-resolution hash grid over voxel faces; features of H points concatenated per ray.
 
@@ -648,11 +656,15 @@ class SparseHashGrid(nn.Module):
         init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
         self.table = nn.Parameter(init)  # [L, T, F]
         self._resolutions_np = np.asarray(self.resolutions, np.int64)
-        # CPU backward: "row_ranges" (threads own table rows, hashing each point again), "saved_rows"
-        # (the same, scattering from the rows and weights the forward saved: the backward ~0.8 ms
-        # faster, the forward ~0.4 ms slower, no gain in the step, docs/lsnif.md) or "thread_tables"
-        # (a private table per thread, summed); the last two kept to measure against; not stored in models.
-        self.backward_scatter = "row_ranges"
+        # CPU backward: "auto" (the default: "buckets" on hosts of at least BUCKETS_FROM_THREADS_PER_LEVEL
+        # threads per level, else "row_ranges"), "row_ranges" (threads own table rows, hashing each point
+        # again: R row ranges per level cost R times the hashing, so no gain past one thread per level),
+        # "buckets" (the contributions bucketed by row range first: twice the work on 2 threads, but it
+        # shrinks with threads), "saved_rows" (as row_ranges, from the rows and weights the forward saved:
+        # the backward ~0.8 ms faster, the forward ~0.4 ms slower, no gain in the step on 2 cores,
+        # docs/lsnif.md) or "thread_tables" (a private table per thread, summed); the last two kept to
+        # measure against. All but thread_tables give the serial scatter's bits. Not stored in models.
+        self.backward_scatter = "auto"
         # CPU forward with ``dtype=torch.bfloat16``: the kernel writes bf16 (True) or fp32 that is
         # then cast (False: the earlier path, kept to measure against); same values either way.
         self.low_precision_output = True
@@ -692,6 +704,8 @@ class SparseHashGrid(nn.Module):
         elif cpu_kernels:
             kernel_dtype = torch.bfloat16 if dtype == torch.bfloat16 and self.low_precision_output else torch.float32
             scatter = self.backward_scatter
+            if scatter == "auto":
+                scatter = "buckets" if numba.get_num_threads() >= BUCKETS_FROM_THREADS_PER_LEVEL * len(self.resolutions) else "row_ranges"
             if scatter == "saved_rows" and not (torch.is_grad_enabled() and self.table.requires_grad):
                 scatter = "row_ranges"  # no backward to come: nothing to save
             features = _SparseHashGridFunction.apply(points, face_axis, rows, self.table, self._resolutions_np, scatter,
