@@ -2,7 +2,8 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap] [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter]
+        [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default, except in
 ``overlap``), by ``--pair``:
@@ -26,6 +27,9 @@ Configurations (both draw the next batch on a background thread, the default, ex
   (`prefetch.IDLE_PRIORITY`; Linux);
 - ``overlap``: each batch drawn in turn by the loop's thread (``train_model(overlap_sampling=False)``)
   against drawn ahead on the background thread (the default);
+- ``loss_threads``: the loss pass (`training_loss_numba`) on one thread, as it ran before its row
+  chunks went parallel, against on all of numba's threads;
+- ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -113,11 +117,29 @@ def _configure(model: LSNIFModel, config: str) -> None:
         mlp_module.ROW_BUCKET["cpu"] = 1 if before else 256
     elif PAIR == "overlap":
         pass  # the loop's own switch (`_train`)
+    elif PAIR == "loss_threads":
+        lsnif_module.training_loss = _on_one_thread(training_loss) if before else training_loss
+    elif PAIR == "scatter":
+        model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
     else:
         lsnif_module.training_loss = training_loss_torch if before else training_loss
         model.encoder.low_precision_output = not before
+
+
+def _on_one_thread(fn):
+    """``fn`` with numba's thread count set to 1 for the call (numba's count is per calling thread)."""
+
+    def wrapped(*args, **kwargs):
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            numba.set_num_threads(threads)
+
+    return wrapped
 
 
 def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:
@@ -154,7 +176,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair
