@@ -380,7 +380,13 @@ class RayExecutor(Executor):
         self._connect()
         ray = self._ray
         board = ray.remote(num_cpus=0)(_ProgressBoard).remote()
-        task = ray.remote(_train_on_worker)
+        # One task per worker process (max_calls=1): a cancelled task's KeyboardInterrupt can land
+        # inside a lazy import (torch imports its compiler, ~1.6 s, when training builds the
+        # optimizer) and leave that module half-initialized in the process, and a reused worker
+        # then failed every later task there ("partially initialized module 'torch._dynamo'", on
+        # a Ray instance that outlives the run: a cluster, a notebook, the tests). A fresh
+        # process costs a few seconds of imports, against minutes of training.
+        task = ray.remote(max_calls=1)(_train_on_worker)
         running = self._running
         for job in jobs:
             mesh_ref = ray.put(job.mesh)  # once per mesh; the task gets it from the object store
