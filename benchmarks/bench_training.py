@@ -1,7 +1,7 @@
 """LSNIF training throughput on the CPU: today's step against the step before a CPU speed-up,
 alternating in one run.
 
-    python benchmarks/bench_training.py [--mesh PATH] [--steps 60] [--repeats 3] [--preset hq]
+    python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
         [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter]
         [--name training_cpu_step]
 
@@ -58,9 +58,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_info, print_table, write_results  # noqa: E402
+from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
-from neuralrt.geometry.mesh import load_mesh  # noqa: E402
 from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_features import select_network_rays, select_network_rays_torch  # noqa: E402
@@ -180,7 +180,7 @@ def main() -> None:
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair
-    mesh = load_mesh(args.mesh)
+    mesh = resolve_mesh(args.mesh)  # a path, or procedural:NAME:DETAIL (machines without ../shared)
     truth = MeshBLAS(mesh)
     config = LSNIFConfig.preset(args.preset)
     load_before = os.getloadavg()[0]
