@@ -30,6 +30,8 @@ Configurations (both draw the next batch on a background thread, the default, ex
 - ``loss_threads``: the loss pass (`training_loss_numba`) on one thread, as it ran before its row
   chunks went parallel, against on all of numba's threads;
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
+- ``draw_threads``: the batch drawing thread's numba passes and Embree chunks on all of numba's
+  threads against on one (its own count: `numba.set_num_threads` is per calling thread).
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -119,6 +121,8 @@ def _configure(model: LSNIFModel, config: str) -> None:
         pass  # the loop's own switch (`_train`)
     elif PAIR == "loss_threads":
         lsnif_module.training_loss = _on_one_thread(training_loss) if before else training_loss
+    elif PAIR == "draw_threads":
+        prefetch_module._lower_priority = _priority_default if before else _lower_priority_one_thread
     elif PAIR == "scatter":
         model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
@@ -126,6 +130,14 @@ def _configure(model: LSNIFModel, config: str) -> None:
     else:
         lsnif_module.training_loss = training_loss_torch if before else training_loss
         model.encoder.low_precision_output = not before
+
+
+_priority_default = prefetch_module._lower_priority
+
+
+def _lower_priority_one_thread() -> None:
+    _priority_default()
+    numba.set_num_threads(1)
 
 
 def _on_one_thread(fn):
@@ -176,7 +188,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads"), default="step", help="which before/after pair (module docstring)")
     args = ap.parse_args()
     global PAIR
     PAIR = args.pair
