@@ -20,10 +20,12 @@
 #       each, each under its own timeout (bench_nif writes its JSON at the end). Not run to the end yet: the
 #       first try named statue(6), which does not exist, and stopped at once.
 #
-# Why stages: one device call runs at most 600 s, and a session has 30 device-minutes; a fresh machine
-# takes 1-2 min to start and is given back 30 s after a call, so count each call as its run + 2 min:
-# nbvh 11.5 + tests 9 + devices 8 = 28.5 min; `nif` (11.5) needs a second session, or replaces `devices`. Every stage's timeouts add up to less than 600 s, and every
-# benchmark writes its JSON after each section, so a stage cut short still returns what it measured.
+# Why stages: one device call runs at most 600 s, and a session now has 15 device-minutes (it had 30); a
+# fresh machine takes ~1 min to start and is given back 30 s after a call (give_back sooner), so count each
+# call as its run + ~1.5 min: one long stage per session (nbvh, nif, or devices + scaling), or `scaling`
+# (seen: 4 thread counts + `TESTS_S=100 ... tests` 383 s; SCALING_THREADS="2 16" 190 s). Every stage's
+# timeouts add up to less than 600 s, and every benchmark writes its JSON after each section, so a stage
+# cut short still returns what it measured.
 # Logs and JSON go to $OUT (default ./gpu-out), at most 8 files per call.
 set -uo pipefail
 STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices|nif|scaling}
