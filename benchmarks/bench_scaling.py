@@ -25,7 +25,6 @@ over 1 thread. Writes benchmarks/results/<--name>.json.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import os
 import subprocess
@@ -34,74 +33,6 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-
-
-class StageTimer:
-    """Milliseconds per step in each stage of LSNIF training, per thread (the loop's or the batch
-    drawing one), from wrappers around the stages' functions: cProfile cannot say this (on Python
-    3.12 it sees neither numba's kernels nor which thread a call ran on). Nested stages are inside
-    their parents' time; ``other`` is the loop's wall time outside its top-level stages."""
-
-    # (label, owner, attribute, top-level on the loop's thread)
-    def _targets(self):
-        import torch
-
-        from neuralrt.methods import lsnif, lsnif_loss
-        from neuralrt.neural import mlp, sparse_hash_grid
-        from neuralrt.training import prefetch, ray_distribution
-
-        return [("wait for the batch", prefetch.BatchSource, "next", True),
-                ("draw (rays + Embree)", ray_distribution.BoxRayDistribution, "sample", False),
-                ("prepare (walk + selection)", lsnif.LSNIFModel, "prepare_training_batch", False),
-                ("forward + loss", lsnif.LSNIFModel, "training_step", True),
-                ("  encoder forward", sparse_hash_grid._SparseHashGridFunction, "forward", False),
-                ("  hidden layers forward", mlp._LowPrecisionHidden, "forward", False),
-                ("  output layer + loss", lsnif_loss, "training_loss_numba", False),  # (bench_training sets lsnif.training_loss)
-                ("backward", torch.Tensor, "backward", True),
-                ("  encoder backward", sparse_hash_grid._SparseHashGridFunction, "backward", False),
-                ("  hidden layers backward", mlp._LowPrecisionHidden, "backward", False),
-                ("optimizer", torch.optim.Adam, "step", True),
-                ("after the step", lsnif.LSNIFModel, "after_training_step", True)]
-
-    def __enter__(self):
-        import threading
-
-        self.seconds: dict[tuple[str, str], float] = {}
-        self._saved = []
-        main = threading.main_thread()
-        for label, owner, name, _ in self._targets():
-            raw = inspect.getattr_static(owner, name)  # (may be inherited: restored by deleting ours)
-            fn = raw.__func__ if isinstance(raw, staticmethod) else raw
-
-            def timed(*a, _fn=fn, _label=label, **k):
-                t0 = time.perf_counter()
-                try:
-                    return _fn(*a, **k)
-                finally:
-                    where = "loop" if threading.current_thread() is main else "drawing thread"
-                    key = (_label, where)
-                    self.seconds[key] = self.seconds.get(key, 0.0) + time.perf_counter() - t0
-
-            setattr(owner, name, staticmethod(timed) if isinstance(raw, staticmethod) else timed)
-            self._saved.append((owner, name, raw if name in vars(owner) else None))
-        return self
-
-    def __exit__(self, *exc):
-        for owner, name, raw in reversed(self._saved):
-            if raw is None:
-                delattr(owner, name)
-            else:
-                setattr(owner, name, raw)
-
-    def per_step(self, wall: float, steps: int) -> dict:
-        order = [t[0] for t in self._targets()]
-        keys = sorted(self.seconds, key=lambda k: (k[1] != "loop", order.index(k[0])))
-        out = {f"{label} [{where}]": round(1e3 * self.seconds[(label, where)] / steps, 3) for label, where in keys}
-        top = sum(s for (label, where), s in self.seconds.items()
-                  if where == "loop" and any(t[0] == label and t[3] for t in self._targets()))
-        out["other [loop]"] = round(1e3 * (wall - top) / steps, 3)
-        out["wall"] = round(1e3 * wall / steps, 3)
-        return out
 
 
 def _scatter_times(mesh, truth, config, args) -> dict:
@@ -143,6 +74,7 @@ def _child(args) -> dict:
 
     sys.path.insert(0, str(HERE))
     from bench_lsnif import resolve_mesh
+    from _stage_timer import StageTimer
     from bench_training import _train
 
     from neuralrt.accel.mesh_blas import MeshBLAS

@@ -38,17 +38,15 @@ The other switches are today's in both.
 
 Each run trains a fresh model (same seed) for ``--steps`` steps after one warm-up run (numba
 compilation); rays/s is rays drawn / wall time of the whole loop; ``paired`` ratios are each
-``after`` run over the ``before`` run just before it. Also records a cProfile of one run of each,
-summarised as seconds per stage, and the 1-minute load average before and after.
+``after`` run over the ``before`` run just before it. Also records one more run of each under
+`StageTimer` (ms per step in each stage, per thread), and the 1-minute load average before and after.
 Writes benchmarks/results/<--name>.json (training_cpu.json holds the earlier pair's run).
 """
 
 from __future__ import annotations
 
 import argparse
-import cProfile
 import os
-import pstats
 import statistics
 import sys
 import time
@@ -60,6 +58,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine_info, print_table, write_results  # noqa: E402
+from _stage_timer import StageTimer  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -70,27 +69,6 @@ from neuralrt.methods.lsnif_loss import training_loss, training_loss_torch  # no
 from neuralrt.neural import mlp as mlp_module  # noqa: E402
 from neuralrt.training import prefetch as prefetch_module  # noqa: E402
 from neuralrt.training.trainer import train_model  # noqa: E402
-
-# Stages of a step as cProfile names them (cumulative seconds of these functions).
-_STAGES = {
-    "sample (rays + Embree ground truth)": "ray_distribution.py:sample",
-    "featurize (voxel walk)": "lsnif.py:_featurize",
-    "hash-grid forward": "sparse_hash_grid.py:_forward_kernel",
-    "MLP forward": "mlp.py:forward",
-    "MLP hidden-layer backward (function)": "mlp.py:backward",
-    "backward (all)": "_tensor.py:backward",
-    "hash-grid backward kernel": "sparse_hash_grid.py:_backward_kernel",
-    "hash-grid backward kernel (row ranges)": "sparse_hash_grid.py:_backward_rows_kernel",
-    "hash-grid backward kernel (saved rows)": "sparse_hash_grid.py:_backward_saved_kernel",
-    "select network rays": "lsnif_features.py:select_network_rays_numba",
-    "select network rays (torch)": "lsnif_features.py:select_network_rays_torch",
-    "select network rows (index only)": "lsnif_features.py:select_network_rows_numba",
-    "optimizer (fused Adam)": "adam.py:step",
-    "MLP hidden layers forward": "mlp.py:hidden_forward",
-    "output layer + loss (torch ops, forward)": "lsnif_loss.py:training_loss_torch",
-    "output layer + loss (numba passes, forward)": "lsnif_loss.py:training_loss_numba",
-}
-
 
 CONFIGS = ("before", "after")
 
@@ -168,17 +146,10 @@ def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after
 
 
 def _profile(mesh, truth, config, steps: int, variant: str) -> dict:
-    prof = cProfile.Profile()
-    prof.enable()
-    wall, _ = _train(mesh, truth, config, steps, True, variant)
-    prof.disable()
-    stats = pstats.Stats(prof).stats
-    stages = {}
-    for label, key in _STAGES.items():
-        file, func = key.split(":")
-        # max: a nested function of the same name (the MLP's autograd forward in MLP.forward) is inside the outer one's time
-        stages[label] = round(max((v[3] for (f, _, fn), v in stats.items() if f.endswith(file) and fn == func), default=0.0), 4)
-    return {"wall_s": round(wall, 4), "steps": steps, "cumulative_s": stages}
+    """One more run of ``variant`` under `StageTimer`: ms per step in each stage, per thread."""
+    with StageTimer() as timer:
+        wall, _ = _train(mesh, truth, config, steps, True, variant)
+    return {"wall_s": round(wall, 4), "steps": steps, "ms_per_step": timer.per_step(wall, steps)}
 
 
 def main() -> None:
@@ -219,7 +190,7 @@ def main() -> None:
         "median_rays_per_s": median,
         "paired_ratios_after_over_before": [round(r, 3) for r in paired],
         "median_paired_ratio": round(statistics.median(paired), 3),
-        "profile_cumulative_s": profiles,
+        "profile_ms_per_step": profiles,
     }
     print(summary)
     path = write_results(args.name, rows, {"machine": machine_info(), "summary": summary})
