@@ -402,45 +402,61 @@ def _backward_saved_kernel(points, axes, rows, grad_out, resolutions, ranges_per
 
 
 @numba.njit(cache=True, inline="always")
-def _range_of(row, base, table_size, ranges_per_level):
-    """Which of its level's ``ranges_per_level`` equal row ranges a table row falls in."""
-    return (row - base) * ranges_per_level // table_size
+def _bucket_chunk(first, last, points, axes, rows, grad_out, resolutions, ranges_per_level, table_size, mask, at, write,
+                  entry_rows, entry_values):  # fmt: skip
+    """Rays ``first..last`` (output rows; input rows ``rows[n]``) of one chunk, their contributions
+    in order of ray, point, level, corner, each into the bucket of the row range it lands in:
+    ``at[bucket] += 1`` per contribution, and with ``write`` the row and ``w * grad`` stored at
+    the entry ``at[bucket]`` held before (so ``at`` counts, or, starting from the chunk's
+    offsets, places)."""
+    n_levels, n_points = resolutions.shape[0], axes.shape[1]
+    n_feat = entry_values.shape[1]
+    stride = n_levels * n_feat
+    slots = np.empty(8, np.int64)
+    weights = np.empty(8, np.float32)
+    for n in range(first, last):
+        src = rows[n]
+        for h in range(n_points):
+            code = axes[src, h]
+            if code < 0 or code > _ORIGIN_POINT:
+                continue
+            for lvl in range(n_levels):
+                base = lvl * table_size
+                k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, resolutions[lvl], mask, base,
+                             slots, weights)  # fmt: skip
+                col = h * stride + lvl * n_feat
+                for c in range(k):
+                    b = lvl * ranges_per_level + (slots[c] - base) * ranges_per_level // table_size
+                    e = at[b]
+                    at[b] = e + 1
+                    if write:
+                        entry_rows[e] = slots[c]
+                        for f in range(n_feat):
+                            entry_values[e, f] = weights[c] * as_fp32(grad_out[n, col + f])
 
 
 @numba.njit(parallel=True, cache=True)
 def _backward_buckets_kernel(points, axes, rows, grad_out, resolutions, ranges_per_level, n_chunks, grad_table):
     """`_backward_rows_kernel`'s result (bit for bit) with work that shrinks with the thread count:
     each of ``n_chunks`` chunks of rays counts, then writes, its contributions ``w * grad`` into the
-    bucket of the row range they land in (one pass to count, one to write, both hashing the point;
+    bucket of the row range they land in (`_bucket_chunk`, twice, hashing the points each time;
     buckets keep ray order: chunk order, then ray, point, corner), and each (level, range) task
     zeroes its rows and adds its bucket in that order. The rows-owned-by-a-task scatter instead
     hashes every point of its level in every task: with R ranges per level R times the work, so it
     gains nothing past one task per level (2 levels: 2 threads). Gradient row n belongs to input
     row ``rows[n]`` (no copy of the selected rays)."""
-    n_rays, n_points = rows.shape[0], axes.shape[1]
+    n_rays = rows.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = grad_table.shape[1]
     table_size = grad_table.shape[0] // n_levels
     mask = np.int64(table_size - 1)
-    stride = n_levels * n_feat
     n_buckets = n_levels * ranges_per_level
     per_chunk = -(-n_rays // n_chunks)
+    no_rows, no_values = np.empty(0, np.int64), np.empty((0, n_feat), np.float32)
     counts = np.zeros((n_chunks, n_buckets), np.int64)
     for chunk in numba.prange(n_chunks):
-        slots = np.empty(8, np.int64)
-        weights = np.empty(8, np.float32)
-        for n in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays)):
-            src = rows[n]
-            for h in range(n_points):
-                code = axes[src, h]
-                if code < 0 or code > _ORIGIN_POINT:
-                    continue
-                for lvl in range(n_levels):
-                    base = lvl * table_size
-                    k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, resolutions[lvl], mask, base,
-                                 slots, weights)  # fmt: skip
-                    for c in range(k):
-                        counts[chunk, lvl * ranges_per_level + _range_of(slots[c], base, table_size, ranges_per_level)] += 1
+        _bucket_chunk(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays), points, axes, rows, grad_out, resolutions,
+                      ranges_per_level, table_size, mask, counts[chunk], False, no_rows, no_values)  # fmt: skip
     # Bucket-major offsets: bucket b holds chunk 0's entries of b, then chunk 1's, ...
     starts = np.empty(n_buckets + 1, np.int64)
     cursor = np.empty((n_chunks, n_buckets), np.int64)
@@ -454,28 +470,8 @@ def _backward_buckets_kernel(points, axes, rows, grad_out, resolutions, ranges_p
     entry_rows = np.empty(total, np.int64)
     entry_values = np.empty((total, n_feat), np.float32)
     for chunk in numba.prange(n_chunks):
-        slots = np.empty(8, np.int64)
-        weights = np.empty(8, np.float32)
-        at = cursor[chunk]
-        for n in range(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays)):
-            src = rows[n]
-            for h in range(n_points):
-                code = axes[src, h]
-                if code < 0 or code > _ORIGIN_POINT:
-                    continue
-                for lvl in range(n_levels):
-                    base = lvl * table_size
-                    k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code, resolutions[lvl], mask, base,
-                                 slots, weights)  # fmt: skip
-                    col = h * stride + lvl * n_feat
-                    for c in range(k):
-                        b = lvl * ranges_per_level + _range_of(slots[c], base, table_size, ranges_per_level)
-                        e = at[b]
-                        at[b] = e + 1
-                        entry_rows[e] = slots[c]
-                        w = weights[c]
-                        for f in range(n_feat):
-                            entry_values[e, f] = w * as_fp32(grad_out[n, col + f])
+        _bucket_chunk(chunk * per_chunk, min((chunk + 1) * per_chunk, n_rays), points, axes, rows, grad_out, resolutions,
+                      ranges_per_level, table_size, mask, cursor[chunk], True, entry_rows, entry_values)  # fmt: skip
     for b in numba.prange(n_buckets):
         lvl, r = b // ranges_per_level, b % ranges_per_level
         base = lvl * table_size
