@@ -35,9 +35,16 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def _at_batch(config, batch: int, default_steps: int):
+    """``config`` at ``batch`` rays per step, and the steps that draw the rays of ``default_steps``
+    steps at its own batch (fewer, larger steps; at least 8)."""
+    sized = config.model_copy(update={"training": config.training.model_copy(update={"batch_size": batch})})
+    return sized, max(8, default_steps * config.training.batch_size // batch)
+
+
 def _scatter_times(mesh, truth, config, args) -> dict:
     """The encoder's backward (autograd into the table) of one real batch per training batch size,
-    with each of ``--scatters``; best of 7, ms. Every scatter's gradient is checked equal to the first's."""
+    with each of ``--scatters``; best of 8 runs (the first also compiles), ms. Every scatter's gradient is checked equal to the first's."""
     import torch
 
     from neuralrt.methods.lsnif import LSNIFModel
@@ -96,16 +103,13 @@ def _child(args) -> dict:
         for batch in args.train_batches:
             if batch == default_batch:
                 continue
-            # The same rays drawn as at the default batch: fewer, larger steps.
-            sized = config.model_copy(update={"training": config.training.model_copy(update={"batch_size": batch})})
-            steps = max(8, args.steps * default_batch // batch)
+            sized, steps = _at_batch(config, batch, args.steps)
             _train(train_mesh, train_truth, sized, 2, True)  # warm-up at this batch (oneDNN kernels for its row counts)
             runs = [_train(train_mesh, train_truth, sized, steps, True) for _ in range(2)]
             row[f"train_{preset}_batch{batch}_rays/s"] = max(n / wall for wall, n in runs)
         if args.profile:
             for batch in sorted({default_batch, *args.train_batches}):
-                sized = config.model_copy(update={"training": config.training.model_copy(update={"batch_size": batch})})
-                steps = max(8, args.steps * default_batch // batch)
+                sized, steps = _at_batch(config, batch, args.steps)
                 with StageTimer() as timer:
                     wall, _ = _train(train_mesh, train_truth, sized, steps, True)
                 row[f"train_{preset}_batch{batch}_stages_ms_per_step"] = timer.per_step(wall, steps)

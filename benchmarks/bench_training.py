@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads]
         [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default, except in
