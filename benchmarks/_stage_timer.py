@@ -40,8 +40,11 @@ class StageTimer:
     def __enter__(self):
         self.seconds: dict[tuple[str, str], float] = {}
         self._saved = []
+        targets = self._targets()
+        self._order = [label for label, *_ in targets]
+        self._top_level = {label for label, _, _, top in targets if top}
         main = threading.main_thread()
-        for label, owner, name, _ in self._targets():
+        for label, owner, name, _ in targets:
             raw = inspect.getattr_static(owner, name)  # (may be inherited: restored by deleting ours)
             fn = raw.__func__ if isinstance(raw, staticmethod) else raw
 
@@ -66,11 +69,9 @@ class StageTimer:
                 setattr(owner, name, raw)
 
     def per_step(self, wall: float, steps: int) -> dict:
-        order = [t[0] for t in self._targets()]
-        keys = sorted(self.seconds, key=lambda k: (k[1] != "loop", order.index(k[0])))
+        keys = sorted(self.seconds, key=lambda k: (k[1] != "loop", self._order.index(k[0])))
         out = {f"{label} [{where}]": round(1e3 * self.seconds[(label, where)] / steps, 3) for label, where in keys}
-        top = sum(s for (label, where), s in self.seconds.items()
-                  if where == "loop" and any(t[0] == label and t[3] for t in self._targets()))
+        top = sum(s for (label, where), s in self.seconds.items() if where == "loop" and label in self._top_level)
         out["other [loop]"] = round(1e3 * (wall - top) / steps, 3)
         out["wall"] = round(1e3 * wall / steps, 3)
         return out
