@@ -2,8 +2,8 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads]
-        [--name training_cpu_step]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads|loss_chunks]
+        [--draw-threads 1] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default, except in
 ``overlap``), by ``--pair``:
@@ -31,7 +31,11 @@ Configurations (both draw the next batch on a background thread, the default, ex
   chunks went parallel, against on all of numba's threads;
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
 - ``draw_threads``: the batch drawing thread's numba passes and Embree chunks on all of numba's
-  threads against on one (its own count: `numba.set_num_threads` is per calling thread).
+  threads against on ``--draw-threads`` (1; its own count: `numba.set_num_threads` is per calling
+  thread);
+- ``loss_chunks``: the loss passes' rows in chunks of 1,024 (as before session 23) against
+  `lsnif_loss.CHUNK_ROWS` (256: a 2^13-ray batch's ~5,400 network rays made 6 chunks of 1,024,
+  too few for 16 threads).
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -63,6 +67,7 @@ from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
+from neuralrt.methods import lsnif_loss as lsnif_loss_module  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_features import select_network_rays, select_network_rays_torch  # noqa: E402
 from neuralrt.methods.lsnif_loss import training_loss, training_loss_torch  # noqa: E402
@@ -74,6 +79,8 @@ CONFIGS = ("before", "after")
 
 
 PAIR = "step"  # --pair
+DRAW_THREADS = 1  # --draw-threads
+CHUNK_ROWS = lsnif_loss_module.CHUNK_ROWS
 
 
 def _configure(model: LSNIFModel, config: str) -> None:
@@ -100,7 +107,9 @@ def _configure(model: LSNIFModel, config: str) -> None:
     elif PAIR == "loss_threads":
         lsnif_module.training_loss = _on_one_thread(training_loss) if before else training_loss
     elif PAIR == "draw_threads":
-        prefetch_module._lower_priority = _priority_default if before else _lower_priority_one_thread
+        prefetch_module._lower_priority = _priority_default if before else _lower_priority_and_draw_threads
+    elif PAIR == "loss_chunks":
+        lsnif_loss_module.CHUNK_ROWS = 1024 if before else CHUNK_ROWS
     elif PAIR == "scatter":
         model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
@@ -113,9 +122,9 @@ def _configure(model: LSNIFModel, config: str) -> None:
 _priority_default = prefetch_module._lower_priority
 
 
-def _lower_priority_one_thread() -> None:
+def _lower_priority_and_draw_threads() -> None:
     _priority_default()
-    numba.set_num_threads(1)
+    numba.set_num_threads(min(DRAW_THREADS, numba.config.NUMBA_NUM_THREADS))
 
 
 def _on_one_thread(fn):
@@ -159,10 +168,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads", "loss_chunks"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--draw-threads", type=int, default=1, help="the drawing thread's numba threads in draw_threads' after")
     args = ap.parse_args()
-    global PAIR
-    PAIR = args.pair
+    global PAIR, DRAW_THREADS
+    PAIR, DRAW_THREADS = args.pair, args.draw_threads
     mesh = resolve_mesh(args.mesh)  # a path, or procedural:NAME:DETAIL (machines without ../shared)
     truth = MeshBLAS(mesh)
     config = LSNIFConfig.preset(args.preset)
@@ -184,6 +194,8 @@ def main() -> None:
     paired = [b["rays_per_s"] / a["rays_per_s"] for a, b in zip(rows[::2], rows[1::2])]
     summary = {
         "mesh": Path(args.mesh).name, "triangles": int(len(mesh.faces)), "preset": args.preset, "pair": args.pair,
+        **({"draw_threads": args.draw_threads} if args.pair == "draw_threads" else {}),
+        **({"chunk_rows_before_after": [1024, CHUNK_ROWS]} if args.pair == "loss_chunks" else {}),
         "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
         "load_1min_before_after": [round(load_before, 2), round(load_after, 2)],
         "best_rays_per_s": best, "after_over_before_best": round(best["after"] / best["before"], 3),

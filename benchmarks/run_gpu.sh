@@ -12,7 +12,11 @@
 #   bash benchmarks/run_gpu.sh scaling   # <= SCALING_S (330) s: issue 11's 16-core figures, on the host CPU (no GPU):
 #       benchmarks/bench_scaling.py at SCALING_THREADS (2 16 8 4; the 2-thread process is the baseline, each
 #       process's row written as soon as it ends), training also at 2^15- and 2^17-ray batches, ms per step in
-#       each stage at every batch size, the encoder backward per table-gradient scatter; JSON SCALING_NAME.
+#       each stage at every batch size, the encoder backward per table-gradient scatter (SCALING_ARGS replaces
+#       those last three's flags); JSON SCALING_NAME.
+#   bash benchmarks/run_gpu.sh pairs     # <= PAIR_S (100) s per pair: benchmarks/bench_training.py pairs on all the host's
+#       cores (PAIRS, words of pair[:draw threads], default "loss_chunks draw_threads:4"), procedural statue(2),
+#       hq, 150 steps x 3; JSON training_host_<pair>.
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
 #   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
 #       on statue(5) (4.8M triangles) and instances:6 (12 instances of statue(5) sharing one NIF object, 58M
@@ -26,17 +30,27 @@
 # (seen: 4 thread counts + `TESTS_S=100 ... tests` 383 s; SCALING_THREADS="2 16" 190 s). Every stage's
 # timeouts add up to less than 600 s, and every benchmark writes its JSON after each section, so a stage
 # cut short still returns what it measured.
-# Logs and JSON go to $OUT (default ./gpu-out), at most 8 files per call.
+# Several stages run one after the other in one call (`run_gpu.sh pairs scaling tests`); devices takes
+# no stage after it (its further arguments are bench_devices.py's).
+# Logs and JSON go to $OUT (default ./gpu-out). A call brings back at most 8 files: for more, point OUT
+# at a folder of /tmp and tar it into the call's $OUT at the end.
 set -uo pipefail
-STAGE=${1:?usage: run_gpu.sh nbvh|tests|devices|nif|scaling}
-case "$STAGE" in nbvh|tests|devices|nif|scaling) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices, nif or scaling)" >&2; exit 2 ;; esac
+[ $# -gt 0 ] || { echo "usage: run_gpu.sh STAGE... (nbvh, tests, devices, nif, scaling, pairs)" >&2; exit 2; }
+for STAGE in "$@"; do
+    [ "$STAGE" = devices ] && break
+    case "$STAGE" in nbvh|tests|nif|scaling|pairs) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices, nif, scaling or pairs)" >&2; exit 2 ;; esac
+done
 [ -d .gpu-deps ] || { echo "neuralrt: error: .gpu-deps missing: run bash ../shared/tools/gpu-bundle.sh .gpu-deps and carry it" >&2; exit 2; }
 OUT=${OUT:-gpu-out}; mkdir -p "$OUT"
-mkdir -p /tmp/site
-tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu-deps/wheels/*.whl
+if [ ! -e /tmp/site/.neuralrt-unpacked ]; then  # once per machine
+    mkdir -p /tmp/site
+    tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu-deps/wheels/*.whl && touch /tmp/site/.neuralrt-unpacked
+fi
 export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee "$OUT/gpu.txt"
+while [ $# -gt 0 ]; do
+STAGE=$1; shift
 case "$STAGE" in
 nbvh)
     timeout 60 python3 benchmarks/bench_nbvh_cuda.py --compile-only --out "$OUT/nbvh_cuda_compile.json" 2>&1 | tee "$OUT/nbvh_cuda_compile.log"
@@ -50,17 +64,29 @@ tests)
         | tee "$OUT/tests_nbvh_triton.log" | tail -20
     ;;
 devices)
-    shift
     timeout "${BENCH_SECONDS:-330}" python3 benchmarks/bench_devices.py --device cuda --out "$OUT/devices_cuda.json" "$@" 2>&1 \
         | tee "$OUT/bench.log"
+    shift $#
     ;;
 scaling)
     lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
     name=${SCALING_NAME:-scaling_cpu_16}
-    # shellcheck disable=SC2086  # SCALING_THREADS: words on purpose
+    # shellcheck disable=SC2086  # SCALING_THREADS, SCALING_ARGS: words on purpose
     timeout "${SCALING_S:-330}" python3 benchmarks/bench_scaling.py --threads ${SCALING_THREADS:-2 16 8 4} --steps 40 --repeats 4 \
-        --train-batches 32768 131072 --profile --scatters row_ranges buckets saved_rows --name "$name" 2>&1 | tee "$OUT/scaling.log"
+        ${SCALING_ARGS:---train-batches 32768 131072 --profile --scatters row_ranges buckets saved_rows} --name "$name" 2>&1 \
+        | tee "$OUT/scaling.log"
     cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no scaling JSON (cut short before the first process ended?)"
+    ;;
+pairs)
+    lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
+    # shellcheck disable=SC2086  # PAIRS: words on purpose
+    for item in ${PAIRS:-loss_chunks draw_threads:4}; do
+        pair=${item%%:*} draw=${item#*:}; [ "$draw" = "$item" ] && draw=1
+        name="training_host_${item/:/_}"
+        timeout "${PAIR_S:-100}" python3 benchmarks/bench_training.py --mesh procedural:statue:2 --pair "$pair" --draw-threads "$draw" \
+            --steps 150 --repeats 3 --name "$name" 2>&1 | tee -a "$OUT/pairs.log"
+        cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no $name.json (cut short?)" | tee -a "$OUT/pairs.log"
+    done
     ;;
 nif)
     for scene in cornell-statue:5 instances:6; do
@@ -71,3 +97,4 @@ nif)
     done
     ;;
 esac
+done

@@ -175,22 +175,25 @@ def _row_loss(row, sig, softplus, y, t_local, nx, ny, nz, ax, ay, az, target, nu
 
 
 # Rows per task of the two passes below. Fixed, not per thread: the chunk partials of the loss
-# pass are summed in chunk order, so the sums are the same whatever the thread count.
-_CHUNK_ROWS = 1024
+# pass are summed in chunk order, so the sums are the same whatever the thread count. 256: a
+# 2^13-ray batch's ~5,400 network rays gave 16 threads 6 chunks of 1,024; on 2 threads 256 and
+# 1,024 ran as fast (loss pass, 5,400 / 21,600 rows). Passed to the kernels, not a compile-time
+# global, so benchmarks can try other sizes.
+CHUNK_ROWS = 256
 
 
 @numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _output_layer_kernel(hidden, weight_t, bias, out):
+def _output_layer_kernel(hidden, weight_t, bias, out, chunk_rows):
     """``out [M, C] = hidden @ W^T + b`` in fp32, ``hidden [M, W]`` fp32 or bf16 bits (uint16),
     ``weight_t`` W^T zero-padded to ``[Wp, Cp]`` (multiples of 16) and flattened. 4 rows at once
     (4 independent FMA chains; each row's sum in j order), 16 outputs at a time; past the last row
-    of a chunk the last one repeats. Rows in chunks of `_CHUNK_ROWS` over the threads."""
+    of a chunk the last one repeats. Rows in chunks of ``chunk_rows`` over the threads."""
     n_net, width = hidden.shape
     n_out = bias.shape[0]
     padded_out = weight_t.shape[0] // (-(-width // 16) * 16)
-    for chunk in numba.prange(-(-n_net // _CHUNK_ROWS)):
-        lo = chunk * _CHUNK_ROWS
-        hi = min(lo + _CHUNK_ROWS, n_net)
+    for chunk in numba.prange(-(-n_net // chunk_rows)):
+        lo = chunk * chunk_rows
+        hi = min(lo + chunk_rows, n_net)
         h32 = np.zeros((4, width), np.float32)
         group_out = np.zeros((4, padded_out), np.float32)
         for first in range(lo, hi, 4):
@@ -215,14 +218,14 @@ def _output_layer_kernel(hidden, weight_t, bias, out):
 @numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_enter, t_exit, directions, hit, t_true, normal,
                       albedo, material, weights, num_materials, occlusion_logit, grad_hidden, grad_weight, grad_bias, sums,
-                      counts):  # fmt: skip
+                      counts, chunk_rows):  # fmt: skip
     """The loss and the gradients from the output layer's outputs ``out [M, C]`` (their sigmoids
     ``sig`` and the BCE's ``softplus`` = log(1 + exp(-|out[:, 0]|)) computed beforehand, vectorized):
     the terms of `training_loss_torch` summed into ``sums`` (float64, not divided by the counts),
     ``counts`` = (network rays that hit, wrong predictions, all hits of the batch); d loss / d
     hidden into ``grad_hidden`` (hidden's dtype, rounded as torch's cast), d loss / d W
     (``grad_weight``, ``[C, Wp]`` flattened, ``weight`` the same layout) and d loss / d b.
-    Rows in chunks of `_CHUNK_ROWS` over the threads; each chunk's sums, d W and d b are partials
+    Rows in chunks of ``chunk_rows`` over the threads; each chunk's sums, d W and d b are partials
     (float64) added up in chunk order afterwards."""
     n_net, width = hidden.shape
     n_out = out.shape[1]
@@ -239,7 +242,7 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
     scale[2] = weights[2] / max(n_hit, 1)
     scale[3] = weights[3] / max(3 * n_hit, 1)
     scale[4] = weights[4] / max(n_hit, 1)
-    n_chunks = -(-n_net // _CHUNK_ROWS)
+    n_chunks = -(-n_net // chunk_rows)
     chunk_sums = np.zeros((n_chunks, 5), np.float64)
     chunk_wrong = np.zeros(n_chunks, np.int64)
     chunk_bias = np.zeros((n_chunks, n_out), np.float64)
@@ -251,7 +254,7 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
         dh = np.zeros(padded_width, np.float32)
         part_sums, part_weight, part_bias = chunk_sums[chunk], chunk_weight[chunk], chunk_bias[chunk]
         wrong = 0
-        for i in range(chunk * _CHUNK_ROWS, min((chunk + 1) * _CHUNK_ROWS, n_net)):
+        for i in range(chunk * chunk_rows, min((chunk + 1) * chunk_rows, n_net)):
             r = active[i]
             y = hit[r]
             t_local = zero
@@ -352,7 +355,7 @@ def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
     grad_bias = np.empty(n_out, np.float32)
     out = np.empty((n_net, n_out), np.float32)
     bias = _array(output_layer.bias)
-    _output_layer_kernel(hidden_np, weight_t.reshape(-1), bias, out)
+    _output_layer_kernel(hidden_np, weight_t.reshape(-1), bias, out, CHUNK_ROWS)
     # The sigmoids and the BCE's softplus as vectorized torch ops (numba has no vector exp here).
     out_t = torch.from_numpy(out)
     sig = torch.sigmoid(out_t).numpy()
@@ -362,7 +365,7 @@ def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
     _head_loss_kernel(hidden_np, weight_rows.reshape(-1), out, sig, softplus, _array(active, torch.int64), _array(t_offset),
                       _array(t_enter), _array(t_exit), _array(directions), _array(truth.hit), _array(truth.t),
                       _array(truth.normal), _array(truth.albedo), _array(truth.material_id, torch.int64), w, num_materials,
-                      np.float32(occlusion_logit), grad_hidden, grad_weight, grad_bias, sums, counts)  # fmt: skip
+                      np.float32(occlusion_logit), grad_hidden, grad_weight, grad_bias, sums, counts, CHUNK_ROWS)  # fmt: skip
     n_hit, wrong, all_hits = counts.tolist()
     terms = ["occlusion"]
     if n_hit:
