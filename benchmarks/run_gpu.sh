@@ -16,7 +16,7 @@
 #       those last three's flags); JSON SCALING_NAME.
 #   bash benchmarks/run_gpu.sh pairs     # <= PAIR_S (100) s per pair: benchmarks/bench_training.py pairs on all the host's
 #       cores (PAIRS, words of pair[:draw threads], default "loss_chunks draw_threads:4"), procedural statue(2),
-#       hq, 150 steps x 3; JSON training_host_<pair>.
+#       hq, 200 steps x 5; JSON training_host_<pair>.
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
 #   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
 #       on statue(5) (4.8M triangles) and instances:6 (12 instances of statue(5) sharing one NIF object, 58M
@@ -84,7 +84,7 @@ pairs)
         pair=${item%%:*} draw=${item#*:}; [ "$draw" = "$item" ] && draw=1
         name="training_host_${item/:/_}"
         timeout "${PAIR_S:-100}" python3 benchmarks/bench_training.py --mesh procedural:statue:2 --pair "$pair" --draw-threads "$draw" \
-            --steps 150 --repeats 3 --name "$name" 2>&1 | tee -a "$OUT/pairs.log"
+            --steps 200 --repeats 5 --name "$name" 2>&1 | tee -a "$OUT/pairs.log"
         cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no $name.json (cut short?)" | tee -a "$OUT/pairs.log"
     done
     ;;
