@@ -33,9 +33,9 @@ Configurations (both draw the next batch on a background thread, the default, ex
 - ``draw_threads``: the batch drawing thread's numba passes and Embree chunks on all of numba's
   threads against on ``--draw-threads`` (1; its own count: `numba.set_num_threads` is per calling
   thread);
-- ``loss_chunks``: the loss passes' rows in chunks of 1,024 (as before session 23) against
-  `lsnif_loss.CHUNK_ROWS` (256: a 2^13-ray batch's ~5,400 network rays made 6 chunks of 1,024,
-  too few for 16 threads).
+- ``loss_chunks``: the loss passes' rows in chunks of `lsnif_loss.CHUNK_ROWS` (1,024) against
+  chunks of 256 (a 2^13-ray batch's ~5,400 network rays make 6 chunks of 1,024, fewer than 16
+  threads).
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -81,6 +81,7 @@ CONFIGS = ("before", "after")
 PAIR = "step"  # --pair
 DRAW_THREADS = 1  # --draw-threads
 CHUNK_ROWS = lsnif_loss_module.CHUNK_ROWS
+SMALL_CHUNK_ROWS = 256  # loss_chunks' after
 
 
 def _configure(model: LSNIFModel, config: str) -> None:
@@ -109,7 +110,7 @@ def _configure(model: LSNIFModel, config: str) -> None:
     elif PAIR == "draw_threads":
         prefetch_module._lower_priority = _priority_default if before else _lower_priority_and_draw_threads
     elif PAIR == "loss_chunks":
-        lsnif_loss_module.CHUNK_ROWS = 1024 if before else CHUNK_ROWS
+        lsnif_loss_module.CHUNK_ROWS = CHUNK_ROWS if before else SMALL_CHUNK_ROWS
     elif PAIR == "scatter":
         model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
@@ -195,7 +196,7 @@ def main() -> None:
     summary = {
         "mesh": Path(args.mesh).name, "triangles": int(len(mesh.faces)), "preset": args.preset, "pair": args.pair,
         **({"draw_threads": args.draw_threads} if args.pair == "draw_threads" else {}),
-        **({"chunk_rows_before_after": [1024, CHUNK_ROWS]} if args.pair == "loss_chunks" else {}),
+        **({"chunk_rows_before_after": [CHUNK_ROWS, SMALL_CHUNK_ROWS]} if args.pair == "loss_chunks" else {}),
         "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
         "load_1min_before_after": [round(load_before, 2), round(load_after, 2)],
         "best_rays_per_s": best, "after_over_before_best": round(best["after"] / best["before"], 3),

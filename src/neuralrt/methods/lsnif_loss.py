@@ -175,11 +175,11 @@ def _row_loss(row, sig, softplus, y, t_local, nx, ny, nz, ax, ay, az, target, nu
 
 
 # Rows per task of the two passes below. Fixed, not per thread: the chunk partials of the loss
-# pass are summed in chunk order, so the sums are the same whatever the thread count. 256: a
-# 2^13-ray batch's ~5,400 network rays gave 16 threads 6 chunks of 1,024; on 2 threads 256 and
-# 1,024 ran as fast (loss pass, 5,400 / 21,600 rows). Passed to the kernels, not a compile-time
-# global, so benchmarks can try other sizes.
-CHUNK_ROWS = 256
+# pass are summed in chunk order, so the sums are the same whatever the thread count. Passed to
+# the kernels, not a compile-time global, so benchmarks can try other sizes: 256 (more tasks for
+# 16 threads at a 2^13 batch's ~5,400 network rays) measured no faster in whole training, on 16
+# threads or on 2 (`bench_training.py --pair loss_chunks`, docs/lsnif.md).
+CHUNK_ROWS = 1024
 
 
 @numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
