@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads|loss_chunks]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads|loss_chunks|draw_pool]
         [--draw-threads 1] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default, except in
@@ -36,6 +36,9 @@ Configurations (both draw the next batch on a background thread, the default, ex
 - ``loss_chunks``: the loss passes' rows in chunks of `lsnif_loss.CHUNK_ROWS` (1,024) against
   chunks of 256 (a 2^13-ray batch's ~5,400 network rays make 6 chunks of 1,024, fewer than 16
   threads).
+- ``draw_pool``: the drawing thread's Embree chunks on the pool the loop's thread started with the
+  first batch (normal priority) against on a pool of its own, whose threads it starts (so they run
+  at its idle priority: a thread starts with its starter's scheduling policy);
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -65,6 +68,7 @@ from _common import machine_info, print_table, write_results  # noqa: E402
 from _stage_timer import StageTimer  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
+from neuralrt import host_threads  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.methods import lsnif as lsnif_module  # noqa: E402
 from neuralrt.methods import lsnif_loss as lsnif_loss_module  # noqa: E402
@@ -111,6 +115,8 @@ def _configure(model: LSNIFModel, config: str) -> None:
         prefetch_module._lower_priority = _priority_default if before else _lower_priority_and_draw_threads
     elif PAIR == "loss_chunks":
         lsnif_loss_module.CHUNK_ROWS = CHUNK_ROWS if before else SMALL_CHUNK_ROWS
+    elif PAIR == "draw_pool":
+        host_threads.thread_pool = _thread_pool_default if before else _thread_pool_per_policy
     elif PAIR == "scatter":
         model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
@@ -121,6 +127,14 @@ def _configure(model: LSNIFModel, config: str) -> None:
 
 
 _priority_default = prefetch_module._lower_priority
+
+
+_thread_pool_default = host_threads.thread_pool
+
+
+def _thread_pool_per_policy(purpose: str, workers: int):
+    """`host_threads.thread_pool` with one pool per scheduling policy of the calling thread."""
+    return _thread_pool_default(f"{purpose}-policy{os.sched_getscheduler(0)}", workers)
 
 
 def _lower_priority_and_draw_threads() -> None:
@@ -169,7 +183,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads", "loss_chunks"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool"), default="step", help="which before/after pair (module docstring)")
     ap.add_argument("--draw-threads", type=int, default=1, help="the drawing thread's numba threads in draw_threads' after")
     args = ap.parse_args()
     global PAIR, DRAW_THREADS
