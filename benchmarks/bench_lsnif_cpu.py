@@ -6,8 +6,8 @@ the same rays (`BoxRayDistribution`: half from a sphere around the box, half fro
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
 decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; with
-torch's GEMMs for the hidden layers after the first, ``HIDDEN_LAYERS_IN_DECODE = False``, the code
-before they moved into the decoding pass; and with the pipeline per thread, ``THREADED_PIPELINE =
+torch's GEMMs for the hidden layers after the first and with them in the decoding pass
+(``HIDDEN_LAYERS_IN_DECODE`` False and True; its default is False where the CPU has AMX); and with the pipeline per thread, ``THREADED_PIPELINE =
 True``), with
 ``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
@@ -76,12 +76,19 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         finally:
             lsnif_fused_cpu.WRITE_HITS = True
 
-    def fused_torch_hidden_intersect():  # torch's GEMMs for the later hidden layers (before they joined the decoding pass)
-        lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = False
-        try:
-            model.intersect(rays)
-        finally:
-            lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = True
+    def hidden_layers_in_decode(value: bool):
+        def intersect():
+            default = lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE  # (host-dependent: off where the CPU has AMX)
+            lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = value
+            try:
+                model.intersect(rays)
+            finally:
+                lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = default
+
+        return intersect
+
+    fused_torch_hidden_intersect = hidden_layers_in_decode(False)  # torch's GEMMs for the later hidden layers
+    fused_decode_hidden_intersect = hidden_layers_in_decode(True)  # the later hidden layers in the decoding pass
 
     def fused_threaded_intersect():  # the whole pipeline per thread on 1/T of the chunk (not the default)
         lsnif_fused_cpu.THREADED_PIPELINE = True
@@ -118,16 +125,17 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
             model.network(x, dtype)
 
     for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_torch_hidden_intersect,
-               fused_threaded_intersect, fused_occluded, unfused_intersect, mlp_only):  # compile / warm caches
+               fused_decode_hidden_intersect, fused_threaded_intersect, fused_occluded, unfused_intersect, mlp_only):  # compile / warm caches
         fn()
-    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_torch_hidden": [], "fused_threaded": [],
-             "occluded": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}  # fmt: skip
+    times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_torch_hidden": [], "fused_decode_hidden": [],
+             "fused_threaded": [], "occluded": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
         times["embree_occluded"].append(seconds(lambda: exact.occluded(rays)))
         times["fused"].append(seconds(fused_intersect))
         times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
         times["fused_torch_hidden"].append(seconds(fused_torch_hidden_intersect))
+        times["fused_decode_hidden"].append(seconds(fused_decode_hidden_intersect))
         times["fused_threaded"].append(seconds(fused_threaded_intersect))
         times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
@@ -138,8 +146,8 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
-    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_torch_hidden", "fused_threaded",
-                                          "occluded", "fused_fp32_l1", "unfused", "fused_network")}
+    rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_torch_hidden",
+                                          "fused_decode_hidden", "fused_threaded", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -157,8 +165,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "occluded_vs_embree": rate["occluded"] / rate["embree_occluded"],
         # the numba decoding pass (with the output layer) over the torch decoding of the raw outputs
         "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
-        # the later hidden layers in the decoding pass over torch's GEMMs for them
-        "hidden_in_decode_gain": rate["fused"] / rate["fused_torch_hidden"],
+        # the later hidden layers in the decoding pass over torch's GEMMs for them (either may be
+        # the default: `HIDDEN_LAYERS_IN_DECODE` is off where the CPU has AMX)
+        "hidden_layers_in_decode": lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE,
+        "hidden_in_decode_gain": rate["fused_decode_hidden"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -482,3 +483,12 @@ def test_bf16_dot_emulation_gives_the_instructions_bits_end_to_end(figure, tmp_p
     assert np.array_equal(emulated["hit"], hits.hit.numpy())
     assert np.array_equal(emulated["t"].view(np.uint32), hits.t.numpy().view(np.uint32))
     assert np.array_equal(emulated["normal"].view(np.uint32), hits.normal.numpy().view(np.uint32))
+
+
+@pytest.mark.skipif(not Path("/proc/cpuinfo").exists(), reason="needs Linux's /proc/cpuinfo")
+def test_amx_detection_agrees_with_the_kernels_cpu_flags():
+    """`HIDDEN_LAYERS_IN_DECODE` defaults to off where the CPU has AMX (torch's GEMMs run on it):
+    the check reads llvmlite's host features, whose name for it must match the kernel's flag."""
+    flags = next((line.split(":", 1)[1].split() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                  if line.startswith("flags")), [])  # fmt: skip
+    assert fused._host_has_amx() == ("amx_bf16" in flags)

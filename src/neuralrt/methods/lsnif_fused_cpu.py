@@ -406,13 +406,25 @@ WRITE_HITS = True
 # decoding pass from its raw outputs (for comparisons and tests).
 OUTPUT_LAYER_IN_DECODE = True
 
+def _host_has_amx() -> bool:
+    """Whether this CPU has AMX bf16 tiles, on which oneDNN runs torch's bf16 GEMMs."""
+    import llvmlite.binding as llvm
+
+    try:
+        return bool(llvm.get_host_cpu_features().get("amx-bf16", False))
+    except RuntimeError:  # (no feature list on this platform)
+        return False
+
+
 # With the bf16 pairs path (bf16, width a multiple of 16) and the output layer in the pass, the
 # hidden layers after the first run there too (`_later_hidden_rows`: 4 rays per weight pass, no
 # [M, W] gather or GEMM output; not torch's summation order or its double rounding of negative
 # activations, so answers differ from it within bf16 rounding); False: torch's bf16 GEMMs
-# (`hidden_layers`). Hairball(6) `hq` render rays, the layer alone (ad hoc): 177 vs 265 ns per
-# network ray on one thread, 99 vs 156 on two.
-HIDDEN_LAYERS_IN_DECODE = True
+# (`hidden_layers`). Hairball(6) `hq` render rays, the layer alone (ad hoc, AMD Zen 4): 177 vs
+# 265 ns per network ray on one thread, 99 vs 156 on two. Where the CPU has AMX, oneDNN's GEMMs
+# (on the tiles) beat these vdpbf16ps loops: hairball(6) `hq`, 2^17 rays, 2 threads of an Intel
+# Xeon with AMX, `intersect` median 1.00 -> 1.14 M rays/s with torch's (docs/lsnif.md, session 23).
+HIDDEN_LAYERS_IN_DECODE = not _host_has_amx()
 
 
 def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
