@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, load16, store16
-from ..neural.mlp import MLP
+from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
 from ..neural.sparse_hash_grid import face_point_level as _face_point_level
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
@@ -282,11 +282,15 @@ def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: t
     else:
         layers = network._cast_weights(compute_dtype)[1:]  # bf16 copies cached by the MLP
     m = len(active)
-    x = torch.index_select(hidden, 0, active, out=_buffer_tensor(m, hidden.shape[1], hidden.dtype, "gathered"))
+    # Padded as `MLP.forward` pads its bf16 rows (the same bits): few GEMM shapes, one oneDNN kernel each.
+    rows = m if compute_dtype == torch.float32 else padded_rows(m, hidden.device)
+    x = _buffer_tensor(rows, hidden.shape[1], hidden.dtype, "gathered")
+    torch.index_select(hidden, 0, active, out=x[:m])
+    x[m:] = 0
     for i, (w, b) in enumerate(layers):
-        x = torch.addmm(b, x, w.t(), out=_buffer_tensor(m, w.shape[0], x.dtype, f"layer {i % 2}"))
+        x = torch.addmm(b, x, w.t(), out=_buffer_tensor(rows, w.shape[0], x.dtype, f"layer {i % 2}"))
         F.leaky_relu_(x, network.slope)
-    return x
+    return x[:m]
 
 
 def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
@@ -420,11 +424,22 @@ def _host_has_amx() -> bool:
 # hidden layers after the first run there too (`_later_hidden_rows`: 4 rays per weight pass, no
 # [M, W] gather or GEMM output; not torch's summation order or its double rounding of negative
 # activations, so answers differ from it within bf16 rounding); False: torch's bf16 GEMMs
-# (`hidden_layers`). Hairball(6) `hq` render rays, the layer alone (ad hoc, AMD Zen 4): 177 vs
-# 265 ns per network ray on one thread, 99 vs 156 on two. Where the CPU has AMX, oneDNN's GEMMs
-# (on the tiles) beat these vdpbf16ps loops: hairball(6) `hq`, 2^17 rays, 2 threads of an Intel
-# Xeon with AMX, `intersect` median 1.00 -> 1.14 M rays/s with torch's (docs/lsnif.md, session 23).
-HIDDEN_LAYERS_IN_DECODE = not _host_has_amx()
+# (`hidden_layers`); None (the default): `later_layers_in_pass` decides by host and width.
+# Hairball(6) `hq` render rays, the layer alone (ad hoc, AMD Zen 4): 177 vs 265 ns per network ray
+# on one thread, 99 vs 156 on two. Where the CPU has AMX, oneDNN runs torch's bf16 GEMMs on the
+# tiles: on a 2-core Intel Xeon (session 23, docs/lsnif.md) they beat the pass for 128-wide layers
+# (`hq`: hairball(6), 2^17 rays, `intersect` median 1.00 -> 1.14 M rays/s, `occluded` 1.05 -> 1.12;
+# foliage(5) hybrid renders 1.34-1.45x -> 1.21-1.28x the exact time), not for 64-wide ones (`lq`:
+# hairball(6) hybrid renders 0.91-0.92x -> 1.00-1.10x).
+HIDDEN_LAYERS_IN_DECODE: bool | None = None
+HOST_HAS_AMX = _host_has_amx()
+
+
+def later_layers_in_pass(width: int) -> bool:
+    """Whether the hidden layers after the first run in the decoding pass (see HIDDEN_LAYERS_IN_DECODE)."""
+    if HIDDEN_LAYERS_IN_DECODE is not None:
+        return HIDDEN_LAYERS_IN_DECODE
+    return not (HOST_HAS_AMX and width >= 128)
 
 
 def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
@@ -598,7 +613,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
     wo, bo = output_layer_columns(p.network)
     x_f32, x_bf16 = np.zeros((0, 1), np.float32), np.zeros((0, 1), np.uint16)
     first_pairs = np.zeros((0, max(p.b1.shape[0] // 2, 1)), np.uint32)
-    if p.pairs and HIDDEN_LAYERS_IN_DECODE and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
+    if p.pairs and later_layers_in_pass(p.b1.shape[0]) and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
         first_pairs = hidden.view(torch.int16).numpy().view(np.uint16).view(np.uint32)
     else:
         x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
