@@ -7,8 +7,7 @@ with ``intersect`` through the fused kernel (the CPU default; also with its fp32
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
 decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; with
 torch's GEMMs for the hidden layers after the first and with them in the decoding pass
-(``HIDDEN_LAYERS_IN_DECODE`` False and True; by default torch's where the CPU has AMX and the
-layers are 128 wide); and with the pipeline per thread, ``THREADED_PIPELINE =
+(``HIDDEN_LAYERS_IN_DECODE`` False and True; by default torch's where the CPU has AMX); and with the pipeline per thread, ``THREADED_PIPELINE =
 True``), with
 ``occluded`` (the decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
@@ -79,7 +78,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
 
     def hidden_layers_in_decode(value: bool):
         def intersect():
-            default = lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE  # (None: by host and width, `later_layers_in_pass`)
+            default = lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE  # (None: by host, `later_layers_in_pass`)
             lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = value
             try:
                 model.intersect(rays)
@@ -168,7 +167,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "numba_decode_gain": rate["fused"] / rate["fused_torch_decode"],
         # the later hidden layers in the decoding pass over torch's GEMMs for them (either may be
         # the default: `HIDDEN_LAYERS_IN_DECODE` is off where the CPU has AMX)
-        "hidden_layers_in_decode": lsnif_fused_cpu.later_layers_in_pass(model.network.hidden[0].out_features),
+        "hidden_layers_in_decode": lsnif_fused_cpu.later_layers_in_pass(),
         "hidden_in_decode_gain": rate["fused_decode_hidden"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],

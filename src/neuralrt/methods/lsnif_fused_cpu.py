@@ -424,22 +424,20 @@ def _host_has_amx() -> bool:
 # hidden layers after the first run there too (`_later_hidden_rows`: 4 rays per weight pass, no
 # [M, W] gather or GEMM output; not torch's summation order or its double rounding of negative
 # activations, so answers differ from it within bf16 rounding); False: torch's bf16 GEMMs
-# (`hidden_layers`); None (the default): `later_layers_in_pass` decides by host and width.
+# (`hidden_layers`); None (the default): in the pass unless the CPU has AMX (`later_layers_in_pass`).
 # Hairball(6) `hq` render rays, the layer alone (ad hoc, AMD Zen 4): 177 vs 265 ns per network ray
 # on one thread, 99 vs 156 on two. Where the CPU has AMX, oneDNN runs torch's bf16 GEMMs on the
-# tiles: on a 2-core Intel Xeon (session 23, docs/lsnif.md) they beat the pass for 128-wide layers
-# (`hq`: hairball(6), 2^17 rays, `intersect` median 1.00 -> 1.14 M rays/s, `occluded` 1.05 -> 1.12;
-# foliage(5) hybrid renders 1.34-1.45x -> 1.21-1.28x the exact time), not for 64-wide ones (`lq`:
-# hairball(6) hybrid renders 0.91-0.92x -> 1.00-1.10x).
+# tiles and they win: a 2-core Intel Xeon (session 23, docs/lsnif.md), hairball(6), 2^17 rays,
+# same-run ratios of the pass over torch's GEMMs 0.76-0.99 (`hq`), 0.73-0.99 (`lq`) in 7 runs.
 HIDDEN_LAYERS_IN_DECODE: bool | None = None
 HOST_HAS_AMX = _host_has_amx()
 
 
-def later_layers_in_pass(width: int) -> bool:
+def later_layers_in_pass() -> bool:
     """Whether the hidden layers after the first run in the decoding pass (see HIDDEN_LAYERS_IN_DECODE)."""
     if HIDDEN_LAYERS_IN_DECODE is not None:
         return HIDDEN_LAYERS_IN_DECODE
-    return not (HOST_HAS_AMX and width >= 128)
+    return not HOST_HAS_AMX
 
 
 def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
@@ -613,7 +611,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
     wo, bo = output_layer_columns(p.network)
     x_f32, x_bf16 = np.zeros((0, 1), np.float32), np.zeros((0, 1), np.uint16)
     first_pairs = np.zeros((0, max(p.b1.shape[0] // 2, 1)), np.uint32)
-    if p.pairs and later_layers_in_pass(p.b1.shape[0]) and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
+    if p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
         first_pairs = hidden.view(torch.int16).numpy().view(np.uint16).view(np.uint32)
     else:
         x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
