@@ -1,5 +1,6 @@
 """MLP: the bf16 hidden layers' training function against autocast (bit-equal values and gradients)."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -63,3 +64,17 @@ def test_rows_padded_for_the_gemms_change_nothing(rows, monkeypatch):
         assert torch.equal(x_grad, reference[2])
         for a, b in zip(grads, reference[3]):  # sums over rows: the order may differ with their count
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_large_row_counts_pad_to_few_shapes_and_little_padding():
+    """Above 16k rows the GEMM rows round to 1/32 of their power of two: at most ~3% padding, and
+    at most 32 shapes per doubling of the row count (a renderer's batch sizes vary every call;
+    each new shape is a new oneDNN kernel)."""
+    cpu = torch.device("cpu")
+    rng = np.random.default_rng(3)
+    counts = rng.integers(1 << 14, 1 << 20, size=5000)
+    padded = [mlp_module.padded_rows(int(n), cpu) for n in counts]
+    assert all(p >= n and (p - n) <= n / 32 and p % 256 == 0 for n, p in zip(counts, padded))
+    for k in range(14, 20):  # shapes per octave
+        assert len({p for n, p in zip(counts, padded) if (1 << k) <= n < (1 << (k + 1))}) <= 32
+    assert mlp_module.padded_rows(5_391, cpu) == 5_632  # training batches: 256-row buckets, as before

@@ -25,6 +25,7 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import llvmlite.binding as llvm
 import numba
 import numpy as np
 import torch
@@ -410,10 +411,9 @@ WRITE_HITS = True
 # decoding pass from its raw outputs (for comparisons and tests).
 OUTPUT_LAYER_IN_DECODE = True
 
+
 def _host_has_amx() -> bool:
     """Whether this CPU has AMX bf16 tiles, on which oneDNN runs torch's bf16 GEMMs."""
-    import llvmlite.binding as llvm
-
     try:
         return bool(llvm.get_host_cpu_features().get("amx-bf16", False))
     except RuntimeError:  # (no feature list on this platform)
