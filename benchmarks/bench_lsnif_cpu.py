@@ -62,40 +62,25 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     def fused_intersect():
         model.intersect(rays)
 
-    def fused_fp32_first_layer_intersect():  # the fused pass with the earlier fp32 per-ray first layer
-        lsnif_fused_cpu.BF16_DOT_FIRST_LAYER = False
-        try:
-            model.intersect(rays)
-        finally:
-            lsnif_fused_cpu.BF16_DOT_FIRST_LAYER = True
+    def intersect_with(setting: str, value):
+        """``intersect`` with the module switch ``lsnif_fused_cpu.<setting>`` set to ``value``, then
+        restored (a default may be host-dependent: HIDDEN_LAYERS_IN_DECODE is None, by host)."""
 
-    def fused_torch_decode_intersect():  # the fused pass, decoded by torch ops (before the numba decoding)
-        lsnif_fused_cpu.WRITE_HITS = False
-        try:
-            model.intersect(rays)
-        finally:
-            lsnif_fused_cpu.WRITE_HITS = True
-
-    def hidden_layers_in_decode(value: bool):
         def intersect():
-            default = lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE  # (None: by host, `later_layers_in_pass`)
-            lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = value
+            default = getattr(lsnif_fused_cpu, setting)
+            setattr(lsnif_fused_cpu, setting, value)
             try:
                 model.intersect(rays)
             finally:
-                lsnif_fused_cpu.HIDDEN_LAYERS_IN_DECODE = default
+                setattr(lsnif_fused_cpu, setting, default)
 
         return intersect
 
-    fused_torch_hidden_intersect = hidden_layers_in_decode(False)  # torch's GEMMs for the later hidden layers
-    fused_decode_hidden_intersect = hidden_layers_in_decode(True)  # the later hidden layers in the decoding pass
-
-    def fused_threaded_intersect():  # the whole pipeline per thread on 1/T of the chunk (not the default)
-        lsnif_fused_cpu.THREADED_PIPELINE = True
-        try:
-            model.intersect(rays)
-        finally:
-            lsnif_fused_cpu.THREADED_PIPELINE = False
+    fused_fp32_first_layer_intersect = intersect_with("BF16_DOT_FIRST_LAYER", False)  # the earlier fp32 per-ray first layer
+    fused_torch_decode_intersect = intersect_with("WRITE_HITS", False)  # decoded by torch ops (before the numba decoding)
+    fused_torch_hidden_intersect = intersect_with("HIDDEN_LAYERS_IN_DECODE", False)  # torch's GEMMs for the later layers
+    fused_decode_hidden_intersect = intersect_with("HIDDEN_LAYERS_IN_DECODE", True)  # the later layers in the decoding pass
+    fused_threaded_intersect = intersect_with("THREADED_PIPELINE", True)  # the whole pipeline per thread on 1/T of the chunk
 
     def fused_occluded():
         model.occluded(rays)
