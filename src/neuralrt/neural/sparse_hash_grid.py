@@ -547,34 +547,30 @@ class _SparseHashGridFunction(torch.autograd.Function):
             else:
                 grad = _numpy(grad_out, torch.float32)
             pts, axes = _numpy(points, torch.float32), _numpy(face_axis, torch.int8)
+            threads = numba.get_num_threads()
             if ctx.saved_rows is not None:
                 table_grad = np.empty((levels * size, n_feat), np.float32)
-                _backward_saved_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-numba.get_num_threads() // levels),
-                                       *ctx.saved_rows, table_grad)  # fmt: skip
+                _backward_saved_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-threads // levels), *ctx.saved_rows,
+                                       table_grad)  # fmt: skip
                 ctx.saved_rows = None
-                grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
-                return None, None, None, grad_table, None, None, None, None
-            if ctx.backward_scatter == "buckets":
+            elif ctx.backward_scatter == "buckets":
                 table_grad = np.empty((levels * size, n_feat), np.float32)
-                threads = numba.get_num_threads()
                 n_chunks = max(1, min(len(ctx.index), 4 * threads))
                 _backward_buckets_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-2 * threads // levels), n_chunks,
                                          table_grad)  # fmt: skip
-                return None, None, None, torch.from_numpy(table_grad.reshape(ctx.table_shape)), None, None, None, None
-            if len(ctx.index) != len(axes) or not np.array_equal(ctx.index, np.arange(len(axes))):
-                pts, axes = pts[ctx.index], axes[ctx.index]  # the scatters kept to measure against take the selected rows
-            args = (pts, axes, grad, ctx.resolutions)
-            if ctx.backward_scatter in ("row_ranges", "saved_rows"):
-                grad = np.empty((levels * size, n_feat), np.float32)
-                _backward_rows_kernel(*args, -(-numba.get_num_threads() // levels), grad)
-            else:  # "thread_tables": the earlier scatter, kept to measure against
-                args = (*args[:2], _numpy(grad_out, torch.float32), args[3])
-                n_threads = max(1, min(len(axes), numba.get_num_threads()))
-                tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
-                if len(axes):
-                    _backward_kernel(*args, tables)
-                grad = tables[0] if n_threads == 1 else tables.sum(0)
-            grad_table = torch.from_numpy(grad.reshape(ctx.table_shape))
+            else:
+                if len(ctx.index) != len(axes) or not np.array_equal(ctx.index, np.arange(len(axes))):
+                    pts, axes = pts[ctx.index], axes[ctx.index]  # the scatters kept to measure against take the selected rows
+                if ctx.backward_scatter in ("row_ranges", "saved_rows"):
+                    table_grad = np.empty((levels * size, n_feat), np.float32)
+                    _backward_rows_kernel(pts, axes, grad, ctx.resolutions, -(-threads // levels), table_grad)
+                else:  # "thread_tables": the earlier scatter, kept to measure against
+                    n_threads = max(1, min(len(axes), threads))
+                    tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
+                    if len(axes):
+                        _backward_kernel(pts, axes, _numpy(grad_out, torch.float32), ctx.resolutions, tables)
+                    table_grad = tables[0] if n_threads == 1 else tables.sum(0)
+            grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
         return None, None, None, grad_table, None, None, None, None
 
 
