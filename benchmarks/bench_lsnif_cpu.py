@@ -6,13 +6,15 @@ the same rays (`BoxRayDistribution`: half from a sphere around the box, half fro
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
 decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba decoding pass; with
-torch's GEMMs for the hidden layers after the first and with them in the decoding pass
-(``HIDDEN_LAYERS_IN_DECODE`` False and True; by default torch's where the CPU has AMX); and with the pipeline per thread, ``THREADED_PIPELINE =
-True``), with
-``occluded`` (the decision-only decoding) and through the unfused path
+the first layer in the pass and torch's GEMMs for the hidden layers after it or those layers in
+the decoding pass (``FIRST_LAYER_IN_PASS = True`` and ``HIDDEN_LAYERS_IN_DECODE`` False or
+True); with the first layer as torch's GEMM on the inputs the pass writes (``FIRST_LAYER_IN_PASS
+= False``; by default GEMMs where the CPU has AMX, every layer in numba passes elsewhere); and
+with the pipeline per thread, ``THREADED_PIPELINE = True``), with ``occluded`` (the
+decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
-inference precision, and the fused kernel's own time (walk + encoding + first layer). Best of
+inference precision, and ``fused_network_outputs_cpu``'s time (the pass, the GEMMs, torch's output layer). Best of
 ``--repeats``. Writes benchmarks/results/lsnif_cpu.json.
 
     python benchmarks/bench_lsnif_cpu.py bunny00.off procedural:hairball:6 [--presets hq lq] [--rays 262144]
@@ -43,7 +45,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "hidden_in_decode_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -62,25 +64,34 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     def fused_intersect():
         model.intersect(rays)
 
-    def intersect_with(setting: str, value):
-        """``intersect`` with the module switch ``lsnif_fused_cpu.<setting>`` set to ``value``, then
-        restored (a default may be host-dependent: HIDDEN_LAYERS_IN_DECODE is None, by host)."""
+    def intersect_with(**settings):
+        """``intersect`` with the module switches ``lsnif_fused_cpu.<setting>`` set to the values
+        given, then restored (a default may be host-dependent: None, by host)."""
 
         def intersect():
-            default = getattr(lsnif_fused_cpu, setting)
-            setattr(lsnif_fused_cpu, setting, value)
+            defaults = {name: getattr(lsnif_fused_cpu, name) for name in settings}
+            for name, value in settings.items():
+                setattr(lsnif_fused_cpu, name, value)
             try:
                 model.intersect(rays)
             finally:
-                setattr(lsnif_fused_cpu, setting, default)
+                for name, value in defaults.items():
+                    setattr(lsnif_fused_cpu, name, value)
 
         return intersect
 
-    fused_fp32_first_layer_intersect = intersect_with("BF16_DOT_FIRST_LAYER", False)  # the earlier fp32 per-ray first layer
-    fused_torch_decode_intersect = intersect_with("WRITE_HITS", False)  # decoded by torch ops (before the numba decoding)
-    fused_torch_hidden_intersect = intersect_with("HIDDEN_LAYERS_IN_DECODE", False)  # torch's GEMMs for the later layers
-    fused_decode_hidden_intersect = intersect_with("HIDDEN_LAYERS_IN_DECODE", True)  # the later layers in the decoding pass
-    fused_threaded_intersect = intersect_with("THREADED_PIPELINE", True)  # the whole pipeline per thread on 1/T of the chunk
+    # the earlier fp32 per-ray first layer
+    fused_fp32_first_layer_intersect = intersect_with(BF16_DOT_FIRST_LAYER=False)
+    # decoded by torch ops (before the numba decoding)
+    fused_torch_decode_intersect = intersect_with(WRITE_HITS=False)
+    # the first layer in the pass, torch's GEMMs for the later layers (session 23's default on AMX)
+    fused_torch_hidden_intersect = intersect_with(FIRST_LAYER_IN_PASS=True, HIDDEN_LAYERS_IN_DECODE=False)
+    # every layer in a numba pass (the default without AMX)
+    fused_decode_hidden_intersect = intersect_with(FIRST_LAYER_IN_PASS=True, HIDDEN_LAYERS_IN_DECODE=True)
+    # the first layer too as torch's GEMM, on the inputs the pass writes (the default on AMX)
+    fused_gemm_first_intersect = intersect_with(FIRST_LAYER_IN_PASS=False)
+    # the whole pipeline per thread on 1/T of the chunk
+    fused_threaded_intersect = intersect_with(THREADED_PIPELINE=True)
 
     def fused_occluded():
         model.occluded(rays)
@@ -110,9 +121,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
             model.network(x, dtype)
 
     for fn in (fused_intersect, fused_fp32_first_layer_intersect, fused_torch_decode_intersect, fused_torch_hidden_intersect,
-               fused_decode_hidden_intersect, fused_threaded_intersect, fused_occluded, unfused_intersect, mlp_only):  # compile / warm caches
+               fused_decode_hidden_intersect, fused_gemm_first_intersect, fused_threaded_intersect, fused_occluded, unfused_intersect, mlp_only):  # compile / warm caches
         fn()
     times = {"embree": [], "embree_occluded": [], "fused": [], "fused_torch_decode": [], "fused_torch_hidden": [], "fused_decode_hidden": [],
+             "fused_gemm_first": [],
              "fused_threaded": [], "occluded": [], "fused_fp32_l1": [], "unfused": [], "fused_network": [], "mlp": []}  # fmt: skip
     for _ in range(repeats):
         times["embree"].append(seconds(lambda: exact.intersect(rays)))
@@ -121,6 +133,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         times["fused_torch_decode"].append(seconds(fused_torch_decode_intersect))
         times["fused_torch_hidden"].append(seconds(fused_torch_hidden_intersect))
         times["fused_decode_hidden"].append(seconds(fused_decode_hidden_intersect))
+        times["fused_gemm_first"].append(seconds(fused_gemm_first_intersect))
         times["fused_threaded"].append(seconds(fused_threaded_intersect))
         times["occluded"].append(seconds(fused_occluded))
         times["fused_fp32_l1"].append(seconds(fused_fp32_first_layer_intersect))
@@ -132,7 +145,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
     rate = {k: n_rays / best[k] for k in ("embree", "embree_occluded", "fused", "fused_torch_decode", "fused_torch_hidden",
-                                          "fused_decode_hidden", "fused_threaded", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
+                                          "fused_decode_hidden", "fused_gemm_first", "fused_threaded", "occluded", "fused_fp32_l1", "unfused", "fused_network")}
     mlp_rate = len(x) / best["mlp"]
     return {
         "mesh": spec,
@@ -154,6 +167,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         # the default: `HIDDEN_LAYERS_IN_DECODE` is off where the CPU has AMX)
         "hidden_layers_in_decode": lsnif_fused_cpu.later_layers_in_pass(),
         "hidden_in_decode_gain": rate["fused_decode_hidden"] / rate["fused_torch_hidden"],
+        # the first layer as torch's GEMM on the pass's inputs over the first layer in the pass (both
+        # with torch's later layers; `FIRST_LAYER_IN_PASS` is off where the CPU has AMX)
+        "first_layer_in_pass": lsnif_fused_cpu.first_layer_in_pass(),
+        "first_layer_gemm_gain": rate["fused_gemm_first"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],

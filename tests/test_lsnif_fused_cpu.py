@@ -132,7 +132,7 @@ def test_rays_crossing_no_occupied_voxel_never_reach_the_network(figure, write_h
     rays = Rays(origins=torch.cat([rays.origins, beside.origins]), directions=torch.cat([rays.directions, beside.directions]))
     rows = []  # rows reaching the GEMMs after the first layer (both decodings run them)
     layers = fused.hidden_layers
-    monkeypatch.setattr(fused, "hidden_layers", lambda network, hidden, active, dtype: rows.append(len(active)) or layers(network, hidden, active, dtype))
+    monkeypatch.setattr(fused, "hidden_layers", lambda network, hidden, active, *args: rows.append(len(active)) or layers(network, hidden, active, *args))
     hits = model.intersect(rays)
     crossing_rows, rows[:] = sum(rows), []  # (the threaded pipeline: one call per part)
     miss_only = model.intersect(beside)
@@ -223,11 +223,15 @@ def test_rest_of_network_is_the_mlps_layers_bit_for_bit_and_its_result_outlives_
     assert torch.equal(values, kept)
 
 
+@pytest.mark.parametrize("first_layer", ["pass", "gemm"])
 @pytest.mark.parametrize("width", [64, 128])
-def test_bf16_dot_first_layer_matches_the_fp32_first_layer_and_the_unfused_path(figure, width, monkeypatch):
-    """The bf16 first layer (`dot_rows_bf16`: 64-column passes; hq and lq widths) against the
-    fp32 per-ray one and the unfused bf16 GEMMs: outputs within bf16 rounding of the inputs and
-    weights, hits flip only where the occlusion logit is within that of the threshold."""
+def test_bf16_first_layer_matches_the_fp32_first_layer_and_the_unfused_path(figure, width, first_layer, monkeypatch):
+    """The bf16 first layer -- in the pass (`dot_rows_bf16`: 64-column passes; hq and lq widths)
+    or as torch's GEMM on the inputs the pass writes (`FIRST_LAYER_IN_PASS` False, the default on
+    AMX) -- against the fp32 per-ray one and the unfused bf16 GEMMs: outputs within bf16 rounding
+    of the inputs and weights, hits flip only where the occlusion logit is within that of the
+    threshold."""
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", first_layer == "pass")
     config = LSNIFConfig.preset(
         "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
         network={"hidden_width": width}, features={"max_points": 9}, inference={"compute_precision": "bf16"},
@@ -237,17 +241,22 @@ def test_bf16_dot_first_layer_matches_the_fp32_first_layer_and_the_unfused_path(
         model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(3))
     unit = model._unit_rays(_mixed_rays(model, 800, seed=11))
 
-    def outputs(pairs: bool):
-        monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", pairs)
+    def outputs(bf16_first_layer: bool):
+        monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", bf16_first_layer)
         return fused_network_outputs_cpu(unit.origins, unit.directions, model.occupancy, model.encoder, model.network,
                                          max_points=9, compute_dtype=torch.bfloat16)  # fmt: skip
 
+    calls = []  # the first layer's GEMM: called on the network rays alone, or not at all
+    gemm = fused.first_layer_gemm
+    monkeypatch.setattr(fused, "first_layer_gemm", lambda *args: calls.append(1) or gemm(*args))
     dot, per_ray = outputs(True), outputs(False)
+    assert len(calls) == (first_layer == "gemm")
     assert torch.equal(dot.active, per_ray.active) and len(dot.active) > 200
     scale = per_ray.values.abs().max()
     assert not torch.equal(dot.values, per_ray.values)  # the two paths are both run
     assert (dot.values - per_ray.values).abs().max() <= 3e-2 * scale
     monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", True)
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", first_layer == "pass")
     rays = BoxRayDistribution(MeshBLAS(figure), model.box, seed=5, pool_size=4096).sample(4000).rays
     hits, unfused = model.intersect(rays), _unfused(model, rays)
     with torch.no_grad():
@@ -373,6 +382,7 @@ def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, mo
             layer.bias.uniform_(-0.3, 0.3, generator=torch.Generator().manual_seed(4))
         model.network.output.bias[0] = 0.5  # network rays both hit and miss
     rays = _decoding_rays(model, 5000, seed=31)
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)  # (the pass's later layers start from its first)
     reference, reference_occluded = _hits_with(model, rays, monkeypatch, HIDDEN_LAYERS_IN_DECODE=False)
     with torch.no_grad():
         act, raw, *_ = model._network_answers_fused_cpu(rays)  # raw outputs through torch's layers

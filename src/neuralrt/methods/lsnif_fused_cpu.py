@@ -6,9 +6,12 @@ float32, the same sums as its forward kernel) and adds the point's contribution 
 layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the
 sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel
 writes the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype);
-the other hidden layers and the output layer run as torch GEMMs with the model's own weights.
-Nothing of size [rays, points, features] is ever in memory; a ray's points live in a per-thread
-scratch row of H entries.
+the other hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
+`HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
+points, features] is ever in memory; a ray's points live in a per-thread scratch row of H entries.
+Where the CPU has AMX the first layer is a torch GEMM too (`FIRST_LAYER_IN_PASS`): the pass then
+writes each ray's H * (L * F + 1) inputs in bf16 (only the nonzero ones are computed, 2 bytes
+each: for `hq`, 126 inputs, the size of the 128 activations it writes otherwise).
 
 Rays that cross no occupied voxel (``count == 0``) are certain misses and never reach the GEMMs.
 
@@ -79,6 +82,19 @@ def _add_inputs(acc, w1, xs, n_inputs):
             acc[j] += x0 * w1[i, j]
 
 
+@numba.njit(cache=True, inline="always")
+def _input_pairs(xs_row, n_inputs, out_row):
+    """A ray's first ``n_inputs`` network inputs rounded to bf16 and packed two per word (input
+    2p in the low half) into ``out_row``, zero past them."""
+    used = (n_inputs + 1) // 2
+    for p in range(used):
+        lo, hi = 2 * p, 2 * p + 1
+        x_hi = xs_row[hi] if hi < n_inputs else np.float32(0.0)
+        out_row[p] = bf16_bits(xs_row[lo]) | (bf16_bits(x_hi) << np.uint32(16))
+    for p in range(used, out_row.shape[0]):
+        out_row[p] = 0
+
+
 @numba.njit(cache=True)
 def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, rows, dots, hidden_bf16, start):
     """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
@@ -86,20 +102,12 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
     point count (most first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU
     and the rounding to bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]``."""
     width = b1.shape[0]
-    n_pairs = xp.shape[1]
     m = 0
     for g in range(n_group):
         count = group_count[g]
         if count == 0:
             continue
-        used = (count * block + 1) // 2
-        xs_g = xs[g]
-        for p in range(used):
-            lo, hi = 2 * p, 2 * p + 1
-            x_hi = xs_g[hi] if hi < count * block else np.float32(0.0)
-            xp[g, p] = bf16_bits(xs_g[lo]) | (bf16_bits(x_hi) << np.uint32(16))
-        for p in range(used, n_pairs):
-            xp[g, p] = 0
+        _input_pairs(xs[g], count * block, xp[g])
         i = m  # insertion by count, descending (stable)
         while i > 0 and group_count[order[i - 1]] < count:
             order[i] = order[i - 1]
@@ -127,8 +135,8 @@ _GROUP = 16
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
     origins, directions, occ, planes, table, resolutions, w1, w1_pairs, b1, slope,
-    max_points, origin_point, share, point_distances, to_bf16, pairs, n_chunks,
-    hidden_f32, hidden_bf16, counts, t_enter, t_exit,
+    max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
+    hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit,
 ):  # fmt: skip
     """``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
     ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
@@ -136,7 +144,9 @@ def _fused_kernel(
     ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were.
     With ``pairs`` (bf16, width a multiple of 16) the first layer is `dot_rows_bf16` over the
     group's rays, 4 at a time, from the bf16 pairs ``w1_pairs`` (``w1`` rounded, flat
-    ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``."""
+    ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
+    With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
+    its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`)."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -203,7 +213,12 @@ def _fused_kernel(
                         _read_rows(table, slots[e], weights[e], reads[e], xs_g, col)
                         col += n_feat
                         e += 1
-            # 3. the first layer
+            # 3. the first layer, or its inputs
+            if write_inputs:
+                for g in range(stop - start):
+                    if group_count[g] > 0:
+                        _input_pairs(xs[g], group_count[g] * block, input_pairs[start + g])
+                continue
             if pairs:
                 _first_layer_pairs(xs, xp, group_count, stop - start, block, w1_pairs, b1, slope, order, rows, dots,
                                    hidden_bf16, start)  # fmt: skip
@@ -227,8 +242,9 @@ def _fused_kernel(
                         hidden_f32[n, j] = acc[j]
 
 
-# The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16; False:
-# the fp32 per-ray first layer (`_add_inputs`) for every dtype (for comparisons and tests).
+# The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16 and the
+# layer runs in the pass (`first_layer_in_pass`); False: the fp32 per-ray first layer
+# (`_add_inputs`) in the pass for every dtype (for comparisons and tests).
 BF16_DOT_FIRST_LAYER = True
 
 _scratch = threading.local()
@@ -270,9 +286,11 @@ def first_layer_blocks(network: MLP, max_points: int, block: int, point_distance
     return rows.contiguous().numpy(), network.hidden[0].bias.detach().float().contiguous().numpy()
 
 
-def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
+def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype,
+                  first_layer: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """The MLP's hidden layers after the first on rows ``active`` of ``hidden`` (activations in
-    ``compute_dtype``) -> the last hidden layer's activations ``[M, W]`` in ``compute_dtype``, in a
+    ``compute_dtype``; with ``first_layer`` = (weight, bias), the network inputs in the pass's
+    order, and that layer first) -> the last hidden layer's activations ``[M, W]`` in ``compute_dtype``, in a
     per-thread buffer (valid until the next call on this thread): the same operations and bits as
     `MLP.forward` in inference, but every intermediate written into a per-thread buffer and the
     leaky ReLU applied in place: fresh [M, W] tensors cost a page fault per 4 KiB and an
@@ -282,6 +300,8 @@ def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: t
         layers = [(layer.weight, layer.bias) for layer in network.hidden[1:]]
     else:
         layers = network._cast_weights(compute_dtype)[1:]  # bf16 copies cached by the MLP
+    if first_layer is not None:
+        layers = [first_layer, *layers]
     m = len(active)
     # Padded as `MLP.forward` pads its bf16 rows (the same bits): few GEMM shapes, one oneDNN kernel each.
     rows = m if compute_dtype == torch.float32 else padded_rows(m, hidden.device)
@@ -294,10 +314,11 @@ def hidden_layers(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: t
     return x[:m]
 
 
-def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype) -> Tensor:
+def rest_of_network(network: MLP, hidden: Tensor, active: Tensor, compute_dtype: torch.dtype,
+                    first_layer: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """`hidden_layers` then the output layer -> [M, outputs] fp32 (a fresh tensor), the same
-    operations and bits as `MLP.forward` in inference."""
-    x = hidden_layers(network, hidden, active, compute_dtype)
+    operations and bits as `MLP.forward` in inference (from the first layer's activations)."""
+    x = hidden_layers(network, hidden, active, compute_dtype, first_layer)
     if x.dtype != torch.float32:
         x = _buffer_tensor(len(active), x.shape[1], torch.float32, "fp32").copy_(x)
     return network.output(x)  # a fresh tensor: the caller keeps it
@@ -318,6 +339,7 @@ class _Pass:
     b1: np.ndarray
     hidden_pairs: np.ndarray  # [L - 1, W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else [0, 0]
     hidden_bias: np.ndarray  # [L - 1, W] fp32: their biases, rounded to bf16 as torch's cast weights
+    first_layer: tuple[Tensor, Tensor] | None  # bf16 (weight [W, 2 * ceil(rows / 2)] in w1's input order, bias): a GEMM, not in the pass
     max_points: int
     origin_point: bool
     share: bool
@@ -335,25 +357,39 @@ def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, m
     levels, _, n_feat = encoder.table.shape
     table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
-    pairs = BF16_DOT_FIRST_LAYER and compute_dtype == torch.bfloat16 and b1.shape[0] % 16 == 0  # else fp32 per ray
+    in_pass = compute_dtype == torch.float32 or not BF16_DOT_FIRST_LAYER or first_layer_in_pass()
+    pairs = in_pass and BF16_DOT_FIRST_LAYER and compute_dtype == torch.bfloat16 and b1.shape[0] % 16 == 0  # else fp32 per ray
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     if compute_dtype != torch.float32:
         network._cast_weights(compute_dtype)  # the cached bf16 weights, made here once rather than in several threads
     hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros((0, 0), np.uint32), np.zeros((0, 0), np.float32))
+    first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
-                 int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+                 first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+
+
+def first_layer_gemm(network: MLP, w1: np.ndarray, compute_dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The first layer for torch's GEMM on the pass's inputs: ``w1`` (`first_layer_blocks`, fp32
+    values of the layer's weights, reordered) rounded to ``compute_dtype`` as `MLP._cast_weights`
+    rounds them, as ``[W, rows]`` plus a zero column for an odd row count; its cast bias."""
+    rows = w1.shape[0] + w1.shape[0] % 2
+    weight = torch.zeros(w1.shape[1], rows, dtype=compute_dtype)
+    weight[:, : w1.shape[0]] = torch.from_numpy(w1).T.to(compute_dtype)
+    return weight, network._cast_weights(compute_dtype)[0][1]
 
 
 def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
     """The fused pass on unit-box rays ``o``/``d`` (``[N, 3]`` fp32): (first hidden layer ``[N, W]``
-    in the compute dtype, valid in the rows with points; per ray ``count``, ``t_enter``,
-    ``t_exit`` as numpy arrays)."""
+    in the compute dtype -- with ``p.first_layer``, the network inputs in bf16 instead --, valid
+    in the rows with points; per ray ``count``, ``t_enter``, ``t_exit`` as numpy arrays)."""
     n, width = o.shape[0], p.b1.shape[0]
     to_bf16 = p.compute_dtype == torch.bfloat16
-    # One output buffer is used, the other stays empty: numba compiles one kernel for both dtypes.
+    write_inputs = p.first_layer is not None
+    # One output buffer is used, the others stay empty: numba compiles one kernel for every case.
     hidden_f32 = _hidden_buffer(0 if to_bf16 else n, width, np.float32, "first")
-    hidden_bf16 = _hidden_buffer(n if to_bf16 else 0, width, np.uint16, "first")
+    hidden_bf16 = _hidden_buffer(n if to_bf16 and not write_inputs else 0, width, np.uint16, "first")
+    input_pairs = _hidden_buffer(n if write_inputs else 0, (p.w1.shape[0] + 1) // 2, np.uint32, "inputs")
     counts = np.zeros(n, np.int32)
     t_enter = np.full(n, np.inf, np.float32)
     t_exit = np.full(n, np.inf, np.float32)
@@ -363,9 +399,12 @@ def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor,
         n_chunks = max(1, min(n, 32 * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
             _fused_kernel(o, d, p.occ, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
-                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, n_chunks,
-                          hidden_f32, hidden_bf16, counts, t_enter, t_exit)  # fmt: skip
-    hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
+                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
+                          hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit)  # fmt: skip
+    if write_inputs:
+        hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
+    else:
+        hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
     return hidden, counts, t_enter, t_exit
 
 
@@ -397,7 +436,7 @@ def fused_network_outputs_cpu(
     hidden, counts, t_enter, t_exit = _first_hidden_layer(p, o, d)
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
-    values = rest_of_network(network, hidden, active, compute_dtype)
+    values = rest_of_network(network, hidden, active, compute_dtype, p.first_layer)
     return FusedCPUOutputs(active, values, count, torch.from_numpy(t_enter), torch.from_numpy(t_exit))
 
 
@@ -431,6 +470,22 @@ def _host_has_amx() -> bool:
 # same-run ratios of the pass over torch's GEMMs 0.76-0.99 (`hq`), 0.73-0.99 (`lq`) in 7 runs.
 HIDDEN_LAYERS_IN_DECODE: bool | None = None
 HOST_HAS_AMX = _host_has_amx()
+
+
+# The first layer in the fused pass (`dot_rows_bf16`, AVX-512 bf16 dot products) or (False) as a
+# bf16 GEMM of torch's on the network inputs, which the pass then writes ([N, H * (L * F + 1)] bf16:
+# the size of the first hidden layer's activations for `hq`). None: a GEMM where the CPU has AMX
+# (oneDNN's AMX tiles), else in the pass. On the Intel Xeon (AMX) of session 24, hairball(6) `hq`,
+# 2^17 rays, 2 threads: the first layer took ~21 ms of the pass's ~67, its GEMM on the same rows
+# ~4-5 ms.
+FIRST_LAYER_IN_PASS: bool | None = None
+
+
+def first_layer_in_pass() -> bool:
+    """Whether the bf16 first layer runs in the fused pass (see FIRST_LAYER_IN_PASS)."""
+    if FIRST_LAYER_IN_PASS is not None:
+        return FIRST_LAYER_IN_PASS
+    return not HOST_HAS_AMX
 
 
 def later_layers_in_pass() -> bool:
@@ -614,7 +669,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
     if p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
         first_pairs = hidden.view(torch.int16).numpy().view(np.uint16).view(np.uint32)
     else:
-        x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype)
+        x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype, p.first_layer)
         if not OUTPUT_LAYER_IN_DECODE:
             x = p.network.output(x.float())  # raw outputs: the decoding pass only decodes
         if x.dtype == torch.bfloat16:
