@@ -497,11 +497,13 @@ def test_bf16_dot_emulation_gives_the_instructions_bits_end_to_end(figure, tmp_p
 
 @pytest.mark.skipif(not Path("/proc/cpuinfo").exists(), reason="needs Linux's /proc/cpuinfo")
 def test_amx_detection_agrees_with_the_kernels_cpu_flags():
-    """The later hidden layers leave the decoding pass for torch's GEMMs where the CPU has AMX
-    (`later_layers_in_pass`): the check reads llvmlite's host features, whose
-    name for it must match the kernel's flag."""
+    """The first layer leaves the fused pass and the later hidden layers the decoding pass for
+    torch's GEMMs where the CPU has AMX (`first_layer_in_pass`, `later_layers_in_pass`): the
+    check reads llvmlite's host features, whose name for it must match the kernel's flag."""
     flags = next((line.split(":", 1)[1].split() for line in Path("/proc/cpuinfo").read_text().splitlines()
                   if line.startswith("flags")), [])  # fmt: skip
     assert fused._host_has_amx() == ("amx_bf16" in flags)
     if fused.HIDDEN_LAYERS_IN_DECODE is None:  # (the default)
         assert fused.later_layers_in_pass() == ("amx_bf16" not in flags)
+    if fused.FIRST_LAYER_IN_PASS is None:
+        assert fused.first_layer_in_pass() == ("amx_bf16" not in flags)
