@@ -432,13 +432,16 @@ def test_chunks_written_in_place_answer_as_one_chunk(trained_cornell, write_hits
         assert torch.equal(getattr(chunked, f.name), getattr(whole, f.name)), f.name
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained_cornell, precision, monkeypatch):
-    """`THREADED_PIPELINE`: each thread runs every stage on its part of the chunk; answers equal."""
+@pytest.mark.parametrize("precision, first_layer_in_pass", [("fp32", True), ("bf16", True), ("bf16", False)])
+def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained_cornell, precision, first_layer_in_pass,
+                                                                         monkeypatch):  # fmt: skip
+    """`THREADED_PIPELINE`: each thread runs every stage on its part of the chunk; answers equal
+    (the bf16 first layer in the pass and as a GEMM, whatever the host's default)."""
     import numba
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("needs 2 numba threads")
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", first_layer_in_pass)
     model, dtype = trained_cornell, PRECISION[precision]
     monkeypatch.setattr(model, "compute_dtype", lambda training=False: dtype)
     rays = _decoding_rays(model, 5001, seed=25)
