@@ -169,7 +169,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "hidden_in_decode_gain": rate["fused_decode_hidden"] / rate["fused_torch_hidden"],
         # the first layer as torch's GEMM on the pass's inputs over the first layer in the pass (both
         # with torch's later layers; `FIRST_LAYER_IN_PASS` is off where the CPU has AMX)
-        "first_layer_in_pass": lsnif_fused_cpu.first_layer_in_pass(),
+        "first_layer_in_pass": lsnif_fused_cpu.first_layer_in_pass(model.network_inputs, model.config.network.hidden_width),
         "first_layer_gemm_gain": rate["fused_gemm_first"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],

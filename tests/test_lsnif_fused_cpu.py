@@ -509,4 +509,18 @@ def test_amx_detection_agrees_with_the_kernels_cpu_flags():
     if fused.HIDDEN_LAYERS_IN_DECODE is None:  # (the default)
         assert fused.later_layers_in_pass() == ("amx_bf16" not in flags)
     if fused.FIRST_LAYER_IN_PASS is None:
-        assert fused.first_layer_in_pass() == ("amx_bf16" not in flags)
+        assert fused.first_layer_in_pass(126, 128) == ("amx_bf16" not in flags)
+
+
+def test_the_first_layer_leaves_the_pass_only_on_amx_and_for_inputs_within_bounds(monkeypatch):
+    """By default a GEMM only where the CPU has AMX and the inputs' buffer stays within
+    GEMM_INPUTS_PER_WIDTH times the activations'; the switch forces either way."""
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", None)
+    for amx in (False, True):
+        monkeypatch.setattr(fused, "HOST_HAS_AMX", amx)
+        assert fused.first_layer_in_pass(126, 128) == (not amx)
+        assert fused.first_layer_in_pass(70, 64) == (not amx)
+        assert fused.first_layer_in_pass(fused.GEMM_INPUTS_PER_WIDTH * 64 + 1, 64)
+    for forced in (False, True):
+        monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", forced)
+        assert fused.first_layer_in_pass(10_000, 16) == forced

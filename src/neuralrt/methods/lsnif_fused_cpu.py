@@ -9,9 +9,10 @@ writes the first hidden layer's activations (bias, leaky ReLU, rounded to the co
 the other hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
 `HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
 points, features] is ever in memory; a ray's points live in a per-thread scratch row of H entries.
-Where the CPU has AMX the first layer is a torch GEMM too (`FIRST_LAYER_IN_PASS`): the pass then
-writes each ray's H * (L * F + 1) inputs in bf16 (only the nonzero ones are computed, 2 bytes
-each: for `hq`, 126 inputs, the size of the 128 activations it writes otherwise).
+The exception, chosen for speed: where the CPU has AMX the first layer is a torch GEMM too
+(`FIRST_LAYER_IN_PASS`), and the pass writes each network ray's H * (L * F + 1) inputs in bf16
+(2 bytes each: for `hq`, 126 inputs, the size of the 128 activations it writes otherwise; never
+more than `GEMM_INPUTS_PER_WIDTH` times the width by default).
 
 Rays that cross no occupied voxel (``count == 0``) are certain misses and never reach the GEMMs.
 
@@ -357,7 +358,7 @@ def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, m
     levels, _, n_feat = encoder.table.shape
     table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
-    in_pass = compute_dtype == torch.float32 or not BF16_DOT_FIRST_LAYER or first_layer_in_pass()
+    in_pass = compute_dtype == torch.float32 or not BF16_DOT_FIRST_LAYER or first_layer_in_pass(*w1.shape)
     pairs = in_pass and BF16_DOT_FIRST_LAYER and compute_dtype == torch.bfloat16 and b1.shape[0] % 16 == 0  # else fp32 per ray
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     if compute_dtype != torch.float32:
@@ -475,17 +476,21 @@ HOST_HAS_AMX = _host_has_amx()
 # The first layer in the fused pass (`dot_rows_bf16`, AVX-512 bf16 dot products) or (False) as a
 # bf16 GEMM of torch's on the network inputs, which the pass then writes ([N, H * (L * F + 1)] bf16:
 # the size of the first hidden layer's activations for `hq`). None: a GEMM where the CPU has AMX
-# (oneDNN's AMX tiles), else in the pass. On the Intel Xeon (AMX) of session 24, hairball(6) `hq`,
-# 2^17 rays, 2 threads: the first layer took ~21 ms of the pass's ~67, its GEMM on the same rows
-# ~4-5 ms.
+# (oneDNN's AMX tiles) and the inputs are at most GEMM_INPUTS_PER_WIDTH times the layer's width
+# (the inputs' buffer stays within that many times the activations'), else in the pass. On the
+# Intel Xeon (AMX) of session 24, hairball(6) `hq`, 2^17 rays, 2 threads: the first layer took ~21
+# ms of the pass's ~67 (ad hoc), its GEMM on the same rows ~4-5 ms; end to end +5% `intersect`,
+# +15-19% `occluded` (interleaved medians, docs/lsnif.md), where the layer's dot products had
+# overlapped the table reads' cache misses.
 FIRST_LAYER_IN_PASS: bool | None = None
+GEMM_INPUTS_PER_WIDTH = 4
 
 
-def first_layer_in_pass() -> bool:
-    """Whether the bf16 first layer runs in the fused pass (see FIRST_LAYER_IN_PASS)."""
+def first_layer_in_pass(inputs: int, width: int) -> bool:
+    """Whether the bf16 first layer (``inputs`` -> ``width``) runs in the fused pass (see FIRST_LAYER_IN_PASS)."""
     if FIRST_LAYER_IN_PASS is not None:
         return FIRST_LAYER_IN_PASS
-    return not HOST_HAS_AMX
+    return not HOST_HAS_AMX or inputs > GEMM_INPUTS_PER_WIDTH * width
 
 
 def later_layers_in_pass() -> bool:
