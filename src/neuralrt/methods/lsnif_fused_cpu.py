@@ -128,63 +128,6 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
                 hidden_bf16[n, j] = np.uint16(bf16_bits(y))
 
 
-@numba.njit(cache=True, inline="always")
-def _walk_and_encode_group(
-    start, stop, origins, directions, occ, planes, table, resolutions, max_points, origin_point, share, point_distances,
-    pts, axes, group_count, slots, weights, reads, xs, counts, t_enter, t_exit,
-):  # fmt: skip
-    """Rays ``start:stop`` (at most `_GROUP`): walked (``counts``, ``t_enter``, ``t_exit``, and
-    ``group_count[g]`` for ray ``start + g``), then their points encoded into ``xs[g]`` (per point
-    slot h: its L * F features, then its point distance); the other arrays are scratch."""
-    n_levels = resolutions.shape[0]
-    n_feat = table.shape[1]
-    table_size = table.shape[0] // n_levels
-    mask = np.int64(table_size - 1)
-    block = n_levels * n_feat + 1  # inputs per point slot
-    # 1. walk, and where each point reads the table
-    e = 0
-    for g in range(stop - start):
-        n = start + g
-        ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
-        dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
-        count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                    np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                    occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
-        counts[n] = count
-        t_enter[n] = t0
-        t_exit[n] = t1
-        group_count[g] = count
-        te, tx = np.float32(t0), np.float32(t1)
-        span = max(tx - te, np.float32(1e-12))
-        dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
-        for h in range(count):
-            px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
-            code = axes[g, h]
-            for lvl in range(n_levels):
-                if code == ORIGIN_POINT:
-                    k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
-                else:
-                    k = _face_point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
-                reads[e] = k
-                for c in range(k):  # the reads come after the whole group's walk: start them now
-                    _prefetch_row(table, slots[e, c])
-                e += 1
-            # point_local_distances, in float32 as the unfused path computes it
-            tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-            local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
-            xs[g, h * block + block - 1] = local if point_distances else np.float32(0.0)
-    # 2. the table reads, all independent
-    e = 0
-    for g in range(stop - start):
-        xs_g = xs[g]
-        for h in range(group_count[g]):
-            col = h * block
-            for lvl in range(n_levels):
-                _read_rows(table, slots[e], weights[e], reads[e], xs_g, col)
-                col += n_feat
-                e += 1
-
-
 # Rays walked before their points are encoded: the table reads of a whole group are then
 # independent of each other and many are in flight at once (the table is larger than L2).
 _GROUP = 16
@@ -207,8 +150,11 @@ def _fused_kernel(
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`)."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
+    n_feat = table.shape[1]
+    table_size = table.shape[0] // n_levels
+    mask = np.int64(table_size - 1)
     width = b1.shape[0]
-    block = n_levels * table.shape[1] + 1  # weight rows per point slot
+    block = n_levels * n_feat + 1  # weight rows per point slot
     for chunk in numba.prange(n_chunks):
         pts = np.empty((_GROUP, max_points, 3), np.float32)
         axes = np.empty((_GROUP, max_points), np.int8)
@@ -226,9 +172,48 @@ def _fused_kernel(
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         for start in range(first, last, _GROUP):
             stop = min(start + _GROUP, last)
-            _walk_and_encode_group(start, stop, origins, directions, occ, planes, table, resolutions, max_points, origin_point,
-                                   share, point_distances, pts, axes, group_count, slots, weights, reads, xs, counts, t_enter,
-                                   t_exit)  # fmt: skip
+            # 1. walk, and where each point reads the table
+            e = 0
+            for g in range(stop - start):
+                n = start + g
+                ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
+                dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+                count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                            np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                            occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+                counts[n] = count
+                t_enter[n] = t0
+                t_exit[n] = t1
+                group_count[g] = count
+                te, tx = np.float32(t0), np.float32(t1)
+                span = max(tx - te, np.float32(1e-12))
+                dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+                for h in range(count):
+                    px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+                    code = axes[g, h]
+                    for lvl in range(n_levels):
+                        if code == ORIGIN_POINT:
+                            k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
+                        else:
+                            k = _face_point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
+                        reads[e] = k
+                        for c in range(k):  # the reads come after the whole group's walk: start them now
+                            _prefetch_row(table, slots[e, c])
+                        e += 1
+                    # point_local_distances, in float32 as the unfused path computes it
+                    tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+                    local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
+                    xs[g, h * block + block - 1] = local if point_distances else np.float32(0.0)
+            # 2. the table reads, all independent
+            e = 0
+            for g in range(stop - start):
+                xs_g = xs[g]
+                for h in range(group_count[g]):
+                    col = h * block
+                    for lvl in range(n_levels):
+                        _read_rows(table, slots[e], weights[e], reads[e], xs_g, col)
+                        col += n_feat
+                        e += 1
             # 3. the first layer, or its inputs
             if write_inputs:
                 for g in range(stop - start):
@@ -572,13 +557,17 @@ def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
 
 
 @numba.njit(cache=True, inline="always")
-def _later_hidden_rows(xp, hidden_pairs, hidden_bias, slope, quad, dots, rows):
-    """`_OUT_ROWS` rows through the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows
-    per weight pass; fp32 sums, bias, leaky ReLU, then one rounding to bf16): from the first
-    layer's activations as bf16 pairs ``xp [_OUT_ROWS, W / 2]`` (overwritten) to the last hidden
-    layer's, widened into ``rows`` fp32."""
-    half = xp.shape[1]
+def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows):
+    """`_OUT_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
+    the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows per weight pass; fp32 sums,
+    bias, leaky ReLU, then one rounding to bf16): from the first layer's bf16 pairs
+    ``first_pairs[active[i]]`` to the last hidden layer's activations, widened into ``rows`` fp32."""
+    half = first_pairs.shape[1]
     width = 2 * half
+    for b in range(_OUT_ROWS):
+        src = active[block + min(b, n_rows - 1)]
+        for q in range(half):
+            xp[b, q] = first_pairs[src, q]
     for layer in range(hidden_pairs.shape[0]):
         for g in range(0, _OUT_ROWS, 4):
             for i in range(4):
@@ -618,6 +607,7 @@ def _decode_kernel(
     hidden_here = first_pairs.shape[0] > 0
     wo_flat = wo.reshape(-1)
     columns = 16 if occlusion_only else n_padded
+    inf = np.float32(np.inf)
     for chunk in numba.prange(n_chunks):
         rows = np.empty((_OUT_ROWS, width if output_layer else 0), np.float32)
         outs = np.empty((_OUT_ROWS, n_padded), np.float32)
@@ -628,11 +618,7 @@ def _decode_kernel(
         for block in range(first, last, _OUT_ROWS):
             n_rows = min(_OUT_ROWS, last - block)
             if hidden_here:
-                for b in range(_OUT_ROWS):  # a short block repeats its last row
-                    src = active[block + min(b, n_rows - 1)]
-                    for q in range(xp.shape[1]):
-                        xp[b, q] = first_pairs[src, q]
-                _later_hidden_rows(xp, hidden_pairs, hidden_bias, slope, quad, dots, rows)
+                _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows)
                 _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
             elif output_layer:
                 for b in range(_OUT_ROWS):
@@ -649,36 +635,30 @@ def _decode_kernel(
                     for j in range(x_f32.shape[1]):
                         outs[b, j] = x_f32[block + b, j]
             for b in range(n_rows):
-                _decode_row(outs[b], active[block + b], index, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit,
-                            n_materials, occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
-
-
-@numba.njit(cache=True, inline="always")
-def _decode_row(out, r, index, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
-    """Chunk ray ``r``'s raw outputs ``out`` decoded into its hit records at row ``index[r]``."""
-    ray = index[r]
-    te = t_enter[r]
-    t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
-    h = out[0] > occlusion_logit and t < t_max[ray] and t > t_min[ray]
-    hit[ray] = h
-    if occlusion_only:
-        return
-    t_hit[ray] = t if h else np.float32(np.inf)
-    nx, ny, nz = out[2], out[3], out[4]
-    norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
-    zero = np.float32(0.0)
-    nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
-    normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
-    geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
-    if h:
-        for c in range(3):
-            albedo[ray, c] = _sigmoid(out[5 + c])
-    best = 0
-    for j in range(1, n_materials):  # argmax: the first of equal logits
-        if out[8 + j] > out[8 + best]:
-            best = j
-    material[ray] = best if h else -1
+                out = outs[b]
+                r = active[block + b]
+                ray = index[r]
+                te = t_enter[r]
+                t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
+                h = out[0] > occlusion_logit and t < t_max[ray] and t > t_min[ray]
+                hit[ray] = h
+                if occlusion_only:
+                    continue
+                t_hit[ray] = t if h else inf
+                nx, ny, nz = out[2], out[3], out[4]
+                norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
+                zero = np.float32(0.0)
+                nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
+                normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
+                geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
+                if h:
+                    for c in range(3):
+                        albedo[ray, c] = _sigmoid(out[5 + c])
+                best = 0
+                for j in range(1, n_materials):  # argmax: the first of equal logits
+                    if out[8 + j] > out[8 + best]:
+                        best = j
+                material[ray] = best if h else -1
 
 
 def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, index: np.ndarray,
