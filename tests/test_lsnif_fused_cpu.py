@@ -147,11 +147,15 @@ def test_rays_crossing_no_occupied_voxel_never_reach_the_network(figure, write_h
 
 
 def test_fp32_answers_do_not_depend_on_the_thread_split(figure):
-    """Rays are split into chunks per thread and walked in groups: answers must not change."""
+    """Rays are split into chunks per thread and walked in groups, two groups in flight per chunk:
+    answers must not change."""
     import numba
 
+    from neuralrt.methods.lsnif_fused_cpu import _GROUP
+
     model = _model(figure, "fp32")
-    rays = _mixed_rays(model, 301, seed=11)  # not a multiple of any group size
+    # Not a multiple of any group size; with one thread or two, each chunk holds several groups.
+    rays = _mixed_rays(model, 2 * 32 * 2 * _GROUP + 301, seed=11)
     unit = model._unit_rays(rays)
     args = (unit.origins, unit.directions, model.occupancy, model.encoder, model.network)
     threads = numba.get_num_threads()
@@ -170,11 +174,12 @@ def test_fp32_answers_do_not_depend_on_the_thread_split(figure):
 
 
 def test_face_point_hashing_equals_the_encoders():
-    """The branch-free face-point path reads the same table rows with the same weights as the encoder's."""
+    """The branch-free face-point path (`face_rows`, which the fused pass runs as SIMD code over a
+    group's points) reads the same table rows with the same weights as the encoder's."""
     import numba
 
-    from neuralrt.methods.lsnif_fused_cpu import _face_point_level
     from neuralrt.neural.sparse_hash_grid import _point_level
+    from neuralrt.neural.sparse_hash_grid import face_point_level as _face_point_level
 
     @numba.njit
     def both(points, codes, res, mask, base):

@@ -1,9 +1,9 @@
 """LSNIF inference on the CPU with one fused numba pass per ray chunk.
 
 For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
-decisions), encodes each boundary point in the sparse hash grid (`sparse_hash_grid._point_level`,
-float32, the same sums as its forward kernel) and adds the point's contribution to the first MLP
-layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the
+decisions), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
+`_point_level`, float32, the same sums as its forward kernel; a group's rows are prefetched a
+group ahead of their reads) and adds the point's contribution to the first MLP layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the
 sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel
 writes the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype);
 the other hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
@@ -39,8 +39,9 @@ from torch import Tensor
 from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, load16, store16
 from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
-from ..neural.sparse_hash_grid import face_point_level as _face_point_level
+from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
+from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
 
@@ -128,9 +129,20 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
                 hidden_bf16[n, j] = np.uint16(bf16_bits(y))
 
 
-# Rays walked before their points are encoded: the table reads of a whole group are then
-# independent of each other and many are in flight at once (the table is larger than L2).
-_GROUP = 16
+@numba.njit(cache=True)
+def _face_rows_of_points(point_x, point_y, point_z, point_code, n, res, mask, base, slots, weights):
+    """`face_rows` of points ``[0, n)`` into ``slots``/``weights`` ``[4, >= n]``: a function of its own
+    so that the loop compiles to SIMD code (its arrays are arguments, not the parallel kernel's locals)."""
+    for i in range(n):
+        slots[0, i], slots[1, i], slots[2, i], slots[3, i], weights[0, i], weights[1, i], weights[2, i], weights[3, i] = _face_rows(
+            point_x[i], point_y[i], point_z[i], point_code[i], res, mask, base)
+
+
+# Rays walked before their points are encoded. A group's table rows are found and prefetched
+# after its walk and read after the next group's walk, so the reads find them in cache (the
+# table is larger than L2) and many are in flight at once. Zen 5, hairball(6): 32 rays beat 8, 16,
+# 64 and 128; the one-group lead took the `hq` pass from 36-37 to 33 ms per 2^17 rays.
+_GROUP = 32
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -147,7 +159,10 @@ def _fused_kernel(
     group's rays, 4 at a time, from the bf16 pairs ``w1_pairs`` (``w1`` rounded, flat
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
-    its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`)."""
+    its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
+    Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
+    pipeline with two buffers): walk, list the points, find their rows (`face_rows`, SIMD) and
+    prefetch them; then read the rows and run the first layer."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -158,11 +173,24 @@ def _fused_kernel(
     for chunk in numba.prange(n_chunks):
         pts = np.empty((_GROUP, max_points, 3), np.float32)
         axes = np.empty((_GROUP, max_points), np.int8)
-        group_count = np.empty(_GROUP, np.int64)
-        slots = np.empty((_GROUP * max_points * n_levels, 8), np.int64)  # per (ray, point, level)
-        weights = np.empty((_GROUP * max_points * n_levels, 8), np.float32)
-        reads = np.empty(_GROUP * max_points * n_levels, np.int64)  # 4 (face) or 8 (origin) per entry
-        xs = np.empty((_GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
+        # Two groups in flight: one is walked and its rows prefetched while the other's rows are read
+        group_count = np.empty((2, _GROUP), np.int64)
+        # The group's points, one entry each (structure of arrays, so step 2 compiles to SIMD code)
+        point_x = np.empty(_GROUP * max_points, np.float32)
+        point_y = np.empty(_GROUP * max_points, np.float32)
+        point_z = np.empty(_GROUP * max_points, np.float32)
+        point_code = np.empty((2, _GROUP * max_points), np.int64)
+        point_column = np.empty((2, _GROUP * max_points), np.int64)  # its features' first index in xs_flat
+        face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int64)
+        face_weights = np.empty((2, n_levels, 4, _GROUP * max_points), np.float32)
+        group_points = np.empty(2, np.int64)
+        group_origins = np.empty(2, np.int64)
+        # Origin points (at most one per ray, the first): 8 rows per level, found during the walk
+        origin_entry = np.empty((2, _GROUP), np.int64)
+        origin_slots = np.empty((2, _GROUP * n_levels, 8), np.int64)
+        origin_weights = np.empty((2, _GROUP * n_levels, 8), np.float32)
+        xs = np.empty((2, _GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
+        xs_flat = xs.reshape(-1)
         acc = np.empty(width, np.float32)
         n_pairs = (max_points * block + 1) // 2
         xp = np.zeros((_GROUP, n_pairs), np.uint32)  # the inputs as bf16 pairs (pairs path)
@@ -170,77 +198,101 @@ def _fused_kernel(
         rows = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
-        for start in range(first, last, _GROUP):
-            stop = min(start + _GROUP, last)
-            # 1. walk, and where each point reads the table
-            e = 0
-            for g in range(stop - start):
-                n = start + g
-                ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
-                dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
-                count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                            np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                            occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
-                counts[n] = count
-                t_enter[n] = t0
-                t_exit[n] = t1
-                group_count[g] = count
-                te, tx = np.float32(t0), np.float32(t1)
-                span = max(tx - te, np.float32(1e-12))
-                dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
-                for h in range(count):
-                    px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
-                    code = axes[g, h]
-                    for lvl in range(n_levels):
-                        if code == ORIGIN_POINT:
-                            k = _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
-                        else:
-                            k = _face_point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])
-                        reads[e] = k
-                        for c in range(k):  # the reads come after the whole group's walk: start them now
-                            _prefetch_row(table, slots[e, c])
-                        e += 1
-                    # point_local_distances, in float32 as the unfused path computes it
-                    tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-                    local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
-                    xs[g, h * block + block - 1] = local if point_distances else np.float32(0.0)
-            # 2. the table reads, all independent
-            e = 0
-            for g in range(stop - start):
-                xs_g = xs[g]
-                for h in range(group_count[g]):
-                    col = h * block
-                    for lvl in range(n_levels):
-                        _read_rows(table, slots[e], weights[e], reads[e], xs_g, col)
-                        col += n_feat
-                        e += 1
-            # 3. the first layer, or its inputs
-            if write_inputs:
+        n_groups = (last - first + _GROUP - 1) // _GROUP
+        for step in range(n_groups + 1):
+            if step < n_groups:  # walk group `step`; find its rows and start reading them
+                b = step & 1
+                start = first + step * _GROUP
+                stop = min(start + _GROUP, last)
+                # 1. walk; list the points (origin points' rows found and prefetched here)
+                e = 0
+                n_origin = 0
                 for g in range(stop - start):
-                    if group_count[g] > 0:
-                        _input_pairs(xs[g], group_count[g] * block, input_pairs[start + g])
-                continue
-            if pairs:
-                _first_layer_pairs(xs, xp, group_count, stop - start, block, w1_pairs, b1, slope, order, rows, dots,
-                                   hidden_bf16, start)  # fmt: skip
-                continue
-            for g in range(stop - start):
-                count = group_count[g]
-                if count == 0:
+                    n = start + g
+                    ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
+                    dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+                    count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                                np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                                occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+                    counts[n] = count
+                    t_enter[n] = t0
+                    t_exit[n] = t1
+                    group_count[b, g] = count
+                    te, tx = np.float32(t0), np.float32(t1)
+                    span = max(tx - te, np.float32(1e-12))
+                    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+                    for h in range(count):
+                        px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+                        code = axes[g, h]
+                        point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, code
+                        point_column[b, e] = (b * _GROUP + g) * xs.shape[2] + h * block
+                        if code == ORIGIN_POINT:
+                            origin_entry[b, n_origin] = e
+                            for lvl in range(n_levels):
+                                o = n_origin * n_levels + lvl
+                                _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, origin_slots[b, o], origin_weights[b, o])
+                                for c in range(8):
+                                    _prefetch_row(table, origin_slots[b, o, c])
+                            n_origin += 1
+                        # point_local_distances, in float32 as the unfused path computes it
+                        tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+                        local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
+                        xs[b, g, h * block + block - 1] = local if point_distances else np.float32(0.0)
+                        e += 1
+                # 2. every point's face rows and weights, per level (origin points' are computed and unused)
+                for lvl in range(n_levels):
+                    res, base = resolutions[lvl], lvl * table_size
+                    _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
+                    for i in range(e):  # the reads come after all of them: start them now
+                        for c in range(4):
+                            _prefetch_row(table, face_slots[b, lvl, c, i])
+                group_points[b] = e
+                group_origins[b] = n_origin
+            if step > 0:  # read group `step - 1`'s rows (started a group earlier), then its first layer
+                b = (step - 1) & 1
+                start = first + (step - 1) * _GROUP
+                stop = min(start + _GROUP, last)
+                # 3. the table reads, all independent
+                for i in range(group_points[b]):
+                    if point_code[b, i] == ORIGIN_POINT:
+                        continue
+                    col = point_column[b, i]
+                    for lvl in range(n_levels):
+                        _read_face_rows(table, face_slots[b, lvl, 0, i], face_slots[b, lvl, 1, i], face_slots[b, lvl, 2, i],
+                                        face_slots[b, lvl, 3, i], face_weights[b, lvl, 0, i], face_weights[b, lvl, 1, i],
+                                        face_weights[b, lvl, 2, i], face_weights[b, lvl, 3, i], xs_flat, col + lvl * n_feat)  # fmt: skip
+                for k in range(group_origins[b]):
+                    col = point_column[b, origin_entry[b, k]]
+                    for lvl in range(n_levels):
+                        _read_rows(table, origin_slots[b, k * n_levels + lvl], origin_weights[b, k * n_levels + lvl], 8, xs_flat,
+                                   col + lvl * n_feat)  # fmt: skip
+                # 4. the first layer, or its inputs
+                if write_inputs:
+                    for g in range(stop - start):
+                        if group_count[b, g] > 0:
+                            _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
                     continue
-                for j in range(width):
-                    acc[j] = b1[j]
-                _add_inputs(acc, w1, xs[g], count * block)
-                for j in range(width):
-                    y = acc[j]
-                    acc[j] = y if y >= 0 else y * slope
-                n = start + g
-                if to_bf16:
+                if pairs:
+                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, rows, dots,
+                                       hidden_bf16, start)  # fmt: skip
+                    continue
+                for g in range(stop - start):
+                    count = group_count[b, g]
+                    if count == 0:
+                        continue
                     for j in range(width):
-                        hidden_bf16[n, j] = np.uint16(bf16_bits(acc[j]))
-                else:
+                        acc[j] = b1[j]
+                    _add_inputs(acc, w1, xs[b, g], count * block)
                     for j in range(width):
-                        hidden_f32[n, j] = acc[j]
+                        y = acc[j]
+                        acc[j] = y if y >= 0 else y * slope
+                    n = start + g
+                    if to_bf16:
+                        for j in range(width):
+                            hidden_bf16[n, j] = np.uint16(bf16_bits(acc[j]))
+                    else:
+                        for j in range(width):
+                            hidden_f32[n, j] = acc[j]
 
 
 # The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16 and the

@@ -122,9 +122,11 @@ def prefetch_row(typingctx, array, row):
 
 
 @numba.njit(cache=True, inline="always")
-def face_point_level(px, py, pz, code, res, mask, base, slots, weights):
-    """`_point_level` for a face point (code 0/1/2), without branches on the face axis (it changes
-    from point to point along a ray, so branches on it mispredict). Same slots, same weights."""
+def face_rows(px, py, pz, code, res, mask, base):
+    """The 4 rows (offset by ``base``) and bilinear weights of a face point (code 0/1/2) as a tuple
+    (s0, s1, s2, s3, w0, w1, w2, w3), without branches on the face axis (it changes from point to
+    point along a ray, so branches on it mispredict): a loop of these over many points compiles to
+    SIMD code. Same rows and weights as `_point_level`."""
     r = np.float32(res)
     pa = px if code == 0 else (py if code == 1 else pz)  # on the face plane
     pu = py if code == 0 else px  # the two in-plane axes, in x, y, z order
@@ -141,7 +143,17 @@ def face_point_level(px, py, pz, code, res, mask, base, slots, weights):
     wv = fv - np.float32(iv)
     u0, u1 = np.int64(iu) * prime_u, np.int64(iu + 1) * prime_u
     v0, v1 = np.int64(iv) * prime_v, np.int64(iv + 1) * prime_v
-    return face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights)
+    one = np.float32(1.0)
+    return (base + ((a ^ u0 ^ v0) & mask), base + ((a ^ u1 ^ v0) & mask), base + ((a ^ u0 ^ v1) & mask),
+            base + ((a ^ u1 ^ v1) & mask), (one - wu) * (one - wv), wu * (one - wv), (one - wu) * wv, wu * wv)
+
+
+@numba.njit(cache=True, inline="always")
+def face_point_level(px, py, pz, code, res, mask, base, slots, weights):
+    """`face_rows` written into ``slots``/``weights``; returns 4."""
+    slots[0], slots[1], slots[2], slots[3], weights[0], weights[1], weights[2], weights[3] = face_rows(
+        px, py, pz, code, res, mask, base)
+    return 4
 
 
 @numba.njit(cache=True, inline="always")
@@ -189,16 +201,21 @@ def _rows_of(px, py, pz, code, res, mask, base, slots, weights):
 
 
 @numba.njit(cache=True, inline="always")
+def read_face_rows(table, s0, s1, s2, s3, c0, c1, c2, c3, out, col):
+    """``out[col + f] = sum_c c_c * table[s_c, f]`` over a face point's 4 rows, summed in row order
+    from 0, the 4 reads of a feature written out together."""
+    for f in range(table.shape[1]):
+        out[col + f] = (((np.float32(0.0) + c0 * table[s0, f]) + c1 * table[s1, f]) + c2 * table[s2, f]) + c3 * table[s3, f]
+
+
+@numba.njit(cache=True, inline="always")
 def read_rows(table, slots, weights, k, out, col):
     """``out[col + f] = sum_c weights[c] * table[slots[c], f]`` over the point's ``k`` rows, summed
     in row order from 0. Face points (k = 4) have their rows and weights loaded once and the 4
     reads of a feature written out together (measured ~2x faster than the loop, same bits)."""
     n_feat = table.shape[1]
     if k == 4:
-        s0, s1, s2, s3 = slots[0], slots[1], slots[2], slots[3]
-        c0, c1, c2, c3 = weights[0], weights[1], weights[2], weights[3]
-        for f in range(n_feat):
-            out[col + f] = (((np.float32(0.0) + c0 * table[s0, f]) + c1 * table[s1, f]) + c2 * table[s2, f]) + c3 * table[s3, f]
+        read_face_rows(table, slots[0], slots[1], slots[2], slots[3], weights[0], weights[1], weights[2], weights[3], out, col)
         return
     for f in range(n_feat):
         acc = np.float32(0.0)  # padding points (k = 0): zero features
