@@ -3,10 +3,11 @@
 For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
 decisions), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
 `_point_level`, float32, the same sums as its forward kernel; a group's rows are prefetched a
-group ahead of their reads) and adds the point's contribution to the first MLP layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the
-sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel
-writes the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype);
-the other hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
+group ahead of their reads) and adds the point's contribution to the first MLP layer at once:
+the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
+points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
+the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
+hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
 `HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
 points, features] is ever in memory; a ray's points live in a per-thread scratch row of H entries.
 The exception, chosen for speed: where the CPU has AMX the first layer is a torch GEMM too

@@ -85,18 +85,20 @@ def _axis_terms(p, res, fixed, prime):
 
 
 @numba.njit(cache=True, inline="always")
-def face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights):
-    """The 4 rows and bilinear weights of a face point, from the fixed axis's hash term ``a`` and the
-    in-plane axes' corner terms (u0, u1, v0, v1) and fractions (wu, wv); returns 4."""
+def corner_rows(a, u0, u1, wu, v0, v1, wv, base, mask):
+    """The 4 rows and bilinear weights of a face point as (s0, s1, s2, s3, w0, w1, w2, w3), from the
+    fixed axis's hash term ``a`` and the in-plane axes' corner terms (u0, u1, v0, v1) and
+    fractions (wu, wv)."""
     one = np.float32(1.0)
-    slots[0] = base + ((a ^ u0 ^ v0) & mask)
-    slots[1] = base + ((a ^ u1 ^ v0) & mask)
-    slots[2] = base + ((a ^ u0 ^ v1) & mask)
-    slots[3] = base + ((a ^ u1 ^ v1) & mask)
-    weights[0] = (one - wu) * (one - wv)
-    weights[1] = wu * (one - wv)
-    weights[2] = (one - wu) * wv
-    weights[3] = wu * wv
+    return (base + ((a ^ u0 ^ v0) & mask), base + ((a ^ u1 ^ v0) & mask), base + ((a ^ u0 ^ v1) & mask),
+            base + ((a ^ u1 ^ v1) & mask), (one - wu) * (one - wv), wu * (one - wv), (one - wu) * wv, wu * wv)
+
+
+@numba.njit(cache=True, inline="always")
+def face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights):
+    """`corner_rows` written into ``slots``/``weights``; returns 4."""
+    slots[0], slots[1], slots[2], slots[3], weights[0], weights[1], weights[2], weights[3] = corner_rows(
+        a, u0, u1, wu, v0, v1, wv, base, mask)
     return 4
 
 
@@ -143,9 +145,7 @@ def face_rows(px, py, pz, code, res, mask, base):
     wv = fv - np.float32(iv)
     u0, u1 = np.int64(iu) * prime_u, np.int64(iu + 1) * prime_u
     v0, v1 = np.int64(iv) * prime_v, np.int64(iv + 1) * prime_v
-    one = np.float32(1.0)
-    return (base + ((a ^ u0 ^ v0) & mask), base + ((a ^ u1 ^ v0) & mask), base + ((a ^ u0 ^ v1) & mask),
-            base + ((a ^ u1 ^ v1) & mask), (one - wu) * (one - wv), wu * (one - wv), (one - wu) * wv, wu * wv)
+    return corner_rows(a, u0, u1, wu, v0, v1, wv, base, mask)
 
 
 @numba.njit(cache=True, inline="always")
