@@ -151,11 +151,11 @@ def test_fp32_answers_do_not_depend_on_the_thread_split(figure):
     answers must not change."""
     import numba
 
-    from neuralrt.methods.lsnif_fused_cpu import _GROUP
+    from neuralrt.methods.lsnif_fused_cpu import _CHUNKS_PER_THREAD, _GROUP
 
     model = _model(figure, "fp32")
-    # Not a multiple of any group size; with one thread or two, each chunk holds several groups.
-    rays = _mixed_rays(model, 2 * 32 * 2 * _GROUP + 301, seed=11)
+    # Not a multiple of any group size; with all threads or one, each chunk holds several groups.
+    rays = _mixed_rays(model, 2 * _CHUNKS_PER_THREAD * numba.get_num_threads() * _GROUP + 301, seed=11)
     unit = model._unit_rays(rays)
     args = (unit.origins, unit.directions, model.occupancy, model.encoder, model.network)
     threads = numba.get_num_threads()

@@ -145,6 +145,10 @@ def _face_rows_of_points(point_x, point_y, point_z, point_code, n, res, mask, ba
 # 64 and 128; the one-group lead took the `hq` pass from 36-37 to 33 ms per 2^17 rays.
 _GROUP = 32
 
+# Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
+# thread may be descheduled; with the default static split the other waits for it.
+_CHUNKS_PER_THREAD = 32
+
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
@@ -448,9 +452,7 @@ def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor,
     t_enter = np.full(n, np.inf, np.float32)
     t_exit = np.full(n, np.inf, np.float32)
     if n:
-        # Many small chunks handed out one at a time: rays vary in length, and on a shared machine
-        # one thread may be descheduled; with the default static split the other waits for it.
-        n_chunks = max(1, min(n, 32 * numba.get_num_threads()))
+        n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
             _fused_kernel(o, d, p.occ, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
                           p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
