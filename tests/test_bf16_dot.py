@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from neuralrt.neural.bf16_dot import (
-    HAS_AVX512_BF16, bf16_bits, bf16_pairs, bf16_value, dot_bf16_pairs, dot_bf16_pairs_emulated, dot_rows_bf16, fma16,
-    fma_f32, load16, store16, zeros16,
+    HAS_AVX512_BF16, add16, bf16_bits, bf16_pairs, bf16_value, dot_bf16_pairs, dot_bf16_pairs_emulated, dot_rows_bf16,
+    fma16, fma_f32, leaky_relu16, load16, load_bf16x16, store16, store_bf16x16, zeros16,
 )  # fmt: skip
 
 
@@ -111,3 +111,35 @@ def test_fma_and_bf16_value_helpers():
     assert np.array_equal(scalar, exact)
     assert np.array_equal(vector, (np.float64(a[0]) * b.astype(np.float64) + c).astype(np.float32))
     assert np.array_equal(values, torch.from_numpy(bits.view(np.int16)).view(torch.bfloat16).float().numpy())
+
+
+@numba.njit
+def _epilogue(x, bias, slope):
+    """Vector: bias, leaky ReLU, rounding to bf16, widening back; scalar: the same per element."""
+    vector_bits = np.empty(x.shape[0], np.uint16)
+    widened = np.empty(x.shape[0], np.float32)
+    scalar_bits = np.empty(x.shape[0], np.uint16)
+    for c in range(0, x.shape[0], 16):
+        store_bf16x16(vector_bits, c, leaky_relu16(add16(load16(x, c), load16(bias, c)), slope))
+        store16(widened, c, load_bf16x16(vector_bits, c))
+    for i in range(x.shape[0]):
+        y = x[i] + bias[i]
+        y = y if y >= 0 else y * slope
+        scalar_bits[i] = np.uint16(bf16_bits(y))
+    return vector_bits, widened, scalar_bits
+
+
+def test_vector_epilogue_equals_the_scalar_one_and_torch():
+    """add16 + leaky_relu16 + store_bf16x16 give the scalar kernels' bits (torch's leaky ReLU and
+    bf16 rounding, ties to even included); load_bf16x16 widens them exactly."""
+    rng = np.random.default_rng(5)
+    x = (rng.standard_normal(4096) * 10.0 ** rng.integers(-6, 6, 4096)).astype(np.float32)
+    x[:6] = [1.00390625, 1.01171875, -1.00390625, 0.0, -0.0, -3e-39]  # ties, signed zeros, a denormal
+    bias = np.zeros(4096, np.float32)
+    bias[6:] = rng.standard_normal(4090).astype(np.float32)
+    slope = np.float32(0.01)
+    vector_bits, widened, scalar_bits = _epilogue(x, bias, slope)
+    assert np.array_equal(vector_bits, scalar_bits)
+    expected = torch.nn.functional.leaky_relu(torch.from_numpy(x) + torch.from_numpy(bias), float(slope)).to(torch.bfloat16)
+    assert np.array_equal(vector_bits, expected.view(torch.int16).numpy().view(np.uint16))
+    assert np.array_equal(widened, expected.float().numpy())

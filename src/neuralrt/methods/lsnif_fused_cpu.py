@@ -37,7 +37,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, load16, store16
+from ..neural.bf16_dot import (
+    add16, bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, leaky_relu16, load16, load_bf16x16, store16,
+    store_bf16x16,
+)  # fmt: skip
 from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
 from ..neural.sparse_hash_grid import face_rows as _face_rows
@@ -98,6 +101,14 @@ def _input_pairs(xs_row, n_inputs, out_row):
         out_row[p] = 0
 
 
+@numba.njit(cache=True, inline="always")
+def _bias_leaky_bf16(dots, offset, bias, slope, out):
+    """``out[j] = bf16(leaky_relu(dots[offset + j] + bias[j]))`` for the ``len(bias)`` (a multiple of
+    16) columns, 16 per instruction (``out`` uint16 bf16 bits; the rounding of `bf16_bits`)."""
+    for c in range(0, bias.shape[0], 16):
+        store_bf16x16(out, c, leaky_relu16(add16(load16(dots, offset + c), load16(bias, c)), slope))
+
+
 @numba.njit(cache=True)
 def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, rows, dots, hidden_bf16, start):
     """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
@@ -123,11 +134,7 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
             rows[i] = order[q + min(i, n_rows - 1)]  # a short pass repeats its last ray
         dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, width, dots)
         for i in range(n_rows):
-            n = start + rows[i]
-            for j in range(width):
-                y = dots[i * width + j] + b1[j]
-                y = y if y >= 0 else y * slope
-                hidden_bf16[n, j] = np.uint16(bf16_bits(y))
+            _bias_leaky_bf16(dots, i * width, b1, slope, hidden_bf16[start + rows[i]])
 
 
 @numba.njit(cache=True)
@@ -623,22 +630,17 @@ def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_
         src = active[block + min(b, n_rows - 1)]
         for q in range(half):
             xp[b, q] = first_pairs[src, q]
+    xp_bf16 = xp.view(np.uint16)  # [8, W]: pair q of a row is its columns 2q (low half), 2q + 1
     for layer in range(hidden_pairs.shape[0]):
         for g in range(0, _OUT_ROWS, 4):
             for i in range(4):
                 quad[i] = g + i
             dot_rows_bf16(xp, quad, half, hidden_pairs[layer], width, dots)
             for i in range(4):  # these rows' inputs are read: overwrite them with the layer's outputs
-                for q in range(half):
-                    y0 = dots[i * width + 2 * q] + hidden_bias[layer, 2 * q]
-                    y1 = dots[i * width + 2 * q + 1] + hidden_bias[layer, 2 * q + 1]
-                    y0 = y0 if y0 >= 0 else y0 * slope
-                    y1 = y1 if y1 >= 0 else y1 * slope
-                    xp[g + i, q] = bf16_bits(y0) | (bf16_bits(y1) << np.uint32(16))
+                _bias_leaky_bf16(dots, i * width, hidden_bias[layer], slope, xp_bf16[g + i])
     for b in range(_OUT_ROWS):
-        for q in range(half):
-            rows[b, 2 * q] = bf16_value(np.uint16(xp[b, q] & np.uint32(0xFFFF)))
-            rows[b, 2 * q + 1] = bf16_value(np.uint16(xp[b, q] >> np.uint32(16)))
+        for c in range(0, width, 16):
+            store16(rows[b], c, load_bf16x16(xp_bf16[b], c))
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

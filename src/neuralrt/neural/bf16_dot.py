@@ -26,7 +26,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
-           "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32"]
+           "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32", "add16",
+           "leaky_relu16", "store_bf16x16", "load_bf16x16"]
 
 
 def _host_has_avx512_bf16() -> bool:
@@ -47,6 +48,7 @@ if HAS_AVX512_BF16:
 
 _F32X16 = ir.VectorType(ir.FloatType(), 16)
 _I32X16 = ir.VectorType(ir.IntType(32), 16)
+_I16X16 = ir.VectorType(ir.IntType(16), 16)
 
 
 class F32x16(types.Type):
@@ -109,6 +111,70 @@ def store16(typingctx, array, start, value):
         return context.get_dummy_value()
 
     return types.void(array, types.intp, f32x16), codegen
+
+
+@intrinsic
+def add16(typingctx, a, b):
+    """``a + b`` per lane."""
+    if not (a == f32x16 and b == f32x16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.fadd(args[0], args[1])
+
+    return f32x16(f32x16, f32x16), codegen
+
+
+def _broadcast(builder, scalar, vector_type):
+    lane0 = builder.insert_element(ir.Constant(vector_type, None), scalar, ir.Constant(ir.IntType(32), 0))
+    return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), ir.Constant(_I32X16, [0] * 16))
+
+
+@intrinsic
+def leaky_relu16(typingctx, value, slope):
+    """``value if value >= 0 else value * slope`` per lane (the scalar kernels' leaky ReLU; an fp32 ``slope``)."""
+    if not (value == f32x16 and slope == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        v, s = args
+        nonnegative = builder.fcmp_ordered(">=", v, ir.Constant(_F32X16, [0.0] * 16))
+        return builder.select(nonnegative, v, builder.fmul(v, _broadcast(builder, s, _F32X16)))
+
+    return f32x16(f32x16, types.float32), codegen
+
+
+@intrinsic
+def store_bf16x16(typingctx, array, start, value):
+    """``array[start : start + 16] = value`` rounded to bf16 (the bits of `bf16_bits`, lane by
+    lane; ``array`` 1D contiguous uint16, no bounds check)."""
+    if not (_check_array(array, types.uint16) and isinstance(start, types.Integer) and value == f32x16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        bits = builder.bitcast(args[2], _I32X16)
+        sixteen = ir.Constant(_I32X16, [16] * 16)
+        odd = builder.and_(builder.lshr(bits, sixteen), ir.Constant(_I32X16, [1] * 16))
+        rounded = builder.lshr(builder.add(builder.add(bits, ir.Constant(_I32X16, [0x7FFF] * 16)), odd), sixteen)
+        pointer = _vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16)
+        builder.store(builder.trunc(rounded, _I16X16), pointer, align=2)
+        return context.get_dummy_value()
+
+    return types.void(array, types.intp, f32x16), codegen
+
+
+@intrinsic
+def load_bf16x16(typingctx, array, start):
+    """``array[start : start + 16]`` (1D contiguous uint16, bf16 bits) widened to fp32 exactly (`bf16_value`)."""
+    if not (_check_array(array, types.uint16) and isinstance(start, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        halves = builder.load(_vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16), align=2)
+        widened = builder.shl(builder.zext(halves, _I32X16), ir.Constant(_I32X16, [16] * 16))
+        return builder.bitcast(widened, _F32X16)
+
+    return f32x16(array, types.intp), codegen
 
 
 @intrinsic
