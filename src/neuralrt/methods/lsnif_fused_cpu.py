@@ -630,7 +630,7 @@ def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_
         src = active[block + min(b, n_rows - 1)]
         for q in range(half):
             xp[b, q] = first_pairs[src, q]
-    xp_bf16 = xp.view(np.uint16)  # [8, W]: pair q of a row is its columns 2q (low half), 2q + 1
+    xp_bf16 = xp.view(np.uint16)  # [8, W]: pair q of a row is its columns 2q (low half: little-endian), 2q + 1
     for layer in range(hidden_pairs.shape[0]):
         for g in range(0, _OUT_ROWS, 4):
             for i in range(4):
