@@ -126,6 +126,7 @@ def add16(typingctx, a, b):
 
 
 def _broadcast(builder, scalar, vector_type):
+    """``scalar`` in all 16 lanes of ``vector_type``."""
     lane0 = builder.insert_element(ir.Constant(vector_type, None), scalar, ir.Constant(ir.IntType(32), 0))
     return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), ir.Constant(_I32X16, [0] * 16))
 
@@ -186,8 +187,7 @@ def fma16(typingctx, acc, x, array, start):
 
     def codegen(context, builder, sig, args):
         acc_v, xs, array_v, start_v = args
-        xv = builder.shuffle_vector(builder.insert_element(ir.Constant(_F32X16, None), xs, ir.Constant(ir.IntType(32), 0)),
-                                    ir.Constant(_F32X16, None), ir.Constant(_I32X16, [0] * 16))  # fmt: skip
+        xv = _broadcast(builder, xs, _F32X16)
         w = builder.load(_vector_pointer(context, builder, sig.args[2], array_v, start_v, _F32X16), align=4)
         fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_F32X16, [_F32X16] * 3), "llvm.fma.v16f32")
         return builder.call(fma, [xv, w, acc_v])
@@ -230,8 +230,7 @@ def _dot_intrinsic(native: bool):
         def codegen(context, builder, sig, args):
             acc_v, x, w_array, start_v = args
             x32 = context.cast(builder, x, sig.args[1], types.uint32)
-            xv = builder.shuffle_vector(builder.insert_element(ir.Constant(_I32X16, None), x32, ir.Constant(ir.IntType(32), 0)),
-                                        ir.Constant(_I32X16, None), ir.Constant(_I32X16, [0] * 16))  # fmt: skip
+            xv = _broadcast(builder, x32, _I32X16)
             w = builder.load(_vector_pointer(context, builder, sig.args[2], w_array, start_v, _I32X16), align=4)
             if native:
                 # AT&T order: vdpbf16ps src2, src1, dst  (dst += src1 . src2); $3 (acc) is tied to $0.
