@@ -47,7 +47,9 @@ from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
 from ..neural.sparse_hash_grid import read_rows as _read_rows
+from ..simd import HAS_AVX512
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
+from .lsnif_walk_simd import walk_group, walk_scratch
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
 
@@ -146,6 +148,32 @@ def _face_rows_of_points(point_x, point_y, point_z, point_code, n, res, mask, ba
             point_x[i], point_y[i], point_z[i], point_code[i], res, mask, base)
 
 
+@numba.njit(cache=True, inline="always")
+def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e, column, b, n_origin, point_column, origin_entry,
+                origin_slots, origin_weights, resolutions, mask, table_size, table, point_distances, xs_flat, block):  # fmt: skip
+    """Point ``e`` of the group in buffer ``b``: its inputs' first column, its point distance
+    (written at once) and, for an origin point, its 8 rows per level (found and prefetched
+    here); returns the group's new number of origin points."""
+    point_column[b, e] = column
+    point_code = np.int64(code)
+    if point_code == ORIGIN_POINT:
+        origin_entry[b, n_origin] = e
+        n_levels = resolutions.shape[0]
+        for lvl in range(n_levels):
+            o = n_origin * n_levels + lvl
+            _point_level(px, py, pz, point_code, resolutions[lvl], mask, lvl * table_size, origin_slots[b, o], origin_weights[b, o])
+            for c in range(8):
+                _prefetch_row(table, origin_slots[b, o, c])
+        n_origin += 1
+    # point_local_distances, in float32 as the unfused path computes it
+    span = max(tx - te, np.float32(1e-12))
+    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
+    tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
+    local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
+    xs_flat[column + block - 1] = local if point_distances else np.float32(0.0)
+    return n_origin
+
+
 # Rays walked before their points are encoded. A group's table rows are found and prefetched
 # after its walk and read after the next group's walk, so the reads find them in cache (the
 # table is larger than L2) and many are in flight at once. Zen 5, hairball(6): 32 rays beat 8, 16,
@@ -159,7 +187,7 @@ _CHUNKS_PER_THREAD = 32
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
-    origins, directions, occ, planes, table, resolutions, w1, w1_pairs, b1, slope,
+    origins, directions, occ, occ_cells, simd_walk, planes, table, resolutions, w1, w1_pairs, b1, slope,
     max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
     hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit,
 ):  # fmt: skip
@@ -196,6 +224,9 @@ def _fused_kernel(
         face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int64)
         face_weights = np.empty((2, n_levels, 4, _GROUP * max_points), np.float32)
         group_points = np.empty(2, np.int64)
+        point_ray = np.empty(_GROUP * max_points, np.int64)  # (SIMD walk) each point's ray in the group and slot in its list
+        point_slot = np.empty(_GROUP * max_points, np.int64)
+        queue, queue_i, rays8 = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
         # Origin points (at most one per ray, the first): 8 rows per level, found during the walk
         origin_entry = np.empty((2, _GROUP), np.int64)
@@ -219,7 +250,21 @@ def _fused_kernel(
                 # 1. walk; list the points (origin points' rows found and prefetched here)
                 e = 0
                 n_origin = 0
-                for g in range(stop - start):
+                if simd_walk:  # eight rays at a time, the points unordered
+                    e = walk_group(origins, directions, start, stop - start, occ_cells, occ.shape[0], planes, max_points, origin_point,
+                                   share, queue, queue_i, rays8, point_x, point_y, point_z, point_code[b], point_ray, point_slot,
+                                   group_count[b], t_enter, t_exit)  # fmt: skip
+                    for g in range(stop - start):
+                        counts[start + g] = group_count[b, g]
+                    for i in range(e):
+                        g = point_ray[i]
+                        n = start + g
+                        n_origin = _list_point(origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1],
+                                               directions[n, 2], t_enter[n], t_exit[n], point_x[i], point_y[i], point_z[i],
+                                               point_code[b, i], i, (b * _GROUP + g) * xs.shape[2] + point_slot[i] * block, b, n_origin,
+                                               point_column, origin_entry, origin_slots, origin_weights, resolutions, mask,
+                                               table_size, table, point_distances, xs_flat, block)  # fmt: skip
+                for g in range(0 if simd_walk else stop - start):
                     n = start + g
                     ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
                     dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
@@ -230,26 +275,13 @@ def _fused_kernel(
                     t_enter[n] = t0
                     t_exit[n] = t1
                     group_count[b, g] = count
-                    te, tx = np.float32(t0), np.float32(t1)
-                    span = max(tx - te, np.float32(1e-12))
-                    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
                     for h in range(count):
                         px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
-                        code = axes[g, h]
-                        point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, code
-                        point_column[b, e] = (b * _GROUP + g) * xs.shape[2] + h * block
-                        if code == ORIGIN_POINT:
-                            origin_entry[b, n_origin] = e
-                            for lvl in range(n_levels):
-                                o = n_origin * n_levels + lvl
-                                _point_level(px, py, pz, code, resolutions[lvl], mask, lvl * table_size, origin_slots[b, o], origin_weights[b, o])
-                                for c in range(8):
-                                    _prefetch_row(table, origin_slots[b, o, c])
-                            n_origin += 1
-                        # point_local_distances, in float32 as the unfused path computes it
-                        tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-                        local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
-                        xs[b, g, h * block + block - 1] = local if point_distances else np.float32(0.0)
+                        point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
+                        n_origin = _list_point(ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1), px, py, pz, axes[g, h],
+                                               e, (b * _GROUP + g) * xs.shape[2] + h * block, b, n_origin, point_column, origin_entry,
+                                               origin_slots, origin_weights, resolutions, mask, table_size, table, point_distances,
+                                               xs_flat, block)  # fmt: skip
                         e += 1
                 # 2. every point's face rows and weights, per level (origin points' are computed and unused)
                 for lvl in range(n_levels):
@@ -306,6 +338,10 @@ def _fused_kernel(
                         for j in range(width):
                             hidden_f32[n, j] = acc[j]
 
+
+# The voxel walk eight rays at a time (`lsnif_walk_simd`) where numba compiles for AVX-512; False:
+# `walk_ray` per ray (elsewhere LLVM would turn the vector code into slower scalar loops).
+SIMD_WALK = HAS_AVX512
 
 # The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16 and the
 # layer runs in the pass (`first_layer_in_pass`); False: the fp32 per-ray first layer
@@ -404,6 +440,7 @@ class _Pass:
     b1: np.ndarray
     hidden_pairs: np.ndarray  # [L - 1, W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else [0, 0]
     hidden_bias: np.ndarray  # [L - 1, W] fp32: their biases, rounded to bf16 as torch's cast weights
+    occ_cells: np.ndarray  # [V^3] int32: occ for the SIMD walk's gathers
     first_layer: tuple[Tensor, Tensor] | None  # bf16 (weight [W, 2 * ceil(rows / 2)] in w1's input order, bias): a GEMM, not in the pass
     max_points: int
     origin_point: bool
@@ -430,8 +467,9 @@ def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, m
     hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros((0, 0), np.uint32), np.zeros((0, 0), np.float32))
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
+    occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
     return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
-                 first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+                 occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
 
 
 def first_layer_gemm(network: MLP, w1: np.ndarray, compute_dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -461,9 +499,9 @@ def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor,
     if n:
         n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
-            _fused_kernel(o, d, p.occ, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
-                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
-                          hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit)  # fmt: skip
+            _fused_kernel(o, d, p.occ, p.occ_cells, SIMD_WALK, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1,
+                          np.float32(p.network.slope), p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs,
+                          write_inputs, n_chunks, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:

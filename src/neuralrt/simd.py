@@ -1,0 +1,387 @@
+"""Eight-lane vectors in numba kernels: ``f64x8`` (float64), ``i64x8`` (int64) and ``m8`` (a mask).
+
+numba has no vector types. These are LLVM's ``<8 x double>``, ``<8 x i64>`` and ``<8 x i1>`` held
+in registers, with the arithmetic and comparison operators, selects, and LLVM's generic
+gather/scatter/expand/compress intrinsics. Where the CPU has AVX-512 each is one instruction (or
+a few); elsewhere LLVM lowers the same code to scalar loops, so kernels written with them are
+correct on every CPU and tested anywhere (`lsnif_walk_simd` is used where ``HAS_AVX512``).
+
+Arithmetic is IEEE per lane without fast-math flags (no contraction into fused multiply-adds), so
+a lane computes exactly what the scalar code with the same operations computes. ``vmin``/``vmax``
+are numba's ``min``/``max`` (``b if b < a else a``), lane by lane. Arrays are 1D and contiguous;
+indices are not bounds-checked.
+"""
+
+from __future__ import annotations
+
+import operator
+
+import llvmlite.binding as llvm
+import numba
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic, models, overload, register_model
+
+__all__ = ["HAS_AVX512", "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax",
+           "bits8", "popcount8", "to_f64", "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64",
+           "expand_i64", "compress_store_f32", "compress_store_f64", "compress_store_i64"]  # fmt: skip
+
+
+def _host_has_avx512() -> bool:
+    """Whether numba compiles for AVX-512 (F, DQ for 64-bit integer multiplies; VL): ``NUMBA_CPU_FEATURES``
+    where set (numba keys its cache on them), else the host's."""
+    wanted = ("avx512f", "avx512dq", "avx512vl")
+    if numba.config.CPU_FEATURES is not None:
+        features = numba.config.CPU_FEATURES.split(",")
+        return all(f"+{name}" in features for name in wanted)
+    try:
+        host = llvm.get_host_cpu_features()
+        return all(host.get(name, False) for name in wanted)
+    except RuntimeError:
+        return False
+
+
+HAS_AVX512 = _host_has_avx512()
+
+_I1, _I8, _I32, _I64 = ir.IntType(1), ir.IntType(8), ir.IntType(32), ir.IntType(64)
+_F64X8 = ir.VectorType(ir.DoubleType(), 8)
+_F32X8 = ir.VectorType(ir.FloatType(), 8)
+_I64X8 = ir.VectorType(_I64, 8)
+_I32X8 = ir.VectorType(_I32, 8)
+_M8 = ir.VectorType(_I1, 8)
+
+
+class F64x8(types.Type):
+    def __init__(self):
+        super().__init__(name="f64x8")
+
+
+class I64x8(types.Type):
+    def __init__(self):
+        super().__init__(name="i64x8")
+
+
+class M8(types.Type):
+    def __init__(self):
+        super().__init__(name="m8")
+
+
+f64x8, i64x8, m8 = F64x8(), I64x8(), M8()
+
+
+def _model(ir_type):
+    class _Model(models.PrimitiveModel):
+        def __init__(self, dmm, fe_type):
+            super().__init__(dmm, fe_type, ir_type)
+
+    return _Model
+
+
+register_model(F64x8)(_model(_F64X8))
+register_model(I64x8)(_model(_I64X8))
+register_model(M8)(_model(_M8))
+
+
+def _splat(builder, scalar, vector_type):
+    lane0 = builder.insert_element(ir.Constant(vector_type, None), scalar, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), ir.Constant(_I32X8, [0] * 8))
+
+
+def _c1d(array, dtype) -> bool:
+    return isinstance(array, types.Array) and array.ndim == 1 and array.layout == "C" and array.dtype == dtype
+
+
+def _element_pointer(context, builder, array_type, array, start, start_type):
+    data = context.make_array(array_type)(context, builder, array)
+    return builder.gep(data.data, [context.cast(builder, start, start_type, types.intp)])
+
+
+def _lane_pointers(context, builder, array_type, array, index, element):
+    """``&array[index[k]]`` per lane."""
+    data = context.make_array(array_type)(context, builder, array)
+    base = _splat(builder, builder.ptrtoint(data.data, _I64), _I64X8)
+    size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
+    addresses = builder.add(base, builder.mul(index, ir.Constant(_I64X8, [size] * 8)))
+    return builder.inttoptr(addresses, ir.VectorType(element.as_pointer(), 8))
+
+
+def _llvm_function(builder, name, ret, arguments):
+    return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ret, arguments), name)
+
+
+@intrinsic
+def splat_f64(typingctx, x):
+    """``x`` (a float) in all 8 lanes."""
+    if not isinstance(x, types.Float):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.float64), _F64X8)
+
+    return f64x8(x), codegen
+
+
+@intrinsic
+def splat_i64(typingctx, x):
+    """``x`` (an integer) in all 8 lanes."""
+    if not isinstance(x, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.int64), _I64X8)
+
+    return i64x8(x), codegen
+
+
+@intrinsic
+def splat_m8(typingctx, x):
+    """``x`` (a bool) in all 8 lanes."""
+    if not isinstance(x, types.Boolean):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return _splat(builder, builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0)), _M8)
+
+    return m8(x), codegen
+
+
+@intrinsic
+def lane_index(typingctx):
+    """0, 1, ..., 7."""
+
+    def codegen(context, builder, sig, args):
+        return ir.Constant(_I64X8, list(range(8)))
+
+    return i64x8(), codegen
+
+
+def _binary_intrinsic(operand, result, emit):
+    @intrinsic
+    def op(typingctx, a, b):
+        if not (a == operand and b == operand):
+            return None
+
+        def codegen(context, builder, sig, args):
+            return emit(builder, args[0], args[1])
+
+        return result(operand, operand), codegen
+
+    return op
+
+
+def _register_binary(pyop, cases):
+    """``pyop`` on two vectors of one type: ``cases`` maps the type to (result type, IR emitter)."""
+    table = {operand: _binary_intrinsic(operand, result, emit) for operand, (result, emit) in cases.items()}
+
+    @overload(pyop)
+    def _overload(a, b):
+        fn = table.get(a)
+        if fn is not None and a == b:
+            return lambda a, b: fn(a, b)
+
+
+_register_binary(operator.add, {f64x8: (f64x8, lambda b, x, y: b.fadd(x, y)), i64x8: (i64x8, lambda b, x, y: b.add(x, y))})
+_register_binary(operator.sub, {f64x8: (f64x8, lambda b, x, y: b.fsub(x, y)), i64x8: (i64x8, lambda b, x, y: b.sub(x, y))})
+_register_binary(operator.mul, {f64x8: (f64x8, lambda b, x, y: b.fmul(x, y)), i64x8: (i64x8, lambda b, x, y: b.mul(x, y))})
+_register_binary(operator.truediv, {f64x8: (f64x8, lambda b, x, y: b.fdiv(x, y))})
+_register_binary(operator.and_, {m8: (m8, lambda b, x, y: b.and_(x, y))})
+_register_binary(operator.or_, {m8: (m8, lambda b, x, y: b.or_(x, y))})
+for _pyop, _predicate in ((operator.lt, "<"), (operator.gt, ">"), (operator.le, "<="), (operator.ge, ">="), (operator.eq, "=="),
+                          (operator.ne, "!=")):  # fmt: skip
+    # Ordered float comparisons: false where a lane is NaN, as Python's (``!=`` too, unlike Python; unused on NaN here)
+    _register_binary(_pyop, {f64x8: (m8, lambda b, x, y, p=_predicate: b.fcmp_ordered(p, x, y)),
+                             i64x8: (m8, lambda b, x, y, p=_predicate: b.icmp_signed(p, x, y))})  # fmt: skip
+
+
+@intrinsic
+def _mask_not(typingctx, a):
+    if a != m8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.not_(args[0])
+
+    return m8(m8), codegen
+
+
+@overload(operator.invert)
+def _invert(a):
+    if a == m8:
+        return lambda a: _mask_not(a)
+
+
+@intrinsic
+def select(typingctx, mask, a, b):
+    """``a`` where ``mask``, else ``b``, per lane."""
+    if not (mask == m8 and a == b and a in (f64x8, i64x8, m8)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.select(args[0], args[1], args[2])
+
+    return a(m8, a, a), codegen
+
+
+@numba.njit(inline="always")
+def vmin(a, b):
+    """numba's ``min(a, b)`` per lane."""
+    return select(b < a, b, a)
+
+
+@numba.njit(inline="always")
+def vmax(a, b):
+    """numba's ``max(a, b)`` per lane."""
+    return select(b > a, b, a)
+
+
+@intrinsic
+def bits8(typingctx, mask):
+    """The mask as an integer, lane k in bit k."""
+    if mask != m8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.zext(builder.bitcast(args[0], _I8), _I64)
+
+    return types.int64(m8), codegen
+
+
+@intrinsic
+def popcount8(typingctx, mask):
+    """The number of lanes set."""
+    if mask != m8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        bits = builder.zext(builder.bitcast(args[0], _I8), _I64)
+        return builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [bits])
+
+    return types.int64(m8), codegen
+
+
+@intrinsic
+def to_f64(typingctx, a):
+    """``float(a)`` per lane."""
+    if a != i64x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.sitofp(args[0], _F64X8)
+
+    return f64x8(i64x8), codegen
+
+
+@intrinsic
+def floor_i64(typingctx, a):
+    """``int(floor(a))`` per lane (finite lanes; others undefined)."""
+    if a != f64x8:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.fptosi(builder.call(_llvm_function(builder, "llvm.floor.v8f64", _F64X8, [_F64X8]), [args[0]]), _I64X8)
+
+    return i64x8(f64x8), codegen
+
+
+@intrinsic
+def load_f64(typingctx, array, start):
+    """``array[start : start + 8]`` (float64)."""
+    if not (_c1d(array, types.float64) and isinstance(start, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
+        return builder.load(builder.bitcast(pointer, _F64X8.as_pointer()), align=8)
+
+    return f64x8(array, start), codegen
+
+
+@intrinsic
+def gather_f64(typingctx, array, index, mask, passthru):
+    """``array[index[k]]`` in the lanes of ``mask``, ``passthru``'s elsewhere (float64)."""
+    if not (_c1d(array, types.float64) and index == i64x8 and mask == m8 and passthru == f64x8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1], ir.DoubleType())
+        fn = _llvm_function(builder, "llvm.masked.gather.v8f64.v8p0", _F64X8, [pointers.type, _I32, _M8, _F64X8])
+        return builder.call(fn, [pointers, ir.Constant(_I32, 8), args[2], args[3]])
+
+    return f64x8(array, i64x8, m8, f64x8), codegen
+
+
+@intrinsic
+def gather_i32(typingctx, array, index, mask):
+    """``array[index[k]]`` (int32, widened) in the lanes of ``mask``, 0 elsewhere."""
+    if not (_c1d(array, types.int32) and index == i64x8 and mask == m8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1], _I32)
+        fn = _llvm_function(builder, "llvm.masked.gather.v8i32.v8p0", _I32X8, [pointers.type, _I32, _M8, _I32X8])
+        return builder.sext(builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(_I32X8, [0] * 8)]), _I64X8)
+
+    return i64x8(array, i64x8, m8), codegen
+
+
+@intrinsic
+def scatter_i64(typingctx, array, index, value, mask):
+    """``array[index[k]] = value[k]`` in the lanes of ``mask`` (int64; distinct indices)."""
+    if not (_c1d(array, types.int64) and index == i64x8 and value == i64x8 and mask == m8):
+        return None
+
+    def codegen(context, builder, sig, args):
+        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1], _I64)
+        fn = _llvm_function(builder, "llvm.masked.scatter.v8i64.v8p0", ir.VoidType(), [_I64X8, pointers.type, _I32, _M8])
+        builder.call(fn, [args[2], pointers, ir.Constant(_I32, 8), args[3]])
+        return context.get_dummy_value()
+
+    return types.void(array, i64x8, i64x8, m8), codegen
+
+
+def _expand(dtype, vector_type, vector, name):
+    @intrinsic
+    def expand(typingctx, array, start, mask, passthru):
+        if not (_c1d(array, dtype) and isinstance(start, types.Integer) and mask == m8 and passthru == vector):
+            return None
+
+        def codegen(context, builder, sig, args):
+            pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
+            fn = _llvm_function(builder, name, vector_type, [pointer.type, _M8, vector_type])
+            return builder.call(fn, [pointer, args[2], args[3]])
+
+        return vector(array, start, m8, vector), codegen
+
+    expand.__doc__ = (f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the "
+                      "others ``passthru``'s: the inverse of a compress.")  # fmt: skip
+    return expand
+
+
+expand_f64 = _expand(types.float64, _F64X8, f64x8, "llvm.masked.expandload.v8f64")
+expand_i64 = _expand(types.int64, _I64X8, i64x8, "llvm.masked.expandload.v8i64")
+
+
+def _compress_store(dtype, vector, store_type, name, convert):
+    @intrinsic
+    def compress_store(typingctx, array, start, value, mask):
+        if not (_c1d(array, dtype) and isinstance(start, types.Integer) and value == vector and mask == m8):
+            return None
+
+        def codegen(context, builder, sig, args):
+            pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
+            fn = _llvm_function(builder, name, ir.VoidType(), [store_type, pointer.type, _M8])
+            builder.call(fn, [convert(builder, args[2]), pointer, args[3]])
+            return context.get_dummy_value()
+
+        return types.void(array, start, vector, m8), codegen
+
+    compress_store.__doc__ = (f"``array[start : start + popcount8(mask)]`` = the lanes of ``mask``, in lane order ({dtype}); "
+                              "nothing else is written.")  # fmt: skip
+    return compress_store
+
+
+compress_store_f64 = _compress_store(types.float64, f64x8, _F64X8, "llvm.masked.compressstore.v8f64", lambda b, v: v)
+compress_store_i64 = _compress_store(types.int64, i64x8, _I64X8, "llvm.masked.compressstore.v8i64", lambda b, v: v)
+# float32 outputs from float64 lanes, rounded to nearest (as numba's float64 -> float32 casts)
+compress_store_f32 = _compress_store(types.float32, f64x8, _F32X8, "llvm.masked.compressstore.v8f32", lambda b, v: b.fptrunc(v, _F32X8))
