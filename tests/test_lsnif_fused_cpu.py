@@ -173,6 +173,24 @@ def test_fp32_answers_do_not_depend_on_the_thread_split(figure):
     assert np.array_equal(part.active.numpy() + 7, whole.active[keep].numpy())
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_simd_walk_and_walk_ray_give_the_same_bits(figure, precision, monkeypatch):
+    """The pass with the 8-lane walk (points unordered) and with `walk_ray` per ray (points in ray
+    order): the same inputs in the same columns, so the same bits (both run on any CPU: without
+    AVX-512, LLVM lowers the vector code to scalar loops)."""
+    model = _model(figure, precision, origin_point=True)
+    unit = model._unit_rays(_mixed_rays(model, 1500, seed=5))
+    args = (unit.origins, unit.directions, model.occupancy, model.encoder, model.network)
+    outputs = {}
+    for simd in (True, False):
+        monkeypatch.setattr(fused, "SIMD_WALK", simd)
+        with torch.no_grad():
+            outputs[simd] = fused_network_outputs_cpu(*args, max_points=8)
+    for name in ("active", "values", "count", "t_enter", "t_exit"):
+        assert torch.equal(getattr(outputs[True], name), getattr(outputs[False], name)), name
+    assert outputs[True].active.numel() > 100
+
+
 def test_face_point_hashing_equals_the_encoders():
     """The branch-free face-point path (`face_rows`, which the fused pass runs as SIMD code over a
     group's points) reads the same table rows with the same weights as the encoder's."""
