@@ -176,9 +176,11 @@ def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e,
 
 # Rays walked before their points are encoded. A group's table rows are found and prefetched
 # after its walk and read after the next group's walk, so the reads find them in cache (the
-# table is larger than L2) and many are in flight at once. Zen 5, hairball(6): 32 rays beat 8, 16,
-# 64 and 128; the one-group lead took the `hq` pass from 36-37 to 33 ms per 2^17 rays.
-_GROUP = 32
+# table is larger than L2) and many are in flight at once. Zen 5, hairball(6): with `walk_ray`, 32
+# rays beat 8, 16, 64 and 128 (the one-group lead took the `hq` pass from 36-37 to 33 ms per 2^17
+# rays); with the SIMD walk, whose 8 lanes idle while a group's last rays finish (81% of lane
+# steps used with 32 rays, 94% with 128), 64 beat 32 by 2-4% (`intersect`, both presets).
+_GROUP = 64
 
 # Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
 # thread may be descheduled; with the default static split the other waits for it.
