@@ -1,7 +1,7 @@
 """LSNIF inference on the CPU with one fused numba pass per ray chunk.
 
 For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
-decisions), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
+decisions; eight rays at a time where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
 `_point_level`, float32, the same sums as its forward kernel; a group's rows are prefetched a
 group ahead of their reads) and adds the point's contribution to the first MLP layer at once:
 the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
@@ -203,7 +203,8 @@ def _fused_kernel(
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
-    pipeline with two buffers): walk, list the points, find their rows (`face_rows`, SIMD) and
+    pipeline with two buffers): walk (``simd_walk``: `walk_group`, 8 lanes, the points unordered,
+    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points, find their rows (`face_rows`, SIMD) and
     prefetch them; then read the rows and run the first layer."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
