@@ -23,26 +23,28 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-__all__ = ["HAS_AVX512", "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax",
-           "bits8", "popcount8", "to_f64", "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64",
-           "expand_i64", "compress_store_f32", "compress_store_f64", "compress_store_i64"]  # fmt: skip
+__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "f64x8", "i64x8",
+           "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8", "to_f64",
+           "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
+           "compress_store_f64", "compress_store_i64"]  # fmt: skip
 
 
-def _host_has_avx512() -> bool:
-    """Whether numba compiles for AVX-512 (F, DQ for 64-bit integer multiplies; VL): ``NUMBA_CPU_FEATURES``
-    where set (numba keys its cache on them), else the host's."""
-    wanted = ("avx512f", "avx512dq", "avx512vl")
+def numba_targets(*features: str) -> bool:
+    """Whether numba compiles for every one of ``features`` (LLVM names, e.g. ``"avx512f"``): the
+    CPU features it targets, ``NUMBA_CPU_FEATURES`` where set (numba keys its cache on them, so a
+    path can be forced off on any CPU without stale cached kernels), else the host's."""
     if numba.config.CPU_FEATURES is not None:
-        features = numba.config.CPU_FEATURES.split(",")
-        return all(f"+{name}" in features for name in wanted)
+        targeted = numba.config.CPU_FEATURES.split(",")
+        return all(f"+{name}" in targeted for name in features)
     try:
         host = llvm.get_host_cpu_features()
-        return all(host.get(name, False) for name in wanted)
-    except RuntimeError:
+    except RuntimeError:  # features unknown on this host: the portable paths
         return False
+    return all(host.get(name, False) for name in features)
 
 
-HAS_AVX512 = _host_has_avx512()
+# F, DQ for 64-bit integer multiplies, VL
+HAS_AVX512 = numba_targets("avx512f", "avx512dq", "avx512vl")
 
 _I1, _I8, _I32, _I64 = ir.IntType(1), ir.IntType(8), ir.IntType(32), ir.IntType(64)
 _F64X8 = ir.VectorType(ir.DoubleType(), 8)
@@ -83,24 +85,33 @@ register_model(I64x8)(_model(_I64X8))
 register_model(M8)(_model(_M8))
 
 
-def _splat(builder, scalar, vector_type):
+def broadcast(builder, scalar, vector_type):
+    """``scalar`` in every lane of ``vector_type`` (IR)."""
     lane0 = builder.insert_element(ir.Constant(vector_type, None), scalar, ir.Constant(_I32, 0))
-    return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), ir.Constant(_I32X8, [0] * 8))
+    every_lane = ir.Constant(ir.VectorType(_I32, vector_type.count), [0] * vector_type.count)
+    return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), every_lane)
 
 
-def _c1d(array, dtype) -> bool:
+def contiguous_1d(array, dtype) -> bool:
+    """Typing: ``array`` is a 1D C-contiguous numba array of ``dtype``."""
     return isinstance(array, types.Array) and array.ndim == 1 and array.layout == "C" and array.dtype == dtype
 
 
-def _element_pointer(context, builder, array_type, array, start, start_type):
+def element_pointer(context, builder, array_type, array, start):
+    """Pointer to ``array[start]`` (1D, contiguous; ``start`` an intp value) (IR)."""
     data = context.make_array(array_type)(context, builder, array)
-    return builder.gep(data.data, [context.cast(builder, start, start_type, types.intp)])
+    return builder.gep(data.data, [start])
+
+
+def vector_pointer(context, builder, array_type, array, start, vector_type):
+    """`element_pointer` as a pointer to ``vector_type`` (IR)."""
+    return builder.bitcast(element_pointer(context, builder, array_type, array, start), vector_type.as_pointer())
 
 
 def _lane_pointers(context, builder, array_type, array, index, element):
     """``&array[index[k]]`` per lane."""
     data = context.make_array(array_type)(context, builder, array)
-    base = _splat(builder, builder.ptrtoint(data.data, _I64), _I64X8)
+    base = broadcast(builder, builder.ptrtoint(data.data, _I64), _I64X8)
     size = context.get_abi_sizeof(context.get_data_type(array_type.dtype))
     addresses = builder.add(base, builder.mul(index, ir.Constant(_I64X8, [size] * 8)))
     return builder.inttoptr(addresses, ir.VectorType(element.as_pointer(), 8))
@@ -110,28 +121,24 @@ def _llvm_function(builder, name, ret, arguments):
     return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ret, arguments), name)
 
 
-@intrinsic
-def splat_f64(typingctx, x):
-    """``x`` (a float) in all 8 lanes."""
-    if not isinstance(x, types.Float):
-        return None
+def _splat(accepted, scalar_type, vector, vector_type):
+    @intrinsic
+    def splat(typingctx, x):
+        if not isinstance(x, accepted):
+            return None
 
-    def codegen(context, builder, sig, args):
-        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.float64), _F64X8)
+        def codegen(context, builder, sig, args):
+            return broadcast(builder, context.cast(builder, args[0], sig.args[0], scalar_type), vector_type)
 
-    return f64x8(x), codegen
+        return vector(x), codegen
+
+    return splat
 
 
-@intrinsic
-def splat_i64(typingctx, x):
-    """``x`` (an integer) in all 8 lanes."""
-    if not isinstance(x, types.Integer):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _splat(builder, context.cast(builder, args[0], sig.args[0], types.int64), _I64X8)
-
-    return i64x8(x), codegen
+splat_f64 = _splat(types.Float, types.float64, f64x8, _F64X8)
+splat_f64.__doc__ = "``x`` (a float) in all 8 lanes."
+splat_i64 = _splat(types.Integer, types.int64, i64x8, _I64X8)
+splat_i64.__doc__ = "``x`` (an integer) in all 8 lanes."
 
 
 @intrinsic
@@ -141,7 +148,8 @@ def splat_m8(typingctx, x):
         return None
 
     def codegen(context, builder, sig, args):
-        return _splat(builder, builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0)), _M8)
+        bit = builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0))
+        return broadcast(builder, bit, _M8)
 
     return m8(x), codegen
 
@@ -287,20 +295,19 @@ def floor_i64(typingctx, a):
 @intrinsic
 def load_f64(typingctx, array, start):
     """``array[start : start + 8]`` (float64)."""
-    if not (_c1d(array, types.float64) and isinstance(start, types.Integer)):
+    if not (contiguous_1d(array, types.float64) and isinstance(start, types.Integer)):
         return None
 
     def codegen(context, builder, sig, args):
-        pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
-        return builder.load(builder.bitcast(pointer, _F64X8.as_pointer()), align=8)
+        return builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], _F64X8), align=8)
 
-    return f64x8(array, start), codegen
+    return f64x8(array, types.intp), codegen
 
 
 @intrinsic
 def gather_f64(typingctx, array, index, mask, passthru):
     """``array[index[k]]`` in the lanes of ``mask``, ``passthru``'s elsewhere (float64)."""
-    if not (_c1d(array, types.float64) and index == i64x8 and mask == m8 and passthru == f64x8):
+    if not (contiguous_1d(array, types.float64) and index == i64x8 and mask == m8 and passthru == f64x8):
         return None
 
     def codegen(context, builder, sig, args):
@@ -314,7 +321,7 @@ def gather_f64(typingctx, array, index, mask, passthru):
 @intrinsic
 def gather_i32(typingctx, array, index, mask):
     """``array[index[k]]`` (int32, widened) in the lanes of ``mask``, 0 elsewhere."""
-    if not (_c1d(array, types.int32) and index == i64x8 and mask == m8):
+    if not (contiguous_1d(array, types.int32) and index == i64x8 and mask == m8):
         return None
 
     def codegen(context, builder, sig, args):
@@ -328,7 +335,7 @@ def gather_i32(typingctx, array, index, mask):
 @intrinsic
 def scatter_i64(typingctx, array, index, value, mask):
     """``array[index[k]] = value[k]`` in the lanes of ``mask`` (int64; distinct indices)."""
-    if not (_c1d(array, types.int64) and index == i64x8 and value == i64x8 and mask == m8):
+    if not (contiguous_1d(array, types.int64) and index == i64x8 and value == i64x8 and mask == m8):
         return None
 
     def codegen(context, builder, sig, args):
@@ -343,15 +350,15 @@ def scatter_i64(typingctx, array, index, value, mask):
 def _expand(dtype, vector_type, vector, name):
     @intrinsic
     def expand(typingctx, array, start, mask, passthru):
-        if not (_c1d(array, dtype) and isinstance(start, types.Integer) and mask == m8 and passthru == vector):
+        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and mask == m8 and passthru == vector):
             return None
 
         def codegen(context, builder, sig, args):
-            pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
+            pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
             fn = _llvm_function(builder, name, vector_type, [pointer.type, _M8, vector_type])
             return builder.call(fn, [pointer, args[2], args[3]])
 
-        return vector(array, start, m8, vector), codegen
+        return vector(array, types.intp, m8, vector), codegen
 
     expand.__doc__ = (f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the "
                       "others ``passthru``'s: the inverse of a compress.")  # fmt: skip
@@ -365,16 +372,16 @@ expand_i64 = _expand(types.int64, _I64X8, i64x8, "llvm.masked.expandload.v8i64")
 def _compress_store(dtype, vector, store_type, name, convert):
     @intrinsic
     def compress_store(typingctx, array, start, value, mask):
-        if not (_c1d(array, dtype) and isinstance(start, types.Integer) and value == vector and mask == m8):
+        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and value == vector and mask == m8):
             return None
 
         def codegen(context, builder, sig, args):
-            pointer = _element_pointer(context, builder, sig.args[0], args[0], args[1], sig.args[1])
+            pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
             fn = _llvm_function(builder, name, ir.VoidType(), [store_type, pointer.type, _M8])
             builder.call(fn, [convert(builder, args[2]), pointer, args[3]])
             return context.get_dummy_value()
 
-        return types.void(array, start, vector, m8), codegen
+        return types.void(array, types.intp, vector, m8), codegen
 
     compress_store.__doc__ = (f"``array[start : start + popcount8(mask)]`` = the lanes of ``mask``, in lane order ({dtype}); "
                               "nothing else is written.")  # fmt: skip

@@ -267,25 +267,26 @@ def _fused_kernel(
                                                point_code[b, i], i, (b * _GROUP + g) * xs.shape[2] + point_slot[i] * block, b, n_origin,
                                                point_column, origin_entry, origin_slots, origin_weights, resolutions, mask,
                                                table_size, table, point_distances, xs_flat, block)  # fmt: skip
-                for g in range(0 if simd_walk else stop - start):
-                    n = start + g
-                    ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
-                    dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
-                    count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                                np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                                occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
-                    counts[n] = count
-                    t_enter[n] = t0
-                    t_exit[n] = t1
-                    group_count[b, g] = count
-                    for h in range(count):
-                        px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
-                        point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
-                        n_origin = _list_point(ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1), px, py, pz, axes[g, h],
-                                               e, (b * _GROUP + g) * xs.shape[2] + h * block, b, n_origin, point_column, origin_entry,
-                                               origin_slots, origin_weights, resolutions, mask, table_size, table, point_distances,
-                                               xs_flat, block)  # fmt: skip
-                        e += 1
+                else:
+                    for g in range(stop - start):
+                        n = start + g
+                        ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
+                        dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+                        count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                                    np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                                    occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+                        counts[n] = count
+                        t_enter[n] = t0
+                        t_exit[n] = t1
+                        group_count[b, g] = count
+                        for h in range(count):
+                            px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+                            point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
+                            n_origin = _list_point(ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1), px, py, pz,
+                                                   axes[g, h], e, (b * _GROUP + g) * xs.shape[2] + h * block, b, n_origin, point_column,
+                                                   origin_entry, origin_slots, origin_weights, resolutions, mask, table_size, table,
+                                                   point_distances, xs_flat, block)  # fmt: skip
+                            e += 1
                 # 2. every point's face rows and weights, per level (origin points' are computed and unused)
                 for lvl in range(n_levels):
                     res, base = resolutions[lvl], lvl * table_size

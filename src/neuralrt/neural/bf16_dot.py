@@ -7,7 +7,7 @@ intrinsic compiles to a portable emulation (the two bf16 halves widened to fp32 
 fused multiply-adds), which is also available under its own name so that it is tested anywhere.
 numba's cache is keyed on the CPU features it compiles for, so a kernel cached on one kind of CPU
 is not reused on the other; ``NUMBA_CPU_FEATURES`` without ``+avx512bf16`` forces the emulation
-(`_host_has_avx512_bf16`).
+(`neuralrt.simd.numba_targets`).
 
 The layout: an input pair ``(x[2p], x[2p+1])`` is one uint32 (low half: ``x[2p]``, bf16 bits);
 the weights of that pair for output column j are one uint32 ``w[p, j]`` (low half: the row
@@ -25,24 +25,16 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
+from ..simd import broadcast, contiguous_1d, numba_targets, vector_pointer
+
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
            "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32", "add16",
            "leaky_relu16", "store_bf16x16", "load_bf16x16"]
 
 
-def _host_has_avx512_bf16() -> bool:
-    """Whether numba compiles for AVX512-BF16: the CPU features it targets, ``NUMBA_CPU_FEATURES``
-    where set (numba keys its cache on them), else the host's. So the emulation can be forced on
-    any CPU, without stale cached kernels: ``NUMBA_CPU_FEATURES=<the host's, with -avx512bf16>``."""
-    if numba.config.CPU_FEATURES is not None:
-        return "+avx512bf16" in numba.config.CPU_FEATURES.split(",")
-    try:
-        return bool(llvm.get_host_cpu_features().get("avx512bf16", False))
-    except RuntimeError:  # features unknown on this host: use the portable path
-        return False
-
-
-HAS_AVX512_BF16 = _host_has_avx512_bf16()
+# Where numba targets it (`numba_targets`), so ``NUMBA_CPU_FEATURES=<the host's, with -avx512bf16>``
+# forces the emulation on any CPU, without stale cached kernels.
+HAS_AVX512_BF16 = numba_targets("avx512bf16")
 if HAS_AVX512_BF16:
     llvm.initialize_native_asmparser()  # numba's JIT does not: inline assembly needs it
 
@@ -67,17 +59,6 @@ class _F32x16Model(models.PrimitiveModel):
         super().__init__(dmm, fe_type, _F32X16)
 
 
-def _vector_pointer(context, builder, array_type, array, start, vector_type):
-    """Pointer to ``array[start]`` (1D, contiguous) as a pointer to ``vector_type``."""
-    data = context.make_array(array_type)(context, builder, array)
-    index = context.cast(builder, start, types.intp, types.intp)
-    return builder.bitcast(builder.gep(data.data, [index]), vector_type.as_pointer())
-
-
-def _check_array(array, dtype) -> bool:
-    return isinstance(array, types.Array) and array.ndim == 1 and array.layout == "C" and array.dtype == dtype
-
-
 @intrinsic
 def zeros16(typingctx):
     """16 zero lanes."""
@@ -91,11 +72,11 @@ def zeros16(typingctx):
 @intrinsic
 def load16(typingctx, array, start):
     """``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."""
-    if not (_check_array(array, types.float32) and isinstance(start, types.Integer)):
+    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer)):
         return None
 
     def codegen(context, builder, sig, args):
-        return builder.load(_vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
+        return builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
 
     return f32x16(array, types.intp), codegen
 
@@ -103,11 +84,11 @@ def load16(typingctx, array, start):
 @intrinsic
 def store16(typingctx, array, start, value):
     """``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."""
-    if not (_check_array(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
+    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
         return None
 
     def codegen(context, builder, sig, args):
-        builder.store(args[2], _vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
+        builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
         return context.get_dummy_value()
 
     return types.void(array, types.intp, f32x16), codegen
@@ -125,12 +106,6 @@ def add16(typingctx, a, b):
     return f32x16(f32x16, f32x16), codegen
 
 
-def _broadcast(builder, scalar, vector_type):
-    """``scalar`` in all 16 lanes of ``vector_type``."""
-    lane0 = builder.insert_element(ir.Constant(vector_type, None), scalar, ir.Constant(ir.IntType(32), 0))
-    return builder.shuffle_vector(lane0, ir.Constant(vector_type, None), ir.Constant(_I32X16, [0] * 16))
-
-
 @intrinsic
 def leaky_relu16(typingctx, value, slope):
     """``value if value >= 0 else value * slope`` per lane (the scalar kernels' leaky ReLU; an fp32 ``slope``)."""
@@ -140,7 +115,7 @@ def leaky_relu16(typingctx, value, slope):
     def codegen(context, builder, sig, args):
         v, s = args
         nonnegative = builder.fcmp_ordered(">=", v, ir.Constant(_F32X16, [0.0] * 16))
-        return builder.select(nonnegative, v, builder.fmul(v, _broadcast(builder, s, _F32X16)))
+        return builder.select(nonnegative, v, builder.fmul(v, broadcast(builder, s, _F32X16)))
 
     return f32x16(f32x16, types.float32), codegen
 
@@ -149,7 +124,7 @@ def leaky_relu16(typingctx, value, slope):
 def store_bf16x16(typingctx, array, start, value):
     """``array[start : start + 16] = value`` rounded to bf16 (the bits of `bf16_bits`, lane by
     lane; ``array`` 1D contiguous uint16, no bounds check)."""
-    if not (_check_array(array, types.uint16) and isinstance(start, types.Integer) and value == f32x16):
+    if not (contiguous_1d(array, types.uint16) and isinstance(start, types.Integer) and value == f32x16):
         return None
 
     def codegen(context, builder, sig, args):
@@ -157,7 +132,7 @@ def store_bf16x16(typingctx, array, start, value):
         sixteen = ir.Constant(_I32X16, [16] * 16)
         odd = builder.and_(builder.lshr(bits, sixteen), ir.Constant(_I32X16, [1] * 16))
         rounded = builder.lshr(builder.add(builder.add(bits, ir.Constant(_I32X16, [0x7FFF] * 16)), odd), sixteen)
-        pointer = _vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16)
+        pointer = vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16)
         builder.store(builder.trunc(rounded, _I16X16), pointer, align=2)
         return context.get_dummy_value()
 
@@ -167,11 +142,11 @@ def store_bf16x16(typingctx, array, start, value):
 @intrinsic
 def load_bf16x16(typingctx, array, start):
     """``array[start : start + 16]`` (1D contiguous uint16, bf16 bits) widened to fp32 exactly (`bf16_value`)."""
-    if not (_check_array(array, types.uint16) and isinstance(start, types.Integer)):
+    if not (contiguous_1d(array, types.uint16) and isinstance(start, types.Integer)):
         return None
 
     def codegen(context, builder, sig, args):
-        halves = builder.load(_vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16), align=2)
+        halves = builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], _I16X16), align=2)
         widened = builder.shl(builder.zext(halves, _I32X16), ir.Constant(_I32X16, [16] * 16))
         return builder.bitcast(widened, _F32X16)
 
@@ -182,13 +157,13 @@ def load_bf16x16(typingctx, array, start):
 def fma16(typingctx, acc, x, array, start):
     """``acc + x * array[start : start + 16]`` per lane, one rounding (``x`` an fp32 scalar,
     broadcast; ``array`` 1D contiguous fp32; no bounds check)."""
-    if not (acc == f32x16 and x == types.float32 and _check_array(array, types.float32) and isinstance(start, types.Integer)):
+    if not (acc == f32x16 and x == types.float32 and contiguous_1d(array, types.float32) and isinstance(start, types.Integer)):
         return None
 
     def codegen(context, builder, sig, args):
         acc_v, xs, array_v, start_v = args
-        xv = _broadcast(builder, xs, _F32X16)
-        w = builder.load(_vector_pointer(context, builder, sig.args[2], array_v, start_v, _F32X16), align=4)
+        xv = broadcast(builder, xs, _F32X16)
+        w = builder.load(vector_pointer(context, builder, sig.args[2], array_v, start_v, _F32X16), align=4)
         fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_F32X16, [_F32X16] * 3), "llvm.fma.v16f32")
         return builder.call(fma, [xv, w, acc_v])
 
@@ -223,15 +198,15 @@ def _dot_intrinsic(native: bool):
     def typer(typingctx, acc, x_pair, w_pairs, start):
         """``acc + x_pair . w_pairs[start : start + 16]`` per lane: ``x_pair`` a uint32 (two bf16),
         broadcast to all lanes; ``w_pairs`` 1D contiguous uint32 (two bf16 per column)."""
-        if not (acc == f32x16 and isinstance(x_pair, types.Integer) and _check_array(w_pairs, types.uint32)
+        if not (acc == f32x16 and isinstance(x_pair, types.Integer) and contiguous_1d(w_pairs, types.uint32)
                 and isinstance(start, types.Integer)):  # fmt: skip
             return None
 
         def codegen(context, builder, sig, args):
             acc_v, x, w_array, start_v = args
             x32 = context.cast(builder, x, sig.args[1], types.uint32)
-            xv = _broadcast(builder, x32, _I32X16)
-            w = builder.load(_vector_pointer(context, builder, sig.args[2], w_array, start_v, _I32X16), align=4)
+            xv = broadcast(builder, x32, _I32X16)
+            w = builder.load(vector_pointer(context, builder, sig.args[2], w_array, start_v, _I32X16), align=4)
             if native:
                 # AT&T order: vdpbf16ps src2, src1, dst  (dst += src1 . src2); $3 (acc) is tied to $0.
                 fnty = ir.FunctionType(_F32X16, [_I32X16, _I32X16, _F32X16])
