@@ -2,7 +2,7 @@
 
 For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
 decisions; eight rays at a time where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
-`_point_level`, float32, the same sums as its forward kernel; a group's rows are prefetched a
+`origin_rows`: `_point_level`'s rows and weights, float32, the same sums as its forward kernel; a group's rows are prefetched a
 group ahead of their reads) and adds the point's contribution to the first MLP layer at once:
 the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
 points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
@@ -42,11 +42,12 @@ from ..neural.bf16_dot import (
     store_bf16x16,
 )  # fmt: skip
 from ..neural.mlp import MLP, padded_rows
-from ..neural.sparse_hash_grid import SparseHashGrid, _point_level
+from ..neural.sparse_hash_grid import SparseHashGrid
 from ..neural.sparse_hash_grid import face_rows as _face_rows
+from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
-from ..neural.sparse_hash_grid import read_rows as _read_rows
+from ..neural.sparse_hash_grid import read_origin_rows as _read_origin_rows
 from ..simd import HAS_AVX512
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
 from .lsnif_walk_simd import walk_group, walk_scratch
@@ -148,22 +149,24 @@ def _face_rows_of_points(point_x, point_y, point_z, point_code, n, res, mask, ba
             point_x[i], point_y[i], point_z[i], point_code[i], res, mask, base)
 
 
+@numba.njit(cache=True)
+def _origin_rows_of_points(origin_x, origin_y, origin_z, n, res, mask, base, slots, weights):
+    """`origin_rows` of origin points ``[0, n)`` into ``slots``/``weights`` ``[8, >= n]`` (SIMD code,
+    as `_face_rows_of_points`)."""
+    for i in range(n):
+        _origin_rows(origin_x[i], origin_y[i], origin_z[i], res, mask, base, slots, weights, i)
+
+
 @numba.njit(cache=True, inline="always")
 def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e, column, b, n_origin, point_column, origin_entry,
-                origin_slots, origin_weights, resolutions, mask, table_size, table, point_distances, xs_flat, block):  # fmt: skip
+                origin_x, origin_y, origin_z, point_distances, xs_flat, block):  # fmt: skip
     """Point ``e`` of the group in buffer ``b``: its inputs' first column, its point distance
-    (written at once) and, for an origin point, its 8 rows per level (found and prefetched
-    here); returns the group's new number of origin points."""
+    (written at once) and, for an origin point, its entry and coordinates in the origin list
+    (its rows are found with the face points'); returns the group's new number of origin points."""
     point_column[b, e] = column
-    point_code = np.int64(code)
-    if point_code == ORIGIN_POINT:
+    if np.int64(code) == ORIGIN_POINT:
         origin_entry[b, n_origin] = e
-        n_levels = resolutions.shape[0]
-        for lvl in range(n_levels):
-            o = n_origin * n_levels + lvl
-            _point_level(px, py, pz, point_code, resolutions[lvl], mask, lvl * table_size, origin_slots[b, o], origin_weights[b, o])
-            for c in range(8):
-                _prefetch_row(table, origin_slots[b, o, c])
+        origin_x[n_origin], origin_y[n_origin], origin_z[n_origin] = px, py, pz
         n_origin += 1
     # point_local_distances, in float32 as the unfused path computes it
     span = max(tx - te, np.float32(1e-12))
@@ -231,10 +234,13 @@ def _fused_kernel(
         point_slot = np.empty(_GROUP * max_points, np.int64)
         queue, queue_i, rays8 = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
-        # Origin points (at most one per ray, the first): 8 rows per level, found during the walk
+        # Origin points (at most one per ray, the first): 8 rows per level
         origin_entry = np.empty((2, _GROUP), np.int64)
-        origin_slots = np.empty((2, _GROUP * n_levels, 8), np.int64)
-        origin_weights = np.empty((2, _GROUP * n_levels, 8), np.float32)
+        origin_x = np.empty(_GROUP, np.float32)
+        origin_y = np.empty(_GROUP, np.float32)
+        origin_z = np.empty(_GROUP, np.float32)
+        origin_slots = np.empty((2, n_levels, 8, _GROUP), np.int64)
+        origin_weights = np.empty((2, n_levels, 8, _GROUP), np.float32)
         xs = np.empty((2, _GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
         xs_flat = xs.reshape(-1)
         acc = np.empty(width, np.float32)
@@ -265,8 +271,8 @@ def _fused_kernel(
                         n_origin = _list_point(origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1],
                                                directions[n, 2], t_enter[n], t_exit[n], point_x[i], point_y[i], point_z[i],
                                                point_code[b, i], i, (b * _GROUP + g) * xs.shape[2] + point_slot[i] * block, b, n_origin,
-                                               point_column, origin_entry, origin_slots, origin_weights, resolutions, mask,
-                                               table_size, table, point_distances, xs_flat, block)  # fmt: skip
+                                               point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
+                                               xs_flat, block)  # fmt: skip
                 else:
                     for g in range(stop - start):
                         n = start + g
@@ -284,16 +290,22 @@ def _fused_kernel(
                             point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
                             n_origin = _list_point(ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1), px, py, pz,
                                                    axes[g, h], e, (b * _GROUP + g) * xs.shape[2] + h * block, b, n_origin, point_column,
-                                                   origin_entry, origin_slots, origin_weights, resolutions, mask, table_size, table,
-                                                   point_distances, xs_flat, block)  # fmt: skip
+                                                   origin_entry, origin_x, origin_y, origin_z, point_distances, xs_flat,
+                                                   block)  # fmt: skip
                             e += 1
-                # 2. every point's face rows and weights, per level (origin points' are computed and unused)
+                # 2. every point's face rows and weights, per level (origin points' are computed and
+                # unused), and the origin points' 8 rows
                 for lvl in range(n_levels):
                     res, base = resolutions[lvl], lvl * table_size
                     _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
+                    _origin_rows_of_points(origin_x, origin_y, origin_z, n_origin, res, mask, base, origin_slots[b, lvl],
+                                           origin_weights[b, lvl])  # fmt: skip
                     for i in range(e):  # the reads come after all of them: start them now
                         for c in range(4):
                             _prefetch_row(table, face_slots[b, lvl, c, i])
+                    for i in range(n_origin):
+                        for c in range(8):
+                            _prefetch_row(table, origin_slots[b, lvl, c, i])
                 group_points[b] = e
                 group_origins[b] = n_origin
             if step > 0:  # read group `step - 1`'s rows (started a group earlier), then its first layer
@@ -312,8 +324,7 @@ def _fused_kernel(
                 for k in range(group_origins[b]):
                     col = point_column[b, origin_entry[b, k]]
                     for lvl in range(n_levels):
-                        _read_rows(table, origin_slots[b, k * n_levels + lvl], origin_weights[b, k * n_levels + lvl], 8, xs_flat,
-                                   col + lvl * n_feat)  # fmt: skip
+                        _read_origin_rows(table, origin_slots[b, lvl], origin_weights[b, lvl], k, xs_flat, col + lvl * n_feat)
                 # 4. the first layer, or its inputs
                 if write_inputs:
                     for g in range(stop - start):

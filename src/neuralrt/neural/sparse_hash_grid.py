@@ -149,6 +149,23 @@ def face_rows(px, py, pz, code, res, mask, base):
 
 
 @numba.njit(cache=True, inline="always")
+def origin_rows(px, py, pz, res, mask, base, slots, weights, i):
+    """The 8 rows and trilinear weights of an origin point (`_point_level`'s, in its order: x
+    fastest), written to ``slots[c, i]``/``weights[c, i]``, without branches: a loop of these over
+    many points compiles to SIMD code."""
+    one = np.float32(1.0)
+    x0, x1, wx = _axis_terms(px, res, False, _P0)
+    y0, y1, wy = _axis_terms(py, res, False, _P1)
+    z0, z1, wz = _axis_terms(pz, res, False, _P2)
+    for c in range(8):
+        hx, fx = (x1, wx) if c & 1 else (x0, one - wx)
+        hy, fy = (y1, wy) if c & 2 else (y0, one - wy)
+        hz, fz = (z1, wz) if c & 4 else (z0, one - wz)
+        slots[c, i] = base + ((hx ^ hy ^ hz) & mask)
+        weights[c, i] = fx * fy * fz
+
+
+@numba.njit(cache=True, inline="always")
 def face_point_level(px, py, pz, code, res, mask, base, slots, weights):
     """`face_rows` written into ``slots``/``weights``; returns 4."""
     slots[0], slots[1], slots[2], slots[3], weights[0], weights[1], weights[2], weights[3] = face_rows(
@@ -221,6 +238,16 @@ def read_rows(table, slots, weights, k, out, col):
         acc = np.float32(0.0)  # padding points (k = 0): zero features
         for c in range(k):
             acc += weights[c] * table[slots[c], f]
+        out[col + f] = acc
+
+
+@numba.njit(cache=True, inline="always")
+def read_origin_rows(table, slots, weights, i, out, col):
+    """`read_rows` of the 8 rows of `origin_rows`' point ``i`` (the same sums: from 0, in row order)."""
+    for f in range(table.shape[1]):
+        acc = np.float32(0.0)
+        for c in range(8):
+            acc += weights[c, i] * table[slots[c, i], f]
         out[col + f] = acc
 
 
