@@ -203,12 +203,13 @@ def test_select_network_rows_is_select_network_rays_without_the_copies(point_dis
 
 def test_unit_box_rays_numba_matches_torch():
     """The CPU pass keeps the same valid rays and maps them with torch's float32 operations bit
-    for bit; bad rays (NaN, zero direction, empty or NaN interval) are dropped."""
+    for bit, in order over its parallel blocks; bad rays (NaN, zero direction, empty or NaN
+    interval) are dropped."""
     from neuralrt.methods.lsnif_features import unit_box_rays, unit_box_rays_numba, unit_box_rays_torch
     from neuralrt.rays import Rays
 
     g = torch.Generator().manual_seed(3)
-    n = 3000
+    n = 20000  # several blocks of rays
     o, d = torch.randn(n, 3, generator=g) * 2, torch.randn(n, 3, generator=g)
     t_min = torch.where(torch.rand(n, generator=g) < 0.3, torch.rand(n, generator=g), torch.zeros(n))
     t_max = torch.where(torch.rand(n, generator=g) < 0.2, torch.rand(n, generator=g), torch.full((n,), float("inf")))
@@ -216,10 +217,11 @@ def test_unit_box_rays_numba_matches_torch():
     d[50:100] = 0.0
     t_min[100:150] = float("nan")
     t_min[150:200] = -float("inf")  # valid, not shifted
+    o[9000:9100, 2] = float("inf")  # in another block
     rays = Rays(o, d, t_min, t_max)
     lo, ext = torch.tensor([-2.5, -3.0, -1.0]), torch.tensor([5.0, 6.5, 3.0])
     got, ref = unit_box_rays_numba(rays, lo, ext), unit_box_rays_torch(rays, lo, ext)
-    assert 2000 < len(got[0]) < n - 150 and (got[3] > 0).any()
+    assert 13000 < len(got[0]) < n - 250 and (got[3] > 0).any()
     for a, b in zip(got, ref):
         assert torch.equal(a, b)
     assert all(torch.equal(a, b) for a, b in zip(unit_box_rays(rays, lo, ext), got))  # the CPU default

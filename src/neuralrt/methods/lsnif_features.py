@@ -542,31 +542,48 @@ def select_network_rows_numba(fp: RayFeaturePoints, origins: Tensor, directions:
             torch.from_numpy(distances) if point_distances else None)  # fmt: skip
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, index, out_origins, out_directions, t_offset) -> int:
-    """Valid rays (as `neuralrt.rays.valid_ray_mask`) in order: their index, origin moved to a
-    positive finite ``t_min`` and mapped by ``(p - box_lo) / box_extent``, direction divided by
-    ``box_extent``, and the ``t_min`` shift; the same float32 operations as `unit_box_rays`'s torch
-    path. Returns how many."""
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, m, index, out_origins, out_directions, t_offset):
+    """Valid ray ``n`` as unit-box ray ``m``: its index, origin moved to a positive finite ``t_min``
+    and mapped by ``(p - box_lo) / box_extent``, direction divided by ``box_extent``, and the
+    ``t_min`` shift; the same float32 operations as `unit_box_rays`'s torch path."""
     zero = np.float32(0.0)
-    m = 0
-    for n in range(origins.shape[0]):
-        if not valid_ray(origins, directions, t_min, t_max, n):
-            continue
-        ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
-        dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
-        t = t_min[n]
-        t = t if (np.isfinite(t) and t > zero) else zero
-        index[m] = n
-        t_offset[m] = t
-        out_origins[m, 0] = ((ox + t * dx) - box_lo[0]) / box_extent[0]
-        out_origins[m, 1] = ((oy + t * dy) - box_lo[1]) / box_extent[1]
-        out_origins[m, 2] = ((oz + t * dz) - box_lo[2]) / box_extent[2]
-        out_directions[m, 0] = dx / box_extent[0]
-        out_directions[m, 1] = dy / box_extent[1]
-        out_directions[m, 2] = dz / box_extent[2]
-        m += 1
-    return m
+    ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
+    dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
+    t = t_min[n]
+    t = t if (np.isfinite(t) and t > zero) else zero
+    index[m] = n
+    t_offset[m] = t
+    out_origins[m, 0] = ((ox + t * dx) - box_lo[0]) / box_extent[0]
+    out_origins[m, 1] = ((oy + t * dy) - box_lo[1]) / box_extent[1]
+    out_origins[m, 2] = ((oz + t * dz) - box_lo[2]) / box_extent[2]
+    out_directions[m, 0] = dx / box_extent[0]
+    out_directions[m, 1] = dy / box_extent[1]
+    out_directions[m, 2] = dz / box_extent[2]
+
+
+@numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, n_blocks, index, out_origins, out_directions,
+                     t_offset) -> int:  # fmt: skip
+    """`_unit_box_ray` of the valid rays (as `neuralrt.rays.valid_ray_mask`), in order, in
+    ``n_blocks`` blocks of rays in parallel (each block's valid rays counted first, so each knows
+    where its rows start). Returns how many."""
+    n = origins.shape[0]
+    starts = np.zeros(n_blocks + 1, np.int64)
+    for block in numba.prange(n_blocks):
+        valid = 0
+        for i in range(block * n // n_blocks, (block + 1) * n // n_blocks):
+            valid += valid_ray(origins, directions, t_min, t_max, i)
+        starts[block + 1] = valid
+    for block in range(n_blocks):
+        starts[block + 1] += starts[block]
+    for block in numba.prange(n_blocks):
+        m = starts[block]
+        for i in range(block * n // n_blocks, (block + 1) * n // n_blocks):
+            if valid_ray(origins, directions, t_min, t_max, i):
+                _unit_box_ray(origins, directions, t_min, box_lo, box_extent, i, m, index, out_origins, out_directions, t_offset)
+                m += 1
+    return starts[n_blocks]
 
 
 def unit_box_rays(rays: Rays, box_lo: Tensor, box_extent: Tensor):
@@ -589,10 +606,11 @@ def unit_box_rays_torch(rays: Rays, box_lo: Tensor, box_extent: Tensor):
 
 
 def unit_box_rays_numba(rays: Rays, box_lo: Tensor, box_extent: Tensor):
-    """`unit_box_rays` on float32 CPU tensors: one numba pass, in torch's float32 operations."""
+    """`unit_box_rays` on float32 CPU tensors: a parallel numba pass, in torch's float32 operations."""
     n = len(rays)
     index, t_offset = np.empty(n, np.int64), np.empty(n, np.float32)
     o, d = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
     arrays = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max, box_lo, box_extent))
-    m = _unit_box_kernel(*arrays, index, o, d, t_offset)
+    n_blocks = max(1, min(4 * numba.get_num_threads(), n // 4096))  # blocks of at least 4096 rays
+    m = _unit_box_kernel(*arrays, n_blocks, index, o, d, t_offset)
     return torch.from_numpy(index[:m]), torch.from_numpy(o[:m]), torch.from_numpy(d[:m]), torch.from_numpy(t_offset[:m])
