@@ -547,3 +547,36 @@ def test_the_first_layer_leaves_the_pass_only_on_amx_and_for_inputs_within_bound
     for forced in (False, True):
         monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", forced)
         assert fused.first_layer_in_pass(10_000, 16) == forced
+
+
+def test_prepared_pass_is_kept_until_a_tensor_or_setting_changes(figure, monkeypatch):
+    """The pass's prepared weights and grids are reused across calls, and rebuilt after an in-place
+    update of the table, a layer or the occupancy, or a switch: answers after each change equal a
+    model built from scratch with the changed values."""
+    model = _model(figure, "bf16", hidden_width=32)
+    rays = _mixed_rays(model, 400, seed=9)
+    model.intersect(rays)
+    kept = model.network._fused_cpu_pass[1]
+    model.intersect(rays)
+    assert model.network._fused_cpu_pass[1] is kept
+
+    def fresh_answers():
+        clone = _model(figure, "bf16", hidden_width=32)
+        clone.load_state_dict(model.state_dict())
+        return clone.intersect(rays)
+
+    with torch.no_grad():
+        changes = (lambda: model.encoder.table.mul_(-1.0), lambda: model.network.hidden[0].bias.add_(0.5),
+                   lambda: model.network.output.weight.mul_(2.0), lambda: model.occupancy[:, :, :8].zero_())  # fmt: skip
+        for change in changes:
+            before = model.intersect(rays)
+            change()
+            after = model.intersect(rays)
+            assert model.network._fused_cpu_pass[1] is not kept
+            kept = model.network._fused_cpu_pass[1]
+            expected = fresh_answers()
+            assert torch.equal(after.hit, expected.hit) and torch.equal(after.t, expected.t)
+            assert not (torch.equal(after.hit, before.hit) and torch.equal(after.t, before.t))
+    monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", False)
+    model.intersect(rays)
+    assert model.network._fused_cpu_pass[1] is not kept and not model.network._fused_cpu_pass[1].pairs
