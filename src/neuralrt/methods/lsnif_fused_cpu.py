@@ -227,7 +227,7 @@ def _fused_kernel(
         point_z = np.empty(_GROUP * max_points, np.float32)
         point_code = np.empty((2, _GROUP * max_points), np.int64)
         point_column = np.empty((2, _GROUP * max_points), np.int64)  # its features' first index in xs_flat
-        face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int64)
+        face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int32)  # (table rows < 2^31)
         face_weights = np.empty((2, n_levels, 4, _GROUP * max_points), np.float32)
         group_points = np.empty(2, np.int64)
         point_ray = np.empty(_GROUP * max_points, np.int64)  # (SIMD walk) each point's ray in the group and slot in its list
@@ -239,7 +239,7 @@ def _fused_kernel(
         origin_x = np.empty(_GROUP, np.float32)
         origin_y = np.empty(_GROUP, np.float32)
         origin_z = np.empty(_GROUP, np.float32)
-        origin_slots = np.empty((2, n_levels, 8, _GROUP), np.int64)
+        origin_slots = np.empty((2, n_levels, 8, _GROUP), np.int32)
         origin_weights = np.empty((2, n_levels, 8, _GROUP), np.float32)
         xs = np.empty((2, _GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
         xs_flat = xs.reshape(-1)
