@@ -491,6 +491,8 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
         raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
     levels, _, n_feat = encoder.table.shape
     table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
+    if table.shape[0] >= 1 << 31:  # the pass keeps a group's table rows as int32
+        raise ValueError(f"hash table of {table.shape[0]} rows: the CPU pass handles fewer than 2^31")
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
     in_pass = compute_dtype == torch.float32 or not BF16_DOT_FIRST_LAYER or first_layer_in_pass(*w1.shape)
     pairs = in_pass and BF16_DOT_FIRST_LAYER and compute_dtype == torch.bfloat16 and b1.shape[0] % 16 == 0  # else fp32 per ray
