@@ -296,3 +296,29 @@ def test_auto_scatter_buckets_on_hosts_with_many_threads_per_level(monkeypatch):
     monkeypatch.setattr(shg, "BUCKETS_FROM_THREADS_PER_LEVEL", 10**6)  # no host has: row ranges
     with pytest.raises(TypeError):
         table_grad()
+
+
+def test_origin_rows_are_point_levels_rows_and_weights_bit_for_bit():
+    """The branch-free `origin_rows` (structure of arrays, for the fused CPU pass) gives the rows
+    and weights `_point_level` gives an origin point, in its order, including points on the box's
+    faces and corners (clamped)."""
+    import numba
+
+    from neuralrt.neural.sparse_hash_grid import _ORIGIN_POINT, _point_level, origin_rows
+
+    @numba.njit
+    def both(points, res, mask, base):
+        n = points.shape[0]
+        slots, weights = np.empty((8, n), np.int64), np.empty((8, n), np.float32)
+        ref_slots, ref_weights = np.empty((n, 8), np.int64), np.empty((n, 8), np.float32)
+        for i in range(n):
+            origin_rows(points[i, 0], points[i, 1], points[i, 2], res, mask, base, slots, weights, i)
+            _point_level(points[i, 0], points[i, 1], points[i, 2], _ORIGIN_POINT, res, mask, base, ref_slots[i], ref_weights[i])
+        return slots, weights, ref_slots, ref_weights
+
+    rng = np.random.default_rng(5)
+    points = np.concatenate([rng.random((500, 3)), [[0, 0, 0], [1, 1, 1], [1, 0, 0.5], [0.25, 0.5, 1]]]).astype(np.float32)
+    for res in (16, 64):
+        slots, weights, ref_slots, ref_weights = both(points, res, np.int64((1 << 12) - 1), np.int64(1 << 12))
+        assert np.array_equal(slots, ref_slots.T) and np.array_equal(weights, ref_weights.T)
+        assert np.allclose(weights.sum(0), 1.0, atol=1e-6)

@@ -255,7 +255,7 @@ def walk_group(origins, directions, first, n, occ_cells, res, planes, max_points
         stepped = select(is_z, iz, select(is_y, iy, ix))
         left = live & ((stepped < zero_i) | (stepped >= res_v))
         live = live & ~left
-        lo = to_f64(stepped) / res_f  # k / V, bit-equal to planes[k]; cheaper than two gathers
+        lo = to_f64(stepped) / res_f  # k / V, bit-equal to planes[k], instead of two gathers
         hi = to_f64(stepped + one_i) / res_f
         s = select(is_z, sz, select(is_y, sy, sx))
         o = select(is_z, oz, select(is_y, oy, ox))
