@@ -23,7 +23,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "f64x8", "i64x8",
+__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "f64x8", "i64x8",
            "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8", "to_f64",
            "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
            "compress_store_f64", "compress_store_i64"]  # fmt: skip
@@ -106,6 +106,24 @@ def element_pointer(context, builder, array_type, array, start):
 def vector_pointer(context, builder, array_type, array, start, vector_type):
     """`element_pointer` as a pointer to ``vector_type`` (IR)."""
     return builder.bitcast(element_pointer(context, builder, array_type, array, start), vector_type.as_pointer())
+
+
+def vector_load(element, vector, vector_type, align):
+    """An intrinsic ``load(array, start)``: ``array[start : start + lanes]`` as one ``vector`` (the
+    numba type; ``vector_type`` its IR type) from a 1D contiguous array of ``element``, no bounds
+    check."""
+
+    @intrinsic
+    def load(typingctx, array, start):
+        if not (contiguous_1d(array, element) and isinstance(start, types.Integer)):
+            return None
+
+        def codegen(context, builder, sig, args):
+            return builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], vector_type), align=align)
+
+        return vector(array, types.intp), codegen
+
+    return load
 
 
 def _lane_pointers(context, builder, array_type, array, index, element):
@@ -243,6 +261,11 @@ def vmax(a, b):
     return select(b > a, b, a)
 
 
+def _mask_bits(builder, mask):
+    """An ``m8`` as an i64, lane k in bit k (IR)."""
+    return builder.zext(builder.bitcast(mask, _I8), _I64)
+
+
 @intrinsic
 def bits8(typingctx, mask):
     """The mask as an integer, lane k in bit k."""
@@ -250,7 +273,7 @@ def bits8(typingctx, mask):
         return None
 
     def codegen(context, builder, sig, args):
-        return builder.zext(builder.bitcast(args[0], _I8), _I64)
+        return _mask_bits(builder, args[0])
 
     return types.int64(m8), codegen
 
@@ -262,8 +285,7 @@ def popcount8(typingctx, mask):
         return None
 
     def codegen(context, builder, sig, args):
-        bits = builder.zext(builder.bitcast(args[0], _I8), _I64)
-        return builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [bits])
+        return builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [_mask_bits(builder, args[0])])
 
     return types.int64(m8), codegen
 
@@ -292,16 +314,8 @@ def floor_i64(typingctx, a):
     return i64x8(f64x8), codegen
 
 
-@intrinsic
-def load_f64(typingctx, array, start):
-    """``array[start : start + 8]`` (float64)."""
-    if not (contiguous_1d(array, types.float64) and isinstance(start, types.Integer)):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], _F64X8), align=8)
-
-    return f64x8(array, types.intp), codegen
+load_f64 = vector_load(types.float64, f64x8, _F64X8, 8)
+load_f64.__doc__ = "``array[start : start + 8]`` (float64)."
 
 
 @intrinsic

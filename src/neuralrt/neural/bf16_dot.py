@@ -25,7 +25,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-from ..simd import broadcast, contiguous_1d, numba_targets, vector_pointer
+from ..simd import broadcast, contiguous_1d, numba_targets, vector_load, vector_pointer
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
            "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32", "add16",
@@ -69,16 +69,8 @@ def zeros16(typingctx):
     return f32x16(), codegen
 
 
-@intrinsic
-def load16(typingctx, array, start):
-    """``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."""
-    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer)):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.load(vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
-
-    return f32x16(array, types.intp), codegen
+load16 = vector_load(types.float32, f32x16, _F32X16, 4)
+load16.__doc__ = "``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."
 
 
 @intrinsic
