@@ -47,7 +47,7 @@ from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
-from ..neural.sparse_hash_grid import read_origin_rows as _read_origin_rows
+from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
 from .lsnif_walk_simd import walk_group, walk_scratch
@@ -324,7 +324,7 @@ def _fused_kernel(
                 for k in range(group_origins[b]):
                     col = point_column[b, origin_entry[b, k]]
                     for lvl in range(n_levels):
-                        _read_origin_rows(table, origin_slots[b, lvl], origin_weights[b, lvl], k, xs_flat, col + lvl * n_feat)
+                        _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
                 # 4. the first layer, or its inputs
                 if write_inputs:
                     for g in range(stop - start):

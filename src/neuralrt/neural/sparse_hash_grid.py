@@ -149,20 +149,26 @@ def face_rows(px, py, pz, code, res, mask, base):
 
 
 @numba.njit(cache=True, inline="always")
-def origin_rows(px, py, pz, res, mask, base, slots, weights, i):
-    """The 8 rows and trilinear weights of an origin point (`_point_level`'s, in its order: x
-    fastest), written to ``slots[c, i]``/``weights[c, i]``, without branches: a loop of these over
-    many points compiles to SIMD code."""
+def origin_corner(c, x0, x1, wx, y0, y1, wy, z0, z1, wz, base, mask):
+    """Corner ``c`` (x fastest) of an origin point's cell: its row and trilinear weight, from the
+    axes' `_axis_terms`."""
     one = np.float32(1.0)
+    hx, fx = (x1, wx) if c & 1 else (x0, one - wx)
+    hy, fy = (y1, wy) if c & 2 else (y0, one - wy)
+    hz, fz = (z1, wz) if c & 4 else (z0, one - wz)
+    return base + ((hx ^ hy ^ hz) & mask), fx * fy * fz
+
+
+@numba.njit(cache=True, inline="always")
+def origin_rows(px, py, pz, res, mask, base, slots, weights, i):
+    """The 8 rows and trilinear weights of an origin point (`_point_level`'s), written to
+    ``slots[c, i]``/``weights[c, i]``, without branches: a loop of these over many points compiles
+    to SIMD code."""
     x0, x1, wx = _axis_terms(px, res, False, _P0)
     y0, y1, wy = _axis_terms(py, res, False, _P1)
     z0, z1, wz = _axis_terms(pz, res, False, _P2)
     for c in range(8):
-        hx, fx = (x1, wx) if c & 1 else (x0, one - wx)
-        hy, fy = (y1, wy) if c & 2 else (y0, one - wy)
-        hz, fz = (z1, wz) if c & 4 else (z0, one - wz)
-        slots[c, i] = base + ((hx ^ hy ^ hz) & mask)
-        weights[c, i] = fx * fy * fz
+        slots[c, i], weights[c, i] = origin_corner(c, x0, x1, wx, y0, y1, wy, z0, z1, wz, base, mask)
 
 
 @numba.njit(cache=True, inline="always")
@@ -177,21 +183,12 @@ def face_point_level(px, py, pz, code, res, mask, base, slots, weights):
 def _point_level(px, py, pz, code, res, mask, base, slots, weights):
     """Fill ``slots``/``weights`` with the table rows (offset by ``base``) a point reads; returns
     how many: 4 (bilinear on the face cell) for face points, 8 (trilinear) for origin points."""
-    one = np.float32(1.0)
     x0, x1, wx = _axis_terms(px, res, code == 0, _P0)
     y0, y1, wy = _axis_terms(py, res, code == 1, _P1)
     z0, z1, wz = _axis_terms(pz, res, code == 2, _P2)
     if code == _ORIGIN_POINT:
-        k = 0
-        for bz in range(2):
-            hz, fz = (z1, wz) if bz else (z0, one - wz)
-            for by in range(2):
-                hy, fy = (y1, wy) if by else (y0, one - wy)
-                for bx in range(2):
-                    hx, fx = (x1, wx) if bx else (x0, one - wx)
-                    slots[k] = base + ((hx ^ hy ^ hz) & mask)
-                    weights[k] = fx * fy * fz
-                    k += 1
+        for c in range(8):
+            slots[c], weights[c] = origin_corner(c, x0, x1, wx, y0, y1, wy, z0, z1, wz, base, mask)
         return 8
     # Face point: (a, u0, u1, wu, v0, v1, wv) = fixed axis term and the two in-plane axes.
     if code == 0:
@@ -238,16 +235,6 @@ def read_rows(table, slots, weights, k, out, col):
         acc = np.float32(0.0)  # padding points (k = 0): zero features
         for c in range(k):
             acc += weights[c] * table[slots[c], f]
-        out[col + f] = acc
-
-
-@numba.njit(cache=True, inline="always")
-def read_origin_rows(table, slots, weights, i, out, col):
-    """`read_rows` of the 8 rows of `origin_rows`' point ``i`` (the same sums: from 0, in row order)."""
-    for f in range(table.shape[1]):
-        acc = np.float32(0.0)
-        for c in range(8):
-            acc += weights[c, i] * table[slots[c, i], f]
         out[col + f] = acc
 
 
