@@ -219,6 +219,31 @@ def test_face_point_hashing_equals_the_encoders():
     assert len(np.unique(slots[:, 0, :4])) > 2000
 
 
+def test_vector_input_rounding_equals_the_scalar_pairs_and_zeroes_stale_inputs():
+    """`_inputs_bf16` (16 inputs per instruction, the first layer's pairs in the pass) writes the
+    bits of `_input_pairs` (scalar, the GEMM's inputs) for every input count, and zeros up to
+    ``n_out`` however stale the row past the ray's inputs is."""
+    import numba
+
+    @numba.njit
+    def both(xs, counts, n_out):
+        vector = np.full((len(counts), xs.shape[1] // 2), 0xFFFFFFFF, np.uint32)  # stale bits to overwrite
+        scalar = np.zeros((len(counts), n_out // 2), np.uint32)
+        for r in range(len(counts)):
+            fused._inputs_bf16(xs[r], counts[r], n_out, vector[r].view(np.uint16))
+            fused._input_pairs(xs[r], counts[r], scalar[r])
+        return vector, scalar
+
+    rng = np.random.default_rng(3)
+    xs = (rng.standard_normal((200, 128)) * 10.0 ** rng.integers(-5, 5, (200, 128))).astype(np.float32)
+    xs[:, 0] = 1.00390625  # a tie: rounds to even
+    counts = np.concatenate([np.arange(0, 97), rng.integers(0, 97, 103)]).astype(np.int64)
+    vector, scalar = both(xs, counts, 96)
+    assert np.array_equal(vector[:, :48], scalar)
+    assert np.all(vector[:, 48:] == 0xFFFFFFFF)  # nothing written past n_out
+    assert np.all(vector[0, :48] == 0) and vector[95, 47] >> 16 == 0 and vector[94, 47] == 0  # zeros past the inputs
+
+
 def test_hidden_buffer_is_reused_per_thread_and_large_ones_are_not_kept():
     from neuralrt.methods import lsnif_fused_cpu as fused
 

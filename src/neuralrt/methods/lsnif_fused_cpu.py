@@ -38,8 +38,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..neural.bf16_dot import (
-    add16, bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, fma16, fma_f32, leaky_relu16, load16, load_bf16x16, store16,
-    store_bf16x16,
+    add16, bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, first_lanes16, fma16, fma_f32, leaky_relu16, load16, load_bf16x16,
+    store16, store_bf16x16,
 )  # fmt: skip
 from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid
@@ -112,19 +112,35 @@ def _bias_leaky_bf16(dots, offset, bias, slope, out):
         store_bf16x16(out, c, leaky_relu16(add16(load16(dots, offset + c), load16(bias, c)), slope))
 
 
+@numba.njit(cache=True, inline="always")
+def _inputs_bf16(xs_row, n_inputs, n_out, out_row):
+    """A ray's first ``n_inputs`` network inputs rounded to bf16 (`bf16_bits`) into ``out_row[:n_out]``
+    (uint16; as uint32, the pairs of `_input_pairs`), zero past them; 16 per instruction (``n_out``
+    a multiple of 16, at most the length of ``xs_row``)."""
+    for c in range(0, n_out, 16):
+        store_bf16x16(out_row, c, first_lanes16(load16(xs_row, c), min(max(n_inputs - c, 0), 16)))
+
+
 @numba.njit(cache=True)
 def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, rows, dots, hidden_bf16, start):
     """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
-    each ray's inputs rounded to bf16 pairs (zero past its own), the rays with points ordered by
-    point count (most first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU
-    and the rounding to bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]``."""
+    each ray's inputs rounded to bf16 pairs (`_inputs_bf16`; zero up to the group's longest, so
+    that a pass reads zeros past a ray's own), the rays with points ordered by point count (most
+    first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU and the rounding to
+    bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]``. ``xs [G, K]`` fp32 and
+    ``xp [G, K / 2]`` uint32, K a multiple of 16."""
     width = b1.shape[0]
+    longest = 0
+    for g in range(n_group):
+        longest = max(longest, group_count[g])
+    n_out = (longest * block + 15) // 16 * 16
+    xp_bf16 = xp.view(np.uint16)  # [G, K]: pair p of a row is its inputs 2p (low half: little-endian), 2p + 1
     m = 0
     for g in range(n_group):
         count = group_count[g]
         if count == 0:
             continue
-        _input_pairs(xs[g], count * block, xp[g])
+        _inputs_bf16(xs[g], count * block, n_out, xp_bf16[g])
         i = m  # insertion by count, descending (stable)
         while i > 0 and group_count[order[i - 1]] < count:
             order[i] = order[i - 1]
@@ -241,11 +257,11 @@ def _fused_kernel(
         origin_z = np.empty(_GROUP, np.float32)
         origin_slots = np.empty((2, n_levels, 8, _GROUP), np.int32)
         origin_weights = np.empty((2, n_levels, 8, _GROUP), np.float32)
-        xs = np.empty((2, _GROUP, max_points * block), np.float32)  # the rays' nonzero network inputs
+        n_inputs = (max_points * block + 15) // 16 * 16  # (a multiple of 16 for `_inputs_bf16`)
+        xs = np.empty((2, _GROUP, n_inputs), np.float32)  # the rays' nonzero network inputs
         xs_flat = xs.reshape(-1)
         acc = np.empty(width, np.float32)
-        n_pairs = (max_points * block + 1) // 2
-        xp = np.zeros((_GROUP, n_pairs), np.uint32)  # the inputs as bf16 pairs (pairs path)
+        xp = np.empty((_GROUP, n_inputs // 2), np.uint32)  # the inputs as bf16 pairs (pairs path)
         order = np.empty(_GROUP, np.int64)  # the group's rays with points, most points first
         rows = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)

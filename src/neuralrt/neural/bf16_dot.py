@@ -29,7 +29,7 @@ from ..simd import broadcast, contiguous_1d, numba_targets, vector_load, vector_
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
            "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32", "add16",
-           "leaky_relu16", "store_bf16x16", "load_bf16x16"]
+           "leaky_relu16", "store_bf16x16", "load_bf16x16", "first_lanes16"]
 
 
 # Where numba targets it (`numba_targets`), so ``NUMBA_CPU_FEATURES=<the host's, with -avx512bf16>``
@@ -110,6 +110,20 @@ def leaky_relu16(typingctx, value, slope):
         return builder.select(nonnegative, v, builder.fmul(v, broadcast(builder, s, _F32X16)))
 
     return f32x16(f32x16, types.float32), codegen
+
+
+@intrinsic
+def first_lanes16(typingctx, value, count):
+    """``value`` in lanes ``k < count``, zero in the others (``count`` an integer in [0, 16])."""
+    if not (value == f32x16 and isinstance(count, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        n = broadcast(builder, context.cast(builder, args[1], sig.args[1], types.int32), _I32X16)
+        kept = builder.icmp_signed("<", ir.Constant(_I32X16, list(range(16))), n)
+        return builder.select(kept, args[0], ir.Constant(_F32X16, [0.0] * 16))
+
+    return f32x16(f32x16, count), codegen
 
 
 @intrinsic
