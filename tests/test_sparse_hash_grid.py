@@ -322,3 +322,37 @@ def test_origin_rows_are_point_levels_rows_and_weights_bit_for_bit():
         slots, weights, ref_slots, ref_weights = both(points, res, np.int64((1 << 12) - 1), np.int64(1 << 12))
         assert np.array_equal(slots, ref_slots.T) and np.array_equal(weights, ref_weights.T)
         assert np.allclose(weights.sum(0), 1.0, atol=1e-6)
+
+
+def test_vector_row_reads_equal_the_scalar_reads_bit_for_bit():
+    """`read_rows3` (a row per vector load, 4 or 8 rows) gives `read_rows`' bits, reads the
+    table's last row (its fourth lane is the padding float) and writes nothing past 3 features."""
+    import numba
+
+    from neuralrt.neural.sparse_hash_grid import read_rows, read_rows3
+
+    @numba.njit
+    def both(table_flat, slots, weights, scalar, vector):
+        table = table_flat[:-1].reshape(-1, 3)
+        for i in range(slots.shape[0]):
+            s, c = slots[i], weights[i]
+            read_rows(table, s[:4], c[:4], 4, scalar[0], 3 * i)
+            read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), vector[0], 3 * i)
+            read_rows(table, s, c, 8, scalar[1], 3 * i)
+            read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]), (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]),
+                       vector[1], 3 * i)  # fmt: skip
+
+    rng = np.random.default_rng(8)
+    rows = 5000
+    table_flat = np.full(3 * rows + 1, np.nan, np.float32)  # the padding float must not reach an output
+    table_flat[:-1] = rng.standard_normal(3 * rows) * 10.0 ** rng.integers(-4, 4, 3 * rows)
+    slots = rng.integers(0, rows, (3000, 8)).astype(np.int32)
+    slots[:5] = rows - 1
+    weights = rng.random((3000, 8)).astype(np.float32)
+    weights[5] = 0.0  # -0.0 products and a zero sum: 0 + (-0) is +0 in both
+    table_flat[3 * slots[5]] = -1.0
+    scalar = np.full((2, 3 * 3000 + 1), 7.0, np.float32)
+    vector = scalar.copy()
+    both(table_flat, slots, weights, scalar, vector)
+    assert np.array_equal(scalar.view(np.uint32), vector.view(np.uint32))
+    assert np.all(vector[:, -1] == 7.0) and np.isfinite(vector).all()

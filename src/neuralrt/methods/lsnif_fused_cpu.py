@@ -47,6 +47,7 @@ from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
+from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
 from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
@@ -208,7 +209,7 @@ _CHUNKS_PER_THREAD = 32
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
-    origins, directions, occ, occ_cells, simd_walk, planes, table, resolutions, w1, w1_pairs, b1, slope,
+    origins, directions, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions, w1, w1_pairs, b1, slope,
     max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
     hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit,
 ):  # fmt: skip
@@ -334,13 +335,21 @@ def _fused_kernel(
                         continue
                     col = point_column[b, i]
                     for lvl in range(n_levels):
-                        _read_face_rows(table, face_slots[b, lvl, 0, i], face_slots[b, lvl, 1, i], face_slots[b, lvl, 2, i],
-                                        face_slots[b, lvl, 3, i], face_weights[b, lvl, 0, i], face_weights[b, lvl, 1, i],
-                                        face_weights[b, lvl, 2, i], face_weights[b, lvl, 3, i], xs_flat, col + lvl * n_feat)  # fmt: skip
+                        s0, s1, s2, s3 = face_slots[b, lvl, 0, i], face_slots[b, lvl, 1, i], face_slots[b, lvl, 2, i], face_slots[b, lvl, 3, i]
+                        c0, c1, c2, c3 = face_weights[b, lvl, 0, i], face_weights[b, lvl, 1, i], face_weights[b, lvl, 2, i], face_weights[b, lvl, 3, i]
+                        if n_feat == 3:  # (the default) a row per vector load
+                            _read_rows3(table_flat, (s0, s1, s2, s3), (c0, c1, c2, c3), xs_flat, col + lvl * n_feat)
+                        else:
+                            _read_face_rows(table, s0, s1, s2, s3, c0, c1, c2, c3, xs_flat, col + lvl * n_feat)
                 for k in range(group_origins[b]):
                     col = point_column[b, origin_entry[b, k]]
                     for lvl in range(n_levels):
-                        _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
+                        if n_feat == 3:
+                            s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
+                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
+                                        (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * n_feat)  # fmt: skip
+                        else:
+                            _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
                 # 4. the first layer, or its inputs
                 if write_inputs:
                     for g in range(stop - start):
@@ -464,7 +473,8 @@ class _Pass:
     compute_dtype: torch.dtype
     occ: np.ndarray
     planes: np.ndarray
-    table: np.ndarray
+    table: np.ndarray  # [L * T, F] fp32: a view of table_flat
+    table_flat: np.ndarray  # the table's values and one zero after them
     resolutions: np.ndarray
     w1: np.ndarray
     w1_pairs: np.ndarray
@@ -506,7 +516,10 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     if occ.ndim != 3 or len(set(occ.shape)) != 1:
         raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
     levels, _, n_feat = encoder.table.shape
-    table = encoder.table.detach().float().contiguous().numpy().reshape(-1, n_feat)
+    # The table's data with one float after it, so `read_face_rows3` may load 4 floats from any row
+    table_flat = np.zeros(encoder.table.numel() + 1, np.float32)
+    table_flat[:-1] = encoder.table.detach().float().reshape(-1).numpy()
+    table = table_flat[:-1].reshape(-1, n_feat)
     if table.shape[0] >= 1 << 31:  # the pass keeps a group's table rows as int32
         raise ValueError(f"hash table of {table.shape[0]} rows: the CPU pass handles fewer than 2^31")
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
@@ -519,7 +532,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
-    return _Pass(network, compute_dtype, occ, planes, table, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
+    return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
                  occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
 
 
@@ -550,7 +563,7 @@ def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor,
     if n:
         n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
-            _fused_kernel(o, d, p.occ, p.occ_cells, SIMD_WALK, p.planes, p.table, p.resolutions, p.w1, p.w1_pairs, p.b1,
+            _fused_kernel(o, d, p.occ, p.occ_cells, SIMD_WALK, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1,
                           np.float32(p.network.slope), p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs,
                           write_inputs, n_chunks, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit)  # fmt: skip
     if write_inputs:

@@ -39,6 +39,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from torch import Tensor, nn
 
+from ..simd import broadcast, contiguous_1d, element_pointer, vector_pointer
+
 from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
@@ -220,6 +222,40 @@ def read_face_rows(table, s0, s1, s2, s3, c0, c1, c2, c3, out, col):
     from 0, the 4 reads of a feature written out together."""
     for f in range(table.shape[1]):
         out[col + f] = (((np.float32(0.0) + c0 * table[s0, f]) + c1 * table[s1, f]) + c2 * table[s2, f]) + c3 * table[s3, f]
+
+
+_F32X4 = ir.VectorType(ir.FloatType(), 4)
+_F32X2 = ir.VectorType(ir.FloatType(), 2)
+
+
+@intrinsic
+def read_rows3(typingctx, table_flat, slots, weights, out, col):
+    """`read_rows` for 3 features per row and the rows ``slots`` (a tuple of integers) with
+    ``weights`` (as many float32s), one row per vector load: ``table_flat`` is the table's flat
+    float32 data with at least one element after it (each load takes 4 floats from ``3 * slot``);
+    per lane the same operations (products, then sums from 0 in row order, no fused multiply-adds),
+    so the same bits; ``out[col : col + 3]`` written, nothing after it."""
+    if not (contiguous_1d(table_flat, types.float32) and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
+            and isinstance(slots, types.UniTuple) and isinstance(slots.dtype, types.Integer)
+            and isinstance(weights, types.UniTuple) and weights.dtype == types.float32 and len(slots) == len(weights)):  # fmt: skip
+        return None
+
+    def codegen(context, builder, sig, args):
+        table_type, slots_type, _, out_type, col_type = sig.args
+        acc = ir.Constant(_F32X4, [0.0] * 4)
+        three = ir.Constant(ir.IntType(64), 3)
+        for k in range(len(slots_type)):
+            slot = context.cast(builder, builder.extract_value(args[1], k), slots_type.dtype, types.int64)
+            row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F32X4), align=4)
+            acc = builder.fadd(acc, builder.fmul(broadcast(builder, builder.extract_value(args[2], k), _F32X4), row))
+        col = context.cast(builder, args[4], col_type, types.intp)
+        first_two = builder.shuffle_vector(acc, ir.Constant(_F32X4, None), ir.Constant(ir.VectorType(ir.IntType(32), 2), [0, 1]))
+        builder.store(first_two, vector_pointer(context, builder, out_type, args[3], col, _F32X2), align=4)
+        third = element_pointer(context, builder, out_type, args[3], builder.add(col, ir.Constant(col.type, 2)))
+        builder.store(builder.extract_element(acc, ir.Constant(ir.IntType(32), 2)), third)
+        return context.get_dummy_value()
+
+    return types.void(table_flat, slots, weights, out, col), codegen
 
 
 @numba.njit(cache=True, inline="always")
