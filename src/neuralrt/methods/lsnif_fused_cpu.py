@@ -123,7 +123,7 @@ def _inputs_bf16(xs_row, n_inputs, n_out, out_row):
 
 
 @numba.njit(cache=True)
-def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, rows, dots, hidden_bf16, start):
+def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, buckets, rows, dots, hidden_bf16, start):
     """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
     each ray's inputs rounded to bf16 pairs (`_inputs_bf16`; zero up to the group's longest, so
     that a pass reads zeros past a ray's own), the rays with points ordered by point count (most
@@ -136,18 +136,22 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
         longest = max(longest, group_count[g])
     n_out = (longest * block + 15) // 16 * 16
     xp_bf16 = xp.view(np.uint16)  # [G, K]: pair p of a row is its inputs 2p (low half: little-endian), 2p + 1
-    m = 0
+    # order: a counting sort by count, descending, stable (rays with more points first)
+    ahead = buckets[: longest + 2]
+    ahead[:] = 0
+    for g in range(n_group):
+        ahead[longest - group_count[g] + 1] += 1  # ahead[k + 1]: rays with count longest - k
+    for k in range(1, longest + 2):
+        ahead[k] += ahead[k - 1]  # ahead[k]: rays with more points than longest - k
     for g in range(n_group):
         count = group_count[g]
         if count == 0:
             continue
         _inputs_bf16(xs[g], count * block, n_out, xp_bf16[g])
-        i = m  # insertion by count, descending (stable)
-        while i > 0 and group_count[order[i - 1]] < count:
-            order[i] = order[i - 1]
-            i -= 1
-        order[i] = g
-        m += 1
+        k = longest - count
+        order[ahead[k]] = g
+        ahead[k] += 1
+    m = ahead[longest - 1] if longest > 0 else 0  # (rays with count 0 come last and are not ordered)
     for q in range(0, m, 4):
         n_rows = min(4, m - q)
         for i in range(4):
@@ -264,6 +268,7 @@ def _fused_kernel(
         acc = np.empty(width, np.float32)
         xp = np.empty((_GROUP, n_inputs // 2), np.uint32)  # the inputs as bf16 pairs (pairs path)
         order = np.empty(_GROUP, np.int64)  # the group's rays with points, most points first
+        buckets = np.empty(max_points + 2, np.int64)
         rows = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
@@ -357,7 +362,7 @@ def _fused_kernel(
                             _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
                     continue
                 if pairs:
-                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, rows, dots,
+                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows, dots,
                                        hidden_bf16, start)  # fmt: skip
                     continue
                 for g in range(stop - start):
