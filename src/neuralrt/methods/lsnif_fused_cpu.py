@@ -3,7 +3,7 @@
 For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
 decisions; eight rays at a time where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
 `origin_rows`: `_point_level`'s rows and weights, float32, the same sums as its forward kernel; a group's rows are prefetched a
-group ahead of their reads) and adds the point's contribution to the first MLP layer at once:
+group ahead of their reads, each read with one vector load, `read_rows3`) and adds the point's contribution to the first MLP layer at once:
 the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
 points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
 the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
