@@ -244,6 +244,40 @@ def test_vector_input_rounding_equals_the_scalar_pairs_and_zeroes_stale_inputs()
     assert np.all(vector[0, :48] == 0) and vector[95, 47] >> 16 == 0 and vector[94, 47] == 0  # zeros past the inputs
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_pass_maps_rays_into_the_unit_box_as_unit_box_rays(figure, precision):
+    """The fused pass maps object-space rays into the unit box itself: for every valid ray the
+    same counts, intervals, t_min shift and first hidden layer, bit for bit, as the pass on
+    `unit_box_rays`' rays; invalid rays (NaN, zero direction, t_min >= t_max) get no points."""
+    model = _model(figure, precision)
+    rays = _mixed_rays(model, 2000, seed=4)
+    g = torch.Generator().manual_seed(5)
+    t_min = torch.where(torch.rand(2000, generator=g) < 0.3, torch.rand(2000, generator=g), torch.zeros(2000))
+    t_min[:10] = float("inf")  # an infinite t_min: no shift, and t_min >= t_max
+    t_max = torch.where(torch.rand(2000, generator=g) < 0.2, torch.rand(2000, generator=g) * 0.5, torch.full((2000,), float("inf")))
+    origins, directions = rays.origins.clone(), rays.directions.clone()
+    origins[10:20, 2] = float("nan")
+    directions[20:30] = 0.0
+    rays = Rays(origins=origins, directions=directions, t_min=t_min, t_max=t_max)
+    fc = model.config.features
+    p = fused._prepare_pass(model.occupancy, model.encoder, model.network, max_points=fc.max_points, origin_point=fc.origin_point,
+                            share_boundary_points=fc.share_boundary_points, point_distances=fc.point_distances,
+                            compute_dtype=model.compute_dtype())  # fmt: skip
+    world = fused._first_hidden_layer(p, fused._rays_numpy(rays.origins, rays.directions, fc.max_points, rays.t_min, rays.t_max,
+                                                           model.box_lo, model.box_extent))  # fmt: skip
+    hidden, counts, t_enter, t_exit, t_offset = (x.copy() if isinstance(x, np.ndarray) else x.clone() for x in world)
+    unit = model._unit_rays(rays)
+    u_hidden, u_counts, u_enter, u_exit, _ = fused._first_hidden_layer(p, fused._rays_numpy(unit.origins, unit.directions, fc.max_points))
+    valid = unit.index.numpy()
+    invalid = np.setdiff1d(np.arange(2000), valid)
+    assert len(invalid) >= 30 and (t_min[valid] < t_max[valid]).all()
+    assert np.array_equal(counts[valid], u_counts) and not counts[invalid].any()
+    assert np.array_equal(t_enter[valid], u_enter) and np.array_equal(t_exit[valid], u_exit)
+    assert np.array_equal(t_offset[valid], unit.t_offset.numpy()) and (t_offset > 0).sum() > 300
+    rows = u_counts > 0
+    assert rows.sum() > 500 and torch.equal(hidden[valid[rows]], u_hidden[torch.from_numpy(np.flatnonzero(rows))])
+
+
 def test_hidden_buffer_is_reused_per_thread_and_large_ones_are_not_kept():
     from neuralrt.methods import lsnif_fused_cpu as fused
 

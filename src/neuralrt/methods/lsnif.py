@@ -319,11 +319,11 @@ class LSNIFModel(NeuralBLAS):
         return True
 
     def _fused_cpu_arguments(self, rays: Rays) -> tuple[tuple, dict]:
-        """The arguments `lsnif_fused_cpu.fused_hits_cpu` / `fused_occluded_cpu` share for a chunk."""
-        unit = self._unit_rays(rays)
+        """The arguments `lsnif_fused_cpu.fused_hits_cpu` / `fused_occluded_cpu` share for a chunk
+        (the pass maps the rays into the unit box itself, as `_unit_rays`)."""
         fc = self.config.features
-        return (unit.origins, unit.directions, self.occupancy, self.encoder, self.network), dict(
-            index=unit.index, t_offset=unit.t_offset, t_min=rays.t_min, t_max=rays.t_max,
+        return (rays.origins, rays.directions, self.occupancy, self.encoder, self.network), dict(
+            box_lo=self.box_lo, box_extent=self.box_extent, t_min=rays.t_min, t_max=rays.t_max,
             occlusion_logit=_logit(self.config.inference.occlusion_threshold),
             max_points=fc.max_points, origin_point=fc.origin_point, share_boundary_points=fc.share_boundary_points,
             point_distances=fc.point_distances, compute_dtype=self.compute_dtype(),

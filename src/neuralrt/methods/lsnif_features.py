@@ -543,29 +543,29 @@ def select_network_rows_numba(fp: RayFeaturePoints, origins: Tensor, directions:
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
-def _unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, m, index, out_origins, out_directions, t_offset):
-    """Valid ray ``n`` as unit-box ray ``m``: its index, origin moved to a positive finite ``t_min``
-    and mapped by ``(p - box_lo) / box_extent``, direction divided by ``box_extent``, and the
-    ``t_min`` shift; the same float32 operations as `unit_box_rays`'s torch path."""
+def unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, m, out_origins, out_directions):
+    """Ray ``n`` as unit-box ray ``m`` of ``out_origins``/``out_directions``: its origin moved to a
+    positive finite ``t_min`` and mapped by ``(p - box_lo) / box_extent``, its direction divided by
+    ``box_extent``; returns the ``t_min`` shift. The same float32 operations as `unit_box_rays`'s
+    torch path."""
     zero = np.float32(0.0)
     ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
     dx, dy, dz = directions[n, 0], directions[n, 1], directions[n, 2]
     t = t_min[n]
     t = t if (np.isfinite(t) and t > zero) else zero
-    index[m] = n
-    t_offset[m] = t
     out_origins[m, 0] = ((ox + t * dx) - box_lo[0]) / box_extent[0]
     out_origins[m, 1] = ((oy + t * dy) - box_lo[1]) / box_extent[1]
     out_origins[m, 2] = ((oz + t * dz) - box_lo[2]) / box_extent[2]
     out_directions[m, 0] = dx / box_extent[0]
     out_directions[m, 1] = dy / box_extent[1]
     out_directions[m, 2] = dz / box_extent[2]
+    return t
 
 
 @numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, n_blocks, index, out_origins, out_directions,
                      t_offset) -> int:  # fmt: skip
-    """`_unit_box_ray` of the valid rays (as `neuralrt.rays.valid_ray_mask`), in order, in
+    """`unit_box_ray` of the valid rays (as `neuralrt.rays.valid_ray_mask`), in order, in
     ``n_blocks`` blocks of rays in parallel (each block's valid rays counted first, so each knows
     where its rows start). Returns how many."""
     n = origins.shape[0]
@@ -581,7 +581,8 @@ def _unit_box_kernel(origins, directions, t_min, t_max, box_lo, box_extent, n_bl
         m = starts[block]
         for i in range(block * n // n_blocks, (block + 1) * n // n_blocks):
             if valid_ray(origins, directions, t_min, t_max, i):
-                _unit_box_ray(origins, directions, t_min, box_lo, box_extent, i, m, index, out_origins, out_directions, t_offset)
+                index[m] = i
+                t_offset[m] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, i, m, out_origins, out_directions)
                 m += 1
     return starts[n_blocks]
 

@@ -50,7 +50,8 @@ from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
-from .lsnif_features import ORIGIN_POINT, _check_rays, walk_ray
+from ..rays_kernels import valid_ray
+from .lsnif_features import ORIGIN_POINT, _check_rays, unit_box_ray, walk_ray
 from .lsnif_walk_simd import walk_group, walk_scratch
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
@@ -213,11 +214,13 @@ _CHUNKS_PER_THREAD = 32
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
-    origins, directions, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions, w1, w1_pairs, b1, slope,
-    max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
-    hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit,
+    origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
+    w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
+    hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
 ):  # fmt: skip
-    """``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
+    """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
+    (``box_lo``, ``box_extent``) a group at a time, as `unit_box_rays` maps them (``t_offset[n]``
+    the shift); an invalid ray gets a zero direction and so no points. ``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
     ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
     are the first ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``)
     ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were.
@@ -255,6 +258,8 @@ def _fused_kernel(
         point_slot = np.empty(_GROUP * max_points, np.int64)
         queue, queue_i, rays8 = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
+        unit_o = np.empty((_GROUP, 3), np.float32)  # the group's rays in the unit box
+        unit_d = np.empty((_GROUP, 3), np.float32)
         # Origin points (at most one per ray, the first): 8 rows per level
         origin_entry = np.empty((2, _GROUP), np.int64)
         origin_x = np.empty(_GROUP, np.float32)
@@ -278,28 +283,34 @@ def _fused_kernel(
                 b = step & 1
                 start = first + step * _GROUP
                 stop = min(start + _GROUP, last)
-                # 1. walk; list the points (origin points' rows found and prefetched here)
+                # 0. the rays into the unit box
+                for g in range(stop - start):
+                    n = start + g
+                    t_offset[n] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, g, unit_o, unit_d)
+                    if not valid_ray(origins, directions, t_min, t_max, n):
+                        unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
+                # 1. walk; list the points
                 e = 0
                 n_origin = 0
                 if simd_walk:  # eight rays at a time, the points unordered
-                    e = walk_group(origins, directions, start, stop - start, occ_cells, occ.shape[0], planes, max_points, origin_point,
+                    e = walk_group(unit_o, unit_d, 0, stop - start, occ_cells, occ.shape[0], planes, max_points, origin_point,
                                    share, queue, queue_i, rays8, point_x, point_y, point_z, point_code[b], point_ray, point_slot,
-                                   group_count[b], t_enter, t_exit)  # fmt: skip
+                                   group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
                     for g in range(stop - start):
                         counts[start + g] = group_count[b, g]
                     for i in range(e):
                         g = point_ray[i]
                         n = start + g
-                        n_origin = _list_point(origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1],
-                                               directions[n, 2], t_enter[n], t_exit[n], point_x[i], point_y[i], point_z[i],
+                        n_origin = _list_point(unit_o[g, 0], unit_o[g, 1], unit_o[g, 2], unit_d[g, 0], unit_d[g, 1],
+                                               unit_d[g, 2], t_enter[n], t_exit[n], point_x[i], point_y[i], point_z[i],
                                                point_code[b, i], i, (b * _GROUP + g) * xs.shape[2] + point_slot[i] * block, b, n_origin,
                                                point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
                                                xs_flat, block)  # fmt: skip
                 else:
                     for g in range(stop - start):
                         n = start + g
-                        ox32, oy32, oz32 = origins[n, 0], origins[n, 1], origins[n, 2]
-                        dx32, dy32, dz32 = directions[n, 0], directions[n, 1], directions[n, 2]
+                        ox32, oy32, oz32 = unit_o[g, 0], unit_o[g, 1], unit_o[g, 2]
+                        dx32, dy32, dz32 = unit_d[g, 0], unit_d[g, 1], unit_d[g, 2]
                         count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
                                                     np.float64(dx32), np.float64(dy32), np.float64(dz32),
                                                     occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
@@ -551,11 +562,31 @@ def first_layer_gemm(network: MLP, w1: np.ndarray, compute_dtype: torch.dtype) -
     return weight, network._cast_weights(compute_dtype)[0][1]
 
 
-def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray]:
-    """The fused pass on unit-box rays ``o``/``d`` (``[N, 3]`` fp32): (first hidden layer ``[N, W]``
-    in the compute dtype -- with ``p.first_layer``, the network inputs in bf16 instead --, valid
-    in the rows with points; per ray ``count``, ``t_enter``, ``t_exit`` as numpy arrays)."""
-    n, width = o.shape[0], p.b1.shape[0]
+@dataclass
+class _Rays:
+    """A chunk's rays for the fused pass as numpy arrays: ``origins``/``directions`` ``[N, 3]``
+    fp32, ``t_min``/``t_max`` ``[N]`` fp32, and the box the pass maps them from (``box_lo``,
+    ``box_extent`` ``[3]`` fp32; 0 and 1 for rays already in the unit box)."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    t_min: np.ndarray
+    t_max: np.ndarray
+    box_lo: np.ndarray
+    box_extent: np.ndarray
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def part(self, rows: slice) -> "_Rays":
+        return _Rays(self.origins[rows], self.directions[rows], self.t_min[rows], self.t_max[rows], self.box_lo, self.box_extent)
+
+
+def _first_hidden_layer(p: _Pass, rays: _Rays) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The fused pass on ``rays``: (first hidden layer ``[N, W]`` in the compute dtype -- with
+    ``p.first_layer``, the network inputs in bf16 instead --, valid in the rows with points; per
+    ray ``count``, ``t_enter``, ``t_exit`` and the unit-box map's ``t_offset`` as numpy arrays)."""
+    n, width = len(rays), p.b1.shape[0]
     to_bf16 = p.compute_dtype == torch.bfloat16
     write_inputs = p.first_layer is not None
     # One output buffer is used, the others stay empty: numba compiles one kernel for every case.
@@ -565,22 +596,34 @@ def _first_hidden_layer(p: _Pass, o: np.ndarray, d: np.ndarray) -> tuple[Tensor,
     counts = np.zeros(n, np.int32)
     t_enter = np.full(n, np.inf, np.float32)
     t_exit = np.full(n, np.inf, np.float32)
+    t_offset = np.zeros(n, np.float32)
     if n:
         n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
         with numba.parallel_chunksize(1):
-            _fused_kernel(o, d, p.occ, p.occ_cells, SIMD_WALK, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1,
-                          np.float32(p.network.slope), p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs,
-                          write_inputs, n_chunks, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit)  # fmt: skip
+            _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
+                          SIMD_WALK, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
+                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, hidden_f32,
+                          hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
         hidden = torch.from_numpy(hidden_bf16).view(torch.bfloat16) if to_bf16 else torch.from_numpy(hidden_f32)
-    return hidden, counts, t_enter, t_exit
+    return hidden, counts, t_enter, t_exit, t_offset
 
 
-def _rays_numpy(origins: Tensor, directions: Tensor, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+def _numpy_f32(x: Tensor) -> np.ndarray:
+    return x.detach().to(torch.float32).contiguous().numpy()
+
+
+def _rays_numpy(origins: Tensor, directions: Tensor, max_points: int, t_min: Tensor | None = None, t_max: Tensor | None = None,
+                box_lo: Tensor | None = None, box_extent: Tensor | None = None) -> _Rays:  # fmt: skip
+    """The pass's `_Rays`; without ``t_min``/``t_max`` and the box, unit-box rays on [0, inf)."""
     _check_rays(origins, directions, max_points)
-    return (origins.detach().to(torch.float32).contiguous().numpy(), directions.detach().to(torch.float32).contiguous().numpy())
+    o, d = _numpy_f32(origins), _numpy_f32(directions)
+    if box_lo is None:
+        return _Rays(o, d, np.zeros(len(o), np.float32), np.full(len(o), np.inf, np.float32), np.zeros(3, np.float32),
+                     np.ones(3, np.float32))  # fmt: skip
+    return _Rays(o, d, _numpy_f32(t_min), _numpy_f32(t_max), _numpy_f32(box_lo), _numpy_f32(box_extent))
 
 
 @torch.no_grad()
@@ -599,11 +642,11 @@ def fused_network_outputs_cpu(
 ) -> FusedCPUOutputs:
     """Raw MLP outputs of unit-box rays (``origins``/``directions`` ``[N, 3]`` fp32 CPU), with the
     walk, the encoding and the first layer fused in one numba pass; see the module docstring."""
-    o, d = _rays_numpy(origins, directions, max_points)
+    rays = _rays_numpy(origins, directions, max_points)
     p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
                       share_boundary_points=share_boundary_points, point_distances=point_distances,
                       compute_dtype=compute_dtype)  # fmt: skip
-    hidden, counts, t_enter, t_exit = _first_hidden_layer(p, o, d)
+    hidden, counts, t_enter, t_exit, _ = _first_hidden_layer(p, rays)
     count = torch.from_numpy(counts)
     active = torch.nonzero(count > 0).squeeze(1)
     values = rest_of_network(network, hidden, active, compute_dtype, p.first_layer)
@@ -884,24 +927,34 @@ def _in_parts(run, n: int) -> None:
         future.result()
 
 
+_identity = np.arange(0)
+
+
+def _rows(n: int) -> np.ndarray:
+    """0 .. n - 1 (int64), from one array kept and grown: the decoding's ray rows when every ray of a chunk is its own row."""
+    global _identity
+    if len(_identity) < n:
+        _identity = np.arange(max(n, 2 * len(_identity)))
+    return _identity[:n]
+
+
 def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
-               index: Tensor, t_offset: Tensor, t_min: Tensor, t_max: Tensor, occlusion_logit: float,
+               box_lo: Tensor, box_extent: Tensor, t_min: Tensor, t_max: Tensor, occlusion_logit: float,
                num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool, max_points: int,
                origin_point: bool, share_boundary_points: bool, point_distances: bool, compute_dtype: torch.dtype) -> None:  # fmt: skip
-    o, d = _rays_numpy(origins, directions, max_points)
+    rays = _rays_numpy(origins, directions, max_points, t_min, t_max, box_lo, box_extent)
     p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
                       share_boundary_points=share_boundary_points, point_distances=point_distances,
                       compute_dtype=compute_dtype)  # fmt: skip
-    index_np, t_offset_np = index.contiguous().numpy(), t_offset.float().contiguous().numpy()
-    t_min_np, t_max_np = t_min.float().contiguous().numpy(), t_max.float().contiguous().numpy()
+    rows = _rows(len(rays))
 
     @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
     def run(part: slice) -> None:
-        hidden, counts, t_enter, t_exit = _first_hidden_layer(p, o[part], d[part])
-        _decode(p, hidden, counts, t_enter, t_exit, index_np[part], t_offset_np[part], t_min_np, t_max_np,
+        hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays.part(part))
+        _decode(p, hidden, counts, t_enter, t_exit, rows[part], t_offset, rays.t_min, rays.t_max,
                 occlusion_logit, num_materials, records, occlusion_only)  # fmt: skip
 
-    _in_parts(run, o.shape[0])
+    _in_parts(run, len(rays))
 
 
 @torch.no_grad()
@@ -912,8 +965,8 @@ def fused_hits_cpu(
     encoder: SparseHashGrid,
     network: MLP,
     *,
-    index: Tensor,
-    t_offset: Tensor,
+    box_lo: Tensor,
+    box_extent: Tensor,
     t_min: Tensor,
     t_max: Tensor,
     hits,
@@ -926,13 +979,13 @@ def fused_hits_cpu(
     compute_dtype: torch.dtype = torch.float32,
 ) -> None:
     """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk,
-    CPU): the fused pass, the hidden layers as torch GEMMs, then the output layer and the decoding
-    in one numba pass (`_decode_kernel`) at rows ``index`` (the chunk rays of the unit-box
-    ``origins``; ``t_min``/``t_max`` are the chunk's); see `THREADED_PIPELINE`. The CPU
-    counterpart of `lsnif_fused.fused_hits`."""
+    CPU) for the chunk's rays (``origins``, ``directions``, ``t_min``, ``t_max``, object space),
+    which the pass maps into the model's box (``box_lo``, ``box_extent``) itself: the fused pass,
+    the later layers, the output layer and the decoding (`_decode_kernel`); see
+    `THREADED_PIPELINE`. The CPU counterpart of `lsnif_fused.fused_hits`."""
     records = (hits.hit.numpy(), hits.t.numpy(), hits.normal.numpy(), hits.geometric_normal.numpy(), hits.albedo.numpy(),
                hits.material_id.numpy())  # fmt: skip
-    _hits_pass(origins, directions, occupancy, encoder, network, index=index, t_offset=t_offset, t_min=t_min, t_max=t_max,
+    _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
                occlusion_logit=occlusion_logit, num_materials=num_materials, records=records, occlusion_only=False,
                max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
                point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
@@ -946,8 +999,8 @@ def fused_occluded_cpu(
     encoder: SparseHashGrid,
     network: MLP,
     *,
-    index: Tensor,
-    t_offset: Tensor,
+    box_lo: Tensor,
+    box_extent: Tensor,
     t_min: Tensor,
     t_max: Tensor,
     hit: Tensor,
@@ -963,7 +1016,7 @@ def fused_occluded_cpu(
     among them) and nothing else is decoded."""
     empty3 = np.zeros((0, 3), np.float32)
     records = (hit.numpy(), np.zeros(0, np.float32), empty3, empty3, empty3, np.zeros(0, np.int64))
-    _hits_pass(origins, directions, occupancy, encoder, network, index=index, t_offset=t_offset, t_min=t_min, t_max=t_max,
+    _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
                occlusion_logit=occlusion_logit, num_materials=0, records=records, occlusion_only=True,
                max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
                point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
