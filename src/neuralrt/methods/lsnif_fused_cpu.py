@@ -497,6 +497,8 @@ class _Pass:
     b1: np.ndarray
     hidden_pairs: np.ndarray  # [L - 1, W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else [0, 0]
     hidden_bias: np.ndarray  # [L - 1, W] fp32: their biases, rounded to bf16 as torch's cast weights
+    wo: np.ndarray  # [W, P] fp32 and bo [P]: the output layer (`output_layer_columns`)
+    bo: np.ndarray
     occ_cells: np.ndarray  # [V^3] int32: occ for the SIMD walk's gathers
     first_layer: tuple[Tensor, Tensor] | None  # bf16 (weight [W, 2 * ceil(rows / 2)] in w1's input order, bias): a GEMM, not in the pass
     max_points: int
@@ -548,8 +550,9 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
+    wo, bo = output_layer_columns(network)
     return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
-                 occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+                 wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
 
 
 def first_layer_gemm(network: MLP, w1: np.ndarray, compute_dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -875,7 +878,6 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
-    wo, bo = output_layer_columns(p.network)
     x_f32, x_bf16 = np.zeros((0, 1), np.float32), np.zeros((0, 1), np.uint16)
     first_pairs = np.zeros((0, max(p.b1.shape[0] // 2, 1)), np.uint32)
     if p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
@@ -889,7 +891,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
         else:
             x_f32 = x.numpy()
     n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
-    _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), wo, bo,
+    _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), p.wo, p.bo,
                    OUTPUT_LAYER_IN_DECODE, active, index, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
                    int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
 
