@@ -244,11 +244,13 @@ def test_vector_input_rounding_equals_the_scalar_pairs_and_zeroes_stale_inputs()
     assert np.all(vector[0, :48] == 0) and vector[95, 47] >> 16 == 0 and vector[94, 47] == 0  # zeros past the inputs
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_the_pass_maps_rays_into_the_unit_box_as_unit_box_rays(figure, precision):
+@pytest.mark.parametrize("precision,simd_walk", [("fp32", True), ("bf16", True), ("bf16", False)])
+def test_the_pass_maps_rays_into_the_unit_box_as_unit_box_rays(figure, precision, simd_walk, monkeypatch):
     """The fused pass maps object-space rays into the unit box itself: for every valid ray the
     same counts, intervals, t_min shift and first hidden layer, bit for bit, as the pass on
-    `unit_box_rays`' rays; invalid rays (NaN, zero direction, t_min >= t_max) get no points."""
+    `unit_box_rays`' rays; invalid rays (NaN, zero direction, t_min >= t_max) get no points.
+    With either walk (both run on any CPU; the default is the 8-lane one where numba targets AVX-512)."""
+    monkeypatch.setattr(fused, "SIMD_WALK", simd_walk)
     model = _model(figure, precision)
     rays = _mixed_rays(model, 2000, seed=4)
     g = torch.Generator().manual_seed(5)
