@@ -1,11 +1,13 @@
 """LSNIF inference on the CPU with one fused numba pass per ray chunk.
 
-For each ray, one numba kernel walks the voxels (the 3D-DDA of `lsnif_features`, float64, same
-decisions; eight rays at a time where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
-`origin_rows`: `_point_level`'s rows and weights, float32, the same sums as its forward kernel; a group's rows are prefetched a
-group ahead of their reads, each read with one vector load, `read_rows3`) and adds the point's contribution to the first MLP layer at once:
-the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
-points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
+For each ray, one numba kernel maps it into the model's unit box (`lsnif_features.unit_box_ray`),
+walks the voxels (the 3D-DDA of `lsnif_features`, float64, same decisions; eight rays at a time
+where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash
+grid (`sparse_hash_grid.face_rows` and `origin_rows`: `_point_level`'s rows and weights, float32,
+the same sums as its forward kernel; a group's rows are prefetched a group ahead of their reads,
+each row read with one vector load, `read_rows3`) and adds the point's contribution to the first
+MLP layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T``
+is the sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
 the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
 hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
 `HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
@@ -220,8 +222,8 @@ def _fused_kernel(
 ):  # fmt: skip
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
     (``box_lo``, ``box_extent``) a group at a time, as `unit_box_rays` maps them (``t_offset[n]``
-    the shift); an invalid ray gets a zero direction and so no points. ``w1 [H * (L * F + 1), W]``: the first layer's weights, input-major, point slot h's rows at
-    ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
+    the shift); an invalid ray gets a zero direction and so no points. ``w1 [H * (L * F + 1), W]``:
+    the first layer's weights, input-major, point slot h's rows at ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
     are the first ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``)
     ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were.
     With ``pairs`` (bf16, width a multiple of 16) the first layer is `dot_rows_bf16` over the
@@ -351,8 +353,9 @@ def _fused_kernel(
                         continue
                     col = point_column[b, i]
                     for lvl in range(n_levels):
-                        s0, s1, s2, s3 = face_slots[b, lvl, 0, i], face_slots[b, lvl, 1, i], face_slots[b, lvl, 2, i], face_slots[b, lvl, 3, i]
-                        c0, c1, c2, c3 = face_weights[b, lvl, 0, i], face_weights[b, lvl, 1, i], face_weights[b, lvl, 2, i], face_weights[b, lvl, 3, i]
+                        slots, weights = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
+                        s0, s1, s2, s3 = slots[0], slots[1], slots[2], slots[3]
+                        c0, c1, c2, c3 = weights[0], weights[1], weights[2], weights[3]
                         if n_feat == 3:  # (the default) a row per vector load
                             _read_rows3(table_flat, (s0, s1, s2, s3), (c0, c1, c2, c3), xs_flat, col + lvl * n_feat)
                         else:
@@ -373,8 +376,8 @@ def _fused_kernel(
                             _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
                     continue
                 if pairs:
-                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows, dots,
-                                       hidden_bf16, start)  # fmt: skip
+                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
+                                       dots, hidden_bf16, start)  # fmt: skip
                     continue
                 for g in range(stop - start):
                     count = group_count[b, g]
@@ -534,7 +537,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     if occ.ndim != 3 or len(set(occ.shape)) != 1:
         raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
     levels, _, n_feat = encoder.table.shape
-    # The table's data with one float after it, so `read_face_rows3` may load 4 floats from any row
+    # The table's data with one float after it, so `read_rows3` may load 4 floats from any row
     table_flat = np.zeros(encoder.table.numel() + 1, np.float32)
     table_flat[:-1] = encoder.table.detach().float().reshape(-1).numpy()
     table = table_flat[:-1].reshape(-1, n_feat)
@@ -551,8 +554,9 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
     wo, bo = output_layer_columns(network)
-    return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs, hidden_bias,
-                 wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points), bool(point_distances), pairs)  # fmt: skip
+    return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs,
+                 hidden_bias, wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points),
+                 bool(point_distances), pairs)  # fmt: skip
 
 
 def first_layer_gemm(network: MLP, w1: np.ndarray, compute_dtype: torch.dtype) -> tuple[Tensor, Tensor]:
