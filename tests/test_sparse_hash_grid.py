@@ -356,3 +356,28 @@ def test_vector_row_reads_equal_the_scalar_reads_bit_for_bit():
     both(table_flat, slots, weights, scalar, vector)
     assert np.array_equal(scalar.view(np.uint32), vector.view(np.uint32))
     assert np.all(vector[:, -1] == 7.0) and np.isfinite(vector).all()
+
+
+def test_padded_table_is_a_view_of_the_grids_table_and_a_copy_otherwise(tmp_path):
+    """The fused CPU pass reads the table through `padded_table`: for a `SparseHashGrid` (new, or
+    in a model loaded from a file) a view of the parameter's storage, which has the spare float
+    (no second copy of the table in memory), following in-place updates; any other table is
+    copied, with the same values."""
+    from neuralrt.geometry.procedural import statue
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+    from neuralrt.neural.sparse_hash_grid import padded_table
+
+    grid = SparseHashGrid(log2_table_size=6)
+    flat = padded_table(grid.table)
+    assert flat.shape == (grid.table.numel() + 1,) and np.shares_memory(flat, grid.table.detach().numpy())
+    with torch.no_grad():
+        grid.table.mul_(2.0)
+    assert np.array_equal(flat[:-1], grid.table.detach().reshape(-1).numpy())
+    other = grid.table.detach().clone()
+    copy = padded_table(other)
+    assert not np.shares_memory(copy, other.numpy()) and np.array_equal(copy[:-1], other.reshape(-1).numpy()) and copy[-1] == 0
+    config = LSNIFConfig.preset("lq", voxel={"resolution": 8}, encoding={"resolutions": (8, 16), "log2_table_size": 6})
+    model = LSNIFModel.from_mesh(statue(0), config)
+    model.save(tmp_path / "m.nrt")
+    loaded = LSNIFModel.load(tmp_path / "m.nrt")
+    assert np.shares_memory(padded_table(loaded.encoder.table), loaded.encoder.table.detach().numpy())

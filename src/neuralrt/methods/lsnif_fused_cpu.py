@@ -44,7 +44,7 @@ from ..neural.bf16_dot import (
     store16, store_bf16x16,
 )  # fmt: skip
 from ..neural.mlp import MLP, padded_rows
-from ..neural.sparse_hash_grid import SparseHashGrid
+from ..neural.sparse_hash_grid import SparseHashGrid, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
@@ -493,7 +493,7 @@ class _Pass:
     occ: np.ndarray
     planes: np.ndarray
     table: np.ndarray  # [L * T, F] fp32: a view of table_flat
-    table_flat: np.ndarray  # the table's values and one zero after them
+    table_flat: np.ndarray  # the table's values and one float after them (`padded_table`: a view of the table's storage)
     resolutions: np.ndarray
     w1: np.ndarray
     w1_pairs: np.ndarray
@@ -537,9 +537,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     if occ.ndim != 3 or len(set(occ.shape)) != 1:
         raise ValueError(f"occupancy must be a cubic [V, V, V] array, got shape {occ.shape}")
     levels, _, n_feat = encoder.table.shape
-    # The table's data with one float after it, so `read_rows3` may load 4 floats from any row
-    table_flat = np.zeros(encoder.table.numel() + 1, np.float32)
-    table_flat[:-1] = encoder.table.detach().float().reshape(-1).numpy()
+    table_flat = padded_table(encoder.table)  # (one float after the rows: `read_rows3` loads 4 from any row)
     table = table_flat[:-1].reshape(-1, n_feat)
     if table.shape[0] >= 1 << 31:  # the pass keeps a group's table rows as int32
         raise ValueError(f"hash table of {table.shape[0]} rows: the CPU pass handles fewer than 2^31")

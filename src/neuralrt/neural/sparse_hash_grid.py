@@ -228,6 +228,20 @@ _F32X4 = ir.VectorType(ir.FloatType(), 4)
 _F32X2 = ir.VectorType(ir.FloatType(), 2)
 
 
+def padded_table(table: Tensor) -> np.ndarray:
+    """``table``'s values and one float after them, flat float32 (`read_rows3`'s ``table_flat``): a
+    view of its storage where the table has that spare float (a `SparseHashGrid`'s, on the CPU in
+    float32: no copy), else a copy with a zero after it."""
+    t = table.detach()
+    n = t.numel()
+    if (t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous()
+            and t.untyped_storage().nbytes() >= (t.storage_offset() + n + 1) * 4):  # fmt: skip
+        return torch.empty(0).set_(t.untyped_storage(), t.storage_offset(), (n + 1,)).numpy()
+    flat = np.zeros(n + 1, np.float32)
+    flat[:-1] = t.float().reshape(-1).cpu().numpy()
+    return flat
+
+
 @intrinsic
 def read_rows3(typingctx, table_flat, slots, weights, out, col):
     """`read_rows` for 3 features per row and the rows ``slots`` (a tuple of integers) with
@@ -713,7 +727,11 @@ class SparseHashGrid(nn.Module):
         generator = torch.Generator().manual_seed(seed)
         shape = (len(self.resolutions), 2**self.log2_table_size, self.features_per_level)
         init = (torch.rand(shape, generator=generator) * 2 - 1) * init_scale
-        self.table = nn.Parameter(init)  # [L, T, F]
+        # One spare float after the table in its storage: the fused CPU pass loads each row of 3
+        # features as 4 floats (`read_rows3`), so the last row may read it (`padded_table`).
+        storage = torch.zeros(init.numel() + 1)
+        storage[:-1] = init.reshape(-1)
+        self.table = nn.Parameter(storage[:-1].view(shape))  # [L, T, F]
         self._resolutions_np = np.asarray(self.resolutions, np.int64)
         # CPU backward: "auto" (the default: "buckets" on hosts of at least BUCKETS_FROM_THREADS_PER_LEVEL
         # threads per level, else "row_ranges"), "row_ranges" (threads own table rows, hashing each point
