@@ -27,9 +27,10 @@ def figure():
     return statue(0)
 
 
-def _model(mesh, precision: str, max_points: int = 8, hidden_width: int = 32, **features) -> LSNIFModel:
+def _model(mesh, precision: str, max_points: int = 8, hidden_width: int = 32, features_per_level: int = 3, **features) -> LSNIFModel:
     config = LSNIFConfig.preset(
-        "hq", voxel={"resolution": 16}, encoding={"resolutions": (16, 32), "log2_table_size": 12},
+        "hq", voxel={"resolution": 16},
+        encoding={"resolutions": (16, 32), "log2_table_size": 12, "features_per_level": features_per_level},
         network={"hidden_width": hidden_width}, features={"max_points": max_points, **features},
         inference={"compute_precision": precision},
     )  # fmt: skip
@@ -65,11 +66,13 @@ def _mixed_rays(model: LSNIFModel, n: int, seed: int) -> Rays:
 
 
 @pytest.mark.parametrize(
-    "precision,max_points,point_distances,origin_point",
-    [("fp32", 8, True, True), ("fp32", 3, False, False), ("bf16", 8, True, True)],
+    "precision,max_points,point_distances,origin_point,features_per_level",
+    # (4 features per entry: the pass's scalar reads, not its 3-feature vector reads)
+    [("fp32", 8, True, True, 3), ("fp32", 3, False, False, 3), ("bf16", 8, True, True, 3), ("fp32", 8, True, True, 4)],
 )
-def test_fused_outputs_match_featurize_encode_mlp(figure, precision, max_points, point_distances, origin_point):
-    model = _model(figure, precision, max_points, point_distances=point_distances, origin_point=origin_point)
+def test_fused_outputs_match_featurize_encode_mlp(figure, precision, max_points, point_distances, origin_point, features_per_level):
+    model = _model(figure, precision, max_points, features_per_level=features_per_level, point_distances=point_distances,
+                   origin_point=origin_point)  # fmt: skip
     unit = model._unit_rays(_mixed_rays(model, 600, seed=1))
     o, d = unit.origins, unit.directions
     dtype = PRECISION[precision]

@@ -48,7 +48,6 @@ from ..neural.sparse_hash_grid import SparseHashGrid, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
-from ..neural.sparse_hash_grid import read_face_rows as _read_face_rows
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
@@ -223,9 +222,10 @@ def _fused_kernel(
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
     (``box_lo``, ``box_extent``) a group at a time, as `unit_box_rays` maps them (``t_offset[n]``
     the shift); an invalid ray gets a zero direction and so no points. ``w1 [H * (L * F + 1), W]``:
-    the first layer's weights, input-major, point slot h's rows at ``h * (L * F + 1)`` (its L * F features, then its point distance), so a ray's nonzero inputs
-    are the first ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``)
-    ``hidden_bf16`` (bf16 bits) rows of the rays with points; other rows are left as they were.
+    the first layer's weights, input-major, point slot h's rows at ``h * (L * F + 1)`` (its L * F
+    features, then its point distance), so a ray's nonzero inputs are the first
+    ``count * (L * F + 1)`` rows; writes ``hidden_f32`` or (``to_bf16``) ``hidden_bf16`` (bf16
+    bits) rows of the rays with points; other rows are left as they were.
     With ``pairs`` (bf16, width a multiple of 16) the first layer is `dot_rows_bf16` over the
     group's rays, 4 at a time, from the bf16 pairs ``w1_pairs`` (``w1`` rounded, flat
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
@@ -233,8 +233,8 @@ def _fused_kernel(
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
     pipeline with two buffers): walk (``simd_walk``: `walk_group`, 8 lanes, the points unordered,
-    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points, find their rows (`face_rows`, SIMD) and
-    prefetch them; then read the rows and run the first layer."""
+    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points, find
+    their rows (`face_rows`, SIMD) and prefetch them; then read the rows and run the first layer."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -353,22 +353,20 @@ def _fused_kernel(
                         continue
                     col = point_column[b, i]
                     for lvl in range(n_levels):
-                        slots, weights = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
-                        s0, s1, s2, s3 = slots[0], slots[1], slots[2], slots[3]
-                        c0, c1, c2, c3 = weights[0], weights[1], weights[2], weights[3]
+                        s, c = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
                         if n_feat == 3:  # (the default) a row per vector load
-                            _read_rows3(table_flat, (s0, s1, s2, s3), (c0, c1, c2, c3), xs_flat, col + lvl * n_feat)
+                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + lvl * n_feat)
                         else:
-                            _read_face_rows(table, s0, s1, s2, s3, c0, c1, c2, c3, xs_flat, col + lvl * n_feat)
+                            _read_rows(table, s, c, 4, xs_flat, col + lvl * n_feat)
                 for k in range(group_origins[b]):
                     col = point_column[b, origin_entry[b, k]]
                     for lvl in range(n_levels):
+                        s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
                         if n_feat == 3:
-                            s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
                             _read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
                                         (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * n_feat)  # fmt: skip
                         else:
-                            _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
+                            _read_rows(table, s, c, 8, xs_flat, col + lvl * n_feat)
                 # 4. the first layer, or its inputs
                 if write_inputs:
                     for g in range(stop - start):
@@ -800,12 +798,12 @@ def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
-    x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, index, t_enter, t_exit,
+    x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, first_ray, t_enter, t_exit,
     t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network, written into
-    the chunk's hit records at rows ``index[active[i]]``: row i of ``x_f32``/``x_bf16`` (the other
+    the chunk's hit records at rows ``first_ray + active[i]``: row i of ``x_f32``/``x_bf16`` (the other
     is empty) is the last hidden layer (``output_layer``: the output layer ``wo``/``bo`` is
     applied here, fp32, `_OUT_ROWS` rows at a time) or the raw outputs; or, where ``first_pairs``
     (the first hidden layer's bf16 activations as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``)
@@ -849,7 +847,7 @@ def _decode_kernel(
             for b in range(n_rows):
                 out = outs[b]
                 r = active[block + b]
-                ray = index[r]
+                ray = first_ray + r
                 te = t_enter[r]
                 t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
                 h = out[0] > occlusion_logit and t < t_max[ray] and t > t_min[ray]
@@ -873,10 +871,11 @@ def _decode_kernel(
                 material[ray] = best if h else -1
 
 
-def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, index: np.ndarray,
+def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, first_ray: int,
             t_offset: np.ndarray, t_min: np.ndarray, t_max: np.ndarray, occlusion_logit: float, num_materials: int,
             records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
-    """The layers after the first on the rays with points, then `_decode_kernel` into ``records``."""
+    """The layers after the first on the rays with points, then `_decode_kernel` into ``records``
+    (ray i of these arrays is row ``first_ray + i`` of the records and of ``t_min``/``t_max``)."""
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
@@ -894,7 +893,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
             x_f32 = x.numpy()
     n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
     _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), p.wo, p.bo,
-                   OUTPUT_LAYER_IN_DECODE, active, index, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
+                   OUTPUT_LAYER_IN_DECODE, active, int(first_ray), t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
                    int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
 
 
@@ -931,17 +930,6 @@ def _in_parts(run, n: int) -> None:
         future.result()
 
 
-_identity = np.arange(0)
-
-
-def _rows(n: int) -> np.ndarray:
-    """0 .. n - 1 (int64), from one array kept and grown: the decoding's ray rows when every ray of a chunk is its own row."""
-    global _identity
-    if len(_identity) < n:
-        _identity = np.arange(max(n, 2 * len(_identity)))
-    return _identity[:n]
-
-
 def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
                box_lo: Tensor, box_extent: Tensor, t_min: Tensor, t_max: Tensor, occlusion_logit: float,
                num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool, max_points: int,
@@ -950,12 +938,11 @@ def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: 
     p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
                       share_boundary_points=share_boundary_points, point_distances=point_distances,
                       compute_dtype=compute_dtype)  # fmt: skip
-    rows = _rows(len(rays))
 
     @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
     def run(part: slice) -> None:
         hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays.part(part))
-        _decode(p, hidden, counts, t_enter, t_exit, rows[part], t_offset, rays.t_min, rays.t_max,
+        _decode(p, hidden, counts, t_enter, t_exit, part.start, t_offset, rays.t_min, rays.t_max,
                 occlusion_logit, num_materials, records, occlusion_only)  # fmt: skip
 
     _in_parts(run, len(rays))

@@ -40,7 +40,6 @@ from numba.extending import intrinsic
 from torch import Tensor, nn
 
 from ..simd import broadcast, contiguous_1d, element_pointer, vector_pointer
-
 from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
