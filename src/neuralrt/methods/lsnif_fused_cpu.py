@@ -4,10 +4,10 @@ For each ray, one numba kernel maps it into the model's unit box (`lsnif_feature
 walks the voxels (the 3D-DDA of `lsnif_features`, float64, same decisions; eight rays at a time
 where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash
 grid (`sparse_hash_grid.face_rows` and `origin_rows`: `_point_level`'s rows and weights, float32,
-the same sums as its forward kernel; a group's rows are prefetched a group ahead of their reads,
-each row read with one vector load, `read_rows3`) and adds the point's contribution to the first
-MLP layer at once: the network input is the concatenation of per-point blocks, so ``x @ W1^T``
-is the sum over points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
+the same sums as its forward kernel; a group's rows are read a group after its walk, each with
+one vector load, `read_rows3`) and adds the point's contribution to the first MLP layer at once:
+the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
+points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
 the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
 hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
 `HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
@@ -47,7 +47,6 @@ from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
-from ..neural.sparse_hash_grid import prefetch_row as _prefetch_row
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
@@ -200,12 +199,14 @@ def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e,
     return n_origin
 
 
-# Rays walked before their points are encoded. A group's table rows are found and prefetched
-# after its walk and read after the next group's walk, so the reads find them in cache (the
-# table is larger than L2) and many are in flight at once. Zen 5, hairball(6): with `walk_ray`, 32
-# rays beat 8, 16, 64 and 128 (the one-group lead took the `hq` pass from 36-37 to 33 ms per 2^17
-# rays); with the SIMD walk, whose 8 lanes idle while a group's last rays finish (81% of lane
-# steps used with 32 rays, 94% with 128), 64 beat 32 by 2-4% (`intersect`, both presets).
+# Rays walked before their points are encoded. A group's table rows are found after its walk and
+# read after the next group's walk. Zen 5, hairball(6): with `walk_ray` and the rows prefetched,
+# 32 rays beat 8, 16, 64 and 128 (the one-group lead took the `hq` pass from 36-37 to 33 ms per
+# 2^17 rays); with the SIMD walk, whose 8 lanes idle while a group's last rays finish (81% of lane
+# steps used with 32 rays, 94% with 128), 64 beat 32 by 2-4% (`intersect`, both presets). Since
+# each row is read with one vector load, prefetching the rows no longer pays (A/B: `intersect`
+# 0.98-1.0x, `occluded` 0.95-0.98x without), and the lead still measures 0-2% faster for `lq`
+# than reading a group's rows right after its walk (session 31).
 _GROUP = 64
 
 # Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
@@ -233,8 +234,8 @@ def _fused_kernel(
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
     pipeline with two buffers): walk (``simd_walk``: `walk_group`, 8 lanes, the points unordered,
-    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points, find
-    their rows (`face_rows`, SIMD) and prefetch them; then read the rows and run the first layer."""
+    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points and find
+    their rows (`face_rows`, SIMD); then read the rows and run the first layer."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -245,7 +246,7 @@ def _fused_kernel(
     for chunk in numba.prange(n_chunks):
         pts = np.empty((_GROUP, max_points, 3), np.float32)
         axes = np.empty((_GROUP, max_points), np.int8)
-        # Two groups in flight: one is walked and its rows prefetched while the other's rows are read
+        # Two groups in flight: one is walked and its rows found while the other's rows are read
         group_count = np.empty((2, _GROUP), np.int64)
         # The group's points, one entry each (structure of arrays, so step 2 compiles to SIMD code)
         point_x = np.empty(_GROUP * max_points, np.float32)
@@ -281,7 +282,7 @@ def _fused_kernel(
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         n_groups = (last - first + _GROUP - 1) // _GROUP
         for step in range(n_groups + 1):
-            if step < n_groups:  # walk group `step`; find its rows and start reading them
+            if step < n_groups:  # walk group `step`; find its rows
                 b = step & 1
                 start = first + step * _GROUP
                 stop = min(start + _GROUP, last)
@@ -335,15 +336,9 @@ def _fused_kernel(
                     _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
                     _origin_rows_of_points(origin_x, origin_y, origin_z, n_origin, res, mask, base, origin_slots[b, lvl],
                                            origin_weights[b, lvl])  # fmt: skip
-                    for i in range(e):  # the reads come after all of them: start them now
-                        for c in range(4):
-                            _prefetch_row(table, face_slots[b, lvl, c, i])
-                    for i in range(n_origin):
-                        for c in range(8):
-                            _prefetch_row(table, origin_slots[b, lvl, c, i])
                 group_points[b] = e
                 group_origins[b] = n_origin
-            if step > 0:  # read group `step - 1`'s rows (started a group earlier), then its first layer
+            if step > 0:  # read group `step - 1`'s rows, then its first layer
                 b = (step - 1) & 1
                 start = first + (step - 1) * _GROUP
                 stop = min(start + _GROUP, last)
