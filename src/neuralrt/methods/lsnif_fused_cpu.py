@@ -206,9 +206,9 @@ def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e,
 # steps used with 32 rays, 94% with 128), 64 beat 32 by 2-4% (`intersect`, both presets). Since
 # each row is read with one vector load, prefetching the rows no longer pays (A/B: `intersect`
 # 0.98-1.005x, `occluded` 0.95-1.01x without), and the lead still measures 0-6% faster for `lq`
-# (mean ~2%) than reading a group's rows right after its walk; without the prefetches, 128 rays beat 64 (A/B,
-# `intersect`: `lq` 0.965-0.989x in three runs, `hq` 0.98-1.02x) and 96, 192 and 256 did not
-# (`lq` 1.01x, 1.01x, 1.005x) (session 31).
+# (mean ~2%) than reading a group's rows right after its walk. Without the prefetches, 128 rays
+# beat 64 (A/B, `intersect`: `lq` 0.965-0.989x in three runs, `hq` 0.98-1.02x) and 96, 192 and
+# 256 did not (`lq` 1.01x, 1.01x, 1.005x) (session 31).
 _GROUP = 128
 
 # Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
