@@ -1,4 +1,6 @@
-"""The 8-lane voxel walk (`lsnif_walk_simd`) gives `walk_ray`'s points bit for bit (in another order)."""
+"""The 16-lane float32 voxel walk (`lsnif_walk_simd`) makes `walk_ray`'s decisions: the same counts,
+intervals, face codes and slots, and points on the same planes, the other coordinates to float32
+rounding (in another order)."""
 
 from __future__ import annotations
 
@@ -8,27 +10,29 @@ import pytest
 import torch
 
 from neuralrt.methods.lsnif_features import featurize_rays_numba
-from neuralrt.methods.lsnif_walk_simd import walk_group, walk_scratch
+from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, walk_group, walk_scratch
 
 GROUP = 32
 
 
 @numba.njit(cache=True)
-def _walk_all(origins, directions, occ_cells, res, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit):
+def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit):
     """Every ray through `walk_group`, its points put back in ray order (``points [N, H, 3]``)."""
-    queue, queue_i, rays8 = walk_scratch(GROUP)
+    queue, queue_i, rays8, redo = walk_scratch(GROUP)
+    pts = np.empty((GROUP, max_points, 3), np.float32)
+    pts_axes = np.empty((GROUP, max_points), np.int8)
     px = np.empty(GROUP * max_points, np.float32)
     py = np.empty(GROUP * max_points, np.float32)
     pz = np.empty(GROUP * max_points, np.float32)
-    code = np.empty(GROUP * max_points, np.int64)
-    ray = np.empty(GROUP * max_points, np.int64)
-    slot = np.empty(GROUP * max_points, np.int64)
+    code = np.empty(GROUP * max_points, np.int32)
+    ray = np.empty(GROUP * max_points, np.int32)
+    slot = np.empty(GROUP * max_points, np.int32)
     group_counts = np.empty(GROUP, np.int64)
     n_rays = origins.shape[0]
     for first in range(0, n_rays, GROUP):
         n = min(GROUP, n_rays - first)
-        e = walk_group(origins, directions, first, n, occ_cells, res, planes, max_points, origin_point, share, queue, queue_i, rays8,
-                       px, py, pz, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
+        e = walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8,
+                       redo, pts, pts_axes, px, py, pz, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
         for g in range(n):
             counts[first + g] = group_counts[g]
         for i in range(e):
@@ -39,7 +43,7 @@ def _walk_all(origins, directions, occ_cells, res, planes, max_points, origin_po
 
 def _edge_rays(n: int, seed: int):
     """Rays from around and inside the box: origins on voxel planes, axis-parallel and denormal
-    directions, zero and NaN rays."""
+    directions, diagonals from grid corners inside the box (ties at every step), zero and NaN rays."""
     rng = np.random.default_rng(seed)
     o = rng.uniform(-0.5, 1.5, (n, 3))
     d = rng.normal(size=(n, 3))
@@ -47,6 +51,10 @@ def _edge_rays(n: int, seed: int):
     d[n // 4 : n // 2, rng.integers(0, 3)] = 0.0
     d[n // 2 : n // 2 + 50] = [1e-310, 1.0, 0.0]
     o[n // 2 + 50 : n // 2 + 400] = rng.uniform(0, 1, (350, 3))
+    o[n // 2 + 400 : n // 2 + 500] = rng.integers(1, 16, (100, 3)) / 16
+    d[n // 2 + 400 : n // 2 + 500] = rng.choice([-1.0, 1.0], (100, 3))
+    o[n // 2 + 500 : n // 2 + 550] = rng.uniform(0, 1, (50, 3))
+    d[n // 2 + 500 : n // 2 + 550] = [1e-40, 1.0, 0.5]  # float32 denormal: 1/d is far out of float32's range
     d[-10:] = 0.0
     o[-20:-10, 0] = np.nan
     return o.astype(np.float32), d.astype(np.float32)
@@ -54,7 +62,7 @@ def _edge_rays(n: int, seed: int):
 
 @pytest.mark.parametrize("res", [16, 32])
 @pytest.mark.parametrize("max_points,origin_point,share", [(1, True, True), (3, False, True), (10, True, False), (18, False, False)])
-def test_simd_walk_gives_walk_rays_points_bit_for_bit(res, max_points, origin_point, share):
+def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_point, share):
     o, d = _edge_rays(6000, seed=res)
     occ = np.random.default_rng(1).random((res, res, res)) < 0.5
     ref = featurize_rays_numba(torch.from_numpy(o), torch.from_numpy(d), occ, max_points, origin_point=origin_point,
@@ -65,10 +73,54 @@ def test_simd_walk_gives_walk_rays_points_bit_for_bit(res, max_points, origin_po
     counts = np.full(n, -1, np.int64)
     t_enter, t_exit = np.full(n, 7, np.float32), np.full(n, 7, np.float32)
     planes = np.arange(res + 1) / res
-    _walk_all(o, d, occ.astype(np.int32).reshape(-1), res, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit)
+    _walk_all(o, d, occ, occ.astype(np.int32).reshape(-1), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit)
     assert np.array_equal(counts, ref.count.numpy())
     assert (counts == max_points).sum() > 0 and (counts == 0).sum() > 0  # truncated rays and misses both occur
-    valid = np.arange(max_points)[None, :] < counts[:, None]
-    assert np.array_equal(points[valid].view(np.int32), ref.points.numpy()[valid].view(np.int32))  # same bits
-    assert np.array_equal(axes[valid], ref.face_axis.numpy()[valid].astype(np.int64))
     assert np.array_equal(t_enter, ref.t_enter.numpy()) and np.array_equal(t_exit, ref.t_exit.numpy())
+    valid = np.arange(max_points)[None, :] < counts[:, None]
+    assert np.array_equal(axes[valid], ref.face_axis.numpy()[valid].astype(np.int64))
+    # On its crossed plane a point is the plane itself, bit for bit; elsewhere within the stated bound
+    ref_points = ref.points.numpy()
+    on_plane = axes[:, :, None] == np.arange(3)
+    assert np.array_equal(points[valid[:, :, None] & on_plane], ref_points[valid[:, :, None] & on_plane])
+    bound = 2.0**-21 * (2 + np.abs(o))[:, None, :]
+    off = valid[:, :, None] & ~on_plane
+    assert (np.abs(points - ref_points) <= bound)[off].all()
+    assert (points != ref_points)[off].any()  # (float32 arithmetic: some differ)
+
+
+def test_float32_walk_applies_to_power_of_two_grids():
+    assert [v for v in range(1, 70) if float32_walk_applies(v)] == [1, 2, 4, 8, 16, 32, 64]
+
+
+@numba.njit(cache=True)
+def _walked_again(origins, directions, occ, occ_cells, planes, max_points):
+    """How many rays `walk_group` hands to `walk_ray`: at the start, and from the lanes."""
+    queue, queue_i, rays8, redo = walk_scratch(GROUP)
+    px = np.empty(GROUP * max_points, np.float32)
+    code = np.empty(GROUP * max_points, np.int32)
+    counts = np.empty(GROUP, np.int64)
+    t_enter, t_exit = np.empty(origins.shape[0], np.float32), np.empty(origins.shape[0], np.float32)
+    at_start = from_lanes = 0
+    for first in range(0, origins.shape[0], GROUP):
+        n = min(GROUP, origins.shape[0] - first)
+        queued, listed = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
+        _, total = _walk_lanes(queue, queue_i, queued, occ_cells, occ.shape[0], max_points, True, True, redo, listed, px, px.copy(),
+                               px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
+        at_start += listed
+        from_lanes += total - listed
+    return at_start, from_lanes
+
+
+def test_denormal_directions_and_ties_go_to_walk_ray():
+    """The rays the float32 steps cannot decide as `walk_ray` does are walked by it (the test above
+    checks their answers): denormal directions from the start, diagonals through voxel corners
+    from the lanes; ordinary rays rarely."""
+    o, d = _edge_rays(6000, seed=3)
+    occ = np.ones((16, 16, 16), bool)
+    at_start, from_lanes = _walked_again(o, d, occ, occ.astype(np.int32).reshape(-1), np.arange(17) / 16, 10)
+    assert at_start == 50 and from_lanes >= 100
+    rng = np.random.default_rng(0)
+    o, d = rng.uniform(-0.5, 1.5, (6000, 3)).astype(np.float32), rng.normal(size=(6000, 3)).astype(np.float32)
+    at_start, from_lanes = _walked_again(o, d, occ, occ.astype(np.int32).reshape(-1), np.arange(17) / 16, 10)
+    assert at_start == 0 and from_lanes < 10

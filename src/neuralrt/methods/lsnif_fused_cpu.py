@@ -1,8 +1,8 @@
 """LSNIF inference on the CPU with one fused numba pass per ray chunk.
 
 For each ray, one numba kernel maps it into the model's unit box (`lsnif_features.unit_box_ray`),
-walks the voxels (the 3D-DDA of `lsnif_features`, float64, same decisions; eight rays at a time
-where numba targets AVX-512, `lsnif_walk_simd`), encodes each boundary point in the sparse hash
+walks the voxels (the 3D-DDA of `lsnif_features`, float64; where numba targets AVX-512 and V is a
+power of two, sixteen rays at a time in float32 with the same decisions, `lsnif_walk_simd`), encodes each boundary point in the sparse hash
 grid (`sparse_hash_grid.face_rows` and `origin_rows`: `_point_level`'s rows and weights, float32,
 the same sums as its forward kernel; a group's rows are read a group after its walk, each with
 one vector load, `read_rows3`) and adds the point's contribution to the first MLP layer at once:
@@ -52,7 +52,7 @@ from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
 from ..rays_kernels import valid_ray
 from .lsnif_features import ORIGIN_POINT, _check_rays, unit_box_ray, walk_ray
-from .lsnif_walk_simd import walk_group, walk_scratch
+from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
 
@@ -235,7 +235,7 @@ def _fused_kernel(
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
-    pipeline with two buffers): walk (``simd_walk``: `walk_group`, 8 lanes, the points unordered,
+    pipeline with two buffers): walk (``simd_walk``: `walk_group`, 16 lanes, the points unordered,
     ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points and find
     their rows (`face_rows`, SIMD); then read the rows and run the first layer."""
     n_rays = origins.shape[0]
@@ -254,14 +254,14 @@ def _fused_kernel(
         point_x = np.empty(_GROUP * max_points, np.float32)
         point_y = np.empty(_GROUP * max_points, np.float32)
         point_z = np.empty(_GROUP * max_points, np.float32)
-        point_code = np.empty((2, _GROUP * max_points), np.int64)
+        point_code = np.empty((2, _GROUP * max_points), np.int32)
         point_column = np.empty((2, _GROUP * max_points), np.int64)  # its features' first index in xs_flat
         face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int32)  # (table rows < 2^31)
         face_weights = np.empty((2, n_levels, 4, _GROUP * max_points), np.float32)
         group_points = np.empty(2, np.int64)
-        point_ray = np.empty(_GROUP * max_points, np.int64)  # (SIMD walk) each point's ray in the group and slot in its list
-        point_slot = np.empty(_GROUP * max_points, np.int64)
-        queue, queue_i, rays8 = walk_scratch(_GROUP)
+        point_ray = np.empty(_GROUP * max_points, np.int32)  # (SIMD walk) each point's ray in the group and slot in its list
+        point_slot = np.empty(_GROUP * max_points, np.int32)
+        queue, queue_i, rays8, redo = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
         unit_o = np.empty((_GROUP, 3), np.float32)  # the group's rays in the unit box
         unit_d = np.empty((_GROUP, 3), np.float32)
@@ -297,9 +297,9 @@ def _fused_kernel(
                 # 1. walk; list the points
                 e = 0
                 n_origin = 0
-                if simd_walk:  # eight rays at a time, the points unordered
-                    e = walk_group(unit_o, unit_d, 0, stop - start, occ_cells, occ.shape[0], planes, max_points, origin_point,
-                                   share, queue, queue_i, rays8, point_x, point_y, point_z, point_code[b], point_ray, point_slot,
+                if simd_walk:  # sixteen rays at a time, the points unordered
+                    e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
+                                   queue_i, rays8, redo, pts, axes, point_x, point_y, point_z, point_code[b], point_ray, point_slot,
                                    group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
                     for g in range(stop - start):
                         counts[start + g] = group_count[b, g]
@@ -393,8 +393,9 @@ def _fused_kernel(
                             hidden_f32[n, j] = acc[j]
 
 
-# The voxel walk eight rays at a time (`lsnif_walk_simd`) where numba compiles for AVX-512; False:
-# `walk_ray` per ray (elsewhere LLVM would turn the vector code into slower scalar loops).
+# The voxel walk sixteen rays at a time (`lsnif_walk_simd`) where numba compiles for AVX-512 and
+# the grid's V is a power of two (`float32_walk_applies`); False: `walk_ray` per ray (elsewhere LLVM
+# would turn the vector code into slower scalar loops).
 SIMD_WALK = HAS_AVX512
 
 # The bf16 first layer from bf16 pairs (`dot_rows_bf16`) where the compute dtype is bf16 and the
@@ -599,9 +600,10 @@ def _first_hidden_layer(p: _Pass, rays: _Rays) -> tuple[Tensor, np.ndarray, np.n
     t_offset = np.zeros(n, np.float32)
     if n:
         n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
+        simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
         with numba.parallel_chunksize(1):
             _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
-                          SIMD_WALK, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
+                          simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
                           p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, hidden_f32,
                           hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset)  # fmt: skip
     if write_inputs:

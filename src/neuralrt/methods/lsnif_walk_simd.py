@@ -1,20 +1,35 @@
-"""The voxel walk of `lsnif_features.walk_ray` for a group of rays, eight rays at a time (AVX-512).
+"""The voxel walk of `lsnif_features.walk_ray` for a group of rays, sixteen rays at a time in float32 (AVX-512).
 
-Same decisions and the same float64 arithmetic as `walk_ray`, lane by lane (`neuralrt.simd`
-vectors: no fused multiply-adds, numba's min/max), so the points are bit for bit the scalar
-walk's; what differs is their order. Eight lanes each walk one ray; a lane whose ray ends takes
-the next queued one (persistent lanes, so a group does not wait for its longest ray 8 times over).
-The starts (slab tests, first voxel, first plane times) are computed 8 rays at a time too, and
-the rays that enter the box are queued densely (compress stores); a lane is refilled from the
-queue with expand loads.
+`walk_ray` walks in float64. Here the start of each ray (slab tests, first voxel, first plane
+times) is `walk_ray`'s own float64 arithmetic, 8 rays at a time (`neuralrt.simd`), and the steps
+run in float32, 16 lanes per instruction (`neuralrt.simd16`): a lane walks one ray, and takes the
+next queued one when its ray ends (persistent lanes).
+
+**The same decisions as `walk_ray`.** Plane times ``(k / V - o) / d`` are computed from the plane
+equation in both, so with a power-of-two V (the planes exact in float32) a float32 time is within
+``3u`` (u = 2^-24) of the same exact value as the float64 one, which is within ``4 * 2^-53``. A step
+decides as `walk_ray` does wherever the closest plane time is positive and more than a factor ``1 +
+2^-20`` below the other two and above the current time: then the same axis is the closest in
+float64, ahead of the current time, and times still increase strictly (so a shared boundary point
+is recognised the same way). A lane where that does not hold (ties: rays through voxel edges or
+corners, starts on a plane) drops its ray, whose points are then discarded and the ray walked
+again by `walk_ray`; so are rays whose values do not fit float32's range well (``|o| > 2^30`` or
+``|1/d| > 2^60``, e.g. denormal directions). So the counts, the points' voxels, face codes and
+slots, and ``t_enter``/``t_exit`` are `walk_ray`'s exactly.
+
+**Coordinates to float32 rounding.** A point on its crossed plane takes the plane's value (exact);
+its other two coordinates are ``o + t * d`` clamped to the voxel, computed in float32 rather than
+rounded from float64: within ``2^-21 * (2 + |o|)`` of `walk_ray`'s (tested), so the encoder's
+inputs move by a few ulps. V that are not powers of two keep `walk_ray` in the fused pass.
 
 The points are written unordered (in the order the lanes emit them: compress stores, no
-scatters), each with its ray and its slot in the ray's point list, which is what the fused
-pass needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its slot).
+scatters), each with its ray and its slot in the ray's point list, which is what the fused pass
+needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its slot).
 
-On the 2-core Zen 5 development machine, for 2^17 hairball(6) rays (`hq`, H = 18), this walk takes
-~7.3 ms against ~9.8 ms for `walk_ray` (ad hoc, both threads). Where the CPU lacks AVX-512 LLVM
-lowers the same code to scalar loops (correct, slower): the fused pass then uses `walk_ray`.
+On the 2-core Zen 5 development machine, for 2^17 hairball(6) `lq` rays on one thread, the steps
+of this walk took ~4.4 ms against ~7.8 ms for the earlier 8-lane float64 walk (docs/lsnif.md,
+"Session 32"). Where the CPU lacks AVX-512 LLVM lowers the same code to scalar loops (correct,
+slower): the fused pass then uses `walk_ray`.
 """
 
 from __future__ import annotations
@@ -23,25 +38,41 @@ import numba
 import numpy as np
 
 from ..simd import (
-    bits8, compress_store_f32, compress_store_f64, compress_store_i64, expand_f64, expand_i64, floor_i64, gather_f64, gather_i32,
-    lane_index, load_f64, popcount8, scatter_i64, select, splat_f64, splat_i64, splat_m8, to_f64, vmax, vmin,
+    compress_store_f32, floor_i64, gather_f64, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
 )  # fmt: skip
-from .lsnif_features import ORIGIN_POINT
+from ..simd16 import (
+    bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, popcount16,
+    scatter16_i64, select16, splat_f32, splat_i32, splat_m16, to_f32, vmax16, vmin16,
+)  # fmt: skip
+from .lsnif_features import ORIGIN_POINT, walk_ray
 
-__all__ = ["walk_group", "walk_scratch"]
+__all__ = ["walk_group", "walk_scratch", "float32_walk_applies"]
 
-# The queue of a group's rays that enter the box, one column per ray (float64 rows, then int64):
+# The queue of a group's rays that enter the box, one column per ray (float32 rows, then int32):
 _OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z = range(19)
 _RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE = range(8)
 _FLOAT_ROWS, _INT_ROWS = 19, 8
+_SPARE = 16  # columns past the last ray: a refill reads up to 16 entries
+# A step is decided in float32 where the closest plane time beats the others and the current time
+# by this factor (float32 times are within 3u of the exact ones, float64 times within 2^-51)
+_MARGIN = 1.0 + 2.0**-20
+_TINY = 2.0**-100  # closest plane times below this (zero, negative, denormal) are not decided in float32
+_O_LIMIT, _INV_LIMIT = 2.0**30, 2.0**60
+
+
+def float32_walk_applies(res: int) -> bool:
+    """Whether `walk_group` walks a ``res^3`` grid: V a power of two (planes ``k / V`` exact in float32)."""
+    return res >= 1 and res & (res - 1) == 0
 
 
 @numba.njit(cache=True)
 def walk_scratch(group):
-    """A thread's scratch for `walk_group` on groups of up to ``group`` rays: the queue (float64
-    and int64 rows; 8 spare columns, as the refill reads up to 8 entries past the last ray, whose
-    sentinel is ray -1) and 8 rays' origins and directions."""
-    return np.empty((_FLOAT_ROWS, group + 8)), np.empty((_INT_ROWS, group + 8), np.int64), np.empty(48)
+    """A thread's scratch for `walk_group` on groups of up to ``group`` rays: the queue (float32
+    and int32 rows, flat; `_SPARE` columns after the last ray, whose sentinel is ray -1), 8 rays'
+    origins and directions (float64), and the list of rays `walk_ray` walks again."""
+    columns = group + _SPARE
+    return (np.empty(_FLOAT_ROWS * columns, np.float32), np.empty(_INT_ROWS * columns, np.int32), np.empty(48),
+            np.empty(group + _SPARE, np.int32))  # fmt: skip
 
 
 @numba.njit(cache=True, inline="always")
@@ -74,18 +105,25 @@ def _plane_time8(planes, o, inv, i, s, zero_i, one_i, inf, ok):
     return select(s == zero_i, inf, (plane - o) * inv)
 
 
+@numba.njit(cache=True, inline="always")
+def _in_range8(x, limit):
+    return (x <= limit) & (x >= splat_f64(0.0) - limit)
+
+
 @numba.njit(cache=True)
-def _start_group(origins, directions, first, n, res, planes, queue, queue_i, rays8, t_enter, t_exit):
-    """The start of `walk_ray` for rays ``[first, first + n)``, 8 at a time: writes their
-    ``t_enter``/``t_exit`` and queues those that enter the box; returns how many it queued."""
+def _start_group(origins, directions, first, n, res, planes, queue, queue_i, rays8, redo, t_enter, t_exit):
+    """The start of `walk_ray` for rays ``[first, first + n)``, 8 at a time in float64: writes their
+    ``t_enter``/``t_exit``, queues (rounded to float32) those that enter the box, and lists in
+    ``redo`` those that enter it with values out of float32's comfortable range; returns (queued,
+    listed)."""
     zero, one, inf = splat_f64(0.0), splat_f64(1.0), splat_f64(np.inf)
     zero_i, one_i, two_i = splat_i64(0), splat_i64(1), splat_i64(2)
     res_f = splat_f64(np.float64(res))
     last = splat_i64(res - 1)
-    columns = queue.shape[1]
-    qf = queue.reshape(-1)
-    qi = queue_i.reshape(-1)
+    o_limit, inv_limit = splat_f64(_O_LIMIT), splat_f64(_INV_LIMIT)
+    columns = queue.shape[0] // _FLOAT_ROWS
     n_queued = 0
+    n_redo = 0
     for g0 in range(0, n, 8):
         m = min(8, n - g0)
         for k in range(8):  # the rays' float32 origins and directions, widened, as lanes
@@ -116,157 +154,213 @@ def _start_group(origins, directions, first, n, res, planes, queue, queue_i, ray
         iz = _start_index8(oz, dz, t_cur, sz, res_f, last, zero_i, ~inside & (near_axis == two_i), ok, zero)
         compress_store_f32(t_enter, first + g0, select(ok, t_cur, inf), lanes)  # a prefix mask: a plain store
         compress_store_f32(t_exit, first + g0, select(ok, t_far, inf), lanes)
+        fits = (_in_range8(ox, o_limit) & _in_range8(oy, o_limit) & _in_range8(oz, o_limit) & _in_range8(inv_x, inv_limit)
+                & _in_range8(inv_y, inv_limit) & _in_range8(inv_z, inv_limit))  # fmt: skip
+        ray = lane_index() + splat_i64(g0)
+        compress_store_i32(redo, n_redo, ray, ok & ~fits)
+        n_redo += popcount8(ok & ~fits)
+        ok = ok & fits
         for row, value in ((_OX, ox), (_OY, oy), (_OZ, oz), (_DX, dx), (_DY, dy), (_DZ, dz), (_INV_X, inv_x), (_INV_Y, inv_y),
                            (_INV_Z, inv_z), (_T_CUR, t_cur)):  # fmt: skip
-            compress_store_f64(qf, row * columns + n_queued, value, ok)
-        compress_store_f64(qf, _TX * columns + n_queued, _plane_time8(planes, ox, inv_x, ix, sx, zero_i, one_i, inf, ok), ok)
-        compress_store_f64(qf, _TY * columns + n_queued, _plane_time8(planes, oy, inv_y, iy, sy, zero_i, one_i, inf, ok), ok)
-        compress_store_f64(qf, _TZ * columns + n_queued, _plane_time8(planes, oz, inv_z, iz, sz, zero_i, one_i, inf, ok), ok)
+            compress_store_f32(queue, row * columns + n_queued, value, ok)
+        compress_store_f32(queue, _TX * columns + n_queued, _plane_time8(planes, ox, inv_x, ix, sx, zero_i, one_i, inf, ok), ok)
+        compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(planes, oy, inv_y, iy, sy, zero_i, one_i, inf, ok), ok)
+        compress_store_f32(queue, _TZ * columns + n_queued, _plane_time8(planes, oz, inv_z, iz, sz, zero_i, one_i, inf, ok), ok)
         for row, i in ((_LO_X, ix), (_LO_Y, iy), (_LO_Z, iz)):
-            compress_store_f64(qf, row * columns + n_queued, gather_f64(planes, i, ok, zero), ok)
-            compress_store_f64(qf, (row + 3) * columns + n_queued, gather_f64(planes, i + one_i, ok, zero), ok)
-        for row, value in ((_RAY, lane_index() + splat_i64(g0)), (_SX, sx), (_SY, sy), (_SZ, sz), (_IX, ix), (_IY, iy), (_IZ, iz),
+            compress_store_f32(queue, row * columns + n_queued, gather_f64(planes, i, ok, zero), ok)
+            compress_store_f32(queue, (row + 3) * columns + n_queued, gather_f64(planes, i + one_i, ok, zero), ok)
+        for row, value in ((_RAY, ray), (_SX, sx), (_SY, sy), (_SZ, sz), (_IX, ix), (_IY, iy), (_IZ, iz),
                            (_CODE, select(inside, splat_i64(ORIGIN_POINT), near_axis))):  # fmt: skip
-            compress_store_i64(qi, row * columns + n_queued, value, ok)
+            compress_store_i32(queue_i, row * columns + n_queued, value, ok)
         n_queued += popcount8(ok)
-    for k in range(8):
-        queue_i[_RAY, n_queued + k] = -1  # the refill stops here
-    return n_queued
+    for k in range(_SPARE):
+        queue_i[_RAY * columns + n_queued + k] = -1  # the refill stops here
+    return n_queued, n_redo
 
 
 @numba.njit(cache=True, inline="always")
-def _point8(on_plane, exiting, positive, o, d, t, lo, hi):
+def _point16(on_plane, exiting, positive, o, d, t, lo, hi):
     """`lsnif_features._coord` per lane: on the crossed plane, ``hi`` where (step > 0) == exiting, else
     ``lo``; off it, ``o + t * d`` clamped to the voxel."""
-    plane = select(positive, hi, lo) if exiting else select(positive, lo, hi)
-    return select(on_plane, plane, vmin(vmax(o + t * d, lo), hi))
+    plane = select16(positive, hi, lo) if exiting else select16(positive, lo, hi)
+    return select16(on_plane, plane, vmin16(vmax16(o + t * d, lo), hi))
 
 
 @numba.njit(cache=True)
-def walk_group(origins, directions, first, n, occ_cells, res, planes, max_points, origin_point, share, queue, queue_i, rays8,
-               point_x, point_y, point_z, point_code, point_ray, point_slot, counts, t_enter, t_exit):  # fmt: skip
-    """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`):
-    ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at ``first + g``; returns the number
-    of points, written to ``point_*[:e]`` in no particular order: coordinates (float32), face code,
-    ray ``g`` and slot (the point's index in its ray's list). ``occ_cells``: the occupancy as int32,
-    flat (``[V^3]``); ``planes``: ``k / V`` (float64, ``V + 1``)."""
-    n_queued = _start_group(origins, directions, first, n, res, planes, queue, queue_i, rays8, t_enter, t_exit)
-    for g in range(n):
-        counts[g] = 0
-    columns = queue.shape[1]
-    qf = queue.reshape(-1)
-    qi = queue_i.reshape(-1)
-    inf = splat_f64(np.inf)
-    zero, zero_i, one_i, two_i = splat_f64(0.0), splat_i64(0), splat_i64(1), splat_i64(2)
-    origin_code = splat_i64(ORIGIN_POINT)
-    res_v = splat_i64(res)
-    res_f = splat_f64(np.float64(res))
-    full = splat_i64(max_points)
-    share_v = splat_m8(share)
-    skip_origin = splat_m8(not origin_point)
+def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_point, share, redo, n_redo,
+                point_x, point_y, point_z, point_code, point_ray, point_slot, counts):  # fmt: skip
+    """The steps of the queued rays, 16 lanes at a time: writes their points (returns their number
+    and the length of ``redo``, where the rays dropped on an undecided step are appended) and the
+    counts of the rays walked to their end."""
+    columns = queue.shape[0] // _FLOAT_ROWS
+    inf = splat_f32(np.inf)
+    zero, zero_i, one_i, two_i = splat_f32(0.0), splat_i32(0), splat_i32(1), splat_i32(2)
+    margin, tiny = splat_f32(_MARGIN), splat_f32(_TINY)
+    origin_code = splat_i32(ORIGIN_POINT)
+    res_v = splat_i32(res)
+    res_f = splat_f32(np.float32(res))
+    full = splat_i32(max_points)
+    share_v = splat_m16(share)
+    skip_origin = splat_m16(not origin_point)
     ox = oy = oz = dx = dy = dz = inv_x = inv_y = inv_z = tx = ty = tz = t_cur = lo_x = lo_y = lo_z = hi_x = hi_y = hi_z = zero
-    last_t = splat_f64(-np.inf)
+    last_t = splat_f32(-np.inf)
     ray = sx = sy = sz = ix = iy = iz = code = count = zero_i
-    active = splat_m8(False)
+    active = splat_m16(False)
     taken = 0  # queue entries handed to lanes
     e = 0
     while True:
-        if taken < n_queued and bits8(active) != 0xFF:  # refill idle lanes, in queue order
+        if taken < n_queued and bits16(active) != 0xFFFF:  # refill idle lanes, in queue order
             take = ~active
-            ray = expand_i64(qi, _RAY * columns + taken, take, ray)
+            ray = expand16_i32(queue_i, _RAY * columns + taken, take, ray)
             take = take & (ray >= zero_i)
-            ox = expand_f64(qf, _OX * columns + taken, take, ox)
-            oy = expand_f64(qf, _OY * columns + taken, take, oy)
-            oz = expand_f64(qf, _OZ * columns + taken, take, oz)
-            dx = expand_f64(qf, _DX * columns + taken, take, dx)
-            dy = expand_f64(qf, _DY * columns + taken, take, dy)
-            dz = expand_f64(qf, _DZ * columns + taken, take, dz)
-            inv_x = expand_f64(qf, _INV_X * columns + taken, take, inv_x)
-            inv_y = expand_f64(qf, _INV_Y * columns + taken, take, inv_y)
-            inv_z = expand_f64(qf, _INV_Z * columns + taken, take, inv_z)
-            tx = expand_f64(qf, _TX * columns + taken, take, tx)
-            ty = expand_f64(qf, _TY * columns + taken, take, ty)
-            tz = expand_f64(qf, _TZ * columns + taken, take, tz)
-            t_cur = expand_f64(qf, _T_CUR * columns + taken, take, t_cur)
-            lo_x = expand_f64(qf, _LO_X * columns + taken, take, lo_x)
-            lo_y = expand_f64(qf, _LO_Y * columns + taken, take, lo_y)
-            lo_z = expand_f64(qf, _LO_Z * columns + taken, take, lo_z)
-            hi_x = expand_f64(qf, _HI_X * columns + taken, take, hi_x)
-            hi_y = expand_f64(qf, _HI_Y * columns + taken, take, hi_y)
-            hi_z = expand_f64(qf, _HI_Z * columns + taken, take, hi_z)
-            sx = expand_i64(qi, _SX * columns + taken, take, sx)
-            sy = expand_i64(qi, _SY * columns + taken, take, sy)
-            sz = expand_i64(qi, _SZ * columns + taken, take, sz)
-            ix = expand_i64(qi, _IX * columns + taken, take, ix)
-            iy = expand_i64(qi, _IY * columns + taken, take, iy)
-            iz = expand_i64(qi, _IZ * columns + taken, take, iz)
-            code = expand_i64(qi, _CODE * columns + taken, take, code)
-            count = select(take, zero_i, count)
-            last_t = select(take, splat_f64(-np.inf), last_t)
-            taken += popcount8(take)
+            ox = expand16_f32(queue, _OX * columns + taken, take, ox)
+            oy = expand16_f32(queue, _OY * columns + taken, take, oy)
+            oz = expand16_f32(queue, _OZ * columns + taken, take, oz)
+            dx = expand16_f32(queue, _DX * columns + taken, take, dx)
+            dy = expand16_f32(queue, _DY * columns + taken, take, dy)
+            dz = expand16_f32(queue, _DZ * columns + taken, take, dz)
+            inv_x = expand16_f32(queue, _INV_X * columns + taken, take, inv_x)
+            inv_y = expand16_f32(queue, _INV_Y * columns + taken, take, inv_y)
+            inv_z = expand16_f32(queue, _INV_Z * columns + taken, take, inv_z)
+            tx = expand16_f32(queue, _TX * columns + taken, take, tx)
+            ty = expand16_f32(queue, _TY * columns + taken, take, ty)
+            tz = expand16_f32(queue, _TZ * columns + taken, take, tz)
+            t_cur = expand16_f32(queue, _T_CUR * columns + taken, take, t_cur)
+            lo_x = expand16_f32(queue, _LO_X * columns + taken, take, lo_x)
+            lo_y = expand16_f32(queue, _LO_Y * columns + taken, take, lo_y)
+            lo_z = expand16_f32(queue, _LO_Z * columns + taken, take, lo_z)
+            hi_x = expand16_f32(queue, _HI_X * columns + taken, take, hi_x)
+            hi_y = expand16_f32(queue, _HI_Y * columns + taken, take, hi_y)
+            hi_z = expand16_f32(queue, _HI_Z * columns + taken, take, hi_z)
+            sx = expand16_i32(queue_i, _SX * columns + taken, take, sx)
+            sy = expand16_i32(queue_i, _SY * columns + taken, take, sy)
+            sz = expand16_i32(queue_i, _SZ * columns + taken, take, sz)
+            ix = expand16_i32(queue_i, _IX * columns + taken, take, ix)
+            iy = expand16_i32(queue_i, _IY * columns + taken, take, iy)
+            iz = expand16_i32(queue_i, _IZ * columns + taken, take, iz)
+            code = expand16_i32(queue_i, _CODE * columns + taken, take, code)
+            count = select16(take, zero_i, count)
+            last_t = select16(take, splat_f32(-np.inf), last_t)
+            taken += popcount16(take)
             active = active | take
-        if bits8(active) == 0:
-            return e
+        if bits16(active) == 0:
+            return e, n_redo
         # The closest plane; strict < so ties go to the lower axis (as walk_ray)
         y_before_x = ty < tx
-        is_z = select(y_before_x, tz < ty, tz < tx)
+        is_z = select16(y_before_x, tz < ty, tz < tx)
         is_y = y_before_x & ~is_z
         is_x = ~(is_z | is_y)
-        t_next = select(is_z, tz, select(is_y, ty, tx))
-        axis = select(is_z, two_i, select(is_y, one_i, zero_i))
-        ended = active & (t_next == inf)  # plane times overflowed: nothing to walk
+        t_next = select16(is_z, tz, select16(is_y, ty, tx))
+        axis = select16(is_z, two_i, select16(is_y, one_i, zero_i))
+        ended = active & (t_next == inf)  # no plane ahead on any axis
         live = active & ~ended
-        t_next = vmax(t_next, t_cur)
-        occupied = gather_i32(occ_cells, (ix * res_v + iy) * res_v + iz, live) != zero_i
-        emit = live & occupied & (t_next > t_cur)
-        if bits8(emit) != 0:
+        # Decided as in float64 (module docstring), else the ray goes to walk_ray
+        beaten = t_next * margin
+        decided = ((t_next >= tiny) & (t_next > t_cur * margin) & (is_x | (tx > beaten)) & (is_y | (ty > beaten))
+                   & (is_z | (tz > beaten)))  # fmt: skip
+        undecided = live & ~decided
+        if bits16(undecided) != 0:
+            compress16_i32(redo, n_redo, ray, undecided)
+            n_redo += popcount16(undecided)
+            live = live & ~undecided
+            active = active & ~undecided
+        occupied = gather16_i32(occ_cells, (ix * res_v + iy) * res_v + iz, live) != zero_i
+        emit = live & occupied  # (t_next > t_cur where decided)
+        if bits16(emit) != 0:
             entry = emit & ~((share_v & (t_cur == last_t)) | ((code == origin_code) & skip_origin))
             full_at_entry = entry & (count == full)
             entry = entry & ~full_at_entry
             positive_x, positive_y, positive_z = sx > zero_i, sy > zero_i, sz > zero_i
-            if bits8(entry) != 0:
-                compress_store_f32(point_x, e, _point8(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x), entry)
-                compress_store_f32(point_y, e, _point8(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y), entry)
-                compress_store_f32(point_z, e, _point8(code == two_i, False, positive_z, oz, dz, t_cur, lo_z, hi_z), entry)
-                compress_store_i64(point_code, e, code, entry)
-                compress_store_i64(point_ray, e, ray, entry)
-                compress_store_i64(point_slot, e, count, entry)
-                e += popcount8(entry)
-                count = count + select(entry, one_i, zero_i)
+            if bits16(entry) != 0:
+                compress16_f32(point_x, e, _point16(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x), entry)
+                compress16_f32(point_y, e, _point16(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y), entry)
+                compress16_f32(point_z, e, _point16(code == two_i, False, positive_z, oz, dz, t_cur, lo_z, hi_z), entry)
+                compress16_i32(point_code, e, code, entry)
+                compress16_i32(point_ray, e, ray, entry)
+                compress16_i32(point_slot, e, count, entry)
+                e += popcount16(entry)
+                count = count + select16(entry, one_i, zero_i)
             leave = emit & ~full_at_entry
             full_at_exit = leave & (count == full)
             leave = leave & ~full_at_exit
-            compress_store_f32(point_x, e, _point8(is_x, True, positive_x, ox, dx, t_next, lo_x, hi_x), leave)
-            compress_store_f32(point_y, e, _point8(is_y, True, positive_y, oy, dy, t_next, lo_y, hi_y), leave)
-            compress_store_f32(point_z, e, _point8(is_z, True, positive_z, oz, dz, t_next, lo_z, hi_z), leave)
-            compress_store_i64(point_code, e, axis, leave)
-            compress_store_i64(point_ray, e, ray, leave)
-            compress_store_i64(point_slot, e, count, leave)
-            e += popcount8(leave)
-            count = count + select(leave, one_i, zero_i)
-            last_t = select(leave, t_next, last_t)
+            compress16_f32(point_x, e, _point16(is_x, True, positive_x, ox, dx, t_next, lo_x, hi_x), leave)
+            compress16_f32(point_y, e, _point16(is_y, True, positive_y, oy, dy, t_next, lo_y, hi_y), leave)
+            compress16_f32(point_z, e, _point16(is_z, True, positive_z, oz, dz, t_next, lo_z, hi_z), leave)
+            compress16_i32(point_code, e, axis, leave)
+            compress16_i32(point_ray, e, ray, leave)
+            compress16_i32(point_slot, e, count, leave)
+            e += popcount16(leave)
+            count = count + select16(leave, one_i, zero_i)
+            last_t = select16(leave, t_next, last_t)
             truncated = full_at_entry | full_at_exit
             ended = ended | truncated
             live = live & ~truncated
         # Step the closest plane's axis; only its plane time and bounds change
-        ix = ix + select(is_x, sx, zero_i)
-        iy = iy + select(is_y, sy, zero_i)
-        iz = iz + select(is_z, sz, zero_i)
-        stepped = select(is_z, iz, select(is_y, iy, ix))
+        ix = ix + select16(is_x, sx, zero_i)
+        iy = iy + select16(is_y, sy, zero_i)
+        iz = iz + select16(is_z, sz, zero_i)
+        stepped = select16(is_z, iz, select16(is_y, iy, ix))
         left = live & ((stepped < zero_i) | (stepped >= res_v))
         live = live & ~left
-        lo = to_f64(stepped) / res_f  # k / V, bit-equal to planes[k], instead of two gathers
-        hi = to_f64(stepped + one_i) / res_f
-        s = select(is_z, sz, select(is_y, sy, sx))
-        o = select(is_z, oz, select(is_y, oy, ox))
-        inv = select(is_z, inv_z, select(is_y, inv_y, inv_x))
-        t_plane = (select(s > zero_i, hi, lo) - o) * inv
-        tx, lo_x, hi_x = select(is_x, t_plane, tx), select(is_x, lo, lo_x), select(is_x, hi, hi_x)
-        ty, lo_y, hi_y = select(is_y, t_plane, ty), select(is_y, lo, lo_y), select(is_y, hi, hi_y)
-        tz, lo_z, hi_z = select(is_z, t_plane, tz), select(is_z, lo, lo_z), select(is_z, hi, hi_z)
+        lo = to_f32(stepped) / res_f  # k / V: exact (V a power of two)
+        hi = to_f32(stepped + one_i) / res_f
+        s = select16(is_z, sz, select16(is_y, sy, sx))
+        o = select16(is_z, oz, select16(is_y, oy, ox))
+        inv = select16(is_z, inv_z, select16(is_y, inv_y, inv_x))
+        t_plane = (select16(s > zero_i, hi, lo) - o) * inv
+        tx, lo_x, hi_x = select16(is_x, t_plane, tx), select16(is_x, lo, lo_x), select16(is_x, hi, hi_x)
+        ty, lo_y, hi_y = select16(is_y, t_plane, ty), select16(is_y, lo, lo_y), select16(is_y, hi, hi_y)
+        tz, lo_z, hi_z = select16(is_z, t_plane, tz), select16(is_z, lo, lo_z), select16(is_z, hi, hi_z)
         t_cur = t_next
         code = axis
         done = ended | left
-        if bits8(done) != 0:
-            scatter_i64(counts, ray, count, done)
+        if bits16(done) != 0:
+            scatter16_i64(counts, ray, count, done)
             active = active & ~done
+
+
+@numba.njit(cache=True)
+def _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
+                point_x, point_y, point_z, point_code, point_ray, point_slot, counts):  # fmt: skip
+    """The rays listed in ``redo`` by `walk_ray`: their points from the lanes dropped from the list,
+    `walk_ray`'s appended; returns the new number of points."""
+    for k in range(n_redo):
+        counts[redo[k]] = -1
+    kept = 0
+    for i in range(e):
+        if counts[point_ray[i]] >= 0:
+            point_x[kept], point_y[kept], point_z[kept] = point_x[i], point_y[i], point_z[i]
+            point_code[kept], point_ray[kept], point_slot[kept] = point_code[i], point_ray[i], point_slot[i]
+            kept += 1
+    for k in range(n_redo):
+        g = redo[k]
+        r = first + g
+        count, _, _, _ = walk_ray(np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2]),
+                                  np.float64(directions[r, 0]), np.float64(directions[r, 1]), np.float64(directions[r, 2]),
+                                  occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+        counts[g] = count
+        for h in range(count):
+            point_x[kept], point_y[kept], point_z[kept] = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+            point_code[kept], point_ray[kept], point_slot[kept] = axes[g, h], g, h
+            kept += 1
+    return kept
+
+
+@numba.njit(cache=True)
+def walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8, redo,
+               pts, axes, point_x, point_y, point_z, point_code, point_ray, point_slot, counts, t_enter, t_exit):  # fmt: skip
+    """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`) on
+    the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_cells`` the same as int32, flat;
+    ``planes``: ``k / V``, float64): ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at
+    ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
+    order: coordinates (float32), face code, ray ``g`` and slot (the point's index in its ray's
+    list), int32. ``pts``/``axes`` (``[n, H, 3]`` float32, ``[n, H]``): scratch for `walk_ray`."""
+    n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
+    for g in range(n):
+        counts[g] = 0
+    e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_cells, occ.shape[0], max_points, origin_point, share, redo, n_redo,
+                            point_x, point_y, point_z, point_code, point_ray, point_slot, counts)  # fmt: skip
+    if n_redo > 0:
+        e = _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
+                        point_x, point_y, point_z, point_code, point_ray, point_slot, counts)  # fmt: skip
+    return e
