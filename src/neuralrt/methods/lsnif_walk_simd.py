@@ -354,7 +354,7 @@ def walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points
     ``planes``: ``k / V``, float64): ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at
     ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
     order: coordinates (float32), face code, ray ``g`` and slot (the point's index in its ray's
-    list), int32. ``pts``/``axes`` (``[n, H, 3]`` float32, ``[n, H]``): scratch for `walk_ray`."""
+    list), int32. ``pts``/``axes`` (``[group, H, 3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
     n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
     for g in range(n):
         counts[g] = 0
