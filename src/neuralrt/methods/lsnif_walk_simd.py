@@ -27,8 +27,8 @@ scatters), each with its ray and its slot in the ray's point list, which is what
 needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its slot).
 
 On the 2-core Zen 5 development machine, for 2^17 hairball(6) `lq` rays on one thread, the steps
-of this walk took ~4.4 ms against ~7.8 ms for the earlier 8-lane float64 walk (docs/lsnif.md,
-"Session 32"). Where the CPU lacks AVX-512 LLVM lowers the same code to scalar loops (correct,
+of this walk take ~4.6 ms against ~7.6 ms for the earlier 8-lane float64 walk, the whole walk
+with its start ~5.9 against ~8.9 ms (docs/lsnif.md, "Session 32"). Where the CPU lacks AVX-512 LLVM lowers the same code to scalar loops (correct,
 slower): the fused pass then uses `walk_ray`.
 """
 
