@@ -204,6 +204,26 @@ def test_simd_walk_and_walk_ray_give_the_same_points_to_float32_rounding(figure,
     assert outputs[True].active.numel() > 100
 
 
+def test_grids_whose_size_is_not_a_power_of_two_keep_walk_ray(figure, monkeypatch):
+    """V = 12: the planes k / V are not exact in float32, so the pass walks with `walk_ray` whatever
+    `SIMD_WALK` says (the same bits either way)."""
+    config = LSNIFConfig.preset("hq", voxel={"resolution": 12}, encoding={"resolutions": (24, 36), "log2_table_size": 12},
+                                network={"hidden_width": 32}, features={"max_points": 8})  # fmt: skip
+    model = LSNIFModel.from_mesh(figure, config)
+    with torch.no_grad():
+        model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(3))
+    unit = model._unit_rays(_mixed_rays(model, 1500, seed=6))
+    outputs = {}
+    for simd in (True, False):
+        monkeypatch.setattr(fused, "SIMD_WALK", simd)
+        with torch.no_grad():
+            outputs[simd] = fused_network_outputs_cpu(unit.origins, unit.directions, model.occupancy, model.encoder, model.network,
+                                                      max_points=8)  # fmt: skip
+    assert outputs[True].active.numel() > 100
+    for name in ("active", "values", "count", "t_enter", "t_exit"):
+        assert torch.equal(getattr(outputs[True], name), getattr(outputs[False], name)), name
+
+
 def test_face_point_hashing_equals_the_encoders():
     """The branch-free face-point path (`face_rows`, which the fused pass runs as SIMD code over a
     group's points) reads the same table rows with the same weights as the encoder's."""

@@ -2,10 +2,11 @@
 
 For each ray, one numba kernel maps it into the model's unit box (`lsnif_features.unit_box_ray`),
 walks the voxels (the 3D-DDA of `lsnif_features`, float64; where numba targets AVX-512 and V is a
-power of two, sixteen rays at a time in float32 with the same decisions, `lsnif_walk_simd`), encodes each boundary point in the sparse hash
-grid (`sparse_hash_grid.face_rows` and `origin_rows`: `_point_level`'s rows and weights, float32,
-the same sums as its forward kernel; a group's rows are read a group after its walk, each with
-one vector load, `read_rows3`) and adds the point's contribution to the first MLP layer at once:
+power of two, sixteen rays at a time in float32 with the same decisions, `lsnif_walk_simd`),
+encodes each boundary point in the sparse hash grid (`sparse_hash_grid.face_rows` and
+`origin_rows`: `_point_level`'s rows and weights, float32, the same sums as its forward kernel; a
+group's rows are read a group after its walk, each with one vector load, `read_rows3`) and adds
+the point's contribution to the first MLP layer at once:
 the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is the sum over
 points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
 the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
@@ -208,7 +209,8 @@ def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e,
 # 0.98-1.005x, `occluded` 0.95-1.01x without), and the lead still measures 0-6% faster for `lq`
 # (mean ~2%) than reading a group's rows right after its walk. Without the prefetches, 128 rays
 # beat 64 (A/B, `intersect`: `lq` 0.965-0.989x in three runs, `hq` 0.98-1.02x) and 96, 192 and
-# 256 did not (`lq` 1.01x, 1.01x, 1.005x) (session 31).
+# 256 did not (`lq` 1.01x, 1.01x, 1.005x) (session 31). With the 16-lane float32 walk (session
+# 32), 64 and 256 measured 1.024x and 1.000x (`lq`).
 _GROUP = 128
 
 # Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
