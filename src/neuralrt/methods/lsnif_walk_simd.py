@@ -1,4 +1,4 @@
-"""The voxel walk of `lsnif_features.walk_ray` for a group of rays, sixteen rays at a time in float32 (AVX-512).
+"""`lsnif_features.walk_ray` for a group of rays, sixteen rays at a time in float32 (AVX-512).
 
 `walk_ray` walks in float64. Here the start of each ray (slab tests, first voxel, first plane
 times) is `walk_ray`'s own float64 arithmetic, 8 rays at a time (`neuralrt.simd`), and the steps
@@ -28,8 +28,8 @@ needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its s
 
 On the 2-core Zen 5 development machine, for 2^17 hairball(6) `lq` rays on one thread, the steps
 of this walk take ~4.6 ms against ~7.6 ms for the earlier 8-lane float64 walk, the whole walk
-with its start ~5.9 against ~8.9 ms (docs/lsnif.md, "Session 32"). Where the CPU lacks AVX-512 LLVM lowers the same code to scalar loops (correct,
-slower): the fused pass then uses `walk_ray`.
+with its start ~5.9 against ~8.9 ms (docs/lsnif.md, "Session 32"). Where the CPU lacks AVX-512,
+LLVM lowers the same code to scalar loops (correct, slower): the fused pass then uses `walk_ray`.
 """
 
 from __future__ import annotations
