@@ -9,21 +9,24 @@ import numpy as np
 import pytest
 import torch
 
-from neuralrt.methods.lsnif_features import featurize_rays_numba
+from neuralrt.methods.lsnif_features import featurize_rays_numba, local_distance
 from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, walk_group, walk_scratch
 
 GROUP = 32
 
 
 @numba.njit(cache=True)
-def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit):
-    """Every ray through `walk_group`, its points put back in ray order (``points [N, H, 3]``)."""
-    queue, queue_i, rays8, redo = walk_scratch(GROUP)
+def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
+              local=None):  # fmt: skip
+    """Every ray through `walk_group`, its points (and their local distances, ``local [N, H]``)
+    put back in ray order (``points [N, H, 3]``)."""
+    queue, queue_i, rays8, lane_terms, redo = walk_scratch(GROUP)
     pts = np.empty((GROUP, max_points, 3), np.float32)
     pts_axes = np.empty((GROUP, max_points), np.int8)
     px = np.empty(GROUP * max_points, np.float32)
     py = np.empty(GROUP * max_points, np.float32)
     pz = np.empty(GROUP * max_points, np.float32)
+    distance = np.empty(GROUP * max_points, np.float32)
     code = np.empty(GROUP * max_points, np.int32)
     ray = np.empty(GROUP * max_points, np.int32)
     slot = np.empty(GROUP * max_points, np.int32)
@@ -32,13 +35,25 @@ def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_po
     for first in range(0, n_rays, GROUP):
         n = min(GROUP, n_rays - first)
         e = walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8,
-                       redo, pts, pts_axes, px, py, pz, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
+                       lane_terms, redo, pts, pts_axes, px, py, pz, distance, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
         for g in range(n):
             counts[first + g] = group_counts[g]
         for i in range(e):
             r, h = first + ray[i], slot[i]
             points[r, h, 0], points[r, h, 1], points[r, h, 2] = px[i], py[i], pz[i]
             axes[r, h] = code[i]
+            if local is not None:
+                local[r, h] = distance[i]
+
+
+@numba.njit(cache=True)
+def _local_distances(points, counts, origins, directions, t_enter, t_exit):
+    out = np.zeros(points.shape[:2], np.float32)
+    for r in range(points.shape[0]):
+        for h in range(counts[r]):
+            out[r, h] = local_distance(points[r, h, 0], points[r, h, 1], points[r, h, 2], origins[r, 0], origins[r, 1], origins[r, 2],
+                                       directions[r, 0], directions[r, 1], directions[r, 2], t_enter[r], t_exit[r])  # fmt: skip
+    return out
 
 
 def _edge_rays(n: int, seed: int):
@@ -87,6 +102,12 @@ def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_
     off = valid[:, :, None] & ~on_plane
     assert (np.abs(points - ref_points) <= bound)[off].all()
     assert (points != ref_points)[off].any()  # (float32 arithmetic: some differ)
+    # The lanes' local distances: `local_distance`'s float32 operations on the walk's points, bit for bit
+    local = np.full((n, max_points), np.nan, np.float32)
+    _walk_all(o, d, occ, occ.astype(np.int32).reshape(-1), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
+              local)  # fmt: skip
+    expected = _local_distances(points, counts, o, d, t_enter, t_exit)
+    assert np.array_equal(local[valid].view(np.int32), expected[valid].view(np.int32))
 
 
 def test_float32_walk_applies_to_power_of_two_grids():
@@ -96,7 +117,7 @@ def test_float32_walk_applies_to_power_of_two_grids():
 @numba.njit(cache=True)
 def _walked_again(origins, directions, occ, occ_cells, planes, max_points):
     """How many rays `walk_group` hands to `walk_ray`: at the start, and from the lanes."""
-    queue, queue_i, rays8, redo = walk_scratch(GROUP)
+    queue, queue_i, rays8, lane_terms, redo = walk_scratch(GROUP)
     px = np.empty(GROUP * max_points, np.float32)
     code = np.empty(GROUP * max_points, np.int32)
     counts = np.empty(GROUP, np.int64)
@@ -105,8 +126,8 @@ def _walked_again(origins, directions, occ, occ_cells, planes, max_points):
     for first in range(0, origins.shape[0], GROUP):
         n = min(GROUP, origins.shape[0] - first)
         queued, listed = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
-        _, total = _walk_lanes(queue, queue_i, queued, occ_cells, occ.shape[0], max_points, True, True, redo, listed, px, px.copy(),
-                               px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
+        _, total = _walk_lanes(queue, queue_i, queued, occ_cells, occ.shape[0], max_points, True, True, redo, listed,
+                               lane_terms, px, px.copy(), px.copy(), px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
         at_start += listed
         from_lanes += total - listed
     return at_start, from_lanes

@@ -16,9 +16,9 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic, models, overload, register_model
 
-from .simd import _M8, _llvm_function, broadcast, contiguous_1d, element_pointer, i64x8, m8
+from .simd import _M8, _llvm_function, broadcast, contiguous_1d, element_pointer, i64x8, m8, vector_load, vector_pointer
 
-__all__ = ["f32x16", "i32x16", "m16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
+__all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
            "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
            "compress16_i32", "compress_store_i32"]  # fmt: skip
 
@@ -59,6 +59,23 @@ def _model(ir_type):
 register_model(F32x16)(_model(_F32X16))
 register_model(I32x16)(_model(_I32X16))
 register_model(M16)(_model(_M16))
+
+
+load16 = vector_load(types.float32, f32x16, _F32X16, 4)
+load16.__doc__ = "``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."
+
+
+@intrinsic
+def store16(typingctx, array, start, value):
+    """``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."""
+    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
+        return context.get_dummy_value()
+
+    return types.void(array, types.intp, f32x16), codegen
 
 
 def _splat(accepted, scalar_type, vector, vector_type):

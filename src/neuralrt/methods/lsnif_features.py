@@ -425,17 +425,22 @@ def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Ten
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
-def _local_distances(pts, axes, n, ox, oy, oz, dx, dy, dz, te, tx, out_distances, m):
-    """``out_distances[m]``: `point_local_distances` of ray n's points in torch's float32 operations."""
-    zero, one = np.float32(0.0), np.float32(1.0)
+def local_distance(px, py, pz, ox, oy, oz, dx, dy, dz, te, tx):
+    """`point_local_distances` of one point (float32 scalars) in torch's float32 operations."""
     dd = dx * dx + dy * dy + dz * dz
     span = max(tx - te, np.float32(1e-12))
+    t = ((px - ox) * dx + (py - oy) * dy + (pz - oz) * dz) / dd
+    return min(max((t - te) / span, np.float32(0.0)), np.float32(1.0))
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _local_distances(pts, axes, n, ox, oy, oz, dx, dy, dz, te, tx, out_distances, m):
+    """``out_distances[m]``: `point_local_distances` of ray n's points in torch's float32 operations."""
     for h in range(axes.shape[1]):
         if axes[n, h] < 0:
-            out_distances[m, h] = zero
+            out_distances[m, h] = np.float32(0.0)
             continue
-        t = ((pts[n, h, 0] - ox) * dx + (pts[n, h, 1] - oy) * dy + (pts[n, h, 2] - oz) * dz) / dd
-        out_distances[m, h] = min(max((t - te) / span, zero), one)
+        out_distances[m, h] = local_distance(pts[n, h, 0], pts[n, h, 1], pts[n, h, 2], ox, oy, oz, dx, dy, dz, te, tx)
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")

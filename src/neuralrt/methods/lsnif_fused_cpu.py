@@ -52,7 +52,7 @@ from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
 from ..rays_kernels import valid_ray
-from .lsnif_features import ORIGIN_POINT, _check_rays, unit_box_ray, walk_ray
+from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
 from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
@@ -181,21 +181,17 @@ def _origin_rows_of_points(origin_x, origin_y, origin_z, n, res, mask, base, slo
 
 
 @numba.njit(cache=True, inline="always")
-def _list_point(ox32, oy32, oz32, dx32, dy32, dz32, te, tx, px, py, pz, code, e, column, b, n_origin, point_column, origin_entry,
-                origin_x, origin_y, origin_z, point_distances, xs_flat, block):  # fmt: skip
+def _list_point(local, px, py, pz, code, e, column, b, n_origin, point_column, origin_entry, origin_x, origin_y, origin_z,
+                point_distances, xs_flat, block):  # fmt: skip
     """Point ``e`` of the group in buffer ``b``: its inputs' first column, its point distance
-    (written at once) and, for an origin point, its entry and coordinates in the origin list
-    (its rows are found with the face points'); returns the group's new number of origin points."""
+    ``local`` (`lsnif_features.local_distance`, written at once) and, for an origin point, its entry
+    and coordinates in the origin list (its rows are found with the face points'); returns the
+    group's new number of origin points."""
     point_column[b, e] = column
     if np.int64(code) == ORIGIN_POINT:
         origin_entry[b, n_origin] = e
         origin_x[n_origin], origin_y[n_origin], origin_z[n_origin] = px, py, pz
         n_origin += 1
-    # point_local_distances, in float32 as the unfused path computes it
-    span = max(tx - te, np.float32(1e-12))
-    dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
-    tp = ((px - ox32) * dx32 + (py - oy32) * dy32 + (pz - oz32) * dz32) / dd
-    local = min(max((tp - te) / span, np.float32(0.0)), np.float32(1.0))
     xs_flat[column + block - 1] = local if point_distances else np.float32(0.0)
     return n_origin
 
@@ -256,6 +252,7 @@ def _fused_kernel(
         point_x = np.empty(_GROUP * max_points, np.float32)
         point_y = np.empty(_GROUP * max_points, np.float32)
         point_z = np.empty(_GROUP * max_points, np.float32)
+        point_local = np.empty(_GROUP * max_points, np.float32)  # (SIMD walk) each point's local distance
         point_code = np.empty((2, _GROUP * max_points), np.int32)
         point_column = np.empty((2, _GROUP * max_points), np.int64)  # its features' first index in xs_flat
         face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int32)  # (table rows < 2^31)
@@ -263,7 +260,7 @@ def _fused_kernel(
         group_points = np.empty(2, np.int64)
         point_ray = np.empty(_GROUP * max_points, np.int32)  # (SIMD walk) each point's ray in the group and slot in its list
         point_slot = np.empty(_GROUP * max_points, np.int32)
-        queue, queue_i, rays8, redo = walk_scratch(_GROUP)
+        queue, queue_i, rays8, lane_terms, redo = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
         unit_o = np.empty((_GROUP, 3), np.float32)  # the group's rays in the unit box
         unit_d = np.empty((_GROUP, 3), np.float32)
@@ -301,17 +298,14 @@ def _fused_kernel(
                 n_origin = 0
                 if simd_walk:  # sixteen rays at a time, the points unordered
                     e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
-                                   queue_i, rays8, redo, pts, axes, point_x, point_y, point_z, point_code[b], point_ray, point_slot,
-                                   group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
+                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code[b], point_ray,
+                                   point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
                     for g in range(stop - start):
                         counts[start + g] = group_count[b, g]
                     for i in range(e):
-                        g = point_ray[i]
-                        n = start + g
-                        n_origin = _list_point(unit_o[g, 0], unit_o[g, 1], unit_o[g, 2], unit_d[g, 0], unit_d[g, 1],
-                                               unit_d[g, 2], t_enter[n], t_exit[n], point_x[i], point_y[i], point_z[i],
-                                               point_code[b, i], i, (b * _GROUP + g) * xs.shape[2] + point_slot[i] * block, b, n_origin,
-                                               point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
+                        column = (b * _GROUP + point_ray[i]) * xs.shape[2] + point_slot[i] * block
+                        n_origin = _list_point(point_local[i], point_x[i], point_y[i], point_z[i], point_code[b, i], i, column, b,
+                                               n_origin, point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
                                                xs_flat, block)  # fmt: skip
                 else:
                     for g in range(stop - start):
@@ -328,10 +322,10 @@ def _fused_kernel(
                         for h in range(count):
                             px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
                             point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
-                            n_origin = _list_point(ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1), px, py, pz,
-                                                   axes[g, h], e, (b * _GROUP + g) * xs.shape[2] + h * block, b, n_origin, point_column,
-                                                   origin_entry, origin_x, origin_y, origin_z, point_distances, xs_flat,
-                                                   block)  # fmt: skip
+                            local = local_distance(px, py, pz, ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1))
+                            n_origin = _list_point(local, px, py, pz, axes[g, h], e, (b * _GROUP + g) * xs.shape[2] + h * block, b,
+                                                   n_origin, point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
+                                                   xs_flat, block)  # fmt: skip
                             e += 1
                 # 2. every point's face rows and weights, per level (origin points' are computed and
                 # unused), and the origin points' 8 rows

@@ -41,17 +41,18 @@ from ..simd import (
     compress_store_f32, floor_i64, gather_f64, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
 )  # fmt: skip
 from ..simd16 import (
-    bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, popcount16,
-    scatter16_i64, select16, splat_f32, splat_i32, splat_m16, to_f32, vmax16, vmin16,
+    bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, load16, popcount16,
+    scatter16_i64, select16, splat_f32, splat_i32, splat_m16, store16, to_f32, vmax16, vmin16,
 )  # fmt: skip
-from .lsnif_features import ORIGIN_POINT, walk_ray
+from .lsnif_features import ORIGIN_POINT, local_distance, walk_ray
 
 __all__ = ["walk_group", "walk_scratch", "float32_walk_applies"]
 
 # The queue of a group's rays that enter the box, one column per ray (float32 rows, then int32):
-_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z = range(19)
+(_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z, _T_ENTER,
+ _T_EXIT) = range(21)
 _RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE = range(8)
-_FLOAT_ROWS, _INT_ROWS = 19, 8
+_FLOAT_ROWS, _INT_ROWS = 21, 8
 _SPARE = 16  # columns past the last ray: a refill reads up to 16 entries
 # A step is decided in float32 where the closest plane time beats the others and the current time
 # by this factor (float32 times are within 3u of the exact ones, float64 times within 2^-51)
@@ -69,10 +70,11 @@ def float32_walk_applies(res: int) -> bool:
 def walk_scratch(group):
     """A thread's scratch for `walk_group` on groups of up to ``group`` rays: the queue (float32
     and int32 rows, flat; `_SPARE` columns after the last ray, whose sentinel is ray -1), 8 rays'
-    origins and directions (float64), and the list of rays `walk_ray` walks again."""
+    origins and directions (float64), the 16 lanes' terms of their local distances (float32), and
+    the list of rays `walk_ray` walks again."""
     columns = group + _SPARE
     return (np.empty(_FLOAT_ROWS * columns, np.float32), np.empty(_INT_ROWS * columns, np.int32), np.empty(48),
-            np.empty(group + _SPARE, np.int32))  # fmt: skip
+            np.empty(32, np.float32), np.empty(group + _SPARE, np.int32))  # fmt: skip
 
 
 @numba.njit(cache=True, inline="always")
@@ -161,7 +163,7 @@ def _start_group(origins, directions, first, n, res, planes, queue, queue_i, ray
         n_redo += popcount8(ok & ~fits)
         ok = ok & fits
         for row, value in ((_OX, ox), (_OY, oy), (_OZ, oz), (_DX, dx), (_DY, dy), (_DZ, dz), (_INV_X, inv_x), (_INV_Y, inv_y),
-                           (_INV_Z, inv_z), (_T_CUR, t_cur)):  # fmt: skip
+                           (_INV_Z, inv_z), (_T_CUR, t_cur), (_T_ENTER, t_cur), (_T_EXIT, t_far)):  # fmt: skip
             compress_store_f32(queue, row * columns + n_queued, value, ok)
         compress_store_f32(queue, _TX * columns + n_queued, _plane_time8(planes, ox, inv_x, ix, sx, zero_i, one_i, inf, ok), ok)
         compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(planes, oy, inv_y, iy, sy, zero_i, one_i, inf, ok), ok)
@@ -186,16 +188,24 @@ def _point16(on_plane, exiting, positive, o, d, t, lo, hi):
     return select16(on_plane, plane, vmin16(vmax16(o + t * d, lo), hi))
 
 
+@numba.njit(cache=True, inline="always")
+def _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one):
+    """`lsnif_features.local_distance` per lane (``dd``, ``span`` its ray's terms): the same float32 operations."""
+    t = ((px - ox) * dx + (py - oy) * dy + (pz - oz) * dz) / dd
+    return vmin16(vmax16((t - te) / span, zero), one)
+
+
 @numba.njit(cache=True)
-def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_point, share, redo, n_redo,
-                point_x, point_y, point_z, point_code, point_ray, point_slot, counts):  # fmt: skip
-    """The steps of the queued rays, 16 lanes at a time: writes their points (returns their number
-    and the length of ``redo``, where the rays dropped on an undecided step are appended) and the
-    counts of the rays walked to their end."""
+def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_point, share, redo, n_redo, lane_terms,
+                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts):  # fmt: skip
+    """The steps of the queued rays, 16 lanes at a time: writes their points and their local
+    distances (`lsnif_features.local_distance`; returns their number and the length of ``redo``,
+    where the rays dropped on an undecided step are appended) and the counts of the rays walked to
+    their end."""
     columns = queue.shape[0] // _FLOAT_ROWS
     inf = splat_f32(np.inf)
     zero, zero_i, one_i, two_i = splat_f32(0.0), splat_i32(0), splat_i32(1), splat_i32(2)
-    margin, tiny = splat_f32(_MARGIN), splat_f32(_TINY)
+    one, margin, tiny, min_span = splat_f32(1.0), splat_f32(_MARGIN), splat_f32(_TINY), splat_f32(1e-12)
     origin_code = splat_i32(ORIGIN_POINT)
     res_v = splat_i32(res)
     res_f = splat_f32(np.float32(res))
@@ -239,6 +249,11 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             iy = expand16_i32(queue_i, _IY * columns + taken, take, iy)
             iz = expand16_i32(queue_i, _IZ * columns + taken, take, iz)
             code = expand16_i32(queue_i, _CODE * columns + taken, take, code)
+            # the rays' t_enter and span for their local distances, kept in memory (registers are scarce)
+            te = expand16_f32(queue, _T_ENTER * columns + taken, take, load16(lane_terms, 0))
+            t_exit = expand16_f32(queue, _T_EXIT * columns + taken, take, te)
+            store16(lane_terms, 0, te)
+            store16(lane_terms, 16, select16(take, vmax16(t_exit - te, min_span), load16(lane_terms, 16)))
             count = select16(take, zero_i, count)
             last_t = select16(take, splat_f32(-np.inf), last_t)
             taken += popcount16(take)
@@ -271,10 +286,15 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             full_at_entry = entry & (count == full)
             entry = entry & ~full_at_entry
             positive_x, positive_y, positive_z = sx > zero_i, sy > zero_i, sz > zero_i
+            te, span, dd = load16(lane_terms, 0), load16(lane_terms, 16), dx * dx + dy * dy + dz * dz
             if bits16(entry) != 0:
-                compress16_f32(point_x, e, _point16(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x), entry)
-                compress16_f32(point_y, e, _point16(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y), entry)
-                compress16_f32(point_z, e, _point16(code == two_i, False, positive_z, oz, dz, t_cur, lo_z, hi_z), entry)
+                px = _point16(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x)
+                py = _point16(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y)
+                pz = _point16(code == two_i, False, positive_z, oz, dz, t_cur, lo_z, hi_z)
+                compress16_f32(point_x, e, px, entry)
+                compress16_f32(point_y, e, py, entry)
+                compress16_f32(point_z, e, pz, entry)
+                compress16_f32(point_local, e, _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one), entry)
                 compress16_i32(point_code, e, code, entry)
                 compress16_i32(point_ray, e, ray, entry)
                 compress16_i32(point_slot, e, count, entry)
@@ -283,9 +303,13 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             leave = emit & ~full_at_entry
             full_at_exit = leave & (count == full)
             leave = leave & ~full_at_exit
-            compress16_f32(point_x, e, _point16(is_x, True, positive_x, ox, dx, t_next, lo_x, hi_x), leave)
-            compress16_f32(point_y, e, _point16(is_y, True, positive_y, oy, dy, t_next, lo_y, hi_y), leave)
-            compress16_f32(point_z, e, _point16(is_z, True, positive_z, oz, dz, t_next, lo_z, hi_z), leave)
+            px = _point16(is_x, True, positive_x, ox, dx, t_next, lo_x, hi_x)
+            py = _point16(is_y, True, positive_y, oy, dy, t_next, lo_y, hi_y)
+            pz = _point16(is_z, True, positive_z, oz, dz, t_next, lo_z, hi_z)
+            compress16_f32(point_x, e, px, leave)
+            compress16_f32(point_y, e, py, leave)
+            compress16_f32(point_z, e, pz, leave)
+            compress16_f32(point_local, e, _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one), leave)
             compress16_i32(point_code, e, axis, leave)
             compress16_i32(point_ray, e, ray, leave)
             compress16_i32(point_slot, e, count, leave)
@@ -321,7 +345,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
 
 @numba.njit(cache=True)
 def _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
-                point_x, point_y, point_z, point_code, point_ray, point_slot, counts):  # fmt: skip
+                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter, t_exit):  # fmt: skip
     """The rays listed in ``redo`` by `walk_ray`: their points from the lanes dropped from the list,
     `walk_ray`'s appended; returns the new number of points."""
     for k in range(n_redo):
@@ -329,7 +353,7 @@ def _walk_again(origins, directions, first, occ, planes, max_points, origin_poin
     kept = 0
     for i in range(e):
         if counts[point_ray[i]] >= 0:
-            point_x[kept], point_y[kept], point_z[kept] = point_x[i], point_y[i], point_z[i]
+            point_x[kept], point_y[kept], point_z[kept], point_local[kept] = point_x[i], point_y[i], point_z[i], point_local[i]
             point_code[kept], point_ray[kept], point_slot[kept] = point_code[i], point_ray[i], point_slot[i]
             kept += 1
     for k in range(n_redo):
@@ -340,27 +364,32 @@ def _walk_again(origins, directions, first, occ, planes, max_points, origin_poin
                                   occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
         counts[g] = count
         for h in range(count):
-            point_x[kept], point_y[kept], point_z[kept] = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+            px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+            point_x[kept], point_y[kept], point_z[kept] = px, py, pz
+            point_local[kept] = local_distance(px, py, pz, origins[r, 0], origins[r, 1], origins[r, 2], directions[r, 0],
+                                               directions[r, 1], directions[r, 2], t_enter[r], t_exit[r])  # fmt: skip
             point_code[kept], point_ray[kept], point_slot[kept] = axes[g, h], g, h
             kept += 1
     return kept
 
 
 @numba.njit(cache=True)
-def walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8, redo,
-               pts, axes, point_x, point_y, point_z, point_code, point_ray, point_slot, counts, t_enter, t_exit):  # fmt: skip
+def walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8,
+               lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter,
+               t_exit):  # fmt: skip
     """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`) on
     the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_cells`` the same as int32, flat;
     ``planes``: ``k / V``, float64): ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at
     ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
-    order: coordinates (float32), face code, ray ``g`` and slot (the point's index in its ray's
-    list), int32. ``pts``/``axes`` (``[group, H, 3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
+    order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
+    ray ``g`` and slot (the point's index in its ray's list), int32. ``pts``/``axes`` (``[group, H,
+    3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
     n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
     for g in range(n):
         counts[g] = 0
     e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_cells, occ.shape[0], max_points, origin_point, share, redo, n_redo,
-                            point_x, point_y, point_z, point_code, point_ray, point_slot, counts)  # fmt: skip
+                            lane_terms, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts)  # fmt: skip
     if n_redo > 0:
         e = _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
-                        point_x, point_y, point_z, point_code, point_ray, point_slot, counts)  # fmt: skip
+                        point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter, t_exit)  # fmt: skip
     return e

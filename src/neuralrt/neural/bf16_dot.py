@@ -1,8 +1,8 @@
 """bf16 dot products in numba kernels: 16 fp32 lanes, each accumulating a pair of bf16 products.
 
 numba has no vector types and LLVM (through llvmlite) no ``bfloat`` type, so the AVX512-BF16
-instruction ``vdpbf16ps`` is reached here through a small vector type (`f32x16`, an LLVM
-``<16 x float>`` held in registers) and inline assembly. On a CPU without AVX512-BF16 the same
+instruction ``vdpbf16ps`` is reached here through a small vector type (`neuralrt.simd16.f32x16`,
+an LLVM ``<16 x float>`` held in registers) and inline assembly. On a CPU without AVX512-BF16 the same
 intrinsic compiles to a portable emulation (the two bf16 halves widened to fp32 by shifts, two
 fused multiply-adds), which is also available under its own name so that it is tested anywhere.
 numba's cache is keyed on the CPU features it compiles for, so a kernel cached on one kind of CPU
@@ -23,9 +23,10 @@ import torch
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
-from numba.extending import intrinsic, models, overload, register_model
+from numba.extending import intrinsic, overload
 
-from ..simd import broadcast, contiguous_1d, numba_targets, vector_load, vector_pointer
+from ..simd import broadcast, contiguous_1d, numba_targets, vector_pointer
+from ..simd16 import f32x16, load16, store16
 
 __all__ = ["HAS_AVX512_BF16", "f32x16", "zeros16", "load16", "store16", "dot_bf16_pairs", "dot_bf16_pairs_emulated",
            "bf16_bits", "bf16_pairs", "dot_rows_bf16", "fma_f32", "fma16", "bf16_value", "as_fp32", "add16",
@@ -43,22 +44,6 @@ _I32X16 = ir.VectorType(ir.IntType(32), 16)
 _I16X16 = ir.VectorType(ir.IntType(16), 16)
 
 
-class F32x16(types.Type):
-    """16 fp32 lanes in one vector register (only inside numba kernels)."""
-
-    def __init__(self):
-        super().__init__(name="f32x16")
-
-
-f32x16 = F32x16()
-
-
-@register_model(F32x16)
-class _F32x16Model(models.PrimitiveModel):
-    def __init__(self, dmm, fe_type):
-        super().__init__(dmm, fe_type, _F32X16)
-
-
 @intrinsic
 def zeros16(typingctx):
     """16 zero lanes."""
@@ -67,23 +52,6 @@ def zeros16(typingctx):
         return ir.Constant(_F32X16, [0.0] * 16)
 
     return f32x16(), codegen
-
-
-load16 = vector_load(types.float32, f32x16, _F32X16, 4)
-load16.__doc__ = "``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."
-
-
-@intrinsic
-def store16(typingctx, array, start, value):
-    """``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."""
-    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
-        return None
-
-    def codegen(context, builder, sig, args):
-        builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
-        return context.get_dummy_value()
-
-    return types.void(array, types.intp, f32x16), codegen
 
 
 @intrinsic
