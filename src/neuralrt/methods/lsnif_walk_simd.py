@@ -24,7 +24,9 @@ inputs move by a few ulps. V that are not powers of two keep `walk_ray` in the f
 
 The points are written unordered (in the order the lanes emit them: compress stores, no
 scatters), each with its ray and its slot in the ray's point list, which is what the fused pass
-needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its slot).
+needs (`lsnif_fused_cpu`: a point's network inputs go to its ray's row, at its slot), and with
+its local distance, computed by its lane with `lsnif_features.local_distance`'s float32
+operations (the same bits as that scalar code on the same point).
 
 On the 2-core Zen 5 development machine, for 2^17 hairball(6) `lq` rays on one thread, the steps
 of this walk take ~4.6 ms against ~7.6 ms for the earlier 8-lane float64 walk, the whole walk
