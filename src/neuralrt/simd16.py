@@ -291,7 +291,8 @@ def _expand(dtype, vector_type, vector, name):
 
         return vector(array, types.intp, m16, vector), codegen
 
-    expand.__doc__ = f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the others ``passthru``'s."
+    expand.__doc__ = (f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the others "
+                      "``passthru``'s.")  # fmt: skip
     return expand
 
 
