@@ -298,8 +298,8 @@ def _fused_kernel(
                 n_origin = 0
                 if simd_walk:  # sixteen rays at a time, the points unordered
                     e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
-                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code[b], point_ray,
-                                   point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
+                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code[b],
+                                   point_ray, point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
                     for g in range(stop - start):
                         counts[start + g] = group_count[b, g]
                     for i in range(e):

@@ -51,10 +51,9 @@ from .lsnif_features import ORIGIN_POINT, local_distance, walk_ray
 __all__ = ["walk_group", "walk_scratch", "float32_walk_applies"]
 
 # The queue of a group's rays that enter the box, one column per ray (float32 rows, then int32):
-(_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z, _T_ENTER,
- _T_EXIT) = range(21)
+_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z, _T_EXIT = range(20)
 _RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE = range(8)
-_FLOAT_ROWS, _INT_ROWS = 21, 8
+_FLOAT_ROWS, _INT_ROWS = 20, 8
 _SPARE = 16  # columns past the last ray: a refill reads up to 16 entries
 # A step is decided in float32 where the closest plane time beats the others and the current time
 # by this factor (float32 times are within 3u of the exact ones, float64 times within 2^-51)
@@ -165,7 +164,7 @@ def _start_group(origins, directions, first, n, res, planes, queue, queue_i, ray
         n_redo += popcount8(ok & ~fits)
         ok = ok & fits
         for row, value in ((_OX, ox), (_OY, oy), (_OZ, oz), (_DX, dx), (_DY, dy), (_DZ, dz), (_INV_X, inv_x), (_INV_Y, inv_y),
-                           (_INV_Z, inv_z), (_T_CUR, t_cur), (_T_ENTER, t_cur), (_T_EXIT, t_far)):  # fmt: skip
+                           (_INV_Z, inv_z), (_T_CUR, t_cur), (_T_EXIT, t_far)):  # fmt: skip
             compress_store_f32(queue, row * columns + n_queued, value, ok)
         compress_store_f32(queue, _TX * columns + n_queued, _plane_time8(planes, ox, inv_x, ix, sx, zero_i, one_i, inf, ok), ok)
         compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(planes, oy, inv_y, iy, sy, zero_i, one_i, inf, ok), ok)
@@ -195,6 +194,20 @@ def _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, on
     """`lsnif_features.local_distance` per lane (``dd``, ``span`` its ray's terms): the same float32 operations."""
     t = ((px - ox) * dx + (py - oy) * dy + (pz - oz) * dz) / dd
     return vmin16(vmax16((t - te) / span, zero), one)
+
+
+@numba.njit(cache=True, inline="always")
+def _store16(point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, e, mask, px, py, pz, local, code, ray, slot):
+    """The points of the lanes of ``mask`` appended at ``e`` of the ``point_*`` arrays (compress
+    stores); returns the new number of points."""
+    compress16_f32(point_x, e, px, mask)
+    compress16_f32(point_y, e, py, mask)
+    compress16_f32(point_z, e, pz, mask)
+    compress16_f32(point_local, e, local, mask)
+    compress16_i32(point_code, e, code, mask)
+    compress16_i32(point_ray, e, ray, mask)
+    compress16_i32(point_slot, e, slot, mask)
+    return e + popcount16(mask)
 
 
 @numba.njit(cache=True)
@@ -251,8 +264,8 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             iy = expand16_i32(queue_i, _IY * columns + taken, take, iy)
             iz = expand16_i32(queue_i, _IZ * columns + taken, take, iz)
             code = expand16_i32(queue_i, _CODE * columns + taken, take, code)
-            # the rays' t_enter and span for their local distances, kept in memory (registers are scarce)
-            te = expand16_f32(queue, _T_ENTER * columns + taken, take, load16(lane_terms, 0))
+            # the rays' t_enter (their start time) and span for their local distances, kept in memory (registers are scarce)
+            te = expand16_f32(queue, _T_CUR * columns + taken, take, load16(lane_terms, 0))
             t_exit = expand16_f32(queue, _T_EXIT * columns + taken, take, te)
             store16(lane_terms, 0, te)
             store16(lane_terms, 16, select16(take, vmax16(t_exit - te, min_span), load16(lane_terms, 16)))
@@ -293,14 +306,9 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
                 px = _point16(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x)
                 py = _point16(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y)
                 pz = _point16(code == two_i, False, positive_z, oz, dz, t_cur, lo_z, hi_z)
-                compress16_f32(point_x, e, px, entry)
-                compress16_f32(point_y, e, py, entry)
-                compress16_f32(point_z, e, pz, entry)
-                compress16_f32(point_local, e, _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one), entry)
-                compress16_i32(point_code, e, code, entry)
-                compress16_i32(point_ray, e, ray, entry)
-                compress16_i32(point_slot, e, count, entry)
-                e += popcount16(entry)
+                local = _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one)
+                e = _store16(point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, e, entry, px, py, pz, local, code,
+                             ray, count)  # fmt: skip
                 count = count + select16(entry, one_i, zero_i)
             leave = emit & ~full_at_entry
             full_at_exit = leave & (count == full)
@@ -308,14 +316,9 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             px = _point16(is_x, True, positive_x, ox, dx, t_next, lo_x, hi_x)
             py = _point16(is_y, True, positive_y, oy, dy, t_next, lo_y, hi_y)
             pz = _point16(is_z, True, positive_z, oz, dz, t_next, lo_z, hi_z)
-            compress16_f32(point_x, e, px, leave)
-            compress16_f32(point_y, e, py, leave)
-            compress16_f32(point_z, e, pz, leave)
-            compress16_f32(point_local, e, _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one), leave)
-            compress16_i32(point_code, e, axis, leave)
-            compress16_i32(point_ray, e, ray, leave)
-            compress16_i32(point_slot, e, count, leave)
-            e += popcount16(leave)
+            local = _local_distance16(px, py, pz, ox, oy, oz, dx, dy, dz, dd, te, span, zero, one)
+            e = _store16(point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, e, leave, px, py, pz, local, axis,
+                         ray, count)  # fmt: skip
             count = count + select16(leave, one_i, zero_i)
             last_t = select16(leave, t_next, last_t)
             truncated = full_at_entry | full_at_exit
