@@ -159,17 +159,23 @@ splat_i64 = _splat(types.Integer, types.int64, i64x8, _I64X8)
 splat_i64.__doc__ = "``x`` (an integer) in all 8 lanes."
 
 
-@intrinsic
-def splat_m8(typingctx, x):
-    """``x`` (a bool) in all 8 lanes."""
-    if not isinstance(x, types.Boolean):
-        return None
+def _splat_mask(mask, mask_type):
+    @intrinsic
+    def splat(typingctx, x):
+        if not isinstance(x, types.Boolean):
+            return None
 
-    def codegen(context, builder, sig, args):
-        bit = builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0))
-        return broadcast(builder, bit, _M8)
+        def codegen(context, builder, sig, args):
+            bit = builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0))
+            return broadcast(builder, bit, mask_type)
 
-    return m8(x), codegen
+        return mask(x), codegen
+
+    return splat
+
+
+splat_m8 = _splat_mask(m8, _M8)
+splat_m8.__doc__ = "``x`` (a bool) in all 8 lanes."
 
 
 @intrinsic
@@ -220,33 +226,44 @@ for _pyop, _predicate in ((operator.lt, "<"), (operator.gt, ">"), (operator.le, 
                              i64x8: (m8, lambda b, x, y, p=_predicate: b.icmp_signed(p, x, y))})  # fmt: skip
 
 
-@intrinsic
-def _mask_not(typingctx, a):
-    if a != m8:
-        return None
+def _register_mask_not(mask):
+    """``~a`` on masks of type ``mask``."""
 
-    def codegen(context, builder, sig, args):
-        return builder.not_(args[0])
+    @intrinsic
+    def mask_not(typingctx, a):
+        if a != mask:
+            return None
 
-    return m8(m8), codegen
+        def codegen(context, builder, sig, args):
+            return builder.not_(args[0])
+
+        return mask(mask), codegen
+
+    @overload(operator.invert)
+    def _invert(a):
+        if a == mask:
+            return lambda a: mask_not(a)
 
 
-@overload(operator.invert)
-def _invert(a):
-    if a == m8:
-        return lambda a: _mask_not(a)
+_register_mask_not(m8)
 
 
-@intrinsic
-def select(typingctx, mask, a, b):
-    """``a`` where ``mask``, else ``b``, per lane."""
-    if not (mask == m8 and a == b and a in (f64x8, i64x8, m8)):
-        return None
+def _select(mask, vectors):
+    @intrinsic
+    def select(typingctx, m, a, b):
+        if not (m == mask and a == b and a in vectors):
+            return None
 
-    def codegen(context, builder, sig, args):
-        return builder.select(args[0], args[1], args[2])
+        def codegen(context, builder, sig, args):
+            return builder.select(args[0], args[1], args[2])
 
-    return a(m8, a, a), codegen
+        return a(mask, a, a), codegen
+
+    select.__doc__ = "``a`` where ``mask``, else ``b``, per lane."
+    return select
+
+
+select = _select(m8, (f64x8, i64x8, m8))
 
 
 @numba.njit(inline="always")
@@ -262,32 +279,35 @@ def vmax(a, b):
 
 
 def _mask_bits(builder, mask):
-    """An ``m8`` as an i64, lane k in bit k (IR)."""
-    return builder.zext(builder.bitcast(mask, _I8), _I64)
+    """A mask (IR, up to 64 lanes) as an i64, lane k in bit k."""
+    return builder.zext(builder.bitcast(mask, ir.IntType(mask.type.count)), _I64)
 
 
-@intrinsic
-def bits8(typingctx, mask):
-    """The mask as an integer, lane k in bit k."""
-    if mask != m8:
-        return None
+def _mask_reduction(mask, emit, doc):
+    @intrinsic
+    def reduce(typingctx, m):
+        if m != mask:
+            return None
 
-    def codegen(context, builder, sig, args):
-        return _mask_bits(builder, args[0])
+        def codegen(context, builder, sig, args):
+            return emit(builder, _mask_bits(builder, args[0]))
 
-    return types.int64(m8), codegen
+        return types.int64(mask), codegen
+
+    reduce.__doc__ = doc
+    return reduce
 
 
-@intrinsic
-def popcount8(typingctx, mask):
-    """The number of lanes set."""
-    if mask != m8:
-        return None
+def _bits(mask):
+    return _mask_reduction(mask, lambda builder, bits: bits, "The mask as an integer, lane k in bit k.")
 
-    def codegen(context, builder, sig, args):
-        return builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [_mask_bits(builder, args[0])])
 
-    return types.int64(m8), codegen
+def _popcount(mask):
+    return _mask_reduction(mask, lambda builder, bits: builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [bits]),
+                           "The number of lanes set.")  # fmt: skip
+
+
+bits8, popcount8 = _bits(m8), _popcount(m8)
 
 
 @intrinsic
@@ -361,18 +381,18 @@ def scatter_i64(typingctx, array, index, value, mask):
     return types.void(array, i64x8, i64x8, m8), codegen
 
 
-def _expand(dtype, vector_type, vector, name):
+def _expand(dtype, vector_type, vector, name, mask=m8, mask_type=_M8):
     @intrinsic
-    def expand(typingctx, array, start, mask, passthru):
-        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and mask == m8 and passthru == vector):
+    def expand(typingctx, array, start, m, passthru):
+        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and m == mask and passthru == vector):
             return None
 
         def codegen(context, builder, sig, args):
             pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
-            fn = _llvm_function(builder, name, vector_type, [pointer.type, _M8, vector_type])
+            fn = _llvm_function(builder, name, vector_type, [pointer.type, mask_type, vector_type])
             return builder.call(fn, [pointer, args[2], args[3]])
 
-        return vector(array, types.intp, m8, vector), codegen
+        return vector(array, types.intp, mask, vector), codegen
 
     expand.__doc__ = (f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the "
                       "others ``passthru``'s: the inverse of a compress.")  # fmt: skip
@@ -383,19 +403,19 @@ expand_f64 = _expand(types.float64, _F64X8, f64x8, "llvm.masked.expandload.v8f64
 expand_i64 = _expand(types.int64, _I64X8, i64x8, "llvm.masked.expandload.v8i64")
 
 
-def _compress_store(dtype, vector, store_type, name, convert):
+def _compress_store(dtype, vector, store_type, name, convert, mask=m8, mask_type=_M8):
     @intrinsic
-    def compress_store(typingctx, array, start, value, mask):
-        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and value == vector and mask == m8):
+    def compress_store(typingctx, array, start, value, m):
+        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and value == vector and m == mask):
             return None
 
         def codegen(context, builder, sig, args):
             pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
-            fn = _llvm_function(builder, name, ir.VoidType(), [store_type, pointer.type, _M8])
+            fn = _llvm_function(builder, name, ir.VoidType(), [store_type, pointer.type, mask_type])
             builder.call(fn, [convert(builder, args[2]), pointer, args[3]])
             return context.get_dummy_value()
 
-        return types.void(array, types.intp, vector, m8), codegen
+        return types.void(array, types.intp, vector, mask), codegen
 
     compress_store.__doc__ = (f"``array[start : start + popcount8(mask)]`` = the lanes of ``mask``, in lane order ({dtype}); "
                               "nothing else is written.")  # fmt: skip

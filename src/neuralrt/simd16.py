@@ -14,15 +14,18 @@ import operator
 import numba
 from llvmlite import ir
 from numba import types
-from numba.extending import intrinsic, models, overload, register_model
+from numba.extending import intrinsic, register_model
 
-from .simd import _M8, _llvm_function, broadcast, contiguous_1d, element_pointer, i64x8, m8, vector_load, vector_pointer
+from .simd import (
+    _bits, _compress_store, _expand, _llvm_function, _model, _popcount, _register_binary, _register_mask_not, _select, _splat, _splat_mask,
+    contiguous_1d, i64x8, vector_load, vector_pointer,
+)  # fmt: skip
 
 __all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
            "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
            "compress16_i32", "compress_store_i32"]  # fmt: skip
 
-_I1, _I8, _I16, _I32, _I64 = ir.IntType(1), ir.IntType(8), ir.IntType(16), ir.IntType(32), ir.IntType(64)
+_I1, _I32, _I64 = ir.IntType(1), ir.IntType(32), ir.IntType(64)
 _F32X16 = ir.VectorType(ir.FloatType(), 16)
 _I32X16 = ir.VectorType(_I32, 16)
 _I64X16 = ir.VectorType(_I64, 16)
@@ -46,16 +49,6 @@ class M16(types.Type):
 
 
 f32x16, i32x16, m16 = F32x16(), I32x16(), M16()
-
-
-def _model(ir_type):
-    class _Model(models.PrimitiveModel):
-        def __init__(self, dmm, fe_type):
-            super().__init__(dmm, fe_type, ir_type)
-
-    return _Model
-
-
 register_model(F32x16)(_model(_F32X16))
 register_model(I32x16)(_model(_I32X16))
 register_model(M16)(_model(_M16))
@@ -78,61 +71,12 @@ def store16(typingctx, array, start, value):
     return types.void(array, types.intp, f32x16), codegen
 
 
-def _splat(accepted, scalar_type, vector, vector_type):
-    @intrinsic
-    def splat(typingctx, x):
-        if not isinstance(x, accepted):
-            return None
-
-        def codegen(context, builder, sig, args):
-            return broadcast(builder, context.cast(builder, args[0], sig.args[0], scalar_type), vector_type)
-
-        return vector(x), codegen
-
-    return splat
-
-
 splat_f32 = _splat(types.Float, types.float32, f32x16, _F32X16)
 splat_f32.__doc__ = "``x`` (a float, rounded to float32) in all 16 lanes."
 splat_i32 = _splat(types.Integer, types.int32, i32x16, _I32X16)
 splat_i32.__doc__ = "``x`` (an integer, as int32) in all 16 lanes."
-
-
-@intrinsic
-def splat_m16(typingctx, x):
-    """``x`` (a bool) in all 16 lanes."""
-    if not isinstance(x, types.Boolean):
-        return None
-
-    def codegen(context, builder, sig, args):
-        bit = builder.icmp_unsigned("!=", context.cast(builder, args[0], sig.args[0], types.int8), ir.Constant(_I8, 0))
-        return broadcast(builder, bit, _M16)
-
-    return m16(x), codegen
-
-
-def _binary_intrinsic(operand, result, emit):
-    @intrinsic
-    def op(typingctx, a, b):
-        if not (a == operand and b == operand):
-            return None
-
-        def codegen(context, builder, sig, args):
-            return emit(builder, args[0], args[1])
-
-        return result(operand, operand), codegen
-
-    return op
-
-
-def _register_binary(pyop, cases):
-    table = {operand: _binary_intrinsic(operand, result, emit) for operand, (result, emit) in cases.items()}
-
-    @overload(pyop)
-    def _overload(a, b):
-        fn = table.get(a)
-        if fn is not None and a == b:
-            return lambda a, b: fn(a, b)
+splat_m16 = _splat_mask(m16, _M16)
+splat_m16.__doc__ = "``x`` (a bool) in all 16 lanes."
 
 
 _register_binary(operator.add, {f32x16: (f32x16, lambda b, x, y: b.fadd(x, y)), i32x16: (i32x16, lambda b, x, y: b.add(x, y))})
@@ -148,33 +92,8 @@ for _pyop, _predicate in ((operator.lt, "<"), (operator.gt, ">"), (operator.le, 
                              i32x16: (m16, lambda b, x, y, p=_predicate: b.icmp_signed(p, x, y))})  # fmt: skip
 
 
-@intrinsic
-def _mask_not(typingctx, a):
-    if a != m16:
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.not_(args[0])
-
-    return m16(m16), codegen
-
-
-@overload(operator.invert)
-def _invert(a):
-    if a == m16:
-        return lambda a: _mask_not(a)
-
-
-@intrinsic
-def select16(typingctx, mask, a, b):
-    """``a`` where ``mask``, else ``b``, per lane."""
-    if not (mask == m16 and a == b and a in (f32x16, i32x16, m16)):
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.select(args[0], args[1], args[2])
-
-    return a(m16, a, a), codegen
+_register_mask_not(m16)
+select16 = _select(m16, (f32x16, i32x16, m16))
 
 
 @numba.njit(inline="always")
@@ -189,32 +108,7 @@ def vmax16(a, b):
     return select16(b > a, b, a)
 
 
-def _mask_bits(builder, mask):
-    return builder.zext(builder.bitcast(mask, _I16), _I64)
-
-
-@intrinsic
-def bits16(typingctx, mask):
-    """The mask as an integer, lane k in bit k."""
-    if mask != m16:
-        return None
-
-    def codegen(context, builder, sig, args):
-        return _mask_bits(builder, args[0])
-
-    return types.int64(m16), codegen
-
-
-@intrinsic
-def popcount16(typingctx, mask):
-    """The number of lanes set."""
-    if mask != m16:
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.call(_llvm_function(builder, "llvm.ctpop.i64", _I64, [_I64]), [_mask_bits(builder, args[0])])
-
-    return types.int64(m16), codegen
+bits16, popcount16 = _bits(m16), _popcount(m16)
 
 
 @intrinsic
@@ -278,48 +172,11 @@ def scatter16_i64(typingctx, array, index, value, mask):
     return types.void(array, i32x16, i32x16, m16), codegen
 
 
-def _expand(dtype, vector_type, vector, name):
-    @intrinsic
-    def expand(typingctx, array, start, mask, passthru):
-        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and mask == m16 and passthru == vector):
-            return None
-
-        def codegen(context, builder, sig, args):
-            pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
-            fn = _llvm_function(builder, name, vector_type, [pointer.type, _M16, vector_type])
-            return builder.call(fn, [pointer, args[2], args[3]])
-
-        return vector(array, types.intp, m16, vector), codegen
-
-    expand.__doc__ = (f"The lanes of ``mask`` take ``array[start], array[start + 1], ...`` in lane order ({dtype}), the others "
-                      "``passthru``'s.")  # fmt: skip
-    return expand
+expand16_f32 = _expand(types.float32, _F32X16, f32x16, "llvm.masked.expandload.v16f32", m16, _M16)
+expand16_i32 = _expand(types.int32, _I32X16, i32x16, "llvm.masked.expandload.v16i32", m16, _M16)
 
 
-expand16_f32 = _expand(types.float32, _F32X16, f32x16, "llvm.masked.expandload.v16f32")
-expand16_i32 = _expand(types.int32, _I32X16, i32x16, "llvm.masked.expandload.v16i32")
-
-
-def _compress_store(dtype, vector, mask_type, store_type, name, convert):
-    @intrinsic
-    def compress_store(typingctx, array, start, value, mask):
-        if not (contiguous_1d(array, dtype) and isinstance(start, types.Integer) and value == vector and mask == mask_type):
-            return None
-
-        def codegen(context, builder, sig, args):
-            pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
-            ir_mask = _M16 if mask_type == m16 else _M8
-            fn = _llvm_function(builder, name, ir.VoidType(), [store_type, pointer.type, ir_mask])
-            builder.call(fn, [convert(builder, args[2]), pointer, args[3]])
-            return context.get_dummy_value()
-
-        return types.void(array, types.intp, vector, mask_type), codegen
-
-    compress_store.__doc__ = f"``array[start : start + popcount(mask)]`` = the lanes of ``mask``, in lane order ({dtype})."
-    return compress_store
-
-
-compress16_f32 = _compress_store(types.float32, f32x16, m16, _F32X16, "llvm.masked.compressstore.v16f32", lambda b, v: v)
-compress16_i32 = _compress_store(types.int32, i32x16, m16, _I32X16, "llvm.masked.compressstore.v16i32", lambda b, v: v)
+compress16_f32 = _compress_store(types.float32, f32x16, _F32X16, "llvm.masked.compressstore.v16f32", lambda b, v: v, m16, _M16)
+compress16_i32 = _compress_store(types.int32, i32x16, _I32X16, "llvm.masked.compressstore.v16i32", lambda b, v: v, m16, _M16)
 # int32 outputs from `neuralrt.simd`'s 8-lane int64 vectors (values that fit int32)
-compress_store_i32 = _compress_store(types.int32, i64x8, m8, _I32X8, "llvm.masked.compressstore.v8i32", lambda b, v: b.trunc(v, _I32X8))
+compress_store_i32 = _compress_store(types.int32, i64x8, _I32X8, "llvm.masked.compressstore.v8i32", lambda b, v: b.trunc(v, _I32X8))
