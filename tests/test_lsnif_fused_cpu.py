@@ -479,12 +479,9 @@ def test_numba_decoding_matches_the_torch_decoding(trained_cornell, precision, m
         assert (hits.albedo[both] - reference.albedo[both]).abs().max() <= tol
 
 
-@pytest.mark.parametrize("width, layers", [(32, 2), (64, 3), (128, 2)])
-def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, monkeypatch):
-    """bf16, widths of 16s: the hidden layers after the first in the decoding pass (4 rays per
-    weight pass) against torch's bf16 GEMMs: the same hits except where the occlusion logit is
-    within bf16 rounding of the threshold, t, normals and albedo within it; torch's layers are
-    not called."""
+def _bf16_model(width: int, layers: int) -> LSNIFModel:
+    """A small untrained bf16 model on statue(0) with random table values and biases, whose
+    network rays both hit and miss."""
     from neuralrt.geometry.procedural import statue
 
     config = LSNIFConfig.preset(
@@ -498,6 +495,16 @@ def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, mo
         for layer in model.network.hidden:  # biases start at zero: give them values, so a dropped one shows
             layer.bias.uniform_(-0.3, 0.3, generator=torch.Generator().manual_seed(4))
         model.network.output.bias[0] = 0.5  # network rays both hit and miss
+    return model
+
+
+@pytest.mark.parametrize("width, layers", [(32, 2), (64, 3), (128, 2)])
+def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, monkeypatch):
+    """bf16, widths of 16s: the hidden layers after the first in the decoding pass (4 rays per
+    weight pass) against torch's bf16 GEMMs: the same hits except where the occlusion logit is
+    within bf16 rounding of the threshold, t, normals and albedo within it; torch's layers are
+    not called."""
+    model = _bf16_model(width, layers)
     rays = _decoding_rays(model, 5000, seed=31)
     monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)  # (the pass's later layers start from its first)
     reference, reference_occluded = _hits_with(model, rays, monkeypatch, HIDDEN_LAYERS_IN_DECODE=False)
@@ -517,6 +524,26 @@ def test_hidden_layers_in_the_decoding_pass_match_torchs_gemms(width, layers, mo
     assert ((hits.t[both] - reference.t[both]).abs() / float(model.box.diagonal)).max() <= 1e-2
     assert (hits.normal[both] - reference.normal[both]).abs().max() <= 5e-2
     assert (hits.albedo[both] - reference.albedo[both]).abs().max() <= 2e-2
+
+
+@pytest.mark.parametrize("width, layers", [(32, 2), (64, 3)])
+def test_decoding_in_the_fused_pass_gives_the_decoding_passs_bits(width, layers, monkeypatch):
+    """bf16, the later layers in numba: the fused pass decoding each group of rays after its first
+    layer (`DECODE_IN_PASS`) writes the same records, bit for bit, as the decoding pass after it,
+    for `intersect` and `occluded`, over several chunks (rows offset in the records) and groups;
+    the decoding pass does not run."""
+    model = _bf16_model(width, layers)
+    rays = _decoding_rays(model, 5000, seed=33)
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1500)  # (chunks that end inside a group)
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)
+    monkeypatch.setattr(fused, "HIDDEN_LAYERS_IN_DECODE", True)
+    reference, reference_occluded = _hits_with(model, rays, monkeypatch, DECODE_IN_PASS=False)
+    monkeypatch.setattr(fused, "_decode", lambda *args: pytest.fail("the decoding pass ran"))
+    hits, occluded = _hits_with(model, rays, monkeypatch, DECODE_IN_PASS=True)
+    assert 300 < int(reference.hit.sum()) < len(rays) - 1000
+    assert torch.equal(occluded, reference_occluded) and torch.equal(occluded, hits.hit)
+    for name in ("hit", "t", "normal", "geometric_normal", "albedo", "material_id", "uv", "primitive_id"):
+        assert torch.equal(getattr(hits, name), getattr(reference, name)), name
 
 
 def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell, monkeypatch):

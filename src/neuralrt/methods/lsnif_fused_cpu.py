@@ -130,8 +130,8 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
     each ray's inputs rounded to bf16 pairs (`_inputs_bf16`; zero up to the group's longest, so
     that a pass reads zeros past a ray's own), the rays with points ordered by point count (most
     first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU and the rounding to
-    bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]``. ``xs [G, K]`` fp32 and
-    ``xp [G, K / 2]`` uint32, K a multiple of 16."""
+    bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]`` and returns the number m of
+    rays with points (``order[:m]``). ``xs [G, K]`` fp32 and ``xp [G, K / 2]`` uint32, K a multiple of 16."""
     width = b1.shape[0]
     longest = 0
     for g in range(n_group):
@@ -161,6 +161,7 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
         dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, width, dots)
         for i in range(n_rows):
             _bias_leaky_bf16(dots, i * width, b1, slope, hidden_bf16[start + rows[i]])
+    return m
 
 
 @numba.njit(cache=True)
@@ -219,6 +220,8 @@ def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
     hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
+    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, first_ray,
+    hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
     (``box_lo``, ``box_extent``) a group at a time, as `unit_box_rays` maps them (``t_offset[n]``
@@ -230,6 +233,9 @@ def _fused_kernel(
     With ``pairs`` (bf16, width a multiple of 16) the first layer is `dot_rows_bf16` over the
     group's rays, 4 at a time, from the bf16 pairs ``w1_pairs`` (``w1`` rounded, flat
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
+    With ``pairs`` and ``decode_here`` the rest of the network and the decoding follow at once, per
+    group (`_decode_rows`: ``hidden_pairs`` ... ``material`` as `_decode_kernel`'s, the chunk's ray n
+    at row ``first_ray + n`` of the records), and nothing is written to ``hidden_bf16``.
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
@@ -280,6 +286,10 @@ def _fused_kernel(
         buckets = np.empty(max_points + 2, np.int64)
         rows = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
+        # decode_here: the group's first hidden layer (row g: ray start + g), then `_decode_rows`' scratch
+        group_hidden = np.empty((_GROUP if decode_here else 0, width), np.uint16)
+        layer_out = group_hidden if decode_here else hidden_bf16
+        rows8, outs, xp8 = _decode_scratch(width, wo.shape[1], decode_here)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         n_groups = (last - first + _GROUP - 1) // _GROUP
         for step in range(n_groups + 1):
@@ -367,8 +377,12 @@ def _fused_kernel(
                             _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
                     continue
                 if pairs:
-                    _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
-                                       dots, hidden_bf16, start)  # fmt: skip
+                    m = _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
+                                           dots, layer_out, 0 if decode_here else start)  # fmt: skip
+                    if decode_here:
+                        _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
+                                     outs, xp8, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
+                                     occlusion_only, first_ray, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                     continue
                 for g in range(stop - start):
                     count = group_count[b, g]
@@ -579,16 +593,37 @@ class _Rays:
         return _Rays(self.origins[rows], self.directions[rows], self.t_min[rows], self.t_max[rows], self.box_lo, self.box_extent)
 
 
-def _first_hidden_layer(p: _Pass, rays: _Rays) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+@dataclass
+class _Decoding:
+    """What the fused pass needs to decode a chunk's answers itself (`decodes_in_pass`): the chunk's
+    first row in ``records`` (`_decode_row`'s hit, t, normal, geometric normal, albedo, material)."""
+
+    first_ray: int
+    occlusion_logit: float
+    num_materials: int
+    occlusion_only: bool
+    records: tuple[np.ndarray, ...]
+
+
+_NO_RECORDS = (np.zeros(0, np.bool_), np.zeros(0, np.float32), *(np.zeros((0, 3), np.float32),) * 3, np.zeros(0, np.int64))
+_NO_DECODING = _Decoding(0, 0.0, 0, True, _NO_RECORDS)
+
+
+def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None,
+                        ) -> tuple[Tensor, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The fused pass on ``rays``: (first hidden layer ``[N, W]`` in the compute dtype -- with
     ``p.first_layer``, the network inputs in bf16 instead --, valid in the rows with points; per
-    ray ``count``, ``t_enter``, ``t_exit`` and the unit-box map's ``t_offset`` as numpy arrays)."""
+    ray ``count``, ``t_enter``, ``t_exit`` and the unit-box map's ``t_offset`` as numpy arrays).
+    With ``decoding`` (where `decodes_in_pass`), the pass decodes the answers into its records
+    itself and the first hidden layer returned is empty."""
     n, width = len(rays), p.b1.shape[0]
     to_bf16 = p.compute_dtype == torch.bfloat16
     write_inputs = p.first_layer is not None
+    decode_here = decoding is not None
+    decoding = decoding or _NO_DECODING
     # One output buffer is used, the others stay empty: numba compiles one kernel for every case.
     hidden_f32 = _hidden_buffer(0 if to_bf16 else n, width, np.float32, "first")
-    hidden_bf16 = _hidden_buffer(n if to_bf16 and not write_inputs else 0, width, np.uint16, "first")
+    hidden_bf16 = _hidden_buffer(n if to_bf16 and not write_inputs and not decode_here else 0, width, np.uint16, "first")
     input_pairs = _hidden_buffer(n if write_inputs else 0, (p.w1.shape[0] + 1) // 2, np.uint32, "inputs")
     counts = np.zeros(n, np.int32)
     t_enter = np.full(n, np.inf, np.float32)
@@ -601,7 +636,9 @@ def _first_hidden_layer(p: _Pass, rays: _Rays) -> tuple[Tensor, np.ndarray, np.n
             _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
                           simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
                           p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, hidden_f32,
-                          hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset)  # fmt: skip
+                          hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here, p.hidden_pairs, p.hidden_bias, p.wo,
+                          p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials), decoding.occlusion_only,
+                          int(decoding.first_ray), *decoding.records)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
@@ -791,41 +828,98 @@ def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_
             store16(rows[b], c, load_bf16x16(xp_bf16[b], c))
 
 
+@numba.njit(cache=True, inline="always")
+def _decode_scratch(width, n_padded, needed):
+    """Per-thread scratch of `_decode_rows` (empty where not ``needed``): the last hidden layer's
+    `_OUT_ROWS` rows ``[8, W]`` fp32, their outputs ``[8, P]`` fp32 and bf16 pairs ``[8, W / 2]``."""
+    rows = _OUT_ROWS if needed else 0
+    return np.empty((rows, width), np.float32), np.empty((rows, n_padded), np.float32), np.empty((rows, width // 2), np.uint32)
+
+
+@numba.njit(cache=True, inline="always")
+def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, ray,
+                hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
+    """Ray r's record (row ``ray`` of the records) from its raw outputs ``out``: the same operations as
+    the torch decoding, in fp32; the norm of the normal is torch's (fused multiply-adds from x^2);
+    the sigmoid differs from torch's by <= 3 ulp. ``occlusion_only`` writes ``hit`` alone.
+    (The records are separate arguments: numba 0.68 lost the writes to arrays unpacked from a tuple
+    argument inside an inlined function in a prange loop.)"""
+    te = t_enter[r]
+    t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
+    h = out[0] > occlusion_logit and t < t_max[r] and t > t_min[r]
+    hit[ray] = h
+    if occlusion_only:
+        return
+    t_hit[ray] = t if h else np.float32(np.inf)
+    nx, ny, nz = out[2], out[3], out[4]
+    norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
+    zero = np.float32(0.0)
+    nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
+    normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
+    geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
+    if h:
+        for c in range(3):
+            albedo[ray, c] = _sigmoid(out[5 + c])
+    best = 0
+    for j in range(1, n_materials):  # argmax: the first of equal logits
+        if out[8 + j] > out[8 + best]:
+            best = j
+    material[ray] = best if h else -1
+
+
+@numba.njit(cache=True, inline="always")
+def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, quad, dots, t_enter,
+                 t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, first_ray,
+                 hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
+    """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
+    ``first_pairs[active[i]]`` through the later hidden layers (`_later_hidden_rows`) and the output
+    layer (`_output_rows`; only its first 16 columns with ``occlusion_only``) into records row
+    ``first_ray + r`` (`_decode_row`), `_OUT_ROWS` rays at a time (scratch: `_decode_scratch`, and
+    ``quad``/``dots`` as `dot_rows_bf16`'s)."""
+    columns = 16 if occlusion_only else wo.shape[1]
+    wo_flat = wo.reshape(-1)
+    for block in range(0, m, _OUT_ROWS):
+        n_rows = min(_OUT_ROWS, m - block)
+        _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows)
+        _output_rows(rows, wo_flat, bo, wo.shape[1], columns, outs)
+        for b in range(n_rows):
+            r = shift + active[block + b]
+            _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                        first_ray + r, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
     x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, first_ray, t_enter, t_exit,
     t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
-    """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network, written into
-    the chunk's hit records at rows ``first_ray + active[i]``: row i of ``x_f32``/``x_bf16`` (the other
-    is empty) is the last hidden layer (``output_layer``: the output layer ``wo``/``bo`` is
-    applied here, fp32, `_OUT_ROWS` rows at a time) or the raw outputs; or, where ``first_pairs``
-    (the first hidden layer's bf16 activations as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``)
-    is not empty, the later hidden layers run here too (`_later_hidden_rows`). ``occlusion_only``
-    writes ``hit`` alone (the other records may be empty arrays) and computes only the first 16
-    outputs. Same operations as the torch decoding, in fp32; the norm of the normal is torch's
-    (fused multiply-adds from x^2); the sigmoid differs from torch's by <= 3 ulp."""
+    """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network (`_decode_row`),
+    written into the hit records at rows ``first_ray + active[i]`` (``t_*`` are the chunk's, indexed
+    by ``active[i]``): row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
+    (``output_layer``: the output layer ``wo``/``bo`` is applied here, fp32, `_OUT_ROWS` rows at a
+    time) or the raw outputs; or, where ``first_pairs`` (the first hidden layer's bf16 activations
+    as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``) is not empty, the later hidden layers run
+    here too (`_decode_rows`). ``occlusion_only`` writes ``hit`` alone (the other records may be
+    empty arrays) and computes only the first 16 outputs."""
     m = active.shape[0]
     width, n_padded = wo.shape
     to_f32 = x_bf16.shape[0] > 0
-    hidden_here = first_pairs.shape[0] > 0
     wo_flat = wo.reshape(-1)
     columns = 16 if occlusion_only else n_padded
-    inf = np.float32(np.inf)
     for chunk in numba.prange(n_chunks):
-        rows = np.empty((_OUT_ROWS, width if output_layer else 0), np.float32)
-        outs = np.empty((_OUT_ROWS, n_padded), np.float32)
-        xp = np.empty((_OUT_ROWS, first_pairs.shape[1]), np.uint32)
+        rows, outs, xp = _decode_scratch(width, n_padded, True)
         quad = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
         first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
+        if first_pairs.shape[0] > 0:
+            _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp,
+                         quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, first_ray,
+                         hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+            continue
         for block in range(first, last, _OUT_ROWS):
             n_rows = min(_OUT_ROWS, last - block)
-            if hidden_here:
-                _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows)
-                _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
-            elif output_layer:
+            if output_layer:
                 for b in range(_OUT_ROWS):
                     i = block + min(b, n_rows - 1)  # a short block repeats its last row
                     if to_f32:
@@ -840,37 +934,28 @@ def _decode_kernel(
                     for j in range(x_f32.shape[1]):
                         outs[b, j] = x_f32[block + b, j]
             for b in range(n_rows):
-                out = outs[b]
                 r = active[block + b]
-                ray = first_ray + r
-                te = t_enter[r]
-                t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
-                h = out[0] > occlusion_logit and t < t_max[ray] and t > t_min[ray]
-                hit[ray] = h
-                if occlusion_only:
-                    continue
-                t_hit[ray] = t if h else inf
-                nx, ny, nz = out[2], out[3], out[4]
-                norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
-                zero = np.float32(0.0)
-                nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
-                normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
-                geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
-                if h:
-                    for c in range(3):
-                        albedo[ray, c] = _sigmoid(out[5 + c])
-                best = 0
-                for j in range(1, n_materials):  # argmax: the first of equal logits
-                    if out[8 + j] > out[8 + best]:
-                        best = j
-                material[ray] = best if h else -1
+                _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                            first_ray + r, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+
+
+# The rest of the network and the decoding run in the fused pass, a group of rays after their
+# first layer (`_decode_rows`), where the later layers would run in the decoding pass
+# (`later_layers_in_pass`): no [N, W] first hidden layer written and read back, one parallel
+# kernel per chunk instead of two; False: the decoding pass (`_decode_kernel`), same bits.
+DECODE_IN_PASS = True
+
+
+def decodes_in_pass(p: _Pass) -> bool:
+    """Whether the fused pass decodes the answers itself (see DECODE_IN_PASS)."""
+    return DECODE_IN_PASS and p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE
 
 
 def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, first_ray: int,
             t_offset: np.ndarray, t_min: np.ndarray, t_max: np.ndarray, occlusion_logit: float, num_materials: int,
             records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
     """The layers after the first on the rays with points, then `_decode_kernel` into ``records``
-    (ray i of these arrays is row ``first_ray + i`` of the records and of ``t_min``/``t_max``)."""
+    (ray i of these arrays, ``t_min`` and ``t_max`` the chunk's, is row ``first_ray + i`` of the records)."""
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
@@ -936,8 +1021,13 @@ def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: 
 
     @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
     def run(part: slice) -> None:
-        hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays.part(part))
-        _decode(p, hidden, counts, t_enter, t_exit, part.start, t_offset, rays.t_min, rays.t_max,
+        part_rays = rays.part(part)
+        decoding = _Decoding(part.start, occlusion_logit, num_materials, occlusion_only, records)
+        if decodes_in_pass(p):
+            _first_hidden_layer(p, part_rays, decoding)
+            return
+        hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, part_rays)
+        _decode(p, hidden, counts, t_enter, t_exit, part.start, t_offset, part_rays.t_min, part_rays.t_max,
                 occlusion_logit, num_materials, records, occlusion_only)  # fmt: skip
 
     _in_parts(run, len(rays))
