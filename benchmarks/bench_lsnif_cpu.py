@@ -1,7 +1,8 @@
 """LSNIF inference on the CPU: the fused numba pass against the unfused path, Embree and the MLP alone.
 
 For each mesh and preset, one untrained model on the mesh's real occupancy (the speed does not
-depend on the weights; the hash table is filled with random values so no feature is 0) answers
+depend on the weights; the hash table is filled with random values so no feature is 0, then the
+model is rounded to its storage precision as `train` returns it) answers
 the same rays (`BoxRayDistribution`: half from a sphere around the box, half from the surface)
 with ``intersect`` through the fused kernel (the CPU default; also with its fp32 per-ray first
 layer, ``BF16_DOT_FIRST_LAYER = False``, the code before the bf16 dot products; and with the torch
@@ -10,7 +11,9 @@ the first layer in the pass and torch's GEMMs for the hidden layers after it or 
 the decoding pass (``FIRST_LAYER_IN_PASS = True`` and ``HIDDEN_LAYERS_IN_DECODE`` False or
 True); with the first layer as torch's GEMM on the inputs the pass writes (``FIRST_LAYER_IN_PASS
 = False``; by default GEMMs where the CPU has AMX, every layer in numba passes elsewhere); and
-with the pipeline per thread, ``THREADED_PIPELINE = True``), with ``occluded`` (the
+with the pipeline per thread, ``THREADED_PIPELINE = True``; with the later layers and the
+decoding in a pass after the fused one, ``DECODE_IN_PASS = False``; with the table's rows read
+from its float32 values, ``HALF_TABLE = False``), with ``occluded`` (the
 decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
@@ -46,7 +49,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "threaded_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "threaded_gain", "decode_in_pass_gain", "half_table_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -61,6 +64,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset(preset))
     with torch.no_grad():
         model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+    model.round_to_storage_precision_()  # as `train` returns a model and a file loads it (fp16 values by default)
     rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(n_rays).rays
     def fused_intersect():
         model.intersect(rays)
@@ -93,6 +97,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     fused_gemm_first_intersect = intersect_with(FIRST_LAYER_IN_PASS=False)
     # the whole pipeline per thread on 1/T of the chunk
     fused_threaded_intersect = intersect_with(THREADED_PIPELINE=True)
+    # the later layers and the decoding in a pass of their own (before session 33)
+    fused_decode_pass_intersect = intersect_with(DECODE_IN_PASS=False)
+    # the table's rows read from its float32 values (before session 33)
+    fused_f32_table_intersect = intersect_with(HALF_TABLE=False)
 
     def fused_occluded():
         model.occluded(rays)
@@ -125,7 +133,8 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     timed = {"embree": lambda: exact.intersect(rays), "embree_occluded": lambda: exact.occluded(rays), "fused": fused_intersect,
              "fused_torch_decode": fused_torch_decode_intersect, "fused_torch_hidden": fused_torch_hidden_intersect,
              "fused_decode_hidden": fused_decode_hidden_intersect, "fused_gemm_first": fused_gemm_first_intersect,
-             "fused_threaded": fused_threaded_intersect, "occluded": fused_occluded, "fused_fp32_l1": fused_fp32_first_layer_intersect,
+             "fused_threaded": fused_threaded_intersect, "fused_decode_pass": fused_decode_pass_intersect,
+             "fused_f32_table": fused_f32_table_intersect, "occluded": fused_occluded, "fused_fp32_l1": fused_fp32_first_layer_intersect,
              "unfused": unfused_intersect, "fused_network": kernel_and_gemms, "mlp": mlp_only}  # fmt: skip
     for name, fn in timed.items():  # compile / warm caches
         if name not in ("embree", "embree_occluded", "fused_network"):
@@ -170,6 +179,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "first_layer_gemm_gain": rate["fused_gemm_first"] / rate["fused_torch_hidden"],
         # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
         "threaded_gain": rate["fused_threaded"] / rate["fused"],
+        # the decoding in the fused pass over a decoding pass after it (where the later layers run in numba)
+        "decode_in_pass_gain": rate["fused"] / rate["fused_decode_pass"],
+        # the rows read from the table's float16 copy over its float32 values (the model is at fp16 storage precision)
+        "half_table_gain": rate["fused"] / rate["fused_f32_table"],
         "unfused_vs_embree": rate["unfused"] / rate["embree"],
         "fused_vs_unfused": rate["fused"] / rate["unfused"],
         # the same fused pass with the fp32 per-ray first layer (before the bf16 dot products)

@@ -707,3 +707,23 @@ def test_prepared_pass_is_kept_until_a_tensor_or_setting_changes(figure, monkeyp
     monkeypatch.setattr(fused, "BF16_DOT_FIRST_LAYER", False)
     model.intersect(rays)
     assert model.network._fused_cpu_pass[1] is not kept and not model.network._fused_cpu_pass[1].pairs
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_models_at_fp16_storage_precision_read_the_half_table_with_the_same_bits(figure, precision, monkeypatch):
+    """A model rounded to its fp16 storage precision (as `train` returns it) has the pass read its
+    table's float16 copy, and answers bit for bit as from the float32 table; a table float16 does
+    not hold exactly is read in float32."""
+    model = _model(figure, precision)
+    rays = _mixed_rays(model, 2000, seed=12)
+    model.intersect(rays)
+    assert model.network._fused_cpu_pass[1].table_flat.dtype == np.float32  # U(-1, 1): not float16 values
+    model.round_to_storage_precision_()
+    hits, occluded = model.intersect(rays), model.occluded(rays)
+    assert model.network._fused_cpu_pass[1].table_flat.dtype == np.uint16
+    monkeypatch.setattr(fused, "HALF_TABLE", False)
+    reference, reference_occluded = model.intersect(rays), model.occluded(rays)
+    assert model.network._fused_cpu_pass[1].table_flat.dtype == np.float32
+    assert int(reference.hit.sum()) > 100 and torch.equal(occluded, reference_occluded)
+    for name in ("hit", "t", "normal", "albedo", "material_id"):
+        assert torch.equal(getattr(hits, name), getattr(reference, name)), name

@@ -358,6 +358,42 @@ def test_vector_row_reads_equal_the_scalar_reads_bit_for_bit():
     assert np.all(vector[:, -1] == 7.0) and np.isfinite(vector).all()
 
 
+def test_half_table_reads_give_the_float32_tables_bits_and_only_exact_tables_get_one():
+    """`read_rows3` from `half_table`'s float16 bits gives the bits of the same reads from the
+    float32 table where every value is a float16 (normals, subnormals, zeros, the largest); a
+    table with one value that float16 does not hold gets no half copy."""
+    import numba
+
+    from neuralrt.neural.sparse_hash_grid import half_table, padded_table, read_rows3
+
+    @numba.njit
+    def reads(table_flat, slots, weights, out):
+        for i in range(slots.shape[0]):
+            s, c = slots[i], weights[i]
+            read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), out[0], 3 * i)
+            read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]), (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]),
+                       out[1], 3 * i)  # fmt: skip
+
+    rng = np.random.default_rng(9)
+    rows = 4000
+    values = (rng.standard_normal(3 * rows) * 10.0 ** rng.integers(-7, 4, 3 * rows)).astype(np.float16)
+    values[:4] = [np.finfo(np.float16).max, -np.finfo(np.float16).smallest_subnormal, 0.0, -0.0]
+    table = torch.from_numpy(values.astype(np.float32).reshape(rows, 3))
+    half = half_table(table)
+    assert half.dtype == np.uint16 and half.shape == (3 * rows + 1,)
+    assert np.array_equal(half[:-1].view(np.float16).astype(np.float32), table.reshape(-1).numpy())
+    slots = rng.integers(0, rows, (2000, 8)).astype(np.int32)
+    slots[:3] = [0, 1, rows - 1, 0, 1, rows - 1, 2, 3]  # the largest value, the subnormal, the last row
+    weights = rng.random((2000, 8)).astype(np.float32)
+    from_half, from_float = (np.full((2, 3 * 2000), 7.0, np.float32) for _ in range(2))
+    reads(half, slots, weights, from_half)
+    reads(padded_table(table), slots, weights, from_float)
+    assert np.array_equal(from_half.view(np.uint32), from_float.view(np.uint32)) and not (from_half == 7.0).any()
+    inexact = table.clone()
+    inexact[5, 1] = 1.0 + 2.0**-12  # between two float16s
+    assert half_table(inexact) is None
+
+
 def test_padded_table_is_a_view_of_the_grids_table_and_a_copy_otherwise(tmp_path):
     """The fused CPU pass reads the table through `padded_table`: for a `SparseHashGrid` (new, or
     in a model loaded from a file) a view of the parameter's storage, which has the spare float

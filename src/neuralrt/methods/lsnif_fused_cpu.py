@@ -45,7 +45,7 @@ from ..neural.bf16_dot import (
     store16, store_bf16x16,
 )  # fmt: skip
 from ..neural.mlp import MLP, padded_rows
-from ..neural.sparse_hash_grid import SparseHashGrid, padded_table
+from ..neural.sparse_hash_grid import SparseHashGrid, half_table, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
@@ -413,6 +413,12 @@ SIMD_WALK = HAS_AVX512
 # (`_add_inputs`) in the pass for every dtype (for comparisons and tests).
 BF16_DOT_FIRST_LAYER = True
 
+# The fused pass reads the hash table's rows from a float16 copy where float16 holds every value
+# exactly (`half_table`: models rounded to their fp16 storage precision, as `train` returns them and
+# model files load), so the same bits from half the bytes: hairball(6)'s 2 x 2^17 x 3 table is
+# 1.5 MiB instead of 3, against a 1 MiB L2 per core; False: the float32 table always.
+HALF_TABLE = True
+
 _scratch = threading.local()
 _KEPT_BYTES = 64 << 20  # larger buffers are allocated per call rather than kept by the thread
 
@@ -498,8 +504,10 @@ class _Pass:
     compute_dtype: torch.dtype
     occ: np.ndarray
     planes: np.ndarray
-    table: np.ndarray  # [L * T, F] fp32: a view of table_flat
-    table_flat: np.ndarray  # the table's values and one float after them (`padded_table`: a view of the table's storage)
+    table: np.ndarray  # [L * T, F] fp32 (a view of the table's storage where it can be)
+    # the rows `read_rows3` reads: the table's values and one float after them (`padded_table`), or
+    # their float16 bits where that is exact (`half_table`, `HALF_TABLE`)
+    table_flat: np.ndarray
     resolutions: np.ndarray
     w1: np.ndarray
     w1_pairs: np.ndarray
@@ -525,7 +533,8 @@ def _prepare_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, m
     ~0.3 ms (weight layouts, the int32 occupancy), paid per chunk before."""
     tensors = (occupancy, encoder.table, *network.parameters())
     key = (tuple((t.data_ptr(), t._version, t.shape) for t in tensors), max_points, origin_point, share_boundary_points,
-           point_distances, compute_dtype, BF16_DOT_FIRST_LAYER, FIRST_LAYER_IN_PASS, GEMM_INPUTS_PER_WIDTH, HOST_HAS_AMX)  # fmt: skip
+           point_distances, compute_dtype, BF16_DOT_FIRST_LAYER, FIRST_LAYER_IN_PASS, GEMM_INPUTS_PER_WIDTH, HOST_HAS_AMX,
+           HALF_TABLE)  # fmt: skip
     cached = getattr(network, "_fused_cpu_pass", None)
     if cached is not None and cached[0] == key:
         return cached[1]
@@ -545,6 +554,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     levels, _, n_feat = encoder.table.shape
     table_flat = padded_table(encoder.table)  # (one float after the rows: `read_rows3` loads 4 from any row)
     table = table_flat[:-1].reshape(-1, n_feat)
+    table_half = half_table(encoder.table) if HALF_TABLE and n_feat == 3 else None
     if table.shape[0] >= 1 << 31:  # the pass keeps a group's table rows as int32
         raise ValueError(f"hash table of {table.shape[0]} rows: the CPU pass handles fewer than 2^31")
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
@@ -558,6 +568,8 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
     wo, bo = output_layer_columns(network)
+    if table_half is not None:
+        table_flat = table_half
     return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs,
                  hidden_bias, wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points),
                  bool(point_distances), pairs)  # fmt: skip

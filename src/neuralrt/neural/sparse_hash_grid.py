@@ -224,6 +224,7 @@ def read_face_rows(table, s0, s1, s2, s3, c0, c1, c2, c3, out, col):
 
 
 _F32X4 = ir.VectorType(ir.FloatType(), 4)
+_F16X4 = ir.VectorType(ir.HalfType(), 4)
 _F32X2 = ir.VectorType(ir.FloatType(), 2)
 
 
@@ -241,14 +242,30 @@ def padded_table(table: Tensor) -> np.ndarray:
     return flat
 
 
+def half_table(table: Tensor) -> np.ndarray | None:
+    """``table``'s values as flat float16 bits (uint16: numba's CPU target has no float16 arrays)
+    with one more after them (`read_rows3`'s ``table_flat`` at half the bytes) where float16 holds
+    every value exactly (a model rounded to its fp16 storage precision, as `train` returns and a
+    model file loads), else None."""
+    t = table.detach().cpu().float().reshape(-1)
+    half = t.to(torch.float16)
+    if not torch.equal(half.float(), t):
+        return None
+    flat = np.zeros(t.numel() + 1, np.uint16)
+    flat[:-1] = half.view(torch.int16).numpy().view(np.uint16)
+    return flat
+
+
 @intrinsic
 def read_rows3(typingctx, table_flat, slots, weights, out, col):
     """`read_rows` for 3 features per row and the rows ``slots`` (a tuple of integers) with
     ``weights`` (as many float32s), one row per vector load: ``table_flat`` is the table's flat
-    float32 data with at least one element after it (each load takes 4 floats from ``3 * slot``);
-    per lane the same operations (products, then sums from 0 in row order, no fused multiply-adds),
-    so the same bits; ``out[col : col + 3]`` written, nothing after it."""
-    if not (contiguous_1d(table_flat, types.float32) and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
+    float32 data (or float16 bits as uint16, `half_table`: each row widened to float32 exactly) with at least one
+    element after it (each load takes 4 values from ``3 * slot``); per lane the same operations
+    (products, then sums from 0 in row order, no fused multiply-adds), so the same bits;
+    ``out[col : col + 3]`` written, nothing after it."""
+    table_ok = contiguous_1d(table_flat, types.float32) or contiguous_1d(table_flat, types.uint16)
+    if not (table_ok and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
             and isinstance(slots, types.UniTuple) and isinstance(slots.dtype, types.Integer)
             and isinstance(weights, types.UniTuple) and weights.dtype == types.float32 and len(slots) == len(weights)):  # fmt: skip
         return None
@@ -259,7 +276,11 @@ def read_rows3(typingctx, table_flat, slots, weights, out, col):
         three = ir.Constant(ir.IntType(64), 3)
         for k in range(len(slots_type)):
             slot = context.cast(builder, builder.extract_value(args[1], k), slots_type.dtype, types.int64)
-            row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F32X4), align=4)
+            if table_type.dtype == types.uint16:
+                row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F16X4), align=2)
+                row = builder.fpext(row, _F32X4)
+            else:
+                row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F32X4), align=4)
             acc = builder.fadd(acc, builder.fmul(broadcast(builder, builder.extract_value(args[2], k), _F32X4), row))
         col = context.cast(builder, args[4], col_type, types.intp)
         first_two = builder.shuffle_vector(acc, ir.Constant(_F32X4, None), ir.Constant(ir.VectorType(ir.IntType(32), 2), [0, 1]))
