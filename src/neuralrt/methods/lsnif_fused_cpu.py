@@ -11,7 +11,10 @@ the network input is the concatenation of per-point blocks, so ``x @ W1^T`` is t
 points of ``x_h @ W1[:, block h]^T`` and padding points contribute nothing. The kernel writes
 the first hidden layer's activations (bias, leaky ReLU, rounded to the compute dtype); the other
 hidden layers run as torch GEMMs with the model's own weights (or in the decoding pass,
-`HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass. Nothing of size [rays,
+`HIDDEN_LAYERS_IN_DECODE`) and the output layer in the decoding pass; where those later layers
+run in numba, the pass itself runs them and the decoding, a group of rays after its first layer
+(`DECODE_IN_PASS`). A table whose values are all float16 numbers (a model at fp16 storage
+precision) is read from a float16 copy (`HALF_TABLE`), the same bits from half the bytes. Nothing of size [rays,
 points, features] is ever in memory; a ray's points live in a per-thread scratch row of H entries.
 The exception, chosen for speed: where the CPU has AMX the first layer is a torch GEMM too
 (`FIRST_LAYER_IN_PASS`), and the pass writes each network ray's H * (L * F + 1) inputs in bf16
