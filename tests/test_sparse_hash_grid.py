@@ -358,6 +358,35 @@ def test_vector_row_reads_equal_the_scalar_reads_bit_for_bit():
     assert np.all(vector[:, -1] == 7.0) and np.isfinite(vector).all()
 
 
+def test_rows_then_a_value_in_one_store_equal_the_reads_and_a_store():
+    """`read_rows3_then` writes `read_rows3`'s 3 features and the value after them (the fused
+    pass's point distance), from float32 and float16 tables, and nothing else."""
+    import numba
+
+    from neuralrt.neural.sparse_hash_grid import half_table, padded_table, read_rows3, read_rows3_then
+
+    @numba.njit
+    def both(table_flat, slots, weights, values, separate, together):
+        for i in range(slots.shape[0]):
+            s, c = slots[i], weights[i]
+            read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), separate, 5 * i)
+            separate[5 * i + 3] = values[i]
+            read_rows3_then(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), together, 5 * i, values[i])
+
+    rng = np.random.default_rng(10)
+    rows = 3000
+    table = torch.from_numpy(rng.standard_normal((rows, 3)).astype(np.float16).astype(np.float32))
+    slots = rng.integers(0, rows, (1000, 4)).astype(np.int32)
+    slots[0] = rows - 1
+    weights = rng.random((1000, 4)).astype(np.float32)
+    values = rng.standard_normal(1000).astype(np.float32)
+    for table_flat in (padded_table(table), half_table(table)):
+        separate, together = np.full(5 * 1000 + 1, 7.0, np.float32), np.full(5 * 1000 + 1, 7.0, np.float32)
+        both(table_flat, slots, weights, values, separate, together)
+        assert np.array_equal(separate.view(np.uint32), together.view(np.uint32))
+        assert (together[4::5] == 7.0).all() and not (together.reshape(-1)[:-1].reshape(-1, 5)[:, :4] == 7.0).any()
+
+
 def test_half_table_reads_give_the_float32_tables_bits_and_only_exact_tables_get_one():
     """`read_rows3` from `half_table`'s float16 bits gives the bits of the same reads from the
     float32 table where every value is a float16 (normals, subnormals, zeros, the largest); a

@@ -21,7 +21,7 @@ from .simd import (
     contiguous_1d, i64x8, vector_load, vector_pointer,
 )  # fmt: skip
 
-__all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
+__all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "load16_i32", "store16_i32", "lane_index16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
            "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
            "compress16_i32", "compress_store_i32"]  # fmt: skip
 
@@ -56,19 +56,39 @@ register_model(M16)(_model(_M16))
 
 load16 = vector_load(types.float32, f32x16, _F32X16, 4)
 load16.__doc__ = "``array[start : start + 16]`` (1D contiguous fp32; no bounds check)."
+load16_i32 = vector_load(types.int32, i32x16, _I32X16, 4)
+load16_i32.__doc__ = "``array[start : start + 16]`` (1D contiguous int32; no bounds check)."
+
+
+def _vector_store(element, vector, vector_type):
+    @intrinsic
+    def store(typingctx, array, start, value):
+        if not (contiguous_1d(array, element) and isinstance(start, types.Integer) and value == vector):
+            return None
+
+        def codegen(context, builder, sig, args):
+            builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], vector_type), align=4)
+            return context.get_dummy_value()
+
+        return types.void(array, types.intp, vector), codegen
+
+    return store
+
+
+store16 = _vector_store(types.float32, f32x16, _F32X16)
+store16.__doc__ = "``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."
+store16_i32 = _vector_store(types.int32, i32x16, _I32X16)
+store16_i32.__doc__ = "``array[start : start + 16] = value`` (1D contiguous int32; no bounds check)."
 
 
 @intrinsic
-def store16(typingctx, array, start, value):
-    """``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."""
-    if not (contiguous_1d(array, types.float32) and isinstance(start, types.Integer) and value == f32x16):
-        return None
+def lane_index16(typingctx):
+    """0, 1, ..., 15: each lane's index."""
 
     def codegen(context, builder, sig, args):
-        builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], _F32X16), align=4)
-        return context.get_dummy_value()
+        return ir.Constant(_I32X16, list(range(16)))
 
-    return types.void(array, types.intp, f32x16), codegen
+    return i32x16(), codegen
 
 
 splat_f32 = _splat(types.Float, types.float32, f32x16, _F32X16)

@@ -52,8 +52,12 @@ from ..neural.sparse_hash_grid import SparseHashGrid, half_table, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
+from ..neural.sparse_hash_grid import read_rows3_then as _read_rows3_then
 from ..neural.sparse_hash_grid import read_rows as _read_rows
 from ..simd import HAS_AVX512
+from ..simd16 import (
+    bits16, compress16_f32, compress16_i32, lane_index16, load16_i32, popcount16, splat_i32, store16_i32,
+)  # fmt: skip
 from ..rays_kernels import valid_ray
 from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
 from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
@@ -185,18 +189,25 @@ def _origin_rows_of_points(origin_x, origin_y, origin_z, n, res, mask, base, slo
 
 
 @numba.njit(cache=True, inline="always")
-def _list_point(local, px, py, pz, code, e, column, b, n_origin, point_column, origin_entry, origin_x, origin_y, origin_z,
-                point_distances, xs_flat, block):  # fmt: skip
-    """Point ``e`` of the group in buffer ``b``: its inputs' first column, its point distance
-    ``local`` (`lsnif_features.local_distance`, written at once) and, for an origin point, its entry
-    and coordinates in the origin list (its rows are found with the face points'); returns the
-    group's new number of origin points."""
-    point_column[b, e] = column
-    if np.int64(code) == ORIGIN_POINT:
-        origin_entry[b, n_origin] = e
-        origin_x[n_origin], origin_y[n_origin], origin_z[n_origin] = px, py, pz
-        n_origin += 1
-    xs_flat[column + block - 1] = local if point_distances else np.float32(0.0)
+def _list_points(point_ray, point_slot, point_code, point_x, point_y, point_z, e, first_row, row_stride, block, point_column,
+                 origin_entry, origin_x, origin_y, origin_z):  # fmt: skip
+    """Points ``[0, e)`` of a group, 16 per instruction: each point's inputs' first column in
+    ``xs_flat`` (row ``first_row`` + its ray, ``row_stride`` wide; ``block`` per slot) into
+    ``point_column``, and the origin points' entries and coordinates appended to ``origin_*`` (their
+    rows are found with the face points'); returns the number of origin points. (The point arrays
+    hold a multiple of 16 entries: the lanes past ``e`` read and write unused entries.)"""
+    n_origin = 0
+    origin_code, lane = splat_i32(ORIGIN_POINT), lane_index16()
+    for i in range(0, e, 16):
+        ray, slot = load16_i32(point_ray, i), load16_i32(point_slot, i)
+        store16_i32(point_column, i, (splat_i32(first_row) + ray) * splat_i32(row_stride) + slot * splat_i32(block))
+        is_origin = (lane < splat_i32(e - i)) & (load16_i32(point_code, i) == origin_code)
+        if bits16(is_origin) != 0:
+            compress16_i32(origin_entry, n_origin, lane + splat_i32(i), is_origin)
+            compress16_f32(origin_x, n_origin, load16(point_x, i), is_origin)
+            compress16_f32(origin_y, n_origin, load16(point_y, i), is_origin)
+            compress16_f32(origin_z, n_origin, load16(point_z, i), is_origin)
+            n_origin += popcount16(is_origin)
     return n_origin
 
 
@@ -261,20 +272,20 @@ def _fused_kernel(
         point_x = np.empty(_GROUP * max_points, np.float32)
         point_y = np.empty(_GROUP * max_points, np.float32)
         point_z = np.empty(_GROUP * max_points, np.float32)
-        point_local = np.empty(_GROUP * max_points, np.float32)  # (SIMD walk) each point's local distance
+        point_local = np.empty((2, _GROUP * max_points), np.float32)  # each point's local distance
         point_code = np.empty((2, _GROUP * max_points), np.int32)
-        point_column = np.empty((2, _GROUP * max_points), np.int64)  # its features' first index in xs_flat
+        point_column = np.empty((2, _GROUP * max_points), np.int32)  # its features' first index in xs_flat
         face_slots = np.empty((2, n_levels, 4, _GROUP * max_points), np.int32)  # (table rows < 2^31)
         face_weights = np.empty((2, n_levels, 4, _GROUP * max_points), np.float32)
         group_points = np.empty(2, np.int64)
-        point_ray = np.empty(_GROUP * max_points, np.int32)  # (SIMD walk) each point's ray in the group and slot in its list
+        point_ray = np.empty(_GROUP * max_points, np.int32)  # each point's ray in the group and slot in its list
         point_slot = np.empty(_GROUP * max_points, np.int32)
         queue, queue_i, rays8, lane_terms, redo = walk_scratch(_GROUP)
         group_origins = np.empty(2, np.int64)
         unit_o = np.empty((_GROUP, 3), np.float32)  # the group's rays in the unit box
         unit_d = np.empty((_GROUP, 3), np.float32)
         # Origin points (at most one per ray, the first): 8 rows per level
-        origin_entry = np.empty((2, _GROUP), np.int64)
+        origin_entry = np.empty((2, _GROUP), np.int32)
         origin_x = np.empty(_GROUP, np.float32)
         origin_y = np.empty(_GROUP, np.float32)
         origin_z = np.empty(_GROUP, np.float32)
@@ -308,18 +319,12 @@ def _fused_kernel(
                         unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
                 # 1. walk; list the points
                 e = 0
-                n_origin = 0
                 if simd_walk:  # sixteen rays at a time, the points unordered
                     e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
-                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code[b],
+                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b], point_code[b],
                                    point_ray, point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
                     for g in range(stop - start):
                         counts[start + g] = group_count[b, g]
-                    for i in range(e):
-                        column = (b * _GROUP + point_ray[i]) * xs.shape[2] + point_slot[i] * block
-                        n_origin = _list_point(point_local[i], point_x[i], point_y[i], point_z[i], point_code[b, i], i, column, b,
-                                               n_origin, point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
-                                               xs_flat, block)  # fmt: skip
                 else:
                     for g in range(stop - start):
                         n = start + g
@@ -335,11 +340,13 @@ def _fused_kernel(
                         for h in range(count):
                             px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
                             point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
-                            local = local_distance(px, py, pz, ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0), np.float32(t1))
-                            n_origin = _list_point(local, px, py, pz, axes[g, h], e, (b * _GROUP + g) * xs.shape[2] + h * block, b,
-                                                   n_origin, point_column, origin_entry, origin_x, origin_y, origin_z, point_distances,
-                                                   xs_flat, block)  # fmt: skip
+                            point_ray[e], point_slot[e] = g, h
+                            point_local[b, e] = local_distance(px, py, pz, ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0),
+                                                               np.float32(t1))  # fmt: skip
                             e += 1
+                # list the points: their inputs' columns; the origin points
+                n_origin = _list_points(point_ray, point_slot, point_code[b], point_x, point_y, point_z, e, b * _GROUP, xs.shape[2],
+                                        block, point_column[b], origin_entry[b], origin_x, origin_y, origin_z)  # fmt: skip
                 # 2. every point's face rows and weights, per level (origin points' are computed and
                 # unused), and the origin points' 8 rows
                 for lvl in range(n_levels):
@@ -353,26 +360,39 @@ def _fused_kernel(
                 b = (step - 1) & 1
                 start = first + (step - 1) * _GROUP
                 stop = min(start + _GROUP, last)
-                # 3. the table reads, all independent
+                # 3. the table reads, all independent, and the points' local distances (with n_feat = 3, the
+                # default: a row per vector load, the distance stored with the last level's features)
+                top = n_levels - 1  # the last level
                 for i in range(group_points[b]):
                     if point_code[b, i] == ORIGIN_POINT:
                         continue
                     col = point_column[b, i]
-                    for lvl in range(n_levels):
-                        s, c = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
-                        if n_feat == 3:  # (the default) a row per vector load
-                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + lvl * n_feat)
-                        else:
-                            _read_rows(table, s, c, 4, xs_flat, col + lvl * n_feat)
+                    local = point_local[b, i] if point_distances else np.float32(0.0)
+                    if n_feat == 3:
+                        for lvl in range(top):
+                            s, c = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
+                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + lvl * 3)
+                        s, c = face_slots[b, top, :, i], face_weights[b, top, :, i]
+                        _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + top * 3, local)
+                    else:
+                        xs_flat[col + block - 1] = local
+                        for lvl in range(n_levels):
+                            _read_rows(table, face_slots[b, lvl, :, i], face_weights[b, lvl, :, i], 4, xs_flat, col + lvl * n_feat)
                 for k in range(group_origins[b]):
                     col = point_column[b, origin_entry[b, k]]
-                    for lvl in range(n_levels):
-                        s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
-                        if n_feat == 3:
+                    local = point_local[b, origin_entry[b, k]] if point_distances else np.float32(0.0)
+                    if n_feat == 3:
+                        for lvl in range(top):
+                            s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
                             _read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
-                                        (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * n_feat)  # fmt: skip
-                        else:
-                            _read_rows(table, s, c, 8, xs_flat, col + lvl * n_feat)
+                                        (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * 3)  # fmt: skip
+                        s, c = origin_slots[b, top, :, k], origin_weights[b, top, :, k]
+                        _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
+                                         (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + top * 3, local)  # fmt: skip
+                    else:
+                        xs_flat[col + block - 1] = local
+                        for lvl in range(n_levels):
+                            _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
                 # 4. the first layer, or its inputs
                 if write_inputs:
                     for g in range(stop - start):

@@ -256,33 +256,43 @@ def half_table(table: Tensor) -> np.ndarray | None:
     return flat
 
 
+def _rows3_typing(table_flat, slots, weights, out, col) -> bool:
+    table_ok = contiguous_1d(table_flat, types.float32) or contiguous_1d(table_flat, types.uint16)
+    return (table_ok and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
+            and isinstance(slots, types.UniTuple) and isinstance(slots.dtype, types.Integer)
+            and isinstance(weights, types.UniTuple) and weights.dtype == types.float32 and len(slots) == len(weights))  # fmt: skip
+
+
+def _rows3_sum(context, builder, sig, args):
+    """The weighted sum of the rows, 4 lanes (the fourth: the value after each row, unused) (IR)."""
+    table_type, slots_type = sig.args[0], sig.args[1]
+    acc = ir.Constant(_F32X4, [0.0] * 4)
+    three = ir.Constant(ir.IntType(64), 3)
+    for k in range(len(slots_type)):
+        slot = context.cast(builder, builder.extract_value(args[1], k), slots_type.dtype, types.int64)
+        if table_type.dtype == types.uint16:
+            row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F16X4), align=2)
+            row = builder.fpext(row, _F32X4)
+        else:
+            row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F32X4), align=4)
+        acc = builder.fadd(acc, builder.fmul(broadcast(builder, builder.extract_value(args[2], k), _F32X4), row))
+    return acc
+
+
 @intrinsic
 def read_rows3(typingctx, table_flat, slots, weights, out, col):
     """`read_rows` for 3 features per row and the rows ``slots`` (a tuple of integers) with
     ``weights`` (as many float32s), one row per vector load: ``table_flat`` is the table's flat
-    float32 data (or float16 bits as uint16, `half_table`: each row widened to float32 exactly) with at least one
-    element after it (each load takes 4 values from ``3 * slot``); per lane the same operations
-    (products, then sums from 0 in row order, no fused multiply-adds), so the same bits;
+    float32 data (or float16 bits as uint16, `half_table`: each row widened to float32 exactly) with
+    at least one element after it (each load takes 4 values from ``3 * slot``); per lane the same
+    operations (products, then sums from 0 in row order, no fused multiply-adds), so the same bits;
     ``out[col : col + 3]`` written, nothing after it."""
-    table_ok = contiguous_1d(table_flat, types.float32) or contiguous_1d(table_flat, types.uint16)
-    if not (table_ok and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
-            and isinstance(slots, types.UniTuple) and isinstance(slots.dtype, types.Integer)
-            and isinstance(weights, types.UniTuple) and weights.dtype == types.float32 and len(slots) == len(weights)):  # fmt: skip
+    if not _rows3_typing(table_flat, slots, weights, out, col):
         return None
 
     def codegen(context, builder, sig, args):
-        table_type, slots_type, _, out_type, col_type = sig.args
-        acc = ir.Constant(_F32X4, [0.0] * 4)
-        three = ir.Constant(ir.IntType(64), 3)
-        for k in range(len(slots_type)):
-            slot = context.cast(builder, builder.extract_value(args[1], k), slots_type.dtype, types.int64)
-            if table_type.dtype == types.uint16:
-                row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F16X4), align=2)
-                row = builder.fpext(row, _F32X4)
-            else:
-                row = builder.load(vector_pointer(context, builder, table_type, args[0], builder.mul(slot, three), _F32X4), align=4)
-            acc = builder.fadd(acc, builder.fmul(broadcast(builder, builder.extract_value(args[2], k), _F32X4), row))
-        col = context.cast(builder, args[4], col_type, types.intp)
+        acc = _rows3_sum(context, builder, sig, args)
+        out_type, col = sig.args[3], context.cast(builder, args[4], sig.args[4], types.intp)
         first_two = builder.shuffle_vector(acc, ir.Constant(_F32X4, None), ir.Constant(ir.VectorType(ir.IntType(32), 2), [0, 1]))
         builder.store(first_two, vector_pointer(context, builder, out_type, args[3], col, _F32X2), align=4)
         third = element_pointer(context, builder, out_type, args[3], builder.add(col, ir.Constant(col.type, 2)))
@@ -290,6 +300,21 @@ def read_rows3(typingctx, table_flat, slots, weights, out, col):
         return context.get_dummy_value()
 
     return types.void(table_flat, slots, weights, out, col), codegen
+
+
+@intrinsic
+def read_rows3_then(typingctx, table_flat, slots, weights, out, col, then):
+    """`read_rows3`, and ``out[col + 3] = then`` (a float32) in the same vector store."""
+    if not (_rows3_typing(table_flat, slots, weights, out, col) and then == types.float32):
+        return None
+
+    def codegen(context, builder, sig, args):
+        acc = builder.insert_element(_rows3_sum(context, builder, sig, args), args[5], ir.Constant(ir.IntType(32), 3))
+        col = context.cast(builder, args[4], sig.args[4], types.intp)
+        builder.store(acc, vector_pointer(context, builder, sig.args[3], args[3], col, _F32X4), align=4)
+        return context.get_dummy_value()
+
+    return types.void(table_flat, slots, weights, out, col, types.float32), codegen
 
 
 @numba.njit(cache=True, inline="always")
