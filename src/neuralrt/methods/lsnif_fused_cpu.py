@@ -902,6 +902,8 @@ def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit
     material[ray] = best if h else -1
 
 
+# (Inlined: at most 30 arguments, as any function numba inlines: CPython passes more as one tuple,
+# which numba's inliner rejects.)
 @numba.njit(cache=True, inline="always")
 def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, quad, dots, t_enter,
                  t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, first_ray,
