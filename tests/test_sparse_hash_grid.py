@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from neuralrt.neural import sparse_hash_grid  # (its HALF_READS)
 from neuralrt.methods.lsnif_features import featurize_rays
 from neuralrt.neural.sparse_hash_grid import (
     HASH_PRIMES,
@@ -381,12 +382,35 @@ def test_rows_then_a_value_in_one_store_equal_the_reads_and_a_store():
     weights = rng.random((1000, 4)).astype(np.float32)
     values = rng.standard_normal(1000).astype(np.float32)
     for table_flat in (padded_table(table), half_table(table)):
+        if table_flat is None:  # (no half tables where numba does not target F16C: `HALF_READS`)
+            continue
         separate, together = np.full(5 * 1000 + 1, 7.0, np.float32), np.full(5 * 1000 + 1, 7.0, np.float32)
         both(table_flat, slots, weights, values, separate, together)
         assert np.array_equal(separate.view(np.uint32), together.view(np.uint32))
         assert (together[4::5] == 7.0).all() and not (together.reshape(-1)[:-1].reshape(-1, 5)[:, :4] == 7.0).any()
 
 
+def test_no_half_tables_where_numba_does_not_target_f16c(monkeypatch):
+    """Without F16C the tables stay float32: `half_table` gives none, and `read_rows3` does not
+    type a float16 table (a typing error, not a kernel that would call a missing routine)."""
+    import numba
+
+    from neuralrt.neural import sparse_hash_grid as grid
+    from neuralrt.simd import numba_targets
+
+    assert grid.HALF_READS == numba_targets("f16c")
+    monkeypatch.setattr(grid, "HALF_READS", False)
+    assert grid.half_table(torch.zeros(4, 3)) is None
+
+    @numba.njit
+    def read(table_flat, out):
+        grid.read_rows3(table_flat, (0, 1, 2, 3), (np.float32(1), np.float32(1), np.float32(1), np.float32(1)), out, 0)
+
+    with pytest.raises(numba.core.errors.TypingError):
+        read(np.zeros(13, np.uint16), np.zeros(4, np.float32))
+
+
+@pytest.mark.skipif(not sparse_hash_grid.HALF_READS, reason="numba does not target F16C here: no float16 tables")
 def test_half_table_reads_give_the_float32_tables_bits_and_only_exact_tables_get_one():
     """`read_rows3` from `half_table`'s float16 bits gives the bits of the same reads from the
     float32 table where every value is a float16 (normals, subnormals, zeros, the largest); a

@@ -39,7 +39,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 from torch import Tensor, nn
 
-from ..simd import broadcast, contiguous_1d, element_pointer, vector_pointer
+from ..simd import broadcast, contiguous_1d, element_pointer, numba_targets, vector_pointer
 from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
@@ -242,11 +242,19 @@ def padded_table(table: Tensor) -> np.ndarray:
     return flat
 
 
+# Where numba targets F16C, whose instruction widens float16 (`read_rows3` on `half_table`s): without
+# it LLVM calls a conversion routine numba's JIT does not provide (a crash, measured with
+# NUMBA_CPU_NAME=generic), so there the tables stay float32.
+HALF_READS = numba_targets("f16c")
+
+
 def half_table(table: Tensor) -> np.ndarray | None:
     """``table``'s values as flat float16 bits (uint16: numba's CPU target has no float16 arrays)
     with one more after them (`read_rows3`'s ``table_flat`` at half the bytes) where float16 holds
     every value exactly (a model rounded to its fp16 storage precision, as `train` returns and a
-    model file loads), else None."""
+    model file loads) and `HALF_READS`, else None."""
+    if not HALF_READS:
+        return None
     t = table.detach().cpu().float().reshape(-1)
     half = t.to(torch.float16)
     if not torch.equal(half.float(), t):
@@ -257,7 +265,7 @@ def half_table(table: Tensor) -> np.ndarray | None:
 
 
 def _rows3_typing(table_flat, slots, weights, out, col) -> bool:
-    table_ok = contiguous_1d(table_flat, types.float32) or contiguous_1d(table_flat, types.uint16)
+    table_ok = contiguous_1d(table_flat, types.float32) or (HALF_READS and contiguous_1d(table_flat, types.uint16))
     return (table_ok and contiguous_1d(out, types.float32) and isinstance(col, types.Integer)
             and isinstance(slots, types.UniTuple) and isinstance(slots.dtype, types.Integer)
             and isinstance(weights, types.UniTuple) and weights.dtype == types.float32 and len(slots) == len(weights))  # fmt: skip
