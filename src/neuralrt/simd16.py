@@ -21,8 +21,8 @@ from .simd import (
     contiguous_1d, i64x8, vector_load, vector_pointer,
 )  # fmt: skip
 
-__all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "load16_i32", "store16_i32", "lane_index16", "splat_f32", "splat_i32", "splat_m16", "select16", "vmin16", "vmax16", "bits16",
-           "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
+__all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "load16_i32", "store16_i32", "lane_index16", "splat_f32", "splat_i32",
+           "splat_m16", "select16", "vmin16", "vmax16", "bits16", "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
            "compress16_i32", "compress_store_i32"]  # fmt: skip
 
 _I1, _I32, _I64 = ir.IntType(1), ir.IntType(32), ir.IntType(64)
