@@ -23,9 +23,9 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "f64x8", "i64x8",
-           "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8", "to_f64",
-           "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
+__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "vector_store",
+           "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8",
+           "to_f64", "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
            "compress_store_f64", "compress_store_i64"]  # fmt: skip
 
 
@@ -126,6 +126,25 @@ def vector_load(element, vector, vector_type, align):
     return load
 
 
+def vector_store(element, vector, vector_type, align):
+    """An intrinsic ``store(array, start, value)``: ``array[start : start + lanes] = value`` (a
+    ``vector``; ``vector_type`` its IR type) into a 1D contiguous array of ``element``, no bounds
+    check: `vector_load`'s counterpart."""
+
+    @intrinsic
+    def store(typingctx, array, start, value):
+        if not (contiguous_1d(array, element) and isinstance(start, types.Integer) and value == vector):
+            return None
+
+        def codegen(context, builder, sig, args):
+            builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], vector_type), align=align)
+            return context.get_dummy_value()
+
+        return types.void(array, types.intp, vector), codegen
+
+    return store
+
+
 def _lane_pointers(context, builder, array_type, array, index, element):
     """``&array[index[k]]`` per lane."""
     data = context.make_array(array_type)(context, builder, array)
@@ -178,14 +197,19 @@ splat_m8 = _splat_mask(m8, _M8)
 splat_m8.__doc__ = "``x`` (a bool) in all 8 lanes."
 
 
-@intrinsic
-def lane_index(typingctx):
-    """0, 1, ..., 7."""
+def _lane_index(vector, vector_type):
+    @intrinsic
+    def lane_index(typingctx):
+        def codegen(context, builder, sig, args):
+            return ir.Constant(vector_type, list(range(vector_type.count)))
 
-    def codegen(context, builder, sig, args):
-        return ir.Constant(_I64X8, list(range(8)))
+        return vector(), codegen
 
-    return i64x8(), codegen
+    lane_index.__doc__ = f"0, 1, ..., {vector_type.count - 1}: each lane's index."
+    return lane_index
+
+
+lane_index = _lane_index(i64x8, _I64X8)
 
 
 def _binary_intrinsic(operand, result, emit):

@@ -17,13 +17,13 @@ from numba import types
 from numba.extending import intrinsic, register_model
 
 from .simd import (
-    _bits, _compress_store, _expand, _llvm_function, _model, _popcount, _register_binary, _register_mask_not, _select, _splat, _splat_mask,
-    contiguous_1d, i64x8, vector_load, vector_pointer,
+    _bits, _compress_store, _expand, _lane_index, _llvm_function, _model, _popcount, _register_binary, _register_mask_not, _select,
+    _splat, _splat_mask, contiguous_1d, i64x8, vector_load, vector_store,
 )  # fmt: skip
 
 __all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "load16_i32", "store16_i32", "lane_index16", "splat_f32", "splat_i32",
-           "splat_m16", "select16", "vmin16", "vmax16", "bits16", "popcount16", "to_f32", "gather16_i32", "scatter16_i64", "expand16_f32", "expand16_i32", "compress16_f32",
-           "compress16_i32", "compress_store_i32"]  # fmt: skip
+           "splat_m16", "select16", "vmin16", "vmax16", "bits16", "popcount16", "to_f32", "gather16_i32", "scatter16_i64",
+           "expand16_f32", "expand16_i32", "compress16_f32", "compress16_i32", "compress_store_i32"]  # fmt: skip
 
 _I1, _I32, _I64 = ir.IntType(1), ir.IntType(32), ir.IntType(64)
 _F32X16 = ir.VectorType(ir.FloatType(), 16)
@@ -59,36 +59,11 @@ load16.__doc__ = "``array[start : start + 16]`` (1D contiguous fp32; no bounds c
 load16_i32 = vector_load(types.int32, i32x16, _I32X16, 4)
 load16_i32.__doc__ = "``array[start : start + 16]`` (1D contiguous int32; no bounds check)."
 
-
-def _vector_store(element, vector, vector_type):
-    @intrinsic
-    def store(typingctx, array, start, value):
-        if not (contiguous_1d(array, element) and isinstance(start, types.Integer) and value == vector):
-            return None
-
-        def codegen(context, builder, sig, args):
-            builder.store(args[2], vector_pointer(context, builder, sig.args[0], args[0], args[1], vector_type), align=4)
-            return context.get_dummy_value()
-
-        return types.void(array, types.intp, vector), codegen
-
-    return store
-
-
-store16 = _vector_store(types.float32, f32x16, _F32X16)
+store16 = vector_store(types.float32, f32x16, _F32X16, 4)
 store16.__doc__ = "``array[start : start + 16] = value`` (1D contiguous fp32; no bounds check)."
-store16_i32 = _vector_store(types.int32, i32x16, _I32X16)
+store16_i32 = vector_store(types.int32, i32x16, _I32X16, 4)
 store16_i32.__doc__ = "``array[start : start + 16] = value`` (1D contiguous int32; no bounds check)."
-
-
-@intrinsic
-def lane_index16(typingctx):
-    """0, 1, ..., 15: each lane's index."""
-
-    def codegen(context, builder, sig, args):
-        return ir.Constant(_I32X16, list(range(16)))
-
-    return i32x16(), codegen
+lane_index16 = _lane_index(i32x16, _I32X16)
 
 
 splat_f32 = _splat(types.Float, types.float32, f32x16, _F32X16)
