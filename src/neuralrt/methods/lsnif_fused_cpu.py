@@ -577,7 +577,6 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     levels, _, n_feat = encoder.table.shape
     table_flat = padded_table(encoder.table)  # (one float after the rows: `read_rows3` loads 4 from any row)
     table = table_flat[:-1].reshape(-1, n_feat)
-    table_half = half_table(encoder.table) if HALF_TABLE and n_feat == 3 else None
     if table.shape[0] >= 1 << 31:  # the pass keeps a group's table rows as int32
         raise ValueError(f"hash table of {table.shape[0]} rows: the CPU pass handles fewer than 2^31")
     w1, b1 = first_layer_blocks(network, max_points, levels * n_feat, point_distances)
@@ -591,7 +590,8 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
     wo, bo = output_layer_columns(network)
-    if table_half is not None:
+    table_half = half_table(encoder.table) if HALF_TABLE and n_feat == 3 else None
+    if table_half is not None:  # `read_rows3` reads these rows instead
         table_flat = table_half
     return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs,
                  hidden_bias, wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points),
@@ -1059,9 +1059,8 @@ def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: 
     @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
     def run(part: slice) -> None:
         part_rays = rays.part(part)
-        decoding = _Decoding(part.start, occlusion_logit, num_materials, occlusion_only, records)
         if decodes_in_pass(p):
-            _first_hidden_layer(p, part_rays, decoding)
+            _first_hidden_layer(p, part_rays, _Decoding(part.start, occlusion_logit, num_materials, occlusion_only, records))
             return
         hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, part_rays)
         _decode(p, hidden, counts, t_enter, t_exit, part.start, t_offset, part_rays.t_min, part_rays.t_max,
