@@ -15,8 +15,8 @@ machine size. In each process:
   step on the loop's thread, shrink per ray); with ``--profile``, one more run per batch size
   under `StageTimer`: ms per step in each stage, on the loop's thread and on the drawing one;
   with ``--scatters``, the encoder's backward alone on one batch of each size, per scatter;
-- inference: an untrained model on the mesh's real occupancy (random table: the speed does not
-  depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
+- inference: an untrained model on the mesh's real occupancy (random table, rounded to its storage
+  precision as `train` returns a model: the speed does not depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
   best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both.
 The table gives each figure's speed-up over the 2-thread process (the issue's "2-core rate") and
 over 1 thread. Writes benchmarks/results/<--name>.json.
@@ -123,6 +123,7 @@ def _child(args) -> dict:
         model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset(preset))
         with torch.no_grad():
             model.encoder.table.uniform_(-1, 1, generator=torch.Generator().manual_seed(0))
+        model.round_to_storage_precision_()  # as `train` returns a model and a file loads it (the float16 table reads)
         rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays
         calls = {"lsnif_intersect": lambda: model.intersect(rays), "lsnif_occluded": lambda: model.occluded(rays),
                  "embree_intersect": lambda: exact.intersect(rays), "embree_occluded": lambda: exact.occluded(rays)}

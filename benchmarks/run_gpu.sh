@@ -48,7 +48,12 @@ done
 OUT=${OUT:-gpu-out}; mkdir -p "$OUT"
 if [ ! -e /tmp/site/.neuralrt-unpacked ]; then  # once per machine
     mkdir -p /tmp/site
-    tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
+    # scaling and pairs run on the host CPU alone: a bundle carried without Mitsuba (wheels only, 20 MiB) does for them
+    if [ -e .gpu-deps/mitsuba.tgz ]; then
+        tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
+    else
+        echo "no .gpu-deps/mitsuba.tgz: no OptiX baseline (enough for scaling and pairs)"
+    fi
     python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu-deps/wheels/*.whl && touch /tmp/site/.neuralrt-unpacked
 fi
 export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1
