@@ -10,8 +10,8 @@ decoding of the raw outputs, ``WRITE_HITS = False``, the code before the numba d
 the first layer in the pass and torch's GEMMs for the hidden layers after it or those layers in
 the decoding pass (``FIRST_LAYER_IN_PASS = True`` and ``HIDDEN_LAYERS_IN_DECODE`` False or
 True); with the first layer as torch's GEMM on the inputs the pass writes (``FIRST_LAYER_IN_PASS
-= False``; by default GEMMs where the CPU has AMX, every layer in numba passes elsewhere); and
-with the pipeline per thread, ``THREADED_PIPELINE = True``; with the later layers and the
+= False``; by default GEMMs where the CPU has AMX, every layer in numba passes elsewhere); with
+the later layers and the
 decoding in a pass after the fused one, ``DECODE_IN_PASS = False``; with the table's rows read
 from its float32 values, ``HALF_TABLE = False``), with ``occluded`` (the
 decision-only decoding) and through the unfused path
@@ -49,7 +49,7 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "threaded_gain", "decode_in_pass_gain", "half_table_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "decode_in_pass_gain", "half_table_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
 
 
 def seconds(fn) -> float:
@@ -95,8 +95,6 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     fused_decode_hidden_intersect = intersect_with(FIRST_LAYER_IN_PASS=True, HIDDEN_LAYERS_IN_DECODE=True)
     # the first layer too as torch's GEMM, on the inputs the pass writes (the default on AMX)
     fused_gemm_first_intersect = intersect_with(FIRST_LAYER_IN_PASS=False)
-    # the whole pipeline per thread on 1/T of the chunk
-    fused_threaded_intersect = intersect_with(THREADED_PIPELINE=True)
     # the later layers and the decoding in a pass of their own (before session 33)
     fused_decode_pass_intersect = intersect_with(DECODE_IN_PASS=False)
     # the table's rows read from its float32 values (before session 33)
@@ -133,7 +131,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
     timed = {"embree": lambda: exact.intersect(rays), "embree_occluded": lambda: exact.occluded(rays), "fused": fused_intersect,
              "fused_torch_decode": fused_torch_decode_intersect, "fused_torch_hidden": fused_torch_hidden_intersect,
              "fused_decode_hidden": fused_decode_hidden_intersect, "fused_gemm_first": fused_gemm_first_intersect,
-             "fused_threaded": fused_threaded_intersect, "fused_decode_pass": fused_decode_pass_intersect,
+             "fused_decode_pass": fused_decode_pass_intersect,
              "fused_f32_table": fused_f32_table_intersect, "occluded": fused_occluded, "fused_fp32_l1": fused_fp32_first_layer_intersect,
              "unfused": unfused_intersect, "fused_network": kernel_and_gemms, "mlp": mlp_only}  # fmt: skip
     for name, fn in timed.items():  # compile / warm caches
@@ -177,8 +175,6 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         # with torch's later layers; `FIRST_LAYER_IN_PASS` is off where the CPU has AMX)
         "first_layer_in_pass": lsnif_fused_cpu.first_layer_in_pass(model.network_inputs, model.config.network.hidden_width),
         "first_layer_gemm_gain": rate["fused_gemm_first"] / rate["fused_torch_hidden"],
-        # the whole pipeline per thread on 1/T of the chunk over each stage parallel on the whole chunk
-        "threaded_gain": rate["fused_threaded"] / rate["fused"],
         # the decoding in the fused pass over a decoding pass after it (where the later layers run in numba)
         "decode_in_pass_gain": rate["fused"] / rate["fused_decode_pass"],
         # the rows read from the table's float16 copy over its float32 values (the model is at fp16 storage precision)

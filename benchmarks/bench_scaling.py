@@ -17,7 +17,8 @@ machine size. In each process:
   with ``--scatters``, the encoder's backward alone on one batch of each size, per scatter;
 - inference: an untrained model on the mesh's real occupancy (random table, rounded to its storage
   precision as `train` returns a model: the speed does not depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
-  best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both.
+  best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both; with ``--switches``, LSNIF's
+  also with each setting (``lsnif_intersect[THREADED_PIPELINE=True]_hq_rays/s``), in the same rounds.
 The table gives each figure's speed-up over the 2-thread process (the issue's "2-core rate") and
 over 1 thread. Writes benchmarks/results/<--name>.json.
 """
@@ -73,6 +74,45 @@ def _scatter_times(mesh, truth, config, args) -> dict:
     return times
 
 
+def _with_switch(model, switch: str, call):
+    """``call`` run with pipeline settings changed, then restored: ``NAME=VALUE[,NAME=VALUE...]``,
+    each NAME a module-level switch of `lsnif_fused_cpu` (VALUE True, False, None or an int) or
+    ``chunk_size`` (the model's inference chunk)."""
+    from neuralrt.methods import lsnif_fused_cpu
+
+    settings = []
+    for item in switch.split(","):
+        name, _, text = item.partition("=")
+        value = {"True": True, "False": False, "None": None}[text] if text in ("True", "False", "None") else int(text)
+        owner = model.config.inference if name == "chunk_size" else lsnif_fused_cpu
+        settings.append((owner, name, value))
+
+    def run():
+        saved = [(owner, name, getattr(owner, name)) for owner, name, _ in settings]
+        for owner, name, value in settings:
+            setattr(owner, name, value)
+        try:
+            return call()
+        finally:
+            for owner, name, value in saved:
+                setattr(owner, name, value)
+
+    return run
+
+
+def _switch_argument(text: str) -> str:
+    """An argparse type: ``NAME=VALUE[,NAME=VALUE...]`` naming switches that exist (before any process starts)."""
+    from neuralrt.methods import lsnif_fused_cpu
+
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        if not sep or not (name == "chunk_size" or (name.isupper() and hasattr(lsnif_fused_cpu, name))):
+            raise argparse.ArgumentTypeError(f"{item!r}: want NAME=VALUE, NAME chunk_size or a switch of lsnif_fused_cpu")
+        if value not in ("True", "False", "None") and not value.isdigit():
+            raise argparse.ArgumentTypeError(f"{item!r}: VALUE is True, False, None or a whole number")
+    return text
+
+
 def _child(args) -> dict:
     """One thread count: pin, then import and measure (runs in its own process)."""
     import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
@@ -94,7 +134,7 @@ def _child(args) -> dict:
                  "cores_pinned": len(os.sched_getaffinity(0)), "load_before": os.getloadavg()[0]}
     train_mesh = resolve_mesh(args.train_mesh)
     train_truth = MeshBLAS(train_mesh)
-    for preset in args.presets:
+    for preset in [] if args.skip_training else args.presets:
         config = LSNIFConfig.preset(preset)
         _train(train_mesh, train_truth, config, 5, True)  # warm-up: numba compilation, thread pools
         runs = [_train(train_mesh, train_truth, config, args.steps, True) for _ in range(2)]
@@ -127,6 +167,9 @@ def _child(args) -> dict:
         rays = BoxRayDistribution(exact, model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays
         calls = {"lsnif_intersect": lambda: model.intersect(rays), "lsnif_occluded": lambda: model.occluded(rays),
                  "embree_intersect": lambda: exact.intersect(rays), "embree_occluded": lambda: exact.occluded(rays)}
+        for switch in args.switches:
+            calls[f"lsnif_intersect[{switch}]"] = _with_switch(model, switch, lambda: model.intersect(rays))
+            calls[f"lsnif_occluded[{switch}]"] = _with_switch(model, switch, lambda: model.occluded(rays))
         for fn in calls.values():  # compile / warm caches
             fn()
         best = dict.fromkeys(calls, float("inf"))
@@ -174,6 +217,10 @@ def main() -> None:
                     help="one more training run per preset and batch size with stage timers: ms per step in each stage")
     ap.add_argument("--scatters", nargs="*", default=[],
                     help="also time the encoder's backward with these table-gradient scatters (row_ranges, buckets, saved_rows)")
+    ap.add_argument("--skip-training", action="store_true", help="inference alone")
+    ap.add_argument("--switches", nargs="*", type=_switch_argument, default=[],
+                    help="inference also with each of these settings (NAME=VALUE[,NAME=VALUE...]: switches of lsnif_fused_cpu "
+                         "such as HIDDEN_LAYERS_IN_DECODE=True, or chunk_size=N), interleaved with the default")
     ap.add_argument("--rays", type=int, default=1 << 18)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--name", default="scaling_cpu")

@@ -577,34 +577,6 @@ def test_chunks_written_in_place_answer_as_one_chunk(trained_cornell, write_hits
         assert torch.equal(getattr(chunked, f.name), getattr(whole, f.name)), f.name
 
 
-@pytest.mark.parametrize("precision, first_layer_in_pass", [("fp32", True), ("bf16", True), ("bf16", False)])
-def test_threaded_pipeline_gives_the_same_bits_as_the_stage_by_stage_one(trained_cornell, precision, first_layer_in_pass,
-                                                                         monkeypatch):  # fmt: skip
-    """`THREADED_PIPELINE`: each thread runs every stage on its part of the chunk; answers equal
-    (the bf16 first layer in the pass and as a GEMM, whatever the host's default)."""
-    import numba
-
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs 2 numba threads")
-    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", first_layer_in_pass)
-    model, dtype = trained_cornell, PRECISION[precision]
-    monkeypatch.setattr(model, "compute_dtype", lambda training=False: dtype)
-    rays = _decoding_rays(model, 5001, seed=25)
-    threads = numba.get_num_threads()
-    numba.set_num_threads(2)
-    try:
-        answers = {}
-        for threaded in (False, True):
-            monkeypatch.setattr(fused, "THREADED_PIPELINE", threaded)
-            answers[threaded] = (model.intersect(rays), model.occluded(rays))
-    finally:
-        numba.set_num_threads(threads)
-    (hits, occluded), (reference, reference_occluded) = answers[True], answers[False]
-    assert reference.hit.sum() > 500 and torch.equal(occluded, reference_occluded)
-    for name in ("hit", "t", "normal", "geometric_normal", "albedo", "material_id"):
-        assert torch.equal(getattr(hits, name), getattr(reference, name)), name
-
-
 _EMULATED_RUN = """
 import sys, numpy as np, torch
 sys.path.insert(0, {tests!r})

@@ -33,7 +33,6 @@ The CUDA counterpart is `lsnif_fused` (Triton); `LSNIFModel._network_answers` pi
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import llvmlite.binding as llvm
@@ -234,7 +233,7 @@ def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
     hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
-    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, first_ray,
+    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
@@ -249,7 +248,7 @@ def _fused_kernel(
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
     With ``pairs`` and ``decode_here`` the rest of the network and the decoding follow at once, per
     group (`_decode_rows`: ``hidden_pairs`` ... ``material`` as `_decode_kernel`'s, the chunk's ray n
-    at row ``first_ray + n`` of the records), and nothing is written to ``hidden_bf16``.
+    at row n of the records), and nothing is written to ``hidden_bf16``.
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
@@ -405,7 +404,7 @@ def _fused_kernel(
                     if decode_here:
                         _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
                                      outs, xp8, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
-                                     occlusion_only, first_ray, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                                     occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                     continue
                 for g in range(stop - start):
                     count = group_count[b, g]
@@ -624,16 +623,12 @@ class _Rays:
     def __len__(self) -> int:
         return self.origins.shape[0]
 
-    def part(self, rows: slice) -> "_Rays":
-        return _Rays(self.origins[rows], self.directions[rows], self.t_min[rows], self.t_max[rows], self.box_lo, self.box_extent)
-
 
 @dataclass
 class _Decoding:
-    """What the fused pass needs to decode a chunk's answers itself (`decodes_in_pass`): the chunk's
-    first row in ``records`` (`_decode_row`'s hit, t, normal, geometric normal, albedo, material)."""
+    """What the fused pass needs to decode a chunk's answers itself (`decodes_in_pass`), into
+    ``records`` (`_decode_row`'s hit, t, normal, geometric normal, albedo, material)."""
 
-    first_ray: int
     occlusion_logit: float
     num_materials: int
     occlusion_only: bool
@@ -641,7 +636,7 @@ class _Decoding:
 
 
 _NO_RECORDS = (np.zeros(0, np.bool_), np.zeros(0, np.float32), *(np.zeros((0, 3), np.float32),) * 3, np.zeros(0, np.int64))
-_NO_DECODING = _Decoding(0, 0.0, 0, True, _NO_RECORDS)
+_NO_DECODING = _Decoding(0.0, 0, True, _NO_RECORDS)
 
 
 def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None,
@@ -673,7 +668,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
                           p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, hidden_f32,
                           hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here, p.hidden_pairs, p.hidden_bias, p.wo,
                           p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials), decoding.occlusion_only,
-                          int(decoding.first_ray), *decoding.records)  # fmt: skip
+                          *decoding.records)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
@@ -872,9 +867,9 @@ def _decode_scratch(width, n_padded, needed):
 
 
 @numba.njit(cache=True, inline="always")
-def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, ray,
+def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                 hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
-    """Ray r's record (row ``ray`` of the records) from its raw outputs ``out``: the same operations as
+    """Ray r's record from its raw outputs ``out``: the same operations as
     the torch decoding, in fp32; the norm of the normal is torch's (fused multiply-adds from x^2);
     the sigmoid differs from torch's by <= 3 ulp. ``occlusion_only`` writes ``hit`` alone.
     (The records are separate arguments: numba 0.68 lost the writes to arrays unpacked from a tuple
@@ -882,36 +877,36 @@ def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit
     te = t_enter[r]
     t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
     h = out[0] > occlusion_logit and t < t_max[r] and t > t_min[r]
-    hit[ray] = h
+    hit[r] = h
     if occlusion_only:
         return
-    t_hit[ray] = t if h else np.float32(np.inf)
+    t_hit[r] = t if h else np.float32(np.inf)
     nx, ny, nz = out[2], out[3], out[4]
     norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
     zero = np.float32(0.0)
     nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
-    normal[ray, 0], normal[ray, 1], normal[ray, 2] = nx, ny, nz
-    geometric_normal[ray, 0], geometric_normal[ray, 1], geometric_normal[ray, 2] = nx, ny, nz
+    normal[r, 0], normal[r, 1], normal[r, 2] = nx, ny, nz
+    geometric_normal[r, 0], geometric_normal[r, 1], geometric_normal[r, 2] = nx, ny, nz
     if h:
         for c in range(3):
-            albedo[ray, c] = _sigmoid(out[5 + c])
+            albedo[r, c] = _sigmoid(out[5 + c])
     best = 0
     for j in range(1, n_materials):  # argmax: the first of equal logits
         if out[8 + j] > out[8 + best]:
             best = j
-    material[ray] = best if h else -1
+    material[r] = best if h else -1
 
 
 # (Inlined: at most 30 arguments, as any function numba inlines: CPython passes more as one tuple,
 # which numba's inliner rejects.)
 @numba.njit(cache=True, inline="always")
 def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, quad, dots, t_enter,
-                 t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, first_ray,
+                 t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                  hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
     """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
     ``first_pairs[active[i]]`` through the later hidden layers (`_later_hidden_rows`) and the output
-    layer (`_output_rows`; only its first 16 columns with ``occlusion_only``) into records row
-    ``first_ray + r`` (`_decode_row`), `_OUT_ROWS` rays at a time (scratch: `_decode_scratch`, and
+    layer (`_output_rows`; only its first 16 columns with ``occlusion_only``) into records row r
+    (`_decode_row`), `_OUT_ROWS` rays at a time (scratch: `_decode_scratch`, and
     ``quad``/``dots`` as `dot_rows_bf16`'s)."""
     columns = 16 if occlusion_only else wo.shape[1]
     wo_flat = wo.reshape(-1)
@@ -922,18 +917,17 @@ def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope
         for b in range(n_rows):
             r = shift + active[block + b]
             _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                        first_ray + r, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                        hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
-    x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, first_ray, t_enter, t_exit,
+    x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, t_enter, t_exit,
     t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network (`_decode_row`),
-    written into the hit records at rows ``first_ray + active[i]`` (``t_*`` are the chunk's, indexed
-    by ``active[i]``): row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
+    written into the hit records at rows ``active[i]`` (``t_*`` are the chunk's, indexed the same): row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
     (``output_layer``: the output layer ``wo``/``bo`` is applied here, fp32, `_OUT_ROWS` rows at a
     time) or the raw outputs; or, where ``first_pairs`` (the first hidden layer's bf16 activations
     as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``) is not empty, the later hidden layers run
@@ -951,7 +945,7 @@ def _decode_kernel(
         first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
         if first_pairs.shape[0] > 0:
             _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp,
-                         quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, first_ray,
+                         quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                          hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
             continue
         for block in range(first, last, _OUT_ROWS):
@@ -973,7 +967,7 @@ def _decode_kernel(
             for b in range(n_rows):
                 r = active[block + b]
                 _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                            first_ray + r, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                            hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
 # The rest of the network and the decoding run in the fused pass, a group of rays after their
@@ -988,11 +982,11 @@ def decodes_in_pass(p: _Pass) -> bool:
     return DECODE_IN_PASS and p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE
 
 
-def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray, first_ray: int,
+def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray,
             t_offset: np.ndarray, t_min: np.ndarray, t_max: np.ndarray, occlusion_logit: float, num_materials: int,
             records: tuple[np.ndarray, ...], occlusion_only: bool) -> None:  # fmt: skip
     """The layers after the first on the rays with points, then `_decode_kernel` into ``records``
-    (ray i of these arrays, ``t_min`` and ``t_max`` the chunk's, is row ``first_ray + i`` of the records)."""
+    (ray i of these arrays, ``t_min`` and ``t_max`` the chunk's, is row i of the records)."""
     active = np.flatnonzero(counts > 0)
     if len(active) == 0:
         return
@@ -1010,41 +1004,8 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
             x_f32 = x.numpy()
     n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
     _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), p.wo, p.bo,
-                   OUTPUT_LAYER_IN_DECODE, active, int(first_ray), t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
+                   OUTPUT_LAYER_IN_DECODE, active, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
                    int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
-
-
-# Each of the calling thread's numba threads (T) runs the whole pipeline -- the fused pass, the
-# torch layers, the decoding -- on 1/T of the chunk's rays, with one numba and one torch thread
-# (a pool of Python threads; the kernels release the GIL, torch's ops do); same bits (tested).
-# Off by default: on the shared 2-core machine it measured no consistent gain over stage by stage
-# (each stage parallel over the whole chunk; the torch layers scale worst): hairball(6) 2^17 rays,
-# paired medians 0.98-1.08x over 21 rounds (load 1.5-2.5), 0.91-1.07x in bench_lsnif_cpu.py; 2 or
-# 4 parts per thread no better. Kept for hosts with more cores (issue 11's scaling target).
-THREADED_PIPELINE = False
-
-_pool: ThreadPoolExecutor | None = None
-
-
-def _one_thread_each() -> None:
-    numba.set_num_threads(1)  # both are per-thread settings: the pool's threads only
-    torch.set_num_threads(1)
-
-
-def _in_parts(run, n: int) -> None:
-    """``run(slice)`` over ``range(n)``: in T parts on the pool's threads (`THREADED_PIPELINE`,
-    T = the caller's numba thread count > 1), else at once on this thread."""
-    global _pool
-    threads = numba.get_num_threads()
-    if not THREADED_PIPELINE or threads < 2 or n < 2 * threads * _GROUP:
-        run(slice(0, n))
-        return
-    if _pool is None or _pool._max_workers != threads:
-        if _pool is not None:
-            _pool.shutdown(wait=True)
-        _pool = ThreadPoolExecutor(threads, thread_name_prefix="lsnif-cpu", initializer=_one_thread_each)
-    for future in [_pool.submit(run, slice(i * n // threads, (i + 1) * n // threads)) for i in range(threads)]:
-        future.result()
 
 
 def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
@@ -1056,17 +1017,12 @@ def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: 
                       share_boundary_points=share_boundary_points, point_distances=point_distances,
                       compute_dtype=compute_dtype)  # fmt: skip
 
-    @torch.no_grad()  # (grad mode is per thread: the pool's threads need it too)
-    def run(part: slice) -> None:
-        part_rays = rays.part(part)
-        if decodes_in_pass(p):
-            _first_hidden_layer(p, part_rays, _Decoding(part.start, occlusion_logit, num_materials, occlusion_only, records))
-            return
-        hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, part_rays)
-        _decode(p, hidden, counts, t_enter, t_exit, part.start, t_offset, part_rays.t_min, part_rays.t_max,
-                occlusion_logit, num_materials, records, occlusion_only)  # fmt: skip
-
-    _in_parts(run, len(rays))
+    if decodes_in_pass(p):
+        _first_hidden_layer(p, rays, _Decoding(occlusion_logit, num_materials, occlusion_only, records))
+        return
+    hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays)
+    _decode(p, hidden, counts, t_enter, t_exit, t_offset, rays.t_min, rays.t_max, occlusion_logit, num_materials,
+            records, occlusion_only)  # fmt: skip
 
 
 @torch.no_grad()
@@ -1093,8 +1049,7 @@ def fused_hits_cpu(
     """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk,
     CPU) for the chunk's rays (``origins``, ``directions``, ``t_min``, ``t_max``, object space),
     which the pass maps into the model's box (``box_lo``, ``box_extent``) itself: the fused pass,
-    the later layers, the output layer and the decoding (`_decode_kernel`); see
-    `THREADED_PIPELINE`. The CPU counterpart of `lsnif_fused.fused_hits`."""
+    the later layers, the output layer and the decoding (`_decode_kernel`). The CPU counterpart of `lsnif_fused.fused_hits`."""
     records = (hits.hit.numpy(), hits.t.numpy(), hits.normal.numpy(), hits.geometric_normal.numpy(), hits.albedo.numpy(),
                hits.material_id.numpy())  # fmt: skip
     _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
