@@ -36,24 +36,35 @@
 # cut short still returns what it measured.
 # Several stages run one after the other in one call (`run_gpu.sh pairs scaling tests`); devices takes
 # no stage after it (its further arguments are bench_devices.py's).
+# Size: the bundle as gpu-bundle.sh makes it (61 MiB) and the tree (4 MiB) exceed the 64 MiB a call
+# carries (session 34). Run `bash benchmarks/gpu_bundle_xz.sh` first (Mitsuba and Dr.Jit recompressed
+# with xz: the bundle 46 MiB), or, for scaling and pairs alone, carry .gpu-deps without
+# mitsuba.tgz and drjit.tgz (the wheels, 20 MiB); the stages that need OptiX then stop at once.
 # Logs and JSON go to $OUT (default ./gpu-out). A call brings back at most 8 files: for more, point OUT
 # at a folder of /tmp and tar it into the call's $OUT at the end.
 set -uo pipefail
 [ $# -gt 0 ] || { echo "usage: run_gpu.sh STAGE... (nbvh, tests, devices, nif, scaling, pairs)" >&2; exit 2; }
+gpu_stage=""
 for STAGE in "$@"; do
-    [ "$STAGE" = devices ] && break
-    case "$STAGE" in nbvh|tests|nif|scaling|pairs) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices, nif, scaling or pairs)" >&2; exit 2 ;; esac
+    [ "$STAGE" = devices ] && { gpu_stage=devices; break; }
+    case "$STAGE" in nbvh|tests|nif) gpu_stage=${gpu_stage:-$STAGE} ;; scaling|pairs) ;; *) echo "neuralrt: error: unknown stage $STAGE (nbvh, tests, devices, nif, scaling or pairs)" >&2; exit 2 ;; esac
 done
 [ -d .gpu-deps ] || { echo "neuralrt: error: .gpu-deps missing: run bash ../shared/tools/gpu-bundle.sh .gpu-deps and carry it" >&2; exit 2; }
+mitsuba=$(ls .gpu-deps/mitsuba.t[gx]z 2>/dev/null | head -1)
+if [ -n "$gpu_stage" ] && [ -z "$mitsuba" ] && [ ! -d /tmp/site/mitsuba ]; then
+    echo "neuralrt: error: stage $gpu_stage needs Mitsuba (OptiX): .gpu-deps/mitsuba.tgz missing (only scaling and pairs run without it)" >&2; exit 2
+fi
 OUT=${OUT:-gpu-out}; mkdir -p "$OUT"
+mkdir -p /tmp/site
+# scaling and pairs run on the host CPU alone: a bundle carried without Mitsuba (wheels only, 20 MiB) does for them
+if [ -n "$mitsuba" ] && [ ! -d /tmp/site/mitsuba ]; then  # once per machine; .txz: benchmarks/gpu_bundle_xz.sh
+    for archive in "$mitsuba" "$(ls .gpu-deps/drjit.t[gx]z | head -1)"; do
+        python3 -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall('/tmp/site', filter='tar')" "$archive" || exit 2
+    done
+elif [ ! -d /tmp/site/mitsuba ]; then
+    echo "no .gpu-deps/mitsuba.tgz: no OptiX (enough for scaling and pairs)"
+fi
 if [ ! -e /tmp/site/.neuralrt-unpacked ]; then  # once per machine
-    mkdir -p /tmp/site
-    # scaling and pairs run on the host CPU alone: a bundle carried without Mitsuba (wheels only, 20 MiB) does for them
-    if [ -e .gpu-deps/mitsuba.tgz ]; then
-        tar xzf .gpu-deps/mitsuba.tgz -C /tmp/site && tar xzf .gpu-deps/drjit.tgz -C /tmp/site
-    else
-        echo "no .gpu-deps/mitsuba.tgz: no OptiX baseline (enough for scaling and pairs)"
-    fi
     python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu-deps/wheels/*.whl && touch /tmp/site/.neuralrt-unpacked
 fi
 export PYTHONPATH=/tmp/site:$PWD/src PYTHONUNBUFFERED=1

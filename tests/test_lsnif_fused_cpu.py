@@ -536,6 +536,7 @@ def test_decoding_in_the_fused_pass_gives_the_decoding_passs_bits(width, layers,
     model = _bf16_model(width, layers)
     rays = _decoding_rays(model, 5000, seed=33)
     monkeypatch.setattr(model.config.inference, "chunk_size", 1500)  # (chunks that end inside a group)
+    monkeypatch.setattr(fused, "MIN_RAYS_PER_THREAD", 0)
     monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)
     monkeypatch.setattr(fused, "HIDDEN_LAYERS_IN_DECODE", True)
     reference, reference_occluded = _hits_with(model, rays, monkeypatch, DECODE_IN_PASS=False)
@@ -552,12 +553,38 @@ def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell
     model = trained_cornell
     rays = _decoding_rays(model, 3000, seed=23)
     monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    monkeypatch.setattr(fused, "MIN_RAYS_PER_THREAD", 0)
     calls = []
     original = fused.fused_occluded_cpu
     monkeypatch.setattr(fused, "fused_occluded_cpu", lambda *a, **k: calls.append(1) or original(*a, **k))
     occluded = model.occluded(rays)
     assert len(calls) == 3
     assert torch.equal(occluded, model.intersect(rays).hit) and occluded.sum() > 300
+
+
+def test_a_cpu_chunk_holds_at_least_min_rays_per_thread(trained_cornell, monkeypatch):
+    """The fused CPU pass takes `MIN_RAYS_PER_THREAD` rays per numba thread at a time where that is
+    more than ``chunk_size`` (fewer parallel regions on many threads); the torch path and a larger
+    ``chunk_size`` keep ``chunk_size``."""
+    import numba
+
+    model = trained_cornell
+    cpu = torch.device("cpu")
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    monkeypatch.setattr(fused, "MIN_RAYS_PER_THREAD", 1536)
+    chunk = model.rays_per_chunk(cpu)
+    assert chunk == 1536 * numba.get_num_threads()
+    calls = []
+    original = fused.fused_occluded_cpu
+    monkeypatch.setattr(fused, "fused_occluded_cpu", lambda *a, **k: calls.append(len(a[0])) or original(*a, **k))
+    rays = _decoding_rays(model, 3000, seed=31)
+    model.occluded(rays)
+    assert calls == [min(chunk, 3000 - start) for start in range(0, 3000, chunk)]
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1 << 20)
+    assert model.rays_per_chunk(cpu) == 1 << 20
+    monkeypatch.setattr(fused, "WRITE_HITS", False)
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    assert model.rays_per_chunk(cpu) == 1024
 
 
 @pytest.mark.parametrize("write_hits", [True, False])
@@ -571,6 +598,7 @@ def test_chunks_written_in_place_answer_as_one_chunk(trained_cornell, write_hits
     rays = _decoding_rays(model, 3000, seed=29)
     whole = model.intersect(rays)
     monkeypatch.setattr(model.config.inference, "chunk_size", 1024)
+    monkeypatch.setattr(fused, "MIN_RAYS_PER_THREAD", 0)
     chunked = model.intersect(rays)
     assert whole.hit.sum() > 300
     for f in fields(whole):

@@ -5,6 +5,7 @@ import builtins
 import torch
 
 from neuralrt.geometry.procedural import sphere
+from neuralrt.methods import lsnif_fused_cpu
 from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
 from neuralrt.neural import precision
 from neuralrt.rays import Rays
@@ -26,6 +27,7 @@ def test_auto_reads_the_cpu_flags_once_per_process(monkeypatch):
         model = LSNIFModel.from_mesh(sphere(2), config)
         g = torch.Generator().manual_seed(0)
         o = torch.randn(1000, 3, generator=g) * 3
+        monkeypatch.setattr(lsnif_fused_cpu, "MIN_RAYS_PER_THREAD", 0)
         model.intersect(Rays(o, -o))  # 16 chunks
         model.intersect(Rays(o, -o))
         assert model.compute_dtype(training=True) in (torch.bfloat16, torch.float32)

@@ -34,3 +34,13 @@ def test_missing_gpu_deps_is_one_line(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().startswith("neuralrt: error: .gpu-deps missing")
     assert not (tmp_path / "gpu-out").exists()
+
+
+def test_a_gpu_stage_without_mitsuba_stops_before_any_work(tmp_path):
+    """A bundle carried without Mitsuba (wheels only) does for scaling and pairs, not for the stages that need OptiX."""
+    (tmp_path / ".gpu-deps").mkdir()
+    result = _run("scaling", "nif", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip() == ("neuralrt: error: stage nif needs Mitsuba (OptiX): .gpu-deps/mitsuba.tgz missing "
+                                     "(only scaling and pairs run without it)")
+    assert result.stdout == "" and sorted(p.name for p in tmp_path.iterdir()) == [".gpu-deps"]

@@ -4,7 +4,8 @@ A method subclasses `NeuralBLAS` and provides:
 
 - ``from_mesh(mesh, config)``: an untrained model of a mesh (bounds, materials, mesh hash set here);
 - ``training_step(rays, truth) -> StepResult``: the loss of one batch against exact hits;
-- ``_intersect_chunk(rays) -> Hits``: answers for at most ``config.inference.chunk_size`` rays;
+- ``_intersect_chunk(rays) -> Hits``: answers for at most `rays_per_chunk` rays (``config.inference.chunk_size``
+  unless the method takes more on a device);
 - ``memory_bytes()``: run-time bytes, itemised;
 - ``_arrays()`` / ``_from_arrays(config, bounds, materials, arrays)``: what its model file stores
   besides the common header, and how a model is rebuilt from it;
@@ -127,7 +128,7 @@ class NeuralBLAS(nn.Module, ABC):
 
     @abstractmethod
     def _intersect_chunk(self, rays: Rays) -> Hits:
-        """Closest hits of at most ``config.inference.chunk_size`` rays (on the model's device)."""
+        """Closest hits of at most `rays_per_chunk` rays (on the model's device)."""
 
     @abstractmethod
     def memory_bytes(self) -> MemoryReport:
@@ -220,7 +221,7 @@ class NeuralBLAS(nn.Module, ABC):
         directions, zero directions or an empty ``(t_min, t_max)`` miss."""
         self._check_device(rays)
         n = len(rays)
-        chunk = self.config.inference.chunk_size
+        chunk = self.rays_per_chunk(rays.device)
         if n <= chunk:
             return self._intersect_chunk(rays)
         out = Hits.empty(n, rays.device)
@@ -228,6 +229,10 @@ class NeuralBLAS(nn.Module, ABC):
             part = rays[slice(start, start + chunk)]
             self._intersect_chunk_into(part, out[start:start + len(part)])
         return out
+
+    def rays_per_chunk(self, device: torch.device) -> int:
+        """Rays answered at a time on ``device``: ``inference.chunk_size`` (a method may take more where that pays)."""
+        return self.config.inference.chunk_size
 
     def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
         """`_intersect_chunk`'s answers written into ``hits`` (all-miss records, views of the rows of

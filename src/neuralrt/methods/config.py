@@ -61,7 +61,10 @@ class InferenceConfig(ConfigSection):
         "auto", description="MLP arithmetic at inference: auto = bf16 on CUDA or where the CPU has native bf16, else fp32 "
         "(answers differ slightly between the two: see neuralrt.neural.precision)"
     )
-    chunk_size: int = Field(1 << 16, ge=1, description="rays per inference chunk (bounds temporary memory)")
+    chunk_size: int = Field(
+        1 << 16, ge=1, description="rays per inference chunk (bounds temporary memory; LSNIF's fused CPU pass takes at least "
+        "2^14 rays per thread: lsnif_fused_cpu.MIN_RAYS_PER_THREAD)"
+    )
 
 
 class MethodConfig(ConfigSection):

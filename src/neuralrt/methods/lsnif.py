@@ -234,6 +234,15 @@ class LSNIFModel(NeuralBLAS):
         return StepResult(terms.loss, terms.parts, correct, n, len(active), {"truncated": terms.truncated})
 
     # -- inference ---------------------------------------------------------------------------------
+    def rays_per_chunk(self, device: torch.device) -> int:
+        """``inference.chunk_size``, or on the CPU's fused pass at least `lsnif_fused_cpu.MIN_RAYS_PER_THREAD` per thread."""
+        from . import lsnif_fused_cpu
+
+        chunk = super().rays_per_chunk(device)
+        if device.type == "cpu" and lsnif_fused_cpu.WRITE_HITS:
+            return lsnif_fused_cpu.rays_per_chunk(chunk)
+        return chunk
+
     def _intersect_chunk(self, rays: Rays) -> Hits:
         hits = Hits.empty(len(rays), rays.device)
         self._intersect_chunk_into(rays, hits)
@@ -348,7 +357,7 @@ class LSNIFModel(NeuralBLAS):
         self._check_device(rays)
         n = len(rays)
         hit = torch.zeros(n, dtype=torch.bool)
-        chunk = self.config.inference.chunk_size
+        chunk = self.rays_per_chunk(rays.device)
         for start in range(0, n, chunk):
             part = rays if n <= chunk else rays[slice(start, start + chunk)]
             args, kwargs = self._fused_cpu_arguments(part)

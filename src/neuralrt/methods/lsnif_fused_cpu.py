@@ -718,6 +718,22 @@ def fused_network_outputs_cpu(
     return FusedCPUOutputs(active, values, count, torch.from_numpy(t_enter), torch.from_numpy(t_exit))
 
 
+# A chunk's rays cross several parallel regions (the fused pass; on AMX hosts also torch's GEMMs
+# and the decoding pass), and each pays for starting its threads and for its tail, where threads
+# wait for the last; with a fixed chunk that share grows with the thread count. So a chunk holds at
+# least this many rays per numba thread (more than the default 2^16 from 5 threads; a larger
+# `InferenceConfig.chunk_size` wins). A 16-core Intel Xeon (AMX; session 34, hairball(6), untrained,
+# 2^18 rays, `bench_scaling.py --switches`, two runs): the 2^18 rays in one chunk over four of
+# 2^16: `intersect` 1.22x / 1.25x (`hq`), 1.07x / 1.32x (`lq`), `occluded` 1.07-1.26x; in two of
+# 2^17: 1.10-1.17x; in 16 of 2^14: 0.49-0.60x. On 2 threads it changes nothing.
+MIN_RAYS_PER_THREAD = 1 << 14
+
+
+def rays_per_chunk(configured: int) -> int:
+    """Rays per chunk of the fused CPU pass: ``configured``, or `MIN_RAYS_PER_THREAD` per numba thread where more."""
+    return max(configured, MIN_RAYS_PER_THREAD * numba.get_num_threads())
+
+
 # `LSNIFModel.intersect` on the CPU decodes in `fused_hits_cpu` (numba) and `occluded` decodes only
 # the decision (`fused_occluded_cpu`); False: the raw outputs of `fused_network_outputs_cpu`
 # decoded by torch ops in `LSNIFModel._intersect_chunk` (the reference; comparisons and tests).
