@@ -660,7 +660,9 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
     t_exit = np.full(n, np.inf, np.float32)
     t_offset = np.zeros(n, np.float32)
     if n:
-        n_chunks = max(1, min(n, _CHUNKS_PER_THREAD * numba.get_num_threads()))
+        # A task allocates scratch for a group: one task per ray made a 64-ray call 2.2x slower
+        # (lq, 227 vs 103 us; 1,024 rays 315 vs 184 us; ad hoc, 2 threads, session 34).
+        n_chunks = min(-(-n // _GROUP), _CHUNKS_PER_THREAD * numba.get_num_threads())
         simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
         with numba.parallel_chunksize(1):
             _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
