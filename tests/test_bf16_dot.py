@@ -76,11 +76,16 @@ def test_dot_rows_equals_the_bf16_product_for_each_row_and_width():
         rows = np.array([4, 0, 5, 5], np.int64)  # any rows, repeats allowed
         out = np.full(4 * width, np.nan, np.float32)
         for n_pairs in (23, 10):  # all pairs; a prefix (rays with fewer inputs)
-            dot_rows_bf16(xp, rows, n_pairs, wp, width, out)
+            dot_rows_bf16(xp, rows, n_pairs, wp, 0, width, out)
             k = min(2 * n_pairs, 45)
             exact = (_bf16(x[rows, :k]) @ _bf16(w[:k])).numpy()
             scale = (_bf16(x[rows, :k]).abs() @ _bf16(w[:k]).abs()).numpy()
             assert (np.abs(out.reshape(4, width) - exact) <= 1e-6 * scale + 1e-30).all()
+            # the same layer stored after another one in a flat array (``w_start``): the same sums
+            stacked = np.concatenate([rng.integers(0, 2**32, 7 * width, dtype=np.uint32), wp])
+            after = np.full(4 * width, np.nan, np.float32)
+            dot_rows_bf16(xp, rows, n_pairs, stacked, 7 * width, width, after)
+            assert np.array_equal(after, out)
 
 
 @numba.njit

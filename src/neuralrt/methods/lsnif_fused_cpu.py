@@ -114,11 +114,13 @@ def _input_pairs(xs_row, n_inputs, out_row):
 
 
 @numba.njit(cache=True, inline="always")
-def _bias_leaky_bf16(dots, offset, bias, slope, out):
-    """``out[j] = bf16(leaky_relu(dots[offset + j] + bias[j]))`` for the ``len(bias)`` (a multiple of
-    16) columns, 16 per instruction (``out`` uint16 bf16 bits; the rounding of `bf16_bits`)."""
-    for c in range(0, bias.shape[0], 16):
-        store_bf16x16(out, c, leaky_relu16(add16(load16(dots, offset + c), load16(bias, c)), slope))
+def _bias_leaky_bf16(dots, offset, bias, bias_start, width, slope, out, out_start):
+    """``out[out_start + j] = bf16(leaky_relu(dots[offset + j] + bias[bias_start + j]))`` for ``width``
+    (a multiple of 16) columns, 16 per instruction (``out`` flat uint16 bf16 bits; the rounding of
+    `bf16_bits`). (Flat arrays and offsets, not row views: a view made in a loop costs reference
+    counting there.)"""
+    for c in range(0, width, 16):
+        store_bf16x16(out, out_start + c, leaky_relu16(add16(load16(dots, offset + c), load16(bias, bias_start + c)), slope))
 
 
 @numba.njit(cache=True, inline="always")
@@ -164,9 +166,9 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
         n_rows = min(4, m - q)
         for i in range(4):
             rows[i] = order[q + min(i, n_rows - 1)]  # a short pass repeats its last ray
-        dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, width, dots)
+        dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, 0, width, dots)
         for i in range(n_rows):
-            _bias_leaky_bf16(dots, i * width, b1, slope, hidden_bf16[start + rows[i]])
+            _bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_bf16[start + rows[i]], 0)
     return m
 
 
@@ -302,7 +304,7 @@ def _fused_kernel(
         # decode_here: the group's first hidden layer (row g: ray start + g), then `_decode_rows`' scratch
         group_hidden = np.empty((_GROUP if decode_here else 0, width), np.uint16)
         layer_out = group_hidden if decode_here else hidden_bf16
-        rows8, outs, xp8 = _decode_scratch(width, wo.shape[1], decode_here)
+        rows8, outs, xp8, xp8_bf16 = _decode_scratch(width, wo.shape[1], decode_here)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         n_groups = (last - first + _GROUP - 1) // _GROUP
         for step in range(n_groups + 1):
@@ -403,7 +405,7 @@ def _fused_kernel(
                                            dots, layer_out, 0 if decode_here else start)  # fmt: skip
                     if decode_here:
                         _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
-                                     outs, xp8, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
+                                     outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
                                      occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                     continue
                 for g in range(stop - start):
@@ -534,8 +536,8 @@ class _Pass:
     w1: np.ndarray
     w1_pairs: np.ndarray
     b1: np.ndarray
-    hidden_pairs: np.ndarray  # [L - 1, W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else [0, 0]
-    hidden_bias: np.ndarray  # [L - 1, W] fp32: their biases, rounded to bf16 as torch's cast weights
+    hidden_pairs: np.ndarray  # flat [(L - 1) * W / 2 * W] uint32: the later hidden layers as bf16 pairs (pairs path), else empty
+    hidden_bias: np.ndarray  # flat [(L - 1) * W] fp32: their biases, rounded to bf16 as torch's cast weights
     wo: np.ndarray  # [W, P] fp32 and bo [P]: the output layer (`output_layer_columns`)
     bo: np.ndarray
     occ_cells: np.ndarray  # [V^3] int32: occ for the SIMD walk's gathers
@@ -584,7 +586,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     if compute_dtype != torch.float32:
         network._cast_weights(compute_dtype)  # the cached bf16 weights, made here once rather than in several threads
-    hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros((0, 0), np.uint32), np.zeros((0, 0), np.float32))
+    hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros(0, np.uint32), np.zeros(0, np.float32))
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
@@ -809,9 +811,9 @@ def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
 
 
 def later_hidden_layers(network: MLP) -> tuple[np.ndarray, np.ndarray]:
-    """The hidden layers after the first as ``[L - 1, W / 2 * W]`` uint32 bf16 pairs (input-major,
-    `bf16_pairs` of each ``W^T``) and their biases ``[L - 1, W]`` fp32 holding bf16 values (the
-    bf16 copies torch's layers use)."""
+    """The hidden layers after the first as flat ``[(L - 1) * W / 2 * W]`` uint32 bf16 pairs (layer
+    by layer, input-major, `bf16_pairs` of each ``W^T``) and their biases, flat ``[(L - 1) * W]``
+    fp32 holding bf16 values (the bf16 copies torch's layers use)."""
     cast = network._cast_weights(torch.bfloat16)[1:]
     width = network.hidden[0].weight.shape[0]
     pairs = np.zeros((len(cast), width // 2 * width), np.uint32)
@@ -819,7 +821,7 @@ def later_hidden_layers(network: MLP) -> tuple[np.ndarray, np.ndarray]:
     for i, (w, b) in enumerate(cast):
         pairs[i] = bf16_pairs(w.float().T.contiguous().numpy()).reshape(-1)
         bias[i] = b.float().numpy()
-    return pairs, bias
+    return pairs.reshape(-1), bias.reshape(-1)
 
 
 @numba.njit(cache=True, inline="always")
@@ -836,70 +838,76 @@ _OUT_ROWS = 8
 
 @numba.njit(cache=True)
 def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
-    """``out[r, :columns] = bo + rows[r] @ wo`` for the `_OUT_ROWS` rows of ``rows [8, W]`` fp32
-    (``wo_flat`` the flat ``[W, n_padded]`` weights; ``columns`` a multiple of 16)."""
-    width = rows.shape[1]
+    """``out[r * n_padded + :columns] = bo + rows[r * W:] @ wo`` for the `_OUT_ROWS` rows of ``rows``
+    (flat ``[8 * W]`` fp32; ``out`` flat ``[8 * n_padded]``; ``wo_flat`` the flat ``[W, n_padded]``
+    weights; ``columns`` a multiple of 16)."""
+    width = wo_flat.shape[0] // n_padded
+    w1, w2, w3, w4, w5, w6, w7 = width, 2 * width, 3 * width, 4 * width, 5 * width, 6 * width, 7 * width
     for v in range(0, columns, 16):
         a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = load16(bo, v)
         for k in range(width):
             j = k * n_padded + v
-            a0, a1 = fma16(a0, rows[0, k], wo_flat, j), fma16(a1, rows[1, k], wo_flat, j)
-            a2, a3 = fma16(a2, rows[2, k], wo_flat, j), fma16(a3, rows[3, k], wo_flat, j)
-            a4, a5 = fma16(a4, rows[4, k], wo_flat, j), fma16(a5, rows[5, k], wo_flat, j)
-            a6, a7 = fma16(a6, rows[6, k], wo_flat, j), fma16(a7, rows[7, k], wo_flat, j)
-        store16(out[0], v, a0), store16(out[1], v, a1), store16(out[2], v, a2), store16(out[3], v, a3)
-        store16(out[4], v, a4), store16(out[5], v, a5), store16(out[6], v, a6), store16(out[7], v, a7)
+            a0, a1 = fma16(a0, rows[k], wo_flat, j), fma16(a1, rows[w1 + k], wo_flat, j)
+            a2, a3 = fma16(a2, rows[w2 + k], wo_flat, j), fma16(a3, rows[w3 + k], wo_flat, j)
+            a4, a5 = fma16(a4, rows[w4 + k], wo_flat, j), fma16(a5, rows[w5 + k], wo_flat, j)
+            a6, a7 = fma16(a6, rows[w6 + k], wo_flat, j), fma16(a7, rows[w7 + k], wo_flat, j)
+        store16(out, v, a0), store16(out, n_padded + v, a1), store16(out, 2 * n_padded + v, a2)
+        store16(out, 3 * n_padded + v, a3), store16(out, 4 * n_padded + v, a4), store16(out, 5 * n_padded + v, a5)
+        store16(out, 6 * n_padded + v, a6), store16(out, 7 * n_padded + v, a7)
 
 
 @numba.njit(cache=True, inline="always")
-def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows):
+def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows):
     """`_OUT_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
     the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows per weight pass; fp32 sums,
     bias, leaky ReLU, then one rounding to bf16): from the first layer's bf16 pairs
-    ``first_pairs[active[i]]`` to the last hidden layer's activations, widened into ``rows`` fp32."""
+    ``first_pairs[active[i]]`` to the last hidden layer's activations, widened into ``rows`` (flat
+    ``[8 * W]`` fp32). ``hidden_pairs``/``hidden_bias``: `later_hidden_layers`' flat arrays; ``xp``
+    ``[8, W / 2]`` and ``xp_bf16``, the same memory as flat ``[8 * W]`` uint16 (pair q of a row is
+    its columns 2q (low half: little-endian), 2q + 1)."""
     half = first_pairs.shape[1]
     width = 2 * half
     for b in range(_OUT_ROWS):
         src = active[block + min(b, n_rows - 1)]
         for q in range(half):
             xp[b, q] = first_pairs[src, q]
-    xp_bf16 = xp.view(np.uint16)  # [8, W]: pair q of a row is its columns 2q (low half: little-endian), 2q + 1
-    for layer in range(hidden_pairs.shape[0]):
+    for layer in range(hidden_bias.shape[0] // width):
         for g in range(0, _OUT_ROWS, 4):
             for i in range(4):
                 quad[i] = g + i
-            dot_rows_bf16(xp, quad, half, hidden_pairs[layer], width, dots)
+            dot_rows_bf16(xp, quad, half, hidden_pairs, layer * half * width, width, dots)
             for i in range(4):  # these rows' inputs are read: overwrite them with the layer's outputs
-                _bias_leaky_bf16(dots, i * width, hidden_bias[layer], slope, xp_bf16[g + i])
-    for b in range(_OUT_ROWS):
-        for c in range(0, width, 16):
-            store16(rows[b], c, load_bf16x16(xp_bf16[b], c))
+                _bias_leaky_bf16(dots, i * width, hidden_bias, layer * width, width, slope, xp_bf16, (g + i) * width)
+    for c in range(0, _OUT_ROWS * width, 16):
+        store16(rows, c, load_bf16x16(xp_bf16, c))
 
 
 @numba.njit(cache=True, inline="always")
 def _decode_scratch(width, n_padded, needed):
     """Per-thread scratch of `_decode_rows` (empty where not ``needed``): the last hidden layer's
-    `_OUT_ROWS` rows ``[8, W]`` fp32, their outputs ``[8, P]`` fp32 and bf16 pairs ``[8, W / 2]``."""
+    `_OUT_ROWS` rows (flat ``[8 * W]`` fp32), their outputs (flat ``[8 * P]`` fp32), and bf16 pairs
+    ``[8, W / 2]`` with the same memory as flat ``[8 * W]`` uint16."""
     rows = _OUT_ROWS if needed else 0
-    return np.empty((rows, width), np.float32), np.empty((rows, n_padded), np.float32), np.empty((rows, width // 2), np.uint32)
+    xp = np.empty((rows, width // 2), np.uint32)
+    return np.empty(rows * width, np.float32), np.empty(rows * n_padded, np.float32), xp, xp.reshape(-1).view(np.uint16)
 
 
 @numba.njit(cache=True, inline="always")
-def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                 hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
-    """Ray r's record from its raw outputs ``out``: the same operations as
+    """Ray r's record from its raw outputs ``out[o:]``: the same operations as
     the torch decoding, in fp32; the norm of the normal is torch's (fused multiply-adds from x^2);
     the sigmoid differs from torch's by <= 3 ulp. ``occlusion_only`` writes ``hit`` alone.
     (The records are separate arguments: numba 0.68 lost the writes to arrays unpacked from a tuple
     argument inside an inlined function in a prange loop.)"""
     te = t_enter[r]
-    t = (t_offset[r] + te) + _sigmoid(out[1]) * (t_exit[r] - te)
-    h = out[0] > occlusion_logit and t < t_max[r] and t > t_min[r]
+    t = (t_offset[r] + te) + _sigmoid(out[o + 1]) * (t_exit[r] - te)
+    h = out[o] > occlusion_logit and t < t_max[r] and t > t_min[r]
     hit[r] = h
     if occlusion_only:
         return
     t_hit[r] = t if h else np.float32(np.inf)
-    nx, ny, nz = out[2], out[3], out[4]
+    nx, ny, nz = out[o + 2], out[o + 3], out[o + 4]
     norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))
     zero = np.float32(0.0)
     nx, ny, nz = (nx / norm, ny / norm, nz / norm) if h else (zero, zero, zero)
@@ -907,10 +915,10 @@ def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit
     geometric_normal[r, 0], geometric_normal[r, 1], geometric_normal[r, 2] = nx, ny, nz
     if h:
         for c in range(3):
-            albedo[r, c] = _sigmoid(out[5 + c])
+            albedo[r, c] = _sigmoid(out[o + 5 + c])
     best = 0
     for j in range(1, n_materials):  # argmax: the first of equal logits
-        if out[8 + j] > out[8 + best]:
+        if out[o + 8 + j] > out[o + 8 + best]:
             best = j
     material[r] = best if h else -1
 
@@ -918,7 +926,7 @@ def _decode_row(out, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit
 # (Inlined: at most 30 arguments, as any function numba inlines: CPython passes more as one tuple,
 # which numba's inliner rejects.)
 @numba.njit(cache=True, inline="always")
-def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, quad, dots, t_enter,
+def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, xp_bf16, quad, dots, t_enter,
                  t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                  hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
     """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
@@ -930,11 +938,11 @@ def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope
     wo_flat = wo.reshape(-1)
     for block in range(0, m, _OUT_ROWS):
         n_rows = min(_OUT_ROWS, m - block)
-        _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, quad, dots, rows)
+        _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows)
         _output_rows(rows, wo_flat, bo, wo.shape[1], columns, outs)
         for b in range(n_rows):
             r = shift + active[block + b]
-            _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+            _decode_row(outs, b * wo.shape[1], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                         hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
@@ -957,13 +965,13 @@ def _decode_kernel(
     wo_flat = wo.reshape(-1)
     columns = 16 if occlusion_only else n_padded
     for chunk in numba.prange(n_chunks):
-        rows, outs, xp = _decode_scratch(width, n_padded, True)
+        rows, outs, xp, xp_bf16 = _decode_scratch(width, n_padded, True)
         quad = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
         first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
         if first_pairs.shape[0] > 0:
             _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp,
-                         quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                         xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                          hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
             continue
         for block in range(first, last, _OUT_ROWS):
@@ -973,18 +981,18 @@ def _decode_kernel(
                     i = block + min(b, n_rows - 1)  # a short block repeats its last row
                     if to_f32:
                         for k in range(width):
-                            rows[b, k] = bf16_value(x_bf16[i, k])
+                            rows[b * width + k] = bf16_value(x_bf16[i, k])
                     else:
                         for k in range(width):
-                            rows[b, k] = x_f32[i, k]
+                            rows[b * width + k] = x_f32[i, k]
                 _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
             else:
                 for b in range(n_rows):
                     for j in range(x_f32.shape[1]):
-                        outs[b, j] = x_f32[block + b, j]
+                        outs[b * n_padded + j] = x_f32[block + b, j]
             for b in range(n_rows):
                 r = active[block + b]
-                _decode_row(outs[b], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                             hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 

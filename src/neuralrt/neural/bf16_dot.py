@@ -260,10 +260,11 @@ def bf16_pairs(rows: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def dot_rows_bf16(xp, rows, n_pairs, w, width, out):
-    """``out[i * width + j] = sum(p < n_pairs) xp[rows[i], p] . w[p * width + j]`` for the 4 rows
-    ``rows[0..3]`` of ``xp`` (``[G, P]`` uint32 input pairs; a row may repeat) and ``width`` (a
-    multiple of 16) columns of ``w`` (flat ``[P * width]`` uint32 weight pairs); ``out`` flat fp32.
+def dot_rows_bf16(xp, rows, n_pairs, w, w_start, width, out):
+    """``out[i * width + j] = sum(p < n_pairs) xp[rows[i], p] . w[w_start + p * width + j]`` for the
+    4 rows ``rows[0..3]`` of ``xp`` (``[G, P]`` uint32 input pairs; a row may repeat) and ``width`` (a
+    multiple of 16) columns of the weights at ``w_start`` of ``w`` (flat uint32 weight pairs, ``[P *
+    width]`` from there: a layer of several stored in one array); ``out`` flat fp32.
 
     Register-blocked: 4 rows x 64 columns (16 accumulators) per pass over the pairs, so each
     weight vector loaded serves 4 rows (the weights are read once per 4 rows, not once per row)."""
@@ -275,7 +276,7 @@ def dot_rows_bf16(xp, rows, n_pairs, w, width, out):
         a20, a21, a22, a23 = zeros16(), zeros16(), zeros16(), zeros16()
         a30, a31, a32, a33 = zeros16(), zeros16(), zeros16(), zeros16()
         for p in range(n_pairs):
-            k = p * width + c
+            k = w_start + p * width + c
             x0, x1, x2, x3 = xp[r0, p], xp[r1, p], xp[r2, p], xp[r3, p]
             a00, a01 = dot_bf16_pairs(a00, x0, w, k), dot_bf16_pairs(a01, x0, w, k + 16)
             a02, a03 = dot_bf16_pairs(a02, x0, w, k + 32), dot_bf16_pairs(a03, x0, w, k + 48)
@@ -296,7 +297,7 @@ def dot_rows_bf16(xp, rows, n_pairs, w, width, out):
     while c + 16 <= width:
         a0, a1, a2, a3 = zeros16(), zeros16(), zeros16(), zeros16()
         for p in range(n_pairs):
-            k = p * width + c
+            k = w_start + p * width + c
             a0, a1 = dot_bf16_pairs(a0, xp[r0, p], w, k), dot_bf16_pairs(a1, xp[r1, p], w, k)
             a2, a3 = dot_bf16_pairs(a2, xp[r2, p], w, k), dot_bf16_pairs(a3, xp[r3, p], w, k)
         store16(out, c, a0), store16(out, width + c, a1), store16(out, 2 * width + c, a2), store16(out, 3 * width + c, a3)
