@@ -15,7 +15,8 @@
 #       benchmarks/bench_scaling.py at SCALING_THREADS (2 16 8 4; the 2-thread process is the baseline, each
 #       process's row written as soon as it ends), training also at 2^15- and 2^17-ray batches, ms per step in
 #       each stage at every batch size, the encoder backward per table-gradient scatter (SCALING_ARGS replaces
-#       those last three's flags); JSON SCALING_NAME.
+#       those last three's flags; session 34's inference A/Bs: SCALING_ARGS="--skip-training --repeats 8
+#       --switches chunk_size=1048576 FIRST_LAYER_IN_PASS=True,HIDDEN_LAYERS_IN_DECODE=True"); JSON SCALING_NAME.
 #   bash benchmarks/run_gpu.sh pairs     # <= PAIR_S (100) s per pair: benchmarks/bench_training.py pairs on all the host's
 #       cores (PAIRS, words of pair[:draw threads], default "loss_chunks draw_threads:4"), procedural statue(2),
 #       hq, 200 steps x 5; JSON training_host_<pair>.
