@@ -563,9 +563,9 @@ def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell
 
 
 def test_a_cpu_chunk_holds_at_least_min_rays_per_thread(trained_cornell, monkeypatch):
-    """The fused CPU pass takes `MIN_RAYS_PER_THREAD` rays per numba thread at a time where that is
-    more than ``chunk_size`` (fewer parallel regions on many threads); the torch path and a larger
-    ``chunk_size`` keep ``chunk_size``."""
+    """The fused CPU pass takes `MIN_RAYS_PER_THREAD` rays per numba thread at a time (at most
+    `MAX_RAYS_BY_THREADS`) where that is more than ``chunk_size`` (fewer parallel regions on many
+    threads); the torch path and a larger ``chunk_size`` keep ``chunk_size``."""
     import numba
 
     model = trained_cornell
@@ -580,6 +580,8 @@ def test_a_cpu_chunk_holds_at_least_min_rays_per_thread(trained_cornell, monkeyp
     rays = _decoding_rays(model, 3000, seed=31)
     model.occluded(rays)
     assert calls == [min(chunk, 3000 - start) for start in range(0, 3000, chunk)]
+    monkeypatch.setattr(fused, "MAX_RAYS_BY_THREADS", 2000)  # (the rule's cap)
+    assert model.rays_per_chunk(cpu) == max(1024, min(1536 * numba.get_num_threads(), 2000))
     monkeypatch.setattr(model.config.inference, "chunk_size", 1 << 20)
     assert model.rays_per_chunk(cpu) == 1 << 20
     monkeypatch.setattr(fused, "WRITE_HITS", False)

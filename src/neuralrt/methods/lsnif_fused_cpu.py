@@ -729,13 +729,16 @@ def fused_network_outputs_cpu(
 # `InferenceConfig.chunk_size` wins). A 16-core Intel Xeon (AMX; session 34, hairball(6), untrained,
 # 2^18 rays, `bench_scaling.py --switches`, two runs): the 2^18 rays in one chunk over four of
 # 2^16: `intersect` 1.22x / 1.25x (`hq`), 1.07x / 1.32x (`lq`), `occluded` 1.07-1.26x; in two of
-# 2^17: 1.10-1.17x; in 16 of 2^14: 0.49-0.60x. On 2 threads it changes nothing.
+# 2^17: 1.10-1.17x; in 16 of 2^14: 0.49-0.60x. On 2 threads it changes nothing. The rule stops
+# at the 2^18 rays measured (a chunk's buffers grow with it: on AMX hosts up to ~1 KiB a ray).
 MIN_RAYS_PER_THREAD = 1 << 14
+MAX_RAYS_BY_THREADS = 1 << 18
 
 
 def rays_per_chunk(configured: int) -> int:
-    """Rays per chunk of the fused CPU pass: ``configured``, or `MIN_RAYS_PER_THREAD` per numba thread where more."""
-    return max(configured, MIN_RAYS_PER_THREAD * numba.get_num_threads())
+    """Rays per chunk of the fused CPU pass: ``configured``, or `MIN_RAYS_PER_THREAD` per numba
+    thread (at most `MAX_RAYS_BY_THREADS`) where that is more."""
+    return max(configured, min(MIN_RAYS_PER_THREAD * numba.get_num_threads(), MAX_RAYS_BY_THREADS))
 
 
 # `LSNIFModel.intersect` on the CPU decodes in `fused_hits_cpu` (numba) and `occluded` decodes only
