@@ -133,13 +133,14 @@ def _inputs_bf16(xs_row, n_inputs, n_out, out_row):
 
 
 @numba.njit(cache=True)
-def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, buckets, rows, dots, hidden_bf16, start):
+def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope, order, buckets, rows, dots, hidden_flat, start):
     """The first layer of a group's rays in bf16 (`dot_rows_bf16`), 4 rays per weight pass:
     each ray's inputs rounded to bf16 pairs (`_inputs_bf16`; zero up to the group's longest, so
     that a pass reads zeros past a ray's own), the rays with points ordered by point count (most
     first) so that the 4 of a pass need about as many pairs; bias, leaky ReLU and the rounding to
-    bf16 in fp32 as the per-ray path; writes ``hidden_bf16[start + g]`` and returns the number m of
-    rays with points (``order[:m]``). ``xs [G, K]`` fp32 and ``xp [G, K / 2]`` uint32, K a multiple of 16."""
+    bf16 in fp32 as the per-ray path; writes ray g's row at ``(start + g) * W`` of ``hidden_flat``
+    (flat ``[N * W]`` uint16) and returns the number m of rays with points (``order[:m]``).
+    ``xs [G, K]`` fp32 and ``xp [G, K / 2]`` uint32, K a multiple of 16."""
     width = b1.shape[0]
     longest = 0
     for g in range(n_group):
@@ -168,7 +169,7 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
             rows[i] = order[q + min(i, n_rows - 1)]  # a short pass repeats its last ray
         dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, 0, width, dots)
         for i in range(n_rows):
-            _bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_bf16[start + rows[i]], 0)
+            _bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_flat, (start + rows[i]) * width)
     return m
 
 
@@ -303,7 +304,7 @@ def _fused_kernel(
         dots = np.empty(4 * width, np.float32)
         # decode_here: the group's first hidden layer (row g: ray start + g), then `_decode_rows`' scratch
         group_hidden = np.empty((_GROUP if decode_here else 0, width), np.uint16)
-        layer_out = group_hidden if decode_here else hidden_bf16
+        layer_out = (group_hidden if decode_here else hidden_bf16).reshape(-1)  # (flat: `_first_layer_pairs` writes at offsets)
         rows8, outs, xp8, xp8_bf16 = _decode_scratch(width, wo.shape[1], decode_here)
         first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
         n_groups = (last - first + _GROUP - 1) // _GROUP
@@ -1006,9 +1007,14 @@ def _decode_kernel(
 DECODE_IN_PASS = True
 
 
+def _numba_after_first_layer(p: _Pass) -> bool:
+    """Whether every layer after the first and the output layer run in numba (`_decode_rows`)."""
+    return p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE
+
+
 def decodes_in_pass(p: _Pass) -> bool:
     """Whether the fused pass decodes the answers itself (see DECODE_IN_PASS)."""
-    return DECODE_IN_PASS and p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE
+    return DECODE_IN_PASS and _numba_after_first_layer(p)
 
 
 def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t_exit: np.ndarray,
@@ -1021,7 +1027,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
         return
     x_f32, x_bf16 = np.zeros((0, 1), np.float32), np.zeros((0, 1), np.uint16)
     first_pairs = np.zeros((0, max(p.b1.shape[0] // 2, 1)), np.uint32)
-    if p.pairs and later_layers_in_pass() and OUTPUT_LAYER_IN_DECODE:  # all layers after the first in the pass
+    if _numba_after_first_layer(p):  # all layers after the first in the decoding pass
         first_pairs = hidden.view(torch.int16).numpy().view(np.uint16).view(np.uint32)
     else:
         x = hidden_layers(p.network, hidden, torch.from_numpy(active), p.compute_dtype, p.first_layer)
