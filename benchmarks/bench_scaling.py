@@ -18,7 +18,7 @@ machine size. In each process:
 - inference: an untrained model on the mesh's real occupancy (random table, rounded to its storage
   precision as `train` returns a model: the speed does not depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
   best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both; with ``--switches``, LSNIF's
-  also with each setting (``lsnif_intersect[THREADED_PIPELINE=True]_hq_rays/s``), in the same rounds.
+  also with each setting (``lsnif_intersect[MIN_RAYS_PER_THREAD=0]_hq_rays/s``), in the same rounds.
 The table gives each figure's speed-up over the 2-thread process (the issue's "2-core rate") and
 over 1 thread. Writes benchmarks/results/<--name>.json.
 """
@@ -74,18 +74,37 @@ def _scatter_times(mesh, truth, config, args) -> dict:
     return times
 
 
-def _with_switch(model, switch: str, call):
-    """``call`` run with pipeline settings changed, then restored: ``NAME=VALUE[,NAME=VALUE...]``,
-    each NAME a module-level switch of `lsnif_fused_cpu` (VALUE True, False, None or an int) or
-    ``chunk_size`` (the model's inference chunk)."""
+def _switch_settings(text: str) -> list[tuple[str, bool | int | None]]:
+    """``NAME=VALUE[,NAME=VALUE...]`` as (name, value) pairs: each NAME ``chunk_size`` or a
+    module-level switch of `lsnif_fused_cpu`, each VALUE True, False, None or a whole number
+    (argparse.ArgumentTypeError otherwise)."""
     from neuralrt.methods import lsnif_fused_cpu
 
+    constants = {"True": True, "False": False, "None": None}
     settings = []
-    for item in switch.split(","):
-        name, _, text = item.partition("=")
-        value = {"True": True, "False": False, "None": None}[text] if text in ("True", "False", "None") else int(text)
-        owner = model.config.inference if name == "chunk_size" else lsnif_fused_cpu
-        settings.append((owner, name, value))
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        if not sep or not (name == "chunk_size" or (name.isupper() and hasattr(lsnif_fused_cpu, name))):
+            raise argparse.ArgumentTypeError(f"{item!r}: want NAME=VALUE, NAME chunk_size or a switch of lsnif_fused_cpu")
+        if value not in constants and not value.isdigit():
+            raise argparse.ArgumentTypeError(f"{item!r}: VALUE is True, False, None or a whole number")
+        settings.append((name, constants[value] if value in constants else int(value)))
+    return settings
+
+
+def _switch_argument(text: str) -> str:
+    """An argparse type: ``text`` where `_switch_settings` accepts it (before any process starts)."""
+    _switch_settings(text)
+    return text
+
+
+def _with_switch(model, switch: str, call):
+    """``call`` run with the settings of ``switch`` (`_switch_settings`: ``chunk_size`` is the
+    model's inference chunk, other names `lsnif_fused_cpu`'s switches), then restored."""
+    from neuralrt.methods import lsnif_fused_cpu
+
+    settings = [(model.config.inference if name == "chunk_size" else lsnif_fused_cpu, name, value)
+                for name, value in _switch_settings(switch)]  # fmt: skip
 
     def run():
         saved = [(owner, name, getattr(owner, name)) for owner, name, _ in settings]
@@ -98,19 +117,6 @@ def _with_switch(model, switch: str, call):
                 setattr(owner, name, value)
 
     return run
-
-
-def _switch_argument(text: str) -> str:
-    """An argparse type: ``NAME=VALUE[,NAME=VALUE...]`` naming switches that exist (before any process starts)."""
-    from neuralrt.methods import lsnif_fused_cpu
-
-    for item in text.split(","):
-        name, sep, value = item.partition("=")
-        if not sep or not (name == "chunk_size" or (name.isupper() and hasattr(lsnif_fused_cpu, name))):
-            raise argparse.ArgumentTypeError(f"{item!r}: want NAME=VALUE, NAME chunk_size or a switch of lsnif_fused_cpu")
-        if value not in ("True", "False", "None") and not value.isdigit():
-            raise argparse.ArgumentTypeError(f"{item!r}: VALUE is True, False, None or a whole number")
-    return text
 
 
 def _child(args) -> dict:
