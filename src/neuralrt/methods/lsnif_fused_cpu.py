@@ -58,6 +58,7 @@ from ..simd16 import (
     bits16, compress16_f32, compress16_i32, lane_index16, load16_i32, popcount16, splat_i32, store16_i32,
 )  # fmt: skip
 from ..rays_kernels import valid_ray
+from ..task_queue import take_task, task_workers
 from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
 from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
 
@@ -226,15 +227,16 @@ def _list_points(point_ray, point_slot, point_code, point_x, point_y, point_z, e
 # 32), 64 and 256 measured 1.024x and 1.000x (`lq`).
 _GROUP = 128
 
-# Many small chunks handed out one at a time: rays vary in length, and on a shared machine one
-# thread may be descheduled; with the default static split the other waits for it.
+# Many small chunks handed out one at a time (`task_queue`): rays vary in length, and on a shared
+# machine one thread may be descheduled; with numba's static split of a prange (its OpenMP layer)
+# the other waits for it.
 _CHUNKS_PER_THREAD = 32
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
-    w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks,
+    w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks, n_workers,
     hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
     decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only,
     hit, t_hit, normal, geometric_normal, albedo, material,
@@ -265,7 +267,8 @@ def _fused_kernel(
     mask = np.int64(table_size - 1)
     width = b1.shape[0]
     block = n_levels * n_feat + 1  # weight rows per point slot
-    for chunk in numba.prange(n_chunks):
+    next_chunk = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
         pts = np.empty((_GROUP, max_points, 3), np.float32)
         axes = np.empty((_GROUP, max_points), np.int8)
         # Two groups in flight: one is walked and its rows found while the other's rows are read
@@ -306,126 +309,130 @@ def _fused_kernel(
         group_hidden = np.empty((_GROUP if decode_here else 0, width), np.uint16)
         layer_out = (group_hidden if decode_here else hidden_bf16).reshape(-1)  # (flat: `_first_layer_pairs` writes at offsets)
         rows8, outs, xp8, xp8_bf16 = _decode_scratch(width, wo.shape[1], decode_here)
-        first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
-        n_groups = (last - first + _GROUP - 1) // _GROUP
-        for step in range(n_groups + 1):
-            if step < n_groups:  # walk group `step`; find its rows
-                b = step & 1
-                start = first + step * _GROUP
-                stop = min(start + _GROUP, last)
-                # 0. the rays into the unit box
-                for g in range(stop - start):
-                    n = start + g
-                    t_offset[n] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, g, unit_o, unit_d)
-                    if not valid_ray(origins, directions, t_min, t_max, n):
-                        unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
-                # 1. walk; list the points
-                e = 0
-                if simd_walk:  # sixteen rays at a time, the points unordered
-                    e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
-                                   queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b], point_code[b],
-                                   point_ray, point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
-                    for g in range(stop - start):
-                        counts[start + g] = group_count[b, g]
-                else:
+        while True:
+            chunk = take_task(next_chunk)
+            if chunk >= n_chunks:
+                break
+            first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
+            n_groups = (last - first + _GROUP - 1) // _GROUP
+            for step in range(n_groups + 1):
+                if step < n_groups:  # walk group `step`; find its rows
+                    b = step & 1
+                    start = first + step * _GROUP
+                    stop = min(start + _GROUP, last)
+                    # 0. the rays into the unit box
                     for g in range(stop - start):
                         n = start + g
-                        ox32, oy32, oz32 = unit_o[g, 0], unit_o[g, 1], unit_o[g, 2]
-                        dx32, dy32, dz32 = unit_d[g, 0], unit_d[g, 1], unit_d[g, 2]
-                        count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
-                                                    np.float64(dx32), np.float64(dy32), np.float64(dz32),
-                                                    occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
-                        counts[n] = count
-                        t_enter[n] = t0
-                        t_exit[n] = t1
-                        group_count[b, g] = count
-                        for h in range(count):
-                            px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
-                            point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
-                            point_ray[e], point_slot[e] = g, h
-                            point_local[b, e] = local_distance(px, py, pz, ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0),
-                                                               np.float32(t1))  # fmt: skip
-                            e += 1
-                # list the points: their inputs' columns; the origin points
-                n_origin = _list_points(point_ray, point_slot, point_code[b], point_x, point_y, point_z, e, b * _GROUP, xs.shape[2],
-                                        block, point_column[b], origin_entry[b], origin_x, origin_y, origin_z)  # fmt: skip
-                # 2. every point's face rows and weights, per level (origin points' are computed and
-                # unused), and the origin points' 8 rows
-                for lvl in range(n_levels):
-                    res, base = resolutions[lvl], lvl * table_size
-                    _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
-                    _origin_rows_of_points(origin_x, origin_y, origin_z, n_origin, res, mask, base, origin_slots[b, lvl],
-                                           origin_weights[b, lvl])  # fmt: skip
-                group_points[b] = e
-                group_origins[b] = n_origin
-            if step > 0:  # read group `step - 1`'s rows, then its first layer
-                b = (step - 1) & 1
-                start = first + (step - 1) * _GROUP
-                stop = min(start + _GROUP, last)
-                # 3. the table reads, all independent, and the points' local distances (with n_feat = 3, the
-                # default: a row per vector load, the distance stored with the last level's features)
-                top = n_levels - 1  # the last level
-                for i in range(group_points[b]):
-                    if point_code[b, i] == ORIGIN_POINT:
+                        t_offset[n] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, g, unit_o, unit_d)
+                        if not valid_ray(origins, directions, t_min, t_max, n):
+                            unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
+                    # 1. walk; list the points
+                    e = 0
+                    if simd_walk:  # sixteen rays at a time, the points unordered
+                        e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
+                                       queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b], point_code[b],
+                                       point_ray, point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
+                        for g in range(stop - start):
+                            counts[start + g] = group_count[b, g]
+                    else:
+                        for g in range(stop - start):
+                            n = start + g
+                            ox32, oy32, oz32 = unit_o[g, 0], unit_o[g, 1], unit_o[g, 2]
+                            dx32, dy32, dz32 = unit_d[g, 0], unit_d[g, 1], unit_d[g, 2]
+                            count, _, t0, t1 = walk_ray(np.float64(ox32), np.float64(oy32), np.float64(oz32),
+                                                        np.float64(dx32), np.float64(dy32), np.float64(dz32),
+                                                        occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+                            counts[n] = count
+                            t_enter[n] = t0
+                            t_exit[n] = t1
+                            group_count[b, g] = count
+                            for h in range(count):
+                                px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
+                                point_x[e], point_y[e], point_z[e], point_code[b, e] = px, py, pz, axes[g, h]
+                                point_ray[e], point_slot[e] = g, h
+                                point_local[b, e] = local_distance(px, py, pz, ox32, oy32, oz32, dx32, dy32, dz32, np.float32(t0),
+                                                                   np.float32(t1))  # fmt: skip
+                                e += 1
+                    # list the points: their inputs' columns; the origin points
+                    n_origin = _list_points(point_ray, point_slot, point_code[b], point_x, point_y, point_z, e, b * _GROUP, xs.shape[2],
+                                            block, point_column[b], origin_entry[b], origin_x, origin_y, origin_z)  # fmt: skip
+                    # 2. every point's face rows and weights, per level (origin points' are computed and
+                    # unused), and the origin points' 8 rows
+                    for lvl in range(n_levels):
+                        res, base = resolutions[lvl], lvl * table_size
+                        _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
+                        _origin_rows_of_points(origin_x, origin_y, origin_z, n_origin, res, mask, base, origin_slots[b, lvl],
+                                               origin_weights[b, lvl])  # fmt: skip
+                    group_points[b] = e
+                    group_origins[b] = n_origin
+                if step > 0:  # read group `step - 1`'s rows, then its first layer
+                    b = (step - 1) & 1
+                    start = first + (step - 1) * _GROUP
+                    stop = min(start + _GROUP, last)
+                    # 3. the table reads, all independent, and the points' local distances (with n_feat = 3, the
+                    # default: a row per vector load, the distance stored with the last level's features)
+                    top = n_levels - 1  # the last level
+                    for i in range(group_points[b]):
+                        if point_code[b, i] == ORIGIN_POINT:
+                            continue
+                        col = point_column[b, i]
+                        local = point_local[b, i] if point_distances else np.float32(0.0)
+                        if n_feat == 3:
+                            for lvl in range(top):
+                                s, c = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
+                                _read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + lvl * 3)
+                            s, c = face_slots[b, top, :, i], face_weights[b, top, :, i]
+                            _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + top * 3, local)
+                        else:
+                            xs_flat[col + block - 1] = local
+                            for lvl in range(n_levels):
+                                _read_rows(table, face_slots[b, lvl, :, i], face_weights[b, lvl, :, i], 4, xs_flat, col + lvl * n_feat)
+                    for k in range(group_origins[b]):
+                        col = point_column[b, origin_entry[b, k]]
+                        local = point_local[b, origin_entry[b, k]] if point_distances else np.float32(0.0)
+                        if n_feat == 3:
+                            for lvl in range(top):
+                                s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
+                                _read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
+                                            (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * 3)  # fmt: skip
+                            s, c = origin_slots[b, top, :, k], origin_weights[b, top, :, k]
+                            _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
+                                             (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + top * 3, local)  # fmt: skip
+                        else:
+                            xs_flat[col + block - 1] = local
+                            for lvl in range(n_levels):
+                                _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
+                    # 4. the first layer, or its inputs
+                    if write_inputs:
+                        for g in range(stop - start):
+                            if group_count[b, g] > 0:
+                                _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
                         continue
-                    col = point_column[b, i]
-                    local = point_local[b, i] if point_distances else np.float32(0.0)
-                    if n_feat == 3:
-                        for lvl in range(top):
-                            s, c = face_slots[b, lvl, :, i], face_weights[b, lvl, :, i]
-                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + lvl * 3)
-                        s, c = face_slots[b, top, :, i], face_weights[b, top, :, i]
-                        _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3]), (c[0], c[1], c[2], c[3]), xs_flat, col + top * 3, local)
-                    else:
-                        xs_flat[col + block - 1] = local
-                        for lvl in range(n_levels):
-                            _read_rows(table, face_slots[b, lvl, :, i], face_weights[b, lvl, :, i], 4, xs_flat, col + lvl * n_feat)
-                for k in range(group_origins[b]):
-                    col = point_column[b, origin_entry[b, k]]
-                    local = point_local[b, origin_entry[b, k]] if point_distances else np.float32(0.0)
-                    if n_feat == 3:
-                        for lvl in range(top):
-                            s, c = origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k]
-                            _read_rows3(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
-                                        (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + lvl * 3)  # fmt: skip
-                        s, c = origin_slots[b, top, :, k], origin_weights[b, top, :, k]
-                        _read_rows3_then(table_flat, (s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]),
-                                         (c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]), xs_flat, col + top * 3, local)  # fmt: skip
-                    else:
-                        xs_flat[col + block - 1] = local
-                        for lvl in range(n_levels):
-                            _read_rows(table, origin_slots[b, lvl, :, k], origin_weights[b, lvl, :, k], 8, xs_flat, col + lvl * n_feat)
-                # 4. the first layer, or its inputs
-                if write_inputs:
+                    if pairs:
+                        m = _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
+                                               dots, layer_out, 0 if decode_here else start)  # fmt: skip
+                        if decode_here:
+                            _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
+                                         outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
+                                         occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                        continue
                     for g in range(stop - start):
-                        if group_count[b, g] > 0:
-                            _input_pairs(xs[b, g], group_count[b, g] * block, input_pairs[start + g])
-                    continue
-                if pairs:
-                    m = _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
-                                           dots, layer_out, 0 if decode_here else start)  # fmt: skip
-                    if decode_here:
-                        _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
-                                     outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
-                                     occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
-                    continue
-                for g in range(stop - start):
-                    count = group_count[b, g]
-                    if count == 0:
-                        continue
-                    for j in range(width):
-                        acc[j] = b1[j]
-                    _add_inputs(acc, w1, xs[b, g], count * block)
-                    for j in range(width):
-                        y = acc[j]
-                        acc[j] = y if y >= 0 else y * slope
-                    n = start + g
-                    if to_bf16:
+                        count = group_count[b, g]
+                        if count == 0:
+                            continue
                         for j in range(width):
-                            hidden_bf16[n, j] = np.uint16(bf16_bits(acc[j]))
-                    else:
+                            acc[j] = b1[j]
+                        _add_inputs(acc, w1, xs[b, g], count * block)
                         for j in range(width):
-                            hidden_f32[n, j] = acc[j]
+                            y = acc[j]
+                            acc[j] = y if y >= 0 else y * slope
+                        n = start + g
+                        if to_bf16:
+                            for j in range(width):
+                                hidden_bf16[n, j] = np.uint16(bf16_bits(acc[j]))
+                        else:
+                            for j in range(width):
+                                hidden_f32[n, j] = acc[j]
 
 
 # The voxel walk sixteen rays at a time (`lsnif_walk_simd`) where numba compiles for AVX-512 and
@@ -667,13 +674,12 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
         # (lq, 227 vs 103 us; 1,024 rays 315 vs 184 us; ad hoc, 2 threads, session 34).
         n_chunks = min(-(-n // _GROUP), _CHUNKS_PER_THREAD * numba.get_num_threads())
         simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
-        with numba.parallel_chunksize(1):
-            _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
-                          simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
-                          p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, hidden_f32,
-                          hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here, p.hidden_pairs, p.hidden_bias, p.wo,
-                          p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials), decoding.occlusion_only,
-                          *decoding.records)  # fmt: skip
+        _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
+                      simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
+                      p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
+                      task_workers(n_chunks), hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
+                      p.hidden_pairs, p.hidden_bias, p.wo, p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials),
+                      decoding.occlusion_only, *decoding.records)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
