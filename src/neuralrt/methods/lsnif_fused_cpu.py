@@ -267,6 +267,7 @@ def _fused_kernel(
     mask = np.int64(table_size - 1)
     width = b1.shape[0]
     block = n_levels * n_feat + 1  # weight rows per point slot
+    wo_flat = wo.reshape(-1)
     next_chunk = np.zeros(1, np.int64)
     for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
         pts = np.empty((_GROUP, max_points, 3), np.float32)
@@ -412,7 +413,7 @@ def _fused_kernel(
                         m = _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
                                                dots, layer_out, 0 if decode_here else start)  # fmt: skip
                         if decode_here:
-                            _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo, bo, rows8,
+                            _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows8,
                                          outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
                                          occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                         continue
@@ -936,30 +937,33 @@ def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_lo
 # (Inlined: at most 30 arguments, as any function numba inlines: CPython passes more as one tuple,
 # which numba's inliner rejects.)
 @numba.njit(cache=True, inline="always")
-def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp, xp_bf16, quad, dots, t_enter,
+def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows, outs, xp, xp_bf16, quad, dots, t_enter,
                  t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                  hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
     """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
     ``first_pairs[active[i]]`` through the later hidden layers (`_later_hidden_rows`) and the output
-    layer (`_output_rows`; only its first 16 columns with ``occlusion_only``) into records row r
-    (`_decode_row`), `_OUT_ROWS` rays at a time (scratch: `_decode_scratch`, and
-    ``quad``/``dots`` as `dot_rows_bf16`'s)."""
-    columns = 16 if occlusion_only else wo.shape[1]
-    wo_flat = wo.reshape(-1)
+    layer (``wo_flat``, `_output_rows`' flat weights, and ``bo``; only its first 16 columns with
+    ``occlusion_only``) into records row r (`_decode_row`), `_OUT_ROWS` rays at a time (scratch:
+    `_decode_scratch`, and ``quad``/``dots`` as `dot_rows_bf16`'s)."""
+    n_padded = bo.shape[0]
+    columns = 16 if occlusion_only else n_padded
     for block in range(0, m, _OUT_ROWS):
         n_rows = min(_OUT_ROWS, m - block)
         _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows)
-        _output_rows(rows, wo_flat, bo, wo.shape[1], columns, outs)
+        _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
         for b in range(n_rows):
             r = shift + active[block + b]
-            _decode_row(outs, b * wo.shape[1], r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+            _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                         hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+
+
+_DECODE_TASK_ROWS = 8 * _OUT_ROWS
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _decode_kernel(
     x_f32, x_bf16, first_pairs, hidden_pairs, hidden_bias, slope, wo, bo, output_layer, active, t_enter, t_exit,
-    t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks,
+    t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only, n_chunks, n_workers,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network (`_decode_row`),
@@ -974,36 +978,41 @@ def _decode_kernel(
     to_f32 = x_bf16.shape[0] > 0
     wo_flat = wo.reshape(-1)
     columns = 16 if occlusion_only else n_padded
-    for chunk in numba.prange(n_chunks):
+    next_chunk = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
         rows, outs, xp, xp_bf16 = _decode_scratch(width, n_padded, True)
         quad = np.empty(4, np.int64)
         dots = np.empty(4 * width, np.float32)
-        first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
-        if first_pairs.shape[0] > 0:
-            _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo, bo, rows, outs, xp,
-                         xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                         hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
-            continue
-        for block in range(first, last, _OUT_ROWS):
-            n_rows = min(_OUT_ROWS, last - block)
-            if output_layer:
-                for b in range(_OUT_ROWS):
-                    i = block + min(b, n_rows - 1)  # a short block repeats its last row
-                    if to_f32:
-                        for k in range(width):
-                            rows[b * width + k] = bf16_value(x_bf16[i, k])
-                    else:
-                        for k in range(width):
-                            rows[b * width + k] = x_f32[i, k]
-                _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
-            else:
+        while True:
+            chunk = take_task(next_chunk)
+            if chunk >= n_chunks:
+                break
+            first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
+            if first_pairs.shape[0] > 0:
+                _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows, outs, xp,
+                             xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                             hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                continue
+            for block in range(first, last, _OUT_ROWS):
+                n_rows = min(_OUT_ROWS, last - block)
+                if output_layer:
+                    for b in range(_OUT_ROWS):
+                        i = block + min(b, n_rows - 1)  # a short block repeats its last row
+                        if to_f32:
+                            for k in range(width):
+                                rows[b * width + k] = bf16_value(x_bf16[i, k])
+                        else:
+                            for k in range(width):
+                                rows[b * width + k] = x_f32[i, k]
+                    _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
+                else:
+                    for b in range(n_rows):
+                        for j in range(x_f32.shape[1]):
+                            outs[b * n_padded + j] = x_f32[block + b, j]
                 for b in range(n_rows):
-                    for j in range(x_f32.shape[1]):
-                        outs[b * n_padded + j] = x_f32[block + b, j]
-            for b in range(n_rows):
-                r = active[block + b]
-                _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                            hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                    r = active[block + b]
+                    _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+                                hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
 # The rest of the network and the decoding run in the fused pass, a group of rays after their
@@ -1043,10 +1052,11 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
             x_bf16 = x.view(torch.int16).numpy().view(np.uint16)
         else:
             x_f32 = x.numpy()
-    n_chunks = max(1, min(len(active), 8 * numba.get_num_threads()))
+    # Tasks of at least _DECODE_TASK_ROWS rows: a worker's scratch serves many blocks
+    n_chunks = max(1, min(-(-len(active) // _DECODE_TASK_ROWS), 8 * numba.get_num_threads()))
     _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), p.wo, p.bo,
                    OUTPUT_LAYER_IN_DECODE, active, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
-                   int(num_materials), occlusion_only, n_chunks, *records)  # fmt: skip
+                   int(num_materials), occlusion_only, n_chunks, task_workers(n_chunks), *records)  # fmt: skip
 
 
 def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
