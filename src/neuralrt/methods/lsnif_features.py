@@ -50,6 +50,7 @@ from torch import Tensor
 
 from ..rays import Rays, valid_ray_mask
 from ..rays_kernels import valid_ray
+from ..task_queue import take_task, task_workers
 
 __all__ = [
     "RayFeaturePoints",
@@ -243,19 +244,24 @@ def walk_ray(ox, oy, oz, dx, dy, dz, occ, planes, max_points, origin_point, shar
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _featurize_kernel(
-    origins, directions, occ, planes, max_points, origin_point, share, n_chunks,
+    origins, directions, occ, planes, max_points, origin_point, share, n_chunks, n_workers,
     pts, axes, counts, truncated, t_enter, t_exit,
 ):  # fmt: skip
     n_rays = origins.shape[0]
-    for chunk in numba.prange(n_chunks):
-        for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
-            count, cut, t0, t1 = walk_ray(
-                origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1], directions[n, 2],
-                occ, planes, max_points, origin_point, share, pts, axes, n)  # fmt: skip
-            counts[n] = count
-            truncated[n] = cut
-            t_enter[n] = t0
-            t_exit[n] = t1
+    next_chunk = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
+        while True:
+            chunk = take_task(next_chunk)
+            if chunk >= n_chunks:
+                break
+            for n in range(chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks):
+                count, cut, t0, t1 = walk_ray(
+                    origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0], directions[n, 1], directions[n, 2],
+                    occ, planes, max_points, origin_point, share, pts, axes, n)  # fmt: skip
+                counts[n] = count
+                truncated[n] = cut
+                t_enter[n] = t0
+                t_exit[n] = t1
 
 
 def _as_occupancy(occupancy) -> np.ndarray:
@@ -323,12 +329,12 @@ def featurize_rays_numba(
     truncated = np.empty(n, np.bool_)
     t_enter = np.empty(n, np.float32)
     t_exit = np.empty(n, np.float32)
-    # A few chunks per thread balance rays of uneven length; each chunk reuses its scratch.
+    # A few chunks per thread, handed out one at a time, balance rays of uneven length.
     n_chunks = max(1, min(n, 8 * numba.get_num_threads()))
     if n:
         planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as the reference computes it
         _featurize_kernel(o, d, occ, planes, int(max_points), bool(origin_point),
-                          bool(share_boundary_points), n_chunks,
+                          bool(share_boundary_points), n_chunks, task_workers(n_chunks),
                           pts, axes, counts, truncated, t_enter, t_exit)  # fmt: skip
     arrays = (pts, axes, counts, truncated, t_enter, t_exit)
     return RayFeaturePoints(*(torch.from_numpy(a).to(device) for a in arrays))

@@ -40,6 +40,7 @@ from numba.extending import intrinsic
 from torch import Tensor, nn
 
 from ..simd import broadcast, contiguous_1d, element_pointer, numba_targets, vector_pointer
+from ..task_queue import take_task, task_workers
 from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
@@ -342,7 +343,7 @@ def read_rows(table, slots, weights, k, out, col):
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_bf16, point_offsets, saved_slots, saved_weights):
+def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, n_workers, out, out_bf16, point_offsets, saved_slots, saved_weights):
     """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F (+ extra)]`` fp32, or,
     when ``out_bf16`` has rows, ``out_bf16`` is (uint16 bf16 bits, rounded as torch's cast) and
     ``out`` is unused. Per group of `_GROUP` rays: every point's rows and weights first
@@ -358,64 +359,69 @@ def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, out, out_b
     stride = n_levels * n_feat
     low_precision = out_bf16.shape[0] > 0
     save = point_offsets.shape[0] > 0
-    for chunk in numba.prange(n_chunks):
+    next_chunk = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
         slots = np.empty((_GROUP * n_points * n_levels, 8), np.int64)
         weights = np.empty((_GROUP * n_points * n_levels, 8), np.float32)
         reads = np.empty(_GROUP * n_points * n_levels, np.int64)
         scratch = np.empty(n_points * stride, np.float32)  # one ray's fp32 features before rounding
         used = np.empty(_GROUP, np.int64)  # per ray of the group: slots up to its last valid point
-        stop = (chunk + 1) * n_rays // n_chunks
-        for first in range(chunk * n_rays // n_chunks, stop, _GROUP):
-            last = min(first + _GROUP, stop)
-            e = 0
-            for n in range(first, last):
-                src = rows[n]
-                # Rays fill their slots from the first (`featurize_rays`); the padding after the
-                # last valid point (~2/3 of a bunny ray's 18 slots) is written as zeros at once.
-                h_used = n_points
-                while h_used > 0 and not (0 <= axes[src, h_used - 1] <= _ORIGIN_POINT):
-                    h_used -= 1
-                used[n - first] = h_used
-                for h in range(h_used):
-                    code = axes[src, h]
-                    valid = 0 <= code <= _ORIGIN_POINT
-                    for lvl in range(n_levels):
-                        k = 0
-                        if valid:
-                            k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code,
-                                         resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])  # fmt: skip
-                            for c in range(k):
-                                prefetch_row(table, slots[e, c])
-                        reads[e] = k
-                        e += 1
-            if save:  # a loop of its own (in the one above it measured ~2x the cost)
+        while True:
+            chunk = take_task(next_chunk)
+            if chunk >= n_chunks:
+                break
+            stop = (chunk + 1) * n_rays // n_chunks
+            for first in range(chunk * n_rays // n_chunks, stop, _GROUP):
+                last = min(first + _GROUP, stop)
                 e = 0
                 for n in range(first, last):
-                    p = point_offsets[n]
-                    for h in range(used[n - first]):
+                    src = rows[n]
+                    # Rays fill their slots from the first (`featurize_rays`); the padding after the
+                    # last valid point (~2/3 of a bunny ray's 18 slots) is written as zeros at once.
+                    h_used = n_points
+                    while h_used > 0 and not (0 <= axes[src, h_used - 1] <= _ORIGIN_POINT):
+                        h_used -= 1
+                    used[n - first] = h_used
+                    for h in range(h_used):
+                        code = axes[src, h]
+                        valid = 0 <= code <= _ORIGIN_POINT
                         for lvl in range(n_levels):
-                            if reads[e] == 4:
-                                for c in range(4):
-                                    saved_slots[lvl, p, c] = slots[e, c]
-                                    saved_weights[lvl, p, c] = weights[e, c]
+                            k = 0
+                            if valid:
+                                k = _rows_of(points[src, h, 0], points[src, h, 1], points[src, h, 2], code,
+                                             resolutions[lvl], mask, lvl * table_size, slots[e], weights[e])  # fmt: skip
+                                for c in range(k):
+                                    prefetch_row(table, slots[e, c])
+                            reads[e] = k
                             e += 1
-                        p += 0 <= axes[rows[n], h] <= _ORIGIN_POINT
-            e = 0
-            for n in range(first, last):
-                row = scratch if low_precision else out[n]
-                h_used = used[n - first]
-                for h in range(h_used):
-                    for lvl in range(n_levels):
-                        read_rows(table, slots[e], weights[e], reads[e], row, h * stride + lvl * n_feat)
-                        e += 1
-                if low_precision:
-                    for j in range(h_used * stride):
-                        out_bf16[n, j] = bf16_bits(scratch[j])
-                    for j in range(h_used * stride, n_points * stride):
-                        out_bf16[n, j] = 0  # bf16_bits(0.0)
-                else:
-                    for j in range(h_used * stride, n_points * stride):
-                        out[n, j] = np.float32(0.0)
+                if save:  # a loop of its own (in the one above it measured ~2x the cost)
+                    e = 0
+                    for n in range(first, last):
+                        p = point_offsets[n]
+                        for h in range(used[n - first]):
+                            for lvl in range(n_levels):
+                                if reads[e] == 4:
+                                    for c in range(4):
+                                        saved_slots[lvl, p, c] = slots[e, c]
+                                        saved_weights[lvl, p, c] = weights[e, c]
+                                e += 1
+                            p += 0 <= axes[rows[n], h] <= _ORIGIN_POINT
+                e = 0
+                for n in range(first, last):
+                    row = scratch if low_precision else out[n]
+                    h_used = used[n - first]
+                    for h in range(h_used):
+                        for lvl in range(n_levels):
+                            read_rows(table, slots[e], weights[e], reads[e], row, h * stride + lvl * n_feat)
+                            e += 1
+                    if low_precision:
+                        for j in range(h_used * stride):
+                            out_bf16[n, j] = bf16_bits(scratch[j])
+                        for j in range(h_used * stride, n_points * stride):
+                            out_bf16[n, j] = 0  # bf16_bits(0.0)
+                    else:
+                        for j in range(h_used * stride, n_points * stride):
+                            out[n, j] = np.float32(0.0)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -661,7 +667,8 @@ class _SparseHashGridFunction(torch.autograd.Function):
         if n_rays:
             n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
-            _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, out, bits, offsets, saved_slots, saved_weights)
+            _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, task_workers(n_chunks), out, bits, offsets, saved_slots,
+                            saved_weights)  # fmt: skip
         ctx.saved_rows = (saved_slots, saved_weights) if save else None
         ctx.index = index
         ctx.save_for_backward(points, face_axis)
