@@ -589,6 +589,31 @@ def test_a_cpu_chunk_holds_at_least_min_rays_per_thread(trained_cornell, monkeyp
     assert model.rays_per_chunk(cpu) == 1024
 
 
+def test_chunks_from_the_task_queue_answer_as_the_static_split(trained_cornell, monkeypatch):
+    """The fused pass's chunks taken from the task queue (`DYNAMIC_CHUNKS`, the default) or one per
+    prange iteration give the same records (`intersect`, `occluded`) and raw outputs."""
+    from dataclasses import fields
+
+    model = trained_cornell
+    rays = _decoding_rays(model, 3000, seed=37)
+    unit, fc = model._unit_rays(rays), model.config.features
+
+    def raw_outputs():
+        return fused.fused_network_outputs_cpu(unit.origins, unit.directions, model.occupancy, model.encoder, model.network,
+                                               max_points=fc.max_points, compute_dtype=model.compute_dtype())  # fmt: skip
+
+    reference, reference_occluded = _hits_with(model, rays, monkeypatch, DYNAMIC_CHUNKS=False)
+    reference_raw = raw_outputs()
+    hits, occluded = _hits_with(model, rays, monkeypatch, DYNAMIC_CHUNKS=True)
+    raw = raw_outputs()
+    assert reference.hit.sum() > 300 and torch.equal(occluded, reference_occluded)
+    for f in fields(hits):
+        assert torch.equal(getattr(hits, f.name), getattr(reference, f.name)), f.name
+    assert len(raw.active) > 1000
+    for f in fields(raw):
+        assert torch.equal(getattr(raw, f.name), getattr(reference_raw, f.name)), f.name
+
+
 @pytest.mark.parametrize("write_hits", [True, False])
 def test_chunks_written_in_place_answer_as_one_chunk(trained_cornell, write_hits, monkeypatch):
     """More rays than a chunk: each chunk's records are written into the batch's rows in place (the

@@ -63,7 +63,7 @@ class InferenceConfig(ConfigSection):
     )
     chunk_size: int = Field(
         1 << 16, ge=1, description="rays per inference chunk (bounds temporary memory; LSNIF's fused CPU pass takes at least "
-        "2^14 rays per thread, up to 2^18: lsnif_fused_cpu.rays_per_chunk)"
+        "2^17 rays per thread, up to 2^18: lsnif_fused_cpu.rays_per_chunk)"
     )
 
 

@@ -236,7 +236,7 @@ class LSNIFModel(NeuralBLAS):
     # -- inference ---------------------------------------------------------------------------------
     def rays_per_chunk(self, device: torch.device) -> int:
         """``inference.chunk_size``; on the CPU's fused pass `lsnif_fused_cpu.rays_per_chunk` of it
-        (at least 2^14 rays per thread, up to 2^18)."""
+        (at least 2^17 rays per thread, up to 2^18)."""
         from . import lsnif_fused_cpu
 
         chunk = super().rays_per_chunk(device)

@@ -229,15 +229,25 @@ _GROUP = 128
 
 # Many small chunks handed out one at a time (`task_queue`): rays vary in length, and on a shared
 # machine one thread may be descheduled; with numba's static split of a prange (its OpenMP layer)
-# the other waits for it.
+# the other waits for it. 2 threads, hairball(6), 2^17 rays in two chunks (session 35): the
+# threads' sums of task times were 11.8 and 11.9 ms of a 12.9 ms call with the static split
+# (the second half of the rays costs more); `intersect` 0.968x / 0.984x the time with the queue
+# (A/B, same records), `occluded` 0.963x / 0.966x, `hq` 0.990x; one 2^17-ray chunk, 1.18x the time
+# of two 2^16 with the static split, 0.99x with the queue. 32, 64, 128 or 256 chunks a thread:
+# the same within noise.
 _CHUNKS_PER_THREAD = 32
+
+# The fused pass's chunks from the task queue; False: numba's split of the prange, one chunk per
+# iteration, its scratch allocated per chunk (the code before session 35, for comparisons:
+# `bench_scaling.py --switches DYNAMIC_CHUNKS=False`).
+DYNAMIC_CHUNKS = True
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks, n_workers,
-    hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
+    dynamic, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
     decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only,
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
@@ -259,7 +269,9 @@ def _fused_kernel(
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
     pipeline with two buffers): walk (``simd_walk``: `walk_group`, 16 lanes, the points unordered,
     ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points and find
-    their rows (`face_rows`, SIMD); then read the rows and run the first layer."""
+    their rows (`face_rows`, SIMD); then read the rows and run the first layer. The rays are cut
+    into ``n_chunks`` chunks, which ``n_workers`` workers take from a task queue (`task_queue`);
+    without ``dynamic``, worker i runs chunk i alone (``n_workers = n_chunks``)."""
     n_rays = origins.shape[0]
     n_levels = resolutions.shape[0]
     n_feat = table.shape[1]
@@ -311,7 +323,7 @@ def _fused_kernel(
         layer_out = (group_hidden if decode_here else hidden_bf16).reshape(-1)  # (flat: `_first_layer_pairs` writes at offsets)
         rows8, outs, xp8, xp8_bf16 = _decode_scratch(width, wo.shape[1], decode_here)
         while True:
-            chunk = take_task(next_chunk)
+            chunk = take_task(next_chunk) if dynamic else np.int64(worker)  # (the prange index is unsigned)
             if chunk >= n_chunks:
                 break
             first, last = chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks
@@ -434,6 +446,8 @@ def _fused_kernel(
                         else:
                             for j in range(width):
                                 hidden_f32[n, j] = acc[j]
+            if not dynamic:
+                break
 
 
 # The voxel walk sixteen rays at a time (`lsnif_walk_simd`) where numba compiles for AVX-512 and
@@ -678,7 +692,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
         _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
                       simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
                       p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
-                      task_workers(n_chunks), hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
+                      task_workers(n_chunks) if DYNAMIC_CHUNKS else n_chunks, DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
                       p.hidden_pairs, p.hidden_bias, p.wo, p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials),
                       decoding.occlusion_only, *decoding.records)  # fmt: skip
     if write_inputs:
@@ -733,13 +747,18 @@ def fused_network_outputs_cpu(
 # A chunk's rays cross several parallel regions (the fused pass; on AMX hosts also torch's GEMMs
 # and the decoding pass), and each pays for starting its threads and for its tail, where threads
 # wait for the last; with a fixed chunk that share grows with the thread count. So a chunk holds at
-# least this many rays per numba thread (more than the default 2^16 from 5 threads; a larger
+# least this many rays per numba thread (2^17 on one thread, 2^18 on more; a larger
 # `InferenceConfig.chunk_size` wins). A 16-core Intel Xeon (AMX; session 34, hairball(6), untrained,
-# 2^18 rays, `bench_scaling.py --switches`, two runs): the 2^18 rays in one chunk over four of
-# 2^16: `intersect` 1.22x / 1.25x (`hq`), 1.07x / 1.32x (`lq`), `occluded` 1.07-1.26x; in two of
-# 2^17: 1.10-1.17x; in 16 of 2^14: 0.49-0.60x. On 2 threads it changes nothing. The rule stops
-# at the 2^18 rays measured (a chunk's buffers grow with it: on AMX hosts up to ~1 KiB a ray).
-MIN_RAYS_PER_THREAD = 1 << 14
+# 2^18 rays, `bench_scaling.py --switches`, two runs, chunks split statically): the 2^18 rays in
+# one chunk over four of 2^16: `intersect` 1.22x / 1.25x (`hq`), 1.07x / 1.32x (`lq`), `occluded`
+# 1.07-1.26x; in two of 2^17: 1.10-1.17x; in 16 of 2^14: 0.49-0.60x. 2 threads, Zen 5, with the
+# task queue (session 35, same run, medians of 15 alternating rounds): 2^17 rays in one chunk
+# 0.957x / 0.960x the time of two of 2^16 (`lq`), 0.967x (`hq`); 2^18 rays in one chunk 0.946x
+# the time of four of 2^16, two of 2^17 0.974x (each chunk also pays ~0.3 ms of Python and array
+# set-up between its parallel regions). (Before the queue, one 2^17 chunk took 1.18x the time on 2
+# threads: the second half of those rays costs more and one thread ran it.) The rule stops at the
+# 2^18 rays measured (a chunk's buffers grow with it: on AMX hosts up to ~1 KiB a ray).
+MIN_RAYS_PER_THREAD = 1 << 17
 MAX_RAYS_BY_THREADS = 1 << 18
 
 
