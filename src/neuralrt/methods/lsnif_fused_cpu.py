@@ -342,9 +342,10 @@ def _fused_kernel(
                     # 1. walk; list the points
                     e = 0
                     if simd_walk:  # sixteen rays at a time, the points unordered
-                        e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share, queue,
-                                       queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b], point_code[b],
-                                       point_ray, point_slot, group_count[b], t_enter[start:stop], t_exit[start:stop])  # fmt: skip
+                        e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share,
+                                       queue, queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b],
+                                       point_code[b], point_ray, point_slot, group_count[b], t_enter[start:stop],
+                                       t_exit[start:stop])  # fmt: skip
                         for g in range(stop - start):
                             counts[start + g] = group_count[b, g]
                     else:
@@ -373,7 +374,8 @@ def _fused_kernel(
                     # unused), and the origin points' 8 rows
                     for lvl in range(n_levels):
                         res, base = resolutions[lvl], lvl * table_size
-                        _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl], face_weights[b, lvl])
+                        _face_rows_of_points(point_x, point_y, point_z, point_code[b], e, res, mask, base, face_slots[b, lvl],
+                                             face_weights[b, lvl])  # fmt: skip
                         _origin_rows_of_points(origin_x, origin_y, origin_z, n_origin, res, mask, base, origin_slots[b, lvl],
                                                origin_weights[b, lvl])  # fmt: skip
                     group_points[b] = e
@@ -425,9 +427,9 @@ def _fused_kernel(
                         m = _first_layer_pairs(xs[b], xp, group_count[b], stop - start, block, w1_pairs, b1, slope, order, buckets, rows,
                                                dots, layer_out, 0 if decode_here else start)  # fmt: skip
                         if decode_here:
-                            _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows8,
-                                         outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
-                                         occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                            _decode_rows(group_hidden.view(np.uint32), order, m, start, hidden_pairs, hidden_bias, slope, wo_flat, bo,
+                                         rows8, outs, xp8, xp8_bf16, rows, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit,
+                                         n_materials, occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                         continue
                     for g in range(stop - start):
                         count = group_count[b, g]
@@ -1008,9 +1010,9 @@ def _decode_kernel(
                 break
             first, last = chunk * m // n_chunks, (chunk + 1) * m // n_chunks
             if first_pairs.shape[0] > 0:
-                _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows, outs, xp,
-                             xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                             hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                _decode_rows(first_pairs, active[first:last], last - first, 0, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows,
+                             outs, xp, xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
+                             occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                 continue
             for block in range(first, last, _OUT_ROWS):
                 n_rows = min(_OUT_ROWS, last - block)
@@ -1030,8 +1032,8 @@ def _decode_kernel(
                             outs[b * n_padded + j] = x_f32[block + b, j]
                 for b in range(n_rows):
                     r = active[block + b]
-                    _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
-                                hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
+                    _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
+                                occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
 # The rest of the network and the decoding run in the fused pass, a group of rays after their
