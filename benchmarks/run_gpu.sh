@@ -17,7 +17,7 @@
 #       each stage at every batch size, the encoder backward per table-gradient scatter, and inference also
 #       with 2^16-ray chunks whatever the threads (MIN_RAYS_PER_THREAD=0: the chunk rule against the
 #       code before session 34), with the chunks split statically among the threads (DYNAMIC_CHUNKS=False:
-#       the code before session 35's task queue) and with every layer in numba where the CPU has AMX
+#       no task queue), with both (session 34's code) and with every layer in numba where the CPU has AMX
 #       (SCALING_ARGS replaces those last five's flags; session 34's inference-only A/Bs: SCALING_ARGS="--skip-training --repeats 8
 #       --switches chunk_size=1048576 FIRST_LAYER_IN_PASS=True,HIDDEN_LAYERS_IN_DECODE=True"); JSON SCALING_NAME.
 #   bash benchmarks/run_gpu.sh pairs     # <= PAIR_S (100) s per pair: benchmarks/bench_training.py pairs on all the host's
@@ -101,7 +101,7 @@ scaling)
     name=${SCALING_NAME:-scaling_cpu_16}
     # shellcheck disable=SC2086  # SCALING_THREADS, SCALING_ARGS: words on purpose
     timeout "${SCALING_S:-330}" python3 benchmarks/bench_scaling.py --threads ${SCALING_THREADS:-2 16 8 4} --steps 40 --repeats 4 \
-        ${SCALING_ARGS:---train-batches 32768 131072 --profile --scatters row_ranges buckets saved_rows --switches MIN_RAYS_PER_THREAD=0 DYNAMIC_CHUNKS=False FIRST_LAYER_IN_PASS=True,HIDDEN_LAYERS_IN_DECODE=True} \
+        ${SCALING_ARGS:---train-batches 32768 131072 --profile --scatters row_ranges buckets saved_rows --switches MIN_RAYS_PER_THREAD=0 DYNAMIC_CHUNKS=False MIN_RAYS_PER_THREAD=0,DYNAMIC_CHUNKS=False FIRST_LAYER_IN_PASS=True,HIDDEN_LAYERS_IN_DECODE=True} \
         --name "$name" 2>&1 \
         | tee "$OUT/scaling.log"
     cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no scaling JSON (cut short before the first process ended?)"
