@@ -691,10 +691,11 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
         # (lq, 227 vs 103 us; 1,024 rays 315 vs 184 us; ad hoc, 2 threads, session 34).
         n_chunks = min(-(-n // _GROUP), _CHUNKS_PER_THREAD * numba.get_num_threads())
         simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
+        n_workers = task_workers(n_chunks) if DYNAMIC_CHUNKS else n_chunks
         _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
                       simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
-                      p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks,
-                      task_workers(n_chunks) if DYNAMIC_CHUNKS else n_chunks, DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
+                      p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, n_workers,
+                      DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
                       p.hidden_pairs, p.hidden_bias, p.wo, p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials),
                       decoding.occlusion_only, *decoding.records)  # fmt: skip
     if write_inputs:
@@ -958,8 +959,8 @@ def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_lo
 # (Inlined: at most 30 arguments, as any function numba inlines: CPython passes more as one tuple,
 # which numba's inliner rejects.)
 @numba.njit(cache=True, inline="always")
-def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows, outs, xp, xp_bf16, quad, dots, t_enter,
-                 t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
+def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope, wo_flat, bo, rows, outs, xp, xp_bf16, quad, dots,
+                 t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                  hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
     """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
     ``first_pairs[active[i]]`` through the later hidden layers (`_later_hidden_rows`) and the output
@@ -988,12 +989,14 @@ def _decode_kernel(
     hit, t_hit, normal, geometric_normal, albedo, material,
 ):  # fmt: skip
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network (`_decode_row`),
-    written into the hit records at rows ``active[i]`` (``t_*`` are the chunk's, indexed the same): row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
+    written into the hit records at rows ``active[i]`` (``t_*`` are the chunk's, indexed the same):
+    row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
     (``output_layer``: the output layer ``wo``/``bo`` is applied here, fp32, `_OUT_ROWS` rows at a
     time) or the raw outputs; or, where ``first_pairs`` (the first hidden layer's bf16 activations
     as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``) is not empty, the later hidden layers run
     here too (`_decode_rows`). ``occlusion_only`` writes ``hit`` alone (the other records may be
-    empty arrays) and computes only the first 16 outputs."""
+    empty arrays) and computes only the first 16 outputs. The rows are cut into ``n_chunks`` chunks,
+    which ``n_workers`` workers take from a task queue (`task_queue`)."""
     m = active.shape[0]
     width, n_padded = wo.shape
     to_f32 = x_bf16.shape[0] > 0
