@@ -548,6 +548,45 @@ def test_decoding_in_the_fused_pass_gives_the_decoding_passs_bits(width, layers,
         assert torch.equal(getattr(hits, name), getattr(reference, name)), name
 
 
+@pytest.mark.parametrize("decode_in_pass", [True, False])
+def test_the_pass_writes_every_record_whatever_the_records_held(decode_in_pass, monkeypatch):
+    """`fused_hits_cpu` and `fused_occluded_cpu` write every row, misses included (so `intersect`
+    and `occluded` allocate their records without a fill): records holding garbage on entry come
+    out as records that held misses (`Hits.empty`), bit for bit, with the decoding in the fused
+    pass or in the decoding pass after it, over several chunks."""
+    from dataclasses import fields
+
+    from neuralrt.rays import Hits
+
+    model = _bf16_model(32, 2)
+    rays = _decoding_rays(model, 3000, seed=41)
+    monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)
+    monkeypatch.setattr(fused, "HIDDEN_LAYERS_IN_DECODE", True)
+    monkeypatch.setattr(fused, "DECODE_IN_PASS", decode_in_pass)
+    if not decode_in_pass:
+        monkeypatch.setattr(fused, "_decode_rows", lambda *args: pytest.fail("decoded in the fused pass"))
+    args, kwargs = model._fused_cpu_arguments(rays)
+    clean, garbage = Hits.empty(len(rays)), Hits.uninitialized(len(rays))
+    for f in fields(garbage):
+        column = getattr(garbage, f.name)
+        column.copy_(torch.full_like(column, float("nan")) if column.dtype.is_floating_point else torch.ones_like(column) * 7)
+    for hits in (clean, garbage):
+        fused.fused_hits_cpu(*args, hits=hits, num_materials=model.num_materials, **kwargs)
+    assert 300 < int(clean.hit.sum()) < len(rays) - 300
+    for f in fields(clean):
+        assert torch.equal(getattr(garbage, f.name), getattr(clean, f.name)), f.name
+    hit = torch.ones(len(rays), dtype=torch.bool)
+    fused.fused_occluded_cpu(*args, hit=hit, **kwargs)
+    assert torch.equal(hit, clean.hit)
+    monkeypatch.setattr(model.config.inference, "chunk_size", 1024)  # `intersect`'s records over several chunks
+    monkeypatch.setattr(fused, "MIN_RAYS_PER_THREAD", 0)
+    empty = Hits.empty  # (`Hits.uninitialized` takes its shapes and dtypes from an empty one)
+    monkeypatch.setattr(Hits, "empty", staticmethod(lambda n, device=None: empty(n, device) if n == 0 else pytest.fail("filled")))
+    chunked = model.intersect(rays)
+    for f in fields(clean):
+        assert torch.equal(getattr(chunked, f.name), getattr(clean, f.name)), f.name
+
+
 def test_occluded_makes_one_pass_per_chunk_and_answers_every_ray(trained_cornell, monkeypatch):
     """More rays than a chunk: `occluded` (the decision-only pass) gives intersect's hits for all."""
     model = trained_cornell

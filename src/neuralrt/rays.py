@@ -146,6 +146,14 @@ class Hits:
             instance_id=torch.full((n,), -1, dtype=torch.int64, device=dev),
         )
 
+    @staticmethod
+    def uninitialized(n: int, device=None) -> "Hits":
+        """Records for ``n`` rays with unspecified contents (no fill), for a pass that writes every
+        row, misses included; `empty`'s shapes and dtypes."""
+        template = Hits.empty(0, device)
+        return Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype,
+                                           device=template.t.device) for f in fields(Hits)})  # fmt: skip
+
     def __len__(self) -> int:
         return self.t.shape[0]
 

@@ -1,4 +1,4 @@
-"""Numba forms of `neuralrt.rays` predicates, for the CPU kernels that test rays one at a time."""
+"""Numba forms of `neuralrt.rays` predicates and records, for the CPU kernels that handle rays one at a time."""
 
 from __future__ import annotations
 
@@ -18,3 +18,18 @@ def valid_ray(origins, directions, t_min, t_max, i) -> bool:
         and (dx != 0 or dy != 0 or dz != 0)
         and t_max[i] > t_min[i]
     )  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id):
+    """Row ``r`` of the hit columns (`neuralrt.rays.Hits`' fields, in order, as arrays) as `Hits.empty` writes it (a miss)."""
+    hit[r] = False
+    t[r] = np.inf
+    for c in range(3):
+        normal[r, c] = 0.0
+        geometric_normal[r, c] = 0.0
+        albedo[r, c] = 1.0
+    uv[r, 0], uv[r, 1] = 0.0, 0.0
+    material_id[r] = -1
+    primitive_id[r] = -1
+    instance_id[r] = -1

@@ -17,7 +17,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-from ..rays_kernels import valid_ray
+from ..rays_kernels import valid_ray, write_miss
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
            "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits",
@@ -285,21 +285,6 @@ def _world_normal(m, identity, nx, ny, nz):
     return nx / length, ny / length, nz / length
 
 
-@numba.njit(cache=True, inline="always")
-def _write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id):
-    """Row ``r`` of the hit columns as `Hits.empty` writes it (a miss)."""
-    hit[r] = False
-    t[r] = np.inf
-    for c in range(3):
-        normal[r, c] = 0.0
-        geometric_normal[r, c] = 0.0
-        albedo[r, c] = 1.0
-    uv[r, 0], uv[r, 1] = 0.0, 0.0
-    material_id[r] = -1
-    primitive_id[r] = -1
-    instance_id[r] = -1
-
-
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def merge_every_ray(
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, overlap, has_best,
@@ -330,7 +315,7 @@ def merge_every_ray(
             best_primitive_id[r] = primitive_id[r]
             best_instance_id[r] = k
         elif not has_best:
-            _write_miss(r, best_hit, best_t, best_normal, best_geometric_normal, best_uv, best_albedo, best_material_id,
+            write_miss(r, best_hit, best_t, best_normal, best_geometric_normal, best_uv, best_albedo, best_material_id,
                         best_primitive_id, best_instance_id)  # fmt: skip
 
 
@@ -564,7 +549,7 @@ def finish_hits(
         k = best_instance[r]
         if k < 0:
             if write_misses:
-                _write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id)
+                write_miss(r, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id)
             continue
         if instance_group[k] != group:
             continue

@@ -237,10 +237,8 @@ class NumbaTLASStages:
 
     def merge_every_ray(self, best: Hits | None, local: Hits, k: int, overlap: Tensor | None) -> Hits:
         out = best
-        if out is None:  # uninitialised: the kernel writes every row
-            template = Hits.empty(0)
-            out = Hits(**{f.name: torch.empty((len(local), *getattr(template, f.name).shape[1:]),
-                                              dtype=getattr(template, f.name).dtype) for f in fields(Hits)})  # fmt: skip
+        if out is None:  # the kernel writes every row
+            out = Hits.uninitialized(len(local))
         kernels.merge_every_ray(
             *(getattr(local, f.name).detach().contiguous().numpy() for f in fields(Hits) if f.name != "instance_id"),
             np.empty(0, np.bool_) if overlap is None else overlap.numpy(), best is not None,
@@ -272,9 +270,7 @@ class NumbaTLASStages:
             return None
         n = len(rays)
         o, d, t_min, t_max = (x.detach().contiguous().numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
-        template = Hits.empty(0)
-        out = Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype)
-                      for f in fields(Hits)})  # fmt: skip
+        out = Hits.uninitialized(n)
         # The running best t and winning instance are the output's own columns: a model's merged
         # answer (complete records) and Embree's raw answers (finished below) share them.
         best_t, best_instance = out.t.numpy(), out.instance_id.numpy()

@@ -224,20 +224,25 @@ class NeuralBLAS(nn.Module, ABC):
         chunk = self.rays_per_chunk(rays.device)
         if n <= chunk:
             return self._intersect_chunk(rays)
-        out = Hits.empty(n, rays.device)
+        out = self._chunk_records(n, rays.device)
         for start in range(0, n, chunk):
             part = rays[slice(start, start + chunk)]
             self._intersect_chunk_into(part, out[start:start + len(part)])
         return out
+
+    def _chunk_records(self, n: int, device: torch.device) -> Hits:
+        """Records for ``n`` rays that `_intersect_chunk_into` writes into: all misses (`Hits.empty`);
+        a method whose pass writes every row, misses included, returns `Hits.uninitialized` (no fill)."""
+        return Hits.empty(n, device)
 
     def rays_per_chunk(self, device: torch.device) -> int:
         """Rays answered at a time on ``device``: ``inference.chunk_size`` (a method may take more where that pays)."""
         return self.config.inference.chunk_size
 
     def _intersect_chunk_into(self, rays: Rays, hits: Hits) -> None:
-        """`_intersect_chunk`'s answers written into ``hits`` (all-miss records, views of the rows of
-        a larger batch). Default: computed, then copied; a method whose pass writes records in place
-        overrides it (no per-chunk records, no copy)."""
+        """`_intersect_chunk`'s answers written into ``hits`` (`_chunk_records`' rows for these rays,
+        views of a larger batch's). Default: computed, then copied; a method whose pass writes records
+        in place overrides it (no per-chunk records, no copy)."""
         hits.scatter_(slice(None), self._intersect_chunk(rays))
 
     @torch.no_grad()

@@ -57,7 +57,7 @@ from ..simd import HAS_AVX512
 from ..simd16 import (
     bits16, compress16_f32, compress16_i32, lane_index16, load16_i32, popcount16, splat_i32, store16_i32,
 )  # fmt: skip
-from ..rays_kernels import valid_ray
+from ..rays_kernels import valid_ray, write_miss
 from ..task_queue import take_task, task_workers
 from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
 from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
@@ -248,8 +248,8 @@ def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks, n_workers,
     dynamic, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
-    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only,
-    hit, t_hit, normal, geometric_normal, albedo, material,
+    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, write_misses,
+    hit, t_hit, normal, geometric_normal, albedo, material, uv, primitive_id, instance_id,
 ):  # fmt: skip
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
     (``box_lo``, ``box_extent``) a group at a time, as `unit_box_rays` maps them (``t_offset[n]``
@@ -263,7 +263,11 @@ def _fused_kernel(
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
     With ``pairs`` and ``decode_here`` the rest of the network and the decoding follow at once, per
     group (`_decode_rows`: ``hidden_pairs`` ... ``material`` as `_decode_kernel`'s, the chunk's ray n
-    at row n of the records), and nothing is written to ``hidden_bf16``.
+    at row n of the records), and nothing is written to ``hidden_bf16``. With ``write_misses`` every
+    ray's row of the records (``hit`` ... ``instance_id``, `neuralrt.rays.Hits`' fields; ``hit``
+    alone with ``occlusion_only``) first gets a miss (`write_miss`), which the decoding overwrites
+    for the rays that reach the network (here or in `_decode_kernel`): the records need no fill
+    before the call.
     With ``write_inputs`` no layer runs here: each ray's inputs, rounded to bf16 pairs (zero past
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
@@ -339,6 +343,12 @@ def _fused_kernel(
                         t_offset[n] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, g, unit_o, unit_d)
                         if not valid_ray(origins, directions, t_min, t_max, n):
                             unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
+                    if write_misses and occlusion_only:
+                        for n in range(start, stop):
+                            hit[n] = False
+                    elif write_misses:  # (rows the group's decoding overwrites are still in cache then)
+                        for n in range(start, stop):
+                            write_miss(n, hit, t_hit, normal, geometric_normal, uv, albedo, material, primitive_id, instance_id)
                     # 1. walk; list the points
                     e = 0
                     if simd_walk:  # sixteen rays at a time, the points unordered
@@ -653,17 +663,22 @@ class _Rays:
 
 @dataclass
 class _Decoding:
-    """What the fused pass needs to decode a chunk's answers itself (`decodes_in_pass`), into
-    ``records`` (`_decode_row`'s hit, t, normal, geometric normal, albedo, material)."""
+    """A chunk's hit records and how to decode into them: ``records`` (`_decode_row`'s hit, t,
+    normal, geometric normal, albedo, material) and ``miss_records`` (uv, primitive and instance id,
+    which a neural model leaves at their miss values). The fused pass writes every ray's miss
+    first; with ``in_pass`` (`decodes_in_pass`) it decodes the answers itself too."""
 
     occlusion_logit: float
     num_materials: int
     occlusion_only: bool
     records: tuple[np.ndarray, ...]
+    miss_records: tuple[np.ndarray, ...]
+    in_pass: bool
 
 
 _NO_RECORDS = (np.zeros(0, np.bool_), np.zeros(0, np.float32), *(np.zeros((0, 3), np.float32),) * 3, np.zeros(0, np.int64))
-_NO_DECODING = _Decoding(0.0, 0, True, _NO_RECORDS)
+_NO_MISS_RECORDS = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64))
+_NO_DECODING = _Decoding(0.0, 0, True, _NO_RECORDS, _NO_MISS_RECORDS, False)
 
 
 def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None,
@@ -671,21 +686,21 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
     """The fused pass on ``rays``: (first hidden layer ``[N, W]`` in the compute dtype -- with
     ``p.first_layer``, the network inputs in bf16 instead --, valid in the rows with points; per
     ray ``count``, ``t_enter``, ``t_exit`` and the unit-box map's ``t_offset`` as numpy arrays).
-    With ``decoding`` (where `decodes_in_pass`), the pass decodes the answers into its records
-    itself and the first hidden layer returned is empty."""
+    With ``decoding`` the pass writes every ray's miss record into its records; where
+    ``decoding.in_pass``, it decodes the answers itself too and the first hidden layer returned
+    is empty."""
     n, width = len(rays), p.b1.shape[0]
     to_bf16 = p.compute_dtype == torch.bfloat16
     write_inputs = p.first_layer is not None
-    decode_here = decoding is not None
+    write_misses = decoding is not None
     decoding = decoding or _NO_DECODING
+    decode_here = decoding.in_pass
     # One output buffer is used, the others stay empty: numba compiles one kernel for every case.
     hidden_f32 = _hidden_buffer(0 if to_bf16 else n, width, np.float32, "first")
     hidden_bf16 = _hidden_buffer(n if to_bf16 and not write_inputs and not decode_here else 0, width, np.uint16, "first")
     input_pairs = _hidden_buffer(n if write_inputs else 0, (p.w1.shape[0] + 1) // 2, np.uint32, "inputs")
-    counts = np.zeros(n, np.int32)
-    t_enter = np.full(n, np.inf, np.float32)
-    t_exit = np.full(n, np.inf, np.float32)
-    t_offset = np.zeros(n, np.float32)
+    counts, t_offset = np.empty(n, np.int32), np.empty(n, np.float32)  # (the pass writes every ray's)
+    t_enter, t_exit = np.empty(n, np.float32), np.empty(n, np.float32)
     if n:
         # A task allocates scratch for a group: one task per ray made a 64-ray call 2.2x slower
         # (lq, 227 vs 103 us; 1,024 rays 315 vs 184 us; ad hoc, 2 threads, session 34).
@@ -697,7 +712,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
                       p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, n_workers,
                       DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
                       p.hidden_pairs, p.hidden_bias, p.wo, p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials),
-                      decoding.occlusion_only, *decoding.records)  # fmt: skip
+                      decoding.occlusion_only, write_misses, *decoding.records, *decoding.miss_records)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
@@ -1085,17 +1100,20 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
 
 def _hits_pass(origins: Tensor, directions: Tensor, occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *,
                box_lo: Tensor, box_extent: Tensor, t_min: Tensor, t_max: Tensor, occlusion_logit: float,
-               num_materials: int, records: tuple[np.ndarray, ...], occlusion_only: bool, max_points: int,
-               origin_point: bool, share_boundary_points: bool, point_distances: bool, compute_dtype: torch.dtype) -> None:  # fmt: skip
+               num_materials: int, records: tuple[np.ndarray, ...], miss_records: tuple[np.ndarray, ...], occlusion_only: bool,
+               max_points: int, origin_point: bool, share_boundary_points: bool, point_distances: bool,
+               compute_dtype: torch.dtype) -> None:  # fmt: skip
+    """Every row of ``records`` and ``miss_records`` (`_Decoding`'s) written: the fused pass writes
+    misses, then it or `_decode` decodes the rays that reach the network."""
     rays = _rays_numpy(origins, directions, max_points, t_min, t_max, box_lo, box_extent)
     p = _prepare_pass(occupancy, encoder, network, max_points=max_points, origin_point=origin_point,
                       share_boundary_points=share_boundary_points, point_distances=point_distances,
                       compute_dtype=compute_dtype)  # fmt: skip
-
-    if decodes_in_pass(p):
-        _first_hidden_layer(p, rays, _Decoding(occlusion_logit, num_materials, occlusion_only, records))
+    decoding = _Decoding(occlusion_logit, num_materials, occlusion_only, records, miss_records, decodes_in_pass(p))
+    if decoding.in_pass:
+        _first_hidden_layer(p, rays, decoding)
         return
-    hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays)
+    hidden, counts, t_enter, t_exit, t_offset = _first_hidden_layer(p, rays, decoding)
     _decode(p, hidden, counts, t_enter, t_exit, t_offset, rays.t_min, rays.t_max, occlusion_logit, num_materials,
             records, occlusion_only)  # fmt: skip
 
@@ -1121,14 +1139,17 @@ def fused_hits_cpu(
     point_distances: bool = True,
     compute_dtype: torch.dtype = torch.float32,
 ) -> None:
-    """`LSNIFModel._intersect_chunk`'s answers written into ``hits`` (a `Hits.empty` of the chunk,
-    CPU) for the chunk's rays (``origins``, ``directions``, ``t_min``, ``t_max``, object space),
-    which the pass maps into the model's box (``box_lo``, ``box_extent``) itself: the fused pass,
-    the later layers, the output layer and the decoding (`_decode_kernel`). The CPU counterpart of `lsnif_fused.fused_hits`."""
+    """`LSNIFModel._intersect_chunk`'s answers written into every row of ``hits`` (the chunk's
+    records, CPU; their contents on entry do not matter: `Hits.uninitialized` serves) for the
+    chunk's rays (``origins``, ``directions``, ``t_min``, ``t_max``, object space), which the pass
+    maps into the model's box (``box_lo``, ``box_extent``) itself: the fused pass, the later layers,
+    the output layer and the decoding (`_decode_kernel`). The CPU counterpart of `lsnif_fused.fused_hits`."""
     records = (hits.hit.numpy(), hits.t.numpy(), hits.normal.numpy(), hits.geometric_normal.numpy(), hits.albedo.numpy(),
                hits.material_id.numpy())  # fmt: skip
+    miss_records = (hits.uv.numpy(), hits.primitive_id.numpy(), hits.instance_id.numpy())
     _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
-               occlusion_logit=occlusion_logit, num_materials=num_materials, records=records, occlusion_only=False,
+               occlusion_logit=occlusion_logit, num_materials=num_materials, records=records, miss_records=miss_records,
+               occlusion_only=False,
                max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
                point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
 
@@ -1153,12 +1174,11 @@ def fused_occluded_cpu(
     point_distances: bool = True,
     compute_dtype: torch.dtype = torch.float32,
 ) -> None:
-    """`fused_hits_cpu`'s ``hit`` decisions alone, written into ``hit`` ([chunk] bool, all False
-    on entry): the output layer computes only its first 16 columns (occlusion and distance are
-    among them) and nothing else is decoded."""
-    empty3 = np.zeros((0, 3), np.float32)
-    records = (hit.numpy(), np.zeros(0, np.float32), empty3, empty3, empty3, np.zeros(0, np.int64))
+    """`fused_hits_cpu`'s ``hit`` decisions alone, written into every row of ``hit`` ([chunk] bool;
+    its contents on entry do not matter): the output layer computes only its first 16 columns
+    (occlusion and distance are among them) and nothing else is decoded."""
     _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
-               occlusion_logit=occlusion_logit, num_materials=0, records=records, occlusion_only=True,
+               occlusion_logit=occlusion_logit, num_materials=0, records=(hit.numpy(), *_NO_RECORDS[1:]),
+               miss_records=_NO_MISS_RECORDS, occlusion_only=True,
                max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
                point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
