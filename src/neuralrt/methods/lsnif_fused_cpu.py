@@ -248,7 +248,7 @@ def _fused_kernel(
     origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks, n_workers,
     dynamic, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
-    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, write_misses,
+    decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, write_every_row,
     hit, t_hit, normal, geometric_normal, albedo, material, uv, primitive_id, instance_id,
 ):  # fmt: skip
     """The rays (``origins``/``directions`` fp32, ``t_min``/``t_max``) are mapped into the unit box
@@ -263,7 +263,7 @@ def _fused_kernel(
     ``[ceil(rows / 2) * W]`` uint32) and the inputs rounded to bf16; else fp32 per ray from ``w1``.
     With ``pairs`` and ``decode_here`` the rest of the network and the decoding follow at once, per
     group (`_decode_rows`: ``hidden_pairs`` ... ``material`` as `_decode_kernel`'s, the chunk's ray n
-    at row n of the records), and nothing is written to ``hidden_bf16``. With ``write_misses`` every
+    at row n of the records), and nothing is written to ``hidden_bf16``. With ``write_every_row`` every
     ray's row of the records (``hit`` ... ``instance_id``, `neuralrt.rays.Hits`' fields; ``hit``
     alone with ``occlusion_only``) first gets a miss (`write_miss`), which the decoding overwrites
     for the rays that reach the network (here or in `_decode_kernel`): the records need no fill
@@ -343,10 +343,11 @@ def _fused_kernel(
                         t_offset[n] = unit_box_ray(origins, directions, t_min, box_lo, box_extent, n, g, unit_o, unit_d)
                         if not valid_ray(origins, directions, t_min, t_max, n):
                             unit_d[g, 0] = unit_d[g, 1] = unit_d[g, 2] = np.float32(0.0)
-                    if write_misses and occlusion_only:
+                    if write_every_row and occlusion_only:
                         for n in range(start, stop):
                             hit[n] = False
-                    elif write_misses:  # (rows the group's decoding overwrites are still in cache then)
+                    elif write_every_row:  # (row by row: a column at a time measured slower; the rows the group's
+                        # decoding overwrites are still in cache then)
                         for n in range(start, stop):
                             write_miss(n, hit, t_hit, normal, geometric_normal, uv, albedo, material, primitive_id, instance_id)
                     # 1. walk; list the points
@@ -692,7 +693,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
     n, width = len(rays), p.b1.shape[0]
     to_bf16 = p.compute_dtype == torch.bfloat16
     write_inputs = p.first_layer is not None
-    write_misses = decoding is not None
+    write_every_row = decoding is not None
     decoding = decoding or _NO_DECODING
     decode_here = decoding.in_pass
     # One output buffer is used, the others stay empty: numba compiles one kernel for every case.
@@ -712,7 +713,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
                       p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, n_workers,
                       DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,
                       p.hidden_pairs, p.hidden_bias, p.wo, p.bo, np.float32(decoding.occlusion_logit), int(decoding.num_materials),
-                      decoding.occlusion_only, write_misses, *decoding.records, *decoding.miss_records)  # fmt: skip
+                      decoding.occlusion_only, write_every_row, *decoding.records, *decoding.miss_records)  # fmt: skip
     if write_inputs:
         hidden = torch.from_numpy(input_pairs).view(torch.bfloat16)  # [N, 2 * pairs]: input 2p in the low half
     else:
