@@ -8,6 +8,7 @@ the device of the rays it was given, and a scene refuses rays on another device 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields, replace
 from typing import Annotated
@@ -150,9 +151,8 @@ class Hits:
     def uninitialized(n: int, device=None) -> "Hits":
         """Records for ``n`` rays with unspecified contents (no fill), for a pass that writes every
         row, misses included; `empty`'s shapes and dtypes."""
-        template = Hits.empty(0, device)
-        return Hits(**{f.name: torch.empty((n, *getattr(template, f.name).shape[1:]), dtype=getattr(template, f.name).dtype,
-                                           device=template.t.device) for f in fields(Hits)})  # fmt: skip
+        device = torch.device(device) if device is not None else torch.device("cpu")
+        return Hits(**{name: torch.empty((n, *shape), dtype=dtype, device=device) for name, shape, dtype in _hit_columns()})
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -422,3 +422,10 @@ def pinhole_rays(
     pixels = torch.arange(width * height, device=dev)
     rays = camera.generate_rays(pixels, torch.full((width * height, 2), 0.5, device=dev))
     return replace(rays, batch_shape=(height, width))
+
+
+@functools.cache
+def _hit_columns() -> tuple[tuple[str, tuple[int, ...], torch.dtype], ...]:
+    """Each `Hits` field's name, shape after the ray axis and dtype, as `Hits.empty` makes them."""
+    template = Hits.empty(0)
+    return tuple((f.name, tuple(getattr(template, f.name).shape[1:]), getattr(template, f.name).dtype) for f in fields(Hits))
