@@ -17,7 +17,7 @@ from its float32 values, ``HALF_TABLE = False``), with ``occluded`` (the
 decision-only decoding) and through the unfused path
 (featurize -> encode -> MLP), interleaved with Embree on the same rays, in the same process
 (the machine is shared: read the ratios). Also the MLP alone on a chunk of random inputs at the
-inference precision, and ``fused_network_outputs_cpu``'s time (the pass, the GEMMs, torch's output layer). Best of
+inference precision (interleaved, and back to back with ``intersect`` for a like-for-like fraction), and ``fused_network_outputs_cpu``'s time (the pass, the GEMMs, torch's output layer). Best of
 ``--repeats`` (and Embree ratios from the medians too). Writes benchmarks/results/lsnif_cpu.json.
 
     python benchmarks/bench_lsnif_cpu.py bunny00.off procedural:hairball:6 [--presets hq lq] [--rays 262144]
@@ -49,7 +49,8 @@ from neuralrt.methods.lsnif_fused_cpu import fused_network_outputs_cpu  # noqa: 
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
 COLUMNS = ["mesh", "preset", "precision", "network_frac", "embree_Mrays/s", "fused_Mrays/s", "unfused_Mrays/s",
-           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "decode_in_pass_gain", "half_table_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "load"]
+           "fused_vs_embree", "occluded_vs_embree", "fused_vs_embree_median", "occluded_vs_embree_median", "numba_decode_gain", "hidden_in_decode_gain", "first_layer_gemm_gain", "decode_in_pass_gain", "half_table_gain", "fused_fp32_l1_vs_embree", "bf16_l1_gain", "unfused_vs_embree", "fused_vs_unfused", "kernel_share", "fraction_of_mlp_limit", "fraction_of_mlp_limit_back_to_back",
+           "load"]
 
 
 def seconds(fn) -> float:
@@ -143,6 +144,10 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
             times[name].append(seconds(fn))
     best = {k: min(v) for k, v in times.items()}
     median = {k: statistics.median(v) for k, v in times.items()}
+    # Also back to back, each warm with nothing between its calls: interleaved, torch's MLP runs
+    # after numba's and Embree's threads (`hq`: ~12 or ~24 ms a call, bimodal, against 11-13 back
+    # to back; `lq` ~10% slower), which flatters the interleaved fraction below.
+    back_to_back = {name: min(seconds(timed[name]) for _ in range(repeats)) for name in ("fused", "mlp")}
     with torch.no_grad():
         active = len(model._network_answers_fused_cpu(rays)[0])
     network_fraction = active / n_rays
@@ -189,6 +194,9 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
         "kernel_share": best["fused_network"] / best["fused"],
         # network rays/s of the whole pipeline over the MLP alone (as bench_lsnif.py)
         "fraction_of_mlp_limit": rate["fused"] * network_fraction / mlp_rate,
+        # the same with both timed back to back (like for like: neither pays for what ran before it)
+        "fraction_of_mlp_limit_back_to_back": (n_rays / back_to_back["fused"]) * network_fraction / (len(x) / back_to_back["mlp"]),
+        "back_to_back_s": back_to_back,
         "load": os.getloadavg()[0],
         "times_s": times,
     }
