@@ -24,6 +24,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..task_queue import take_task, task_workers
+
 __all__ = ["LeafList", "CutArrays", "list_leaves", "list_leaves_torch", "first_leaves", "first_leaves_torch", "NO_LOD"]
 
 NO_LOD = 127  # stored LoD of a node that is a leaf of no registered cut
@@ -108,30 +110,59 @@ def _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilat
     return count
 
 
-@numba.njit(parallel=True, cache=True)
-def _count_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, counts):
-    dummy_i = np.empty(0, np.int64)
-    dummy_f = np.empty(0, np.float32)
-    for i in numba.prange(origins.shape[0]):
-        stack = np.empty(_STACK, np.int64)
-        counts[i] = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack,
-                          dummy_i, dummy_f, dummy_f, 0, False)  # fmt: skip
+# The kernels below take their rays in tasks of consecutive rays from a task queue (`task_queue`):
+# numba's OpenMP layer would split a prange over rays statically, and rays differ in cost along the
+# batch (a wavefront's sky and object, a training batch's two halves).
+_TASK_RAYS = 256  # at least, per task
+_TASKS_PER_THREAD = 32  # at most
+
+
+def _tasks(n_rays: int) -> tuple[int, int]:
+    """(tasks, workers) for a kernel over ``n_rays`` rays."""
+    n_tasks = max(1, min(-(-n_rays // _TASK_RAYS), _TASKS_PER_THREAD * numba.get_num_threads()))
+    return n_tasks, task_workers(n_tasks)
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, start, out_node, out_t0, out_t1):
-    for i in numba.prange(origins.shape[0]):
+def _count_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, counts, n_tasks, n_workers):
+    n = origins.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
         stack = np.empty(_STACK, np.int64)
-        s = start[i]
-        n = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, s, True)
-        # Insertion sort of the ray's few leaves by (t0, node).
-        for a in range(s + 1, s + n):
-            kn, k0, k1 = out_node[a], out_t0[a], out_t1[a]
-            b = a - 1
-            while b >= s and (out_t0[b] > k0 or (out_t0[b] == k0 and out_node[b] > kn)):
-                out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = out_node[b], out_t0[b], out_t1[b]
-                b -= 1
-            out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
+        dummy_i = np.empty(0, np.int64)
+        dummy_f = np.empty(0, np.float32)
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            for i in range(task * n // n_tasks, (task + 1) * n // n_tasks):
+                counts[i] = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack,
+                                  dummy_i, dummy_f, dummy_f, 0, False)  # fmt: skip
+
+
+@numba.njit(parallel=True, cache=True)
+def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, start, out_node, out_t0, out_t1, n_tasks,
+                 n_workers):  # fmt: skip
+    n_rays = origins.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
+        stack = np.empty(_STACK, np.int64)
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            for i in range(task * n_rays // n_tasks, (task + 1) * n_rays // n_tasks):
+                s = start[i]
+                n = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1,
+                          s, True)  # fmt: skip
+                # Insertion sort of the ray's few leaves by (t0, node).
+                for a in range(s + 1, s + n):
+                    kn, k0, k1 = out_node[a], out_t0[a], out_t1[a]
+                    b = a - 1
+                    while b >= s and (out_t0[b] > k0 or (out_t0[b] == k0 and out_node[b] > kn)):
+                        out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = out_node[b], out_t0[b], out_t1[b]
+                        b -= 1
+                    out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
 
 
 @numba.njit(cache=True, inline="always")
@@ -144,53 +175,68 @@ def _enterable(node, tn, tf, tmax, children, lod, live, lvl):
     return tf > _ENTER_MIN
 
 
-@numba.njit(parallel=True, cache=True)
-def _first_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1):
-    """Per ray, the leaf with the smallest (t0, node): what `list_leaves` would list first.
+@numba.njit(cache=True, inline="always")
+def _first_leaf(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1, stack, stack_t0,
+                stack_t1):  # fmt: skip
+    """Ray i's first leaf into ``out_*[i]``: nearer child first, and a box entered after the best
+    leaf so far is skipped (a child's box lies in its parent's, so nothing below it is entered
+    earlier). ``stack*``: scratch."""
+    ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+    ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
+    dil, lvl, tmax = dilation[i], level[i], t_max[i]
+    best_node, best_t0, best_t1 = -1, np.float32(np.inf), np.float32(np.inf)
+    sp = 0
+    tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, 0, dil)
+    if _enterable(0, tn, tf, tmax, children, lod, live, lvl):
+        stack[0], stack_t0[0], stack_t1[0] = 0, tn, tf
+        sp = 1
+    while sp > 0:
+        sp -= 1
+        node, tn, tf = stack[sp], stack_t0[sp], stack_t1[sp]
+        if tn > best_t0:
+            continue
+        if children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl):
+            if tn < best_t0 or node < best_node:  # tn == best_t0 here unless smaller
+                best_node, best_t0, best_t1 = node, tn, tf
+            continue
+        a, b = children[node, 0], children[node, 1]
+        ta0, ta1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, a, dil)
+        tb0, tb1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, b, dil)
+        use_a = _enterable(a, ta0, ta1, tmax, children, lod, live, lvl) and ta0 <= best_t0
+        use_b = _enterable(b, tb0, tb1, tmax, children, lod, live, lvl) and tb0 <= best_t0
+        if sp + 2 > _STACK:
+            continue
+        if use_a and use_b and tb0 < ta0:  # far child below, near child on top
+            stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
+            stack[sp + 1], stack_t0[sp + 1], stack_t1[sp + 1] = b, tb0, tb1
+            sp += 2
+            continue
+        if use_b:
+            stack[sp], stack_t0[sp], stack_t1[sp] = b, tb0, tb1
+            sp += 1
+        if use_a:
+            stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
+            sp += 1
+    out_node[i], out_t0[i], out_t1[i] = best_node, best_t0, best_t1
 
-    Nearer child first, and a box entered after the best leaf so far is skipped (a child's box lies
-    in its parent's, so nothing below it is entered earlier)."""
-    for i in numba.prange(origins.shape[0]):
+
+@numba.njit(parallel=True, cache=True)
+def _first_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1, n_tasks,
+                  n_workers):  # fmt: skip
+    """Per ray, the leaf with the smallest (t0, node): what `list_leaves` would list first."""
+    n = origins.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
         stack = np.empty(_STACK, np.int64)
         stack_t0 = np.empty(_STACK, np.float32)
         stack_t1 = np.empty(_STACK, np.float32)
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
-        dil, lvl, tmax = dilation[i], level[i], t_max[i]
-        best_node, best_t0, best_t1 = -1, np.float32(np.inf), np.float32(np.inf)
-        sp = 0
-        tn, tf = _slab(ox, oy, oz, ix, iy, iz, lo, hi, 0, dil)
-        if _enterable(0, tn, tf, tmax, children, lod, live, lvl):
-            stack[0], stack_t0[0], stack_t1[0] = 0, tn, tf
-            sp = 1
-        while sp > 0:
-            sp -= 1
-            node, tn, tf = stack[sp], stack_t0[sp], stack_t1[sp]
-            if tn > best_t0:
-                continue
-            if children[node, 0] < 0 or (live[node] if lvl < 0 else lod[node] <= lvl):
-                if tn < best_t0 or node < best_node:  # tn == best_t0 here unless smaller
-                    best_node, best_t0, best_t1 = node, tn, tf
-                continue
-            a, b = children[node, 0], children[node, 1]
-            ta0, ta1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, a, dil)
-            tb0, tb1 = _slab(ox, oy, oz, ix, iy, iz, lo, hi, b, dil)
-            use_a = _enterable(a, ta0, ta1, tmax, children, lod, live, lvl) and ta0 <= best_t0
-            use_b = _enterable(b, tb0, tb1, tmax, children, lod, live, lvl) and tb0 <= best_t0
-            if sp + 2 > _STACK:
-                continue
-            if use_a and use_b and tb0 < ta0:  # far child below, near child on top
-                stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
-                stack[sp + 1], stack_t0[sp + 1], stack_t1[sp + 1] = b, tb0, tb1
-                sp += 2
-                continue
-            if use_b:
-                stack[sp], stack_t0[sp], stack_t1[sp] = b, tb0, tb1
-                sp += 1
-            if use_a:
-                stack[sp], stack_t0[sp], stack_t1[sp] = a, ta0, ta1
-                sp += 1
-        out_node[i], out_t0[i], out_t1[i] = best_node, best_t0, best_t1
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            for i in range(task * n // n_tasks, (task + 1) * n // n_tasks):
+                _first_leaf(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, out_node, out_t0, out_t1,
+                            stack, stack_t0, stack_t1)  # fmt: skip
 
 
 def _np(t: Tensor, dtype) -> np.ndarray:
@@ -209,7 +255,7 @@ def _first_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilat
     n = len(origins)
     node, t0, t1 = np.full(n, -1, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
     if n:
-        _first_kernel(*_kernel_args(origins, directions, t_max, cut, level, dilation), node, t0, t1)
+        _first_kernel(*_kernel_args(origins, directions, t_max, cut, level, dilation), node, t0, t1, *_tasks(n))
     return torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1)
 
 
@@ -218,13 +264,13 @@ def _list_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilati
     args = _kernel_args(origins, directions, t_max, cut, level, dilation)
     counts = np.zeros(n, np.int64)
     if n:
-        _count_kernel(*args, counts)
+        _count_kernel(*args, counts, *_tasks(n))
     start = np.zeros(n + 1, np.int64)
     np.cumsum(counts, out=start[1:])
     e = int(start[-1])
     node, t0, t1 = np.empty(e, np.int64), np.empty(e, np.float32), np.empty(e, np.float32)
     if e:
-        _fill_kernel(*args, start, node, t0, t1)
+        _fill_kernel(*args, start, node, t0, t1, *_tasks(n))
     return LeafList(torch.from_numpy(start), torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1))
 
 
