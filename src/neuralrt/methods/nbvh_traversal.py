@@ -8,8 +8,8 @@ A node is a leaf of the cut a ray asks for when it has no children, or when its 
 most the ray's level (level L >= 0: the registered cut of LoD L; level -1: the live cut of
 training, flagged by ``live``).
 
-One contract, implementations chosen once by the tensors' device: a numba kernel on the CPU (a
-stack per ray, parallel over rays, two passes: count, then fill and sort), the same walks as
+One contract, implementations chosen once by the tensors' device: a numba kernel on the CPU (tasks
+of rays from `task_queue`, a stack per worker, two passes: count, then fill and sort), the same walks as
 Triton kernels on CUDA (`nbvh_traversal_triton`: one ray per lane), breadth-first frontier
 expansion in torch elsewhere. All sort each ray's leaves by (t0, node index) and compute the slab
 test with the same float32 operations, so they give the same lists.
