@@ -316,7 +316,7 @@ def merge_every_ray(
             best_instance_id[r] = k
         elif not has_best:
             write_miss(r, best_hit, best_t, best_normal, best_geometric_normal, best_uv, best_albedo, best_material_id,
-                        best_primitive_id, best_instance_id)  # fmt: skip
+                       best_primitive_id, best_instance_id)  # fmt: skip
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")

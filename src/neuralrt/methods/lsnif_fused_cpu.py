@@ -1150,8 +1150,7 @@ def fused_hits_cpu(
     miss_records = (hits.uv.numpy(), hits.primitive_id.numpy(), hits.instance_id.numpy())
     _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
                occlusion_logit=occlusion_logit, num_materials=num_materials, records=records, miss_records=miss_records,
-               occlusion_only=False,
-               max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
+               occlusion_only=False, max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
                point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
 
 
@@ -1180,6 +1179,5 @@ def fused_occluded_cpu(
     (occlusion and distance are among them) and nothing else is decoded."""
     _hits_pass(origins, directions, occupancy, encoder, network, box_lo=box_lo, box_extent=box_extent, t_min=t_min, t_max=t_max,
                occlusion_logit=occlusion_logit, num_materials=0, records=(hit.numpy(), *_NO_RECORDS[1:]),
-               miss_records=_NO_MISS_RECORDS, occlusion_only=True,
-               max_points=max_points, origin_point=origin_point, share_boundary_points=share_boundary_points,
-               point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
+               miss_records=_NO_MISS_RECORDS, occlusion_only=True, max_points=max_points, origin_point=origin_point,
+               share_boundary_points=share_boundary_points, point_distances=point_distances, compute_dtype=compute_dtype)  # fmt: skip
