@@ -30,7 +30,7 @@ import threading
 import time
 from pathlib import Path
 
-import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table, write_results  # noqa: E402

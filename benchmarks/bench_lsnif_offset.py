@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -43,7 +43,7 @@ import sys
 import time
 from pathlib import Path
 
-import neuralrt  # noqa: F401  (before torch: sets OMP_WAIT_POLICY)
+import neuralrt  # noqa: F401  (before torch: sets how OpenMP threads wait)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 

@@ -121,7 +121,7 @@ def _with_switch(model, switch: str, call):
 
 def _child(args) -> dict:
     """One thread count: pin, then import and measure (runs in its own process)."""
-    import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+    import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
     import numba
     import torch
 

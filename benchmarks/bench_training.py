@@ -59,7 +59,7 @@ import sys
 import time
 from pathlib import Path
 
-import neuralrt  # noqa: F401  (first: it sets OMP_WAIT_POLICY before torch loads OpenMP)
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import numba
 import torch
 

@@ -2,12 +2,20 @@
 
 import os
 
-# The one place neuralrt sets OMP_WAIT_POLICY (tests and benchmarks import neuralrt before torch to
-# get it). torch's and numba's OpenMP pools alternate in every training step and inference batch;
-# with libgomp's default spin-waiting each pool burns the cores the other needs (measured on 2
-# cores: 147k -> 230k training rays/s). It only takes effect if neuralrt is imported before torch
-# loads OpenMP, and a value the user set is never overridden.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# The one place neuralrt sets how OpenMP threads wait (tests and benchmarks import neuralrt before
+# torch to get it). torch's and numba's OpenMP pools (two libgomp copies on Linux) alternate in
+# every training step and inference batch. With libgomp's default (300,000 spins after a parallel
+# region) each pool burns the cores the other needs (2 cores: 147k -> 230k training rays/s with
+# OMP_WAIT_POLICY=PASSIVE); but sleeping at once makes every torch GEMM wake its team at each of its
+# parallel regions (2 cores, session 36: an N-BVH intersect 1.3x the time, torch's bf16 MLP ~1.2x).
+# A short spin, GOMP_SPINCOUNT=3000 (~0.1 ms), measured as fast as sleeping in training and as
+# spinning in torch's GEMMs. libgomp reads it only where OMP_WAIT_POLICY is unset; LLVM's and
+# Intel's runtimes (macOS, some builds) read KMP_BLOCKTIME instead: 0, sleep at once. This only
+# takes effect if neuralrt is imported before torch loads OpenMP, and a value the user set (an
+# OMP_WAIT_POLICY included) is never overridden.
+if "OMP_WAIT_POLICY" not in os.environ:
+    os.environ.setdefault("GOMP_SPINCOUNT", "3000")
+    os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 from .accel.blas import BLAS, MemoryReport
 from .accel.mesh_blas import MeshBLAS

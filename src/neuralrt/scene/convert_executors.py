@@ -260,7 +260,7 @@ class _StepReporter:
 
 def _train_on_worker(job: TrainingJob, mesh: Mesh, device: str, threads: int, board) -> TrainedModel:
     """The Ray task: train one job, return the model file's bytes."""
-    # Unpickling this function imported neuralrt (and its OMP_WAIT_POLICY) before torch.
+    # Unpickling this function imported neuralrt (and its OpenMP wait settings) before torch.
     import ray
     import torch
 
