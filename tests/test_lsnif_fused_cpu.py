@@ -563,8 +563,9 @@ def test_the_pass_writes_every_record_whatever_the_records_held(decode_in_pass, 
     monkeypatch.setattr(fused, "FIRST_LAYER_IN_PASS", True)
     monkeypatch.setattr(fused, "HIDDEN_LAYERS_IN_DECODE", True)
     monkeypatch.setattr(fused, "DECODE_IN_PASS", decode_in_pass)
-    if not decode_in_pass:
-        monkeypatch.setattr(fused, "_decode_rows", lambda *args: pytest.fail("decoded in the fused pass"))
+    decoding_passes = []
+    decode = fused._decode
+    monkeypatch.setattr(fused, "_decode", lambda *args: decoding_passes.append(1) or decode(*args))
     args, kwargs = model._fused_cpu_arguments(rays)
     clean, garbage = Hits.empty(len(rays)), Hits.uninitialized(len(rays))
     for f in fields(garbage):
@@ -573,6 +574,7 @@ def test_the_pass_writes_every_record_whatever_the_records_held(decode_in_pass, 
     for hits in (clean, garbage):
         fused.fused_hits_cpu(*args, hits=hits, num_materials=model.num_materials, **kwargs)
     assert 300 < int(clean.hit.sum()) < len(rays) - 300
+    assert bool(decoding_passes) == (not decode_in_pass)  # (the pass decoded, or the decoding pass after it)
     for f in fields(clean):
         assert torch.equal(getattr(garbage, f.name), getattr(clean, f.name)), f.name
     hit = torch.ones(len(rays), dtype=torch.bool)
