@@ -93,6 +93,31 @@ def test_numba_torch_and_brute_force_list_the_same_leaves(ball, level):
     assert torch.equal(node[has], a.node[a.start[:-1][has]]) and torch.equal(t0[has], t0_t[has])
 
 
+@pytest.mark.parametrize("room", [0, 1])
+def test_leaves_that_do_not_fit_their_tasks_segment_are_listed_by_a_second_walk(ball, room, monkeypatch):
+    """`list_leaves` on the CPU walks once where each task's leaves fit its segment, and walks every
+    ray again (the fill pass) where one does not: the same lists either way, as the torch frontier's."""
+    from neuralrt.methods import nbvh_traversal
+
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    _random_cut(model, seed=1)
+    cut = model.cut_arrays()
+    o, d = _unit_rays(2000, 2)
+    t_max, lvl, dil = torch.full((2000,), 0.9), torch.full((2000,), -1, dtype=torch.int8), torch.full((2000,), 1e-5)
+    fills = []
+    fill = nbvh_traversal._fill_kernel
+    monkeypatch.setattr(nbvh_traversal, "_fill_kernel", lambda *args: fills.append(1) or fill(*args))
+    one_walk = list_leaves(o, d, t_max, cut, lvl, dil)
+    assert not fills  # (8 leaves of room a ray: enough here)
+    monkeypatch.setattr(nbvh_traversal, "_SEGMENT_LEAVES_PER_RAY", room)
+    two_walks = list_leaves(o, d, t_max, cut, lvl, dil)
+    assert fills and len(two_walks.node) > 2000
+    reference = list_leaves_torch(o, d, t_max, cut, lvl, dil)
+    for listed in (one_walk, two_walks):
+        for name in ("start", "node", "t0", "t1"):
+            assert torch.equal(getattr(listed, name), getattr(reference, name)), name
+
+
 def _ancestors(model, node):
     parent = {}
     ch = model.node_children.numpy()

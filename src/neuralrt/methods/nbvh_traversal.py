@@ -9,7 +9,8 @@ most the ray's level (level L >= 0: the registered cut of LoD L; level -1: the l
 training, flagged by ``live``).
 
 One contract, implementations chosen once by the tensors' device: a numba kernel on the CPU (tasks
-of rays from `task_queue`, a stack per worker, two passes: count, then fill and sort), the same walks as
+of rays from `task_queue`, a stack per worker; one walk that counts, fills and sorts each
+task's rays into a segment of its own, a second only where they do not fit), the same walks as
 Triton kernels on CUDA (`nbvh_traversal_triton`: one ray per lane), breadth-first frontier
 expansion in torch elsewhere. All sort each ray's leaves by (t0, node index) and compute the slab
 test with the same float32 operations, so they give the same lists.
@@ -82,7 +83,8 @@ def _slab(ox, oy, oz, ix, iy, iz, lo, hi, node, dil):
 
 
 @numba.njit(cache=True)
-def _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, base, write):
+def _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, base, limit):
+    """Ray i's leaves, written from ``out_*[base]`` below index ``limit`` (0: none written): their number."""
     ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
     ix, iy, iz = inv_dirs[i, 0], inv_dirs[i, 1], inv_dirs[i, 2]
     dil = dilation[i]
@@ -101,7 +103,7 @@ def _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilat
         if leaf:
             ok = tn > _ENTER_MIN if tn >= 0 else tf > _EXIT_MIN
             if ok:
-                if write:
+                if base + count < limit:
                     out_node[base + count], out_t0[base + count], out_t1[base + count] = node, tn, tf
                 count += 1
         elif tf > _ENTER_MIN and sp + 2 <= stack.shape[0]:
@@ -124,23 +126,6 @@ def _tasks(n_rays: int) -> tuple[int, int]:
 
 
 @numba.njit(parallel=True, cache=True)
-def _count_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, counts, n_tasks, n_workers):
-    n = origins.shape[0]
-    next_task = np.zeros(1, np.int64)
-    for worker in numba.prange(n_workers):
-        stack = np.empty(_STACK, np.int64)
-        dummy_i = np.empty(0, np.int64)
-        dummy_f = np.empty(0, np.float32)
-        while True:
-            task = take_task(next_task)
-            if task >= n_tasks:
-                break
-            for i in range(task * n // n_tasks, (task + 1) * n // n_tasks):
-                counts[i] = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack,
-                                  dummy_i, dummy_f, dummy_f, 0, False)  # fmt: skip
-
-
-@numba.njit(parallel=True, cache=True)
 def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, start, out_node, out_t0, out_t1, n_tasks,
                  n_workers):  # fmt: skip
     n_rays = origins.shape[0]
@@ -154,15 +139,45 @@ def _fill_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, d
             for i in range(task * n_rays // n_tasks, (task + 1) * n_rays // n_tasks):
                 s = start[i]
                 n = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1,
-                          s, True)  # fmt: skip
-                # Insertion sort of the ray's few leaves by (t0, node).
-                for a in range(s + 1, s + n):
-                    kn, k0, k1 = out_node[a], out_t0[a], out_t1[a]
-                    b = a - 1
-                    while b >= s and (out_t0[b] > k0 or (out_t0[b] == k0 and out_node[b] > kn)):
-                        out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = out_node[b], out_t0[b], out_t1[b]
-                        b -= 1
-                    out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
+                          s, out_node.shape[0])  # fmt: skip
+                _sort_leaves(out_node, out_t0, out_t1, s, n)
+
+
+@numba.njit(cache=True, inline="always")
+def _sort_leaves(out_node, out_t0, out_t1, s, n):
+    """Insertion sort of a ray's few leaves ``[s, s + n)`` by (t0, node)."""
+    for a in range(s + 1, s + n):
+        kn, k0, k1 = out_node[a], out_t0[a], out_t1[a]
+        b = a - 1
+        while b >= s and (out_t0[b] > k0 or (out_t0[b] == k0 and out_node[b] > kn)):
+            out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = out_node[b], out_t0[b], out_t1[b]
+            b -= 1
+        out_node[b + 1], out_t0[b + 1], out_t1[b + 1] = kn, k0, k1
+
+
+@numba.njit(parallel=True, cache=True)
+def _list_kernel(origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, counts, segment, out_node, out_t0, out_t1, used,
+                 n_tasks, n_workers):  # fmt: skip
+    """Count and fill in one walk: task t's rays write their sorted leaves one after another into
+    ``out_*[segment[t] : segment[t + 1]]``; ``used[t]`` is the number written, or -1 where they did
+    not fit (the counts are complete either way)."""
+    n_rays = origins.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
+        stack = np.empty(_STACK, np.int64)
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            at, end = segment[task], segment[task + 1]
+            for i in range(task * n_rays // n_tasks, (task + 1) * n_rays // n_tasks):
+                n = _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1,
+                          at, end)  # fmt: skip
+                counts[i] = n
+                if at + n <= end:
+                    _sort_leaves(out_node, out_t0, out_t1, at, n)
+                at += n
+            used[task] = at - segment[task] if at <= end else -1
 
 
 @numba.njit(cache=True, inline="always")
@@ -259,18 +274,30 @@ def _first_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilat
     return torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1)
 
 
+# Room per ray in `_list_kernel`'s segments (a task's rays share theirs): where a task's leaves do not
+# fit, the fill pass walks every ray again.
+_SEGMENT_LEAVES_PER_RAY = 8
+
+
 def _list_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilation) -> LeafList:
+    """One walk per ray where every task's leaves fit its segment (`_list_kernel`), else a second
+    (`_fill_kernel`): the same lists."""
     n = len(origins)
     args = _kernel_args(origins, directions, t_max, cut, level, dilation)
-    counts = np.zeros(n, np.int64)
+    n_tasks, n_workers = _tasks(n)
+    segment = (np.arange(n_tasks + 1) * n // n_tasks) * _SEGMENT_LEAVES_PER_RAY
+    buffers = np.empty(segment[-1], np.int64), np.empty(segment[-1], np.float32), np.empty(segment[-1], np.float32)
+    counts, used = np.empty(n, np.int64), np.empty(n_tasks, np.int64)
     if n:
-        _count_kernel(*args, counts, *_tasks(n))
+        _list_kernel(*args, counts, segment, *buffers, used, n_tasks, n_workers)
     start = np.zeros(n + 1, np.int64)
     np.cumsum(counts, out=start[1:])
-    e = int(start[-1])
-    node, t0, t1 = np.empty(e, np.int64), np.empty(e, np.float32), np.empty(e, np.float32)
-    if e:
-        _fill_kernel(*args, start, node, t0, t1, *_tasks(n))
+    if n == 0 or (used >= 0).all():
+        node, t0, t1 = (np.concatenate([b[segment[t] : segment[t] + used[t]] for t in range(n_tasks)]) if n else b[:0] for b in buffers)
+    else:
+        e = int(start[-1])
+        node, t0, t1 = np.empty(e, np.int64), np.empty(e, np.float32), np.empty(e, np.float32)
+        _fill_kernel(*args, start, node, t0, t1, n_tasks, n_workers)
     return LeafList(torch.from_numpy(start), torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1))
 
 
