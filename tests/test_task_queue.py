@@ -4,7 +4,7 @@ import numba
 import numpy as np
 import pytest
 
-from neuralrt.task_queue import take_task, task_workers
+from neuralrt.task_queue import take_task, task_count, task_workers
 
 
 @numba.njit(parallel=True)
@@ -38,6 +38,15 @@ def test_workers_one_per_thread_at_most_one_per_task():
     assert task_workers(0) == 1
     assert task_workers(1) == 1
     assert task_workers(10_000) == numba.get_num_threads()
+
+
+def test_task_count_holds_min_items_a_task_and_caps_per_thread():
+    threads = numba.get_num_threads()
+    assert task_count(0) == 1 and task_count(0, 64) == 1  # at least one task
+    assert task_count(5) == 5  # one item a task by default
+    assert task_count(130, 64) == 3  # ceil(130 / 64)
+    assert task_count(10**9) == 8 * threads
+    assert task_count(10**9, 256, 32) == 32 * threads
 
 
 def test_counter_values_increase():

@@ -28,7 +28,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["take_task", "task_workers"]
+__all__ = ["take_task", "task_count", "task_workers"]
 
 
 @intrinsic
@@ -45,6 +45,12 @@ def take_task(typingctx, counter):
         return builder.atomic_rmw("add", pointer, context.get_constant(types.int64, 1), "monotonic")
 
     return types.int64(counter), codegen
+
+
+def task_count(n_items: int, min_items: int = 1, per_thread: int = 8) -> int:
+    """Tasks for ``n_items`` items: as many as hold ``min_items`` each (so that a worker's scratch
+    and a task's start serve enough work), at most ``per_thread`` per numba thread, at least one."""
+    return max(1, min(-(-n_items // min_items), per_thread * numba.get_num_threads()))
 
 
 def task_workers(n_tasks: int) -> int:

@@ -50,7 +50,7 @@ from torch import Tensor
 
 from ..rays import Rays, valid_ray_mask
 from ..rays_kernels import valid_ray
-from ..task_queue import take_task, task_workers
+from ..task_queue import take_task, task_count, task_workers
 
 __all__ = [
     "RayFeaturePoints",
@@ -330,7 +330,7 @@ def featurize_rays_numba(
     t_enter = np.empty(n, np.float32)
     t_exit = np.empty(n, np.float32)
     # A few chunks per thread, handed out one at a time, balance rays of uneven length.
-    n_chunks = max(1, min(n, 8 * numba.get_num_threads()))
+    n_chunks = task_count(n)
     if n:
         planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as the reference computes it
         _featurize_kernel(o, d, occ, planes, int(max_points), bool(origin_point),

@@ -58,7 +58,7 @@ from ..simd16 import (
     bits16, compress16_f32, compress16_i32, lane_index16, load16_i32, popcount16, splat_i32, store16_i32,
 )  # fmt: skip
 from ..rays_kernels import valid_ray, write_miss
-from ..task_queue import take_task, task_workers
+from ..task_queue import take_task, task_count, task_workers
 from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
 from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
 
@@ -705,7 +705,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
     if n:
         # A task allocates scratch for a group: one task per ray made a 64-ray call 2.2x slower
         # (lq, 227 vs 103 us; 1,024 rays 315 vs 184 us; ad hoc, 2 threads, session 34).
-        n_chunks = min(-(-n // _GROUP), _CHUNKS_PER_THREAD * numba.get_num_threads())
+        n_chunks = task_count(n, _GROUP, _CHUNKS_PER_THREAD)
         simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
         n_workers = task_workers(n_chunks) if DYNAMIC_CHUNKS else n_chunks
         _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
@@ -1093,7 +1093,7 @@ def _decode(p: _Pass, hidden: Tensor, counts: np.ndarray, t_enter: np.ndarray, t
         else:
             x_f32 = x.numpy()
     # Tasks of at least _DECODE_TASK_ROWS rows: a worker's scratch serves many blocks
-    n_chunks = max(1, min(-(-len(active) // _DECODE_TASK_ROWS), 8 * numba.get_num_threads()))
+    n_chunks = task_count(len(active), _DECODE_TASK_ROWS)
     _decode_kernel(x_f32, x_bf16, first_pairs, p.hidden_pairs, p.hidden_bias, np.float32(p.network.slope), p.wo, p.bo,
                    OUTPUT_LAYER_IN_DECODE, active, t_enter, t_exit, t_offset, t_min, t_max, np.float32(occlusion_logit),
                    int(num_materials), occlusion_only, n_chunks, task_workers(n_chunks), *records)  # fmt: skip

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..task_queue import take_task, task_workers
+from ..task_queue import take_task, task_count, task_workers
 
 __all__ = ["LeafList", "CutArrays", "list_leaves", "list_leaves_torch", "first_leaves", "first_leaves_torch", "NO_LOD"]
 
@@ -121,7 +121,7 @@ _TASKS_PER_THREAD = 32  # at most
 
 def _tasks(n_rays: int) -> tuple[int, int]:
     """(tasks, workers) for a kernel over ``n_rays`` rays."""
-    n_tasks = max(1, min(-(-n_rays // _TASK_RAYS), _TASKS_PER_THREAD * numba.get_num_threads()))
+    n_tasks = task_count(n_rays, _TASK_RAYS, _TASKS_PER_THREAD)
     return n_tasks, task_workers(n_tasks)
 
 

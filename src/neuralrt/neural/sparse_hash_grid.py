@@ -40,7 +40,7 @@ from numba.extending import intrinsic
 from torch import Tensor, nn
 
 from ..simd import broadcast, contiguous_1d, element_pointer, numba_targets, vector_pointer
-from ..task_queue import take_task, task_workers
+from ..task_queue import take_task, task_count, task_workers
 from .bf16_dot import as_fp32, bf16_bits
 
 __all__ = [
@@ -665,7 +665,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
         saved_shape = (levels, int(offsets[-1]) if save else 0, 4)
         saved_slots, saved_weights = np.empty(saved_shape, np.int32), np.empty(saved_shape, np.float32)
         if n_rays:
-            n_chunks = max(1, min(n_rays, 8 * numba.get_num_threads()))
+            n_chunks = task_count(n_rays)
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
             _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, task_workers(n_chunks), out, bits, offsets, saved_slots,
                             saved_weights)  # fmt: skip
