@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from neuralrt.methods.lsnif_features import featurize_rays_numba, local_distance
-from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, walk_group, walk_scratch
+from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, occupancy_bits, walk_group, walk_scratch
 
 GROUP = 32
 
 
 @numba.njit(cache=True)
-def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
+def _walk_all(origins, directions, occ, occ_bits, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
               local=None):  # fmt: skip
     """Every ray through `walk_group`, its points (and their local distances, ``local [N, H]``)
     put back in ray order (``points [N, H, 3]``)."""
@@ -34,7 +34,7 @@ def _walk_all(origins, directions, occ, occ_cells, planes, max_points, origin_po
     n_rays = origins.shape[0]
     for first in range(0, n_rays, GROUP):
         n = min(GROUP, n_rays - first)
-        e = walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8,
+        e = walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i, rays8,
                        lane_terms, redo, pts, pts_axes, px, py, pz, distance, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
         for g in range(n):
             counts[first + g] = group_counts[g]
@@ -88,7 +88,7 @@ def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_
     counts = np.full(n, -1, np.int64)
     t_enter, t_exit = np.full(n, 7, np.float32), np.full(n, 7, np.float32)
     planes = np.arange(res + 1) / res
-    _walk_all(o, d, occ, occ.astype(np.int32).reshape(-1), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit)
+    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit)
     assert np.array_equal(counts, ref.count.numpy())
     assert (counts == max_points).sum() > 0 and (counts == 0).sum() > 0  # truncated rays and misses both occur
     assert np.array_equal(t_enter, ref.t_enter.numpy()) and np.array_equal(t_exit, ref.t_exit.numpy())
@@ -104,7 +104,7 @@ def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_
     assert (points != ref_points)[off].any()  # (float32 arithmetic: some differ)
     # The lanes' local distances: `local_distance`'s float32 operations on the walk's points, bit for bit
     local = np.full((n, max_points), np.nan, np.float32)
-    _walk_all(o, d, occ, occ.astype(np.int32).reshape(-1), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
+    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
               local)  # fmt: skip
     expected = _local_distances(points, counts, o, d, t_enter, t_exit)
     assert np.array_equal(local[valid].view(np.int32), expected[valid].view(np.int32))
@@ -115,7 +115,7 @@ def test_float32_walk_applies_to_power_of_two_grids():
 
 
 @numba.njit(cache=True)
-def _walked_again(origins, directions, occ, occ_cells, planes, max_points):
+def _walked_again(origins, directions, occ, occ_bits, planes, max_points):
     """How many rays `walk_group` hands to `walk_ray`: at the start, and from the lanes."""
     queue, queue_i, rays8, lane_terms, redo = walk_scratch(GROUP)
     px = np.empty(GROUP * max_points, np.float32)
@@ -125,8 +125,8 @@ def _walked_again(origins, directions, occ, occ_cells, planes, max_points):
     at_start = from_lanes = 0
     for first in range(0, origins.shape[0], GROUP):
         n = min(GROUP, origins.shape[0] - first)
-        queued, listed = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
-        _, total = _walk_lanes(queue, queue_i, queued, occ_cells, occ.shape[0], max_points, True, True, redo, listed,
+        queued, listed = _start_group(origins, directions, first, n, occ.shape[0], queue, queue_i, rays8, redo, t_enter, t_exit)
+        _, total = _walk_lanes(queue, queue_i, queued, occ_bits, occ.shape[0], max_points, True, True, redo, listed,
                                lane_terms, px, px.copy(), px.copy(), px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
         at_start += listed
         from_lanes += total - listed
@@ -139,9 +139,30 @@ def test_denormal_directions_and_ties_go_to_walk_ray():
     from the lanes; ordinary rays rarely."""
     o, d = _edge_rays(6000, seed=3)
     occ = np.ones((16, 16, 16), bool)
-    at_start, from_lanes = _walked_again(o, d, occ, occ.astype(np.int32).reshape(-1), np.arange(17) / 16, 10)
+    at_start, from_lanes = _walked_again(o, d, occ, occupancy_bits(occ), np.arange(17) / 16, 10)
     assert at_start == 50 and from_lanes >= 100
     rng = np.random.default_rng(0)
     o, d = rng.uniform(-0.5, 1.5, (6000, 3)).astype(np.float32), rng.normal(size=(6000, 3)).astype(np.float32)
-    at_start, from_lanes = _walked_again(o, d, occ, occ.astype(np.int32).reshape(-1), np.arange(17) / 16, 10)
+    at_start, from_lanes = _walked_again(o, d, occ, occupancy_bits(occ), np.arange(17) / 16, 10)
     assert at_start == 0 and from_lanes < 10
+
+
+@pytest.mark.parametrize("res", [1, 2, 4, 32])
+def test_occupancy_bits_hold_each_cell_where_the_walk_reads_it(res):
+    """Cell ``c`` is bit ``c % 32`` of word ``c // 32`` (grids under 32 cells padded to a word), and
+    the walk on those bits finds `walk_ray`'s points, small grids included."""
+    occ = np.random.default_rng(res).random((res, res, res)) < 0.5
+    occ[0, 0, 0] = True
+    bits = occupancy_bits(occ)
+    assert bits.dtype == np.int32 and bits.shape == (-(-(res**3) // 32),)
+    cells = np.arange(res**3)
+    assert np.array_equal((bits[cells >> 5].view(np.uint32) >> (cells & 31)) & 1, occ.reshape(-1).astype(np.uint32))
+    o, d = _edge_rays(2000, seed=res)
+    ref = featurize_rays_numba(torch.from_numpy(o), torch.from_numpy(d), occ, 4)
+    n = o.shape[0]
+    points, axes = np.zeros((n, 4, 3), np.float32), np.full((n, 4), -1, np.int64)
+    counts, t_enter, t_exit = np.full(n, -1, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
+    _walk_all(o, d, occ, bits, np.arange(res + 1) / res, 4, True, True, points, axes, counts, t_enter, t_exit)
+    assert np.array_equal(counts, ref.count.numpy()) and counts.max() > 0
+    valid = np.arange(4)[None, :] < counts[:, None]
+    assert np.array_equal(axes[valid], ref.face_axis.numpy()[valid].astype(np.int64))

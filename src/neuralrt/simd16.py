@@ -78,7 +78,8 @@ _register_binary(operator.add, {f32x16: (f32x16, lambda b, x, y: b.fadd(x, y)), 
 _register_binary(operator.sub, {f32x16: (f32x16, lambda b, x, y: b.fsub(x, y)), i32x16: (i32x16, lambda b, x, y: b.sub(x, y))})
 _register_binary(operator.mul, {f32x16: (f32x16, lambda b, x, y: b.fmul(x, y)), i32x16: (i32x16, lambda b, x, y: b.mul(x, y))})
 _register_binary(operator.truediv, {f32x16: (f32x16, lambda b, x, y: b.fdiv(x, y))})
-_register_binary(operator.and_, {m16: (m16, lambda b, x, y: b.and_(x, y))})
+_register_binary(operator.and_, {m16: (m16, lambda b, x, y: b.and_(x, y)), i32x16: (i32x16, lambda b, x, y: b.and_(x, y))})
+_register_binary(operator.rshift, {i32x16: (i32x16, lambda b, x, y: b.lshr(x, y))})  # logical: for non-negative values
 _register_binary(operator.or_, {m16: (m16, lambda b, x, y: b.or_(x, y))})
 for _pyop, _predicate in ((operator.lt, "<"), (operator.gt, ">"), (operator.le, "<="), (operator.ge, ">="), (operator.eq, "=="),
                           (operator.ne, "!=")):  # fmt: skip

@@ -60,7 +60,7 @@ from ..simd16 import (
 from ..rays_kernels import valid_ray, write_miss
 from ..task_queue import take_task, task_count, task_workers
 from .lsnif_features import ORIGIN_POINT, _check_rays, local_distance, unit_box_ray, walk_ray
-from .lsnif_walk_simd import float32_walk_applies, walk_group, walk_scratch
+from .lsnif_walk_simd import float32_walk_applies, occupancy_bits, walk_group, walk_scratch
 
 __all__ = ["FusedCPUOutputs", "fused_network_outputs_cpu", "fused_hits_cpu", "fused_occluded_cpu", "first_layer_blocks"]
 
@@ -245,7 +245,7 @@ DYNAMIC_CHUNKS = True
 
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _fused_kernel(
-    origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_cells, simd_walk, planes, table, table_flat, resolutions,
+    origins, directions, t_min, t_max, box_lo, box_extent, occ, occ_bits, simd_walk, planes, table, table_flat, resolutions,
     w1, w1_pairs, b1, slope, max_points, origin_point, share, point_distances, to_bf16, pairs, write_inputs, n_chunks, n_workers,
     dynamic, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset,
     decode_here, hidden_pairs, hidden_bias, wo, bo, occlusion_logit, n_materials, occlusion_only, write_every_row,
@@ -272,7 +272,7 @@ def _fused_kernel(
     its points), go to ``input_pairs [N, ceil(rows / 2)]`` uint32 for a GEMM (`first_layer_in_pass`).
     Per chunk, groups of `_GROUP` rays go through two stages one group apart (a software
     pipeline with two buffers): walk (``simd_walk``: `walk_group`, 16 lanes, the points unordered,
-    ``occ_cells`` the occupancy as flat int32; else `walk_ray` per ray), list the points and find
+    ``occ_bits`` the occupancy as bits, `occupancy_bits`; else `walk_ray` per ray), list the points and find
     their rows (`face_rows`, SIMD); then read the rows and run the first layer. The rays are cut
     into ``n_chunks`` chunks, which ``n_workers`` workers take from a task queue (`task_queue`);
     without ``dynamic``, worker i runs chunk i alone (``n_workers = n_chunks``)."""
@@ -353,7 +353,7 @@ def _fused_kernel(
                     # 1. walk; list the points
                     e = 0
                     if simd_walk:  # sixteen rays at a time, the points unordered
-                        e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_cells, planes, max_points, origin_point, share,
+                        e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_bits, planes, max_points, origin_point, share,
                                        queue, queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b],
                                        point_code[b], point_ray, point_slot, group_count[b], t_enter[start:stop],
                                        t_exit[start:stop])  # fmt: skip
@@ -576,7 +576,7 @@ class _Pass:
     hidden_bias: np.ndarray  # flat [(L - 1) * W] fp32: their biases, rounded to bf16 as torch's cast weights
     wo: np.ndarray  # [W, P] fp32 and bo [P]: the output layer (`output_layer_columns`)
     bo: np.ndarray
-    occ_cells: np.ndarray  # [V^3] int32: occ for the SIMD walk's gathers
+    occ_bits: np.ndarray  # [ceil(V^3 / 32)] int32: occ as bits for the SIMD walk's gathers (`occupancy_bits`)
     first_layer: tuple[Tensor, Tensor] | None  # bf16 (weight [W, 2 * ceil(rows / 2)] in w1's input order, bias): a GEMM, not in the pass
     max_points: int
     origin_point: bool
@@ -625,13 +625,13 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros(0, np.uint32), np.zeros(0, np.float32))
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
-    occ_cells = np.ascontiguousarray(occ, dtype=np.int32).reshape(-1)
+    occ_bits = occupancy_bits(occ)
     wo, bo = output_layer_columns(network)
     table_half = half_table(encoder.table) if HALF_TABLE and n_feat == 3 else None
     if table_half is not None:  # `read_rows3` reads these rows instead
         table_flat = table_half
     return _Pass(network, compute_dtype, occ, planes, table, table_flat, encoder._resolutions_np, w1, w1_pairs, b1, hidden_pairs,
-                 hidden_bias, wo, bo, occ_cells, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points),
+                 hidden_bias, wo, bo, occ_bits, first_layer, int(max_points), bool(origin_point), bool(share_boundary_points),
                  bool(point_distances), pairs)  # fmt: skip
 
 
@@ -708,7 +708,7 @@ def _first_hidden_layer(p: _Pass, rays: _Rays, decoding: _Decoding | None = None
         n_chunks = task_count(n, _GROUP, _CHUNKS_PER_THREAD)
         simd_walk = SIMD_WALK and float32_walk_applies(p.occ.shape[0])
         n_workers = task_workers(n_chunks) if DYNAMIC_CHUNKS else n_chunks
-        _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_cells,
+        _fused_kernel(rays.origins, rays.directions, rays.t_min, rays.t_max, rays.box_lo, rays.box_extent, p.occ, p.occ_bits,
                       simd_walk, p.planes, p.table, p.table_flat, p.resolutions, p.w1, p.w1_pairs, p.b1, np.float32(p.network.slope),
                       p.max_points, p.origin_point, p.share, p.point_distances, to_bf16, p.pairs, write_inputs, n_chunks, n_workers,
                       DYNAMIC_CHUNKS, hidden_f32, hidden_bf16, input_pairs, counts, t_enter, t_exit, t_offset, decode_here,

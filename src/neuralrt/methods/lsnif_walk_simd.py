@@ -40,7 +40,7 @@ import numba
 import numpy as np
 
 from ..simd import (
-    compress_store_f32, floor_i64, gather_f64, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
+    compress_store_f32, floor_i64, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
 )  # fmt: skip
 from ..simd16 import (
     bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, load16, popcount16,
@@ -48,12 +48,12 @@ from ..simd16 import (
 )  # fmt: skip
 from .lsnif_features import ORIGIN_POINT, local_distance, walk_ray
 
-__all__ = ["walk_group", "walk_scratch", "float32_walk_applies"]
+__all__ = ["walk_group", "walk_scratch", "float32_walk_applies", "occupancy_bits"]
 
 # The queue of a group's rays that enter the box, one column per ray (float32 rows, then int32):
-_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _LO_X, _LO_Y, _LO_Z, _HI_X, _HI_Y, _HI_Z, _T_EXIT = range(20)
+_OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _T_EXIT = range(14)
 _RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE = range(8)
-_FLOAT_ROWS, _INT_ROWS = 20, 8
+_FLOAT_ROWS, _INT_ROWS = 14, 8
 _SPARE = 16  # columns past the last ray: a refill reads up to 16 entries
 # A step is decided in float32 where the closest plane time beats the others and the current time
 # by this factor (float32 times are within 3u of the exact ones, float64 times within 2^-51)
@@ -65,6 +65,16 @@ _O_LIMIT, _INV_LIMIT = 2.0**30, 2.0**60
 def float32_walk_applies(res: int) -> bool:
     """Whether `walk_group` walks a ``res^3`` grid: V a power of two (planes ``k / V`` exact in float32)."""
     return res >= 1 and res & (res - 1) == 0
+
+
+def occupancy_bits(occ: np.ndarray) -> np.ndarray:
+    """``occ`` (``[V, V, V]`` bool) as the bits `walk_group` reads: cell ``(i * V + j) * V + k`` is bit
+    ``c % 32`` of int32 word ``c // 32``. A 32^3 grid takes 4 KiB, which stays in L1 while the hash
+    table's reads pass through (an int32 per cell took 128 KiB)."""
+    bits = np.packbits(np.ascontiguousarray(occ, dtype=np.bool_).reshape(-1), bitorder="little")
+    words = np.zeros(-(-bits.size // 4) * 4, np.uint8)
+    words[: bits.size] = bits
+    return words.view("<i4").copy()
 
 
 @numba.njit(cache=True)
@@ -102,9 +112,9 @@ def _start_index8(o, d, t, s, res_f, last, zero_i, on_entry_face, ok, zero):
 
 
 @numba.njit(cache=True, inline="always")
-def _plane_time8(planes, o, inv, i, s, zero_i, one_i, inf, ok):
-    """`lsnif_features._plane_time` per lane."""
-    plane = gather_f64(planes, i + select(s > zero_i, one_i, zero_i), ok & (s != zero_i), inf)
+def _plane_time8(inv_res, o, inv, i, s, zero_i, one_i, inf):
+    """`lsnif_features._plane_time` per lane (its planes ``k / V``: ``k * (1 / V)``, the same value for a power-of-two V)."""
+    plane = to_f64(i + select(s > zero_i, one_i, zero_i)) * inv_res
     return select(s == zero_i, inf, (plane - o) * inv)
 
 
@@ -114,7 +124,7 @@ def _in_range8(x, limit):
 
 
 @numba.njit(cache=True)
-def _start_group(origins, directions, first, n, res, planes, queue, queue_i, rays8, redo, t_enter, t_exit):
+def _start_group(origins, directions, first, n, res, queue, queue_i, rays8, redo, t_enter, t_exit):
     """The start of `walk_ray` for rays ``[first, first + n)``, 8 at a time in float64: writes their
     ``t_enter``/``t_exit``, queues (rounded to float32) those that enter the box, and lists in
     ``redo`` those that enter it with values out of float32's comfortable range; returns (queued,
@@ -122,6 +132,7 @@ def _start_group(origins, directions, first, n, res, planes, queue, queue_i, ray
     zero, one, inf = splat_f64(0.0), splat_f64(1.0), splat_f64(np.inf)
     zero_i, one_i, two_i = splat_i64(0), splat_i64(1), splat_i64(2)
     res_f = splat_f64(np.float64(res))
+    inv_res = splat_f64(1.0 / res)
     last = splat_i64(res - 1)
     o_limit, inv_limit = splat_f64(_O_LIMIT), splat_f64(_INV_LIMIT)
     columns = queue.shape[0] // _FLOAT_ROWS
@@ -166,12 +177,9 @@ def _start_group(origins, directions, first, n, res, planes, queue, queue_i, ray
         for row, value in ((_OX, ox), (_OY, oy), (_OZ, oz), (_DX, dx), (_DY, dy), (_DZ, dz), (_INV_X, inv_x), (_INV_Y, inv_y),
                            (_INV_Z, inv_z), (_T_CUR, t_cur), (_T_EXIT, t_far)):  # fmt: skip
             compress_store_f32(queue, row * columns + n_queued, value, ok)
-        compress_store_f32(queue, _TX * columns + n_queued, _plane_time8(planes, ox, inv_x, ix, sx, zero_i, one_i, inf, ok), ok)
-        compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(planes, oy, inv_y, iy, sy, zero_i, one_i, inf, ok), ok)
-        compress_store_f32(queue, _TZ * columns + n_queued, _plane_time8(planes, oz, inv_z, iz, sz, zero_i, one_i, inf, ok), ok)
-        for row, i in ((_LO_X, ix), (_LO_Y, iy), (_LO_Z, iz)):
-            compress_store_f32(queue, row * columns + n_queued, gather_f64(planes, i, ok, zero), ok)
-            compress_store_f32(queue, (row + 3) * columns + n_queued, gather_f64(planes, i + one_i, ok, zero), ok)
+        compress_store_f32(queue, _TX * columns + n_queued, _plane_time8(inv_res, ox, inv_x, ix, sx, zero_i, one_i, inf), ok)
+        compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(inv_res, oy, inv_y, iy, sy, zero_i, one_i, inf), ok)
+        compress_store_f32(queue, _TZ * columns + n_queued, _plane_time8(inv_res, oz, inv_z, iz, sz, zero_i, one_i, inf), ok)
         for row, value in ((_RAY, ray), (_SX, sx), (_SY, sy), (_SZ, sz), (_IX, ix), (_IY, iy), (_IZ, iz),
                            (_CODE, select(inside, splat_i64(ORIGIN_POINT), near_axis))):  # fmt: skip
             compress_store_i32(queue_i, row * columns + n_queued, value, ok)
@@ -211,7 +219,7 @@ def _store16(point_x, point_y, point_z, point_local, point_code, point_ray, poin
 
 
 @numba.njit(cache=True)
-def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_point, share, redo, n_redo, lane_terms,
+def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_point, share, redo, n_redo, lane_terms,
                 point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts):  # fmt: skip
     """The steps of the queued rays, 16 lanes at a time: writes their points and their local
     distances (`lsnif_features.local_distance`; returns their number and the length of ``redo``,
@@ -223,11 +231,12 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
     one, margin, tiny, min_span = splat_f32(1.0), splat_f32(_MARGIN), splat_f32(_TINY), splat_f32(1e-12)
     origin_code = splat_i32(ORIGIN_POINT)
     res_v = splat_i32(res)
-    res_f = splat_f32(np.float32(res))
+    five_i, low_bits = splat_i32(5), splat_i32(31)  # a cell's word and bit in occ_bits
+    inv_res = splat_f32(np.float32(1.0 / res))  # exact: V a power of two
     full = splat_i32(max_points)
     share_v = splat_m16(share)
     skip_origin = splat_m16(not origin_point)
-    ox = oy = oz = dx = dy = dz = inv_x = inv_y = inv_z = tx = ty = tz = t_cur = lo_x = lo_y = lo_z = hi_x = hi_y = hi_z = zero
+    ox = oy = oz = dx = dy = dz = inv_x = inv_y = inv_z = tx = ty = tz = t_cur = zero
     last_t = splat_f32(-np.inf)
     ray = sx = sy = sz = ix = iy = iz = code = count = zero_i
     active = splat_m16(False)
@@ -251,12 +260,6 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             ty = expand16_f32(queue, _TY * columns + taken, take, ty)
             tz = expand16_f32(queue, _TZ * columns + taken, take, tz)
             t_cur = expand16_f32(queue, _T_CUR * columns + taken, take, t_cur)
-            lo_x = expand16_f32(queue, _LO_X * columns + taken, take, lo_x)
-            lo_y = expand16_f32(queue, _LO_Y * columns + taken, take, lo_y)
-            lo_z = expand16_f32(queue, _LO_Z * columns + taken, take, lo_z)
-            hi_x = expand16_f32(queue, _HI_X * columns + taken, take, hi_x)
-            hi_y = expand16_f32(queue, _HI_Y * columns + taken, take, hi_y)
-            hi_z = expand16_f32(queue, _HI_Z * columns + taken, take, hi_z)
             sx = expand16_i32(queue_i, _SX * columns + taken, take, sx)
             sy = expand16_i32(queue_i, _SY * columns + taken, take, sy)
             sz = expand16_i32(queue_i, _SZ * columns + taken, take, sz)
@@ -294,7 +297,8 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             n_redo += popcount16(undecided)
             live = live & ~undecided
             active = active & ~undecided
-        occupied = gather16_i32(occ_cells, (ix * res_v + iy) * res_v + iz, live) != zero_i
+        cell = (ix * res_v + iy) * res_v + iz
+        occupied = ((gather16_i32(occ_bits, cell >> five_i, live) >> (cell & low_bits)) & one_i) != zero_i
         emit = live & occupied  # (t_next > t_cur where decided)
         if bits16(emit) != 0:
             entry = emit & ~((share_v & (t_cur == last_t)) | ((code == origin_code) & skip_origin))
@@ -302,6 +306,10 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
             entry = entry & ~full_at_entry
             positive_x, positive_y, positive_z = sx > zero_i, sy > zero_i, sz > zero_i
             te, span, dd = load16(lane_terms, 0), load16(lane_terms, 16), dx * dx + dy * dy + dz * dz
+            # The voxel's bounds k / V and (k + 1) / V, exact in float32 (V a power of two): computed, not
+            # carried per lane (six fewer registers and queue rows)
+            lo_x, lo_y, lo_z = to_f32(ix) * inv_res, to_f32(iy) * inv_res, to_f32(iz) * inv_res
+            hi_x, hi_y, hi_z = lo_x + inv_res, lo_y + inv_res, lo_z + inv_res
             if bits16(entry) != 0:
                 px = _point16(code == zero_i, False, positive_x, ox, dx, t_cur, lo_x, hi_x)
                 py = _point16(code == one_i, False, positive_y, oy, dy, t_cur, lo_y, hi_y)
@@ -331,15 +339,14 @@ def _walk_lanes(queue, queue_i, n_queued, occ_cells, res, max_points, origin_poi
         stepped = select16(is_z, iz, select16(is_y, iy, ix))
         left = live & ((stepped < zero_i) | (stepped >= res_v))
         live = live & ~left
-        lo = to_f32(stepped) / res_f  # k / V: exact (V a power of two)
-        hi = to_f32(stepped + one_i) / res_f
         s = select16(is_z, sz, select16(is_y, sy, sx))
         o = select16(is_z, oz, select16(is_y, oy, ox))
         inv = select16(is_z, inv_z, select16(is_y, inv_y, inv_x))
-        t_plane = (select16(s > zero_i, hi, lo) - o) * inv
-        tx, lo_x, hi_x = select16(is_x, t_plane, tx), select16(is_x, lo, lo_x), select16(is_x, hi, hi_x)
-        ty, lo_y, hi_y = select16(is_y, t_plane, ty), select16(is_y, lo, lo_y), select16(is_y, hi, hi_y)
-        tz, lo_z, hi_z = select16(is_z, t_plane, tz), select16(is_z, lo, lo_z), select16(is_z, hi, hi_z)
+        plane = to_f32(stepped + select16(s > zero_i, one_i, zero_i)) * inv_res  # the next plane, k / V exactly
+        t_plane = (plane - o) * inv
+        tx = select16(is_x, t_plane, tx)
+        ty = select16(is_y, t_plane, ty)
+        tz = select16(is_z, t_plane, tz)
         t_cur = t_next
         code = axis
         done = ended | left
@@ -379,20 +386,20 @@ def _walk_again(origins, directions, first, occ, planes, max_points, origin_poin
 
 
 @numba.njit(cache=True)
-def walk_group(origins, directions, first, n, occ, occ_cells, planes, max_points, origin_point, share, queue, queue_i, rays8,
+def walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i, rays8,
                lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter,
                t_exit):  # fmt: skip
     """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`) on
-    the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_cells`` the same as int32, flat;
+    the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_bits``: `occupancy_bits` of it;
     ``planes``: ``k / V``, float64): ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at
     ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
     order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
     ray ``g`` and slot (the point's index in its ray's list), int32. ``pts``/``axes`` (``[group, H,
     3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
-    n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], planes, queue, queue_i, rays8, redo, t_enter, t_exit)
+    n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], queue, queue_i, rays8, redo, t_enter, t_exit)
     for g in range(n):
         counts[g] = 0
-    e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_cells, occ.shape[0], max_points, origin_point, share, redo, n_redo,
+    e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_bits, occ.shape[0], max_points, origin_point, share, redo, n_redo,
                             lane_terms, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts)  # fmt: skip
     if n_redo > 0:
         e = _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
