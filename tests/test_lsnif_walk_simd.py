@@ -125,7 +125,7 @@ def _walked_again(origins, directions, occ, occ_bits, planes, max_points):
     at_start = from_lanes = 0
     for first in range(0, origins.shape[0], GROUP):
         n = min(GROUP, origins.shape[0] - first)
-        queued, listed = _start_group(origins, directions, first, n, occ.shape[0], queue, queue_i, rays8, redo, t_enter, t_exit)
+        queued, listed = _start_group(origins, directions, first, n, occ.shape[0], occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit)
         _, total = _walk_lanes(queue, queue_i, queued, occ_bits, occ.shape[0], max_points, True, True, redo, listed,
                                lane_terms, px, px.copy(), px.copy(), px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
         at_start += listed

@@ -241,7 +241,8 @@ _register_binary(operator.add, {f64x8: (f64x8, lambda b, x, y: b.fadd(x, y)), i6
 _register_binary(operator.sub, {f64x8: (f64x8, lambda b, x, y: b.fsub(x, y)), i64x8: (i64x8, lambda b, x, y: b.sub(x, y))})
 _register_binary(operator.mul, {f64x8: (f64x8, lambda b, x, y: b.fmul(x, y)), i64x8: (i64x8, lambda b, x, y: b.mul(x, y))})
 _register_binary(operator.truediv, {f64x8: (f64x8, lambda b, x, y: b.fdiv(x, y))})
-_register_binary(operator.and_, {m8: (m8, lambda b, x, y: b.and_(x, y))})
+_register_binary(operator.and_, {m8: (m8, lambda b, x, y: b.and_(x, y)), i64x8: (i64x8, lambda b, x, y: b.and_(x, y))})
+_register_binary(operator.rshift, {i64x8: (i64x8, lambda b, x, y: b.lshr(x, y))})  # logical: for non-negative values
 _register_binary(operator.or_, {m8: (m8, lambda b, x, y: b.or_(x, y))})
 for _pyop, _predicate in ((operator.lt, "<"), (operator.gt, ">"), (operator.le, "<="), (operator.ge, ">="), (operator.eq, "=="),
                           (operator.ne, "!=")):  # fmt: skip

@@ -40,7 +40,7 @@ import numba
 import numpy as np
 
 from ..simd import (
-    compress_store_f32, floor_i64, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
+    compress_store_f32, floor_i64, gather_i32, lane_index, load_f64, popcount8, select, splat_f64, splat_i64, to_f64, vmax, vmin,
 )  # fmt: skip
 from ..simd16 import (
     bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, load16, popcount16,
@@ -52,8 +52,8 @@ __all__ = ["walk_group", "walk_scratch", "float32_walk_applies", "occupancy_bits
 
 # The queue of a group's rays that enter the box, one column per ray (float32 rows, then int32):
 _OX, _OY, _OZ, _DX, _DY, _DZ, _INV_X, _INV_Y, _INV_Z, _TX, _TY, _TZ, _T_CUR, _T_EXIT = range(14)
-_RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE = range(8)
-_FLOAT_ROWS, _INT_ROWS = 14, 8
+_RAY, _SX, _SY, _SZ, _IX, _IY, _IZ, _CODE, _OCC = range(9)  # _OCC: the first cell's occupancy (0 or 1)
+_FLOAT_ROWS, _INT_ROWS = 14, 9
 _SPARE = 16  # columns past the last ray: a refill reads up to 16 entries
 # A step is decided in float32 where the closest plane time beats the others and the current time
 # by this factor (float32 times are within 3u of the exact ones, float64 times within 2^-51)
@@ -84,7 +84,7 @@ def walk_scratch(group):
     origins and directions (float64), the 16 lanes' terms of their local distances (float32), and
     the list of rays `walk_ray` walks again."""
     columns = group + _SPARE
-    return (np.empty(_FLOAT_ROWS * columns, np.float32), np.empty(_INT_ROWS * columns, np.int32), np.empty(48),
+    return (np.empty(_FLOAT_ROWS * columns, np.float32), np.empty(_INT_ROWS * columns, np.int32), np.empty(96),
             np.empty(32, np.float32), np.empty(group + _SPARE, np.int32))  # fmt: skip
 
 
@@ -123,8 +123,19 @@ def _in_range8(x, limit):
     return (x <= limit) & (x >= splat_f64(0.0) - limit)
 
 
+@numba.njit(cache=True, inline="always")
+def _widen8(origins, directions, first, g0, n, rays8, at):
+    """Rays ``first + g0 ...`` (8, the last repeated past ``n``) widened to float64 lanes at ``rays8[at:at + 48]``."""
+    m = min(8, n - g0)
+    for k in range(8):
+        r = first + g0 + (k if k < m else 0)
+        for c in range(3):
+            rays8[at + c * 8 + k] = origins[r, c]
+            rays8[at + (3 + c) * 8 + k] = directions[r, c]
+
+
 @numba.njit(cache=True)
-def _start_group(origins, directions, first, n, res, queue, queue_i, rays8, redo, t_enter, t_exit):
+def _start_group(origins, directions, first, n, res, occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit):
     """The start of `walk_ray` for rays ``[first, first + n)``, 8 at a time in float64: writes their
     ``t_enter``/``t_exit``, queues (rounded to float32) those that enter the box, and lists in
     ``redo`` those that enter it with values out of float32's comfortable range; returns (queued,
@@ -133,21 +144,23 @@ def _start_group(origins, directions, first, n, res, queue, queue_i, rays8, redo
     zero_i, one_i, two_i = splat_i64(0), splat_i64(1), splat_i64(2)
     res_f = splat_f64(np.float64(res))
     inv_res = splat_f64(1.0 / res)
+    res_i, five, low_bits = splat_i64(res), splat_i64(5), splat_i64(31)
     last = splat_i64(res - 1)
     o_limit, inv_limit = splat_f64(_O_LIMIT), splat_f64(_INV_LIMIT)
     columns = queue.shape[0] // _FLOAT_ROWS
     n_queued = 0
     n_redo = 0
+    _widen8(origins, directions, first, 0, n, rays8, 0)
     for g0 in range(0, n, 8):
         m = min(8, n - g0)
-        for k in range(8):  # the rays' float32 origins and directions, widened, as lanes
-            r = first + g0 + (k if k < m else 0)
-            for c in range(3):
-                rays8[c * 8 + k] = origins[r, c]
-                rays8[(3 + c) * 8 + k] = directions[r, c]
+        # The rays' float32 origins and directions, widened, as lanes: written one batch ahead, in
+        # two halves (a vector load of just-stored scalars waits for them to reach the cache)
+        half = ((g0 >> 3) & 1) * 48
+        ox, oy, oz = load_f64(rays8, half), load_f64(rays8, half + 8), load_f64(rays8, half + 16)
+        dx, dy, dz = load_f64(rays8, half + 24), load_f64(rays8, half + 32), load_f64(rays8, half + 40)
+        if g0 + 8 < n:
+            _widen8(origins, directions, first, g0 + 8, n, rays8, 48 - half)
         lanes = lane_index() < splat_i64(m)
-        ox, oy, oz = load_f64(rays8, 0), load_f64(rays8, 8), load_f64(rays8, 16)
-        dx, dy, dz = load_f64(rays8, 24), load_f64(rays8, 32), load_f64(rays8, 40)
         total = ox + oy + oz + dx + dy + dz
         ok = lanes & ((total - total) == zero) & ~((dx == zero) & (dy == zero) & (dz == zero))  # finite, not zero
         sx, inv_x, nx, fx, okx = _slab8(ox, dx, zero, one, zero_i, one_i, inf)
@@ -171,6 +184,8 @@ def _start_group(origins, directions, first, n, res, queue, queue_i, rays8, redo
         fits = (_in_range8(ox, o_limit) & _in_range8(oy, o_limit) & _in_range8(oz, o_limit) & _in_range8(inv_x, inv_limit)
                 & _in_range8(inv_y, inv_limit) & _in_range8(inv_z, inv_limit))  # fmt: skip
         ray = lane_index() + splat_i64(g0)
+        cell = (ix * res_i + iy) * res_i + iz
+        occupied = (gather_i32(occ_bits, cell >> five, ok) >> (cell & low_bits)) & one_i
         compress_store_i32(redo, n_redo, ray, ok & ~fits)
         n_redo += popcount8(ok & ~fits)
         ok = ok & fits
@@ -181,7 +196,7 @@ def _start_group(origins, directions, first, n, res, queue, queue_i, rays8, redo
         compress_store_f32(queue, _TY * columns + n_queued, _plane_time8(inv_res, oy, inv_y, iy, sy, zero_i, one_i, inf), ok)
         compress_store_f32(queue, _TZ * columns + n_queued, _plane_time8(inv_res, oz, inv_z, iz, sz, zero_i, one_i, inf), ok)
         for row, value in ((_RAY, ray), (_SX, sx), (_SY, sy), (_SZ, sz), (_IX, ix), (_IY, iy), (_IZ, iz),
-                           (_CODE, select(inside, splat_i64(ORIGIN_POINT), near_axis))):  # fmt: skip
+                           (_CODE, select(inside, splat_i64(ORIGIN_POINT), near_axis)), (_OCC, occupied)):  # fmt: skip
             compress_store_i32(queue_i, row * columns + n_queued, value, ok)
         n_queued += popcount8(ok)
     for k in range(_SPARE):
@@ -238,7 +253,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
     skip_origin = splat_m16(not origin_point)
     ox = oy = oz = dx = dy = dz = inv_x = inv_y = inv_z = tx = ty = tz = t_cur = zero
     last_t = splat_f32(-np.inf)
-    ray = sx = sy = sz = ix = iy = iz = code = count = zero_i
+    ray = sx = sy = sz = ix = iy = iz = code = count = occ_lane = zero_i
     active = splat_m16(False)
     taken = 0  # queue entries handed to lanes
     e = 0
@@ -267,6 +282,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
             iy = expand16_i32(queue_i, _IY * columns + taken, take, iy)
             iz = expand16_i32(queue_i, _IZ * columns + taken, take, iz)
             code = expand16_i32(queue_i, _CODE * columns + taken, take, code)
+            occ_lane = expand16_i32(queue_i, _OCC * columns + taken, take, occ_lane)
             # the rays' t_enter (their start time) and span for their local distances, kept in memory (registers are scarce)
             te = expand16_f32(queue, _T_CUR * columns + taken, take, load16(lane_terms, 0))
             t_exit = expand16_f32(queue, _T_EXIT * columns + taken, take, te)
@@ -297,8 +313,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
             n_redo += popcount16(undecided)
             live = live & ~undecided
             active = active & ~undecided
-        cell = (ix * res_v + iy) * res_v + iz
-        occupied = ((gather16_i32(occ_bits, cell >> five_i, live) >> (cell & low_bits)) & one_i) != zero_i
+        occupied = occ_lane != zero_i
         emit = live & occupied  # (t_next > t_cur where decided)
         if bits16(emit) != 0:
             entry = emit & ~((share_v & (t_cur == last_t)) | ((code == origin_code) & skip_origin))
@@ -339,6 +354,10 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
         stepped = select16(is_z, iz, select16(is_y, iy, ix))
         left = live & ((stepped < zero_i) | (stepped >= res_v))
         live = live & ~left
+        # The next cell's occupancy, gathered here rather than at the next step's start: the gather's
+        # latency overlaps the rest of this step and the refill
+        cell = (ix * res_v + iy) * res_v + iz
+        occ_lane = (gather16_i32(occ_bits, cell >> five_i, live) >> (cell & low_bits)) & one_i
         s = select16(is_z, sz, select16(is_y, sy, sx))
         o = select16(is_z, oz, select16(is_y, oy, ox))
         inv = select16(is_z, inv_z, select16(is_y, inv_y, inv_x))
@@ -396,7 +415,7 @@ def walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points,
     order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
     ray ``g`` and slot (the point's index in its ray's list), int32. ``pts``/``axes`` (``[group, H,
     3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
-    n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], queue, queue_i, rays8, redo, t_enter, t_exit)
+    n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit)
     for g in range(n):
         counts[g] = 0
     e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_bits, occ.shape[0], max_points, origin_point, share, redo, n_redo,
