@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .sparse_hash_grid import prefetch_row
+
 __all__ = ["HashGridLayout", "HashGrid", "hash_grid_torch", "hash_grid_reference", "HASH_PRIMES"]
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # instant-ngp's spatial hash
@@ -73,8 +75,8 @@ class HashGridLayout:
 
 
 @numba.njit(cache=True, inline="always")
-def _corners(x, y, z, res, size, offset, rows, weights):
-    """Fill ``rows``/``weights`` [8] with the table rows and trilinear weights of one point at one level."""
+def _corners(x, y, z, res, size, offset, rows, weights, at=0):
+    """Fill ``rows``/``weights`` ``[at : at + 8]`` with the table rows and trilinear weights of one point at one level."""
     scale = np.float32(res - 1)
     half = np.float32(0.5)
     one = np.float32(1.0)
@@ -93,11 +95,18 @@ def _corners(x, y, z, res, size, offset, rows, weights):
             idx = cx + cy * res + cz * res * res
         else:
             idx = ((cx * _P0) ^ (cy * _P1) ^ (cz * _P2)) & (size - 1)
-        rows[c] = offset + idx
+        rows[at + c] = offset + idx
         w = wx if (c & 1) else one - wx
         w *= wy if ((c >> 1) & 1) else one - wy
         w *= wz if ((c >> 2) & 1) else one - wz
-        weights[c] = w
+        weights[at + c] = w
+
+
+# Rays whose rows (every point and level) are found and prefetched before any is read: the
+# reads then overlap instead of waiting on one cache miss after another (N-BVH's tables, ~6 MB
+# at its `cpu` preset, do not fit in L2). 2 cores, Zen 5, N-BVH `intersect` (session 37): see
+# docs/nbvh.md.
+_FORWARD_GROUP = 8
 
 
 @numba.njit(parallel=True, cache=True)
@@ -105,22 +114,46 @@ def _forward_kernel(points, table, resolutions, sizes, offsets, n_chunks, out):
     """``points`` [N, P, 3], ``table`` [R, F] -> ``out`` [N, P * L * F]."""
     n, n_points = points.shape[0], points.shape[1]
     n_levels, n_feat = resolutions.shape[0], table.shape[1]
+    per_ray = n_points * n_levels * 8  # rows a ray reads
     for chunk in numba.prange(n_chunks):
-        rows = np.empty(8, np.int64)
-        weights = np.empty(8, np.float32)
+        rows = np.empty(_FORWARD_GROUP * per_ray, np.int64)
+        weights = np.empty(_FORWARD_GROUP * per_ray, np.float32)
         acc = np.empty(n_feat, np.float32)
-        for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
-            for p in range(n_points):
-                for lvl in range(n_levels):
-                    _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
-                    col = (p * n_levels + lvl) * n_feat
-                    acc[:] = np.float32(0.0)
-                    for c in range(8):  # corner-major: one table row at a time, sums in a local array
-                        r, w = rows[c], weights[c]
-                        for f in range(n_feat):
-                            acc[f] += w * table[r, f]
-                    for f in range(n_feat):
-                        out[i, col + f] = acc[f]
+        last = (chunk + 1) * n // n_chunks
+        for first in range(chunk * n // n_chunks, last, _FORWARD_GROUP):
+            stop = min(first + _FORWARD_GROUP, last)
+            at = 0
+            for i in range(first, stop):  # the group's rows, prefetched
+                for p in range(n_points):
+                    for lvl in range(n_levels):
+                        _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows,
+                                 weights, at)  # fmt: skip
+                        for c in range(8):
+                            prefetch_row(table, rows[at + c])
+                        at += 8
+            at = 0
+            for i in range(first, stop):
+                for p in range(n_points):
+                    for lvl in range(n_levels):
+                        col = (p * n_levels + lvl) * n_feat
+                        if n_feat == 4:  # (N-BVH's): the 4 sums in registers, the same operations
+                            a0 = a1 = a2 = a3 = np.float32(0.0)
+                            for c in range(8):
+                                r, w = rows[at + c], weights[at + c]
+                                a0 += w * table[r, 0]
+                                a1 += w * table[r, 1]
+                                a2 += w * table[r, 2]
+                                a3 += w * table[r, 3]
+                            out[i, col], out[i, col + 1], out[i, col + 2], out[i, col + 3] = a0, a1, a2, a3
+                        else:
+                            acc[:] = np.float32(0.0)
+                            for c in range(8):  # corner-major: one table row at a time, sums in a local array
+                                r, w = rows[at + c], weights[at + c]
+                                for f in range(n_feat):
+                                    acc[f] += w * table[r, f]
+                            for f in range(n_feat):
+                                out[i, col + f] = acc[f]
+                        at += 8
 
 
 @numba.njit(parallel=True, cache=True)
