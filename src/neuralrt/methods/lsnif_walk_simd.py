@@ -30,7 +30,10 @@ operations (the same bits as that scalar code on the same point).
 
 On the 2-core Zen 5 development machine, for 2^17 hairball(6) `lq` rays on one thread, the steps
 of this walk take ~4.6 ms against ~7.6 ms for the earlier 8-lane float64 walk, the whole walk
-with its start ~5.9 against ~8.9 ms (docs/lsnif.md, "Session 32"). Where the CPU lacks AVX-512,
+with its start ~5.9 against ~8.9 ms (docs/lsnif.md, "Session 32"). Session 37 (the occupancy
+as bits, each cell's gathered one step ahead, the voxel bounds computed rather than carried,
+the start without gathers): the whole walk 5.27 against 6.37 ms, alternating in one process
+(groups of 128 rays, as the fused pass walks them). Where the CPU lacks AVX-512,
 LLVM lowers the same code to scalar loops (correct, slower): the fused pass then uses `walk_ray`.
 """
 
@@ -80,8 +83,8 @@ def occupancy_bits(occ: np.ndarray) -> np.ndarray:
 @numba.njit(cache=True)
 def walk_scratch(group):
     """A thread's scratch for `walk_group` on groups of up to ``group`` rays: the queue (float32
-    and int32 rows, flat; `_SPARE` columns after the last ray, whose sentinel is ray -1), 8 rays'
-    origins and directions (float64), the 16 lanes' terms of their local distances (float32), and
+    and int32 rows, flat; `_SPARE` columns after the last ray, whose sentinel is ray -1), two
+    batches of 8 rays' origins and directions (float64), the 16 lanes' terms of their local distances (float32), and
     the list of rays `walk_ray` walks again."""
     columns = group + _SPARE
     return (np.empty(_FLOAT_ROWS * columns, np.float32), np.empty(_INT_ROWS * columns, np.int32), np.empty(96),
