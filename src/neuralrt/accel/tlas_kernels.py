@@ -18,6 +18,7 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray, write_miss
+from ..simd import prefetch_row
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
            "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits",
@@ -230,29 +231,6 @@ def _fma32(typingctx, a, b, c):
         f32 = ir.FloatType()
         fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(f32, [f32, f32, f32]), "llvm.fma.f32")
         return builder.call(fma, args)
-
-    return sig, codegen
-
-
-@intrinsic
-def _prefetch_row(typingctx, arr, row):
-    """A hint: start loading the cache line of ``arr[row, 0]`` (or ``arr[row]``) now. Rows of mesh
-    tables read in random order (closest hits scatter over the mesh) otherwise each wait for
-    memory in turn; a few rows ahead, their loads overlap."""
-    sig = types.void(arr, row)
-
-    def codegen(context, builder, signature, args):
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        index = [context.cast(builder, args[1], signature.args[1], types.intp)]
-        index += [context.get_constant(types.intp, 0)] * (aryty.ndim - 1)
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, index, wraparound=False)
-        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-        prefetch = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-                                                  "llvm.prefetch.p0i8")  # fmt: skip
-        # read, high temporal locality, data cache
-        builder.call(prefetch, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
-        return context.get_dummy_value()
 
     return sig, codegen
 
@@ -534,18 +512,18 @@ def finish_hits(
         ahead = r + _FACE_AHEAD
         if ahead < n and best_instance[ahead] >= 0 and instance_group[best_instance[ahead]] == group:
             q = best_prim[ahead]
-            _prefetch_row(faces, q)
-            _prefetch_row(face_normals, q)
-            _prefetch_row(face_material_ids, q)
+            prefetch_row(faces, q)
+            prefetch_row(face_normals, q)
+            prefetch_row(face_material_ids, q)
         ahead = r + _VERTEX_AHEAD
         if ahead < n and best_instance[ahead] >= 0 and instance_group[best_instance[ahead]] == group:
             q = best_prim[ahead]
             for c in range(3):
-                _prefetch_row(vertex_normals, faces[q, c])
+                prefetch_row(vertex_normals, faces[q, c])
                 if use_uvs:
-                    _prefetch_row(uvs, faces[q, c])
+                    prefetch_row(uvs, faces[q, c])
                 if use_vertex_colors:
-                    _prefetch_row(vertex_colors, faces[q, c])
+                    prefetch_row(vertex_colors, faces[q, c])
         k = best_instance[r]
         if k < 0:
             if write_misses:

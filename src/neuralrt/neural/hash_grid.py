@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .sparse_hash_grid import prefetch_row
+from ..simd import prefetch_row
+from ..task_queue import task_count, task_workers
 
 __all__ = ["HashGridLayout", "HashGrid", "hash_grid_torch", "hash_grid_reference", "HASH_PRIMES"]
 
@@ -188,8 +189,7 @@ class _HashGridFunction(torch.autograd.Function):
         n_feat = table.shape[1]
         out = np.empty((n, n_points * len(res) * n_feat), np.float32)
         if n:
-            chunks = max(1, min(n, 8 * numba.get_num_threads()))
-            _forward_kernel(pts, table.detach().contiguous().numpy(), res, sizes, offsets, chunks, out)
+            _forward_kernel(pts, table.detach().contiguous().numpy(), res, sizes, offsets, task_count(n), out)
         ctx.save_for_backward(points)
         ctx.layout, ctx.table_shape = layout, tuple(table.shape)
         return torch.from_numpy(out)
@@ -200,7 +200,7 @@ class _HashGridFunction(torch.autograd.Function):
             return None, None, None
         (points,) = ctx.saved_tensors
         res, sizes, offsets = ctx.layout.arrays()
-        threads = max(1, min(len(points), numba.get_num_threads()))
+        threads = task_workers(len(points))  # a gradient table per worker
         tables = np.zeros((threads, *ctx.table_shape), np.float32)
         if len(points):
             _backward_kernel(points.detach().float().contiguous().numpy(), grad_out.float().contiguous().numpy(),

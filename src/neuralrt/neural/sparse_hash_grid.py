@@ -35,11 +35,10 @@ import numpy as np
 import torch
 from llvmlite import ir
 from numba import types
-from numba.core import cgutils
 from numba.extending import intrinsic
 from torch import Tensor, nn
 
-from ..simd import broadcast, contiguous_1d, element_pointer, numba_targets, vector_pointer
+from ..simd import broadcast, contiguous_1d, element_pointer, numba_targets, prefetch_row, vector_pointer
 from ..task_queue import take_task, task_count, task_workers
 from .bf16_dot import as_fp32, bf16_bits
 
@@ -102,27 +101,6 @@ def face_corners(a, u0, u1, wu, v0, v1, wv, base, mask, slots, weights):
     slots[0], slots[1], slots[2], slots[3], weights[0], weights[1], weights[2], weights[3] = corner_rows(
         a, u0, u1, wu, v0, v1, wv, base, mask)
     return 4
-
-
-@intrinsic
-def prefetch_row(typingctx, array, row):
-    """Hint the CPU to bring ``array[row, 0]`` into the cache (LLVM's prefetch: read, keep)."""
-
-    def codegen(context, builder, sig, args):
-        array_type = sig.args[0]
-        data = context.make_array(array_type)(context, builder, args[0])
-        index = context.cast(builder, args[1], sig.args[1], types.intp)
-        ptr = cgutils.get_item_pointer2(
-            context, builder, data=data.data, shape=cgutils.unpack_tuple(builder, data.shape),
-            strides=cgutils.unpack_tuple(builder, data.strides), layout=array_type.layout,
-            inds=[index, context.get_constant(types.intp, 0)], wraparound=False, boundscheck=False,
-        )  # fmt: skip
-        byte_ptr, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, i32, i32, i32]), "llvm.prefetch.p0i8")
-        builder.call(fn, [builder.bitcast(ptr, byte_ptr), i32(0), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return types.void(array, row), codegen
 
 
 @numba.njit(cache=True, inline="always")
