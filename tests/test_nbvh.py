@@ -49,6 +49,19 @@ def _random_cut(model: NBVHModel, seed: int) -> None:
     model.live[frontier] = True
 
 
+def random_answers(model, precision="fp32"):
+    """An untrained model whose answers depend on the features: a U(-1, 1) table, the visibility
+    bias set so that about half the leaves accept a hit; the MLP in ``precision`` (fp32: both
+    paths compute the same network on the same input bits)."""
+    inference = model.config.inference.model_copy(update={"compute_precision": precision})
+    model.config = model.config.model_copy(update={"inference": inference})
+    with torch.no_grad():
+        model.encoder.table.copy_(torch.rand(model.encoder.table.shape, generator=torch.Generator().manual_seed(6)) * 2 - 1)
+        logits = model.network(model.encoder(torch.rand(512, 3, 3, generator=torch.Generator().manual_seed(7))))[:, 0]
+        model.network.output.bias[0] -= logits.median()
+    return model
+
+
 def _unit_rays(n, seed, inside_share=0.3):
     g = torch.Generator().manual_seed(seed)
     o = torch.rand(n, 3, generator=g) * 1.6 - 0.3
@@ -291,7 +304,8 @@ def test_config_presets_and_validation():
 
 
 def test_device_generic_path_answers_like_the_cpu_kernels(trained, monkeypatch):
-    """The torch implementations (what CUDA runs: frontier traversal, torch hash grid) answer as numba does."""
+    """The torch implementations (frontier traversal, torch hash grid, the wavefront loop in torch
+    ops) answer as the numba kernels do."""
     import neuralrt.methods.nbvh as nbvh_module
     from neuralrt.neural.hash_grid import HashGrid, hash_grid_torch
 
@@ -300,10 +314,44 @@ def test_device_generic_path_answers_like_the_cpu_kernels(trained, monkeypatch):
     cpu = model.intersect(rays)
     monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_torch)
     monkeypatch.setattr(HashGrid, "forward", lambda self, points: hash_grid_torch(points, self.table, self.layout))
+    monkeypatch.setattr(NBVHModel, "_closest", NBVHModel._closest_torch)
     generic = model.intersect(rays)
     assert (generic.hit != cpu.hit).sum() <= 2  # float sums in another order may flip a borderline answer
     both = generic.hit & cpu.hit
     assert torch.allclose(generic.t[both], cpu.t[both], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision):
+    """The CPU wavefront (numba step passes around the MLP) against the torch loop on the same leaf
+    lists, for closest and any hits, on a random cut with answers that depend on the features; rays
+    from outside and from inside leaves (reversed chords), some with a short t_max. The same
+    network on the same input bits: the same hits, distances up to sigmoid's rounding."""
+    from neuralrt.methods.nbvh_wavefront_cpu import closest_hits_cpu
+
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", encoding={"levels": 5, "log2_table_size": 14}))
+    _random_cut(model, seed=2)
+    model = random_answers(model, precision)
+    g = torch.Generator().manual_seed(12)
+    n = 3000
+    o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    o[: n // 4] = 0.35 + 0.3 * torch.rand(n // 4, 3, generator=g)  # origins inside leaves: reversed chords
+    d = torch.nn.functional.normalize(0.5 + 0.2 * torch.randn(n, 3, generator=g) - o, dim=1)
+    t_max = torch.full((n,), 3.0)
+    t_max[::5] = 0.4
+    for any_hit in (False, True):
+        with torch.no_grad():  # as intersect runs both
+            ref_t, ref_out = model._closest_torch(o, d, t_max, any_hit)
+        t, out = closest_hits_cpu(model, o, d, t_max, any_hit)
+        hit = torch.isfinite(ref_t)
+        assert 0.2 < hit.float().mean() < 0.95
+        assert torch.equal(torch.isfinite(t), hit)
+        torch.testing.assert_close(t[hit], ref_t[hit], rtol=1e-6, atol=1e-7)
+        assert torch.equal(out[hit], ref_out[hit]) and not out[~hit].any()
+    inside = o[: n // 4]
+    assert torch.isfinite(closest_hits_cpu(model, inside, d[: n // 4], t_max[: n // 4], False)[0]).any()
+    empty = closest_hits_cpu(model, o[:0], d[:0], t_max[:0], False)
+    assert empty[0].shape == (0,) and empty[1].shape == (0, 8)
 
 
 def test_instanced_in_a_scene_and_rendered_without_triangles(ball, trained):

@@ -18,6 +18,7 @@ pytest.importorskip("triton")
 
 from neuralrt.neural.hash_grid import HashGrid, hash_grid_reference  # noqa: E402
 from neuralrt.neural.hash_grid_triton import hash_grid_triton  # noqa: E402
+from test_nbvh import random_answers  # noqa: E402
 
 DEVICE = torch.device("cuda" if CUDA else "cpu")
 # The interpreter runs a launch's programs one after another, each op at a fixed cost: larger
@@ -171,19 +172,6 @@ def test_triton_traversal_of_a_tree_deeper_than_its_short_stack(monkeypatch):
     assert stacks == [256, 256]  # list and first-leaf walks both overflowed the short stack
 
 
-def _random_answers(model, precision="fp32"):
-    """An untrained model whose answers depend on the features: a U(-1, 1) table, the visibility
-    bias set so that about half the leaves accept a hit; the MLP in ``precision`` (fp32: both
-    paths compute the same network on the same input bits)."""
-    inference = model.config.inference.model_copy(update={"compute_precision": precision})
-    model.config = model.config.model_copy(update={"inference": inference})
-    with torch.no_grad():
-        model.encoder.table.copy_(torch.rand(model.encoder.table.shape, generator=torch.Generator().manual_seed(6)) * 2 - 1)
-        logits = model.network(model.encoder(torch.rand(512, 3, 3, generator=torch.Generator().manual_seed(7))))[:, 0]
-        model.network.output.bias[0] -= logits.median()
-    return model
-
-
 def _assert_same_hits(t, t_ref, rtol=1e-5):
     """Same hit/miss and distances. Compiled, fused multiply-adds move features and outputs by
     float32 rounding, which may flip an answer right at the acceptance threshold: 1 ray in 64."""
@@ -211,7 +199,7 @@ def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypat
     from neuralrt.methods.nbvh_traversal_triton import list_leaves_triton
     from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
 
-    cpu_model = _random_answers(copy.deepcopy(ball_model))
+    cpu_model = random_answers(copy.deepcopy(ball_model))
     rays = _sphere_rays(48, 11)
     cpu = cpu_model.intersect(rays)
     assert 0.2 < cpu.hit.float().mean() < 0.9
@@ -230,7 +218,7 @@ def test_triton_wavefront_answers_as_the_torch_loop(ball_model):
 
     from neuralrt.methods.nbvh_wavefront_triton import closest_hits_triton
 
-    model = _random_answers(copy.deepcopy(ball_model))
+    model = random_answers(copy.deepcopy(ball_model))
     on_device = copy.deepcopy(model).to(DEVICE)
     g = torch.Generator().manual_seed(12)
     n = 64

@@ -39,6 +39,7 @@ from .base import NeuralBLAS, material_table
 from .nbvh_config import NBVHConfig
 from .nbvh_cut import base_tree, choose_splits, compact, kept_nodes, lod_to_register, split_count
 from .nbvh_rays import NBVHRayDistribution
+from .nbvh_wavefront_cpu import closest_hits_cpu
 from .nbvh_traversal import NO_LOD, CutArrays, LeafList, first_leaves, list_leaves
 
 __all__ = ["NBVHModel", "NBVHConfig", "METHOD"]
@@ -307,12 +308,13 @@ class NBVHModel(NeuralBLAS):
 
     def _closest(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
         """Wavefront over the cut: (t [K] unit, inf where missed; raw outputs of the accepted hit).
-        On CUDA the per-step work runs in Triton kernels (`nbvh_wavefront_triton`), elsewhere in torch ops."""
+        The per-step work runs in Triton kernels on CUDA (`nbvh_wavefront_triton`), in numba passes
+        on the CPU (`nbvh_wavefront_cpu`); `_closest_torch` is the same loop in torch ops (the reference)."""
         if o.device.type == "cuda":
             from .nbvh_wavefront_triton import closest_hits_triton
 
             return closest_hits_triton(self, o, d, t_max, any_hit)
-        return self._closest_torch(o, d, t_max, any_hit)
+        return closest_hits_cpu(self, o, d, t_max, any_hit)
 
     def _closest_torch(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
         k, dev = len(o), o.device

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from ..simd import prefetch_row
 from ..task_queue import task_count, task_workers
 
-__all__ = ["HashGridLayout", "HashGrid", "hash_grid_torch", "hash_grid_reference", "HASH_PRIMES"]
+__all__ = ["HashGridLayout", "HashGrid", "hash_grid_torch", "hash_grid_reference", "HASH_PRIMES", "encode_group", "FORWARD_GROUP"]
 
 HASH_PRIMES = (1, 2654435761, 805459861)  # instant-ngp's spatial hash
 _P0, _P1, _P2 = HASH_PRIMES
@@ -107,54 +107,63 @@ def _corners(x, y, z, res, size, offset, rows, weights, at=0):
 # reads then overlap instead of waiting on one cache miss after another (N-BVH's tables, ~6 MB
 # at its `cpu` preset, do not fit in L2). 2 cores, Zen 5, N-BVH `intersect` (session 37): see
 # docs/nbvh.md.
-_FORWARD_GROUP = 8
+FORWARD_GROUP = 8
+
+
+@numba.njit(cache=True, inline="always")
+def encode_group(points, first, stop, table, resolutions, sizes, offsets, rows, weights, acc, out, out_first):
+    """Encode ``points[first:stop]`` ([N, P, 3]) into ``out[out_first + i - first]`` ([P * L * F]
+    each): the group's rows (every point and level) found and prefetched, then read.
+    ``rows``/``weights``: scratch of ``(stop - first) * P * L * 8``; ``acc``: of F."""
+    n_points, n_levels, n_feat = points.shape[1], resolutions.shape[0], table.shape[1]
+    at = 0
+    for i in range(first, stop):
+        for p in range(n_points):
+            for lvl in range(n_levels):
+                _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows,
+                         weights, at)  # fmt: skip
+                for c in range(8):
+                    prefetch_row(table, rows[at + c])
+                at += 8
+    at = 0
+    for i in range(first, stop):
+        o = out_first + i - first
+        for p in range(n_points):
+            for lvl in range(n_levels):
+                col = (p * n_levels + lvl) * n_feat
+                if n_feat == 4:  # (N-BVH's): the 4 sums in registers, the same operations
+                    a0 = a1 = a2 = a3 = np.float32(0.0)
+                    for c in range(8):
+                        r, w = rows[at + c], weights[at + c]
+                        a0 += w * table[r, 0]
+                        a1 += w * table[r, 1]
+                        a2 += w * table[r, 2]
+                        a3 += w * table[r, 3]
+                    out[o, col], out[o, col + 1], out[o, col + 2], out[o, col + 3] = a0, a1, a2, a3
+                else:
+                    acc[:] = np.float32(0.0)
+                    for c in range(8):  # corner-major: one table row at a time, sums in a local array
+                        r, w = rows[at + c], weights[at + c]
+                        for f in range(n_feat):
+                            acc[f] += w * table[r, f]
+                    for f in range(n_feat):
+                        out[o, col + f] = acc[f]
+                at += 8
 
 
 @numba.njit(parallel=True, cache=True)
 def _forward_kernel(points, table, resolutions, sizes, offsets, n_chunks, out):
     """``points`` [N, P, 3], ``table`` [R, F] -> ``out`` [N, P * L * F]."""
     n, n_points = points.shape[0], points.shape[1]
-    n_levels, n_feat = resolutions.shape[0], table.shape[1]
-    per_ray = n_points * n_levels * 8  # rows a ray reads
+    per_ray = n_points * resolutions.shape[0] * 8  # rows a ray reads
     for chunk in numba.prange(n_chunks):
-        rows = np.empty(_FORWARD_GROUP * per_ray, np.int64)
-        weights = np.empty(_FORWARD_GROUP * per_ray, np.float32)
-        acc = np.empty(n_feat, np.float32)
+        rows = np.empty(FORWARD_GROUP * per_ray, np.int64)
+        weights = np.empty(FORWARD_GROUP * per_ray, np.float32)
+        acc = np.empty(table.shape[1], np.float32)
         last = (chunk + 1) * n // n_chunks
-        for first in range(chunk * n // n_chunks, last, _FORWARD_GROUP):
-            stop = min(first + _FORWARD_GROUP, last)
-            at = 0
-            for i in range(first, stop):  # the group's rows, prefetched
-                for p in range(n_points):
-                    for lvl in range(n_levels):
-                        _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows,
-                                 weights, at)  # fmt: skip
-                        for c in range(8):
-                            prefetch_row(table, rows[at + c])
-                        at += 8
-            at = 0
-            for i in range(first, stop):
-                for p in range(n_points):
-                    for lvl in range(n_levels):
-                        col = (p * n_levels + lvl) * n_feat
-                        if n_feat == 4:  # (N-BVH's): the 4 sums in registers, the same operations
-                            a0 = a1 = a2 = a3 = np.float32(0.0)
-                            for c in range(8):
-                                r, w = rows[at + c], weights[at + c]
-                                a0 += w * table[r, 0]
-                                a1 += w * table[r, 1]
-                                a2 += w * table[r, 2]
-                                a3 += w * table[r, 3]
-                            out[i, col], out[i, col + 1], out[i, col + 2], out[i, col + 3] = a0, a1, a2, a3
-                        else:
-                            acc[:] = np.float32(0.0)
-                            for c in range(8):  # corner-major: one table row at a time, sums in a local array
-                                r, w = rows[at + c], weights[at + c]
-                                for f in range(n_feat):
-                                    acc[f] += w * table[r, f]
-                            for f in range(n_feat):
-                                out[i, col + f] = acc[f]
-                        at += 8
+        for first in range(chunk * n // n_chunks, last, FORWARD_GROUP):
+            encode_group(points, first, min(first + FORWARD_GROUP, last), table, resolutions, sizes, offsets, rows, weights, acc,
+                         out, first)  # fmt: skip
 
 
 @numba.njit(parallel=True, cache=True)
