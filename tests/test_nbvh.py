@@ -321,13 +321,19 @@ def test_device_generic_path_answers_like_the_cpu_kernels(trained, monkeypatch):
     assert torch.allclose(generic.t[both], cpu.t[both], rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision):
-    """The CPU wavefront (numba step passes around the MLP) against the torch loop on the same leaf
-    lists, for closest and any hits, on a random cut with answers that depend on the features; rays
-    from outside and from inside leaves (reversed chords), some with a short t_max. The same
-    network on the same input bits: the same hits, distances up to sigmoid's rounding."""
+@pytest.mark.parametrize("precision,mlp_in_pass", [("fp32", None), ("bf16", False), ("bf16", True)])
+def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision, mlp_in_pass, monkeypatch):
+    """The CPU wavefront (numba step passes; the MLP as torch's GEMMs between them, or in bf16
+    inside the pass) against the torch loop on the same leaf lists, for closest and any hits, on a
+    random cut with answers that depend on the features; rays from outside and from inside leaves
+    (reversed chords), some with a short t_max. With torch's GEMMs the same network runs on the
+    same input bits: the same hits, distances up to sigmoid's rounding. Inside the pass the bf16
+    layers sum in another order and round negative activations once (measured here: no answer
+    flips, outputs within 4e-7): the same hits but 1 in 200, outputs within 1e-3."""
+    from neuralrt.methods import nbvh_wavefront_cpu
     from neuralrt.methods.nbvh_wavefront_cpu import closest_hits_cpu
+
+    monkeypatch.setattr(nbvh_wavefront_cpu, "MLP_IN_PASS", mlp_in_pass)
 
     model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", encoding={"levels": 5, "log2_table_size": 14}))
     _random_cut(model, seed=2)
@@ -345,9 +351,16 @@ def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision):
         t, out = closest_hits_cpu(model, o, d, t_max, any_hit)
         hit = torch.isfinite(ref_t)
         assert 0.2 < hit.float().mean() < 0.95
-        assert torch.equal(torch.isfinite(t), hit)
-        torch.testing.assert_close(t[hit], ref_t[hit], rtol=1e-6, atol=1e-7)
-        assert torch.equal(out[hit], ref_out[hit]) and not out[~hit].any()
+        assert nbvh_wavefront_cpu.mlp_in_pass(model.network, model.compute_dtype()) == bool(mlp_in_pass)
+        if not mlp_in_pass:
+            assert torch.equal(torch.isfinite(t), hit)
+            torch.testing.assert_close(t[hit], ref_t[hit], rtol=1e-6, atol=1e-7)
+            assert torch.equal(out[hit], ref_out[hit]) and not out[~hit].any()
+            continue
+        assert (torch.isfinite(t) != hit).sum() <= n // 200
+        both = torch.isfinite(t) & hit
+        torch.testing.assert_close(t[both], ref_t[both], rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(out[both], ref_out[both], rtol=1e-3, atol=1e-3)
     inside = o[: n // 4]
     assert torch.isfinite(closest_hits_cpu(model, inside, d[: n // 4], t_max[: n // 4], False)[0]).any()
     empty = closest_hits_cpu(model, o[:0], d[:0], t_max[:0], False)

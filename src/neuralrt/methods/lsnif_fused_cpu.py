@@ -35,18 +35,18 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
-import llvmlite.binding as llvm
 import numba
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..neural.bf16_dot import (
-    add16, bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, first_lanes16, fma16, fma_f32, leaky_relu16, load16, load_bf16x16,
-    store16, store_bf16x16,
-)  # fmt: skip
+from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, first_lanes16, fma_f32, load16, store_bf16x16
 from ..neural.mlp import MLP, padded_rows
+from ..neural.mlp_rows_cpu import (
+    BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, output_layer_columns, output_rows,
+    widen_rows_bf16,
+)  # fmt: skip
 from ..neural.sparse_hash_grid import SparseHashGrid, half_table, padded_table
 from ..neural.sparse_hash_grid import face_rows as _face_rows
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
@@ -115,16 +115,6 @@ def _input_pairs(xs_row, n_inputs, out_row):
 
 
 @numba.njit(cache=True, inline="always")
-def _bias_leaky_bf16(dots, offset, bias, bias_start, width, slope, out, out_start):
-    """``out[out_start + j] = bf16(leaky_relu(dots[offset + j] + bias[bias_start + j]))`` for ``width``
-    (a multiple of 16) columns, 16 per instruction (``out`` flat uint16 bf16 bits; the rounding of
-    `bf16_bits`). (Flat arrays and offsets, not row views: a view made in a loop costs reference
-    counting there.)"""
-    for c in range(0, width, 16):
-        store_bf16x16(out, out_start + c, leaky_relu16(add16(load16(dots, offset + c), load16(bias, bias_start + c)), slope))
-
-
-@numba.njit(cache=True, inline="always")
 def _inputs_bf16(xs_row, n_inputs, n_out, out_row):
     """A ray's first ``n_inputs`` network inputs rounded to bf16 (`bf16_bits`) into ``out_row[:n_out]``
     (uint16; as uint32, the pairs of `_input_pairs`), zero past them; 16 per instruction (``n_out``
@@ -170,7 +160,7 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
             rows[i] = order[q + min(i, n_rows - 1)]  # a short pass repeats its last ray
         dot_rows_bf16(xp, rows, (group_count[rows[0]] * block + 1) // 2, w1_pairs, 0, width, dots)
         for i in range(n_rows):
-            _bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_flat, (start + rows[i]) * width)
+            bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_flat, (start + rows[i]) * width)
     return m
 
 
@@ -622,7 +612,7 @@ def _build_pass(occupancy: Tensor, encoder: SparseHashGrid, network: MLP, *, max
     w1_pairs = bf16_pairs(w1).reshape(-1) if pairs else np.zeros(0, np.uint32)
     if compute_dtype != torch.float32:
         network._cast_weights(compute_dtype)  # the cached bf16 weights, made here once rather than in several threads
-    hidden_pairs, hidden_bias = later_hidden_layers(network) if pairs else (np.zeros(0, np.uint32), np.zeros(0, np.float32))
+    hidden_pairs, hidden_bias = hidden_layer_pairs(network) if pairs else (np.zeros(0, np.uint32), np.zeros(0, np.float32))
     first_layer = None if in_pass else first_layer_gemm(network, w1, compute_dtype)
     planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as featurize_rays computes them
     occ_bits = occupancy_bits(occ)
@@ -798,14 +788,6 @@ WRITE_HITS = True
 OUTPUT_LAYER_IN_DECODE = True
 
 
-def _host_has_amx() -> bool:
-    """Whether this CPU has AMX bf16 tiles, on which oneDNN runs torch's bf16 GEMMs."""
-    try:
-        return bool(llvm.get_host_cpu_features().get("amx-bf16", False))
-    except RuntimeError:  # (no feature list on this platform)
-        return False
-
-
 # With the bf16 pairs path (bf16, width a multiple of 16) and the output layer in the pass, the
 # hidden layers after the first run there too (`_later_hidden_rows`: 4 rays per weight pass, no
 # [M, W] gather or GEMM output; not torch's summation order or its double rounding of negative
@@ -816,7 +798,6 @@ def _host_has_amx() -> bool:
 # tiles and they win: a 2-core Intel Xeon (session 23, docs/lsnif.md), hairball(6), 2^17 rays,
 # same-run ratios of the pass over torch's GEMMs 0.76-0.99 (`hq`), 0.73-0.99 (`lq`) in 7 runs.
 HIDDEN_LAYERS_IN_DECODE: bool | None = None
-HOST_HAS_AMX = _host_has_amx()
 
 
 # The first layer in the fused pass (`dot_rows_bf16`, AVX-512 bf16 dot products) or (False) as a
@@ -846,97 +827,36 @@ def later_layers_in_pass() -> bool:
     return not HOST_HAS_AMX
 
 
-def output_layer_columns(network: MLP) -> tuple[np.ndarray, np.ndarray]:
-    """The output layer as ``wo [W, P]`` fp32, input-major, and the bias ``[P]``, both padded with
-    zero columns to P = a multiple of 16 (one `f32x16` per 16 outputs)."""
-    weight = network.output.weight.detach().float()  # [O, W]
-    outputs, width = weight.shape
-    padded = -(-outputs // 16) * 16
-    wo = np.zeros((width, padded), np.float32)
-    wo[:, :outputs] = weight.T.numpy()
-    bo = np.zeros(padded, np.float32)
-    bo[:outputs] = network.output.bias.detach().float().numpy()
-    return wo, bo
-
-
-def later_hidden_layers(network: MLP) -> tuple[np.ndarray, np.ndarray]:
-    """The hidden layers after the first as flat ``[(L - 1) * W / 2 * W]`` uint32 bf16 pairs (layer
-    by layer, input-major, `bf16_pairs` of each ``W^T``) and their biases, flat ``[(L - 1) * W]``
-    fp32 holding bf16 values (the bf16 copies torch's layers use)."""
-    cast = network._cast_weights(torch.bfloat16)[1:]
-    width = network.hidden[0].weight.shape[0]
-    pairs = np.zeros((len(cast), width // 2 * width), np.uint32)
-    bias = np.zeros((len(cast), width), np.float32)
-    for i, (w, b) in enumerate(cast):
-        pairs[i] = bf16_pairs(w.float().T.contiguous().numpy()).reshape(-1)
-        bias[i] = b.float().numpy()
-    return pairs.reshape(-1), bias.reshape(-1)
-
-
 @numba.njit(cache=True, inline="always")
 def _sigmoid(x):
     """torch.sigmoid's formula in fp32 (torch's vectorised exp differs from libm's by <= 3 ulp)."""
     return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
 
 
-# Rows of the output layer computed together: each weight vector loaded serves 8 rows, and the 8
-# accumulator chains hide the fused multiply-add latency (one chain of 128 dependent FMAs per row
-# measured ~2x slower than the whole decoding otherwise takes).
-_OUT_ROWS = 8
-
-
-@numba.njit(cache=True)
-def _output_rows(rows, wo_flat, bo, n_padded, columns, out):
-    """``out[r * n_padded + :columns] = bo + rows[r * W:] @ wo`` for the `_OUT_ROWS` rows of ``rows``
-    (flat ``[8 * W]`` fp32; ``out`` flat ``[8 * n_padded]``; ``wo_flat`` the flat ``[W, n_padded]``
-    weights; ``columns`` a multiple of 16)."""
-    width = wo_flat.shape[0] // n_padded
-    w1, w2, w3, w4, w5, w6, w7 = width, 2 * width, 3 * width, 4 * width, 5 * width, 6 * width, 7 * width
-    for v in range(0, columns, 16):
-        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = load16(bo, v)
-        for k in range(width):
-            j = k * n_padded + v
-            a0, a1 = fma16(a0, rows[k], wo_flat, j), fma16(a1, rows[w1 + k], wo_flat, j)
-            a2, a3 = fma16(a2, rows[w2 + k], wo_flat, j), fma16(a3, rows[w3 + k], wo_flat, j)
-            a4, a5 = fma16(a4, rows[w4 + k], wo_flat, j), fma16(a5, rows[w5 + k], wo_flat, j)
-            a6, a7 = fma16(a6, rows[w6 + k], wo_flat, j), fma16(a7, rows[w7 + k], wo_flat, j)
-        store16(out, v, a0), store16(out, n_padded + v, a1), store16(out, 2 * n_padded + v, a2)
-        store16(out, 3 * n_padded + v, a3), store16(out, 4 * n_padded + v, a4), store16(out, 5 * n_padded + v, a5)
-        store16(out, 6 * n_padded + v, a6), store16(out, 7 * n_padded + v, a7)
-
-
 @numba.njit(cache=True, inline="always")
 def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows):
-    """`_OUT_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
+    """`BLOCK_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
     the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows per weight pass; fp32 sums,
     bias, leaky ReLU, then one rounding to bf16): from the first layer's bf16 pairs
     ``first_pairs[active[i]]`` to the last hidden layer's activations, widened into ``rows`` (flat
-    ``[8 * W]`` fp32). ``hidden_pairs``/``hidden_bias``: `later_hidden_layers`' flat arrays; ``xp``
+    ``[8 * W]`` fp32). ``hidden_pairs``/``hidden_bias``: `hidden_layer_pairs`' flat arrays; ``xp``
     ``[8, W / 2]`` and ``xp_bf16``, the same memory as flat ``[8 * W]`` uint16 (pair q of a row is
     its columns 2q (low half: little-endian), 2q + 1)."""
     half = first_pairs.shape[1]
-    width = 2 * half
-    for b in range(_OUT_ROWS):
+    for b in range(BLOCK_ROWS):
         src = active[block + min(b, n_rows - 1)]
         for q in range(half):
             xp[b, q] = first_pairs[src, q]
-    for layer in range(hidden_bias.shape[0] // width):
-        for g in range(0, _OUT_ROWS, 4):
-            for i in range(4):
-                quad[i] = g + i
-            dot_rows_bf16(xp, quad, half, hidden_pairs, layer * half * width, width, dots)
-            for i in range(4):  # these rows' inputs are read: overwrite them with the layer's outputs
-                _bias_leaky_bf16(dots, i * width, hidden_bias, layer * width, width, slope, xp_bf16, (g + i) * width)
-    for c in range(0, _OUT_ROWS * width, 16):
-        store16(rows, c, load_bf16x16(xp_bf16, c))
+    hidden_layers_bf16(hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots)
+    widen_rows_bf16(xp_bf16, rows)
 
 
 @numba.njit(cache=True, inline="always")
 def _decode_scratch(width, n_padded, needed):
     """Per-thread scratch of `_decode_rows` (empty where not ``needed``): the last hidden layer's
-    `_OUT_ROWS` rows (flat ``[8 * W]`` fp32), their outputs (flat ``[8 * P]`` fp32), and bf16 pairs
+    `BLOCK_ROWS` rows (flat ``[8 * W]`` fp32), their outputs (flat ``[8 * P]`` fp32), and bf16 pairs
     ``[8, W / 2]`` with the same memory as flat ``[8 * W]`` uint16."""
-    rows = _OUT_ROWS if needed else 0
+    rows = BLOCK_ROWS if needed else 0
     xp = np.empty((rows, width // 2), np.uint32)
     return np.empty(rows * width, np.float32), np.empty(rows * n_padded, np.float32), xp, xp.reshape(-1).view(np.uint16)
 
@@ -980,22 +900,22 @@ def _decode_rows(first_pairs, active, m, shift, hidden_pairs, hidden_bias, slope
                  hit, t_hit, normal, geometric_normal, albedo, material):  # fmt: skip
     """Rays ``r = shift + active[i]``, i < m, from their first hidden layer's bf16 pairs
     ``first_pairs[active[i]]`` through the later hidden layers (`_later_hidden_rows`) and the output
-    layer (``wo_flat``, `_output_rows`' flat weights, and ``bo``; only its first 16 columns with
-    ``occlusion_only``) into records row r (`_decode_row`), `_OUT_ROWS` rays at a time (scratch:
+    layer (``wo_flat``, `output_rows`' flat weights, and ``bo``; only its first 16 columns with
+    ``occlusion_only``) into records row r (`_decode_row`), `BLOCK_ROWS` rays at a time (scratch:
     `_decode_scratch`, and ``quad``/``dots`` as `dot_rows_bf16`'s)."""
     n_padded = bo.shape[0]
     columns = 16 if occlusion_only else n_padded
-    for block in range(0, m, _OUT_ROWS):
-        n_rows = min(_OUT_ROWS, m - block)
+    for block in range(0, m, BLOCK_ROWS):
+        n_rows = min(BLOCK_ROWS, m - block)
         _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows)
-        _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
+        output_rows(rows, wo_flat, bo, n_padded, columns, outs)
         for b in range(n_rows):
             r = shift + active[block + b]
             _decode_row(outs, b * n_padded, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials, occlusion_only,
                         hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
 
 
-_DECODE_TASK_ROWS = 8 * _OUT_ROWS
+_DECODE_TASK_ROWS = 8 * BLOCK_ROWS
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
@@ -1007,7 +927,7 @@ def _decode_kernel(
     """`LSNIFModel._intersect_chunk`'s decoding of the rays that reached the network (`_decode_row`),
     written into the hit records at rows ``active[i]`` (``t_*`` are the chunk's, indexed the same):
     row i of ``x_f32``/``x_bf16`` (the other is empty) is the last hidden layer
-    (``output_layer``: the output layer ``wo``/``bo`` is applied here, fp32, `_OUT_ROWS` rows at a
+    (``output_layer``: the output layer ``wo``/``bo`` is applied here, fp32, `BLOCK_ROWS` rows at a
     time) or the raw outputs; or, where ``first_pairs`` (the first hidden layer's bf16 activations
     as pairs, ``[N, W / 2]`` uint32, rows ``active[i]``) is not empty, the later hidden layers run
     here too (`_decode_rows`). ``occlusion_only`` writes ``hit`` alone (the other records may be
@@ -1033,10 +953,10 @@ def _decode_kernel(
                              outs, xp, xp_bf16, quad, dots, t_enter, t_exit, t_offset, t_min, t_max, occlusion_logit, n_materials,
                              occlusion_only, hit, t_hit, normal, geometric_normal, albedo, material)  # fmt: skip
                 continue
-            for block in range(first, last, _OUT_ROWS):
-                n_rows = min(_OUT_ROWS, last - block)
+            for block in range(first, last, BLOCK_ROWS):
+                n_rows = min(BLOCK_ROWS, last - block)
                 if output_layer:
-                    for b in range(_OUT_ROWS):
+                    for b in range(BLOCK_ROWS):
                         i = block + min(b, n_rows - 1)  # a short block repeats its last row
                         if to_f32:
                             for k in range(width):
@@ -1044,7 +964,7 @@ def _decode_kernel(
                         else:
                             for k in range(width):
                                 rows[b * width + k] = x_f32[i, k]
-                    _output_rows(rows, wo_flat, bo, n_padded, columns, outs)
+                    output_rows(rows, wo_flat, bo, n_padded, columns, outs)
                 else:
                     for b in range(n_rows):
                         for j in range(x_f32.shape[1]):

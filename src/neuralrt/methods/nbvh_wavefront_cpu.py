@@ -28,10 +28,31 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..neural.bf16_dot import bf16_bits, dot_rows_bf16
 from ..neural.hash_grid import FORWARD_GROUP, encode_group
+from ..neural.mlp_rows_cpu import (
+    BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, layer_pairs, output_layer_columns, output_rows,
+    widen_rows_bf16,
+)  # fmt: skip
 from ..task_queue import task_count
 
 __all__ = ["closest_hits_cpu"]
+
+
+@numba.njit(cache=True, inline="always")
+def _chord_points(active, first, stop, ptr, t0s, t1s, origins, directions, fractions, points):
+    """``points[k - first]`` ([P, 3]): active ray ``active[k]``'s chord points in its current leaf, k in [first, stop)."""
+    for k in range(first, stop):
+        ray = active[k]
+        e = ptr[ray]
+        t0, t1 = t0s[e], t1s[e]
+        inside = t0 < 0  # a ray starting inside the leaf asks for the reversed chord
+        a = t1 if inside else t0
+        b = t0 if inside else t1
+        for j in range(fractions.shape[0]):
+            t = a + fractions[j] * (b - a)  # as torch: a + fractions * (b - a), then o + t * d
+            for axis in range(3):
+                points[k - first, j, axis] = origins[ray, axis] + t * directions[ray, axis]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -47,18 +68,56 @@ def _step_inputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, t
         last = (chunk + 1) * n // n_chunks
         for first in range(chunk * n // n_chunks, last, FORWARD_GROUP):
             stop = min(first + FORWARD_GROUP, last)
-            for k in range(first, stop):
-                ray = active[k]
-                e = ptr[ray]
-                t0, t1 = t0s[e], t1s[e]
-                inside = t0 < 0  # a ray starting inside the leaf asks for the reversed chord
-                a = t1 if inside else t0
-                b = t0 if inside else t1
-                for j in range(n_points):
-                    t = a + fractions[j] * (b - a)  # as torch: a + fractions * (b - a), then o + t * d
-                    for axis in range(3):
-                        points[k - first, j, axis] = origins[ray, axis] + t * directions[ray, axis]
+            _chord_points(active, first, stop, ptr, t0s, t1s, origins, directions, fractions, points)
             encode_group(points, 0, stop - first, table, resolutions, sizes, offsets, rows, weights, acc, x, first)
+
+
+@numba.njit(parallel=True, cache=True)
+def _step_outputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, table, resolutions, sizes, offsets,
+                         w1_pairs, b1, hidden_pairs, hidden_bias, slope, wo_flat, bo, n_chunks, out):  # fmt: skip
+    """Row ``k`` of ``out`` [K, outputs]: the network's raw outputs for active ray ``active[k]``'s
+    chord through its current leaf, `BLOCK_ROWS` rays at a time: their chord points encoded
+    (`encode_group`), rounded to bf16 pairs, the first layer (``w1_pairs``/``b1``, `layer_pairs`),
+    the later hidden layers (`hidden_layers_bf16`) and the fp32 output layer (`output_rows`)."""
+    n, n_points = active.shape[0], fractions.shape[0]
+    per_ray = n_points * resolutions.shape[0] * 8
+    in_half = (n_points * resolutions.shape[0] * table.shape[1] + 1) // 2
+    width = b1.shape[0]
+    n_padded, n_out = bo.shape[0], out.shape[1]
+    for chunk in numba.prange(n_chunks):
+        points = np.empty((BLOCK_ROWS, n_points, 3), np.float32)
+        rows = np.empty(BLOCK_ROWS * per_ray, np.int64)
+        weights = np.empty(BLOCK_ROWS * per_ray, np.float32)
+        acc = np.empty(table.shape[1], np.float32)
+        x = np.zeros((BLOCK_ROWS, 2 * in_half), np.float32)  # (an odd input count: a zero last column)
+        x_pairs = np.zeros((BLOCK_ROWS, in_half), np.uint32)
+        xp = np.zeros((BLOCK_ROWS, width // 2), np.uint32)
+        xp_bf16 = xp.reshape(-1).view(np.uint16)
+        quad = np.empty(4, np.int64)
+        dots = np.empty(4 * width, np.float32)
+        hidden = np.empty(BLOCK_ROWS * width, np.float32)
+        outs = np.empty(BLOCK_ROWS * n_padded, np.float32)
+        last = (chunk + 1) * n // n_chunks
+        for first in range(chunk * n // n_chunks, last, BLOCK_ROWS):
+            stop = min(first + BLOCK_ROWS, last)
+            _chord_points(active, first, stop, ptr, t0s, t1s, origins, directions, fractions, points)
+            # (a short block leaves its last rows' earlier values: computed, never written out)
+            encode_group(points, 0, stop - first, table, resolutions, sizes, offsets, rows, weights, acc, x, 0)
+            for b in range(BLOCK_ROWS):
+                for q in range(in_half):
+                    x_pairs[b, q] = bf16_bits(x[b, 2 * q]) | (bf16_bits(x[b, 2 * q + 1]) << np.uint32(16))
+            for g in range(0, BLOCK_ROWS, 4):
+                for i in range(4):
+                    quad[i] = g + i
+                dot_rows_bf16(x_pairs, quad, in_half, w1_pairs, 0, width, dots)
+                for i in range(4):
+                    bias_leaky_bf16(dots, i * width, b1, 0, width, slope, xp_bf16, (g + i) * width)
+            hidden_layers_bf16(hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots)
+            widen_rows_bf16(xp_bf16, hidden)
+            output_rows(hidden, wo_flat, bo, n_padded, n_padded, outs)
+            for b in range(stop - first):
+                for j in range(n_out):
+                    out[first + b, j] = outs[b * n_padded + j]
 
 
 @numba.njit(cache=True)
@@ -90,6 +149,35 @@ def _step_decode(active, ptr, start, t0s, t1s, t_max, out, threshold, depth_pad,
     return m
 
 
+# The MLP inside the step pass (`_step_outputs_kernel`: numba's bf16 layers, `mlp_rows_cpu`) where
+# the model computes in bf16, its width is a multiple of 16 and the CPU has no AMX (oneDNN's AMX
+# GEMMs win there, as for LSNIF); False: torch's GEMMs on the inputs the pass writes
+# (`_step_inputs_kernel`), as in fp32; None: that default. The pass differs from torch's bf16
+# GEMMs within bf16 rounding (summation order, one rounding of negative activations).
+MLP_IN_PASS: bool | None = None
+
+
+def mlp_in_pass(network, compute_dtype: torch.dtype) -> bool:
+    """Whether the step runs ``network`` inside its numba pass (see MLP_IN_PASS)."""
+    if compute_dtype != torch.bfloat16 or network.hidden[0].weight.shape[0] % 16:
+        return False
+    return not HOST_HAS_AMX if MLP_IN_PASS is None else MLP_IN_PASS
+
+
+def _network_arrays(network) -> tuple:
+    """(first layer pairs, its bias, the later hidden layers' pairs and biases, output weights, output bias)
+    for `_step_outputs_kernel`, kept on ``network`` until a parameter changes (keyed as `MLP._cast_weights`)."""
+    key = tuple((t.data_ptr(), t._version, t.shape) for t in network.parameters())
+    cached = getattr(network, "_nbvh_cpu_arrays", None)
+    if cached is None or cached[0] != key:
+        w1, b1 = layer_pairs(*network._cast_weights(torch.bfloat16)[0])
+        hidden_pairs, hidden_bias = hidden_layer_pairs(network)
+        wo, bo = output_layer_columns(network)
+        cached = (key, (w1, b1, hidden_pairs, hidden_bias, np.float32(network.slope), wo.reshape(-1), bo))
+        network._nbvh_cpu_arrays = cached
+    return cached[1]
+
+
 @torch.no_grad()
 def closest_hits_cpu(model, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
     """`NBVHModel._closest` with the per-step numba passes: (t [K] unit, inf where missed; raw outputs of the accepted hit)."""
@@ -113,16 +201,22 @@ def closest_hits_cpu(model, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) 
     width = grid.output_dim(len(fractions))
     origins, directions = o.float().contiguous().numpy(), d.float().contiguous().numpy()
     t_max_np = t_max.float().contiguous().numpy()
+    in_pass = mlp_in_pass(model.network, dtype)
+    weights = _network_arrays(model.network) if in_pass else ()
     active = np.nonzero(ptr < start[1:])[0]
     kept = np.empty(k, np.int64)
     for _ in range(inf.max_steps):
         n = len(active)
         if n == 0:
             break
-        x = np.empty((n, width), np.float32)
-        _step_inputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, table, res, sizes, offsets,
-                            task_count(n, FORWARD_GROUP), x)  # fmt: skip
-        out = model.network(torch.from_numpy(x), dtype).float().contiguous().numpy()
+        tasks = task_count(n, BLOCK_ROWS)
+        if in_pass:
+            out = np.empty((n, outputs), np.float32)
+            _step_outputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, table, res, sizes, offsets, *weights, tasks, out)
+        else:
+            x = np.empty((n, width), np.float32)
+            _step_inputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, table, res, sizes, offsets, tasks, x)
+            out = model.network(torch.from_numpy(x), dtype).float().contiguous().numpy()
         m = _step_decode(active, ptr, start, t0s, t1s, t_max_np, out, threshold, np.float32(_DEPTH_PAD), np.float32(_REVERSED_MIN),
                          any_hit, best_t, best_out, kept)  # fmt: skip
         active = kept[:m].copy()
