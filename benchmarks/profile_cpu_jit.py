@@ -12,7 +12,8 @@ second shell and read it by function::
     perf report -i lq.data --sort=sym
 
 The model is untrained (LSNIF with a random table, as `bench_lsnif_cpu.py` times it; N-BVH at
-its inference LoD): the work per ray is a trained model's. docs/lsnif.md, "Session 37", has
+its inference LoD: the work per ray is a trained LSNIF model's, not a trained N-BVH's, whose cut
+decides how many leaves a ray visits), or ``--model`` a trained one (its method, from the file). docs/lsnif.md, "Session 37", has
 the profile this gave and what it led to.
 """
 
@@ -33,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.methods import load_model  # noqa: E402
 from neuralrt.methods.registry import get_method  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
@@ -107,12 +109,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rays", type=int, default=1 << 17)
     parser.add_argument("--seconds", type=float, default=30.0, help="how long to call the query after the map is written")
     parser.add_argument("--query", choices=["intersect", "occluded"], default="intersect")
+    parser.add_argument("--model", default=None, help="a trained model file of this mesh (.nrt) instead of an untrained model")
     args = parser.parse_args(argv)
     if args.rays < 1 or args.seconds <= 0:
         parser.error("--rays and --seconds must be positive")
     preset = args.preset or ("lq" if args.method == "lsnif" else "cpu")
     mesh = resolve_mesh(args.mesh)
-    model = build_model(mesh, args.method, preset)
+    model = load_model(args.model) if args.model else build_model(mesh, args.method, preset)
     rays = BoxRayDistribution(MeshBLAS(mesh), model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays
     query = getattr(model, args.query)
     query(rays)  # compiles (or loads) every kernel the query uses
