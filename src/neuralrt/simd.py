@@ -23,7 +23,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "vector_store",
+__all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "vector_store", "prefetch",
            "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8",
            "to_f64", "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
            "compress_store_f64", "compress_store_i64", "prefetch_row"]  # fmt: skip
@@ -158,6 +158,13 @@ def _llvm_function(builder, name, ret, arguments):
     return cgutils.get_or_insert_function(builder.module, ir.FunctionType(ret, arguments), name)
 
 
+def prefetch(builder, pointer) -> None:
+    """LLVM's prefetch of ``pointer``'s cache line: read, high temporal locality, data cache (IR)."""
+    i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+    fn = _llvm_function(builder, "llvm.prefetch.p0i8", ir.VoidType(), [i8p, i32, i32, i32])
+    builder.call(fn, [builder.bitcast(pointer, i8p), i32(0), i32(3), i32(1)])
+
+
 @intrinsic
 def prefetch_row(typingctx, array, row):
     """A hint: start loading the cache line of ``array[row, 0]`` (``array[row]`` for a 1D array)
@@ -171,10 +178,7 @@ def prefetch_row(typingctx, array, row):
         array_type = sig.args[0]
         data = context.make_array(array_type)(context, builder, args[0])
         index = [context.cast(builder, args[1], sig.args[1], types.intp)] + [context.get_constant(types.intp, 0)] * (array_type.ndim - 1)
-        pointer = cgutils.get_item_pointer(context, builder, array_type, data, index, wraparound=False)
-        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-        fn = _llvm_function(builder, "llvm.prefetch.p0i8", ir.VoidType(), [i8p, i32, i32, i32])
-        builder.call(fn, [builder.bitcast(pointer, i8p), i32(0), i32(3), i32(1)])
+        prefetch(builder, cgutils.get_item_pointer(context, builder, array_type, data, index, wraparound=False))
         return context.get_dummy_value()
 
     return types.void(array, row), codegen
