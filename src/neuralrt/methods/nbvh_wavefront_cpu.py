@@ -1,14 +1,16 @@
-"""N-BVH's wavefront inference on the CPU: two numba passes around the MLP per step.
+"""N-BVH's wavefront inference on the CPU: per step one numba pass for the network, one to decode.
 
 The same loop as `NBVHModel._closest_torch` and `nbvh_wavefront_triton` (each ray's leaf list
 made once, then per step the next leaf of every active ray, one batched query, the closest
 accepted hit kept, compaction), with the per-step torch ops (about 40 gathers, masks and
-scatters a step) folded into two passes:
+scatters a step) folded into numba passes:
 
-- `_step_inputs_kernel` (parallel): the ray's current leaf entry, its chord (reversed when the
-  origin is inside the leaf), the 3 chord points, all 8 levels encoded by the hash grid's
-  `encode_group` (a group's rows prefetched before any is read), written as the network's input row;
-- the MLP as torch GEMMs (`MLP.forward`, bf16 where the CPU has it);
+- `_step_outputs_kernel` (parallel, 8 rays a block): each active ray's current leaf entry, its
+  chord (reversed when the origin is inside the leaf), the 3 chord points, all 8 levels encoded by
+  the hash grid's `encode_group` (a block's rows prefetched before any is read), rounded to bf16
+  and through the MLP (`neural/mlp_rows_cpu`: bf16 hidden layers, fp32 output layer) into the
+  ray's raw outputs. Where the model computes in fp32, or the CPU has AMX (`MLP_IN_PASS`),
+  `_step_inputs_kernel` writes the encoded input rows instead and torch's GEMMs run the MLP;
 - `_step_decode` (one thread: a few loads and compares a ray, against a parallel launch's cost):
   LocalT decoding, the acceptance rules, the best hit and its output row updated in place, the
   ray's list pointer advanced, and the ray kept for the next step when it has more leaves, no
@@ -16,7 +18,8 @@ scatters a step) folded into two passes:
   are written in order as the next step's active list.
 
 Same answers as the torch loop: the chord points and features bit for bit, the decoding up to
-`sigmoid`'s rounding (tests/test_nbvh.py).
+`sigmoid`'s rounding, the in-pass MLP within bf16 rounding of torch's bf16 GEMMs (tests/test_nbvh.py).
+Bunny, 2 cores (docs/nbvh.md, session 38): 0.49x the torch loop's time.
 """
 
 from __future__ import annotations
