@@ -91,27 +91,6 @@ def _cell(x, y, z, res):
     return np.int64(fx), np.int64(fy), np.int64(fz), px - fx, py - fy, pz - fz
 
 
-@numba.njit(cache=True, inline="always")
-def _corners(x, y, z, res, size, offset, rows, weights, at=0):
-    """Fill ``rows``/``weights`` ``[at : at + 8]`` with the table rows and trilinear weights of one point at one level."""
-    ix, iy, iz, wx, wy, wz = _cell(x, y, z, res)
-    one = np.float32(1.0)
-    dense = size == res * res * res
-    for c in range(8):
-        cx = min(ix + (c & 1), res - 1)
-        cy = min(iy + ((c >> 1) & 1), res - 1)
-        cz = min(iz + ((c >> 2) & 1), res - 1)
-        if dense:
-            idx = cx + cy * res + cz * res * res
-        else:
-            idx = ((cx * _P0) ^ (cy * _P1) ^ (cz * _P2)) & (size - 1)
-        rows[at + c] = offset + idx
-        w = wx if (c & 1) else one - wx
-        w *= wy if ((c >> 1) & 1) else one - wy
-        w *= wz if ((c >> 2) & 1) else one - wz
-        weights[at + c] = w
-
-
 _F32X4 = ir.VectorType(ir.FloatType(), 4)
 
 
@@ -151,11 +130,13 @@ _LANE = ir.IntType(32)
 
 @intrinsic
 def corner_rows8(typingctx, ix, iy, iz, wx, wy, wz, res, size, offset, rows, weights, at, table_flat, n_feat):
-    """`_corners` for all 8 corners at once, lane c holding corner c (AVX-512: 8 int64 lanes), from
-    the point's cell ``ix, iy, iz`` and fractions ``wx, wy, wz``: the rows into ``rows[at : at + 8]``,
-    the weights (the same products in the same order, so the same bits) into ``weights[at : at +
-    8]``, and each row's cache line prefetched from ``table_flat`` (``n_feat`` floats a row).
-    Scalar, with a bounds-checked index each, the corners took 78% of the forward kernel."""
+    """A point's 8 corners at one level at once, lane c holding corner c (x fastest; AVX-512: 8
+    int64 lanes), from its cell ``ix, iy, iz`` and fractions ``wx, wy, wz`` (`_cell`): the table
+    rows (``offset`` + the dense index or the hash, as the module docstring defines them) into
+    ``rows[at : at + 8]``, the trilinear weights (``w`` or ``1 - w`` per axis, multiplied x, y, z
+    in that order, as `hash_grid_reference`) into ``weights[at : at + 8]``, and each row's cache
+    line prefetched from ``table_flat`` (``n_feat`` floats a row). Scalar, with a bounds-checked
+    index each, the corners took 78% of the forward kernel."""
     integers = (ix, iy, iz, res, size, offset, at, n_feat)
     if not (all(isinstance(a, types.Integer) for a in integers) and wx == wy == wz == types.float32
             and contiguous_1d(rows, types.int64) and contiguous_1d(weights, types.float32) and contiguous_1d(table_flat, types.float32)):  # fmt: skip
@@ -200,6 +181,14 @@ def corner_rows8(typingctx, ix, iy, iz, wx, wy, wz, res, size, offset, rows, wei
     return types.void(ix, iy, iz, wx, wy, wz, res, size, offset, rows, weights, at, table_flat, n_feat), codegen
 
 
+@numba.njit(cache=True, inline="always")
+def _corners(x, y, z, res, size, offset, rows, weights, at, table_flat, n_feat):
+    """Rows and weights of point ``(x, y, z)`` at one level into ``rows``/``weights[at : at + 8]``
+    (`corner_rows8`), each row prefetched from ``table_flat``."""
+    ix, iy, iz, wx, wy, wz = _cell(x, y, z, res)
+    corner_rows8(ix, iy, iz, wx, wy, wz, res, size, offset, rows, weights, at, table_flat, n_feat)
+
+
 # Rays whose rows (every point and level) are found and prefetched before any is read: the
 # reads then overlap instead of waiting on one cache miss after another (N-BVH's tables, ~6 MB
 # at its `cpu` preset, do not fit in L2). 2 cores, Zen 5, N-BVH `intersect` (session 37): see
@@ -218,9 +207,8 @@ def encode_group(points, first, stop, table, resolutions, sizes, offsets, rows, 
     for i in range(first, stop):
         for p in range(n_points):
             for lvl in range(n_levels):
-                res = resolutions[lvl]
-                ix, iy, iz, wx, wy, wz = _cell(points[i, p, 0], points[i, p, 1], points[i, p, 2], res)
-                corner_rows8(ix, iy, iz, wx, wy, wz, res, sizes[lvl], offsets[lvl], rows, weights, at, table_flat, n_feat)
+                _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights,
+                         at, table_flat, n_feat)  # fmt: skip
                 at += 8
     at = 0
     for i in range(first, stop):
@@ -264,12 +252,14 @@ def _backward_kernel(points, grad_out, resolutions, sizes, offsets, grad_tables)
     n_levels = resolutions.shape[0]
     for chunk in numba.prange(n_chunks):
         grad = grad_tables[chunk]
+        grad_flat = grad.reshape(-1)  # (the rows the scatter adds to are prefetched)
         rows = np.empty(8, np.int64)
         weights = np.empty(8, np.float32)
         for i in range(chunk * n // n_chunks, (chunk + 1) * n // n_chunks):
             for p in range(n_points):
                 for lvl in range(n_levels):
-                    _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights)
+                    _corners(points[i, p, 0], points[i, p, 1], points[i, p, 2], resolutions[lvl], sizes[lvl], offsets[lvl], rows, weights,
+                             0, grad_flat, n_feat)  # fmt: skip
                     col = (p * n_levels + lvl) * n_feat
                     for c in range(8):
                         r, w = rows[c], weights[c]
