@@ -62,6 +62,19 @@ def random_answers(model, precision="fp32"):
     return model
 
 
+def wavefront_rays(n, seed=12):
+    """(origins, unit directions, t_max) in the unit cube for the wavefront tests: rays from a
+    sphere around the middle towards it, the first quarter from inside leaves (reversed chords),
+    every fifth with a short t_max."""
+    g = torch.Generator().manual_seed(seed)
+    o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    o[: n // 4] = 0.35 + 0.3 * torch.rand(n // 4, 3, generator=g)
+    d = torch.nn.functional.normalize(0.5 + 0.2 * torch.randn(n, 3, generator=g) - o, dim=1)
+    t_max = torch.full((n,), 3.0)
+    t_max[::5] = 0.4
+    return o, d, t_max
+
+
 def _unit_rays(n, seed, inside_share=0.3):
     g = torch.Generator().manual_seed(seed)
     o = torch.rand(n, 3, generator=g) * 1.6 - 0.3
@@ -338,13 +351,8 @@ def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision, mlp_in_pass, m
     model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu", encoding={"levels": 5, "log2_table_size": 14}))
     _random_cut(model, seed=2)
     model = random_answers(model, precision)
-    g = torch.Generator().manual_seed(12)
     n = 3000
-    o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
-    o[: n // 4] = 0.35 + 0.3 * torch.rand(n // 4, 3, generator=g)  # origins inside leaves: reversed chords
-    d = torch.nn.functional.normalize(0.5 + 0.2 * torch.randn(n, 3, generator=g) - o, dim=1)
-    t_max = torch.full((n,), 3.0)
-    t_max[::5] = 0.4
+    o, d, t_max = wavefront_rays(n)
     for any_hit in (False, True):
         with torch.no_grad():  # as intersect runs both
             ref_t, ref_out = model._closest_torch(o, d, t_max, any_hit)

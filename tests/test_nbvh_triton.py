@@ -18,7 +18,7 @@ pytest.importorskip("triton")
 
 from neuralrt.neural.hash_grid import HashGrid, hash_grid_reference  # noqa: E402
 from neuralrt.neural.hash_grid_triton import hash_grid_triton  # noqa: E402
-from test_nbvh import random_answers  # noqa: E402
+from test_nbvh import random_answers, wavefront_rays  # noqa: E402
 
 DEVICE = torch.device("cuda" if CUDA else "cpu")
 # The interpreter runs a launch's programs one after another, each op at a fixed cost: larger
@@ -220,13 +220,8 @@ def test_triton_wavefront_answers_as_the_torch_loop(ball_model):
 
     model = random_answers(copy.deepcopy(ball_model))
     on_device = copy.deepcopy(model).to(DEVICE)
-    g = torch.Generator().manual_seed(12)
     n = 64
-    o = 0.5 + 0.9 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
-    o[: n // 4] = 0.35 + 0.3 * torch.rand(n // 4, 3, generator=g)  # origins inside leaves: reversed chords
-    d = torch.nn.functional.normalize(0.5 + 0.2 * torch.randn(n, 3, generator=g) - o, dim=1)
-    t_max = torch.full((n,), 3.0)
-    t_max[::5] = 0.4
+    o, d, t_max = wavefront_rays(n)
     for any_hit in (False, True):
         ref_t, ref_out = model._closest_torch(o, d, t_max, any_hit)
         t, out = closest_hits_triton(on_device, o.to(DEVICE), d.to(DEVICE), t_max.to(DEVICE), any_hit)
