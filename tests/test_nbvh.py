@@ -375,6 +375,48 @@ def test_cpu_wavefront_answers_as_the_torch_loop(ball, precision, mlp_in_pass, m
     assert empty[0].shape == (0,) and empty[1].shape == (0, 8)
 
 
+def test_cpu_answers_as_the_torch_answers(ball):
+    """`NBVHModel._answer` on the CPU (numba passes for the unit rays and the records) against
+    `_answer_torch` (torch ops around the same wavefront), for closest and any hits, on a random
+    cut of a 3-material ball: every record the same (the sigmoid of the albedo up to libm's
+    rounding against torch's), with invalid rays, rays starting at a positive ``t_min`` and
+    intervals cut short among them."""
+    from dataclasses import fields
+
+    from neuralrt.geometry.mesh import MeshMaterial
+
+    mesh = Mesh(ball.vertices, ball.faces, face_material_ids=np.arange(len(ball.faces)) % 3,
+                materials=[MeshMaterial(name=f"m{i}") for i in range(3)])  # fmt: skip
+    model = NBVHModel.from_mesh(mesh, NBVHConfig.preset("cpu", encoding={"levels": 5, "log2_table_size": 14}))
+    _random_cut(model, seed=3)
+    model = random_answers(model)
+    assert model.material_logits == 3
+    n = 4000
+    g = torch.Generator().manual_seed(31)
+    centre, radius = torch.tensor(CENTER, dtype=torch.float32), 2.5 * RADIUS
+    origins = centre + radius * torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    directions = (centre + 0.6 * RADIUS * torch.randn(n, 3, generator=g) - origins) * (0.5 + torch.rand(n, 1, generator=g))
+    t_min, t_max = torch.zeros(n), torch.full((n,), float("inf"))
+    t_min[100:600] = 0.3 * torch.rand(500, generator=g)  # a positive t_min moves the origin (unit directions' scale too)
+    t_max[600:900] = 0.6
+    origins[:20] = float("nan")
+    directions[20:40] = 0
+    t_max[40:60] = -1.0
+    rays = Rays(origins, directions, t_min, t_max)
+    for any_hit in (False, True):
+        with torch.no_grad():
+            cpu, reference = model._answer(rays, any_hit), model._answer_torch(rays, any_hit)
+        assert 0.2 < reference.hit.float().mean() < 0.9 and not reference.hit[:60].any()
+        assert len(reference.material_id[reference.hit].unique()) == 3
+        for field in fields(cpu):
+            a, b = getattr(cpu, field.name), getattr(reference, field.name)
+            if field.name == "albedo":
+                torch.testing.assert_close(a, b, rtol=0, atol=4 * 1.2e-7)  # 3 ulp of the sigmoid
+            else:
+                assert torch.equal(a, b), field.name
+    assert len(model._answer(rays[:0], False)) == 0
+
+
 def test_instanced_in_a_scene_and_rendered_without_triangles(ball, trained):
     """Two instances of one N-BVH model in a scene (one BLAS), every ray answered by the model."""
     import warnings

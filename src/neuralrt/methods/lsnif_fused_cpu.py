@@ -44,7 +44,7 @@ from torch import Tensor
 from ..neural.bf16_dot import bf16_bits, bf16_pairs, bf16_value, dot_rows_bf16, first_lanes16, fma_f32, load16, store_bf16x16
 from ..neural.mlp import MLP, padded_rows
 from ..neural.mlp_rows_cpu import (
-    BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, output_layer_columns, output_rows,
+    BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, output_layer_columns, output_rows, sigmoid,
     widen_rows_bf16,
 )  # fmt: skip
 from ..neural.sparse_hash_grid import SparseHashGrid, half_table, padded_table
@@ -828,12 +828,6 @@ def later_layers_in_pass() -> bool:
 
 
 @numba.njit(cache=True, inline="always")
-def _sigmoid(x):
-    """torch.sigmoid's formula in fp32 (torch's vectorised exp differs from libm's by <= 3 ulp)."""
-    return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
-
-
-@numba.njit(cache=True, inline="always")
 def _later_hidden_rows(first_pairs, active, block, n_rows, hidden_pairs, hidden_bias, slope, xp, xp_bf16, quad, dots, rows):
     """`BLOCK_ROWS` rows (block ``block`` of ``active``; a short block repeats its last row) through
     the hidden layers after the first, in bf16 (`dot_rows_bf16`, 4 rows per weight pass; fp32 sums,
@@ -870,7 +864,7 @@ def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_lo
     (The records are separate arguments: numba 0.68 lost the writes to arrays unpacked from a tuple
     argument inside an inlined function in a prange loop.)"""
     te = t_enter[r]
-    t = (t_offset[r] + te) + _sigmoid(out[o + 1]) * (t_exit[r] - te)
+    t = (t_offset[r] + te) + sigmoid(out[o + 1]) * (t_exit[r] - te)
     h = out[o] > occlusion_logit and t < t_max[r] and t > t_min[r]
     hit[r] = h
     if occlusion_only:
@@ -884,7 +878,7 @@ def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_lo
     geometric_normal[r, 0], geometric_normal[r, 1], geometric_normal[r, 2] = nx, ny, nz
     if h:
         for c in range(3):
-            albedo[r, c] = _sigmoid(out[o + 5 + c])
+            albedo[r, c] = sigmoid(out[o + 5 + c])
     best = 0
     for j in range(1, n_materials):  # argmax: the first of equal logits
         if out[o + 8 + j] > out[o + 8 + best]:

@@ -39,7 +39,7 @@ from .base import NeuralBLAS, material_table
 from .nbvh_config import NBVHConfig
 from .nbvh_cut import base_tree, choose_splits, compact, kept_nodes, lod_to_register, split_count
 from .nbvh_rays import NBVHRayDistribution
-from .nbvh_wavefront_cpu import closest_hits_cpu
+from .nbvh_wavefront_cpu import answers_cpu, closest_hits_cpu
 from .nbvh_traversal import NO_LOD, CutArrays, LeafList, first_leaves, list_leaves
 
 __all__ = ["NBVHModel", "NBVHConfig", "METHOD"]
@@ -356,6 +356,13 @@ class NBVHModel(NeuralBLAS):
         return best_t, best_out
 
     def _answer(self, rays: Rays, any_hit: bool) -> Hits:
+        """The records of ``rays``' closest (``any_hit``: first accepted) hits: numba passes
+        throughout on the CPU (`answers_cpu`), torch ops around the wavefront elsewhere."""
+        if rays.device.type == "cpu":
+            return answers_cpu(self, rays, any_hit)
+        return self._answer_torch(rays, any_hit)
+
+    def _answer_torch(self, rays: Rays, any_hit: bool) -> Hits:
         hits = Hits.empty(len(rays), rays.device)
         idx, o, d, t_max, to_ray_t, t_off = self._unit_rays(rays)
         if len(idx) == 0:

@@ -31,15 +31,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..neural.bf16_dot import bf16_bits, dot_rows_bf16
+from ..neural.bf16_dot import bf16_bits, dot_rows_bf16, fma_f32
 from ..neural.hash_grid import FORWARD_GROUP, encode_group
 from ..neural.mlp_rows_cpu import (
     BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, layer_pairs, output_layer_columns, output_rows,
-    widen_rows_bf16,
+    sigmoid, widen_rows_bf16,
 )  # fmt: skip
+from ..rays import Hits, Rays
+from ..rays_kernels import valid_ray, write_miss
 from ..task_queue import task_count
 
-__all__ = ["closest_hits_cpu"]
+__all__ = ["closest_hits_cpu", "answers_cpu"]
 
 
 @numba.njit(cache=True, inline="always")
@@ -126,7 +128,6 @@ def _step_outputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, 
 @numba.njit(cache=True)
 def _step_decode(active, ptr, start, t0s, t1s, t_max, out, threshold, depth_pad, reversed_min, any_hit, best_t, best_out, kept):
     """Decode row ``k`` of ``out`` for ray ``active[k]``; the rays that go on into ``kept``; returns their count."""
-    one = np.float32(1.0)
     m = 0
     for k in range(active.shape[0]):
         ray = active[k]
@@ -134,7 +135,7 @@ def _step_decode(active, ptr, start, t0s, t1s, t_max, out, threshold, depth_pad,
         t0, t1 = t0s[e], t1s[e]
         inside = t0 < 0
         length = t1 - t0
-        depth = one / (one + np.exp(-out[k, 1])) * (length + depth_pad)
+        depth = sigmoid(out[k, 1]) * (length + depth_pad)
         t = t1 - depth if inside else t0 + depth
         accept = out[k, 0] > threshold and t > 0 and t < t_max[ray]
         accept = accept and (not inside or t > reversed_min * length + np.float32(1e-5))  # skip the surface a ray starts on
@@ -224,3 +225,88 @@ def closest_hits_cpu(model, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) 
                          any_hit, best_t, best_out, kept)  # fmt: skip
         active = kept[:m].copy()
     return torch.from_numpy(best_t), torch.from_numpy(best_out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Before and after the wavefront: `NBVHModel._unit_rays` and `NBVHModel._answer_torch`'s decoding
+# as two numba passes (on the bunny's 2^16 rays their ~30 torch ops took ~4.5 ms, 14% of an
+# `intersect`)
+
+
+@numba.njit(parallel=True, cache=True)
+def _valid_kernel(origins, directions, t_min, t_max, valid):
+    for i in numba.prange(origins.shape[0]):
+        valid[i] = valid_ray(origins, directions, t_min, t_max, i)
+
+
+@numba.njit(parallel=True, cache=True)
+def _unit_rays_kernel(idx, origins, directions, t_min, t_max, unit_lo, unit_scale, o, d, t_max_unit, to_ray_t, t_off):
+    """Rays ``idx`` (valid) moved to their ``t_min`` (where positive and finite) in the unit cube,
+    with unit directions: `NBVHModel._unit_rays`' float32 operations in its order (the norm's
+    fused multiply-adds, ``scale / norm`` as torch's reciprocal times the scale), the same bits."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for k in numba.prange(idx.shape[0]):
+        i = idx[k]
+        tm = t_min[i]
+        off = tm if np.isfinite(tm) and tm > zero else zero
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        norm = np.sqrt(fma_f32(dz, dz, fma_f32(dy, dy, dx * dx)))
+        for a in range(3):
+            da = directions[i, a]
+            o[k, a] = ((origins[i, a] + off * da) - unit_lo[a]) / unit_scale
+            d[k, a] = da / norm
+        scale = (one / norm) * unit_scale
+        to_ray_t[k], t_off[k] = scale, off
+        t_max_unit[k] = (t_max[i] - off) / scale
+
+
+@numba.njit(parallel=True, cache=True)
+def _answer_kernel(idx, t, out, d, t_off, to_ray_t, n_logits, hit, t_hit, normal, geometric_normal, uv, albedo, material, primitive_id,
+                   instance_id):  # fmt: skip
+    """Every row of the records (`Hits`' fields) written: a miss, then for ray ``idx[k]`` with a
+    hit (``t[k]`` finite, unit t; ``out[k]`` its raw outputs) the answer, decoded as
+    `NBVHModel._answer_torch` decodes it (normal turned to face ``d[k]``, then normalised; albedo
+    through the sigmoid; the first largest of ``n_logits`` material logits, or material 0)."""
+    for r in numba.prange(hit.shape[0]):
+        write_miss(r, hit, t_hit, normal, geometric_normal, uv, albedo, material, primitive_id, instance_id)
+    for k in numba.prange(idx.shape[0]):
+        if not np.isfinite(t[k]):
+            continue
+        r = idx[k]
+        hit[r] = True
+        t_hit[r] = t_off[k] + t[k] * to_ray_t[k]
+        nx, ny, nz = out[k, 2], out[k, 3], out[k, 4]
+        if (nx * d[k, 0] + ny * d[k, 1]) + nz * d[k, 2] > 0:  # `face_forward`
+            nx, ny, nz = -nx, -ny, -nz
+        norm = max(np.sqrt(fma_f32(nz, nz, fma_f32(ny, ny, nx * nx))), np.float32(1e-12))  # as F.normalize
+        normal[r, 0], normal[r, 1], normal[r, 2] = nx / norm, ny / norm, nz / norm
+        geometric_normal[r, 0], geometric_normal[r, 1], geometric_normal[r, 2] = normal[r, 0], normal[r, 1], normal[r, 2]
+        for c in range(3):
+            albedo[r, c] = sigmoid(out[k, 5 + c])
+        best = 0
+        for j in range(1, n_logits):
+            if out[k, 8 + j] > out[k, 8 + best]:
+                best = j
+        material[r] = best
+
+
+@torch.no_grad()
+def answers_cpu(model, rays: Rays, any_hit: bool) -> Hits:
+    """`NBVHModel._answer` on the CPU: the unit rays, `closest_hits_cpu`, the records, each a numba pass."""
+    n = len(rays)
+    origins, directions = rays.origins.float().contiguous().numpy(), rays.directions.float().contiguous().numpy()
+    t_min, t_max = rays.t_min.float().contiguous().numpy(), rays.t_max.float().contiguous().numpy()
+    valid = np.empty(n, np.bool_)
+    _valid_kernel(origins, directions, t_min, t_max, valid)
+    idx = np.flatnonzero(valid)
+    k = len(idx)
+    o, d = np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)
+    t_max_unit, to_ray_t, t_off = np.empty(k, np.float32), np.empty(k, np.float32), np.empty(k, np.float32)
+    unit_lo = model.unit_lo.float().contiguous().numpy()
+    _unit_rays_kernel(idx, origins, directions, t_min, t_max, unit_lo, np.float32(model.unit_scale), o, d, t_max_unit, to_ray_t, t_off)
+    hits = Hits.uninitialized(n)
+    t, out = closest_hits_cpu(model, torch.from_numpy(o), torch.from_numpy(d), torch.from_numpy(t_max_unit), any_hit)
+    records = (hits.hit, hits.t, hits.normal, hits.geometric_normal, hits.uv, hits.albedo, hits.material_id, hits.primitive_id,
+               hits.instance_id)  # (`write_miss`' order)
+    _answer_kernel(idx, t.numpy(), out.numpy(), d, t_off, to_ray_t, model.material_logits, *(c.numpy() for c in records))
+    return hits

@@ -23,7 +23,7 @@ from .bf16_dot import add16, bf16_pairs, dot_rows_bf16, fma16, leaky_relu16, loa
 from .mlp import MLP
 
 __all__ = ["BLOCK_ROWS", "HOST_HAS_AMX", "host_has_amx", "bias_leaky_bf16", "hidden_layers_bf16", "widen_rows_bf16",
-           "output_rows", "layer_pairs", "hidden_layer_pairs", "output_layer_columns"]
+           "output_rows", "sigmoid", "layer_pairs", "hidden_layer_pairs", "output_layer_columns"]
 
 # Rows a block holds: the output layer's weight vectors each serve 8 rows, and its 8 accumulator
 # chains hide the fused multiply-add latency (one chain of 128 dependent FMAs per row measured
@@ -93,6 +93,12 @@ def output_rows(rows, wo_flat, bo, n_padded, columns, out):
         store16(out, v, a0), store16(out, n_padded + v, a1), store16(out, 2 * n_padded + v, a2)
         store16(out, 3 * n_padded + v, a3), store16(out, 4 * n_padded + v, a4), store16(out, 5 * n_padded + v, a5)
         store16(out, 6 * n_padded + v, a6), store16(out, 7 * n_padded + v, a7)
+
+
+@numba.njit(cache=True, inline="always")
+def sigmoid(x):
+    """torch.sigmoid's formula in fp32, for decoding raw outputs (torch's vectorised exp differs from libm's by <= 3 ulp)."""
+    return np.float32(1.0) / (np.float32(1.0) + np.exp(-x))
 
 
 def layer_pairs(weight: torch.Tensor, bias: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
