@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from ..neural.bf16_dot import bf16_bits, dot_rows_bf16, fma_f32
-from ..neural.hash_grid import FORWARD_GROUP, encode_group
+from ..neural.hash_grid import PREFETCH_GROUP, encode_group
 from ..neural.mlp_rows_cpu import (
     BLOCK_ROWS, HOST_HAS_AMX, bias_leaky_bf16, hidden_layer_pairs, hidden_layers_bf16, layer_pairs, output_layer_columns, output_rows,
     sigmoid, widen_rows_bf16,
@@ -70,13 +70,13 @@ def _step_inputs_kernel(active, ptr, t0s, t1s, origins, directions, fractions, t
     n, n_points = active.shape[0], fractions.shape[0]
     per_ray = n_points * resolutions.shape[0] * 8
     for chunk in numba.prange(n_chunks):
-        points = np.empty((FORWARD_GROUP, n_points, 3), np.float32)
-        rows = np.empty(FORWARD_GROUP * per_ray, np.int64)
-        weights = np.empty(FORWARD_GROUP * per_ray, np.float32)
+        points = np.empty((PREFETCH_GROUP, n_points, 3), np.float32)
+        rows = np.empty(PREFETCH_GROUP * per_ray, np.int64)
+        weights = np.empty(PREFETCH_GROUP * per_ray, np.float32)
         acc = np.empty(table.shape[1], np.float32)
         last = (chunk + 1) * n // n_chunks
-        for first in range(chunk * n // n_chunks, last, FORWARD_GROUP):
-            stop = min(first + FORWARD_GROUP, last)
+        for first in range(chunk * n // n_chunks, last, PREFETCH_GROUP):
+            stop = min(first + PREFETCH_GROUP, last)
             _chord_points(active, first, stop, ptr, t0s, t1s, origins, directions, fractions, points)
             encode_group(points, 0, stop - first, table, resolutions, sizes, offsets, rows, weights, acc, x, first)
 
