@@ -84,8 +84,14 @@ def _unit_rays(n, seed, inside_share=0.3):
     return o, d
 
 
+@pytest.mark.parametrize("simd", [True, False])
 @pytest.mark.parametrize("level", [0, 3, -1])
-def test_numba_torch_and_brute_force_list_the_same_leaves(ball, level):
+def test_numba_torch_and_brute_force_list_the_same_leaves(ball, level, simd, monkeypatch):
+    """The CPU lists (the 16-lane walk or the scalar kernel) against the torch frontier and a brute
+    force over the cut's leaves, for a registered LoD, a coarser one and the live cut."""
+    from neuralrt.methods import nbvh_traversal
+
+    monkeypatch.setattr(nbvh_traversal, "SIMD_LIST", simd)
     model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
     _random_cut(model, seed=1)
     cut = model.cut_arrays()
@@ -125,6 +131,7 @@ def test_leaves_that_do_not_fit_their_tasks_segment_are_listed_by_a_second_walk(
     ray again (the fill pass) where one does not: the same lists either way, as the torch frontier's."""
     from neuralrt.methods import nbvh_traversal
 
+    monkeypatch.setattr(nbvh_traversal, "SIMD_LIST", False)
     model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
     _random_cut(model, seed=1)
     cut = model.cut_arrays()
@@ -142,6 +149,37 @@ def test_leaves_that_do_not_fit_their_tasks_segment_are_listed_by_a_second_walk(
     for listed in (one_walk, two_walks):
         for name in ("start", "node", "t0", "t1"):
             assert torch.equal(getattr(listed, name), getattr(reference, name)), name
+
+
+@pytest.mark.parametrize("slots", [1, 2, 16])
+def test_lane_walk_rays_with_more_leaves_than_slots_are_walked_again(ball, slots, monkeypatch):
+    """The 16-lane walk keeps a ray's first leaves in its slots; a ray with more is walked again by
+    the scalar walk: the same lists as the torch frontier's whatever the number of slots, with rays
+    of many leaves, rays starting inside leaves, short intervals, per-ray LoDs and dilations, and
+    rays on a slab plane parallel to it."""
+    from neuralrt.methods import nbvh_traversal
+
+    model = NBVHModel.from_mesh(ball, NBVHConfig.preset("cpu"))
+    _random_cut(model, seed=4)
+    cut = model.cut_arrays()
+    n = 3000
+    o, d = _unit_rays(n, 5, inside_share=0.3)
+    g = torch.Generator().manual_seed(8)
+    t_max = torch.where(torch.rand(n, generator=g) < 0.2, 0.3, 5.0)
+    lvl = torch.tensor([0, 3, -1], dtype=torch.int8)[torch.randint(0, 3, (n,), generator=g)]
+    dil = 1e-5 + 1e-4 * torch.rand(n, generator=g)
+    # The last 60: parallel to x, starting on a (dilated) box's x plane: 0 * inf in the slab test
+    nodes = torch.randint(0, len(cut.lo), (60,), generator=g)
+    o[-60:, 0] = cut.lo[nodes, 0] - dil[-60:]
+    d[-60:] = torch.tensor([0.0, 0.6, 0.8])
+    listed = nbvh_traversal._list_leaves_simd(o, d, t_max, cut, lvl, dil, slots=slots)
+    reference = list_leaves_torch(o, d, t_max, cut, lvl, dil)
+    for name in ("start", "node", "t0", "t1"):
+        assert torch.equal(getattr(listed, name), getattr(reference, name)), name
+    counts = listed.counts
+    assert (counts > slots).sum() > (50 if slots <= 2 else -1) and counts.max() >= 3
+    empty = nbvh_traversal._list_leaves_simd(o[:0], d[:0], t_max[:0], cut, lvl[:0], dil[:0])
+    assert empty.start.tolist() == [0] and len(empty.node) == 0
 
 
 def _ancestors(model, node):

@@ -22,7 +22,8 @@ from .simd import (
 )  # fmt: skip
 
 __all__ = ["f32x16", "i32x16", "m16", "load16", "store16", "load16_i32", "store16_i32", "lane_index16", "splat_f32", "splat_i32",
-           "splat_m16", "select16", "vmin16", "vmax16", "bits16", "popcount16", "to_f32", "gather16_i32", "scatter16_i64",
+           "splat_m16", "select16", "vmin16", "vmax16", "bits16", "popcount16", "to_f32", "gather16_i32", "gather16_f32",
+           "scatter16_i32", "scatter16_f32", "scatter16_i64",
            "expand16_f32", "expand16_i32", "compress16_f32", "compress16_i32", "compress_store_i32"]  # fmt: skip
 
 _I1, _I32, _I64 = ir.IntType(1), ir.IntType(32), ir.IntType(64)
@@ -151,6 +152,42 @@ def gather16_i32(typingctx, array, index, mask):
         return builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(_I32X16, [0] * 16)])
 
     return i32x16(array, i32x16, m16), codegen
+
+
+@intrinsic
+def gather16_f32(typingctx, array, index, mask):
+    """``array[index[k]]`` (float32) in the lanes of ``mask``, 0 elsewhere."""
+    if not (contiguous_1d(array, types.float32) and index == i32x16 and mask == m16):
+        return None
+
+    def codegen(context, builder, sig, args):
+        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1])
+        fn = _llvm_function(builder, "llvm.masked.gather.v16f32.v16p0", _F32X16, [pointers.type, _I32, _M16, _F32X16])
+        return builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(_F32X16, [0.0] * 16)])
+
+    return f32x16(array, i32x16, m16), codegen
+
+
+def _scatter16(element, vector, vector_type, name):
+    @intrinsic
+    def scatter(typingctx, array, index, value, mask):
+        if not (contiguous_1d(array, element) and index == i32x16 and value == vector and mask == m16):
+            return None
+
+        def codegen(context, builder, sig, args):
+            pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1])
+            fn = _llvm_function(builder, name, ir.VoidType(), [vector_type, pointers.type, _I32, _M16])
+            builder.call(fn, [args[2], pointers, ir.Constant(_I32, 4), args[3]])
+            return context.get_dummy_value()
+
+        return types.void(array, i32x16, vector, m16), codegen
+
+    scatter.__doc__ = f"``array[index[k]] = value[k]`` ({element}) in the lanes of ``mask`` (distinct indices)."
+    return scatter
+
+
+scatter16_f32 = _scatter16(types.float32, f32x16, _F32X16, "llvm.masked.scatter.v16f32.v16p0")
+scatter16_i32 = _scatter16(types.int32, i32x16, _I32X16, "llvm.masked.scatter.v16i32.v16p0")
 
 
 @intrinsic

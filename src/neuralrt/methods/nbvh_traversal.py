@@ -25,7 +25,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..simd import HAS_AVX512
 from ..task_queue import take_task, task_count, task_workers
+from .nbvh_traversal_simd import SLOTS, walk_lanes
 
 __all__ = ["LeafList", "CutArrays", "list_leaves", "list_leaves_torch", "first_leaves", "first_leaves_torch", "NO_LOD"]
 
@@ -304,6 +306,94 @@ def _list_leaves_numba(origins, directions, t_max, cut: CutArrays, level, dilati
     return LeafList(torch.from_numpy(start), torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1))
 
 
+# Where numba compiles for AVX-512 the lists come from the 16-lane walk (`nbvh_traversal_simd`):
+# the same lists; False: `_list_kernel` (elsewhere LLVM would lower the lanes to scalar loops).
+SIMD_LIST = HAS_AVX512
+
+
+def _float32_above(threshold: float) -> np.float32:
+    """The float32 F with ``x > F`` exactly where ``x > threshold`` (a float64 constant, as the
+    scalar walk compares) for every float32 x: the largest float32 not above ``threshold``."""
+    f = np.float32(threshold)
+    return np.nextafter(f, np.float32(-np.inf)) if f > threshold else f
+
+
+@numba.njit(parallel=True, cache=True)
+def _lanes_kernel(ray_ids, ox, oy, oz, ix, iy, iz, t_max, dilation, level, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z, child0, child1, leaf_key,
+                  enter_min, exit_min, n_slots, slot_node, slot_t0, slot_t1, counts, n_tasks, n_workers):  # fmt: skip
+    """`walk_lanes` over tasks of rays (`task_queue`), a lane stack per worker."""
+    n = ox.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
+        stack = np.empty(16 * _STACK, np.int32)
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            walk_lanes(task * n // n_tasks, (task + 1) * n // n_tasks, ray_ids, ox, oy, oz, ix, iy, iz, t_max, dilation, level, lo_x,
+                       lo_y, lo_z, hi_x, hi_y, hi_z, child0, child1, leaf_key, stack, enter_min, exit_min, n_slots, slot_node, slot_t0,
+                       slot_t1, counts)  # fmt: skip
+
+
+@numba.njit(parallel=True, cache=True)
+def _pack_kernel(counts, start, n_slots, slot_node, slot_t0, slot_t1, out_node, out_t0, out_t1, n_tasks, n_workers):
+    """Ray i's leaves from its slots (`walk_lanes`) at ``out_*[start[i]:]``, sorted by (t0, node),
+    where it has at most ``n_slots`` (the others: `_rewalk_kernel`)."""
+    n = counts.shape[0]
+    next_task = np.zeros(1, np.int64)
+    for worker in numba.prange(n_workers):
+        while True:
+            task = take_task(next_task)
+            if task >= n_tasks:
+                break
+            for i in range(task * n // n_tasks, (task + 1) * n // n_tasks):
+                s, c = start[i], counts[i]
+                if c <= n_slots:
+                    for k in range(c):
+                        j = i * n_slots + k
+                        out_node[s + k], out_t0[s + k], out_t1[s + k] = slot_node[j], slot_t0[j], slot_t1[j]
+                    _sort_leaves(out_node, out_t0, out_t1, s, c)
+
+
+@numba.njit(parallel=True, cache=True)
+def _rewalk_kernel(rays, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, start, out_node, out_t0, out_t1):
+    """The leaves of ``rays`` (more than their slots) walked again by `_walk`, sorted, at ``out_*[start[i]:]``."""
+    for k in numba.prange(rays.shape[0]):
+        stack = np.empty(_STACK, np.int64)
+        i = rays[k]
+        s, e = start[i], start[i + 1]
+        _walk(i, origins, inv_dirs, t_max, lo, hi, children, lod, live, level, dilation, stack, out_node, out_t0, out_t1, s, e)
+        _sort_leaves(out_node, out_t0, out_t1, s, e - s)
+
+
+def _list_leaves_simd(origins, directions, t_max, cut: CutArrays, level, dilation, slots: int = SLOTS) -> LeafList:
+    """`_list_leaves_numba`'s lists from the 16-lane walk, then a packing pass (and `_walk` again
+    for the few rays with more leaves than their slots)."""
+    n = len(origins)
+    args = _kernel_args(origins, directions, t_max, cut, level, dilation)
+    o, inv, tmax, lo, hi, children, lod, live, lvl, dil = args
+    columns = [np.ascontiguousarray(a[:, k]) for a in (o, inv) for k in range(3)]
+    corners = [np.ascontiguousarray(a[:, k]) for a in (lo, hi) for k in range(3)]
+    child0, child1 = np.ascontiguousarray(children[:, 0]), np.ascontiguousarray(children[:, 1])
+    leaf_key = lod.astype(np.int32) + 256 * live.astype(np.int32)
+    counts = np.empty(n, np.int32)
+    slot_arrays = np.empty(n * slots, np.int32), np.empty(n * slots, np.float32), np.empty(n * slots, np.float32)
+    n_tasks, n_workers = _tasks(n)
+    if n:
+        _lanes_kernel(np.arange(n + 16, dtype=np.int32), *columns, tmax, dil, lvl.astype(np.int32), *corners, child0, child1, leaf_key,
+                      _float32_above(_ENTER_MIN), _float32_above(_EXIT_MIN), slots, *slot_arrays, counts, n_tasks, n_workers)  # fmt: skip
+    start = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=start[1:])
+    e = int(start[-1])
+    node, t0, t1 = np.empty(e, np.int64), np.empty(e, np.float32), np.empty(e, np.float32)
+    if n:
+        _pack_kernel(counts, start, slots, *slot_arrays, node, t0, t1, n_tasks, n_workers)
+    more = np.flatnonzero(counts > slots)
+    if len(more):
+        _rewalk_kernel(more, *args, start, node, t0, t1)
+    return LeafList(torch.from_numpy(start), torch.from_numpy(node), torch.from_numpy(t0), torch.from_numpy(t1))
+
+
 # ---------------------------------------------------------------------------------------------
 # torch (any device)
 
@@ -349,7 +439,7 @@ def list_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArra
     ``origins``/``directions`` [N, 3] float32 in the unit cube (directions unit length);
     ``t_max`` [N]; ``level`` [N] int (-1: the live cut); ``dilation`` [N] leaf-box growth."""
     if origins.device.type == "cpu":
-        return _list_leaves_numba(origins, directions, t_max, cut, level, dilation)
+        return (_list_leaves_simd if SIMD_LIST else _list_leaves_numba)(origins, directions, t_max, cut, level, dilation)
     if origins.device.type == "cuda":
         from .nbvh_traversal_triton import list_leaves_triton
 
