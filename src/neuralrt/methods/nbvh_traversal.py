@@ -439,7 +439,8 @@ def list_leaves(origins: Tensor, directions: Tensor, t_max: Tensor, cut: CutArra
     ``origins``/``directions`` [N, 3] float32 in the unit cube (directions unit length);
     ``t_max`` [N]; ``level`` [N] int (-1: the live cut); ``dilation`` [N] leaf-box growth."""
     if origins.device.type == "cpu":
-        return (_list_leaves_simd if SIMD_LIST else _list_leaves_numba)(origins, directions, t_max, cut, level, dilation)
+        lanes = SIMD_LIST and len(origins) * SLOTS < 2**31  # (the lanes index the slots in int32)
+        return (_list_leaves_simd if lanes else _list_leaves_numba)(origins, directions, t_max, cut, level, dilation)
     if origins.device.type == "cuda":
         from .nbvh_traversal_triton import list_leaves_triton
 
