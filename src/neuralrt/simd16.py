@@ -140,32 +140,25 @@ def _lane_pointers(context, builder, array_type, array, index):
     return instruction
 
 
-@intrinsic
-def gather16_i32(typingctx, array, index, mask):
-    """``array[index[k]]`` (int32) in the lanes of ``mask``, 0 elsewhere."""
-    if not (contiguous_1d(array, types.int32) and index == i32x16 and mask == m16):
-        return None
+def _gather16(element, vector, vector_type, name):
+    @intrinsic
+    def gather(typingctx, array, index, mask):
+        if not (contiguous_1d(array, element) and index == i32x16 and mask == m16):
+            return None
 
-    def codegen(context, builder, sig, args):
-        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1])
-        fn = _llvm_function(builder, "llvm.masked.gather.v16i32.v16p0", _I32X16, [pointers.type, _I32, _M16, _I32X16])
-        return builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(_I32X16, [0] * 16)])
+        def codegen(context, builder, sig, args):
+            pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1])
+            fn = _llvm_function(builder, name, vector_type, [pointers.type, _I32, _M16, vector_type])
+            return builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(vector_type, [0] * 16)])
 
-    return i32x16(array, i32x16, m16), codegen
+        return vector(array, i32x16, m16), codegen
+
+    gather.__doc__ = f"``array[index[k]]`` ({element}) in the lanes of ``mask``, 0 elsewhere."
+    return gather
 
 
-@intrinsic
-def gather16_f32(typingctx, array, index, mask):
-    """``array[index[k]]`` (float32) in the lanes of ``mask``, 0 elsewhere."""
-    if not (contiguous_1d(array, types.float32) and index == i32x16 and mask == m16):
-        return None
-
-    def codegen(context, builder, sig, args):
-        pointers = _lane_pointers(context, builder, sig.args[0], args[0], args[1])
-        fn = _llvm_function(builder, "llvm.masked.gather.v16f32.v16p0", _F32X16, [pointers.type, _I32, _M16, _F32X16])
-        return builder.call(fn, [pointers, ir.Constant(_I32, 4), args[2], ir.Constant(_F32X16, [0.0] * 16)])
-
-    return f32x16(array, i32x16, m16), codegen
+gather16_i32 = _gather16(types.int32, i32x16, _I32X16, "llvm.masked.gather.v16i32.v16p0")
+gather16_f32 = _gather16(types.float32, f32x16, _F32X16, "llvm.masked.gather.v16f32.v16p0")
 
 
 def _scatter16(element, vector, vector_type, name):
