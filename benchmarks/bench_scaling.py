@@ -9,7 +9,9 @@ before torch and numba load) with ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` se
 kernels, torch's GEMMs and the Embree chunks (which follow numba's thread count) all see the same
 machine size. In each process:
 - training: a fresh model per preset (same seed) trained ``--steps`` steps after a 5-step warm-up,
-  the batch drawn on its background thread as in ``neuralrt train``; best of 2 runs, rays/s =
+  the batch drawn ahead on the background thread and drawn in turn (``neuralrt train`` times both
+  in its first steps and keeps the faster, `training.prefetch`: the figure without a mode is the
+  faster); best of 2 runs each, rays/s =
   rays drawn / wall time of the loop (as bench_training.py); with ``--train-batches``, also at
   those batch sizes, drawing the same rays in fewer steps (a step's fixed costs, paid once per
   step on the loop's thread, shrink per ray); with ``--profile``, one more run per batch size
@@ -140,19 +142,26 @@ def _child(args) -> dict:
                  "cores_pinned": len(os.sched_getaffinity(0)), "load_before": os.getloadavg()[0]}
     train_mesh = resolve_mesh(args.train_mesh)
     train_truth = MeshBLAS(train_mesh)
+    def train_rate(config, steps: int, key: str) -> None:
+        """Rays/s drawing each batch ahead and in turn (best of 2 runs each; the default,
+        ``overlap_sampling=None``, times both in its first steps and keeps the faster): the
+        faster under ``key``, each under ``key`` with ``[ahead]`` / ``[in turn]``."""
+        for mode, label in ((True, "ahead"), (False, "in turn")):
+            runs = [_train(train_mesh, train_truth, config, steps, mode) for _ in range(2)]
+            row[key.replace("_rays/s", f"[{label}]_rays/s")] = max(n / wall for wall, n in runs)
+        row[key] = max(row[key.replace("_rays/s", f"[{label}]_rays/s")] for label in ("ahead", "in turn"))
+
     for preset in [] if args.skip_training else args.presets:
         config = LSNIFConfig.preset(preset)
         _train(train_mesh, train_truth, config, 5, True)  # warm-up: numba compilation, thread pools
-        runs = [_train(train_mesh, train_truth, config, args.steps, True) for _ in range(2)]
-        row[f"train_{preset}_rays/s"] = max(n / wall for wall, n in runs)
+        train_rate(config, args.steps, f"train_{preset}_rays/s")
         default_batch = config.training.batch_size
         for batch in args.train_batches:
             if batch == default_batch:
                 continue
             sized, steps = _at_batch(config, batch, args.steps)
             _train(train_mesh, train_truth, sized, 2, True)  # warm-up at this batch (oneDNN kernels for its row counts)
-            runs = [_train(train_mesh, train_truth, sized, steps, True) for _ in range(2)]
-            row[f"train_{preset}_batch{batch}_rays/s"] = max(n / wall for wall, n in runs)
+            train_rate(sized, steps, f"train_{preset}_batch{batch}_rays/s")
         if args.profile:
             for batch in sorted({default_batch, *args.train_batches}):
                 sized, steps = _at_batch(config, batch, args.steps)

@@ -2,11 +2,11 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|loss_threads|scatter|draw_threads|loss_chunks|draw_pool]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|overlap_trial|loss_threads|scatter|draw_threads|loss_chunks|draw_pool]
         [--draw-threads 1] [--name training_cpu_step]
 
-Configurations (both draw the next batch on a background thread, the default, except in
-``overlap``), by ``--pair``:
+Configurations (both draw the next batch on a background thread, the default before session 40,
+except in ``overlap`` and ``overlap_trial``), by ``--pair``:
 - ``step`` (default): ``before`` runs the output layer and the loss as torch ops
   (`lsnif_loss.training_loss_torch`) and casts the encoder's fp32 output to the MLP's bf16
   (``SparseHashGrid.low_precision_output = False``); ``after`` runs them as numba passes
@@ -26,7 +26,10 @@ Configurations (both draw the next batch on a background thread, the default, ex
 - ``draw_priority``: the batches drawn by a thread of normal priority against one of idle priority
   (`prefetch.IDLE_PRIORITY`; Linux);
 - ``overlap``: each batch drawn in turn by the loop's thread (``train_model(overlap_sampling=False)``)
-  against drawn ahead on the background thread (the default);
+  against drawn ahead on the background thread (``True``);
+- ``overlap_trial``: drawn in turn against the default (``None``: the run's first steps time both
+  modes, then it keeps the faster; `prefetch.BatchSource`); use runs far longer than the trial's
+  50 steps;
 - ``loss_threads``: the loss pass (`training_loss_numba`) on one thread, as it ran before its row
   chunks went parallel, against on all of numba's threads;
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
@@ -107,7 +110,7 @@ def _configure(model: LSNIFModel, config: str) -> None:
         prefetch_module.IDLE_PRIORITY = not before
     elif PAIR == "row_bucket":
         mlp_module.ROW_BUCKET["cpu"] = 1 if before else 256
-    elif PAIR == "overlap":
+    elif PAIR in ("overlap", "overlap_trial"):
         pass  # the loop's own switch (`_train`)
     elif PAIR == "loss_threads":
         lsnif_module.training_loss = _on_one_thread(training_loss) if before else training_loss
@@ -156,8 +159,12 @@ def _on_one_thread(fn):
     return wrapped
 
 
-def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after") -> tuple[float, int]:
-    overlap = overlap and not (PAIR == "overlap" and variant == "before")
+DRAWN_AHEAD: list = []  # each run's `TrainingRecord.batches_drawn_ahead`
+
+
+def _train(mesh, truth, config, steps: int, overlap: bool | None, variant: str = "after") -> tuple[float, int]:
+    if PAIR in ("overlap", "overlap_trial"):
+        overlap = False if variant == "before" else (True if PAIR == "overlap" else None)
     model = LSNIFModel.from_mesh(mesh, config)
     _configure(model, variant)
     rays = model.training_rays(truth, torch.device("cpu"))
@@ -166,6 +173,7 @@ def _train(mesh, truth, config, steps: int, overlap: bool, variant: str = "after
     record = train_model(model, rays, steps=steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
                          adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
                          progress=False, on_step=model.after_training_step, overlap_sampling=overlap)
+    DRAWN_AHEAD.append(record.batches_drawn_ahead)
     return time.perf_counter() - t0, record.rays
 
 
@@ -183,7 +191,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "overlap_trial", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool"), default="step", help="which before/after pair (module docstring)")
     ap.add_argument("--draw-threads", type=int, default=1, help="the drawing thread's numba threads in draw_threads' after")
     args = ap.parse_args()
     global PAIR, DRAW_THREADS
@@ -199,10 +207,10 @@ def main() -> None:
         for variant in CONFIGS:
             wall, n = _train(mesh, truth, config, args.steps, True, variant)
             rows.append({"repeat": rep, "config": variant, "steps": args.steps, "batch": config.training.batch_size,
-                         "wall_s": round(wall, 4), "rays_per_s": round(n / wall)})
+                         "wall_s": round(wall, 4), "rays_per_s": round(n / wall), "drawn_ahead": DRAWN_AHEAD[-1]})
     profiles = {variant: _profile(mesh, truth, config, args.steps, variant) for variant in CONFIGS}
     load_after = os.getloadavg()[0]
-    print_table(rows, ["repeat", "config", "steps", "batch", "wall_s", "rays_per_s"])
+    print_table(rows, ["repeat", "config", "steps", "batch", "wall_s", "rays_per_s", "drawn_ahead"])
     best = {c: max(r["rays_per_s"] for r in rows if r["config"] == c) for c in CONFIGS}
     median = {c: statistics.median(r["rays_per_s"] for r in rows if r["config"] == c) for c in CONFIGS}
     # Each "after" run against the "before" run just before it (same load, as near as we can get).

@@ -167,14 +167,14 @@ def test_batches_are_drawn_at_idle_priority_until_the_step_starves():
     regions; when the step keeps waiting for batches (here a sampler slower than the step), later
     batches come from a fresh thread of normal priority, and the batches stay the same, in order."""
     fast = _Recorded()
-    source = prefetch.BatchSource(fast, 8)
+    source = prefetch.BatchSource(fast, 8, overlap=True)
     assert [source.next(ahead=True)[0] for _ in range(5)] == [8] * 5
     source.close()
     assert fast.policies[0] == os.sched_getscheduler(0) != os.SCHED_IDLE  # the first batch: the loop's thread
     assert set(fast.policies[1:]) == {os.SCHED_IDLE} and len(set(fast.threads[1:])) == 1
 
     slow = _Recorded(delay=0.004)
-    source = prefetch.BatchSource(slow, 8)
+    source = prefetch.BatchSource(slow, 8, overlap=True)
     windows = prefetch.STARVED_WINDOWS
     for _ in range((windows + 1) * prefetch._WINDOW):
         assert source.next(ahead=True)[0] == 8  # the step takes no time: all of it is waiting
@@ -191,7 +191,7 @@ def test_one_starved_window_keeps_idle_priority(monkeypatch):
     """A single window of waiting (a brief hiccup of the machine) leaves the thread at idle
     priority: only STARVED_WINDOWS starved windows in a row give it up."""
     sampler = _Recorded()
-    source = prefetch.BatchSource(sampler, 8)
+    source = prefetch.BatchSource(sampler, 8, overlap=True)
     # One window of batches far slower than the step (a 4 ms step), then batches that take no time.
     delays = iter([0.02] * prefetch._WINDOW + [0.0] * (prefetch.STARVED_WINDOWS * prefetch._WINDOW))
     monkeypatch.setattr(sampler, "sample", lambda n, _sample=sampler.sample: (time.sleep(next(delays, 0.0)), _sample(n))[1])
@@ -205,8 +205,66 @@ def test_one_starved_window_keeps_idle_priority(monkeypatch):
 
 def test_idle_priority_can_be_turned_off():
     recorded = _Recorded()
-    source = prefetch.BatchSource(recorded, 4, idle_priority=False)
+    source = prefetch.BatchSource(recorded, 4, overlap=True, idle_priority=False)
     for _ in range(3):
         source.next(ahead=True)
     source.close()
     assert len(set(recorded.policies)) == 1
+
+
+def _trial_modes(seconds_per_step):
+    """The modes an `_OverlapTrial` gives over its whole trial and 5 steps after, each step taking
+    ``seconds_per_step(mode, first_of_window)``; and its choice."""
+    trial, now, modes = prefetch._OverlapTrial(), 0.0, []
+    for step in range(prefetch.TRIAL_START + 2 * prefetch.TRIAL_ROUNDS * prefetch.TRIAL_WINDOW + 5):
+        mode = trial.mode(now)
+        modes.append(mode)
+        first = step >= prefetch.TRIAL_START and (step - prefetch.TRIAL_START) % prefetch.TRIAL_WINDOW == 0
+        now += seconds_per_step(mode, first)
+    return modes, trial.choice
+
+
+@pytest.mark.parametrize("ahead_faster", [False, True])
+def test_the_overlap_trial_keeps_the_faster_mode(ahead_faster):
+    """Warm-up steps drawn ahead, then windows drawn in turn and ahead alternating, then the faster
+    mode for good; the first step of each window (a change of mode: a batch drawn twice or not at
+    all) is not timed, so a slow first step does not decide."""
+    def seconds(mode, first):
+        if first:
+            return 1.0 if mode else 0.0  # drawing ahead starts with a batch drawn in turn; in turn with one drawn already
+        return 0.001 if mode == ahead_faster else 0.0012
+    modes, choice = _trial_modes(seconds)
+    start, window = prefetch.TRIAL_START, prefetch.TRIAL_WINDOW
+    assert modes[:start] == [True] * start
+    for w in range(2 * prefetch.TRIAL_ROUNDS):  # in turn first
+        assert modes[start + w * window: start + (w + 1) * window] == [w % 2 == 1] * window
+    assert choice is ahead_faster and modes[-5:] == [ahead_faster] * 5
+
+
+def test_batch_source_trial_keeps_the_batches_in_order():
+    """With the default overlap (the trial), the batches come in the sampler's order whatever the
+    mode of each step, no drawing thread is left while steps draw in turn, and `draws_ahead` is
+    None until the trial decides."""
+    class Counting:
+        model_independent = True
+
+        def __init__(self):
+            self.drawn = 0
+
+        def sample(self, n):
+            self.drawn += 1
+            return self.drawn
+
+    source = prefetch.BatchSource(Counting(), 8)
+    steps = prefetch.TRIAL_START + 2 * prefetch.TRIAL_ROUNDS * prefetch.TRIAL_WINDOW
+    got = []
+    for step in range(steps):
+        got.append(source.next(ahead=True)[0])
+        assert source.draws_ahead is None
+        in_turn = step >= prefetch.TRIAL_START and (step - prefetch.TRIAL_START) // prefetch.TRIAL_WINDOW % 2 == 0
+        # drawing in turn ends the drawing thread (its OpenMP threads would slow the step's regions)
+        assert (source._executor is None) == in_turn
+    got += [source.next(ahead=True)[0] for _ in range(5)]
+    source.close()
+    assert got == list(range(1, steps + 6)) and isinstance(source.draws_ahead, bool)
+    assert prefetch.BatchSource(Counting(), 8, overlap=False).draws_ahead is False

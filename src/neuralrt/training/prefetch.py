@@ -21,11 +21,21 @@ windows of steps in a row), the later batches are drawn by a fresh thread of nor
 window is not enough: an idle 2-core machine waits up to ~8% of a window, and a single 10.1% window
 once sent a whole run to normal priority (456k vs ~500k rays/s, docs/lsnif.md); a starved thread
 waits ~90%.
+
+Whether drawing ahead pays depends on the machine: where the step's parallel regions leave cores
+idle it hides the drawing (a 16-core host, session 34: 1.39x the rays/s of drawing in turn), where
+they do not, the drawing thread slows them more than it saves (the 2-core Zen 5, session 40: 0.89x;
+the step's forward took 6.4 instead of 3.2 ms beside it). So by default (``overlap=None``) the
+loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps, windows of
+`TRIAL_WINDOW` steps drawn in turn and drawn ahead alternate, `TRIAL_ROUNDS` of each, and the
+faster is kept for the rest of the run. The batches are the same either way, so the choice
+changes the speed alone.
 """
 
 from __future__ import annotations
 
 import os
+import statistics
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -36,17 +46,50 @@ IDLE_PRIORITY = hasattr(os, "SCHED_IDLE")  # Linux; elsewhere the thread keeps i
 STARVED_SHARE = 0.1  # waiting for batches over this share of the loop's time ...
 STARVED_WINDOWS = 3  # ... in this many windows in a row: give up idle priority
 _WINDOW = 20  # steps per check of that share
+TRIAL_START = 10  # steps drawn ahead before the trial (compilation, thread pools, caches)
+TRIAL_WINDOW = 10  # steps per trial window; its first step, a change of mode, is not timed
+TRIAL_ROUNDS = 3  # windows of each mode
+
+
+class _OverlapTrial:
+    """Which steps draw ahead while the trial runs, and the faster mode once it is over: each
+    step's wall time (from one call of `BatchSource.next` to the next) kept per mode, windows
+    drawn in turn first; the mode of the lower median wins (a median: a step the machine
+    interrupts does not decide)."""
+
+    def __init__(self):
+        self.steps = 0  # calls of `mode` so far
+        self.seconds: dict[bool, list[float]] = {False: [], True: []}  # the timed steps of each mode
+        self.last: tuple[float, bool] | None = None  # the previous step's start and mode, where it is timed
+        self.choice: bool | None = None  # drawing ahead was faster; None while the trial runs
+
+    def mode(self, now: float) -> bool:
+        """Whether the step that starts at ``now`` (`time.perf_counter`) draws the next batch ahead."""
+        if self.choice is not None:
+            return self.choice
+        if self.last is not None:
+            self.seconds[self.last[1]].append(now - self.last[0])
+        k, self.steps = self.steps - TRIAL_START, self.steps + 1
+        if k >= 2 * TRIAL_ROUNDS * TRIAL_WINDOW:
+            self.choice = statistics.median(self.seconds[True]) < statistics.median(self.seconds[False])
+            return self.choice
+        ahead = k < 0 or (k // TRIAL_WINDOW) % 2 == 1
+        self.last = (now, ahead) if k >= 0 and k % TRIAL_WINDOW > 0 else None  # (a window's first step changes mode)
+        return ahead
 
 
 class BatchSource:
     """``next(ahead)`` returns the next batch of ``batch_size`` rays from ``sampler`` and what
     ``prepare`` made of its rays (None without ``prepare``) as ``(batch, prepared)``; with
-    ``ahead=True`` it also starts drawing the one after it on a background thread."""
+    ``ahead=True`` it may also start drawing the one after it on a background thread: always with
+    ``overlap=True``, never with False, and with None (the default) as the trial of drawing in
+    turn against drawing ahead decides (module docstring; `draws_ahead` tells its choice)."""
 
-    def __init__(self, sampler, batch_size: int, *, overlap: bool = True, prepare: Callable | None = None,
+    def __init__(self, sampler, batch_size: int, *, overlap: bool | None = None, prepare: Callable | None = None,
                  idle_priority: bool | None = None):
         self.sampler, self.batch_size, self.prepare = sampler, batch_size, prepare
-        self.overlap = overlap and bool(getattr(sampler, "model_independent", False))
+        self.overlap = overlap is not False and bool(getattr(sampler, "model_independent", False))
+        self._trial = _OverlapTrial() if self.overlap and overlap is None else None
         self.idle_priority = IDLE_PRIORITY if idle_priority is None else idle_priority and IDLE_PRIORITY
         self._executor: ThreadPoolExecutor | None = None
         self._pending: Future | None = None
@@ -54,14 +97,24 @@ class BatchSource:
         self._waited, self._steps = 0.0, 0
         self._starved_windows = 0  # windows in a row over STARVED_SHARE
 
+    @property
+    def draws_ahead(self) -> bool | None:
+        """Whether batches are drawn ahead (None while the trial has not decided)."""
+        if self._trial is not None:
+            return self._trial.choice
+        return self.overlap
+
     def next(self, ahead: bool):
+        in_turn = self._trial is not None and not self._trial.mode(time.perf_counter())
         if self._pending is not None:
             start = time.perf_counter()
             drawn, self._pending = self._pending.result(), None  # re-raises the thread's exception here
             self._count_wait(time.perf_counter() - start)
         else:
             drawn = self._draw()
-        if ahead and self.overlap:
+        if in_turn:
+            self._stop_thread()
+        elif ahead and self.overlap:
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(1, thread_name_prefix="neuralrt-batches",
                                                     initializer=_lower_priority if self.idle_priority else None)
@@ -93,6 +146,11 @@ class BatchSource:
         if self._pending is not None:
             self._pending.exception()  # wait; an error of a batch nobody will use is dropped
             self._pending = None
+        self._stop_thread()
+
+    def _stop_thread(self) -> None:
+        """Ends the drawing thread (nothing is pending), and with it the OpenMP threads its parallel
+        regions started (module docstring)."""
         if self._executor is not None:
             self._executor.shutdown(wait=True)
             self._executor = None

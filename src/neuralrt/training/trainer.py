@@ -46,6 +46,7 @@ class TrainingRecord:
     compute_precision: str = ""  # arithmetic of the hidden layers in training: "bf16" or "fp32"
     device: str = ""  # where it trained, e.g. "cpu", "cuda"
     resumed_from: int | None = None
+    batches_drawn_ahead: bool | None = None  # as `BatchSource.draws_ahead` at the end (None: trial unfinished)
     window: int = 50
     extra: dict = field(default_factory=dict)  # method-specific: "<count>_fraction" over the last `window` steps
 
@@ -130,7 +131,7 @@ def train_model(
     description: str = "train",
     on_step: Callable[[int, torch.optim.Optimizer], None] | None = None,
     record: TrainingRecord | None = None,
-    overlap_sampling: bool = True,
+    overlap_sampling: bool | None = None,
 ) -> TrainingRecord:
     """Optimise ``model`` for ``steps`` batches from ``sampler``; returns the `TrainingRecord`.
 
@@ -139,8 +140,9 @@ def train_model(
     e.g. mesh hash and config). The learning rate decays exponentially to ``lr_decay_final``
     times its start over the run (1 = constant). ``on_step(step, optimizer)`` runs after each
     optimizer step; ``record`` starts the record (e.g. with the precision and device filled in).
-    With ``overlap_sampling``, a sampler that declares ``model_independent = True`` draws batch
-    k+1 on a background thread while step k runs (same batches, same order; `BatchSource`).
+    A sampler that declares ``model_independent = True`` may draw batch k+1 on a background thread
+    while step k runs (same batches, same order; `BatchSource`): always with ``overlap_sampling=True``,
+    never with False, and with None where the run's own first steps measure it faster.
     """
     from tqdm.auto import tqdm
 
@@ -194,6 +196,7 @@ def train_model(
     finally:
         batches.close()
         bar.close()
+    record.batches_drawn_ahead = batches.draws_ahead
     if steps > start:  # a run resumed at (or past) its last step trained nothing: keep the checkpoint's figures
         _finish(record, running, steps)
     if ckpt is not None:
