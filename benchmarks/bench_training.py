@@ -35,7 +35,8 @@ except in ``overlap`` and ``overlap_trial``), by ``--pair``:
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
 - ``draw_threads``: the batch drawing thread's numba passes and Embree chunks on all of numba's
   threads against on ``--draw-threads`` (1; its own count: `numba.set_num_threads` is per calling
-  thread);
+  thread; with 1, torch's OpenMP regions on that thread run on it alone too, so it starts no
+  OpenMP team of its own);
 - ``loss_chunks``: the loss passes' rows in chunks of `lsnif_loss.CHUNK_ROWS` (1,024) against
   chunks of 256 (a 2^13-ray batch's ~5,400 network rays make 6 chunks of 1,024, fewer than 16
   threads).
@@ -56,6 +57,7 @@ Writes benchmarks/results/<--name>.json (training_cpu.json holds the earlier pai
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import statistics
 import sys
@@ -143,6 +145,18 @@ def _thread_pool_per_policy(purpose: str, workers: int):
 def _lower_priority_and_draw_threads() -> None:
     _priority_default()
     numba.set_num_threads(min(DRAW_THREADS, numba.config.NUMBA_NUM_THREADS))
+    if DRAW_THREADS == 1:
+        _torch_openmp_on_one_thread()
+
+
+def _torch_openmp_on_one_thread() -> None:
+    """torch's OpenMP parallel regions on the calling thread to one thread (the thread count is an
+    OpenMP setting of each thread; torch's wheel bundles its own libgomp): so the drawing thread
+    starts no OpenMP team of its own, which would make libgomp throttle every thread's spinning
+    (more OpenMP threads than cores; docs/lsnif.md, session 40)."""
+    lib = Path(torch.__file__).parent / "lib" / "libgomp.so.1"
+    if lib.exists():
+        ctypes.CDLL(str(lib)).omp_set_num_threads(1)
 
 
 def _on_one_thread(fn):

@@ -21,8 +21,8 @@
 #       (SCALING_ARGS replaces those last five's flags; session 34's inference-only A/Bs: SCALING_ARGS="--skip-training --repeats 8
 #       --switches chunk_size=1048576 FIRST_LAYER_IN_PASS=True,HIDDEN_LAYERS_IN_DECODE=True"); JSON SCALING_NAME.
 #   bash benchmarks/run_gpu.sh pairs     # <= PAIR_S (100) s per pair: benchmarks/bench_training.py pairs on all the host's
-#       cores (PAIRS, words of pair[:draw threads], default "loss_chunks draw_threads:4"), procedural statue(2),
-#       hq, 200 steps x 5; JSON training_host_<pair>.
+#       cores (PAIRS, words of pair[:draw threads], default "overlap_trial draw_threads:1"), procedural statue(2),
+#       hq, PAIR_STEPS steps x 5 (default 200; 600 for overlap_trial, whose trial takes 70); JSON training_host_<pair>.
 #   bash benchmarks/run_gpu.sh devices   # ~350 s: benchmarks/bench_devices.py (BENCH_SECONDS, default 330)
 #   bash benchmarks/run_gpu.sh nif       # <= 560 s: issue 10's GPU rows, NIF vs OptiX shadow rays (bench_nif.py --device cuda)
 #       on statue(5) (4.8M triangles) and instances:6 (12 instances of statue(5) sharing one NIF object, 58M
@@ -109,11 +109,12 @@ scaling)
 pairs)
     lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
     # shellcheck disable=SC2086  # PAIRS: words on purpose
-    for item in ${PAIRS:-loss_chunks draw_threads:4}; do
+    for item in ${PAIRS:-overlap_trial draw_threads:1}; do
         pair=${item%%:*} draw=${item#*:}; [ "$draw" = "$item" ] && draw=1
+        steps=${PAIR_STEPS:-200}; [ "$pair" = overlap_trial ] && steps=${PAIR_STEPS:-600}
         name="training_host_${item/:/_}"
         timeout "${PAIR_S:-100}" python3 benchmarks/bench_training.py --mesh procedural:statue:2 --pair "$pair" --draw-threads "$draw" \
-            --steps 200 --repeats 5 --name "$name" 2>&1 | tee -a "$OUT/pairs.log"
+            --steps "$steps" --repeats 5 --name "$name" 2>&1 | tee -a "$OUT/pairs.log"
         cp "benchmarks/results/$name.json" "$OUT/" 2>/dev/null || echo "no $name.json (cut short?)" | tee -a "$OUT/pairs.log"
     done
     ;;
