@@ -29,7 +29,10 @@ the step's forward took 6.4 instead of 3.2 ms beside it). So by default (``overl
 loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps, windows of
 `TRIAL_WINDOW` steps drawn in turn and drawn ahead alternate, `TRIAL_ROUNDS` of each, and the
 faster is kept for the rest of the run. The batches are the same either way, so the choice
-changes the speed alone.
+changes the speed alone. Drawing in turn ends the drawing thread: the OpenMP team its first
+parallel region started would stay, and with more OpenMP threads than cores libgomp spins ~100
+iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel region of the step
+would wake sleeping threads (steps 1.15x slower on 2 cores; docs/lsnif.md, session 40).
 """
 
 from __future__ import annotations
