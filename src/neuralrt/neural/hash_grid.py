@@ -94,27 +94,40 @@ def _cell(x, y, z, res):
 _F32X4 = ir.VectorType(ir.FloatType(), 4)
 
 
+def _rows4_typing(table_flat, rows, weights, at, out_flat, col) -> bool:
+    """`read_rows4` / `add_rows4`'s argument types: flat float32 table (or gradient), int64 rows,
+    float32 weights, flat float32 features, integer offsets."""
+    return (contiguous_1d(table_flat, types.float32) and contiguous_1d(rows, types.int64) and contiguous_1d(weights, types.float32)
+            and contiguous_1d(out_flat, types.float32) and isinstance(at, types.Integer) and isinstance(col, types.Integer))  # fmt: skip
+
+
+def _corner_rows4(context, builder, sig, args):
+    """Per corner c of a point, in corner order (IR): its row's first float in a 4-feature table
+    (``rows[at + c] * 4``) and its weight (``weights[at + c]``); ``args`` as `read_rows4`'s."""
+    at_value = context.cast(builder, args[3], sig.args[3], types.intp)
+    four = ir.Constant(ir.IntType(64), 4)
+    for c in range(8):
+        i = builder.add(at_value, ir.Constant(at_value.type, c))
+        row = builder.load(element_pointer(context, builder, sig.args[1], args[1], i))
+        weight = builder.load(element_pointer(context, builder, sig.args[2], args[2], i))
+        yield builder.mul(row, four), weight
+
+
 @intrinsic
 def read_rows4(typingctx, table_flat, rows, weights, at, out_flat, col):
     """``out_flat[col : col + 4] = sum_c weights[at + c] * table[rows[at + c]]`` over a point's 8
     corners, for a table of 4 features (``table_flat`` its flat float32 data): one vector load per
     row; per lane products, then sums from 0 in corner order (the scalar loop's operations and
     bits; 0.75x its time, measured on the forward kernel)."""
-    if not (contiguous_1d(table_flat, types.float32) and contiguous_1d(rows, types.int64) and contiguous_1d(weights, types.float32)
-            and contiguous_1d(out_flat, types.float32) and isinstance(at, types.Integer) and isinstance(col, types.Integer)):  # fmt: skip
+    if not _rows4_typing(table_flat, rows, weights, at, out_flat, col):
         return None
 
     def codegen(context, builder, sig, args):
-        table, rows_array, weights_array, _, out, _ = args
-        at_value = context.cast(builder, args[3], sig.args[3], types.intp)
+        table, out = args[0], args[4]
         col_value = context.cast(builder, args[5], sig.args[5], types.intp)
         acc = ir.Constant(_F32X4, [0.0] * 4)
-        four = ir.Constant(ir.IntType(64), 4)
-        for c in range(8):
-            i = builder.add(at_value, ir.Constant(at_value.type, c))
-            row = builder.load(element_pointer(context, builder, sig.args[1], rows_array, i))
-            weight = builder.load(element_pointer(context, builder, sig.args[2], weights_array, i))
-            values = builder.load(vector_pointer(context, builder, sig.args[0], table, builder.mul(row, four), _F32X4), align=4)
+        for start, weight in _corner_rows4(context, builder, sig, args):
+            values = builder.load(vector_pointer(context, builder, sig.args[0], table, start, _F32X4), align=4)
             acc = builder.fadd(acc, builder.fmul(broadcast(builder, weight, _F32X4), values))
         builder.store(acc, vector_pointer(context, builder, sig.args[4], out, col_value, _F32X4), align=4)
         return context.get_dummy_value()
@@ -128,21 +141,15 @@ def add_rows4(typingctx, grad_flat, rows, weights, at, grad_out_flat, col):
     corners in corner order, for a table of 4 features (``grad_flat`` its flat float32 data): one
     vector load, multiply, add and store per row (the scalar loop's operations in its order, so
     the same bits; a row two corners share gets both adds, one after the other)."""
-    if not (contiguous_1d(grad_flat, types.float32) and contiguous_1d(rows, types.int64) and contiguous_1d(weights, types.float32)
-            and contiguous_1d(grad_out_flat, types.float32) and isinstance(at, types.Integer) and isinstance(col, types.Integer)):  # fmt: skip
+    if not _rows4_typing(grad_flat, rows, weights, at, grad_out_flat, col):
         return None
 
     def codegen(context, builder, sig, args):
-        grad, rows_array, weights_array, _, grad_out, _ = args
-        at_value = context.cast(builder, args[3], sig.args[3], types.intp)
+        grad, grad_out = args[0], args[4]
         col_value = context.cast(builder, args[5], sig.args[5], types.intp)
         upstream = builder.load(vector_pointer(context, builder, sig.args[4], grad_out, col_value, _F32X4), align=4)
-        four = ir.Constant(ir.IntType(64), 4)
-        for c in range(8):
-            i = builder.add(at_value, ir.Constant(at_value.type, c))
-            row = builder.load(element_pointer(context, builder, sig.args[1], rows_array, i))
-            weight = builder.load(element_pointer(context, builder, sig.args[2], weights_array, i))
-            target = vector_pointer(context, builder, sig.args[0], grad, builder.mul(row, four), _F32X4)
+        for start, weight in _corner_rows4(context, builder, sig, args):
+            target = vector_pointer(context, builder, sig.args[0], grad, start, _F32X4)
             total = builder.fadd(builder.load(target, align=4), builder.fmul(broadcast(builder, weight, _F32X4), upstream))
             builder.store(total, target, align=4)
         return context.get_dummy_value()
