@@ -202,7 +202,7 @@ expand16_f32 = _expand(types.float32, _F32X16, f32x16, "llvm.masked.expandload.v
 expand16_i32 = _expand(types.int32, _I32X16, i32x16, "llvm.masked.expandload.v16i32", m16, _M16)
 
 
-compress16_f32 = _compress_store(types.float32, f32x16, _F32X16, "llvm.masked.compressstore.v16f32", lambda b, v: v, m16, _M16)
-compress16_i32 = _compress_store(types.int32, i32x16, _I32X16, "llvm.masked.compressstore.v16i32", lambda b, v: v, m16, _M16)
+compress16_f32 = _compress_store(types.float32, f32x16, _F32X16, "llvm.experimental.vector.compress.v16f32", lambda b, v: v, m16, _M16)
+compress16_i32 = _compress_store(types.int32, i32x16, _I32X16, "llvm.experimental.vector.compress.v16i32", lambda b, v: v, m16, _M16)
 # int32 outputs from `neuralrt.simd`'s 8-lane int64 vectors (values that fit int32)
-compress_store_i32 = _compress_store(types.int32, i64x8, _I32X8, "llvm.masked.compressstore.v8i32", lambda b, v: b.trunc(v, _I32X8))
+compress_store_i32 = _compress_store(types.int32, i64x8, _I32X8, "llvm.experimental.vector.compress.v8i32", lambda b, v: b.trunc(v, _I32X8))
