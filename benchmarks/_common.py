@@ -15,13 +15,21 @@ _PACKAGES = ("neuralrt", "numpy", "torch", "numba", "embreex", "trimesh")
 
 
 def machine_info() -> dict:
-    """CPU, core count, OS, Python and key package versions, and the UTC date."""
+    """CPU (its name, and LLVM's name for its microarchitecture, what numba compiles for: a
+    virtual machine may name both an AMD Zen 4 and a Zen 5 "AMD EPYC"), core count, OS, Python and
+    key package versions, and the UTC date."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
+    try:
+        import llvmlite.binding as llvm
+
+        cpu_arch = llvm.get_host_cpu_name()
+    except (ImportError, RuntimeError):
+        cpu_arch = None
     versions = {}
     for name in _PACKAGES:
         try:
@@ -30,6 +38,7 @@ def machine_info() -> dict:
             versions[name] = None
     return {
         "cpu": cpu,
+        "cpu_arch": cpu_arch,
         "cores": os.cpu_count(),
         "os": platform.platform(),
         "python": platform.python_version(),
