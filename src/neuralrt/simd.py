@@ -457,9 +457,9 @@ expand_i64 = _expand(types.int64, _I64X8, i64x8, "llvm.masked.expandload.v8i64")
 def _compress_store(dtype, vector, store_type, name, convert, mask=m8, mask_type=_M8):
     """A compress store as LLVM's generic register compress, then a store masked to the first
     ``popcount(mask)`` lanes, rather than ``llvm.masked.compressstore``: AVX-512's memory form
-    (``vpcompressd m, k, zmm``) is microcoded on AMD Zen 4, ~27 ns a store against ~2 ns for the
-    register form and a masked store (measured on a 2-core Zen 4, session 41; the memory form took
-    ~3 cycles on Zen 5, session 37). ``name`` is the compress's LLVM intrinsic."""
+    (``vpcompressd m, k, zmm``) is microcoded on AMD Zen 4: 22 ns a store against 1.5 ns for the
+    register form and a masked store (`benchmarks/bench_simd_stores.py`, session 41; the memory
+    form took ~3 cycles on Zen 5, session 37). ``name`` is the compress's LLVM intrinsic."""
     lanes = store_type.count
     bits_type = ir.IntType(lanes)
     suffix = name.rsplit(".", 1)[1]  # the vector type's, e.g. v16f32
