@@ -11,7 +11,8 @@
 #       the contract file's cuda tests (CONTRACT_S, 240), the N-BVH Triton tests compiled for the GPU (TESTS_S). Seen
 #       on a fresh H100 machine (session 23): the first 26 passed in 57 s, the Triton files' 11 in 49 s; the
 #       contract file trains its models on the CPU and compiles each method's kernels first: 5 of its 21 in 95 s.
-#   bash benchmarks/run_gpu.sh scaling   # <= SCALING_S (330) s: issue 11's 16-core figures, on the host CPU (no GPU):
+#   bash benchmarks/run_gpu.sh scaling   # <= SCALING_S (330) + 60 s: issue 11's 16-core figures, on the host CPU (no GPU):
+#       first benchmarks/bench_simd_stores.py (ns per compress store, expand load, gather, scatter in each form), then
 #       benchmarks/bench_scaling.py at SCALING_THREADS (2 16 8 4; the 2-thread process is the baseline, each
 #       process's row written as soon as it ends), training also at 2^15- and 2^17-ray batches, ms per step in
 #       each stage at every batch size, the encoder backward per table-gradient scatter, and inference also
@@ -98,6 +99,9 @@ devices)
     ;;
 scaling)
     lscpu | grep -E "Model name|^CPU\(s\)|Thread|NUMA node\(s\)" | tee "$OUT/cpu.txt"
+    # the host's cost of each form of the SIMD stores and loads the kernels use (a microcoded one halved LSNIF on Zen 4)
+    timeout 60 python3 benchmarks/bench_simd_stores.py --name simd_stores_host 2>&1 | tee -a "$OUT/cpu.txt"
+    cp benchmarks/results/simd_stores_host.json "$OUT/" 2>/dev/null || true
     name=${SCALING_NAME:-scaling_cpu_16}
     # shellcheck disable=SC2086  # SCALING_THREADS, SCALING_ARGS: words on purpose
     timeout "${SCALING_S:-330}" python3 benchmarks/bench_scaling.py --threads ${SCALING_THREADS:-2 16 8 4} --steps 40 --repeats 4 \
