@@ -30,7 +30,7 @@ from numba.extending import intrinsic
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table, write_results  # noqa: E402
 
-from neuralrt.simd import HAS_AVX512, _llvm_function, element_pointer  # noqa: E402
+from neuralrt.simd import HAS_AVX512, _llvm_function, element_pointer, prefix_mask  # noqa: E402
 from neuralrt.simd16 import (  # noqa: E402
     compress16_f32, expand16_f32, f32x16, gather16_i32, lane_index16, load16, load16_i32, m16, popcount16, scatter16_i32, splat_f32, splat_i32,
     store16,
@@ -60,11 +60,8 @@ def _expand_register_form(typingctx, array, start, mask, passthru):
 
     def codegen(context, builder, sig, args):
         pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
-        bits = builder.bitcast(args[2], ir.IntType(16))
-        count = builder.zext(builder.call(_llvm_function(builder, "llvm.ctpop.i16", ir.IntType(16), [ir.IntType(16)]), [bits]), _I32)
-        prefix = builder.bitcast(builder.trunc(builder.sub(builder.shl(_I32(1), count), _I32(1)), ir.IntType(16)), _M16)
         load = _llvm_function(builder, "llvm.masked.load.v16f32.p0", _F32X16, [pointer.type, _I32, _M16, _F32X16])
-        packed = builder.call(load, [pointer, _I32(4), prefix, ir.Constant(_F32X16, ir.Undefined)])
+        packed = builder.call(load, [pointer, _I32(4), prefix_mask(builder, args[2]), ir.Constant(_F32X16, ir.Undefined)])
         expand = _llvm_function(builder, "llvm.x86.avx512.mask.expand.v16f32", _F32X16, [_F32X16, _F32X16, _M16])
         return builder.call(expand, [packed, args[3], args[2]])
 

@@ -24,7 +24,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
 __all__ = ["HAS_AVX512", "numba_targets", "broadcast", "contiguous_1d", "element_pointer", "vector_pointer", "vector_load", "vector_store", "prefetch",
-           "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8",
+           "prefix_mask", "f64x8", "i64x8", "m8", "splat_f64", "splat_i64", "splat_m8", "lane_index", "select", "vmin", "vmax", "bits8", "popcount8",
            "to_f64", "floor_i64", "load_f64", "gather_f64", "gather_i32", "scatter_i64", "expand_f64", "expand_i64", "compress_store_f32",
            "compress_store_f64", "compress_store_i64", "prefetch_row"]  # fmt: skip
 
@@ -454,14 +454,21 @@ expand_f64 = _expand(types.float64, _F64X8, f64x8, "llvm.masked.expandload.v8f64
 expand_i64 = _expand(types.int64, _I64X8, i64x8, "llvm.masked.expandload.v8i64")
 
 
+def prefix_mask(builder, mask):
+    """The mask of the first ``popcount(mask)`` lanes of ``mask`` (an ``<N x i1>`` value) (IR)."""
+    lanes = mask.type.count
+    bits_type, wide = ir.IntType(lanes), ir.IntType(2 * lanes)  # (1 << count) - 1 with count == lanes in range
+    count = builder.call(_llvm_function(builder, f"llvm.ctpop.i{lanes}", bits_type, [bits_type]), [builder.bitcast(mask, bits_type)])
+    prefix = builder.sub(builder.shl(wide(1), builder.zext(count, wide)), wide(1))
+    return builder.bitcast(builder.trunc(prefix, bits_type), mask.type)
+
+
 def _compress_store(dtype, vector, store_type, name, convert, mask=m8, mask_type=_M8):
     """A compress store as LLVM's generic register compress, then a store masked to the first
     ``popcount(mask)`` lanes, rather than ``llvm.masked.compressstore``: AVX-512's memory form
     (``vpcompressd m, k, zmm``) is microcoded on AMD Zen 4: 22 ns a store against 1.5 ns for the
     register form and a masked store (`benchmarks/bench_simd_stores.py`, session 41; the memory
     form took ~3 cycles on Zen 5, session 37). ``name`` is the compress's LLVM intrinsic."""
-    lanes = store_type.count
-    bits_type = ir.IntType(lanes)
     suffix = name.rsplit(".", 1)[1]  # the vector type's, e.g. v16f32
 
     @intrinsic
@@ -473,11 +480,8 @@ def _compress_store(dtype, vector, store_type, name, convert, mask=m8, mask_type
             pointer = element_pointer(context, builder, sig.args[0], args[0], args[1])
             compress = _llvm_function(builder, name, store_type, [store_type, mask_type, store_type])
             packed = builder.call(compress, [convert(builder, args[2]), args[3], ir.Constant(store_type, ir.Undefined)])
-            count = builder.call(_llvm_function(builder, f"llvm.ctpop.i{lanes}", bits_type, [bits_type]), [builder.bitcast(args[3], bits_type)])
-            wide = ir.IntType(2 * lanes)  # (1 << count) - 1 with count == lanes in range
-            prefix = builder.sub(builder.shl(wide(1), builder.zext(count, wide)), wide(1))
             store = _llvm_function(builder, f"llvm.masked.store.{suffix}.p0", ir.VoidType(), [store_type, pointer.type, _I32, mask_type])
-            builder.call(store, [packed, pointer, ir.Constant(_I32, dtype.bitwidth // 8), builder.bitcast(builder.trunc(prefix, bits_type), mask_type)])
+            builder.call(store, [packed, pointer, ir.Constant(_I32, dtype.bitwidth // 8), prefix_mask(builder, args[3])])
             return context.get_dummy_value()
 
         return types.void(array, types.intp, vector, mask), codegen
