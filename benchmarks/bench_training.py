@@ -2,7 +2,7 @@
 alternating in one run.
 
     python benchmarks/bench_training.py [--mesh PATH|procedural:NAME:DETAIL] [--steps 60] [--repeats 3] [--preset hq]
-        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|overlap_trial|loss_threads|scatter|draw_threads|loss_chunks|draw_pool]
+        [--pair step|mlp|previous|saved_rows|rows|saved_rows_and_index|prepare_ahead|row_bucket|draw_priority|overlap|overlap_trial|loss_threads|scatter|draw_threads|loss_chunks|draw_pool|float32_walk]
         [--draw-threads 1] [--name training_cpu_step]
 
 Configurations (both draw the next batch on a background thread, the default before session 40,
@@ -43,6 +43,8 @@ except in ``overlap`` and ``overlap_trial``), by ``--pair``:
 - ``draw_pool``: the drawing thread's Embree chunks on the pool the loop's thread started with the
   first batch (normal priority) against on a pool of its own, whose threads it starts (so they run
   at its idle priority: a thread starts with its starter's scheduling policy);
+- ``float32_walk``: the batches' voxel walk in float64 (`featurize_rays_numba`) against the
+  16-lane float32 walk of the fused inference pass (`lsnif_features_simd`; ``LSNIFModel.float32_walk``);
 - ``row_bucket``: the bf16 GEMMs on the batch's own row count (a new oneDNN kernel nearly every
   step) against rows padded to a multiple of 256 (`mlp.ROW_BUCKET`).
 The other switches are today's in both.
@@ -126,6 +128,8 @@ def _configure(model: LSNIFModel, config: str) -> None:
         model.encoder.backward_scatter = "row_ranges" if before else "buckets"
     elif PAIR == "mlp":
         model.network.low_precision_training = "autocast" if before else "function"
+    elif PAIR == "float32_walk":
+        model.float32_walk = not before
     else:
         lsnif_module.training_loss = training_loss_torch if before else training_loss
         model.encoder.low_precision_output = not before
@@ -205,7 +209,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--name", default="training_cpu_step")
-    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "overlap_trial", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool"), default="step", help="which before/after pair (module docstring)")
+    ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "overlap_trial", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool", "float32_walk"), default="step", help="which before/after pair (module docstring)")
     ap.add_argument("--draw-threads", type=int, default=1, help="the drawing thread's numba threads in draw_threads' after")
     args = ap.parse_args()
     global PAIR, DRAW_THREADS

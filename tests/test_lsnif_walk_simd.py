@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from neuralrt.methods.lsnif_features import featurize_rays_numba, local_distance
+from neuralrt.methods.lsnif_features import PADDING, featurize_rays_numba, local_distance
+from neuralrt.methods.lsnif_features_simd import featurize_rays_simd
 from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, occupancy_bits, walk_group, walk_scratch
 
 GROUP = 32
 
 
 @numba.njit(cache=True)
-def _walk_all(origins, directions, occ, occ_bits, planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
-              local=None):  # fmt: skip
+def _walk_all(origins, directions, occ, occ_bits, planes, max_points, origin_point, share, points, axes, counts, truncated,
+              t_enter, t_exit, local=None):  # fmt: skip
     """Every ray through `walk_group`, its points (and their local distances, ``local [N, H]``)
     put back in ray order (``points [N, H, 3]``)."""
     queue, queue_i, rays8, lane_terms, redo = walk_scratch(GROUP)
@@ -31,13 +32,16 @@ def _walk_all(origins, directions, occ, occ_bits, planes, max_points, origin_poi
     ray = np.empty(GROUP * max_points, np.int32)
     slot = np.empty(GROUP * max_points, np.int32)
     group_counts = np.empty(GROUP, np.int64)
+    group_truncated = np.empty(GROUP, np.int32)
     n_rays = origins.shape[0]
     for first in range(0, n_rays, GROUP):
         n = min(GROUP, n_rays - first)
         e = walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i, rays8,
-                       lane_terms, redo, pts, pts_axes, px, py, pz, distance, code, ray, slot, group_counts, t_enter, t_exit)  # fmt: skip
+                       lane_terms, redo, pts, pts_axes, px, py, pz, distance, code, ray, slot, group_counts, group_truncated, t_enter,
+                       t_exit)  # fmt: skip
         for g in range(n):
             counts[first + g] = group_counts[g]
+            truncated[first + g] = group_truncated[g]
         for i in range(e):
             r, h = first + ray[i], slot[i]
             points[r, h, 0], points[r, h, 1], points[r, h, 2] = px[i], py[i], pz[i]
@@ -86,10 +90,13 @@ def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_
     points = np.zeros((n, max_points, 3), np.float32)
     axes = np.full((n, max_points), -1, np.int64)
     counts = np.full(n, -1, np.int64)
+    truncated = np.full(n, -1, np.int32)
     t_enter, t_exit = np.full(n, 7, np.float32), np.full(n, 7, np.float32)
     planes = np.arange(res + 1) / res
-    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit)
+    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, truncated, t_enter,
+              t_exit)  # fmt: skip
     assert np.array_equal(counts, ref.count.numpy())
+    assert np.array_equal(truncated, ref.truncated.numpy().astype(np.int32))
     assert (counts == max_points).sum() > 0 and (counts == 0).sum() > 0  # truncated rays and misses both occur
     assert np.array_equal(t_enter, ref.t_enter.numpy()) and np.array_equal(t_exit, ref.t_exit.numpy())
     valid = np.arange(max_points)[None, :] < counts[:, None]
@@ -104,8 +111,8 @@ def test_simd_walk_makes_walk_rays_decisions_and_points(res, max_points, origin_
     assert (points != ref_points)[off].any()  # (float32 arithmetic: some differ)
     # The lanes' local distances: `local_distance`'s float32 operations on the walk's points, bit for bit
     local = np.full((n, max_points), np.nan, np.float32)
-    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, t_enter, t_exit,
-              local)  # fmt: skip
+    _walk_all(o, d, occ, occupancy_bits(occ), planes, max_points, origin_point, share, points, axes, counts, truncated, t_enter,
+              t_exit, local)  # fmt: skip
     expected = _local_distances(points, counts, o, d, t_enter, t_exit)
     assert np.array_equal(local[valid].view(np.int32), expected[valid].view(np.int32))
 
@@ -127,7 +134,8 @@ def _walked_again(origins, directions, occ, occ_bits, planes, max_points):
         n = min(GROUP, origins.shape[0] - first)
         queued, listed = _start_group(origins, directions, first, n, occ.shape[0], occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit)
         _, total = _walk_lanes(queue, queue_i, queued, occ_bits, occ.shape[0], max_points, True, True, redo, listed,
-                               lane_terms, px, px.copy(), px.copy(), px.copy(), code, code.copy(), code.copy(), counts)  # fmt: skip
+                               lane_terms, px, px.copy(), px.copy(), px.copy(), code, code.copy(), code.copy(), counts,
+                               np.empty(GROUP, np.int32))  # fmt: skip
         at_start += listed
         from_lanes += total - listed
     return at_start, from_lanes
@@ -162,7 +170,29 @@ def test_occupancy_bits_hold_each_cell_where_the_walk_reads_it(res):
     n = o.shape[0]
     points, axes = np.zeros((n, 4, 3), np.float32), np.full((n, 4), -1, np.int64)
     counts, t_enter, t_exit = np.full(n, -1, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
-    _walk_all(o, d, occ, bits, np.arange(res + 1) / res, 4, True, True, points, axes, counts, t_enter, t_exit)
+    _walk_all(o, d, occ, bits, np.arange(res + 1) / res, 4, True, True, points, axes, counts, np.empty(n, np.int32), t_enter, t_exit)
     assert np.array_equal(counts, ref.count.numpy()) and counts.max() > 0
     valid = np.arange(4)[None, :] < counts[:, None]
     assert np.array_equal(axes[valid], ref.face_axis.numpy()[valid].astype(np.int64))
+
+
+@pytest.mark.parametrize("res,max_points,origin_point,share", [(16, 1, True, True), (32, 18, False, True), (32, 10, True, False)])
+def test_featurize_rays_simd_is_featurize_rays_to_float32_rounding(res, max_points, origin_point, share):
+    """`featurize_rays_simd` gives `featurize_rays_numba`'s features: counts, truncation, intervals, face
+    codes and padding rows bit for bit, the points to the walk's float32 bound."""
+    o, d = _edge_rays(6000, seed=res + max_points)
+    occ = np.random.default_rng(2).random((res, res, res)) < 0.4
+    kw = dict(origin_point=origin_point, share_boundary_points=share)
+    ref = featurize_rays_numba(torch.from_numpy(o), torch.from_numpy(d), occ, max_points, **kw)
+    got = featurize_rays_simd(torch.from_numpy(o), torch.from_numpy(d), torch.from_numpy(occ), max_points, **kw)
+    for name in ("count", "truncated", "face_axis", "t_enter", "t_exit"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
+    assert got.truncated.any() and (got.count == 0).any()
+    padding = (got.face_axis == PADDING)[:, :, None].expand_as(got.points)
+    assert torch.equal(got.points[padding], torch.zeros(int(padding.sum())))
+    bound = 2.0**-21 * (2 + torch.from_numpy(np.abs(o)))[:, None, :]
+    assert ((got.points - ref.points).abs() <= bound)[~padding].all()
+    empty = featurize_rays_simd(torch.zeros(0, 3), torch.zeros(0, 3), occ, max_points)
+    assert len(empty) == 0 and empty.points.shape == (0, max_points, 3)
+    with pytest.raises(ValueError, match="power-of-two"):
+        featurize_rays_simd(torch.from_numpy(o), torch.from_numpy(d), np.ones((12, 12, 12), bool))

@@ -280,6 +280,7 @@ def _fused_kernel(
         axes = np.empty((_GROUP, max_points), np.int8)
         # Two groups in flight: one is walked and its rows found while the other's rows are read
         group_count = np.empty((2, _GROUP), np.int64)
+        group_truncated = np.empty(_GROUP, np.int32)  # (not needed here; `walk_group` writes it)
         # The group's points, one entry each (structure of arrays, so step 2 compiles to SIMD code)
         point_x = np.empty(_GROUP * max_points, np.float32)
         point_y = np.empty(_GROUP * max_points, np.float32)
@@ -345,7 +346,7 @@ def _fused_kernel(
                     if simd_walk:  # sixteen rays at a time, the points unordered
                         e = walk_group(unit_o, unit_d, 0, stop - start, occ, occ_bits, planes, max_points, origin_point, share,
                                        queue, queue_i, rays8, lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local[b],
-                                       point_code[b], point_ray, point_slot, group_count[b], t_enter[start:stop],
+                                       point_code[b], point_ray, point_slot, group_count[b], group_truncated, t_enter[start:stop],
                                        t_exit[start:stop])  # fmt: skip
                         for g in range(stop - start):
                             counts[start + g] = group_count[b, g]

@@ -47,7 +47,7 @@ from ..simd import (
 )  # fmt: skip
 from ..simd16 import (
     bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, load16, popcount16,
-    scatter16_i64, select16, splat_f32, splat_i32, splat_m16, store16, to_f32, vmax16, vmin16,
+    scatter16_i32, scatter16_i64, select16, splat_f32, splat_i32, splat_m16, store16, to_f32, vmax16, vmin16,
 )  # fmt: skip
 from .lsnif_features import ORIGIN_POINT, local_distance, walk_ray
 
@@ -238,11 +238,11 @@ def _store16(point_x, point_y, point_z, point_local, point_code, point_ray, poin
 
 @numba.njit(cache=True)
 def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_point, share, redo, n_redo, lane_terms,
-                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts):  # fmt: skip
+                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, truncated_rays):  # fmt: skip
     """The steps of the queued rays, 16 lanes at a time: writes their points and their local
     distances (`lsnif_features.local_distance`; returns their number and the length of ``redo``,
-    where the rays dropped on an undecided step are appended) and the counts of the rays walked to
-    their end."""
+    where the rays dropped on an undecided step are appended), the counts of the rays walked to
+    their end and a 1 in ``truncated_rays`` for those that had more points than H."""
     columns = queue.shape[0] // _FLOAT_ROWS
     inf = splat_f32(np.inf)
     zero, zero_i, one_i, two_i = splat_f32(0.0), splat_i32(0), splat_i32(1), splat_i32(2)
@@ -348,6 +348,8 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
             count = count + select16(leave, one_i, zero_i)
             last_t = select16(leave, t_next, last_t)
             truncated = full_at_entry | full_at_exit
+            if bits16(truncated) != 0:
+                scatter16_i32(truncated_rays, ray, one_i, truncated)
             ended = ended | truncated
             live = live & ~truncated
         # Step the closest plane's axis; only its plane time and bounds change
@@ -379,7 +381,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
 
 @numba.njit(cache=True)
 def _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
-                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter, t_exit):  # fmt: skip
+                point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, truncated, t_enter, t_exit):  # fmt: skip
     """The rays listed in ``redo`` by `walk_ray`: their points from the lanes dropped from the list,
     `walk_ray`'s appended; returns the new number of points."""
     for k in range(n_redo):
@@ -393,10 +395,11 @@ def _walk_again(origins, directions, first, occ, planes, max_points, origin_poin
     for k in range(n_redo):
         g = redo[k]
         r = first + g
-        count, _, _, _ = walk_ray(np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2]),
-                                  np.float64(directions[r, 0]), np.float64(directions[r, 1]), np.float64(directions[r, 2]),
-                                  occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
+        count, cut, _, _ = walk_ray(np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2]),
+                                    np.float64(directions[r, 0]), np.float64(directions[r, 1]), np.float64(directions[r, 2]),
+                                    occ, planes, max_points, origin_point, share, pts, axes, g)  # fmt: skip
         counts[g] = count
+        truncated[g] = cut
         for h in range(count):
             px, py, pz = pts[g, h, 0], pts[g, h, 1], pts[g, h, 2]
             point_x[kept], point_y[kept], point_z[kept] = px, py, pz
@@ -409,21 +412,24 @@ def _walk_again(origins, directions, first, occ, planes, max_points, origin_poin
 
 @numba.njit(cache=True)
 def walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i, rays8,
-               lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter,
-               t_exit):  # fmt: skip
+               lane_terms, redo, pts, axes, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, truncated,
+               t_enter, t_exit):  # fmt: skip
     """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`) on
     the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_bits``: `occupancy_bits` of it;
-    ``planes``: ``k / V``, float64): ``counts[g]`` for ray ``first + g``, ``t_enter``/``t_exit`` at
-    ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
+    ``planes``: ``k / V``, float64): ``counts[g]`` and ``truncated[g]`` (int32, 1 where the ray had
+    more points than H) for ray ``first + g``, ``t_enter``/``t_exit`` at ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
     order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
     ray ``g`` and slot (the point's index in its ray's list), int32. ``pts``/``axes`` (``[group, H,
     3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
     n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit)
     for g in range(n):
         counts[g] = 0
+        truncated[g] = 0
     e, n_redo = _walk_lanes(queue, queue_i, n_queued, occ_bits, occ.shape[0], max_points, origin_point, share, redo, n_redo,
-                            lane_terms, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts)  # fmt: skip
+                            lane_terms, point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts,
+                            truncated)  # fmt: skip
     if n_redo > 0:
         e = _walk_again(origins, directions, first, occ, planes, max_points, origin_point, share, redo, n_redo, pts, axes, e,
-                        point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, t_enter, t_exit)  # fmt: skip
+                        point_x, point_y, point_z, point_local, point_code, point_ray, point_slot, counts, truncated, t_enter,
+                        t_exit)  # fmt: skip
     return e
