@@ -29,7 +29,7 @@ except in ``overlap`` and ``overlap_trial``), by ``--pair``:
   against drawn ahead on the background thread (``True``);
 - ``overlap_trial``: drawn in turn against the default (``None``: the run's first steps time both
   modes, then it keeps the faster; `prefetch.BatchSource`); use runs far longer than the trial's
-  50 steps;
+  74 steps;
 - ``loss_threads``: the loss pass (`training_loss_numba`) on one thread, as it ran before its row
   chunks went parallel, against on all of numba's threads;
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).

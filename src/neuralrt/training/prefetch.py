@@ -50,8 +50,12 @@ STARVED_SHARE = 0.1  # waiting for batches over this share of the loop's time ..
 STARVED_WINDOWS = 3  # ... in this many windows in a row: give up idle priority
 _WINDOW = 20  # steps per check of that share
 TRIAL_START = 10  # steps drawn ahead before the trial (compilation, thread pools, caches)
-TRIAL_WINDOW = 10  # steps per trial window; its first step, a change of mode, is not timed
-TRIAL_ROUNDS = 3  # windows of each mode
+# Short windows, many rounds: a machine's slow phases last tens of steps, and with windows of 10
+# steps, 3 of each mode, one could fall on one mode's windows alone: on the 2-core Zen 4 (drawing
+# ahead 0.87x the rays/s there) that trial chose drawing ahead in 7 of 16 bunny `hq` runs, windows
+# of 4 steps, 8 of each, in 1 of 16 (docs/lsnif.md, session 42).
+TRIAL_WINDOW = 4  # steps per trial window; its first step, a change of mode, is not timed
+TRIAL_ROUNDS = 8  # windows of each mode
 
 
 class _OverlapTrial:
