@@ -1,5 +1,5 @@
-"""N-BVH's CUDA training-ray sampler (`nbvh_rays_triton`) against the CPU sampler (torch + numba)
-and against the distribution it must draw from. Without a GPU the kernel runs on CPU tensors
+"""N-BVH's CUDA training-ray sampler (`nbvh_rays_triton`) against the CPU sampler (`nbvh_rays_cpu`,
+numba) and against the distribution it must draw from. Without a GPU the kernel runs on CPU tensors
 under Triton's interpreter (TRITON_INTERPRET=1, set before triton is imported), with large blocks
 (the interpreter's cost is per operation). Seeded: every figure below is deterministic; the
 statistical bounds are at the 1e-4 level, so a correct sampler passes them by a wide margin."""
@@ -156,6 +156,24 @@ def test_triton_sampler_draws_the_cpu_samplers_distribution(model, triton_draw):
     # A leaf at p = 0.005 is kept 200x less often than an equally crossed leaf at p = 1: rare in both.
     low = (p_leaf < 0.01) & (shares > 0)
     assert tri_counts[low].sum() < 0.05 * N
+
+
+def test_cpu_sampler_draws_the_kernels_samples(model, kernels):
+    """The numba sampler (`nbvh_rays_cpu`) runs the kernel's algorithm on the same Philox streams: for
+    the same block size, the same leaves, rounds and Morton codes, and the same chords up to the
+    last bits of sin and cos."""
+    from neuralrt.methods.nbvh_rays_cpu import sample_leaf_chords_cpu
+
+    cpu_model = model.cpu() if CUDA else model
+    depth = kernels.tree_depth(model.node_children)
+    for seed, call in ((0, 3), (9, 0)):
+        want = kernels.sample_leaf_chords_triton(model.to(DEVICE), 3000, seed, call, depth)
+        got = sample_leaf_chords_cpu(cpu_model.cpu(), 3000, seed, call, block=kernels._BLOCK)
+        assert torch.equal(got.node, want.node.cpu()) and torch.equal(got.rounds, want.rounds.cpu()) and int(got.flag) == int(want.flag) == 0
+        assert (got.code == want.code.cpu()).float().mean() > 0.999
+        for name in ("start", "direction", "length"):
+            assert (getattr(got, name) - getattr(want, name).cpu()).abs().max() < 1e-5, name
+    model.to(DEVICE)
 
 
 def test_every_slot_holds_a_fresh_chord_of_its_leaf(model, triton_draw, kernels):

@@ -11,10 +11,12 @@ Samples are kept with probability p = max(h / h_max, 0.005) (h: the leaf's heuri
 largest h so far; a leaf never sampled has p = 1) by drawing more rays than needed and keeping
 the accepted ones: no slot ever holds a stale sample.
 
-One contract, two implementations, chosen once by the device: on the CPU torch draws and the
-numba first-leaf walk, a host loop of oversampled rounds (`_draw_cpu`); on CUDA one Triton kernel
+One algorithm, two implementations, chosen once by the device: on CUDA one Triton kernel
 (`nbvh_rays_triton`: draws, walk, acceptance and packing on the device, a fixed-size output, no
-host sync). Both are tested against each other (tests/test_nbvh_rays_triton.py).
+host sync), on the CPU the same in one numba pass (`nbvh_rays_cpu`) with the same Philox streams:
+the same candidates, so the same samples up to sin/cos rounding (tests/test_nbvh_rays_triton.py).
+Random numbers are Philox of (training seed, draw number, candidate): a checkpoint keeps the draw
+number, and no torch generator is advanced by the candidates.
 """
 
 from __future__ import annotations
@@ -23,16 +25,9 @@ import torch
 from torch import Tensor
 
 from ..rays import Rays
-from ..training.ray_distribution import TrainingBatch, uniform_sphere_points
+from ..training.ray_distribution import TrainingBatch
 
 __all__ = ["NBVHRayDistribution", "morton_codes"]
-
-# Candidates drawn per sample still needed, over the running yield: the accepted ones past the
-# batch are discarded, so each extra 1% costs 1% of the draw's walks (late in a bunny `cpu` run the
-# yield is ~3%, ~300k candidates a step). A round's count of accepted candidates varies by ~1% of
-# the batch (binomial), the yield by more when a split changes the cut; a round that falls short
-# is followed by a small one.
-OVERDRAW = 1.05
 
 
 def morton_codes(points: Tensor, bits: int = 10) -> Tensor:
@@ -49,7 +44,7 @@ class NBVHRayDistribution:
     """Draws `TrainingBatch`es of leaf chords (object space: origin at the chord start, unit
     direction, ``t_max`` = chord length) and tells ``model`` which leaf each one trains.
 
-    ``implementation``: ``"cpu"`` (torch + numba) or ``"triton"`` (the CUDA kernel; on CPU tensors
+    ``implementation``: ``"cpu"`` (the numba pass) or ``"triton"`` (the CUDA kernel; on CPU tensors
     it needs ``TRITON_INTERPRET=1``); default: ``"triton"`` on CUDA, ``"cpu"`` elsewhere.
     """
 
@@ -57,51 +52,22 @@ class NBVHRayDistribution:
         self.model = model
         self.truth = truth
         self.device = torch.device(device)
+        # (the stratified chord fractions' draws; the candidates are Philox streams)
         self.generator = torch.Generator(device=self.device).manual_seed(model.config.training.seed)
-        self._yield = 0.5  # running share of candidate rays that become samples (sizes the next draw)
         self.implementation = implementation or ("triton" if self.device.type == "cuda" else "cpu")
         if self.implementation not in ("cpu", "triton"):
             raise ValueError(f"unknown N-BVH ray sampler {self.implementation!r} (cpu or triton)")
-        self._draws = 0  # Triton draws so far: each its own Philox stream (checkpointed)
-        self._depth: int | None = None  # the base tree's depth (sizes the kernel's stack)
-        self._flags: list[tuple[Tensor, object]] = []  # Triton draws' flags, read once their copy has landed
-        self._last_draw: tuple[int, Tensor, int] | None = None  # the last Triton draw: (samples, rounds per program, block)
-
-    def _candidates(self, m: int):
-        model, tc, g = self.model, self.model.config.training, self.generator
-        center, extent = model.unit_center, model.unit_extent
-        origins = center + (torch.rand(m, 3, generator=g, device=self.device) - 0.5) * (tc.origin_box_scale * extent)
-        directions = uniform_sphere_points(m, g, self.device)
-        levels = model.training_levels()
-        level = levels[torch.randint(0, len(levels), (m,), generator=g, device=self.device)]
-        dilation = tc.dilation + tc.dilation_jitter * torch.rand(m, generator=g, device=self.device)
-        node, t0, t1 = model.first_leaf(origins, directions, torch.full((m,), float("inf"), device=self.device), level, dilation)
-        crossing = torch.nonzero(node >= 0).squeeze(1)
-        node, t0, t1 = node[crossing], t0[crossing], t1[crossing]
-        p = model.acceptance(node)
-        keep = torch.rand(len(node), generator=g, device=self.device) < p
-        idx = crossing[keep]
-        start = origins[idx] + t0[keep, None] * directions[idx]
-        return start, directions[idx], (t1 - t0)[keep], node[keep]
+        self._draws = 0  # draws so far: each its own Philox stream (checkpointed)
+        self._depth: int | None = None  # the base tree's depth (sizes the Triton kernel's stack)
+        self._flags: list[tuple[Tensor, object]] = []  # draws' flags, read once their copy has landed
+        self._last_draw: tuple[int, Tensor, int] | None = None  # the last draw: (samples, rounds per program, block)
 
     def _draw_cpu(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(chord starts (unit cube), directions, lengths, leaves) of ``n`` samples in spatial order."""
-        parts, have, rounds = [], 0, 0
-        while have < n:
-            # Draw about as many as the last rounds' yield says are needed (at most 64 n at once).
-            m = min(max(int(OVERDRAW * (n - have) / max(self._yield, 1e-3)), 1024), 64 * n)
-            start, d, length, node = self._candidates(m)
-            self._yield = 0.5 * self._yield + 0.5 * len(node) / m
-            parts.append((start, d, length, node))
-            have += len(node)
-            rounds += 1
-            if rounds > 200 and have == 0:
-                raise RuntimeError("N-BVH training rays: no sampled ray crosses a leaf of the cut")
-        start, d, length, node = (torch.cat(x)[:n] for x in zip(*parts))
-        # Spatial order (Morton code of the chord midpoints): nearby samples read nearby hash-table
-        # rows, 1.4x faster encoding forward + backward on the CPU (measured on the bunny's chords).
-        order = torch.argsort(morton_codes(start + 0.5 * length[:, None] * d))
-        return start[order], d[order], length[order], node[order]
+        """(chord starts (unit cube), directions, lengths, leaves) of ``n`` samples in spatial order:
+        one numba pass (`sample_leaf_chords_cpu`), then the Morton order."""
+        from .nbvh_rays_cpu import sample_leaf_chords_cpu
+
+        return self._ordered(sample_leaf_chords_cpu(self.model, n, self.model.config.training.seed, self._draws))
 
     def _draw_triton(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """`_draw_cpu` on the device: one kernel (`sample_leaf_chords_triton`), then the Morton order."""
@@ -110,17 +76,22 @@ class NBVHRayDistribution:
         self._check_flags(wait=False)
         if self._depth is None:
             self._depth = tree_depth(self.model.node_children)  # once: the tree's shape never changes
-        chords = sample_leaf_chords_triton(self.model, n, self.model.config.training.seed, self._draws, self._depth)
+        return self._ordered(sample_leaf_chords_triton(self.model, n, self.model.config.training.seed, self._draws, self._depth))
+
+    def _ordered(self, chords) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """A draw's samples in spatial order (the Morton codes of the chord midpoints: nearby samples
+        read nearby hash-table rows, 1.4x faster encoding forward + backward on the CPU, measured on
+        the bunny's chords); its flag watched."""
         self._draws += 1
         self._watch(chords.flag)
-        self._last_draw = (n, chords.rounds, chords.block)
+        self._last_draw = (len(chords.node), chords.rounds, chords.block)
         order = torch.argsort(chords.code, stable=True)
         return chords.start[order], chords.direction[order], chords.length[order], chords.node[order]
 
     def last_yield(self) -> float:
-        """Share of the candidate rays that became samples: the last Triton draw's (waits for it), else the running CPU estimate."""
+        """Share of the candidate rays that became samples in the last draw (waits for it; NaN before one)."""
         if self._last_draw is None:
-            return self._yield
+            return float("nan")
         n, rounds, block = self._last_draw
         return n / max(int(rounds.sum()) * block, 1)
 
@@ -138,7 +109,7 @@ class NBVHRayDistribution:
 
     def _check_flags(self, wait: bool) -> None:
         """Raise for a draw that could not fill its batch (or overflowed its stack), once its flag is readable."""
-        from .nbvh_rays_triton import OVERFLOW, UNFILLED
+        from .nbvh_rays_cpu import OVERFLOW, UNFILLED
 
         while self._flags and (wait or self._flags[0][1] is None or self._flags[0][1].query()):
             flag, done = self._flags.pop(0)
@@ -162,9 +133,8 @@ class NBVHRayDistribution:
         return TrainingBatch(rays, torch.zeros(len(rays), dtype=torch.bool, device=self.device), truth)
 
     def state_dict(self) -> tuple[dict, dict]:
-        return {"yield": self._yield, "draws": self._draws}, {"generator": self.generator.get_state()}
+        return {"draws": self._draws}, {"generator": self.generator.get_state()}
 
     def load_state_dict(self, meta: dict, arrays: dict) -> None:
         self.generator.set_state(arrays["generator"])
-        self._yield = float(meta["yield"])
         self._draws = int(meta.get("draws", 0))

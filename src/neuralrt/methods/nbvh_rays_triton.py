@@ -1,10 +1,10 @@
 """N-BVH's training-ray sampler on CUDA: one Triton kernel, fixed-size output, no host sync.
 
-The same distribution as the CPU sampler (`nbvh_rays.NBVHRayDistribution` with torch draws and the
-numba first-leaf walk): origins uniform in the object's box scaled ``origin_box_scale`` about its
-centre, directions uniform on the sphere, a cut chosen uniformly per ray among the registered LoDs
-(ascending, then the live cut (-1) while LoD 0 is not registered), the box dilation ``dilation +
-U(0, dilation_jitter)``, the FIRST leaf of that cut the ray crosses (`first_leaf_walk`, the walk of
+The algorithm, and the Philox streams, of the CPU sampler (`nbvh_rays_cpu`, one numba pass):
+origins uniform in the object's box scaled ``origin_box_scale`` about its centre, directions
+uniform on the sphere, a cut chosen uniformly per ray among the registered LoDs (ascending, then
+the live cut (-1) while LoD 0 is not registered), the box dilation ``dilation + U(0,
+dilation_jitter)``, the FIRST leaf of that cut the ray crosses (`first_leaf_walk`, the walk of
 `first_leaves_triton`), kept with p = max(h / h_max, min_acceptance) (1 for a leaf never sampled, or
 while h_max = 0), h = loss_sum / sqrt(samples * alive_steps) read from the model's device buffers.
 
@@ -32,11 +32,12 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
+from .nbvh_rays_cpu import OVERFLOW, UNFILLED, LeafChords
+from .nbvh_rays_cpu import call_base as _call_base
 from .nbvh_traversal_triton import first_leaf_walk
 
 __all__ = ["sample_leaf_chords_triton", "draw_candidates_triton", "tree_depth", "LeafChords", "UNFILLED", "OVERFLOW"]
 
-UNFILLED, OVERFLOW = 1, 2  # flag bits
 _BLOCK = 64
 _PROGRAMS = 2048  # at most; each owns ceil(n / programs) slots
 _WARPS = _BLOCK // 32  # one candidate per thread
@@ -199,24 +200,8 @@ def tree_depth(children: Tensor) -> int:
         frontier, depth = nxt, depth + 1
 
 
-class LeafChords:
-    """One call's samples on the device: chord start [n, 3] (unit cube), unit direction [n, 3],
-    length [n], leaf [n] int64, Morton code [n] int32; rounds [programs] and flag [1] int32."""
-
-    def __init__(self, start, direction, length, node, code, rounds, flag, block):
-        self.start, self.direction, self.length, self.node, self.code = start, direction, length, node, code
-        self.rounds, self.flag, self.block = rounds, flag, block
-
-
 def _level_flags(model) -> Tensor:
     return model.registered.view(torch.int8)
-
-
-def _call_base(call: int) -> int:
-    """The Philox counter where draw ``call`` starts: a call uses fewer than 2^40 counters."""
-    if not 0 <= call < 1 << 23:
-        raise ValueError(f"draw number {call} out of range")
-    return call << 40
 
 
 def sample_leaf_chords_triton(model, n: int, seed: int, call: int, stack_depth: int, max_rounds: int = _MAX_ROUNDS) -> LeafChords:
