@@ -637,3 +637,5 @@ def test_cpu_sampler_draws_are_philox_streams_of_the_draw_number(ball):
     assert int(nothing.flag) == UNFILLED and (nothing.node == 0).all() and (nothing.rounds == 3).all()
     with pytest.raises(RuntimeError, match="no sampled ray"):
         NBVHRayDistribution(model, MeshBLAS(ball), torch.device("cpu"))._ordered(nothing)
+    with pytest.raises(ValueError, match="cpu ray sampler draws on the CPU"):
+        NBVHRayDistribution(model, MeshBLAS(ball), torch.device("cuda"), implementation="cpu")

@@ -52,11 +52,13 @@ class NBVHRayDistribution:
         self.model = model
         self.truth = truth
         self.device = torch.device(device)
-        # (the stratified chord fractions' draws; the candidates are Philox streams)
-        self.generator = torch.Generator(device=self.device).manual_seed(model.config.training.seed)
         self.implementation = implementation or ("triton" if self.device.type == "cuda" else "cpu")
         if self.implementation not in ("cpu", "triton"):
             raise ValueError(f"unknown N-BVH ray sampler {self.implementation!r} (cpu or triton)")
+        if self.implementation == "cpu" and self.device.type != "cpu":
+            raise ValueError(f"N-BVH's cpu ray sampler draws on the CPU, not on {self.device.type} (use triton there)")
+        # (the stratified chord fractions' draws; the candidates are Philox streams)
+        self.generator = torch.Generator(device=self.device).manual_seed(model.config.training.seed)
         self._draws = 0  # draws so far: each its own Philox stream (checkpointed)
         self._depth: int | None = None  # the base tree's depth (sizes the Triton kernel's stack)
         self._flags: list[tuple[Tensor, object]] = []  # draws' flags, read once their copy has landed
