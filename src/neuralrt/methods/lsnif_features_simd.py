@@ -7,9 +7,10 @@ float32, within ``2^-21 * (2 + |o|)`` of the float64 walk's (`lsnif_walk_simd`'s
 Where it applies (`applies`: numba compiles for AVX-512 and V is a power of two) the walk takes
 about a third of the float64 walk's time.
 
-Models trained on these points and on the float64 walk's score alike (sphere, 150 steps, seeds
-0-5: median distance error 0.80-1.05% of the diagonal with float32 coordinates, 0.80-1.01% with
-float64 ones, 0.90-1.14% with random 1-ulp noise on 12.8% of the coordinates; docs/lsnif.md).
+Models trained on these points and on the float64 walk's score alike (`benchmarks/
+bench_training_seeds.py`: sphere, 150 steps, seeds 0-15, median distance error 0.80-0.96% against
+0.80-0.95% of the diagonal; bunny, 1,000 steps, seeds 0-2: 0.52-0.56% either way; docs/lsnif.md,
+"Session 42").
 """
 
 from __future__ import annotations

@@ -417,8 +417,8 @@ def walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points,
     """`walk_ray` for rays ``[first, first + n)`` (``n`` <= the scratch's group; `walk_scratch`) on
     the grid ``occ`` (``[V, V, V]``, V a power of two; ``occ_bits``: `occupancy_bits` of it;
     ``planes``: ``k / V``, float64): ``counts[g]`` and ``truncated[g]`` (int32, 1 where the ray had
-    more points than H) for ray ``first + g``, ``t_enter``/``t_exit`` at ``first + g``; returns the number of points, written to ``point_*[:e]`` in no particular
-    order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
+    more points than H) for ray ``first + g``, ``t_enter``/``t_exit`` at ``first + g``; returns the
+    number of points, written to ``point_*[:e]`` in no particular order: coordinates and local distance (`lsnif_features.local_distance`, float32), face code,
     ray ``g`` and slot (the point's index in its ray's list), int32. ``pts``/``axes`` (``[group, H,
     3]`` float32, ``[group, H]`` int8): scratch for `walk_ray`."""
     n_queued, n_redo = _start_group(origins, directions, first, n, occ.shape[0], occ_bits, queue, queue_i, rays8, redo, t_enter, t_exit)

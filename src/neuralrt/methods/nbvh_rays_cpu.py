@@ -23,10 +23,9 @@ import math
 import numba
 import numpy as np
 import torch
-from torch import Tensor
 
 from ..task_queue import take_task, task_workers
-from .nbvh_traversal import _STACK, _first_leaf
+from .nbvh_traversal import _STACK, _first_leaf, _np
 
 __all__ = ["sample_leaf_chords_cpu", "philox4x32", "uniform_float", "LeafChords", "UNFILLED", "OVERFLOW", "call_base"]
 
@@ -144,6 +143,7 @@ def _sample_kernel(center, extent, registered, dil_base, dil_jitter, lo, hi, chi
                    length_out, node_out, code_out, rounds_out, unfilled_out):  # fmt: skip
     cx, cy, cz = center[0], center[1], center[2]
     ex, ey, ez = extent[0], extent[1], extent[2]
+    one = np.float32(1.0)
     next_program = np.zeros(1, np.int64)
     for worker in numba.prange(n_workers):
         origins = np.empty((block, 3), np.float32)  # a round's candidates, as `_first_leaf` reads them
@@ -169,7 +169,6 @@ def _sample_kernel(center, extent, registered, dil_base, dil_jitter, lo, hi, chi
                                                                      dil_jitter)  # fmt: skip
                     origins[k, 0], origins[k, 1], origins[k, 2] = ox, oy, oz
                     dirs[k, 0], dirs[k, 1], dirs[k, 2] = dx, dy, dz
-                    one = np.float32(1.0)
                     inv[k, 0], inv[k, 1], inv[k, 2] = one / dx, one / dy, one / dz
                     level[k], dilation[k], u_keep[k] = lvl, dil, u
                     _first_leaf(k, origins, inv, t_max, lo, hi, children, lod, live, level, dilation, node, t0, t1, stack, stack_t0,
@@ -211,16 +210,12 @@ def sample_leaf_chords_cpu(model, n: int, seed: int, call: int, block: int = BLO
     unfilled = np.zeros(programs, np.bool_)
     if n == 0:
         return LeafChords(start, direction, length, node, code, rounds, flag, block)
-
-    def arr(t: Tensor, dtype) -> np.ndarray:
-        return t.detach().to(dtype).contiguous().numpy()
-
-    center = arr(model.unit_center, torch.float32)
-    extent = (arr(model.unit_extent, torch.float32) * np.float32(tc.origin_box_scale)).astype(np.float32)
-    _sample_kernel(center, extent, arr(model.registered, torch.int8), np.float32(tc.dilation), np.float32(tc.dilation_jitter),
-                   arr(model.node_lo, torch.float32), arr(model.node_hi, torch.float32), arr(model.node_children, torch.int32),
-                   arr(model.node_lod, torch.int8), arr(model.live, torch.bool), arr(model.loss_sum, torch.float64),
-                   arr(model.samples, torch.float64), arr(model.alive_steps, torch.float64), float(model.h_max),
+    center = _np(model.unit_center, torch.float32)
+    extent = (_np(model.unit_extent, torch.float32) * np.float32(tc.origin_box_scale)).astype(np.float32)
+    _sample_kernel(center, extent, _np(model.registered, torch.int8), np.float32(tc.dilation), np.float32(tc.dilation_jitter),
+                   _np(model.node_lo, torch.float32), _np(model.node_hi, torch.float32), _np(model.node_children, torch.int32),
+                   _np(model.node_lod, torch.int8), _np(model.live, torch.bool), _np(model.loss_sum, torch.float64),
+                   _np(model.samples, torch.float64), _np(model.alive_steps, torch.float64), float(model.h_max),
                    np.float32(tc.min_acceptance), n, quota, int(seed), call_base(call), block, MAX_ROUNDS, int(max_rounds), programs,
                    task_workers(programs), start.numpy(), direction.numpy(), length.numpy(), node.numpy(), code.numpy(),
                    rounds.numpy(), unfilled)  # fmt: skip
