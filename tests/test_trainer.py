@@ -212,33 +212,68 @@ def test_idle_priority_can_be_turned_off():
     assert len(set(recorded.policies)) == 1
 
 
-def _trial_modes(seconds_per_step):
-    """The modes an `_OverlapTrial` gives over its whole trial and 5 steps after, each step taking
-    ``seconds_per_step(mode, first_of_window)``; and its choice."""
-    trial, now, modes = prefetch._OverlapTrial(), 0.0, []
-    for step in range(prefetch.TRIAL_START + 2 * prefetch.TRIAL_ROUNDS * prefetch.TRIAL_WINDOW + 5):
+def _trial_modes(seconds_per_step, steps):
+    """The modes an `_OverlapTrial` gives over ``steps`` steps, each step taking
+    ``seconds_per_step(step, mode, changed)`` (``changed``: its mode is not the previous step's);
+    and its choice after each step."""
+    trial, now, modes, choices = prefetch._OverlapTrial(), 0.0, [], []
+    for step in range(steps):
         mode = trial.mode(now)
+        now += seconds_per_step(step, mode, bool(modes) and mode != modes[-1])
         modes.append(mode)
-        first = step >= prefetch.TRIAL_START and (step - prefetch.TRIAL_START) % prefetch.TRIAL_WINDOW == 0
-        now += seconds_per_step(mode, first)
-    return modes, trial.choice
+        choices.append(trial.choice)
+    return modes, choices
+
+
+def _changed_slow(fast_mode):
+    """Steps of ``fast_mode`` 1 ms, of the other 1.2 ms; a change of mode (a batch drawn twice or
+    not at all) 1 s drawing ahead, none in turn."""
+    def seconds(step, mode, changed):
+        if changed:
+            return 1.0 if mode else 0.0
+        return 0.001 if mode == fast_mode else 0.0012
+    return seconds
+
+
+TRIAL_STEPS = prefetch.TRIAL_START + 2 * prefetch.TRIAL_ROUNDS * prefetch.TRIAL_WINDOW
 
 
 @pytest.mark.parametrize("ahead_faster", [False, True])
 def test_the_overlap_trial_keeps_the_faster_mode(ahead_faster):
     """Warm-up steps drawn ahead, then windows drawn in turn and ahead alternating, then the faster
-    mode for good; the first step of each window (a change of mode: a batch drawn twice or not at
-    all) is not timed, so a slow first step does not decide."""
-    def seconds(mode, first):
-        if first:
-            return 1.0 if mode else 0.0  # drawing ahead starts with a batch drawn in turn; in turn with one drawn already
-        return 0.001 if mode == ahead_faster else 0.0012
-    modes, choice = _trial_modes(seconds)
-    start, window = prefetch.TRIAL_START, prefetch.TRIAL_WINDOW
+    mode, with a window of the other mode and one of the faster at the end of every
+    `RECHECK_EVERY` steps; the first step of each window (a change of mode) is not timed, so a
+    slow first step does not decide, and the rechecks keep the choice."""
+    every, window = prefetch.RECHECK_EVERY, prefetch.TRIAL_WINDOW
+    modes, choices = _trial_modes(_changed_slow(ahead_faster), TRIAL_STEPS + 3 * every)
+    start = prefetch.TRIAL_START
     assert modes[:start] == [True] * start
     for w in range(2 * prefetch.TRIAL_ROUNDS):  # in turn first
         assert modes[start + w * window: start + (w + 1) * window] == [w % 2 == 1] * window
-    assert choice is ahead_faster and modes[-5:] == [ahead_faster] * 5
+    assert choices[:TRIAL_STEPS] == [None] * TRIAL_STEPS and set(choices[TRIAL_STEPS:]) == {ahead_faster}
+    recheck = [not ahead_faster] * window + [ahead_faster] * window
+    for period in range(3):
+        first = TRIAL_STEPS + period * every
+        assert modes[first: first + every] == [ahead_faster] * (every - 2 * window) + recheck
+
+
+@pytest.mark.parametrize("ahead_faster_later", [False, True])
+def test_the_overlap_rechecks_follow_a_change_of_the_machine(ahead_faster_later):
+    """A machine that favoured one mode during the trial and the other after it: the rechecks
+    change the choice once half or more of the last `TRIAL_ROUNDS` windows of each mode are of
+    the new machine, and keep it."""
+    trial_only = _changed_slow(not ahead_faster_later)
+    later = _changed_slow(ahead_faster_later)
+    every = prefetch.RECHECK_EVERY
+    steps = TRIAL_STEPS + (prefetch.TRIAL_ROUNDS + 2) * every
+    modes, choices = _trial_modes(lambda step, *a: (trial_only if step < TRIAL_STEPS else later)(step, *a), steps)
+    assert choices[TRIAL_STEPS] is (not ahead_faster_later)
+    changed = choices.index(ahead_faster_later)  # the step after the recheck that changed it
+    assert (changed - TRIAL_STEPS) % every == 0
+    # half the windows of each mode (medians tied but for rounding) or a majority
+    assert (changed - TRIAL_STEPS) // every in (prefetch.TRIAL_ROUNDS // 2, prefetch.TRIAL_ROUNDS // 2 + 1)
+    assert set(choices[changed:]) == {ahead_faster_later}
+    assert modes[changed: changed + every - 2 * prefetch.TRIAL_WINDOW] == [ahead_faster_later] * (every - 8)
 
 
 def test_batch_source_trial_keeps_the_batches_in_order():

@@ -28,8 +28,10 @@ they do not, the drawing thread slows them more than it saves (the 2-core Zen 5,
 the step's forward took 6.4 instead of 3.2 ms beside it). So by default (``overlap=None``) the
 loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps, windows of
 `TRIAL_WINDOW` steps drawn in turn and drawn ahead alternate, `TRIAL_ROUNDS` of each, and the
-faster is kept for the rest of the run. The batches are the same either way, so the choice
-changes the speed alone. Drawing in turn ends the drawing thread: the OpenMP team its first
+faster is kept. A machine's load changes during a run, and a trial can fall on a slow phase: every
+`RECHECK_EVERY` steps after it, one more window of the other mode and one of the kept mode run,
+and the mode is chosen again from the last `TRIAL_ROUNDS` windows of each. The batches are the
+same either way, so the choice changes the speed alone. Drawing in turn ends the drawing thread: the OpenMP team its first
 parallel region started would stay, and with more OpenMP threads than cores libgomp spins ~100
 iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel region of the step
 would wake sleeping threads (steps 1.15x slower on 2 cores; docs/lsnif.md, session 40).
@@ -40,6 +42,7 @@ from __future__ import annotations
 import os
 import statistics
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -56,32 +59,47 @@ TRIAL_START = 10  # steps drawn ahead before the trial (compilation, thread pool
 # of 4 steps, 8 of each, in 1 of 16 (docs/lsnif.md, session 42).
 TRIAL_WINDOW = 4  # steps per trial window; its first step, a change of mode, is not timed
 TRIAL_ROUNDS = 8  # windows of each mode
+# After the trial, a window of each mode every this many steps (the other mode first): a wrong
+# choice costs ~13% of the rest of a run (drawing ahead 0.87x on the Zen 4), rechecks ~0.5%.
+RECHECK_EVERY = 100
 
 
 class _OverlapTrial:
-    """Which steps draw ahead while the trial runs, and the faster mode once it is over: each
-    step's wall time (from one call of `BatchSource.next` to the next) kept per mode, windows
-    drawn in turn first; the mode of the lower median wins (a median: a step the machine
-    interrupts does not decide)."""
+    """Which steps draw ahead, and the faster mode: each timed step's wall time (from one call of
+    `BatchSource.next` to the next) kept per mode, the last `TRIAL_ROUNDS` windows' worth; the
+    trial's windows drawn in turn first, then every `RECHECK_EVERY` steps a window of the other
+    mode and one of the chosen mode; after each, the mode of the lower median is chosen (a median:
+    a step the machine interrupts does not decide)."""
 
     def __init__(self):
         self.steps = 0  # calls of `mode` so far
-        self.seconds: dict[bool, list[float]] = {False: [], True: []}  # the timed steps of each mode
+        kept = TRIAL_ROUNDS * (TRIAL_WINDOW - 1)  # (a window's first step is not timed)
+        self.seconds: dict[bool, deque[float]] = {False: deque(maxlen=kept), True: deque(maxlen=kept)}
         self.last: tuple[float, bool] | None = None  # the previous step's start and mode, where it is timed
-        self.choice: bool | None = None  # drawing ahead was faster; None while the trial runs
+        self.choice: bool | None = None  # drawing ahead was faster; None while the first trial runs
 
     def mode(self, now: float) -> bool:
         """Whether the step that starts at ``now`` (`time.perf_counter`) draws the next batch ahead."""
-        if self.choice is not None:
-            return self.choice
         if self.last is not None:
             self.seconds[self.last[1]].append(now - self.last[0])
+        self.last = None
         k, self.steps = self.steps - TRIAL_START, self.steps + 1
-        if k >= 2 * TRIAL_ROUNDS * TRIAL_WINDOW:
-            self.choice = statistics.median(self.seconds[True]) < statistics.median(self.seconds[False])
-            return self.choice
-        ahead = k < 0 or (k // TRIAL_WINDOW) % 2 == 1
-        self.last = (now, ahead) if k >= 0 and k % TRIAL_WINDOW > 0 else None  # (a window's first step changes mode)
+        trial = 2 * TRIAL_ROUNDS * TRIAL_WINDOW
+        if k < 0:
+            return True
+        if k < trial:
+            position = k  # in the trial's windows
+            ahead = k // TRIAL_WINDOW % 2 == 1
+        else:
+            since = (k - trial) % RECHECK_EVERY
+            if since == 0:  # the trial or a recheck just ended
+                self.choice = statistics.median(self.seconds[True]) < statistics.median(self.seconds[False])
+            position = since - (RECHECK_EVERY - 2 * TRIAL_WINDOW)  # in the recheck's two windows, which end the period
+            if position < 0:
+                return self.choice
+            ahead = self.choice != (position < TRIAL_WINDOW)  # the other mode first, then the chosen one
+        if position % TRIAL_WINDOW > 0:  # (a window's first step changes mode: not timed)
+            self.last = (now, ahead)
         return ahead
 
 
