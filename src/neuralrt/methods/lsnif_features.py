@@ -507,22 +507,33 @@ def select_network_rays_numba(fp: RayFeaturePoints, origins: Tensor, directions:
             torch.from_numpy(distances) if point_distances else None)  # fmt: skip
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def _network_rows_kernel(pts, axes, counts, t_enter, t_exit, origins, directions, point_distances,
+@numba.njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _network_rows_kernel(pts, axes, counts, t_enter, t_exit, origins, directions, point_distances, n_blocks,
                          keep, out_t_enter, out_t_exit, out_distances):  # fmt: skip
     """`_select_kernel` without the copies: the index of the rows with ``counts > 0``, their box
-    interval and `point_local_distances` (same float32 operations)."""
-    m = 0
-    for n in range(counts.shape[0]):
-        if counts[n] <= 0:
-            continue
-        keep[m] = n
-        te, tx = t_enter[n], t_exit[n]
-        out_t_enter[m], out_t_exit[m] = te, tx
-        if point_distances:
-            _local_distances(pts, axes, n, origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0],
-                             directions[n, 1], directions[n, 2], te, tx, out_distances, m)  # fmt: skip
-        m += 1
+    interval and `point_local_distances` (same float32 operations); in ``n_blocks`` blocks of rows
+    in parallel, each block's kept rows counted first (`_unit_box_kernel`'s scheme)."""
+    n_rows = counts.shape[0]
+    starts = np.zeros(n_blocks + 1, np.int64)
+    for block in numba.prange(n_blocks):
+        kept = 0
+        for n in range(block * n_rows // n_blocks, (block + 1) * n_rows // n_blocks):
+            kept += counts[n] > 0
+        starts[block + 1] = kept
+    for block in range(n_blocks):
+        starts[block + 1] += starts[block]
+    for block in numba.prange(n_blocks):
+        m = starts[block]
+        for n in range(block * n_rows // n_blocks, (block + 1) * n_rows // n_blocks):
+            if counts[n] <= 0:
+                continue
+            keep[m] = n
+            te, tx = t_enter[n], t_exit[n]
+            out_t_enter[m], out_t_exit[m] = te, tx
+            if point_distances:
+                _local_distances(pts, axes, n, origins[n, 0], origins[n, 1], origins[n, 2], directions[n, 0],
+                                 directions[n, 1], directions[n, 2], te, tx, out_distances, m)  # fmt: skip
+            m += 1
 
 
 def select_network_rows(fp: RayFeaturePoints, origins: Tensor, directions: Tensor, point_distances: bool):
@@ -546,9 +557,10 @@ def select_network_rows_numba(fp: RayFeaturePoints, origins: Tensor, directions:
     m, h = int(np.count_nonzero(counts > 0)), fp.max_points
     keep, t_enter, t_exit = np.empty(m, np.int64), np.empty(m, np.float32), np.empty(m, np.float32)
     distances = np.empty((m, h) if point_distances else (0, h), np.float32)
+    n_blocks = max(1, min(4 * numba.get_num_threads(), len(counts) // 1024))  # blocks of at least 1024 rows
     _network_rows_kernel(fp.points.numpy(), fp.face_axis.numpy(), counts, fp.t_enter.numpy(), fp.t_exit.numpy(),
                          origins.detach().contiguous().numpy(), directions.detach().contiguous().numpy(), bool(point_distances),
-                         keep, t_enter, t_exit, distances)  # fmt: skip
+                         n_blocks, keep, t_enter, t_exit, distances)  # fmt: skip
     return (torch.from_numpy(keep), torch.from_numpy(t_enter), torch.from_numpy(t_exit),
             torch.from_numpy(distances) if point_distances else None)  # fmt: skip
 
