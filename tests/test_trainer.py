@@ -273,7 +273,8 @@ def test_the_overlap_rechecks_follow_a_change_of_the_machine(ahead_faster_later)
     # half the windows of each mode (medians tied but for rounding) or a majority
     assert (changed - TRIAL_STEPS) // every in (prefetch.TRIAL_ROUNDS // 2, prefetch.TRIAL_ROUNDS // 2 + 1)
     assert set(choices[changed:]) == {ahead_faster_later}
-    assert modes[changed: changed + every - 2 * prefetch.TRIAL_WINDOW] == [ahead_faster_later] * (every - 8)
+    kept = every - 2 * prefetch.TRIAL_WINDOW  # the steps of a period before its recheck
+    assert modes[changed: changed + kept] == [ahead_faster_later] * kept
 
 
 def test_batch_source_trial_keeps_the_batches_in_order():

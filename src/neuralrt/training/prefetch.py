@@ -31,10 +31,11 @@ loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps
 faster is kept. A machine's load changes during a run, and a trial can fall on a slow phase: every
 `RECHECK_EVERY` steps after it, one more window of the other mode and one of the kept mode run,
 and the mode is chosen again from the last `TRIAL_ROUNDS` windows of each. The batches are the
-same either way, so the choice changes the speed alone. Drawing in turn ends the drawing thread: the OpenMP team its first
-parallel region started would stay, and with more OpenMP threads than cores libgomp spins ~100
-iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel region of the step
-would wake sleeping threads (steps 1.15x slower on 2 cores; docs/lsnif.md, session 40).
+same either way, so the choice changes the speed alone. Drawing in turn ends the drawing thread:
+the OpenMP team its first parallel region started would stay, and with more OpenMP threads than
+cores libgomp spins ~100 iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel
+region of the step would wake sleeping threads (steps 1.15x slower on 2 cores; docs/lsnif.md,
+session 40).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ TRIAL_START = 10  # steps drawn ahead before the trial (compilation, thread pool
 TRIAL_WINDOW = 4  # steps per trial window; its first step, a change of mode, is not timed
 TRIAL_ROUNDS = 8  # windows of each mode
 # After the trial, a window of each mode every this many steps (the other mode first): a wrong
-# choice costs ~13% of the rest of a run (drawing ahead 0.87x on the Zen 4), rechecks ~0.5%.
+# choice costs 10-13% of the rest of a run (drawing ahead 0.87-0.90x on the Zen 4), rechecks ~0.5%.
 RECHECK_EVERY = 100
 
 
