@@ -28,8 +28,8 @@ except in ``overlap`` and ``overlap_trial``), by ``--pair``:
 - ``overlap``: each batch drawn in turn by the loop's thread (``train_model(overlap_sampling=False)``)
   against drawn ahead on the background thread (``True``);
 - ``overlap_trial``: drawn in turn against the default (``None``: the run's first steps time both
-  modes, then it keeps the faster; `prefetch.BatchSource`); use runs far longer than the trial's
-  74 steps;
+  modes, then it keeps the faster, checked again every `prefetch.RECHECK_EVERY` steps;
+  `prefetch.BatchSource`); use runs far longer than the trial's 74 steps;
 - ``loss_threads``: the loss pass (`training_loss_numba`) on one thread, as it ran before its row
   chunks went parallel, against on all of numba's threads;
 - ``scatter``: the encoder backward's row-range scatter against the bucketed one (on any host).
