@@ -161,7 +161,7 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
     shg._backward_kernel(*args, serial)  # one chunk: rays in order
     for ranges in (1, 2, 5):
         got = np.full((3 * 2**12, 3), np.nan, np.float32)  # the kernel zeroes every row it owns
-        shg._backward_rows_kernel(*args, ranges, got)
+        shg._backward_rows_kernel(*args[:2], np.arange(len(f.points)), *args[2:], ranges, got)
         assert np.array_equal(got, serial[0]), ranges
     # The backward from the rows and weights the forward saved (face points; origin points hashed again).
     n, h = f.face_axis.shape

@@ -433,15 +433,16 @@ def _backward_kernel(points, axes, grad_out, resolutions, grad_tables):
 
 
 @numba.njit(parallel=True, cache=True)
-def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level, grad_table):
+def _backward_rows_kernel(points, axes, rows, grad_out, resolutions, ranges_per_level, grad_table):
     """Scatter ``grad_out`` into the one ``grad_table`` (``[L * T, F]``) with no atomics and no
     per-thread copies: task (level, r) owns rows ``r/R .. (r+1)/R`` of that level's table
     (``R = ranges_per_level``), zeroes them, and adds every point's contributions that land there.
     Each row sums its contributions in ray order, whatever R and the thread count: the result is
     the serial scatter's, bit for bit. With R > 1 every task of a level recomputes that level's
     rows for all points (the price of owning rows). (Prefetching the rows a group of rays ahead,
-    as the forward does, measured slower here.)"""
-    n_rays, n_points = axes.shape
+    as the forward does, measured slower here.) Gradient row n belongs to input row ``rows[n]``
+    (no copy of the selected rays)."""
+    n_rays, n_points = rows.shape[0], axes.shape[1]
     n_levels = resolutions.shape[0]
     n_feat = grad_table.shape[1]
     table_size = grad_table.shape[0] // n_levels
@@ -457,11 +458,12 @@ def _backward_rows_kernel(points, axes, grad_out, resolutions, ranges_per_level,
         weights = np.empty(8, np.float32)
         res = resolutions[lvl]
         for n in range(n_rays):
+            i = rows[n]
             for h in range(n_points):
-                code = axes[n, h]
+                code = axes[i, h]
                 if code < 0 or code > _ORIGIN_POINT:
                     continue
-                k = _rows_of(points[n, h, 0], points[n, h, 1], points[n, h, 2], code, res, mask, base, slots, weights)
+                k = _rows_of(points[i, h, 0], points[i, h, 1], points[i, h, 2], code, res, mask, base, slots, weights)
                 col = h * stride + lvl * n_feat
                 for c in range(k):
                     row = slots[c]
@@ -677,18 +679,17 @@ class _SparseHashGridFunction(torch.autograd.Function):
                 n_chunks = max(1, min(len(ctx.index), 4 * threads))
                 _backward_buckets_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-2 * threads // levels), n_chunks,
                                          table_grad)  # fmt: skip
-            else:
+            elif ctx.backward_scatter in ("row_ranges", "saved_rows"):
+                table_grad = np.empty((levels * size, n_feat), np.float32)
+                _backward_rows_kernel(pts, axes, ctx.index, grad, ctx.resolutions, -(-threads // levels), table_grad)
+            else:  # "thread_tables": the earlier scatter, kept to measure against; it takes the selected rows
                 if len(ctx.index) != len(axes) or not np.array_equal(ctx.index, np.arange(len(axes))):
-                    pts, axes = pts[ctx.index], axes[ctx.index]  # the scatters kept to measure against take the selected rows
-                if ctx.backward_scatter in ("row_ranges", "saved_rows"):
-                    table_grad = np.empty((levels * size, n_feat), np.float32)
-                    _backward_rows_kernel(pts, axes, grad, ctx.resolutions, -(-threads // levels), table_grad)
-                else:  # "thread_tables": the earlier scatter, kept to measure against
-                    n_threads = max(1, min(len(axes), threads))
-                    tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
-                    if len(axes):
-                        _backward_kernel(pts, axes, _numpy(grad_out, torch.float32), ctx.resolutions, tables)
-                    table_grad = tables[0] if n_threads == 1 else tables.sum(0)
+                    pts, axes = pts[ctx.index], axes[ctx.index]
+                n_threads = max(1, min(len(axes), threads))
+                tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
+                if len(axes):
+                    _backward_kernel(pts, axes, _numpy(grad_out, torch.float32), ctx.resolutions, tables)
+                table_grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
         return None, None, None, grad_table, None, None, None, None
 
