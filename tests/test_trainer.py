@@ -277,6 +277,23 @@ def test_the_overlap_rechecks_follow_a_change_of_the_machine(ahead_faster_later)
     assert modes[changed: changed + kept] == [ahead_faster_later] * kept
 
 
+@pytest.mark.parametrize("ahead_gain, changes", [(0.01, False), (0.05, True)])
+def test_a_recheck_changes_the_mode_only_past_the_margin(ahead_gain, changes):
+    """After the trial chose drawing in turn, a machine where drawing ahead is faster by less than
+    `RECHECK_MARGIN` keeps it (noise must not flip the mode), by more changes it."""
+    assert prefetch.RECHECK_MARGIN == 0.02
+    trial_only = _changed_slow(False)
+
+    def later(step, mode, changed):
+        if changed:
+            return 1.0 if mode else 0.0
+        return 0.001 * (1 - ahead_gain) if mode else 0.001
+
+    steps = TRIAL_STEPS + (prefetch.TRIAL_ROUNDS + 2) * prefetch.RECHECK_EVERY
+    _, choices = _trial_modes(lambda step, *a: (trial_only if step < TRIAL_STEPS else later)(step, *a), steps)
+    assert choices[TRIAL_STEPS] is False and (True in choices) is changes
+
+
 def test_batch_source_trial_keeps_the_batches_in_order():
     """With the default overlap (the trial), the batches come in the sampler's order whatever the
     mode of each step, no drawing thread is left while steps draw in turn, and `draws_ahead` is

@@ -30,7 +30,8 @@ loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps
 `TRIAL_WINDOW` steps drawn in turn and drawn ahead alternate, `TRIAL_ROUNDS` of each, and the
 faster is kept. A machine's load changes during a run, and a trial can fall on a slow phase: every
 `RECHECK_EVERY` steps after it, one more window of the other mode and one of the kept mode run,
-and the mode is chosen again from the last `TRIAL_ROUNDS` windows of each. The batches are the
+and the mode is chosen again from the last `TRIAL_ROUNDS` windows of each (the other mode where
+it is `RECHECK_MARGIN` faster). The batches are the
 same either way, so the choice changes the speed alone. Drawing in turn ends the drawing thread:
 the OpenMP team its first parallel region started would stay, and with more OpenMP threads than
 cores libgomp spins ~100 iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel
@@ -63,6 +64,11 @@ TRIAL_ROUNDS = 8  # windows of each mode
 # After the trial, a window of each mode every this many steps (the other mode first): a wrong
 # choice costs 10-13% of the rest of a run (drawing ahead 0.87-0.90x on the Zen 4), rechecks ~0.5%.
 RECHECK_EVERY = 100
+# A recheck changes the mode only where the other one's median step is this much shorter: with none,
+# noise made rechecks pick drawing ahead for 100-900 steps at a time in 5 of 16 traced bunny runs; replayed on
+# 2,000 steps of alternating windows, 2% left no wrong pick and undid a wrong trial within 1-5
+# rechecks (docs/lsnif.md, session 43).
+RECHECK_MARGIN = 0.02
 
 
 class _OverlapTrial:
@@ -70,7 +76,7 @@ class _OverlapTrial:
     `BatchSource.next` to the next) kept per mode, the last `TRIAL_ROUNDS` windows' worth; the
     trial's windows drawn in turn first, then every `RECHECK_EVERY` steps a window of the other
     mode and one of the chosen mode; after each, the mode of the lower median is chosen (a median:
-    a step the machine interrupts does not decide)."""
+    a step the machine interrupts does not decide; after a recheck with `RECHECK_MARGIN`)."""
 
     def __init__(self):
         self.steps = 0  # calls of `mode` so far
@@ -94,7 +100,7 @@ class _OverlapTrial:
         else:
             since = (k - trial) % RECHECK_EVERY
             if since == 0:  # the trial or a recheck just ended
-                self.choice = statistics.median(self.seconds[True]) < statistics.median(self.seconds[False])
+                self.choice = self._faster()
             position = since - (RECHECK_EVERY - 2 * TRIAL_WINDOW)  # in the recheck's two windows, which end the period
             if position < 0:
                 return self.choice
@@ -102,6 +108,15 @@ class _OverlapTrial:
         if position % TRIAL_WINDOW > 0:  # (a window's first step changes mode: not timed)
             self.last = (now, ahead)
         return ahead
+
+    def _faster(self) -> bool:
+        """Whether drawing ahead is the faster mode: the lower median after the trial; after a
+        recheck the other mode only where it is `RECHECK_MARGIN` faster."""
+        ahead, in_turn = statistics.median(self.seconds[True]), statistics.median(self.seconds[False])
+        if self.choice is None:
+            return ahead < in_turn
+        kept, other = (ahead, in_turn) if self.choice else (in_turn, ahead)
+        return self.choice != (other < kept * (1 - RECHECK_MARGIN))
 
 
 class BatchSource:
