@@ -271,6 +271,22 @@ def _as_occupancy(occupancy) -> np.ndarray:
     return np.ascontiguousarray(occ, dtype=np.uint8)
 
 
+def _host_feature_arrays(n: int, max_points: int, padded: bool) -> tuple[np.ndarray, ...]:
+    """Host arrays for the CPU kernels to fill, in `RayFeaturePoints`' field order: points,
+    face codes, counts, truncated, t_enter, t_exit. ``padded``: points zero and codes PADDING
+    beforehand (else the kernel writes every row)."""
+    if padded:
+        pts, axes = np.zeros((n, max_points, 3), np.float32), np.full((n, max_points), PADDING, np.int8)
+    else:
+        pts, axes = np.empty((n, max_points, 3), np.float32), np.empty((n, max_points), np.int8)
+    return pts, axes, np.empty(n, np.int32), np.empty(n, np.bool_), np.empty(n, np.float32), np.empty(n, np.float32)
+
+
+def _feature_points_on(arrays: tuple[np.ndarray, ...], device) -> RayFeaturePoints:
+    """`_host_feature_arrays` once filled, as `RayFeaturePoints` on ``device``."""
+    return RayFeaturePoints(*(torch.from_numpy(a).to(device) for a in arrays))
+
+
 def _check_rays(origins: Tensor, directions: Tensor, max_points: int) -> None:
     if origins.ndim != 2 or origins.shape[-1] != 3 or directions.shape != origins.shape:
         raise ValueError(
@@ -323,21 +339,14 @@ def featurize_rays_numba(
     d = directions.detach().to("cpu", torch.float64).contiguous().numpy()
     occ = _as_occupancy(occupancy)
     n = o.shape[0]
-    pts = np.zeros((n, max_points, 3), np.float32)
-    axes = np.full((n, max_points), PADDING, np.int8)
-    counts = np.empty(n, np.int32)
-    truncated = np.empty(n, np.bool_)
-    t_enter = np.empty(n, np.float32)
-    t_exit = np.empty(n, np.float32)
+    arrays = _host_feature_arrays(n, max_points, padded=True)
     # A few chunks per thread, handed out one at a time, balance rays of uneven length.
     n_chunks = task_count(n)
     if n:
         planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as the reference computes it
         _featurize_kernel(o, d, occ, planes, int(max_points), bool(origin_point),
-                          bool(share_boundary_points), n_chunks, task_workers(n_chunks),
-                          pts, axes, counts, truncated, t_enter, t_exit)  # fmt: skip
-    arrays = (pts, axes, counts, truncated, t_enter, t_exit)
-    return RayFeaturePoints(*(torch.from_numpy(a).to(device) for a in arrays))
+                          bool(share_boundary_points), n_chunks, task_workers(n_chunks), *arrays)  # fmt: skip
+    return _feature_points_on(arrays, device)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ..simd import HAS_AVX512
 from ..task_queue import take_task, task_count, task_workers
-from .lsnif_features import PADDING, RayFeaturePoints, _as_occupancy, _check_rays
+from .lsnif_features import PADDING, RayFeaturePoints, _as_occupancy, _check_rays, _feature_points_on, _host_feature_arrays
 from .lsnif_walk_simd import float32_walk_applies, occupancy_bits, walk_group, walk_scratch
 
 __all__ = ["applies", "featurize_rays_simd"]
@@ -97,17 +97,10 @@ def featurize_rays_simd(
     o = origins.detach().to("cpu", torch.float32).contiguous().numpy()
     d = directions.detach().to("cpu", torch.float32).contiguous().numpy()
     n = o.shape[0]
-    pts = np.empty((n, max_points, 3), np.float32)
-    axes = np.empty((n, max_points), np.int8)
-    counts = np.empty(n, np.int32)
-    truncated = np.empty(n, np.bool_)
-    t_enter = np.empty(n, np.float32)
-    t_exit = np.empty(n, np.float32)
+    arrays = _host_feature_arrays(n, max_points, padded=False)  # (the kernel writes the padding rows)
     n_chunks = task_count(n, _GROUP)
     if n:
         planes = np.arange(occ.shape[0] + 1) / occ.shape[0]  # k / V, as `featurize_rays_numba`
         _featurize_simd_kernel(o, d, occ, occupancy_bits(occ), planes, int(max_points), bool(origin_point),
-                               bool(share_boundary_points), n_chunks, task_workers(n_chunks), pts, axes, counts, truncated,
-                               t_enter, t_exit)  # fmt: skip
-    arrays = (pts, axes, counts, truncated, t_enter, t_exit)
-    return RayFeaturePoints(*(torch.from_numpy(a).to(device) for a in arrays))
+                               bool(share_boundary_points), n_chunks, task_workers(n_chunks), *arrays)  # fmt: skip
+    return _feature_points_on(arrays, device)
