@@ -10,44 +10,19 @@ import pytest
 import torch
 
 from neuralrt.methods.lsnif_features import PADDING, featurize_rays_numba, local_distance
-from neuralrt.methods.lsnif_features_simd import featurize_rays_simd
-from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, occupancy_bits, walk_group, walk_scratch
+from neuralrt.methods.lsnif_features_simd import featurize_rays_simd, rows_scratch, walk_rows
+from neuralrt.methods.lsnif_walk_simd import _start_group, _walk_lanes, float32_walk_applies, occupancy_bits, walk_scratch
 
 GROUP = 32
 
 
-@numba.njit(cache=True)
 def _walk_all(origins, directions, occ, occ_bits, planes, max_points, origin_point, share, points, axes, counts, truncated,
               t_enter, t_exit, local=None):  # fmt: skip
-    """Every ray through `walk_group`, its points (and their local distances, ``local [N, H]``)
-    put back in ray order (``points [N, H, 3]``)."""
-    queue, queue_i, rays8, lane_terms, redo = walk_scratch(GROUP)
-    pts = np.empty((GROUP, max_points, 3), np.float32)
-    pts_axes = np.empty((GROUP, max_points), np.int8)
-    px = np.empty(GROUP * max_points, np.float32)
-    py = np.empty(GROUP * max_points, np.float32)
-    pz = np.empty(GROUP * max_points, np.float32)
-    distance = np.empty(GROUP * max_points, np.float32)
-    code = np.empty(GROUP * max_points, np.int32)
-    ray = np.empty(GROUP * max_points, np.int32)
-    slot = np.empty(GROUP * max_points, np.int32)
-    group_counts = np.empty(GROUP, np.int64)
-    group_truncated = np.empty(GROUP, np.int32)
-    n_rays = origins.shape[0]
-    for first in range(0, n_rays, GROUP):
-        n = min(GROUP, n_rays - first)
-        e = walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i, rays8,
-                       lane_terms, redo, pts, pts_axes, px, py, pz, distance, code, ray, slot, group_counts, group_truncated, t_enter,
-                       t_exit)  # fmt: skip
-        for g in range(n):
-            counts[first + g] = group_counts[g]
-            truncated[first + g] = group_truncated[g]
-        for i in range(e):
-            r, h = first + ray[i], slot[i]
-            points[r, h, 0], points[r, h, 1], points[r, h, 2] = px[i], py[i], pz[i]
-            axes[r, h] = code[i]
-            if local is not None:
-                local[r, h] = distance[i]
+    """Every ray through `walk_rows` in groups of GROUP, its points (and their local distances,
+    ``local [N, H]``) in ray order (``points [N, H, 3]``)."""
+    local = np.empty((0, 0), np.float32) if local is None else local
+    walk_rows(origins, directions, 0, origins.shape[0], occ, occ_bits, planes, max_points, origin_point, share,
+              rows_scratch(GROUP, max_points), points, axes, counts, truncated, t_enter, t_exit, local)  # fmt: skip
 
 
 @numba.njit(cache=True)

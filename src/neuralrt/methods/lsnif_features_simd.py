@@ -36,46 +36,63 @@ def applies(resolution: int) -> bool:
     return HAS_AVX512 and float32_walk_applies(resolution)
 
 
+@numba.njit(nogil=True, cache=True)
+def rows_scratch(group, max_points):
+    """A thread's scratch for `walk_rows` on groups of ``group`` rays: `walk_scratch`'s, `walk_ray`'s
+    (points and faces of ``group`` rows) and `walk_group`'s outputs (unordered points, per-ray counts)."""
+    queue, queue_i, rays8, lane_terms, redo = walk_scratch(group)
+    e = group * max_points
+    return (queue, queue_i, rays8, lane_terms, redo, np.empty((group, max_points, 3), np.float32),
+            np.empty((group, max_points), np.int8), np.empty(e, np.float32), np.empty(e, np.float32),
+            np.empty(e, np.float32), np.empty(e, np.float32), np.empty(e, np.int32), np.empty(e, np.int32),
+            np.empty(e, np.int32), np.empty(group, np.int64), np.empty(group, np.int32))  # fmt: skip
+
+
+@numba.njit(nogil=True, cache=True)
+def walk_rows(origins, directions, first, last, occ, occ_bits, planes, max_points, origin_point, share, scratch, pts, axes,
+              counts, truncated, t_enter, t_exit, local):  # fmt: skip
+    """Rays ``[first, last)`` through `walk_group`, a scratch's group at a time (`rows_scratch`), in
+    ray order: each ray's points at their slots of its row of ``pts``/``axes`` (their local
+    distances in ``local``'s, where it has rows), the rest of the row padding (point 0, face
+    PADDING: no fill beforehand); its count, truncation (1 or True where cut short), t_enter, t_exit."""
+    (queue, queue_i, rays8, lane_terms, redo, ray_pts, ray_axes, point_x, point_y, point_z, point_local, point_code, point_ray,
+     point_slot, group_count, group_truncated) = scratch  # fmt: skip
+    group = group_count.shape[0]
+    for start in range(first, last, group):
+        n = min(group, last - start)
+        e = walk_group(origins, directions, start, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i,
+                       rays8, lane_terms, redo, ray_pts, ray_axes, point_x, point_y, point_z, point_local, point_code,
+                       point_ray, point_slot, group_count, group_truncated, t_enter, t_exit)  # fmt: skip
+        for g in range(n):
+            r = start + g
+            counts[r] = group_count[g]
+            truncated[r] = group_truncated[g] != 0
+            for h in range(group_count[g], max_points):
+                pts[r, h, 0] = pts[r, h, 1] = pts[r, h, 2] = np.float32(0.0)
+                axes[r, h] = PADDING
+        for i in range(e):  # the points, unordered, to their ray's row at their slot
+            r, h = start + point_ray[i], point_slot[i]
+            pts[r, h, 0], pts[r, h, 1], pts[r, h, 2] = point_x[i], point_y[i], point_z[i]
+            axes[r, h] = point_code[i]
+        if local.shape[0] > 0:  # (a loop of its own: the one above stays as the featurizer runs it)
+            for i in range(e):
+                local[start + point_ray[i], point_slot[i]] = point_local[i]
+
+
 @numba.njit(parallel=True, nogil=True, cache=True)
 def _featurize_simd_kernel(origins, directions, occ, occ_bits, planes, max_points, origin_point, share, n_chunks, n_workers,
                            pts, axes, counts, truncated, t_enter, t_exit):  # fmt: skip
     n_rays = origins.shape[0]
     next_chunk = np.zeros(1, np.int64)
+    no_local = np.empty((0, 0), np.float32)
     for worker in numba.prange(n_workers):  # chunks handed out one at a time (`task_queue`)
-        queue, queue_i, rays8, lane_terms, redo = walk_scratch(_GROUP)
-        ray_pts = np.empty((_GROUP, max_points, 3), np.float32)  # `walk_ray`'s scratch
-        ray_axes = np.empty((_GROUP, max_points), np.int8)
-        point_x = np.empty(_GROUP * max_points, np.float32)
-        point_y = np.empty(_GROUP * max_points, np.float32)
-        point_z = np.empty(_GROUP * max_points, np.float32)
-        point_local = np.empty(_GROUP * max_points, np.float32)
-        point_code = np.empty(_GROUP * max_points, np.int32)
-        point_ray = np.empty(_GROUP * max_points, np.int32)
-        point_slot = np.empty(_GROUP * max_points, np.int32)
-        group_count = np.empty(_GROUP, np.int64)
-        group_truncated = np.empty(_GROUP, np.int32)
+        scratch = rows_scratch(_GROUP, max_points)
         while True:
             chunk = take_task(next_chunk)
             if chunk >= n_chunks:
                 break
-            last = (chunk + 1) * n_rays // n_chunks
-            for first in range(chunk * n_rays // n_chunks, last, _GROUP):
-                n = min(_GROUP, last - first)
-                e = walk_group(origins, directions, first, n, occ, occ_bits, planes, max_points, origin_point, share, queue, queue_i,
-                               rays8, lane_terms, redo, ray_pts, ray_axes, point_x, point_y, point_z, point_local, point_code,
-                               point_ray, point_slot, group_count, group_truncated, t_enter, t_exit)  # fmt: skip
-                # Every row written: padding rows are point 0, face PADDING (no fill of the arrays beforehand)
-                for g in range(n):
-                    r = first + g
-                    counts[r] = group_count[g]
-                    truncated[r] = group_truncated[g] != 0
-                    for h in range(group_count[g], max_points):
-                        pts[r, h, 0] = pts[r, h, 1] = pts[r, h, 2] = np.float32(0.0)
-                        axes[r, h] = PADDING
-                for i in range(e):  # the points, unordered, to their ray's row at their slot
-                    r, h = first + point_ray[i], point_slot[i]
-                    pts[r, h, 0], pts[r, h, 1], pts[r, h, 2] = point_x[i], point_y[i], point_z[i]
-                    axes[r, h] = point_code[i]
+            walk_rows(origins, directions, chunk * n_rays // n_chunks, (chunk + 1) * n_rays // n_chunks, occ, occ_bits, planes,
+                      max_points, origin_point, share, scratch, pts, axes, counts, truncated, t_enter, t_exit, no_local)  # fmt: skip
 
 
 def featurize_rays_simd(
