@@ -14,6 +14,7 @@ __all__ = ["chunk_slices", "run_chunks", "thread_pool"]
 # and keep a chunk's results in cache. A batch is cut into at least two chunks per thread down to
 # MIN_CHUNK_ROWS: with fixed 2^15-row chunks, 2^18 rays left half of 16 threads idle, and on 2
 # threads a 48k-row batch ran as 32k + 16k (exact renders: 5-16% faster per spp, docs/lsnif.md).
+# The chunks are of equal size (a batch of 6,000 rows: 3,000 + 3,000, not 4,096 + 1,904).
 CHUNK_ROWS = 1 << 15
 MIN_CHUNK_ROWS = 1 << 12
 
@@ -21,11 +22,14 @@ T = TypeVar("T")
 _pools: dict[str, tuple[int, int, ThreadPoolExecutor]] = {}  # purpose -> (process id, workers, pool)
 
 
-def chunk_slices(n: int, threads: int) -> list[slice]:
-    """Consecutive chunks of ``range(n)``: at most CHUNK_ROWS rows, and at least two per thread
-    where that leaves MIN_CHUNK_ROWS or more in each."""
-    size = min(CHUNK_ROWS, max(MIN_CHUNK_ROWS, -(-n // (2 * max(1, threads)))))
-    return [slice(s, min(n, s + size)) for s in range(0, n, size)]
+def chunk_slices(n: int, threads: int, min_rows: int = MIN_CHUNK_ROWS) -> list[slice]:
+    """Consecutive chunks of ``range(n)`` of equal size (to a row), none for no rows: at most
+    CHUNK_ROWS rows each; two per thread where ``n`` fills them with ``min_rows`` rows, else one
+    per ``min_rows`` rows begun (5,000 rows: 2,500 + 2,500)."""
+    if n == 0:
+        return []
+    count = max(-(-n // CHUNK_ROWS), min(2 * max(1, threads), -(-n // min_rows)))
+    return [slice(i * n // count, (i + 1) * n // count) for i in range(count)]
 
 
 def run_chunks(fn: Callable[[slice], T], chunks: list[slice], threads: int, purpose: str) -> list[T]:
