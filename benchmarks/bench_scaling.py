@@ -15,7 +15,8 @@ machine size. In each process:
   rays drawn / wall time of the loop (as bench_training.py); with ``--train-batches``, also at
   those batch sizes, drawing the same rays in fewer steps (a step's fixed costs, paid once per
   step on the loop's thread, shrink per ray); with ``--profile``, one more run per batch size
-  under `StageTimer`: ms per step in each stage, on the loop's thread and on the drawing one;
+  and mode (drawn ahead, in turn) under `StageTimer`: ms per step in each stage, on the loop's
+  thread and on the drawing one;
   with ``--scatters``, the encoder's backward alone on one batch of each size, per scatter;
 - inference: an untrained model on the mesh's real occupancy (random table, rounded to its storage
   precision as `train` returns a model: the speed does not depend on the weights) and Embree on the same ``--rays`` rays (`BoxRayDistribution`), interleaved,
@@ -165,9 +166,10 @@ def _child(args) -> dict:
         if args.profile:
             for batch in sorted({default_batch, *args.train_batches}):
                 sized, steps = _at_batch(config, batch, args.steps)
-                with StageTimer() as timer:
-                    wall, _ = _train(train_mesh, train_truth, sized, steps, True)
-                row[f"train_{preset}_batch{batch}_stages_ms_per_step"] = timer.per_step(wall, steps)
+                for mode, label in ((True, "ahead"), (False, "in turn")):
+                    with StageTimer() as timer:
+                        wall, _ = _train(train_mesh, train_truth, sized, steps, mode)
+                    row[f"train_{preset}_batch{batch}[{label}]_stages_ms_per_step"] = timer.per_step(wall, steps)
 
         if args.scatters:
             row[f"encoder_backward_{preset}_ms"] = _scatter_times(train_mesh, train_truth, config, args)
