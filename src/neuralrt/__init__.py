@@ -3,18 +3,22 @@
 import os
 
 # The one place neuralrt sets how OpenMP threads wait (tests and benchmarks import neuralrt before
-# torch to get it). torch's and numba's OpenMP pools (two libgomp copies on Linux) alternate in
-# every training step and inference batch. With libgomp's default (300,000 spins after a parallel
-# region) each pool burns the cores the other needs (2 cores: 147k -> 230k training rays/s with
-# OMP_WAIT_POLICY=PASSIVE); but sleeping at once makes every torch GEMM wake its team at each of its
-# parallel regions (2 cores, session 36: an N-BVH intersect 1.3x the time, torch's bf16 MLP ~1.2x).
-# A short spin, GOMP_SPINCOUNT=3000 (~0.1 ms), measured as fast as sleeping in training and as
-# spinning in torch's GEMMs. libgomp reads it only where OMP_WAIT_POLICY is unset; LLVM's and
-# Intel's runtimes (macOS, some builds) read KMP_BLOCKTIME instead: 0, sleep at once. This only
-# takes effect if neuralrt is imported before torch loads OpenMP, and a value the user set (an
-# OMP_WAIT_POLICY included) is never overridden.
+# torch to get it). torch's and numba's parallel regions alternate in every training step and
+# inference batch, on one runtime: torch loads its libgomp into the global symbol scope, and
+# numba's OpenMP layer binds to it (LD_DEBUG=bindings; the system's copy is mapped, unused). After
+# a region its threads spin GOMP_SPINCOUNT=30000 times (~0.5-1 ms) before they sleep: long enough
+# to bridge most gaps between regions (a sleeping thread took ~25-35 us to wake on a 2-core VM),
+# short enough to leave the cores to Embree's threads when a batch is drawn. Bunny `hq` training,
+# 2-core Zen 4, drawn in turn: 1.07-1.19x the rays/s of 3,000 spins (medians of 5-6 alternating
+# runs; 20 of 21 pairs faster); 10,000: 1.03-1.04x; 100,000 or libgomp's default 300,000: 0.97-1.00x
+# (docs/lsnif.md, session 44). Sleeping at once (OMP_WAIT_POLICY=PASSIVE) makes every torch GEMM
+# wake its team at each of its regions (2 cores, session 36: an N-BVH intersect 1.3x the time).
+# libgomp reads GOMP_SPINCOUNT only where OMP_WAIT_POLICY is unset; LLVM's and Intel's runtimes
+# (macOS, some builds) read KMP_BLOCKTIME instead: 0, sleep at once. This only takes effect if
+# neuralrt is imported before torch loads OpenMP, and a value the user set (an OMP_WAIT_POLICY
+# included) is never overridden.
 if "OMP_WAIT_POLICY" not in os.environ:
-    os.environ.setdefault("GOMP_SPINCOUNT", "3000")
+    os.environ.setdefault("GOMP_SPINCOUNT", "30000")
     os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 from .accel.blas import BLAS, MemoryReport
