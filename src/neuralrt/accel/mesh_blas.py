@@ -54,8 +54,8 @@ def _run_in_chunks(trace, n: int, threads: int | None) -> None:
 # Embree's chunks may be smaller than other passes' (`host_threads.MIN_CHUNK_ROWS`): a ray costs
 # ~0.1-0.2 us, so 2,048 rays still outweigh a hand-off. A training batch (8,192 rays, its outside
 # rays first, then its surface rays, which cost ~2.3x as much) ran on 2 threads as two chunks,
-# one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 3.05 -> 2.74 ms a
-# step in the loop, medians of 5 alternating 400-step runs; docs/lsnif.md, session 44).
+# one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 2.94 -> 2.74 ms a
+# step in the loop, medians of 6 alternating 400-step runs; docs/lsnif.md, session 44).
 EMBREE_MIN_CHUNK_ROWS = 1 << 11
 
 
