@@ -11,10 +11,11 @@ from typing import TypeVar
 __all__ = ["chunk_slices", "run_chunks", "thread_pool"]
 
 # Rows per chunk: enough to amortise a thread hand-off (~50 us), few enough to balance the threads
-# and keep a chunk's results in cache. A batch is cut into at least two chunks per thread down to
-# MIN_CHUNK_ROWS: with fixed 2^15-row chunks, 2^18 rays left half of 16 threads idle, and on 2
-# threads a 48k-row batch ran as 32k + 16k (exact renders: 5-16% faster per spp, docs/lsnif.md).
-# The chunks are of equal size (a batch of 6,000 rows: 3,000 + 3,000, not 4,096 + 1,904).
+# and keep a chunk's results in cache. A batch is cut into two chunks per thread where that leaves
+# MIN_CHUNK_ROWS in each (else one chunk per MIN_CHUNK_ROWS rows begun): with fixed 2^15-row
+# chunks, 2^18 rays left half of 16 threads idle, and on 2 threads a 48k-row batch ran as 32k +
+# 16k (exact renders: 5-16% faster per spp, docs/lsnif.md). The chunks are of equal size (a batch
+# of 6,000 rows: 3,000 + 3,000, not 4,096 + 1,904).
 CHUNK_ROWS = 1 << 15
 MIN_CHUNK_ROWS = 1 << 12
 

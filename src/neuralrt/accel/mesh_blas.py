@@ -41,6 +41,14 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
                  for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
 
 
+# Embree's chunks may be smaller than other passes' (`host_threads.MIN_CHUNK_ROWS`): a ray costs
+# ~0.1-0.2 us, so 2,048 rays still outweigh a hand-off. A training batch (8,192 rays, its outside
+# rays first, then its surface rays, which cost ~2.3x as much) ran on 2 threads as two chunks,
+# one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 2.94 -> 2.74 ms a
+# step in the loop, medians of 6 alternating 400-step runs; docs/lsnif.md, session 44).
+EMBREE_MIN_CHUNK_ROWS = 1 << 11
+
+
 def _run_in_chunks(trace, n: int, threads: int | None) -> None:
     """``trace(slice)`` over consecutive chunks of ``range(n)``, on ``threads`` threads.
 
@@ -49,14 +57,6 @@ def _run_in_chunks(trace, n: int, threads: int | None) -> None:
     """
     threads = max(1, numba.get_num_threads() if threads is None else int(threads))
     run_chunks(trace, chunk_slices(n, threads, EMBREE_MIN_CHUNK_ROWS), threads, "embree")
-
-
-# Embree's chunks may be smaller than other passes' (`host_threads.MIN_CHUNK_ROWS`): a ray costs
-# ~0.1-0.2 us, so 2,048 rays still outweigh a hand-off. A training batch (8,192 rays, its outside
-# rays first, then its surface rays, which cost ~2.3x as much) ran on 2 threads as two chunks,
-# one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 2.94 -> 2.74 ms a
-# step in the loop, medians of 6 alternating 400-step runs; docs/lsnif.md, session 44).
-EMBREE_MIN_CHUNK_ROWS = 1 << 11
 
 
 def _backend_for(device: torch.device) -> type["MeshBLAS"]:

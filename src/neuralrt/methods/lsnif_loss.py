@@ -101,7 +101,7 @@ def training_loss_torch(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
 
 def _narrow(dst, i, j, value):
     """``dst[i, j] = value`` in ``dst``'s precision: fp32 as is, bf16 bits rounded as torch's cast."""
-    raise NotImplementedError("numba only")
+    raise NotImplementedError("_narrow is for numba kernels (an @overload)")
 
 
 @overload(_narrow, inline="always")
@@ -121,7 +121,7 @@ def _narrow_overload(dst, i, j, value):
 
 def _load_row16(row, start):
     """``row[start : start + 16]`` as fp32 lanes: fp32 as is, bf16 bits widened exactly."""
-    raise NotImplementedError("numba only")
+    raise NotImplementedError("_load_row16 is for numba kernels (an @overload)")
 
 
 @overload(_load_row16, inline="always")
@@ -133,7 +133,7 @@ def _load_row16_overload(row, start):
 
 def _store_row16(row, start, value):
     """``row[start : start + 16] = value`` in ``row``'s precision (bf16 bits rounded as `_narrow`)."""
-    raise NotImplementedError("numba only")
+    raise NotImplementedError("_store_row16 is for numba kernels (an @overload)")
 
 
 @overload(_store_row16, inline="always")

@@ -31,12 +31,11 @@ loop measures both on its own steps (`_OverlapTrial`): after `TRIAL_START` steps
 faster is kept. A machine's load changes during a run, and a trial can fall on a slow phase: every
 `RECHECK_EVERY` steps after it, one more window of the other mode and one of the kept mode run,
 and the mode is chosen again from the last `TRIAL_ROUNDS` windows of each (the other mode where
-it is `RECHECK_MARGIN` faster). The batches are the
-same either way, so the choice changes the speed alone. Drawing in turn ends the drawing thread:
-the OpenMP team its first parallel region started would stay, and with more OpenMP threads than
-cores libgomp spins ~100 iterations instead of `GOMP_SPINCOUNT` before sleeping, so every parallel
-region of the step would wake sleeping threads (steps 1.15x slower on 2 cores; docs/lsnif.md,
-session 40).
+it is `RECHECK_MARGIN` faster). The batches are the same either way, so the choice changes the
+speed alone. Drawing in turn ends the drawing thread: the OpenMP team its first parallel region
+started would stay, and with more OpenMP threads than cores libgomp spins ~100 iterations instead
+of `GOMP_SPINCOUNT` before sleeping, so every parallel region of the step would wake sleeping
+threads (steps 1.15x slower on 2 cores; docs/lsnif.md, session 40).
 """
 
 from __future__ import annotations
