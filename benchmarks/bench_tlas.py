@@ -1,5 +1,5 @@
 """Throughput of the exact intersection stack, layer by layer, on the same 1M rays in one process:
-embreex's `EmbreeScene.run` called directly (one call; and split over threads as `MeshBLAS` splits
+embreex's `EmbreeScene.run` called directly (one call; and split into chunks on a thread pool),
 it), `MeshBLAS`, and the scene TLAS (`SceneAccel`) over one instance with an identity transform,
 one with a rotation/scale/translation, and 16 instances of the mesh in a grid. Closest hit and
 occlusion. Prints a table and writes benchmarks/results/tlas.json.
@@ -123,11 +123,15 @@ def main() -> None:
     hit_frac = {name: float(h.hit.float().mean()) for name, h in hits.items()}
     del hits
     rows = []
+    from embreex import mesh_construction, rtcore_scene
+
+    direct = rtcore_scene.EmbreeScene()  # the same mesh in embreex's own scene (MeshBLAS calls Embree's C API itself)
+    mesh_construction.TriangleMesh(direct, mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32))
     with ThreadPoolExecutor(threads) as pool:
         for query in ("intersect", "occluded"):
             cases = {
-                "embreex direct": embree_direct(blas._scene, o, d, query, None),
-                f"embreex direct, {threads} threads": embree_direct(blas._scene, o, d, query, pool, threads),
+                "embreex direct": embree_direct(direct, o, d, query, None),
+                f"embreex direct, {threads} threads": embree_direct(direct, o, d, query, pool, threads),
                 "MeshBLAS": lambda: getattr(blas, query)(rays),
                 "SceneAccel identity": lambda: getattr(identity, query)(rays),
                 "SceneAccel transformed": lambda: getattr(moved, query)(world_rays),

@@ -11,8 +11,18 @@ from neuralrt.accel.mesh_blas import sample_texture_bilinear
 from neuralrt.geometry.mesh import MeshMaterial
 
 
+def embreex_scene(mesh: Mesh):
+    """The same mesh in embreex's own Embree scene: an independent path to the same library."""
+    from embreex import mesh_construction, rtcore_scene
+
+    scene = rtcore_scene.EmbreeScene()
+    mesh_construction.TriangleMesh(scene, mesh.vertices.astype(np.float32), mesh.faces.astype(np.int32))
+    return scene
+
+
 def reference_intersect(blas: MeshBLAS, rays: Rays) -> dict[str, np.ndarray]:
-    """Unfused numpy: validate, shift origins to t_min, one Embree call, interpolate attributes."""
+    """Unfused numpy: validate, shift origins to t_min, one call to embreex (not our Embree
+    bindings), interpolate attributes."""
     o, d, t_min, t_max = (x.numpy() for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))
     valid = (np.isfinite(o).all(1) & np.isfinite(d).all(1) & (np.abs(d).max(1) > 0)
              & ~np.isnan(t_min) & ~np.isnan(t_max) & (t_max > t_min))  # fmt: skip
@@ -21,7 +31,7 @@ def reference_intersect(blas: MeshBLAS, rays: Rays) -> dict[str, np.ndarray]:
     shifted = (np.where(valid[:, None], o, 0).astype(np.float32) + start[:, None] * direction).astype(np.float32)
     tfar = np.where(valid, np.minimum(t_max - t_min, np.float32(1e37)), -1.0).astype(np.float32)
     tfar = np.where(valid & ~np.isfinite(tfar), np.float32(1e37), tfar).astype(np.float32)
-    res = blas._scene.run(shifted, direction, dists=tfar, output=1)
+    res = embreex_scene(blas.mesh).run(shifted, direction, dists=tfar, output=1)
     prim = res["primID"].astype(np.int64)
     hit = (prim >= 0) & valid
     prim = np.where(hit, prim, -1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 
 import numba
 import numpy as np
@@ -22,6 +23,7 @@ from ..host_threads import chunk_slices, run_chunks
 from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
+from .embree_api import TriangleScene
 
 __all__ = ["MeshBLAS", "EmbreeMeshBLAS"]
 
@@ -47,6 +49,21 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 # one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 2.94 -> 2.74 ms a
 # step in the loop, medians of 6 alternating 400-step runs; docs/lsnif.md, session 44).
 EMBREE_MIN_CHUNK_ROWS = 1 << 11
+
+
+@contextmanager
+def _numba_threads(threads: int | None):
+    """numba's parallel regions on ``threads`` threads (at most NUMBA_NUM_THREADS) for this
+    thread's calls inside the block; None: as they are."""
+    if threads is None:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 def _run_in_chunks(trace, n: int, threads: int | None) -> None:
@@ -154,95 +171,45 @@ class _HitArrays:
         self.albedo = np.empty((n, 3), np.float32)
         self.mat = np.empty(n, np.int64)
         self.prim = np.empty(n, np.int64)
+        self.instance = np.full(n, -1, np.int64)  # a mesh on its own: no instance
         # Embree's (u, v), kept only where textures are applied afterwards.
         self.bary_u = np.empty(n if barycentrics else 0, np.float32)
         self.bary_v = np.empty(n if barycentrics else 0, np.float32)
 
     def records(self) -> tuple[np.ndarray, ...]:
         """The kernel's outputs, in its argument order."""
-        return self.hit, self.t, self.normal, self.geo, self.uv, self.albedo, self.mat, self.prim
+        return self.hit, self.t, self.normal, self.geo, self.uv, self.albedo, self.mat, self.prim, self.instance, self.bary_u, self.bary_v
 
 
 class EmbreeMeshBLAS(MeshBLAS):
-    """`MeshBLAS` on the CPU: Embree, with fused numba passes before and after each query, over
-    chunks of rays on ``threads`` threads. Answers rays on any device (moved to the host and back)."""
+    """`MeshBLAS` on the CPU: Embree 4 through its C API (`embree_api`), each query one parallel
+    numba pass (validate, trace, interpolate) on ``threads`` threads. Answers rays on any device
+    (moved to the host and back)."""
 
     backend = "embree"
 
     def __init__(self, mesh: Mesh, device=None, threads: int | None = None):
-        from embreex import mesh_construction, rtcore_scene
-
         self._init_common(mesh, device)
-        self._scene = rtcore_scene.EmbreeScene()
         # Shared vertices and an index buffer (18 B per triangle in Embree's copy) instead of a
         # [F, 3, 3] triangle soup (36 B, plus as much again for the soup we would build for it).
-        mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(mesh.vertices, dtype=np.float32),
-                                       np.ascontiguousarray(mesh.faces, dtype=np.int32))
-        # embreex builds the BVH lazily on the first query, unsafely if several threads query at
-        # once: build it now, with one ray, on this thread.
-        self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), dists=np.zeros(1, np.float32))
+        self._scene = TriangleScene(mesh.vertices, mesh.faces)
         self._face_normals = mesh.face_normals()
-        self.threads = threads  # chunks of rays traced in parallel; None: numba.get_num_threads()
+        self.threads = threads  # threads of a query; None: numba.get_num_threads()
 
     # -- queries ---------------------------------------------------------------------------------
-    def _embree_inputs(self, o, d, t_min, t_max) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Embree's view of float32 numpy rays: origins advanced to t_min, directions, tfar; valid.
-
-        Invalid rays become harmless placeholders (origin 0, direction +x, tfar -1): misses.
-        """
-        n = len(o)
-        shifted = np.empty((n, 3), np.float32)
-        tfar = np.empty(n, np.float32)
-        valid = np.empty(n, np.bool_)
-        n_invalid = kernels.prepare_embree_rays(o, d, t_min, t_max, shifted, tfar, valid)
-        if n_invalid or not d.flags.c_contiguous:
-            # Embree gets no NaN/zero directions; valid rays keep theirs (no copy when all are).
-            direction = np.empty((n, 3), np.float32)
-            kernels.placeholder_directions(d, valid, direction)
-            d = direction
-        return shifted, d, tfar, valid
-
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
         n = len(rays)
         if n == 0:
             return Hits.empty(0, rays.device)
-        m = self.mesh
-        rays_np = _rays_as_numpy(rays)
-        textured = any(material.texture is not None for material in m.materials)
-        material_albedo = self._material_albedo()
-        uvs = m.uvs if m.uvs is not None else _NO_ATTRIBUTE
-        colors = m.vertex_colors if m.vertex_colors is not None else _NO_ATTRIBUTE
+        textured = self.textured
         out = _HitArrays(n, barycentrics=textured)
-
-        def trace(chunk: slice) -> None:
-            o, d, t_min, t_max = (x[chunk] for x in rays_np)
-            o, d, tfar, valid = self._embree_inputs(o, d, t_min, t_max)
-            res = self._scene.run(o, d, dists=tfar, output=1)  # embreex writes the hit distance into dists
-            kernels.closest_hit_attributes(
-                res["primID"], res["tfar"], res["u"], res["v"], valid, t_min,
-                m.faces, self._face_normals, m.vertex_normals, m.face_material_ids, uvs, colors,
-                material_albedo, m.uvs is not None, m.vertex_colors is not None, not textured,
-                *(x[chunk] for x in out.records()),
-            )  # fmt: skip
-            if textured:
-                out.bary_u[chunk], out.bary_v[chunk] = res["u"], res["v"]
-
-        _run_in_chunks(trace, n, self.threads)
+        with _numba_threads(self.threads):
+            kernels.intersect_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), *self.surface_tables(), not textured, *out.records())
         if textured:
             self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
         dev = rays.device
-        return Hits(
-            hit=torch.from_numpy(out.hit).to(dev),
-            t=torch.from_numpy(out.t).to(dev),
-            normal=torch.from_numpy(out.normal).to(dev),
-            geometric_normal=torch.from_numpy(out.geo).to(dev),
-            uv=torch.from_numpy(out.uv).to(dev),
-            albedo=torch.from_numpy(out.albedo).to(dev),
-            material_id=torch.from_numpy(out.mat).to(dev),
-            primitive_id=torch.from_numpy(out.prim).to(dev),
-            instance_id=torch.from_numpy(np.full(n, -1, np.int64)).to(dev),  # numpy: no torch thread wake-up
-        )
+        return Hits(*(torch.from_numpy(x).to(dev) for x in out.records()[:9]))
 
     # -- raw queries (the scene TLAS's fused path: attributes only for the closest hit over all instances)
     @property
@@ -250,15 +217,20 @@ class EmbreeMeshBLAS(MeshBLAS):
         return any(material.texture is not None for material in self.mesh.materials)
 
     def trace_closest(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Embree's closest hits of prepared rays (`mesh_blas_kernels.prepare_embree_rays`'s
-        outputs, all valid): primID (-1: miss), t_far from the shifted origin, u, v; ``tfar`` is
-        overwritten. Releases the GIL, like `intersect`'s chunks."""
-        res = self._scene.run(shifted, directions, dists=tfar, output=1)
-        return res["primID"], res["tfar"], res["u"], res["v"]
+        """Embree's closest hits of prepared rays (`tlas_kernels`' preparation: origin moved to
+        t_min, interval length; all valid), on this thread: primID (-1: miss), t_far from the
+        shifted origin, u, v; ``tfar`` is overwritten. Releases the GIL (the TLAS runs chunks in
+        parallel threads)."""
+        n = shifted.shape[0]
+        prim, u, v = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
+        kernels.closest_prepared(self._scene.handle, shifted, directions, tfar, prim, u, v)
+        return prim, tfar, u, v
 
     def trace_occluded(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
-        """Embree's occlusion answers for prepared valid rays: geomID per ray (>= 0: blocked)."""
-        return self._scene.run(shifted, directions, dists=tfar, query="OCCLUDED")
+        """`trace_closest` for shadow rays: int32 per ray, >= 0 where blocked."""
+        geom = np.empty(shifted.shape[0], np.int32)
+        kernels.occluded_prepared(self._scene.handle, shifted, directions, tfar, geom)
+        return geom
 
     def surface_tables(self) -> tuple:
         """The mesh arrays the hit attributes read after ``(p, u, v)`` (`tlas_kernels.finish_hits`): faces, face
@@ -274,15 +246,9 @@ class EmbreeMeshBLAS(MeshBLAS):
         n = len(rays)
         if n == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
-        rays_np = _rays_as_numpy(rays)
         blocked = np.empty(n, np.bool_)
-
-        def trace(chunk: slice) -> None:
-            o, d, tfar, valid = self._embree_inputs(*(x[chunk] for x in rays_np))
-            geom = self._scene.run(o, d, dists=tfar, query="OCCLUDED")
-            kernels.occlusion_result(geom, valid, blocked[chunk])
-
-        _run_in_chunks(trace, n, self.threads)
+        with _numba_threads(self.threads):
+            kernels.occluded_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), blocked)
         return torch.from_numpy(blocked).to(rays.device)
 
     def _apply_textures_(self, albedo, hit, mat, uv, prim, bary_u, bary_v) -> None:

@@ -1,11 +1,11 @@
-"""Fused numba passes around an Embree query: one before (validate rays, move origins to t_min,
-clamp t_far) and one after (hit mask, t, interpolated hit attributes).
+"""`EmbreeMeshBLAS`'s queries as numba kernels: per ray, one pass validates it, moves its origin
+to t_min, traces it through Embree's C API (`embree_api`) and writes its hit record.
 
-`MeshBLAS` spent more time in numpy/torch glue (a dozen temporaries per ray, 2-thread torch
-validation, gathers over index arrays) than Embree spent tracing. These passes read each input
-once and write each output once. They release the GIL: `MeshBLAS` runs them, with Embree (which
-releases it too), on chunks of rays in parallel threads. All arithmetic stays in float32 and in the
-same order as the numpy code they replaced, so results are bit-identical to it.
+`MeshBLAS` once spent more time in numpy/torch glue (a dozen temporaries per ray, gathers over
+index arrays) than Embree spent tracing, then in Python threads handing chunks to embreex. Here
+each input is read once and each output written once, in one parallel region. All arithmetic
+stays in float32 and in the same order as the numpy reference in tests/test_mesh_blas_kernels.py,
+so results are bit-identical to it.
 """
 
 from __future__ import annotations
@@ -15,134 +15,176 @@ import math
 import numba
 import numpy as np
 
-from ..rays_kernels import valid_ray
+from ..rays_kernels import valid_ray, write_miss
+from .embree_api import (DIR, FLAGS, GEOM_ID, HIT_U, HIT_V, INST_ID, INVALID_ID, MASK, ORG, PRIM_ID, RAY_ID, TFAR, TIME,
+                         TNEAR, ray_record, rtc_intersect1, rtc_occluded1)  # fmt: skip
 
-__all__ = ["prepare_embree_rays", "placeholder_directions", "closest_hit_attributes", "occlusion_result"]
+__all__ = ["intersect_rays", "occluded_rays", "closest_prepared", "occluded_prepared", "EMBREE_TFAR_MAX"]
 
 # Embree works in float32; "infinite" t_max is passed as a large finite value.
 EMBREE_TFAR_MAX = np.float32(1e37)
 _NORMAL_EPS = np.float32(1e-12)
+# Rows a thread takes at a time: the threads take blocks in turn (thread k: blocks k, k + T, ...), so
+# a batch ordered by cost (a training batch: outside rays, then ~2.3x costlier surface rays) is
+# shared evenly; a block of rows is contiguous, so threads rarely write the same cache line.
+BLOCK_ROWS = 256
 
 
-@numba.njit(nogil=True, cache=True)
-def prepare_embree_rays(origins, directions, t_min, t_max, shifted, tfar, valid) -> int:
-    """Fill ``shifted`` [N,3] (origin moved to ``t_min``; Embree always starts at t = 0), ``tfar``
-    [N] (interval length, -1 for invalid rays) and ``valid`` [N]; returns the number of invalid rays.
+@numba.njit(cache=True, inline="always")
+def embree_ray(origins, directions, t_min, t_max, i):
+    """Ray ``i`` as Embree takes it: (valid, origin moved to ``t_min`` (Embree starts at t = 0),
+    interval length capped at EMBREE_TFAR_MAX). Valid as `neuralrt.rays.valid_ray_mask` defines it."""
+    if not valid_ray(origins, directions, t_min, t_max, i):
+        return False, np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(-1.0)
+    t0 = t_min[i]
+    start = t0 if np.isfinite(t0) else np.float32(0.0)
+    length = t_max[i] - t0  # float32, as t_max - t_min in numpy
+    if not (length <= EMBREE_TFAR_MAX):  # also catches NaN (-inf t_min with +inf t_max)
+        length = EMBREE_TFAR_MAX
+    return (True, origins[i, 0] + start * directions[i, 0], origins[i, 1] + start * directions[i, 1],
+            origins[i, 2] + start * directions[i, 2], length)  # fmt: skip
 
-    A ray is valid when its origin and direction are finite, its direction non-zero and
-    ``t_min < t_max`` (neither NaN), as `neuralrt.rays.valid_ray_mask` defines it.
-    """
+
+@numba.njit(cache=True, inline="always")
+def set_ray(words, ids, ox, oy, oz, dx, dy, dz, tfar) -> None:
+    """Fill the RTCRayHit ``words`` / ``ids`` (`embree_api.ray_record`) for a query from t = 0 to ``tfar``."""
+    words[ORG], words[ORG + 1], words[ORG + 2], words[TNEAR] = ox, oy, oz, np.float32(0.0)
+    words[DIR], words[DIR + 1], words[DIR + 2], words[TIME] = dx, dy, dz, np.float32(0.0)
+    words[TFAR] = tfar
+    ids[MASK], ids[RAY_ID], ids[FLAGS] = INVALID_ID, 0, 0  # mask: every bit set
+    ids[PRIM_ID], ids[GEOM_ID], ids[INST_ID] = INVALID_ID, INVALID_ID, INVALID_ID
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def intersect_rays(
+    scene, threads, origins, directions, t_min, t_max,
+    faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
+    use_uvs, use_vertex_colors, finish_albedo,
+    hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id, bary_u, bary_v,
+):  # fmt: skip
+    """Closest hits through Embree, with `hit_attributes` written per ray (misses as `Hits.empty`
+    writes them; ``instance_id`` is -1 already), by ``threads`` threads (numba.get_num_threads(),
+    passed: numba's own call makes a kernel uncacheable); Embree's (u, v) also go to ``bary_u`` / ``bary_v`` unless
+    those are empty (the caller's texture step reads them)."""
     n = origins.shape[0]
-    n_invalid = 0
-    for i in range(n):
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        t0, t1 = t_min[i], t_max[i]
-        ok = valid_ray(origins, directions, t_min, t_max, i)
-        valid[i] = ok
-        if not ok:
-            # A harmless placeholder that Embree skips (t_far < t_near = 0).
-            shifted[i, 0] = np.float32(0.0)
-            shifted[i, 1] = np.float32(0.0)
-            shifted[i, 2] = np.float32(0.0)
-            tfar[i] = np.float32(-1.0)
-            n_invalid += 1
-            continue
-        start = t0 if np.isfinite(t0) else np.float32(0.0)
-        shifted[i, 0] = ox + start * dx
-        shifted[i, 1] = oy + start * dy
-        shifted[i, 2] = oz + start * dz
-        length = t1 - t0  # float32, as t_max - t_min in numpy
-        if not (length <= EMBREE_TFAR_MAX):  # also catches NaN (-inf t_min with +inf t_max)
-            length = EMBREE_TFAR_MAX
-        tfar[i] = length
-    return n_invalid
+    keep_barycentrics = bary_u.shape[0] > 0
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    for k in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(k, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
+                if ok:
+                    set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
+                    rtc_intersect1(scene, address)
+                if not ok or ids[GEOM_ID] == INVALID_ID:
+                    write_miss(i, hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id)
+                    continue
+                u, v = words[HIT_U], words[HIT_V]
+                if keep_barycentrics:
+                    bary_u[i], bary_v[i] = u, v
+                hit_attributes(i, np.int64(ids[PRIM_ID]), words[TFAR], u, v, t_min[i],
+                               faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
+                               use_uvs, use_vertex_colors, finish_albedo,
+                               hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id)  # fmt: skip
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def occluded_rays(scene, threads, origins, directions, t_min, t_max, blocked) -> None:
+    """``blocked[i]``: Embree finds a triangle within ray i's interval (invalid rays: False); as
+    `intersect_rays`, by ``threads`` threads."""
+    n = origins.shape[0]
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    for k in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(k, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
+                if ok:
+                    set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
+                    rtc_occluded1(scene, address)
+                blocked[i] = ok and words[TFAR] == -np.inf  # Embree's mark of a blocked ray
 
 
 @numba.njit(nogil=True, cache=True)
-def placeholder_directions(directions, valid, out) -> None:
-    """``out`` = ``directions`` with invalid rows replaced by (1, 0, 0), so Embree never sees NaN."""
-    for i in range(directions.shape[0]):
-        if valid[i]:
-            out[i, 0], out[i, 1], out[i, 2] = directions[i, 0], directions[i, 1], directions[i, 2]
-        else:
-            out[i, 0], out[i, 1], out[i, 2] = np.float32(1.0), np.float32(0.0), np.float32(0.0)
+def closest_prepared(scene, shifted, directions, tfar, prim_id, bary_u, bary_v) -> None:
+    """Closest hits of prepared valid rays (origin at t = 0, interval length ``tfar``), on this
+    thread (the scene TLAS runs it per chunk): ``prim_id`` (-1: miss), ``tfar`` overwritten with
+    the hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
+    words, ids, address = ray_record()
+    for i in range(shifted.shape[0]):
+        set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
+                directions[i, 2], tfar[i])  # fmt: skip
+        rtc_intersect1(scene, address)
+        found = ids[GEOM_ID] != INVALID_ID
+        prim_id[i] = np.int32(ids[PRIM_ID]) if found else np.int32(-1)
+        if found:
+            tfar[i] = words[TFAR]
+        bary_u[i], bary_v[i] = words[HIT_U], words[HIT_V]
 
 
 @numba.njit(nogil=True, cache=True)
-def occlusion_result(geom_id, valid, out) -> None:
-    """``out`` = Embree reported a blocker (geomID >= 0) on a valid ray."""
-    for i in range(geom_id.shape[0]):
-        out[i] = geom_id[i] >= 0 and valid[i]
+def occluded_prepared(scene, shifted, directions, tfar, geom_id) -> None:
+    """`closest_prepared` for shadow rays: ``geom_id`` 0 where blocked, -1 where not."""
+    words, ids, address = ray_record()
+    for i in range(shifted.shape[0]):
+        set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
+                directions[i, 2], tfar[i])  # fmt: skip
+        rtc_occluded1(scene, address)
+        geom_id[i] = 0 if words[TFAR] == -np.inf else -1
 
 
-@numba.njit(nogil=True, cache=True)
-def closest_hit_attributes(
-    prim_id, tfar, bary_u, bary_v, valid, t_min,
+@numba.njit(cache=True, inline="always")
+def hit_attributes(
+    i, p, tfar, bu, bv, t_min,
     faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
     use_uvs, use_vertex_colors, finish_albedo,
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id,
 ):  # fmt: skip
-    """Per-ray hit record from Embree's primID / tfar / (u, v), written into the output arrays.
+    """Row ``i``'s hit record from Embree's hit: triangle ``p``, distance ``tfar`` from the origin
+    moved to ``t_min``, barycentrics (``bu``, ``bv``), written into the output arrays.
 
-    Misses get t = inf, zero normals and uv, albedo 1, material and primitive id -1. For hits the
-    shading normal interpolates ``vertex_normals`` (falling back to the face normal when that
+    The shading normal interpolates ``vertex_normals`` (falling back to the face normal when that
     vanishes); ``uv`` interpolates ``uvs`` when ``use_uvs`` (zeros otherwise). ``albedo`` is
     ``material_albedo[clip(material)]``; with ``finish_albedo`` it is also multiplied by the
     interpolated vertex colour (``use_vertex_colors``) and clipped to [0, 1] — without it the caller
     still applies textures, vertex colours and the clip.
     """
-    n = prim_id.shape[0]
     n_materials = material_albedo.shape[0]
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    for i in range(n):
-        p = prim_id[i]
-        if p < 0 or not valid[i]:
-            hit[i] = False
-            t[i] = np.inf
-            for c in range(3):
-                normal[i, c] = zero
-                geometric_normal[i, c] = zero
-                albedo[i, c] = one
-            uv[i, 0] = zero
-            uv[i, 1] = zero
-            material_id[i] = -1
-            primitive_id[i] = -1
-            continue
-        hit[i] = True
-        # Embree measured from the origin moved to t_min (to the origin itself when t_min = -inf).
-        t[i] = tfar[i] + (t_min[i] if np.isfinite(t_min[i]) else zero)
-        primitive_id[i] = p
-        # Embree's (u, v) weight vertices 1 and 2 of the triangle.
-        bu, bv = bary_u[i], bary_v[i]
-        bw = one - bu - bv
-        a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
-        sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
-        sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
-        sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
-        gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
-        geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2] = gx, gy, gz
-        # float32 square root of a float32 sum, as np.linalg.norm computes it.
-        length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))
-        if length > _NORMAL_EPS:
-            normal[i, 0], normal[i, 1], normal[i, 2] = sx / length, sy / length, sz / length
-        else:
-            normal[i, 0], normal[i, 1], normal[i, 2] = gx, gy, gz
-        m = face_material_ids[p]
-        material_id[i] = m
-        if use_uvs:
-            uv[i, 0] = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
-            uv[i, 1] = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
-        else:
-            uv[i, 0] = zero
-            uv[i, 1] = zero
-        k = min(max(m, 0), n_materials - 1)
-        for c in range(3):
-            value = material_albedo[k, c]
-            if finish_albedo:
-                if use_vertex_colors:
-                    cv = bw * vertex_colors[a, c] + bu * vertex_colors[b, c] + bv * vertex_colors[c3, c]
-                    value = value * cv
-                value = min(max(value, zero), one)
-            albedo[i, c] = value
+    hit[i] = True
+    # Embree measured from the origin moved to t_min (to the origin itself when t_min = -inf).
+    t[i] = tfar + (t_min if np.isfinite(t_min) else zero)
+    primitive_id[i] = p
+    # Embree's (u, v) weight vertices 1 and 2 of the triangle.
+    bw = one - bu - bv
+    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
+    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
+    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
+    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
+    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
+    geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2] = gx, gy, gz
+    # float32 square root of a float32 sum, as np.linalg.norm computes it.
+    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))
+    if length > _NORMAL_EPS:
+        normal[i, 0], normal[i, 1], normal[i, 2] = sx / length, sy / length, sz / length
+    else:
+        normal[i, 0], normal[i, 1], normal[i, 2] = gx, gy, gz
+    m = face_material_ids[p]
+    material_id[i] = m
+    if use_uvs:
+        uv[i, 0] = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
+        uv[i, 1] = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
+    else:
+        uv[i, 0] = zero
+        uv[i, 1] = zero
+    k = min(max(m, 0), n_materials - 1)
+    for c in range(3):
+        value = material_albedo[k, c]
+        if finish_albedo:
+            if use_vertex_colors:
+                cv = bw * vertex_colors[a, c] + bu * vertex_colors[b, c] + bv * vertex_colors[c3, c]
+                value = value * cv
+            value = min(max(value, zero), one)
+        albedo[i, c] = value
