@@ -1,6 +1,6 @@
 """Throughput of the exact intersection stack, layer by layer, on the same 1M rays in one process:
 embreex's `EmbreeScene.run` called directly (one call; and split into chunks on a thread pool),
-it), `MeshBLAS`, and the scene TLAS (`SceneAccel`) over one instance with an identity transform,
+`MeshBLAS`, and the scene TLAS (`SceneAccel`) over one instance with an identity transform,
 one with a rotation/scale/translation, and 16 instances of the mesh in a grid. Closest hit and
 occlusion. Prints a table and writes benchmarks/results/tlas.json.
 
