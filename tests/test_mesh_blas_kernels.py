@@ -6,7 +6,6 @@ import torch
 import trimesh
 
 from neuralrt import Mesh, MeshBLAS, Rays, host_threads
-from neuralrt.accel import mesh_blas
 from neuralrt.accel.mesh_blas import sample_texture_bilinear
 from neuralrt.geometry.mesh import MeshMaterial
 
@@ -136,15 +135,6 @@ def test_chunks_cover_the_batch_and_feed_every_thread(n, threads):
         assert len(chunks) >= 2 * threads  # 2^18 rays on 16 threads: 32 chunks, not 8
     sizes = [c.stop - c.start for c in chunks]
     assert not sizes or max(sizes) - min(sizes) <= 1  # equal to a row: 5,000 rays on 2 threads are 2,500 + 2,500
-
-
-def test_a_training_batch_gives_each_thread_outside_and_surface_rays():
-    """Embree's smaller chunks (`EMBREE_MIN_CHUNK_ROWS`): a batch of 8,192 rays (outside rays, then
-    the costlier surface rays) in four chunks on 2 threads, so each thread takes one of each kind;
-    with other passes' minimum, two."""
-    assert [(c.start, c.stop) for c in host_threads.chunk_slices(8192, 2, mesh_blas.EMBREE_MIN_CHUNK_ROWS)] == [
-        (0, 2048), (2048, 4096), (4096, 6144), (6144, 8192)]
-    assert len(host_threads.chunk_slices(8192, 2)) == 2
 
 
 def test_strided_inputs_match_contiguous():

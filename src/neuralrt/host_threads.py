@@ -1,5 +1,6 @@
-"""Host threads for CPU kernels that release the GIL (Embree, the TLAS and shading passes): a batch
-cut into balanced chunks, run on one shared thread pool per purpose and process."""
+"""Host threads for CPU kernels that release the GIL (the shading passes): a batch cut into
+balanced chunks, run on one shared thread pool per purpose and process. (Embree's queries and the
+TLAS run as numba parallel regions instead: `mesh_blas_kernels`.)"""
 
 from __future__ import annotations
 
@@ -23,13 +24,13 @@ T = TypeVar("T")
 _pools: dict[str, tuple[int, int, ThreadPoolExecutor]] = {}  # purpose -> (process id, workers, pool)
 
 
-def chunk_slices(n: int, threads: int, min_rows: int = MIN_CHUNK_ROWS) -> list[slice]:
+def chunk_slices(n: int, threads: int) -> list[slice]:
     """Consecutive chunks of ``range(n)`` of equal size (to a row), none for no rows: at most
-    CHUNK_ROWS rows each; two per thread where ``n`` fills them with ``min_rows`` rows, else one
-    per ``min_rows`` rows begun (5,000 rows: 2,500 + 2,500)."""
+    CHUNK_ROWS rows each; two per thread where ``n`` fills them with MIN_CHUNK_ROWS rows, else one
+    per MIN_CHUNK_ROWS rows begun (5,000 rows: 2,500 + 2,500)."""
     if n == 0:
         return []
-    count = max(-(-n // CHUNK_ROWS), min(2 * max(1, threads), -(-n // min_rows)))
+    count = max(-(-n // CHUNK_ROWS), min(2 * max(1, threads), -(-n // MIN_CHUNK_ROWS)))
     return [slice(i * n // count, (i + 1) * n // count) for i in range(count)]
 
 

@@ -19,7 +19,6 @@ import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
-from ..host_threads import chunk_slices, run_chunks
 from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
@@ -43,16 +42,8 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
                  for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
 
 
-# Embree's chunks may be smaller than other passes' (`host_threads.MIN_CHUNK_ROWS`): a ray costs
-# ~0.1-0.2 us, so 2,048 rays still outweigh a hand-off. A training batch (8,192 rays, its outside
-# rays first, then its surface rays, which cost ~2.3x as much) ran on 2 threads as two chunks,
-# one of each kind; as four, each thread gets one of each (bunny `hq`, the draw 2.94 -> 2.74 ms a
-# step in the loop, medians of 6 alternating 400-step runs; docs/lsnif.md, session 44).
-EMBREE_MIN_CHUNK_ROWS = 1 << 11
-
-
 @contextmanager
-def _numba_threads(threads: int | None):
+def numba_threads(threads: int | None):
     """numba's parallel regions on ``threads`` threads (at most NUMBA_NUM_THREADS) for this
     thread's calls inside the block; None: as they are."""
     if threads is None:
@@ -64,16 +55,6 @@ def _numba_threads(threads: int | None):
         yield
     finally:
         numba.set_num_threads(before)
-
-
-def _run_in_chunks(trace, n: int, threads: int | None) -> None:
-    """``trace(slice)`` over consecutive chunks of ``range(n)``, on ``threads`` threads.
-
-    Embree and our kernels release the GIL, so the chunks really run in parallel; each chunk
-    writes its own rows of the outputs, so the result does not depend on the thread count.
-    """
-    threads = max(1, numba.get_num_threads() if threads is None else int(threads))
-    run_chunks(trace, chunk_slices(n, threads, EMBREE_MIN_CHUNK_ROWS), threads, "embree")
 
 
 def _backend_for(device: torch.device) -> type["MeshBLAS"]:
@@ -204,7 +185,7 @@ class EmbreeMeshBLAS(MeshBLAS):
             return Hits.empty(0, rays.device)
         textured = self.textured
         out = _HitArrays(n, barycentrics=textured)
-        with _numba_threads(self.threads):
+        with numba_threads(self.threads):
             kernels.intersect_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), *self.surface_tables(), not textured, *out.records())
         if textured:
             self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
@@ -216,20 +197,26 @@ class EmbreeMeshBLAS(MeshBLAS):
     def textured(self) -> bool:
         return any(material.texture is not None for material in self.mesh.materials)
 
+    @property
+    def scene_handle(self) -> int:
+        """The Embree scene the scene TLAS's fused kernels trace (`embree_api.TriangleScene.handle`)."""
+        return self._scene.handle
+
     def trace_closest(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Embree's closest hits of prepared rays (`tlas_kernels`' preparation: origin moved to
-        t_min, interval length; all valid), on this thread: primID (-1: miss), t_far from the
-        shifted origin, u, v; ``tfar`` is overwritten. Releases the GIL (the TLAS runs chunks in
-        parallel threads)."""
+        """Embree's closest hits of prepared rays (`tlas_kernels.pair_embree_rays`' preparation:
+        origin moved to t_min, interval length; all valid): primID (-1: miss), t_far from the
+        shifted origin, u, v; ``tfar`` is overwritten."""
         n = shifted.shape[0]
         prim, u, v = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
-        kernels.closest_prepared(self._scene.handle, shifted, directions, tfar, prim, u, v)
+        with numba_threads(self.threads):
+            kernels.closest_prepared(self._scene.handle, numba.get_num_threads(), shifted, directions, tfar, prim, u, v)
         return prim, tfar, u, v
 
     def trace_occluded(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
         """`trace_closest` for shadow rays: int32 per ray, >= 0 where blocked."""
         geom = np.empty(shifted.shape[0], np.int32)
-        kernels.occluded_prepared(self._scene.handle, shifted, directions, tfar, geom)
+        with numba_threads(self.threads):
+            kernels.occluded_prepared(self._scene.handle, numba.get_num_threads(), shifted, directions, tfar, geom)
         return geom
 
     def surface_tables(self) -> tuple:
@@ -247,7 +234,7 @@ class EmbreeMeshBLAS(MeshBLAS):
         if n == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
         blocked = np.empty(n, np.bool_)
-        with _numba_threads(self.threads):
+        with numba_threads(self.threads):
             kernels.occluded_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), blocked)
         return torch.from_numpy(blocked).to(rays.device)
 

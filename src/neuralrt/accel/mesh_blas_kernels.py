@@ -106,32 +106,40 @@ def occluded_rays(scene, threads, origins, directions, t_min, t_max, blocked) ->
                 blocked[i] = ok and words[TFAR] == -np.inf  # Embree's mark of a blocked ray
 
 
-@numba.njit(nogil=True, cache=True)
-def closest_prepared(scene, shifted, directions, tfar, prim_id, bary_u, bary_v) -> None:
-    """Closest hits of prepared valid rays (origin at t = 0, interval length ``tfar``), on this
-    thread (the scene TLAS runs it per chunk): ``prim_id`` (-1: miss), ``tfar`` overwritten with
-    the hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
-    words, ids, address = ray_record()
-    for i in range(shifted.shape[0]):
-        set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
-                directions[i, 2], tfar[i])  # fmt: skip
-        rtc_intersect1(scene, address)
-        found = ids[GEOM_ID] != INVALID_ID
-        prim_id[i] = np.int32(ids[PRIM_ID]) if found else np.int32(-1)
-        if found:
-            tfar[i] = words[TFAR]
-        bary_u[i], bary_v[i] = words[HIT_U], words[HIT_V]
+@numba.njit(parallel=True, nogil=True, cache=True)
+def closest_prepared(scene, threads, shifted, directions, tfar, prim_id, bary_u, bary_v) -> None:
+    """Closest hits of prepared valid rays (origin at t = 0, interval length ``tfar``; the scene
+    TLAS's pairs), on ``threads`` threads: ``prim_id`` (-1: miss), ``tfar`` overwritten with the
+    hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
+    n = shifted.shape[0]
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    for k in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(k, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
+                        directions[i, 2], tfar[i])  # fmt: skip
+                rtc_intersect1(scene, address)
+                found = ids[GEOM_ID] != INVALID_ID
+                prim_id[i] = np.int32(ids[PRIM_ID]) if found else np.int32(-1)
+                if found:
+                    tfar[i] = words[TFAR]
+                bary_u[i], bary_v[i] = words[HIT_U], words[HIT_V]
 
 
-@numba.njit(nogil=True, cache=True)
-def occluded_prepared(scene, shifted, directions, tfar, geom_id) -> None:
+@numba.njit(parallel=True, nogil=True, cache=True)
+def occluded_prepared(scene, threads, shifted, directions, tfar, geom_id) -> None:
     """`closest_prepared` for shadow rays: ``geom_id`` 0 where blocked, -1 where not."""
-    words, ids, address = ray_record()
-    for i in range(shifted.shape[0]):
-        set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
-                directions[i, 2], tfar[i])  # fmt: skip
-        rtc_occluded1(scene, address)
-        geom_id[i] = 0 if words[TFAR] == -np.inf else -1
+    n = shifted.shape[0]
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    for k in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(k, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
+                        directions[i, 2], tfar[i])  # fmt: skip
+                rtc_occluded1(scene, address)
+                geom_id[i] = 0 if words[TFAR] == -np.inf else -1
 
 
 @numba.njit(cache=True, inline="always")

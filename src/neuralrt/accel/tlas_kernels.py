@@ -19,10 +19,11 @@ from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray, write_miss
 from ..simd import prefetch_row
+from .embree_api import GEOM_ID, HIT_U, HIT_V, INVALID_ID, PRIM_ID, TFAR, ray_record, rtc_intersect1, rtc_occluded1
+from .mesh_blas_kernels import BLOCK_ROWS, EMBREE_TFAR_MAX, set_ray
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
-           "instance_embree_rays", "pair_embree_rays", "merge_instance_hits", "merge_pair_hits", "finish_hits",
-           "instance_occlusion_rays", "mark_blocked"]
+           "instance_closest_hits", "instance_occluded", "pair_embree_rays", "merge_pair_hits", "finish_hits", "mark_blocked"]
 
 _FLOAT32_MAX = np.float32(np.finfo(np.float32).max)
 
@@ -343,58 +344,92 @@ def merge_pairs(
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
-def _embree_ray(ox, oy, oz, dx, dy, dz, t0, t1, out_origins, out_directions, out_tfar, j) -> bool:
-    """`mesh_blas_kernels.prepare_embree_rays` for one object-space ray with interval (t0, t1), into
-    row ``j``; False (nothing written) for an invalid ray, which Embree need not see."""
+def _embree_ray(ox, oy, oz, dx, dy, dz, t0, t1):
+    """`mesh_blas_kernels.embree_ray` for one object-space ray with interval (t0, t1): (valid,
+    origin moved to t0, interval length capped); an invalid ray Embree need not see."""
     ok = (np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz) and np.isfinite(dx) and np.isfinite(dy)
           and np.isfinite(dz) and (dx != 0 or dy != 0 or dz != 0) and t1 > t0)  # fmt: skip
     if not ok:
-        return False
+        return False, np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(0.0)
     start = t0 if np.isfinite(t0) else np.float32(0.0)
-    out_origins[j, 0] = ox + start * dx
-    out_origins[j, 1] = oy + start * dy
-    out_origins[j, 2] = oz + start * dz
-    out_directions[j, 0], out_directions[j, 1], out_directions[j, 2] = dx, dy, dz
     length = t1 - t0
-    if not (length <= _EMBREE_TFAR_MAX):
-        length = _EMBREE_TFAR_MAX
-    out_tfar[j] = length
-    return True
+    if not (length <= EMBREE_TFAR_MAX):
+        length = EMBREE_TFAR_MAX
+    return True, ox + start * dx, oy + start * dy, oz + start * dz, length
 
 
-_EMBREE_TFAR_MAX = np.float32(1e37)  # as mesh_blas_kernels.EMBREE_TFAR_MAX
-
-
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def instance_embree_rays(origins, directions, t_min, t_max, best_t, has_best, lo, hi, world_to_object, identity,
-                         out_origins, out_directions, out_tfar, out_ray) -> int:  # fmt: skip
-    """A one-instance group's broad phase, ray mapping and Embree preparation in one pass: rays
-    that are valid and whose interval ``(t_min, t_limit)`` meets the instance's box (``lo``/``hi``
-    [1, 3]; ``t_limit`` = ``t_max``, or ``min(t_max, best_t)`` with ``has_best``) and that are valid in
-    object space get Embree's inputs (origin moved to t_min, direction, t_far), compacted, with
-    their row in ``out_ray``; returns their count. The same float32 values as `instance_overlaps`,
-    `transform_rays` and `prepare_embree_rays` in sequence."""
-    count = 0
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi, world_to_object, identity):
+    """Ray ``i`` of a one-instance group as Embree takes it: (traced, origin moved to t_min and
+    direction in object space, interval length). Traced when the ray is valid, its interval
+    ``(t_min, limit)`` meets the instance's box (``lo``/``hi`` [1, 3]) and it is valid in object
+    space. The same float32 values as `instance_overlaps`, `transform_rays` and
+    `mesh_blas_kernels.embree_ray` in sequence."""
+    zero = np.float32(0.0)
+    ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+    dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+    if not valid_ray(origins, directions, t_min, t_max, i):
+        return False, zero, zero, zero, dx, dy, dz, zero
     one = np.float32(1.0)
-    for i in range(origins.shape[0]):
-        if not valid_ray(origins, directions, t_min, t_max, i):
-            continue
-        limit = t_max[i]
-        if has_best:
-            limit = min(limit, best_t[i])  # best_t is never NaN, so this is torch.minimum
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        if not _box_overlap(ox, oy, oz, one / dx, one / dy, one / dz, lo, hi, 0, t_min[i], limit):
-            continue
-        if not identity:
-            m = world_to_object
-            ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
-                                      _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
-                                      _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
-        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], limit, out_origins, out_directions, out_tfar, count):
-            out_ray[count] = i
-            count += 1
-    return count
+    if not _box_overlap(ox, oy, oz, one / dx, one / dy, one / dz, lo, hi, 0, t_min[i], limit):
+        return False, zero, zero, zero, dx, dy, dz, zero
+    if not identity:
+        m = world_to_object
+        ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
+                                  _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
+                                  _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
+    ok, sx, sy, sz, tfar = _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], limit)
+    return ok, sx, sy, sz, dx, dy, dz, tfar
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
+def instance_closest_hits(scene, threads, origins, directions, t_min, t_max, has_best, lo, hi, world_to_object, identity, k,
+                          best_t, best_prim, best_u, best_v, best_instance) -> None:  # fmt: skip
+    """A one-instance group's (instance ``k``, its mesh's Embree ``scene``) closest-hit step, per
+    ray on ``threads`` threads: broad phase and mapping (`_instance_embree_ray`, the interval's end
+    ``min(t_max, best_t)`` with ``has_best``), Embree, and the merge: a hit's t (Embree's t_far
+    from the origin moved to t_min) replaces the ray's best where it is closer (anywhere without
+    ``has_best``), as `merge_every_ray` decides."""
+    n = origins.shape[0]
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    zero = np.float32(0.0)
+    for thread in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(thread, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                limit = min(t_max[i], best_t[i]) if has_best else t_max[i]  # best_t is never NaN: torch.minimum
+                ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi,
+                                                                        world_to_object, identity)  # fmt: skip
+                if not ok:
+                    continue
+                set_ray(words, ids, sx, sy, sz, dx, dy, dz, tfar)
+                rtc_intersect1(scene, address)
+                if ids[GEOM_ID] == INVALID_ID:
+                    continue
+                t = words[TFAR] + (t_min[i] if np.isfinite(t_min[i]) else zero)
+                if has_best and not (t < best_t[i]):
+                    continue
+                best_t[i], best_prim[i], best_u[i], best_v[i], best_instance[i] = t, ids[PRIM_ID], words[HIT_U], words[HIT_V], k
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
+def instance_occluded(scene, threads, origins, directions, t_min, t_max, blocked, lo, hi, world_to_object, identity) -> None:
+    """`instance_closest_hits` for shadow rays: rays not yet ``blocked`` whose interval (t_min,
+    t_max) meets the box, valid in object space, are traced and marked where Embree finds a blocker."""
+    n = origins.shape[0]
+    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
+    for thread in numba.prange(threads):
+        words, ids, address = ray_record()
+        for b in range(thread, blocks, threads):
+            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+                if blocked[i]:
+                    continue
+                ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, t_max[i], lo, hi,
+                                                                        world_to_object, identity)  # fmt: skip
+                if ok:
+                    set_ray(words, ids, sx, sy, sz, dx, dy, dz, tfar)
+                    rtc_occluded1(scene, address)
+                    blocked[i] = words[TFAR] == -np.inf
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
@@ -413,28 +448,14 @@ def pair_embree_rays(origins, directions, t_min, t_limit, ray_idx, inst_idx, wor
             ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
                                       _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
                                       _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
-        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[r], t_limit[r], out_origins, out_directions, out_tfar, count):
+        ok, sx, sy, sz, tfar = _embree_ray(ox, oy, oz, dx, dy, dz, t_min[r], t_limit[r])
+        if ok:
+            out_origins[count, 0], out_origins[count, 1], out_origins[count, 2] = sx, sy, sz
+            out_directions[count, 0], out_directions[count, 1], out_directions[count, 2] = dx, dy, dz
+            out_tfar[count] = tfar
             out_pair[count] = p
             count += 1
     return count
-
-
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def merge_instance_hits(out_ray, prim, tfar, bary_u, bary_v, t_min, has_best, k, best_t, best_prim, best_u, best_v,
-                        best_instance) -> None:  # fmt: skip
-    """Embree's answers (row ``j`` for ray ``out_ray[j]`` of a one-instance group ``k``): a hit's t
-    (Embree's t_far from the origin moved to t_min) replaces the ray's best where it is closer
-    (anywhere without ``has_best``), as `merge_every_ray` decides."""
-    zero = np.float32(0.0)
-    for j in range(out_ray.shape[0]):
-        p = prim[j]
-        if p < 0:
-            continue
-        r = out_ray[j]
-        t = tfar[j] + (t_min[r] if np.isfinite(t_min[r]) else zero)
-        if has_best and not (t < best_t[r]):
-            continue
-        best_t[r], best_prim[r], best_u[r], best_v[r], best_instance[r] = t, p, bary_u[j], bary_v[j], k
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
@@ -496,7 +517,7 @@ def _surface_at(p, bu, bv, faces, face_normals, vertex_normals, face_material_id
 _NORMAL_EPS = np.float32(1e-12)  # as mesh_blas_kernels: below it the interpolated normal counts as vanished
 
 
-@numba.njit(nogil=True, cache=True, error_model="numpy")
+@numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
 def finish_hits(
     best_t, best_prim, best_u, best_v, best_instance, instance_group, group, write_misses,
     faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo, use_uvs, use_vertex_colors,
@@ -508,7 +529,7 @@ def finish_hits(
     ``write_misses`` also the rows of `Hits.empty` for rays that hit nothing."""
     n_map = material_maps.shape[1]
     n = best_t.shape[0]
-    for r in range(n):
+    for r in numba.prange(n):
         ahead = r + _FACE_AHEAD
         if ahead < n and best_instance[ahead] >= 0 and instance_group[best_instance[ahead]] == group:
             q = best_prim[ahead]
@@ -545,31 +566,6 @@ def finish_hits(
         material_id[r] = material_maps[k, min(max(m, 0), n_map - 1)]
         primitive_id[r] = p
         instance_id[r] = k
-
-
-@numba.njit(nogil=True, cache=True, error_model="numpy")
-def instance_occlusion_rays(origins, directions, t_min, t_max, blocked, lo, hi, world_to_object, identity,
-                            out_origins, out_directions, out_tfar, out_ray) -> int:  # fmt: skip
-    """`instance_embree_rays` for shadow rays: rays not yet ``blocked`` whose interval (t_min, t_max)
-    meets the box, valid in object space, compacted for Embree's occlusion query."""
-    count = 0
-    one = np.float32(1.0)
-    for i in range(origins.shape[0]):
-        if blocked[i] or not valid_ray(origins, directions, t_min, t_max, i):
-            continue
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        if not _box_overlap(ox, oy, oz, one / dx, one / dy, one / dz, lo, hi, 0, t_min[i], t_max[i]):
-            continue
-        if not identity:
-            m = world_to_object
-            ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
-                                      _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
-                                      _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
-        if _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], t_max[i], out_origins, out_directions, out_tfar, count):
-            out_ray[count] = i
-            count += 1
-    return count
 
 
 @numba.njit(nogil=True, cache=True)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -256,14 +257,14 @@ class NumbaTLASStages:
 
     def intersect_fused(self, rays: Rays, groups) -> Hits | None:
         """Closest hits of a scene with at least one untextured `EmbreeMeshBLAS` group (else None).
-        Per such group, one pass per chunk of rays does the broad phase, the object-space mapping
+        Per such group, one parallel pass does the broad phase, the object-space mapping
         and Embree's preparation (one-instance groups; pairs from `candidate_pairs` otherwise),
         Embree answers, and only (t, triangle, u, v, instance) is merged; hit attributes are
         computed once, for each ray's final hit (`BLAS.intersect` computes them for every ray of
         every group, and merging copies them). Other groups (neural models, textured meshes) take
         their group-by-group step (`intersect_group`) in their turn, merged into the same records.
         The same float32 operations as the group-by-group stages: the same Hits."""
-        from .mesh_blas import _run_in_chunks
+        from .mesh_blas import numba_threads
 
         embree = [self._embree_closest(g) for g in groups]
         if not self.fused_meshes or not any(embree):
@@ -286,19 +287,11 @@ class NumbaTLASStages:
                 continue
             if ids.shape[0] == 1:
                 k = int(ids[0])
-
-                def trace(chunk: slice) -> None:
-                    m = chunk.stop - chunk.start
-                    so, sd, tfar, row = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m, np.int64)
-                    count = kernels.instance_embree_rays(o[chunk], d[chunk], t_min[chunk], t_max[chunk], best_t[chunk], has_best,
-                                                         self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
-                                                         bool(self._is_identity[k]), so, sd, tfar, row)  # fmt: skip
-                    if count:
-                        prim, tfar_out, u, v = blas.trace_closest(so[:count], sd[:count], tfar[:count])
-                        kernels.merge_instance_hits(row[:count], prim, tfar_out, u, v, t_min[chunk], has_best, k, best_t[chunk],
-                                                    best_prim[chunk], best_u[chunk], best_v[chunk], best_instance[chunk])  # fmt: skip
-
-                _run_in_chunks(trace, n, blas.threads)
+                with numba_threads(blas.threads):
+                    kernels.instance_closest_hits(blas.scene_handle, numba.get_num_threads(), o, d, t_min, t_max, has_best,
+                                                  self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
+                                                  bool(self._is_identity[k]), k, best_t, best_prim, best_u, best_v,
+                                                  best_instance)  # fmt: skip
                 continue
             t_limit = torch.from_numpy(t_max if not has_best else np.minimum(t_max, best_t))
             ray_idx, inst_idx, _ = self.candidate_pairs(rays, group.instance_ids, t_limit, None)
@@ -309,13 +302,7 @@ class NumbaTLASStages:
             so, sd, tfar, pair = np.empty((p, 3), np.float32), np.empty((p, 3), np.float32), np.empty(p, np.float32), np.empty(p, np.int64)
             count = kernels.pair_embree_rays(o, d, t_min, limit, ray_np, inst_np, self._world_to_object, self._is_identity,
                                              so, sd, tfar, pair)  # fmt: skip
-            prim, tfar_out, u, v = (np.empty(count, np.int32), np.empty(count, np.float32), np.empty(count, np.float32),
-                                    np.empty(count, np.float32))  # fmt: skip
-
-            def trace_pairs(chunk: slice) -> None:
-                prim[chunk], tfar_out[chunk], u[chunk], v[chunk] = blas.trace_closest(so[chunk], sd[chunk], tfar[chunk])
-
-            _run_in_chunks(trace_pairs, count, blas.threads)
+            prim, tfar_out, u, v = blas.trace_closest(so[:count], sd[:count], tfar[:count])
             kernels.merge_pair_hits(pair[:count], prim, tfar_out, u, v, ray_np, inst_np, t_min, best_t, best_prim, best_u,
                                     best_v, best_instance)  # fmt: skip
         instance_group = np.full(len(self._is_identity), -1, np.int64)
@@ -326,23 +313,19 @@ class NumbaTLASStages:
         for gi, group in enumerate(groups):
             if not embree[gi]:  # a model's winning rows are complete already
                 continue
-            tables = group.blas.surface_tables()
-
-            def finish(chunk: slice) -> None:
-                kernels.finish_hits(best_t[chunk], best_prim[chunk], best_u[chunk], best_v[chunk], best_instance[chunk],
-                                    instance_group, gi, gi == first, *tables, self._material_maps, self._world_to_object,
-                                    self._is_identity, *(x[chunk] for x in records))  # fmt: skip
-
-            _run_in_chunks(finish, n, group.blas.threads)
+            with numba_threads(group.blas.threads):
+                kernels.finish_hits(best_t, best_prim, best_u, best_v, best_instance, instance_group, gi, gi == first,
+                                    *group.blas.surface_tables(), self._material_maps, self._world_to_object, self._is_identity,
+                                    *records)  # fmt: skip
         return out
 
     def occluded_fused(self, rays: Rays, groups) -> Tensor | None:
         """`intersect_fused` for shadow rays, for scenes with at least one `EmbreeMeshBLAS` group:
-        per such group, one pass per chunk does the broad phase (rays already blocked drop out),
+        per such group, one parallel pass does the broad phase (rays already blocked drop out),
         the mapping and Embree's preparation, then Embree's occlusion query marks the blocked
         rays; other groups take their group-by-group step (`occluded_group`). The same answers as
         the group-by-group stages."""
-        from .mesh_blas import EmbreeMeshBLAS, _run_in_chunks
+        from .mesh_blas import EmbreeMeshBLAS, numba_threads
 
         embree = [type(g.blas) is EmbreeMeshBLAS for g in groups]
         if not self.fused_meshes or not any(embree):
@@ -357,17 +340,10 @@ class NumbaTLASStages:
                 continue
             if ids.shape[0] == 1:
                 k = int(ids[0])
-
-                def trace(chunk: slice) -> None:
-                    m = chunk.stop - chunk.start
-                    so, sd, tfar, row = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32), np.empty(m, np.float32), np.empty(m, np.int64)
-                    count = kernels.instance_occlusion_rays(o[chunk], d[chunk], t_min[chunk], t_max[chunk], blocked[chunk],
-                                                            self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
-                                                            bool(self._is_identity[k]), so, sd, tfar, row)  # fmt: skip
-                    if count:
-                        kernels.mark_blocked(row[:count], blas.trace_occluded(so[:count], sd[:count], tfar[:count]), blocked[chunk])
-
-                _run_in_chunks(trace, n, blas.threads)
+                with numba_threads(blas.threads):
+                    kernels.instance_occluded(blas.scene_handle, numba.get_num_threads(), o, d, t_min, t_max, blocked,
+                                              self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
+                                              bool(self._is_identity[k]))  # fmt: skip
                 continue
             t_limit = torch.from_numpy(t_max if gi == 0 else np.where(blocked, np.float32(-np.inf), t_max))
             ray_idx, inst_idx, _ = self.candidate_pairs(rays, group.instance_ids, t_limit, None)
@@ -379,13 +355,7 @@ class NumbaTLASStages:
             # The pairs' own interval (t_min, t_max), as the group-by-group `occluded` passes it.
             count = kernels.pair_embree_rays(o, d, t_min, t_max, ray_np, inst_np, self._world_to_object, self._is_identity,
                                              so, sd, tfar, pair)  # fmt: skip
-            geom = np.empty(count, np.int32)
-
-            def trace_pairs(chunk: slice) -> None:
-                geom[chunk] = blas.trace_occluded(so[chunk], sd[chunk], tfar[chunk])
-
-            _run_in_chunks(trace_pairs, count, blas.threads)
-            kernels.mark_blocked(ray_np[pair[:count]], geom, blocked)
+            kernels.mark_blocked(ray_np[pair[:count]], blas.trace_occluded(so[:count], sd[:count], tfar[:count]), blocked)
         return torch.from_numpy(blocked)
 
     def merge_pairs(self, best: Hits, local: Hits, ray_idx: Tensor, inst_idx: Tensor) -> Hits:
