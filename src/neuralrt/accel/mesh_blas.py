@@ -186,7 +186,7 @@ class EmbreeMeshBLAS(MeshBLAS):
         textured = self.textured
         out = _HitArrays(n, barycentrics=textured)
         with numba_threads(self.threads):
-            kernels.intersect_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), *self.surface_tables(), not textured, *out.records())
+            kernels.intersect_rays(self._scene.handle, kernels.embree_workers(n), *_rays_as_numpy(rays), *self.surface_tables(), not textured, *out.records())
         if textured:
             self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
         dev = rays.device
@@ -209,14 +209,14 @@ class EmbreeMeshBLAS(MeshBLAS):
         n = shifted.shape[0]
         prim, u, v = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
         with numba_threads(self.threads):
-            kernels.closest_prepared(self._scene.handle, numba.get_num_threads(), shifted, directions, tfar, prim, u, v)
+            kernels.closest_prepared(self._scene.handle, kernels.embree_workers(n), shifted, directions, tfar, prim, u, v)
         return prim, tfar, u, v
 
     def trace_occluded(self, shifted: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> np.ndarray:
         """`trace_closest` for shadow rays: int32 per ray, >= 0 where blocked."""
         geom = np.empty(shifted.shape[0], np.int32)
         with numba_threads(self.threads):
-            kernels.occluded_prepared(self._scene.handle, numba.get_num_threads(), shifted, directions, tfar, geom)
+            kernels.occluded_prepared(self._scene.handle, kernels.embree_workers(len(geom)), shifted, directions, tfar, geom)
         return geom
 
     def surface_tables(self) -> tuple:
@@ -235,7 +235,7 @@ class EmbreeMeshBLAS(MeshBLAS):
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
         blocked = np.empty(n, np.bool_)
         with numba_threads(self.threads):
-            kernels.occluded_rays(self._scene.handle, numba.get_num_threads(), *_rays_as_numpy(rays), blocked)
+            kernels.occluded_rays(self._scene.handle, kernels.embree_workers(n), *_rays_as_numpy(rays), blocked)
         return torch.from_numpy(blocked).to(rays.device)
 
     def _apply_textures_(self, albedo, hit, mat, uv, prim, bary_u, bary_v) -> None:

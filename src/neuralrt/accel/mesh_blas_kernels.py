@@ -16,18 +16,24 @@ import numba
 import numpy as np
 
 from ..rays_kernels import valid_ray, write_miss
+from ..task_queue import take_task, task_workers
 from .embree_api import (DIR, FLAGS, GEOM_ID, HIT_U, HIT_V, INST_ID, INVALID_ID, MASK, ORG, PRIM_ID, RAY_ID, TFAR, TIME,
                          TNEAR, ray_record, rtc_intersect1, rtc_occluded1)  # fmt: skip
 
-__all__ = ["intersect_rays", "occluded_rays", "closest_prepared", "occluded_prepared", "EMBREE_TFAR_MAX"]
+__all__ = ["intersect_rays", "occluded_rays", "closest_prepared", "occluded_prepared", "embree_workers", "EMBREE_TFAR_MAX"]
 
 # Embree works in float32; "infinite" t_max is passed as a large finite value.
 EMBREE_TFAR_MAX = np.float32(1e37)
 _NORMAL_EPS = np.float32(1e-12)
-# Rows a thread takes at a time: the threads take blocks in turn (thread k: blocks k, k + T, ...), so
-# a batch ordered by cost (a training batch: outside rays, then ~2.3x costlier surface rays) is
+# Rows a worker takes at a time (`task_queue`: the next block, whichever thread is free), so a
+# batch ordered by cost (a training batch: outside rays, then ~2.3x costlier surface rays) is
 # shared evenly; a block of rows is contiguous, so threads rarely write the same cache line.
 BLOCK_ROWS = 256
+
+
+def embree_workers(n: int) -> int:
+    """Workers of a kernel below for ``n`` rays (passed in: `task_queue.task_workers`)."""
+    return task_workers(-(-n // BLOCK_ROWS))
 
 
 @numba.njit(cache=True, inline="always")
@@ -57,19 +63,20 @@ def set_ray(words, ids, ox, oy, oz, dx, dy, dz, tfar) -> None:
 
 @numba.njit(parallel=True, nogil=True, cache=True)
 def intersect_rays(
-    scene, threads, origins, directions, t_min, t_max,
+    scene, workers, origins, directions, t_min, t_max,
     faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
     use_uvs, use_vertex_colors, finish_albedo,
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id, bary_u, bary_v,
 ):  # fmt: skip
     """Closest hits through Embree, with `hit_attributes` written per ray (misses as `Hits.empty`
-    writes them; ``instance_id`` is -1 already), by ``threads`` threads (numba.get_num_threads(),
-    passed: numba's own call makes a kernel uncacheable); Embree's (u, v) also go to ``bary_u`` / ``bary_v`` unless
-    those are empty (the caller's texture step reads them)."""
+    writes them; ``instance_id`` is -1 already), by ``workers`` workers (`embree_workers`).
+    Embree's (u, v) also go to ``bary_u`` / ``bary_v`` unless those are empty (the caller's
+    texture step reads them)."""
     n = origins.shape[0]
     keep_barycentrics = bary_u.shape[0] > 0
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
-    for k in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
         # A block is traced first, then its records written in a tight loop of its own, where the
         # CPU overlaps the table reads of many rays; each ray's reads used to wait behind its own
@@ -77,7 +84,10 @@ def intersect_rays(
         # 145 ms took 44 ms, now 25).
         block_prim = np.empty(BLOCK_ROWS, np.int64)
         block_t, block_u, block_v = np.empty(BLOCK_ROWS, np.float32), np.empty(BLOCK_ROWS, np.float32), np.empty(BLOCK_ROWS, np.float32)
-        for b in range(k, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             start, stop = b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)
             for i in range(start, stop):
                 ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
@@ -103,14 +113,18 @@ def intersect_rays(
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def occluded_rays(scene, threads, origins, directions, t_min, t_max, blocked) -> None:
+def occluded_rays(scene, workers, origins, directions, t_min, t_max, blocked) -> None:
     """``blocked[i]``: Embree finds a triangle within ray i's interval (invalid rays: False); as
-    `intersect_rays`, by ``threads`` threads."""
+    `intersect_rays`, by ``workers`` workers."""
     n = origins.shape[0]
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
-    for k in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
-        for b in range(k, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
                 ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
                 if ok:
@@ -120,15 +134,19 @@ def occluded_rays(scene, threads, origins, directions, t_min, t_max, blocked) ->
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def closest_prepared(scene, threads, shifted, directions, tfar, prim_id, bary_u, bary_v) -> None:
+def closest_prepared(scene, workers, shifted, directions, tfar, prim_id, bary_u, bary_v) -> None:
     """Closest hits of prepared valid rays (origin at t = 0, interval length ``tfar``; the scene
-    TLAS's pairs), on ``threads`` threads: ``prim_id`` (-1: miss), ``tfar`` overwritten with the
-    hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
+    TLAS's pairs), by ``workers`` workers (`embree_workers`): ``prim_id`` (-1: miss), ``tfar``
+    overwritten with the hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
     n = shifted.shape[0]
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
-    for k in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
-        for b in range(k, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
                 set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
                         directions[i, 2], tfar[i])  # fmt: skip
@@ -141,13 +159,17 @@ def closest_prepared(scene, threads, shifted, directions, tfar, prim_id, bary_u,
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def occluded_prepared(scene, threads, shifted, directions, tfar, geom_id) -> None:
+def occluded_prepared(scene, workers, shifted, directions, tfar, geom_id) -> None:
     """`closest_prepared` for shadow rays: ``geom_id`` 0 where blocked, -1 where not."""
     n = shifted.shape[0]
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
-    for k in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
-        for b in range(k, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
                 set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
                         directions[i, 2], tfar[i])  # fmt: skip

@@ -19,6 +19,7 @@ from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray, write_miss
 from ..simd import prefetch_row
+from ..task_queue import take_task
 from .embree_api import GEOM_ID, HIT_U, HIT_V, INVALID_ID, PRIM_ID, TFAR, ray_record, rtc_intersect1, rtc_occluded1
 from .mesh_blas_kernels import BLOCK_ROWS, EMBREE_TFAR_MAX, set_ray
 
@@ -383,19 +384,23 @@ def _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi, wo
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
-def instance_closest_hits(scene, threads, origins, directions, t_min, t_max, has_best, lo, hi, world_to_object, identity, k,
+def instance_closest_hits(scene, workers, origins, directions, t_min, t_max, has_best, lo, hi, world_to_object, identity, k,
                           best_t, best_prim, best_u, best_v, best_instance) -> None:  # fmt: skip
     """A one-instance group's (instance ``k``, its mesh's Embree ``scene``) closest-hit step, per
-    ray on ``threads`` threads: broad phase and mapping (`_instance_embree_ray`, the interval's end
-    ``min(t_max, best_t)`` with ``has_best``), Embree, and the merge: a hit's t (Embree's t_far
-    from the origin moved to t_min) replaces the ray's best where it is closer (anywhere without
-    ``has_best``), as `merge_every_ray` decides."""
+    ray, by ``workers`` workers (`mesh_blas_kernels.embree_workers`): broad phase and mapping
+    (`_instance_embree_ray`, the interval's end ``min(t_max, best_t)`` with ``has_best``),
+    Embree, and the merge: a hit's t (Embree's t_far from the origin moved to t_min) replaces
+    the ray's best where it is closer (anywhere without ``has_best``), as `merge_every_ray` decides."""
     n = origins.shape[0]
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     zero = np.float32(0.0)
-    for thread in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
-        for b in range(thread, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
                 limit = min(t_max[i], best_t[i]) if has_best else t_max[i]  # best_t is never NaN: torch.minimum
                 ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi,
@@ -413,14 +418,18 @@ def instance_closest_hits(scene, threads, origins, directions, t_min, t_max, has
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
-def instance_occluded(scene, threads, origins, directions, t_min, t_max, blocked, lo, hi, world_to_object, identity) -> None:
+def instance_occluded(scene, workers, origins, directions, t_min, t_max, blocked, lo, hi, world_to_object, identity) -> None:
     """`instance_closest_hits` for shadow rays: rays not yet ``blocked`` whose interval (t_min,
     t_max) meets the box, valid in object space, are traced and marked where Embree finds a blocker."""
     n = origins.shape[0]
     blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
-    for thread in numba.prange(threads):
+    next_block = np.zeros(1, np.int64)
+    for _ in numba.prange(workers):
         words, ids, address = ray_record()
-        for b in range(thread, blocks, threads):
+        while True:
+            b = take_task(next_block)
+            if b >= blocks:
+                break
             for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
                 if blocked[i]:
                     continue

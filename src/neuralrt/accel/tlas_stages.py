@@ -31,7 +31,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
@@ -265,6 +264,7 @@ class NumbaTLASStages:
         their group-by-group step (`intersect_group`) in their turn, merged into the same records.
         The same float32 operations as the group-by-group stages: the same Hits."""
         from .mesh_blas import numba_threads
+        from .mesh_blas_kernels import embree_workers
 
         embree = [self._embree_closest(g) for g in groups]
         if not self.fused_meshes or not any(embree):
@@ -288,7 +288,7 @@ class NumbaTLASStages:
             if ids.shape[0] == 1:
                 k = int(ids[0])
                 with numba_threads(blas.threads):
-                    kernels.instance_closest_hits(blas.scene_handle, numba.get_num_threads(), o, d, t_min, t_max, has_best,
+                    kernels.instance_closest_hits(blas.scene_handle, embree_workers(n), o, d, t_min, t_max, has_best,
                                                   self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
                                                   bool(self._is_identity[k]), k, best_t, best_prim, best_u, best_v,
                                                   best_instance)  # fmt: skip
@@ -326,6 +326,7 @@ class NumbaTLASStages:
         rays; other groups take their group-by-group step (`occluded_group`). The same answers as
         the group-by-group stages."""
         from .mesh_blas import EmbreeMeshBLAS, numba_threads
+        from .mesh_blas_kernels import embree_workers
 
         embree = [type(g.blas) is EmbreeMeshBLAS for g in groups]
         if not self.fused_meshes or not any(embree):
@@ -341,7 +342,7 @@ class NumbaTLASStages:
             if ids.shape[0] == 1:
                 k = int(ids[0])
                 with numba_threads(blas.threads):
-                    kernels.instance_occluded(blas.scene_handle, numba.get_num_threads(), o, d, t_min, t_max, blocked,
+                    kernels.instance_occluded(blas.scene_handle, embree_workers(n), o, d, t_min, t_max, blocked,
                                               self._box_lo[k:k + 1], self._box_hi[k:k + 1], self._world_to_object[k],
                                               bool(self._is_identity[k]))  # fmt: skip
                 continue
