@@ -149,3 +149,20 @@ def test_strided_inputs_match_contiguous():
         blas.intersect(shared_direction).t,
         blas.intersect(Rays(rays.origins, shared_direction.directions.contiguous())).t,
     )
+
+
+def test_rays_through_vertices_as_embreex_answers_them():
+    """Our Embree scene is built as embreex builds its own (robust mode): rays aimed exactly at a
+    mesh's vertices, where a non-robust scene lets some through, get the same
+    hits and distances as embreex's scene gives them."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    mesh = Mesh(sphere.vertices, sphere.faces)
+    eyes = np.random.default_rng(3).normal(size=(8, 1, 3)) * 3
+    origins = np.broadcast_to(eyes, (8, len(mesh.vertices), 3)).reshape(-1, 3).astype(np.float32)
+    directions = (np.tile(mesh.vertices, (8, 1)) - origins).astype(np.float32)
+    n = len(origins)
+    rays = Rays(torch.from_numpy(origins), torch.from_numpy(directions), torch.zeros(n), torch.full((n,), 3.0))
+    hits = MeshBLAS(mesh).intersect(rays)
+    ref = embreex_scene(mesh).run(origins, directions, dists=np.full(n, 3.0, np.float32), output=1)
+    assert torch.equal(hits.hit, torch.from_numpy(ref["primID"] >= 0))
+    np.testing.assert_array_equal(hits.t.numpy()[hits.hit.numpy()], ref["tfar"][ref["primID"] >= 0])

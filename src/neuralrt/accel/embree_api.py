@@ -5,8 +5,8 @@ Why not embreex's Python API: its ``run`` is a serial loop over the rays, so eve
 cost a Python thread hand-off, and the passes before and after it (validation, hit attributes) ran
 as separate calls. Called from a numba kernel, one parallel region on OpenMP's threads (the ones
 torch and our other kernels use, still spinning from the previous region) validates, traces and
-interpolates each ray: 8,192 training rays 3.1 -> 1.3 ms right after a parallel region, 1.9 ->
-1.2 ms otherwise (docs/lsnif.md, session 45). The library is the one embreex's wheel ships
+interpolates each ray: `MeshBLAS.intersect` of 8,192 bunny rays 2.25-2.42 -> 1.34-1.57 ms right
+after a parallel region (docs/lsnif.md, session 45). The library is the one embreex's wheel ships
 (``embreex.libs/libembree4*``); its symbols are registered with LLVM under our own names, so a
 cached kernel finds them in every process and no other Embree build in the process can be picked.
 """
