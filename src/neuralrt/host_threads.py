@@ -7,9 +7,12 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
-__all__ = ["chunk_slices", "run_chunks", "thread_pool"]
+import numba
+
+__all__ = ["chunk_slices", "run_chunks", "thread_pool", "numba_threads"]
 
 # Rows per chunk: enough to amortise a thread hand-off (~50 us), few enough to balance the threads
 # and keep a chunk's results in cache. A batch is cut into two chunks per thread where that leaves
@@ -50,3 +53,19 @@ def thread_pool(purpose: str, workers: int) -> ThreadPoolExecutor:
     if pool is None or pool[0] != os.getpid() or pool[1] != workers:
         pool = _pools[purpose] = (os.getpid(), workers, ThreadPoolExecutor(workers, thread_name_prefix=f"neuralrt-{purpose}"))
     return pool[2]
+
+
+@contextmanager
+def numba_threads(threads: int | None):
+    """numba's parallel regions on ``threads`` threads (at most NUMBA_NUM_THREADS, the core count)
+    for this thread's calls inside the block (numba's count is per calling thread), restored
+    after; None: as they are."""
+    if threads is None:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import sys
 from abc import ABC, abstractmethod
-from contextlib import contextmanager
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
+from ..host_threads import numba_threads
 from ..rays import AABB, Hits, Rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
@@ -40,21 +39,6 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     """float32 CPU numpy views of origins, directions, t_min, t_max (no copies on CPU)."""
     return tuple(x.detach().cpu().numpy().astype(np.float32, copy=False)
                  for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
-
-
-@contextmanager
-def numba_threads(threads: int | None):
-    """numba's parallel regions on ``threads`` threads (at most NUMBA_NUM_THREADS) for this
-    thread's calls inside the block; None: as they are."""
-    if threads is None:
-        yield
-        return
-    before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
 
 
 def _backend_for(device: torch.device) -> type["MeshBLAS"]:
@@ -161,6 +145,11 @@ class _HitArrays:
         """The kernel's outputs, in its argument order."""
         return self.hit, self.t, self.normal, self.geo, self.uv, self.albedo, self.mat, self.prim, self.instance, self.bary_u, self.bary_v
 
+    def hits(self, device) -> Hits:
+        """The records as `Hits` on ``device``."""
+        return Hits(*(torch.from_numpy(x).to(device) for x in (self.hit, self.t, self.normal, self.geo, self.uv, self.albedo,
+                                                               self.mat, self.prim, self.instance)))  # fmt: skip
+
 
 class EmbreeMeshBLAS(MeshBLAS):
     """`MeshBLAS` on the CPU: Embree 4 through its C API (`embree_api`), each query one parallel
@@ -186,11 +175,11 @@ class EmbreeMeshBLAS(MeshBLAS):
         textured = self.textured
         out = _HitArrays(n, barycentrics=textured)
         with numba_threads(self.threads):
-            kernels.intersect_rays(self._scene.handle, kernels.embree_workers(n), *_rays_as_numpy(rays), *self.surface_tables(), not textured, *out.records())
+            kernels.intersect_rays(self._scene.handle, kernels.embree_workers(n), *_rays_as_numpy(rays),
+                                   *self.surface_tables(), not textured, *out.records())  # fmt: skip
         if textured:
             self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
-        dev = rays.device
-        return Hits(*(torch.from_numpy(x).to(dev) for x in out.records()[:9]))
+        return out.hits(rays.device)
 
     # -- raw queries (the scene TLAS's fused path: attributes only for the closest hit over all instances)
     @property

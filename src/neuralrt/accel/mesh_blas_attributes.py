@@ -1,5 +1,5 @@
 """Hit attributes in torch, on the device of the hits: what `EmbreeMeshBLAS`'s numba pass computes
-(`mesh_blas_kernels.closest_hit_attributes` plus its texture step), for backends that report only
+(`mesh_blas_kernels.surface_at` plus its texture step), for backends that report only
 triangle index, distance and barycentrics (`MitsubaMeshBLAS`). Same rules, same order of float32
 operations where it matters; results agree with the numba pass to rounding.
 """

@@ -15,7 +15,7 @@ import math
 import numba
 import numpy as np
 
-from ..rays_kernels import valid_ray, write_miss
+from ..rays_kernels import write_miss
 from ..task_queue import take_task, task_workers
 from .embree_api import (DIR, FLAGS, GEOM_ID, HIT_U, HIT_V, INST_ID, INVALID_ID, MASK, ORG, PRIM_ID, RAY_ID, TFAR, TIME,
                          TNEAR, ray_record, rtc_intersect1, rtc_occluded1)  # fmt: skip
@@ -37,18 +37,34 @@ def embree_workers(n: int) -> int:
 
 
 @numba.njit(cache=True, inline="always")
-def embree_ray(origins, directions, t_min, t_max, i):
-    """Ray ``i`` as Embree takes it: (valid, origin moved to ``t_min`` (Embree starts at t = 0),
-    interval length capped at EMBREE_TFAR_MAX). Valid as `neuralrt.rays.valid_ray_mask` defines it."""
-    if not valid_ray(origins, directions, t_min, t_max, i):
-        return False, np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(-1.0)
-    t0 = t_min[i]
+def next_rows(next_block, n):
+    """The next block's rows ``(start, stop)`` of ``n`` (`task_queue.take_task` on ``next_block``);
+    ``start >= n`` once none is left."""
+    start = take_task(next_block) * BLOCK_ROWS
+    return start, min(n, start + BLOCK_ROWS)
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def embree_ray(ox, oy, oz, dx, dy, dz, t0, t1):
+    """A ray with interval (t0, t1) as Embree takes it: (valid, origin moved to t0 (Embree starts at
+    t = 0), interval length capped at EMBREE_TFAR_MAX). Valid as `neuralrt.rays.valid_ray_mask`
+    defines it; an invalid ray is not traced."""
+    ok = (np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz) and np.isfinite(dx) and np.isfinite(dy)
+          and np.isfinite(dz) and (dx != 0 or dy != 0 or dz != 0) and t1 > t0)  # fmt: skip
+    if not ok:
+        return False, np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(0.0)
     start = t0 if np.isfinite(t0) else np.float32(0.0)
-    length = t_max[i] - t0  # float32, as t_max - t_min in numpy
+    length = t1 - t0  # float32, as t_max - t_min in numpy
     if not (length <= EMBREE_TFAR_MAX):  # also catches NaN (-inf t_min with +inf t_max)
         length = EMBREE_TFAR_MAX
-    return (True, origins[i, 0] + start * directions[i, 0], origins[i, 1] + start * directions[i, 1],
-            origins[i, 2] + start * directions[i, 2], length)  # fmt: skip
+    return True, ox + start * dx, oy + start * dy, oz + start * dz, length
+
+
+@numba.njit(cache=True, inline="always")
+def row_embree_ray(origins, directions, t_min, t_max, i):
+    """`embree_ray` of row ``i`` of ray arrays."""
+    return embree_ray(origins[i, 0], origins[i, 1], origins[i, 2], directions[i, 0], directions[i, 1], directions[i, 2],
+                      t_min[i], t_max[i])  # fmt: skip
 
 
 @numba.njit(cache=True, inline="always")
@@ -74,7 +90,6 @@ def intersect_rays(
     texture step reads them)."""
     n = origins.shape[0]
     keep_barycentrics = bary_u.shape[0] > 0
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
@@ -85,12 +100,11 @@ def intersect_rays(
         block_prim = np.empty(BLOCK_ROWS, np.int64)
         block_t, block_u, block_v = np.empty(BLOCK_ROWS, np.float32), np.empty(BLOCK_ROWS, np.float32), np.empty(BLOCK_ROWS, np.float32)
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            start, stop = b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)
             for i in range(start, stop):
-                ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
+                ok, sx, sy, sz, tfar = row_embree_ray(origins, directions, t_min, t_max, i)
                 block_prim[i - start] = -1
                 if ok:
                     set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
@@ -117,16 +131,15 @@ def occluded_rays(scene, workers, origins, directions, t_min, t_max, blocked) ->
     """``blocked[i]``: Embree finds a triangle within ray i's interval (invalid rays: False); as
     `intersect_rays`, by ``workers`` workers."""
     n = origins.shape[0]
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
-                ok, sx, sy, sz, tfar = embree_ray(origins, directions, t_min, t_max, i)
+            for i in range(start, stop):
+                ok, sx, sy, sz, tfar = row_embree_ray(origins, directions, t_min, t_max, i)
                 if ok:
                     set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
                     rtc_occluded1(scene, address)
@@ -139,15 +152,14 @@ def closest_prepared(scene, workers, shifted, directions, tfar, prim_id, bary_u,
     TLAS's pairs), by ``workers`` workers (`embree_workers`): ``prim_id`` (-1: miss), ``tfar``
     overwritten with the hit's distance on hits, ``bary_u`` / ``bary_v`` Embree's (u, v)."""
     n = shifted.shape[0]
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            for i in range(start, stop):
                 set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
                         directions[i, 2], tfar[i])  # fmt: skip
                 rtc_intersect1(scene, address)
@@ -162,19 +174,59 @@ def closest_prepared(scene, workers, shifted, directions, tfar, prim_id, bary_u,
 def occluded_prepared(scene, workers, shifted, directions, tfar, geom_id) -> None:
     """`closest_prepared` for shadow rays: ``geom_id`` 0 where blocked, -1 where not."""
     n = shifted.shape[0]
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            for i in range(start, stop):
                 set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
                         directions[i, 2], tfar[i])  # fmt: skip
                 rtc_occluded1(scene, address)
                 geom_id[i] = 0 if words[TFAR] == -np.inf else -1
+
+
+@numba.njit(cache=True, inline="always")
+def surface_at(p, bu, bv, faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
+               use_uvs, use_vertex_colors, finish_albedo):  # fmt: skip
+    """Triangle ``p``'s object-space surface at Embree's (u, v) = (``bu``, ``bv``), which weight
+    its vertices 1 and 2: shading normal (x, y, z), geometric normal (x, y, z), material id, uv
+    (2), albedo (3). The shading normal interpolates ``vertex_normals``, falling back to the face
+    normal where that vanishes; uv interpolates ``uvs`` when ``use_uvs`` (zeros otherwise). The
+    albedo is ``material_albedo[clip(material)]``; with ``finish_albedo`` it is also multiplied by
+    the interpolated vertex colour (``use_vertex_colors``) and clipped to [0, 1] — without it the
+    caller still applies textures, vertex colours and the clip. Float32 operations in the order of
+    the numpy reference (tests/test_mesh_blas_kernels.py), so `MeshBLAS.intersect` and the scene
+    TLAS's fused path (`tlas_kernels.finish_hits`) answer bit for bit alike."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    bw = one - bu - bv
+    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
+    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
+    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
+    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
+    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
+    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))  # float32 root of a float32 sum, as np.linalg.norm
+    if length > _NORMAL_EPS:
+        sx, sy, sz = sx / length, sy / length, sz / length
+    else:
+        sx, sy, sz = gx, gy, gz
+    m = face_material_ids[p]
+    u0, u1 = zero, zero
+    if use_uvs:
+        u0 = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
+        u1 = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
+    k = min(max(m, 0), material_albedo.shape[0] - 1)
+    r, g, bl = material_albedo[k, 0], material_albedo[k, 1], material_albedo[k, 2]
+    if finish_albedo:
+        if use_vertex_colors:
+            r = r * (bw * vertex_colors[a, 0] + bu * vertex_colors[b, 0] + bv * vertex_colors[c3, 0])
+            g = g * (bw * vertex_colors[a, 1] + bu * vertex_colors[b, 1] + bv * vertex_colors[c3, 1])
+            bl = bl * (bw * vertex_colors[a, 2] + bu * vertex_colors[b, 2] + bv * vertex_colors[c3, 2])
+        r, g, bl = min(max(r, zero), one), min(max(g, zero), one), min(max(bl, zero), one)
+    return sx, sy, sz, gx, gy, gz, m, u0, u1, r, g, bl
 
 
 @numba.njit(cache=True, inline="always")
@@ -185,49 +237,12 @@ def hit_attributes(
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id,
 ):  # fmt: skip
     """Row ``i``'s hit record from Embree's hit: triangle ``p``, distance ``tfar`` from the origin
-    moved to ``t_min``, barycentrics (``bu``, ``bv``), written into the output arrays.
-
-    The shading normal interpolates ``vertex_normals`` (falling back to the face normal when that
-    vanishes); ``uv`` interpolates ``uvs`` when ``use_uvs`` (zeros otherwise). ``albedo`` is
-    ``material_albedo[clip(material)]``; with ``finish_albedo`` it is also multiplied by the
-    interpolated vertex colour (``use_vertex_colors``) and clipped to [0, 1] — without it the caller
-    still applies textures, vertex colours and the clip.
-    """
-    n_materials = material_albedo.shape[0]
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
+    moved to ``t_min``, barycentrics (``bu``, ``bv``); the surface as `surface_at` gives it."""
     hit[i] = True
     # Embree measured from the origin moved to t_min (to the origin itself when t_min = -inf).
-    t[i] = tfar + (t_min if np.isfinite(t_min) else zero)
+    t[i] = tfar + (t_min if np.isfinite(t_min) else np.float32(0.0))
     primitive_id[i] = p
-    # Embree's (u, v) weight vertices 1 and 2 of the triangle.
-    bw = one - bu - bv
-    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
-    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
-    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
-    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
-    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
-    geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2] = gx, gy, gz
-    # float32 square root of a float32 sum, as np.linalg.norm computes it.
-    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))
-    if length > _NORMAL_EPS:
-        normal[i, 0], normal[i, 1], normal[i, 2] = sx / length, sy / length, sz / length
-    else:
-        normal[i, 0], normal[i, 1], normal[i, 2] = gx, gy, gz
-    m = face_material_ids[p]
-    material_id[i] = m
-    if use_uvs:
-        uv[i, 0] = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
-        uv[i, 1] = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
-    else:
-        uv[i, 0] = zero
-        uv[i, 1] = zero
-    k = min(max(m, 0), n_materials - 1)
-    for c in range(3):
-        value = material_albedo[k, c]
-        if finish_albedo:
-            if use_vertex_colors:
-                cv = bw * vertex_colors[a, c] + bu * vertex_colors[b, c] + bv * vertex_colors[c3, c]
-                value = value * cv
-            value = min(max(value, zero), one)
-        albedo[i, c] = value
+    (normal[i, 0], normal[i, 1], normal[i, 2], geometric_normal[i, 0], geometric_normal[i, 1], geometric_normal[i, 2],
+     material_id[i], uv[i, 0], uv[i, 1], albedo[i, 0], albedo[i, 1], albedo[i, 2]) = surface_at(
+        p, bu, bv, faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
+        use_uvs, use_vertex_colors, finish_albedo)  # fmt: skip

@@ -109,7 +109,7 @@ class MitsubaMeshBLAS(MeshBLAS):
     def _trace_inputs(self, rays: Rays) -> tuple[Tensor, Tensor]:
         """[7, N] contiguous float32 columns (origin moved to t_min, direction, t_far) and the
         start [N] (t_min, 0 where it is -inf). Invalid rays get origin 0, direction +x and
-        t_far = -1, and are not traced (the rules of `mesh_blas_kernels.prepare_embree_rays`)."""
+        t_far = -1, and are not traced (the rules of `mesh_blas_kernels.embree_ray`)."""
         o, d, t_min, t_max = rays.origins, rays.directions, rays.t_min, rays.t_max
         valid = valid_ray_mask(rays)
         start = torch.where(torch.isfinite(t_min), t_min, 0.0)

@@ -9,8 +9,6 @@ exactly what those ops computed, in the same float32 order, so the TLAS answers 
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 from llvmlite import ir
@@ -19,9 +17,8 @@ from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray, write_miss
 from ..simd import prefetch_row
-from ..task_queue import take_task
 from .embree_api import GEOM_ID, HIT_U, HIT_V, INVALID_ID, PRIM_ID, TFAR, ray_record, rtc_intersect1, rtc_occluded1
-from .mesh_blas_kernels import BLOCK_ROWS, EMBREE_TFAR_MAX, set_ray
+from .mesh_blas_kernels import embree_ray, next_rows, set_ray, surface_at
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
            "instance_closest_hits", "instance_occluded", "pair_embree_rays", "merge_pair_hits", "finish_hits", "mark_blocked"]
@@ -345,21 +342,6 @@ def merge_pairs(
 
 
 @numba.njit(cache=True, inline="always", error_model="numpy")
-def _embree_ray(ox, oy, oz, dx, dy, dz, t0, t1):
-    """`mesh_blas_kernels.embree_ray` for one object-space ray with interval (t0, t1): (valid,
-    origin moved to t0, interval length capped); an invalid ray Embree need not see."""
-    ok = (np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz) and np.isfinite(dx) and np.isfinite(dy)
-          and np.isfinite(dz) and (dx != 0 or dy != 0 or dz != 0) and t1 > t0)  # fmt: skip
-    if not ok:
-        return False, np.float32(0.0), np.float32(0.0), np.float32(0.0), np.float32(0.0)
-    start = t0 if np.isfinite(t0) else np.float32(0.0)
-    length = t1 - t0
-    if not (length <= EMBREE_TFAR_MAX):
-        length = EMBREE_TFAR_MAX
-    return True, ox + start * dx, oy + start * dy, oz + start * dz, length
-
-
-@numba.njit(cache=True, inline="always", error_model="numpy")
 def _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi, world_to_object, identity):
     """Ray ``i`` of a one-instance group as Embree takes it: (traced, origin moved to t_min and
     direction in object space, interval length). Traced when the ray is valid, its interval
@@ -379,7 +361,7 @@ def _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi, wo
         ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
                                   _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
                                   _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
-    ok, sx, sy, sz, tfar = _embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], limit)
+    ok, sx, sy, sz, tfar = embree_ray(ox, oy, oz, dx, dy, dz, t_min[i], limit)
     return ok, sx, sy, sz, dx, dy, dz, tfar
 
 
@@ -392,16 +374,15 @@ def instance_closest_hits(scene, workers, origins, directions, t_min, t_max, has
     Embree, and the merge: a hit's t (Embree's t_far from the origin moved to t_min) replaces
     the ray's best where it is closer (anywhere without ``has_best``), as `merge_every_ray` decides."""
     n = origins.shape[0]
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     zero = np.float32(0.0)
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            for i in range(start, stop):
                 limit = min(t_max[i], best_t[i]) if has_best else t_max[i]  # best_t is never NaN: torch.minimum
                 ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, limit, lo, hi,
                                                                         world_to_object, identity)  # fmt: skip
@@ -422,15 +403,14 @@ def instance_occluded(scene, workers, origins, directions, t_min, t_max, blocked
     """`instance_closest_hits` for shadow rays: rays not yet ``blocked`` whose interval (t_min,
     t_max) meets the box, valid in object space, are traced and marked where Embree finds a blocker."""
     n = origins.shape[0]
-    blocks = (n + BLOCK_ROWS - 1) // BLOCK_ROWS
     next_block = np.zeros(1, np.int64)
     for _ in numba.prange(workers):
         words, ids, address = ray_record()
         while True:
-            b = take_task(next_block)
-            if b >= blocks:
+            start, stop = next_rows(next_block, n)
+            if start >= n:
                 break
-            for i in range(b * BLOCK_ROWS, min(n, (b + 1) * BLOCK_ROWS)):
+            for i in range(start, stop):
                 if blocked[i]:
                     continue
                 ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, t_max[i], lo, hi,
@@ -457,7 +437,7 @@ def pair_embree_rays(origins, directions, t_min, t_limit, ray_idx, inst_idx, wor
             ox, oy, oz, dx, dy, dz = (_affine(m, ox, oy, oz, 0, True), _affine(m, ox, oy, oz, 1, True),
                                       _affine(m, ox, oy, oz, 2, True), _affine(m, dx, dy, dz, 0, False),
                                       _affine(m, dx, dy, dz, 1, False), _affine(m, dx, dy, dz, 2, False))  # fmt: skip
-        ok, sx, sy, sz, tfar = _embree_ray(ox, oy, oz, dx, dy, dz, t_min[r], t_limit[r])
+        ok, sx, sy, sz, tfar = embree_ray(ox, oy, oz, dx, dy, dz, t_min[r], t_limit[r])
         if ok:
             out_origins[count, 0], out_origins[count, 1], out_origins[count, 2] = sx, sy, sz
             out_directions[count, 0], out_directions[count, 1], out_directions[count, 2] = dx, dy, dz
@@ -489,43 +469,6 @@ def merge_pair_hits(out_pair, prim, tfar, bary_u, bary_v, ray_idx, inst_idx, t_m
             best_t[r], best_prim[r], best_u[r], best_v[r], best_instance[r] = closest[r], prim[j], bary_u[j], bary_v[j], inst_idx[out_pair[j]]
 
 
-@numba.njit(cache=True, inline="always")
-def _surface_at(p, bu, bv, faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors, material_albedo,
-                use_uvs, use_vertex_colors):  # fmt: skip
-    """Triangle ``p``'s object-space surface at Embree's (u, v) = (``bu``, ``bv``): shading normal,
-    geometric normal, material id, uv, albedo, with the float32 operations of
-    `mesh_blas_kernels.closest_hit_attributes` (finished albedo: untextured meshes), so the fused
-    path's hits equal `MeshBLAS.intersect`'s bit for bit (tests compare them)."""
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    bw = one - bu - bv
-    a, b, c3 = faces[p, 0], faces[p, 1], faces[p, 2]
-    sx = bw * vertex_normals[a, 0] + bu * vertex_normals[b, 0] + bv * vertex_normals[c3, 0]
-    sy = bw * vertex_normals[a, 1] + bu * vertex_normals[b, 1] + bv * vertex_normals[c3, 1]
-    sz = bw * vertex_normals[a, 2] + bu * vertex_normals[b, 2] + bv * vertex_normals[c3, 2]
-    gx, gy, gz = face_normals[p, 0], face_normals[p, 1], face_normals[p, 2]
-    length = np.float32(math.sqrt(sx * sx + sy * sy + sz * sz))  # float32 root of a float32 sum, as np.linalg.norm
-    if length > _NORMAL_EPS:
-        sx, sy, sz = sx / length, sy / length, sz / length
-    else:
-        sx, sy, sz = gx, gy, gz
-    m = face_material_ids[p]
-    u0, u1 = zero, zero
-    if use_uvs:
-        u0 = bw * uvs[a, 0] + bu * uvs[b, 0] + bv * uvs[c3, 0]
-        u1 = bw * uvs[a, 1] + bu * uvs[b, 1] + bv * uvs[c3, 1]
-    k = min(max(m, 0), material_albedo.shape[0] - 1)
-    r, g, bl = material_albedo[k, 0], material_albedo[k, 1], material_albedo[k, 2]
-    if use_vertex_colors:
-        r = r * (bw * vertex_colors[a, 0] + bu * vertex_colors[b, 0] + bv * vertex_colors[c3, 0])
-        g = g * (bw * vertex_colors[a, 1] + bu * vertex_colors[b, 1] + bv * vertex_colors[c3, 1])
-        bl = bl * (bw * vertex_colors[a, 2] + bu * vertex_colors[b, 2] + bv * vertex_colors[c3, 2])
-    return sx, sy, sz, gx, gy, gz, m, u0, u1, min(max(r, zero), one), min(max(g, zero), one), min(max(bl, zero), one)
-
-
-_NORMAL_EPS = np.float32(1e-12)  # as mesh_blas_kernels: below it the interpolated normal counts as vanished
-
-
 @numba.njit(nogil=True, cache=True, error_model="numpy", parallel=True)
 def finish_hits(
     best_t, best_prim, best_u, best_v, best_instance, instance_group, group, write_misses,
@@ -534,8 +477,9 @@ def finish_hits(
     hit, t, normal, geometric_normal, uv, albedo, material_id, primitive_id, instance_id,
 ):  # fmt: skip
     """The world-space hit records of the rays whose winning instance is in ``group`` (its mesh's
-    tables), as `closest_hit_attributes` then `merge_every_ray` / `merge_pairs` write them; with
-    ``write_misses`` also the rows of `Hits.empty` for rays that hit nothing."""
+    tables), as `MeshBLAS.intersect` (`mesh_blas_kernels.surface_at`) then `merge_every_ray` /
+    `merge_pairs` write them; with ``write_misses`` also the rows of `Hits.empty` for rays that
+    hit nothing."""
     n_map = material_maps.shape[1]
     n = best_t.shape[0]
     for r in numba.prange(n):
@@ -562,9 +506,9 @@ def finish_hits(
         if instance_group[k] != group:
             continue
         p = best_prim[r]
-        sx, sy, sz, gx, gy, gz, m, u0, u1, ar, ag, ab = _surface_at(
+        sx, sy, sz, gx, gy, gz, m, u0, u1, ar, ag, ab = surface_at(
             p, best_u[r], best_v[r], faces, face_normals, vertex_normals, face_material_ids, uvs, vertex_colors,
-            material_albedo, use_uvs, use_vertex_colors)  # fmt: skip
+            material_albedo, use_uvs, use_vertex_colors, True)  # fmt: skip
         w2o, identity = world_to_object[k], is_identity[k]
         hit[r] = True
         t[r] = best_t[r]

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.bvh import BVH, build_box_bvh
+from ..host_threads import numba_threads
 from ..rays import Hits, Rays, ray_box_intervals, valid_ray_mask
 from . import tlas_kernels as kernels
 
@@ -263,7 +264,6 @@ class NumbaTLASStages:
         every group, and merging copies them). Other groups (neural models, textured meshes) take
         their group-by-group step (`intersect_group`) in their turn, merged into the same records.
         The same float32 operations as the group-by-group stages: the same Hits."""
-        from .mesh_blas import numba_threads
         from .mesh_blas_kernels import embree_workers
 
         embree = [self._embree_closest(g) for g in groups]
@@ -325,7 +325,7 @@ class NumbaTLASStages:
         the mapping and Embree's preparation, then Embree's occlusion query marks the blocked
         rays; other groups take their group-by-group step (`occluded_group`). The same answers as
         the group-by-group stages."""
-        from .mesh_blas import EmbreeMeshBLAS, numba_threads
+        from .mesh_blas import EmbreeMeshBLAS
         from .mesh_blas_kernels import embree_workers
 
         embree = [type(g.blas) is EmbreeMeshBLAS for g in groups]

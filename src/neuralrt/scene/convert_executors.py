@@ -95,14 +95,15 @@ def training_threads(threads: int | None):
     import numba
     import torch
 
-    before = torch.get_num_threads(), numba.get_num_threads()
+    from ..host_threads import numba_threads
+
+    before = torch.get_num_threads()
     torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     try:
-        yield torch.get_num_threads(), numba.get_num_threads()
+        with numba_threads(threads):
+            yield torch.get_num_threads(), numba.get_num_threads()
     finally:
-        torch.set_num_threads(before[0])
-        numba.set_num_threads(before[1])
+        torch.set_num_threads(before)
 
 
 def _current_threads() -> tuple[int, int]:
