@@ -10,9 +10,10 @@ import os
 # to bridge most gaps between regions (a sleeping thread took ~25-35 us to wake on a 2-core VM).
 # Bunny `hq` training, 2-core Zen 4, drawn in turn: 1.07-1.19x the rays/s of 3,000 spins (medians
 # of 5-6 alternating runs; 20 of 21 pairs faster); 10,000: 1.03-1.04x; longer spins no faster
-# (100,000 or libgomp's default 300,000: 0.97-1.00x; their threads may hold the cores Embree's
-# threads need) (docs/lsnif.md, session 44). Sleeping at once (OMP_WAIT_POLICY=PASSIVE) makes every torch GEMM
-# wake its team at each of its regions (2 cores, session 36: an N-BVH intersect 1.3x the time).
+# (100,000 or libgomp's default 300,000: 0.97-1.00x, when Embree still ran on Python threads that
+# the spinning ones competed with) (docs/lsnif.md, session 44). Sleeping at once
+# (OMP_WAIT_POLICY=PASSIVE) makes every torch GEMM wake its team at each of its regions (2 cores,
+# session 36: an N-BVH intersect 1.3x the time).
 # libgomp reads GOMP_SPINCOUNT only where OMP_WAIT_POLICY is unset; LLVM's and Intel's runtimes
 # (macOS, some builds) read KMP_BLOCKTIME instead: 0, sleep at once. This only takes effect if
 # neuralrt is imported before torch loads OpenMP, and a value the user set (an OMP_WAIT_POLICY
