@@ -98,3 +98,20 @@ def test_cpu_passes_match_the_torch_path(ball, surface_fraction):
         torch.testing.assert_close(fast.pool_points, ref.pool_points, rtol=0, atol=1e-5)
         assert torch.equal(fast.pool_normals, ref.pool_normals) and fast._pool_cursor == ref._pool_cursor
         assert torch.equal(fast.generator.get_state(), ref.generator.get_state())
+
+
+def test_cpu_batches_do_not_depend_on_the_thread_count(ball):
+    """The numba passes make the rays in blocks over the threads: the same bits on one thread as
+    on several (a training run is reproducible on any machine size)."""
+    import numba
+
+    from neuralrt.host_threads import numba_threads
+
+    exact = MeshBLAS(ball)
+    batches = []
+    for threads in (1, numba.config.NUMBA_NUM_THREADS):
+        with numba_threads(threads):
+            dist = BoxRayDistribution(exact, pool_size=3000, seed=8)
+            batches.append([dist.sample(n) for n in (2500, 1025, 7)])
+    for a, b in zip(*batches):
+        assert torch.equal(a.rays.origins, b.rays.origins) and torch.equal(a.rays.directions, b.rays.directions)
