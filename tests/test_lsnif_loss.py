@@ -108,3 +108,19 @@ def test_numba_loss_is_the_same_on_any_thread_count():
     assert one[0].parts == every[0].parts and one[0].wrong_network == every[0].wrong_network
     for a, b in zip(one[1:], every[1:]):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("implementation", [training_loss_numba, training_loss_torch])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_padding_rows_of_hidden_are_ignored(implementation, dtype):
+    """``hidden`` with rows past the network rays' (the MLP's row padding, written by the encoder):
+    the same loss and gradients as without them, and a zero gradient in those rows."""
+    hidden, layer, rest = _batch(1000, 700, 4, width=128, seed=3)
+    hidden = hidden.to(dtype)
+    padded = torch.cat([hidden, torch.full((68, 128), 7.0, dtype=dtype)])  # (nonzero: they must not count)
+    weights = LossConfig()
+    plain = _run(implementation, hidden, layer, rest, weights, 4)
+    extra = _run(implementation, padded, layer, rest, weights, 4)
+    assert plain[0].parts == extra[0].parts and float(plain[0].loss.detach()) == float(extra[0].loss.detach())
+    assert extra[1].shape == padded.shape and torch.equal(extra[1][:700], plain[1]) and (extra[1][700:] == 0).all()
+    assert torch.equal(extra[2], plain[2]) and torch.equal(extra[3], plain[3])

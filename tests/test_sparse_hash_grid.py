@@ -171,8 +171,8 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
     flat = grid.table.detach().numpy().reshape(-1, 3)
     out = np.empty((n, grid.output_dim(h)), np.float32)
     every = np.arange(n, dtype=np.int64)
-    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), every, flat, grid._resolutions_np, 7, 2, out, np.empty((0, out.shape[1]), np.uint16),
-                        offsets, *saved)  # fmt: skip
+    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), every, flat, grid._resolutions_np, 7, 2, np.empty((n, 0), np.float32),
+                        out, np.empty((0, out.shape[1]), np.uint16), offsets, *saved)  # fmt: skip
     face = f.face_axis.numpy()[valid] < 3  # packed in ray order: face points saved, origin points not
     assert (saved[0][:, face] >= 0).all() and (saved[0][:, ~face] == -1).all() and (~face).any()
     for ranges in (1, 2, 5):
@@ -210,6 +210,32 @@ def test_extra_columns_are_appended_without_changing_the_gradient():
     assert torch.equal(g_joined, g_plain) and g_plain.abs().sum() > 0
     with pytest.raises(ValueError, match="extra columns"):
         grid(f.points, f.face_axis, extra[:-1])
+
+
+@pytest.mark.parametrize("scatter", ["row_ranges", "thread_tables"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_out_rows_pad_the_output_with_zero_rows(dtype, scatter):
+    """``out_rows``: the rays' rows (extra columns too) as without it, then zero rows; the rows past
+    the rays' take no part in the table's gradient, whatever their upstream gradient."""
+    f = _featurized_points(n=700, seed=9)
+    grid = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0)
+    grid.backward_scatter = scatter
+    rows = torch.arange(0, 700, 3)
+    extra = torch.rand(len(rows), 5, generator=torch.Generator().manual_seed(3))
+    plain = grid(f.points, f.face_axis, extra, dtype, rows=rows)
+    padded = grid(f.points, f.face_axis, extra, dtype, rows=rows, out_rows=len(rows) + 45)
+    assert padded.shape == (len(rows) + 45, plain.shape[1]) and padded.dtype == dtype
+    assert torch.equal(padded[: len(rows)], plain) and (padded[len(rows):] == 0).all()
+    upstream = torch.randn(padded.shape, generator=torch.Generator().manual_seed(4)).to(dtype)
+    (g_padded,) = torch.autograd.grad((padded * upstream).sum(), grid.table)
+    (g_plain,) = torch.autograd.grad((plain * upstream[: len(rows)]).sum(), grid.table)
+    assert torch.equal(g_padded, g_plain) and g_plain.abs().sum() > 0
+    # The torch path (other devices) pads the same way.
+    ref = SparseHashGrid(resolutions=(16, 32), log2_table_size=12, init_scale=1.0).double()
+    ref.table.data = grid.table.detach().double()
+    assert torch.equal(ref(f.points, f.face_axis, out_rows=len(f.points) + 3)[-3:], torch.zeros(3, plain.shape[1] - 5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="out_rows"):
+        grid(f.points, f.face_axis, rows=rows, out_rows=len(rows) - 1)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])

@@ -31,7 +31,7 @@ from torch import Tensor
 from ..accel.blas import MemoryReport
 from ..geometry.mesh import Mesh
 from ..geometry.voxelize import pack_occupancy, unpack_occupancy, voxelize_triangles
-from ..neural.mlp import MLP
+from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid
 from ..rays import AABB, Hits, Rays
 from ..training.step import StepResult
@@ -226,7 +226,9 @@ class LSNIFModel(NeuralBLAS):
         if rows is not None:
             # The encoder reads the network rays' points through their index: no copy of the batch's points.
             active, t_offset, truncated, t_enter, t_exit = rows.active, rows.t_offset, rows.truncated, rows.t_enter, rows.t_exit
-            features = self.encoder(rows.features.points, rows.features.face_axis, rows.distances, dtype, rows=rows.keep)
+            # The encoder writes the GEMMs' zero padding rows too (`padded_rows`): the MLP copies nothing.
+            features = self.encoder(rows.features.points, rows.features.face_axis, rows.distances, dtype, rows=rows.keep,
+                                    out_rows=padded_rows(len(rows.keep), rows.keep.device))  # fmt: skip
         else:  # the network rays' points copied first (`_prepare`), kept to measure against
             prep = self._prepare(rays)
             active, t_offset, truncated = prep.active, prep.t_offset, prep.truncated

@@ -54,7 +54,8 @@ def training_loss(hidden: Tensor, output_layer: nn.Linear, active: Tensor, t_off
                   directions: Tensor, truth: Hits, weights: LossConfig, num_materials: int, occlusion_logit: float,
                   truncated: Tensor) -> TrainingLoss:  # fmt: skip
     """The loss of the network rays ``active`` (rows of the batch) whose last hidden activations are
-    ``hidden [M, W]`` (fp32 or bf16); ``output_layer`` (fp32) maps them to the raw outputs ``[M, 8 +
+    the first M rows of ``hidden [>= M, W]`` (fp32 or bf16; rows past M, the MLP's row padding,
+    get a zero gradient); ``output_layer`` (fp32) maps them to the raw outputs ``[M, 8 +
     materials]`` (as `MLP.forward`). ``t_offset``/``t_enter``/``t_exit [M]`` place each ray's box
     interval, ``directions`` and ``truth`` are the whole batch's. On the CPU one numba pass for the
     output layer and the loss, elsewhere torch ops."""
@@ -67,7 +68,7 @@ def training_loss_torch(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
                         t_exit: Tensor, directions: Tensor, truth: Hits, weights: LossConfig, num_materials: int,
                         occlusion_logit: float, truncated: Tensor) -> TrainingLoss:  # fmt: skip
     """`training_loss` as torch ops (any device); one device->host read-back for all figures."""
-    out = output_layer(hidden.float())  # the output layer in fp32, as `MLP.forward`
+    out = output_layer(hidden[: len(active)].float())  # the output layer in fp32, as `MLP.forward`
     w = weights
     hit = truth.hit[active]
     occ_loss = F.binary_cross_entropy_with_logits(out[:, _OCC], hit.float()) if len(active) else out.sum() * 0
@@ -372,7 +373,7 @@ def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
     """`training_loss` on CPU tensors: the output layer and the loss in one numba pass (outputs,
     terms, figures and the gradients of the hidden activations and the output layer together)."""
     w = np.array([weights.occlusion, weights.distance, weights.normal, weights.albedo, weights.material], np.float64)
-    n_net, width = hidden.shape
+    n_net, width = len(active), hidden.shape[1]
     n_out = output_layer.out_features
     padded_width, padded_out = _padded16(width), _padded16(n_out)
     weight = output_layer.weight.detach()
@@ -382,7 +383,12 @@ def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
     weight_rows[:, :width] = weight.numpy()
     low = hidden.dtype == torch.bfloat16
     hidden_np = hidden.detach().contiguous().view(torch.int16).numpy().view(np.uint16) if low else _array(hidden, torch.float32)
-    grad_hidden = np.empty((n_net, width), hidden_np.dtype)
+    hidden_np = hidden_np[:n_net]
+    # d loss / d hidden for all of hidden's rows: zeros past the network rays' (the padding's gradient
+    # goes to the MLP's backward as it is, no copy there)
+    padded_grad_hidden = np.empty((len(hidden), width), hidden_np.dtype)
+    padded_grad_hidden[n_net:] = 0
+    grad_hidden = padded_grad_hidden[:n_net]
     grad_weight = np.empty(n_out * padded_width, np.float32)
     grad_bias = np.empty(n_out, np.float32)
     out = np.empty((n_net, n_out), np.float32)
@@ -408,7 +414,7 @@ def training_loss_numba(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
     # Each term as the fp32 value torch's mean would give (to rounding); the total from those.
     parts = {k: float(np.float32(means[k])) for k in terms}
     value = sum(float(w[_TERMS.index(k)]) * parts[k] for k in terms)
-    grad_hidden_t = torch.from_numpy(grad_hidden)
+    grad_hidden_t = torch.from_numpy(padded_grad_hidden)
     if low:
         grad_hidden_t = grad_hidden_t.view(torch.bfloat16)
     grad_weight_t = torch.from_numpy(grad_weight.reshape(n_out, padded_width)[:, :width].copy())

@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import numba
 import numpy as np
 import torch
+import torch.nn.functional as F
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
@@ -321,13 +322,15 @@ def read_rows(table, slots, weights, k, out, col):
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, n_workers, out, out_bf16, point_offsets, saved_slots, saved_weights):
-    """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[N, H * L * F (+ extra)]`` fp32, or,
+def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, n_workers, extra, out, out_bf16, point_offsets, saved_slots,
+                    saved_weights):  # fmt: skip
+    """``table`` is ``[L * T, F]`` (levels stacked); ``out`` is ``[>= N, H * L * F + E]`` fp32, or,
     when ``out_bf16`` has rows, ``out_bf16`` is (uint16 bf16 bits, rounded as torch's cast) and
-    ``out`` is unused. Per group of `_GROUP` rays: every point's rows and weights first
-    (prefetching the rows), then the reads. When ``saved_slots``/``saved_weights`` (``[L, P, 4]``)
-    have rows, each face point's 4 rows and weights are kept there for the backward, packed: ray
-    n's j-th valid point at ``point_offsets[n] + j`` (origin points, 8 rows, are recomputed).
+    ``out`` is unused; row n's last E columns are ``extra [N, E]`` (E may be 0), the same cast.
+    Per group of `_GROUP` rays: every point's rows and weights first (prefetching the rows), then
+    the reads. When ``saved_slots``/``saved_weights`` (``[L, P, 4]``) have rows, each face point's 4
+    rows and weights are kept there for the backward, packed: ray n's j-th valid point at
+    ``point_offsets[n] + j`` (origin points, 8 rows, are recomputed).
     Output row n encodes the points of input row ``rows[n]`` (the caller's selection, no copy)."""
     n_rays, n_points = rows.shape[0], axes.shape[1]
     n_levels = resolutions.shape[0]
@@ -400,6 +403,11 @@ def _forward_kernel(points, axes, rows, table, resolutions, n_chunks, n_workers,
                     else:
                         for j in range(h_used * stride, n_points * stride):
                             out[n, j] = np.float32(0.0)
+                    for j in range(extra.shape[1]):
+                        if low_precision:
+                            out_bf16[n, n_points * stride + j] = bf16_bits(extra[n, j])
+                        else:
+                            out[n, n_points * stride + j] = extra[n, j]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -616,7 +624,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points: Tensor, face_axis: Tensor, rows: Tensor | None, table: Tensor, resolutions: np.ndarray,
-                backward_scatter: str, extra: Tensor | None, dtype: torch.dtype):  # fmt: skip
+                backward_scatter: str, extra: Tensor | None, dtype: torch.dtype, out_rows: int):  # fmt: skip
         pts = _numpy(points, torch.float32)
         axes = _numpy(face_axis, torch.int8)
         # Output row n encodes input row rows[n] (all rows in order without ``rows``).
@@ -624,16 +632,16 @@ class _SparseHashGridFunction(torch.autograd.Function):
         n_rays, n_points = len(index), axes.shape[1]
         levels, _, n_feat = table.shape
         width = n_points * levels * n_feat
-        shape = (n_rays, width + (0 if extra is None else extra.shape[1]))
-        # The extra columns are written in place: no concatenation after, no slice of the gradient before the backward.
+        extra_np = np.empty((n_rays, 0), np.float32) if extra is None else _numpy(extra, torch.float32)
+        # The extra columns are written by the kernel: no concatenation after, no slice of the gradient
+        # before the backward. Rows past the rays' are zeros (a GEMM's row padding, `MLP`: no copy).
+        shape = (max(out_rows, n_rays), width + extra_np.shape[1])
         if dtype == torch.bfloat16:
             out, bits = np.empty((0, shape[1]), np.float32), np.empty(shape, np.uint16)
-            if extra is not None:
-                bits[:, width:] = extra.detach().to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+            bits[n_rays:] = 0
         else:
             out, bits = np.empty(shape, np.float32), np.empty((0, shape[1]), np.uint16)
-            if extra is not None:
-                out[:, width:] = _numpy(extra, torch.float32)
+            out[n_rays:] = 0
         # "saved_rows": the backward scatters from the rows and weights the forward found (int32 +
         # fp32, 4 per valid point and level, packed: 32 * L bytes a point; a bunny hq step's
         # ~30,000 points of 5,400 rays: ~1.9 MiB). (The caller decides: grad mode is off here.)
@@ -647,8 +655,8 @@ class _SparseHashGridFunction(torch.autograd.Function):
         if n_rays:
             n_chunks = task_count(n_rays)
             flat = _numpy(table, torch.float32).reshape(-1, n_feat)
-            _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, task_workers(n_chunks), out, bits, offsets, saved_slots,
-                            saved_weights)  # fmt: skip
+            _forward_kernel(pts, axes, index, flat, resolutions, n_chunks, task_workers(n_chunks), extra_np, out, bits, offsets,
+                            saved_slots, saved_weights)  # fmt: skip
         ctx.saved_rows = (saved_slots, saved_weights) if save else None
         ctx.index = index
         ctx.save_for_backward(points, face_axis)
@@ -667,6 +675,7 @@ class _SparseHashGridFunction(torch.autograd.Function):
                 grad = grad_out.contiguous().view(torch.int16).numpy().view(np.uint16)
             else:
                 grad = _numpy(grad_out, torch.float32)
+            grad = grad[: len(ctx.index)]  # (rows past the rays': padding, no gradient to scatter)
             pts, axes = _numpy(points, torch.float32), _numpy(face_axis, torch.int8)
             threads = numba.get_num_threads()
             if ctx.saved_rows is not None:
@@ -688,10 +697,10 @@ class _SparseHashGridFunction(torch.autograd.Function):
                 n_threads = max(1, min(len(axes), threads))
                 tables = np.zeros((n_threads, levels * size, n_feat), np.float32)
                 if len(axes):
-                    _backward_kernel(pts, axes, _numpy(grad_out, torch.float32), ctx.resolutions, tables)
+                    _backward_kernel(pts, axes, _numpy(grad_out, torch.float32)[: len(axes)], ctx.resolutions, tables)
                 table_grad = tables[0] if n_threads == 1 else tables.sum(0)
             grad_table = torch.from_numpy(table_grad.reshape(ctx.table_shape))
-        return None, None, None, grad_table, None, None, None, None
+        return None, None, None, grad_table, None, None, None, None, None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -789,7 +798,7 @@ class SparseHashGrid(nn.Module):
         return max_points * len(self.resolutions) * self.features_per_level
 
     def forward(self, points: Tensor, face_axis: Tensor, extra: Tensor | None = None, dtype: torch.dtype = torch.float32,
-                rows: Tensor | None = None) -> Tensor:  # fmt: skip
+                rows: Tensor | None = None, out_rows: int | None = None) -> Tensor:  # fmt: skip
         """``points [N, H, 3]`` unit-box, ``face_axis [N, H]`` -> features ``[N, H * L * F]``.
 
         Layout is point-major: point 0 level 0 features, point 0 level 1, ..., point 1 ...;
@@ -798,7 +807,9 @@ class SparseHashGrid(nn.Module):
         the output's, the fp32 features cast to it (the CPU kernel writes bf16 itself, no fp32
         copy, with ``low_precision_output``). ``rows [M]`` (long): encode only those rays, in that
         order, as ``points[rows], face_axis[rows]`` would (``extra`` then has M rows); the CPU kernels
-        read the points through the index (no copy).
+        read the points through the index (no copy). ``out_rows`` (>= M): the output has that many
+        rows, those past the rays' zeros (the row padding `MLP` gives its GEMMs, written here
+        instead of copied there).
         """
         if points.ndim != 3 or points.shape[-1] != 3 or face_axis.shape != points.shape[:2]:
             raise ValueError(
@@ -808,6 +819,8 @@ class SparseHashGrid(nn.Module):
         n_out = len(points) if rows is None else len(rows)
         if extra is not None and (extra.ndim != 2 or len(extra) != n_out):
             raise ValueError(f"expected extra columns [N, E] for {n_out} rays, got {tuple(extra.shape)}")
+        if out_rows is not None and out_rows < n_out:
+            raise ValueError(f"out_rows ({out_rows}) must be at least the {n_out} rays")
         if rows is not None and (rows.ndim != 1 or (len(rows) and not 0 <= int(rows.min()) <= int(rows.max()) < len(points))):
             raise ValueError(f"rows must be a 1-D index into the {len(points)} rays")
         cpu_kernels = self.table.device.type == "cpu" and self.table.dtype == torch.float32
@@ -825,11 +838,12 @@ class SparseHashGrid(nn.Module):
             if scatter == "saved_rows" and not (torch.is_grad_enabled() and self.table.requires_grad):
                 scatter = "row_ranges"  # no backward to come: nothing to save
             features = _SparseHashGridFunction.apply(points, face_axis, rows, self.table, self._resolutions_np, scatter,
-                                                     extra, kernel_dtype)  # fmt: skip
+                                                     extra, kernel_dtype, out_rows or n_out)  # fmt: skip
             return features.to(dtype)
         else:
             features = sparse_hash_grid_reference(points, face_axis, self.table, self.resolutions)
-        return (features if extra is None else torch.cat([features, extra.to(features.dtype)], dim=1)).to(dtype)
+        features = (features if extra is None else torch.cat([features, extra.to(features.dtype)], dim=1)).to(dtype)
+        return features if out_rows is None or out_rows == n_out else F.pad(features, (0, 0, 0, out_rows - n_out))
 
     def _resolutions_on(self, device: torch.device) -> Tensor:
         """The level resolutions as an int32 tensor on ``device`` (made once per device: no copy per call)."""
