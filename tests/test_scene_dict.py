@@ -139,7 +139,6 @@ def test_out_of_range_material_index_is_a_build_time_error():
 
     from neuralrt.accel.tlas import Instance, SceneAccel
     from neuralrt.rays import Transform
-    from neuralrt.scene.scene import Scene
 
     scene = load_dict(_scene_dict(_two_part_mesh()))
     bad = Instance(scene.accel.instances[0].blas, Transform(), torch.tensor([0, 7]))

@@ -1,8 +1,6 @@
 """The two shading implementations (`shading_stages`: torch ops, numba kernels) against each other:
 the same random numbers in give the same answers out, stage by stage and for whole renders."""
 
-import math
-
 import numpy as np
 import pytest
 import torch
