@@ -23,7 +23,9 @@ machine size. In each process:
   best of ``--repeats``: ``intersect`` and ``occluded`` rays/s of both; with ``--switches``, LSNIF's
   also with each setting (``lsnif_intersect[MIN_RAYS_PER_THREAD=0]_hq_rays/s``), in the same rounds.
 The table gives each figure's speed-up over the 2-thread process (the issue's "2-core rate") and
-over 1 thread. Writes benchmarks/results/<--name>.json.
+over 1 thread; with ``--profile`` and both 1 and 2 threads, a second table gives each stage's
+serial part (Amdahl from the two timings) and the best speed-up 16 threads could give over 2 with
+it. Writes benchmarks/results/<--name>.json.
 """
 
 from __future__ import annotations
@@ -215,10 +217,34 @@ def _write(args, rows: list[dict], show: bool) -> Path:
         for k in figures:
             table.append({"threads": r["threads"], "figure": k, "rays/s": r[k],
                           "vs_2_threads": r[k] / base2[k] if base2 else None, "vs_1_thread": r[k] / base1[k] if base1 else None})
+    serial = _serial_parts(base1, base2) if base1 and base2 else []
     if show:
         print_table(table, ["threads", "figure", "rays/s", "vs_2_threads", "vs_1_thread"])
-    return write_results(args.name, table, {"machine": machine_info(), "per_process": rows,
+        if serial:
+            print("\nSerial time per step from the 1- and 2-thread stage timers (Amdahl, the rest taken as perfectly parallel):")
+            print_table(serial, ["profile", "stage", "ms_1_thread", "ms_2_threads", "serial_ms", "bound_16_vs_2"])
+    return write_results(args.name, table, {"machine": machine_info(), "per_process": rows, "serial_parts": serial,
                                             "settings": {k: v for k, v in vars(args).items() if k != "child"}})
+
+
+def _serial_parts(one: dict, two: dict) -> list[dict]:
+    """Per profiled stage (``--profile``): its time at 1 and 2 threads, the serial part those imply
+    (t1 = s + p, t2 = s + p / 2, so s = 2 t2 - t1, clamped to [0, t2]) and the best speed-up over 2
+    threads that 16 could then give (t2 / (s + p / 16)): an upper bound, as the parallel part is
+    taken to scale perfectly. The step's "wall" row bounds the issue's 16-core target (>= 5x)."""
+    parts = []
+    for key, stages in two.items():
+        if not key.endswith("_stages_ms_per_step") or key not in one:
+            continue
+        for stage, t2 in stages.items():
+            t1 = one[key].get(stage)
+            if t1 is None or "[drawing thread]" in stage or t2 <= 0:
+                continue
+            s = min(max(2 * t2 - t1, 0.0), t2)
+            p = max(t1 - s, 0.0)
+            parts.append({"profile": key.removesuffix("_stages_ms_per_step"), "stage": stage.strip(), "ms_1_thread": t1,
+                          "ms_2_threads": t2, "serial_ms": s, "bound_16_vs_2": t2 / (s + p / 16) if s + p > 0 else None})
+    return parts
 
 
 def main() -> None:
