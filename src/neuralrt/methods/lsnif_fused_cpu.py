@@ -214,8 +214,11 @@ def _list_points(point_ray, point_slot, point_code, point_x, point_y, point_z, e
 # (mean ~2%) than reading a group's rows right after its walk. Without the prefetches, 128 rays
 # beat 64 (A/B, `intersect`: `lq` 0.965-0.989x in three runs, `hq` 0.98-1.02x) and 96, 192 and
 # 256 did not (`lq` 1.01x, 1.01x, 1.005x) (session 31). With the 16-lane float32 walk (session
-# 32), 64 and 256 measured 1.024x and 1.000x (`lq`).
-_GROUP = 128
+# 32), 64 and 256 measured 1.024x and 1.000x (`lq`). On the Zen 4 (session 46; in-process A/B of
+# two copies of this module on the same rays, medians of 50 rounds; an identical copy measured
+# 0.994-1.005x): 256 rays 0.98-0.985x the time of 128 (`lq` `intersect` in four runs, `hq` in one;
+# `occluded` 0.98-1.006x), 192 0.99-1.00x, 64 1.05x.
+_GROUP = 256
 
 # Many small chunks handed out one at a time (`task_queue`): rays vary in length, and on a shared
 # machine one thread may be descheduled; with numba's static split of a prange (its OpenMP layer)
