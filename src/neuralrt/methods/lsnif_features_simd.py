@@ -27,7 +27,7 @@ from .lsnif_walk_simd import float32_walk_applies, occupancy_bits, walk_group, w
 
 __all__ = ["applies", "featurize_rays_simd"]
 
-_GROUP = 128  # rays a `walk_group` call walks (as the fused pass)
+_GROUP = 256  # rays a `walk_group` call walks (as the fused pass; a bunny batch 0.973x, 0.990x the time of 128)
 
 
 def applies(resolution: int) -> bool:
