@@ -171,8 +171,8 @@ def test_row_range_backward_is_the_serial_scatter_bit_for_bit():
     flat = grid.table.detach().numpy().reshape(-1, 3)
     out = np.empty((n, grid.output_dim(h)), np.float32)
     every = np.arange(n, dtype=np.int64)
-    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), every, flat, grid._resolutions_np, 7, 2, np.empty((n, 0), np.float32),
-                        out, np.empty((0, out.shape[1]), np.uint16), offsets, *saved)  # fmt: skip
+    shg._forward_kernel(f.points.numpy(), f.face_axis.numpy(), every, flat, shg.padded_table(grid.table), grid._resolutions_np, 7, 2,
+                        np.empty((n, 0), np.float32), out, np.empty((0, out.shape[1]), np.uint16), offsets, *saved)  # fmt: skip
     face = f.face_axis.numpy()[valid] < 3  # packed in ray order: face points saved, origin points not
     assert (saved[0][:, face] >= 0).all() and (saved[0][:, ~face] == -1).all() and (~face).any()
     for ranges in (1, 2, 5):
