@@ -48,7 +48,7 @@ from ..neural.mlp_rows_cpu import (
     widen_rows_bf16,
 )  # fmt: skip
 from ..neural.sparse_hash_grid import SparseHashGrid, half_table, padded_table
-from ..neural.sparse_hash_grid import face_rows as _face_rows
+from ..neural.sparse_hash_grid import face_rows_of_points as _face_rows_of_points
 from ..neural.sparse_hash_grid import origin_rows as _origin_rows
 from ..neural.sparse_hash_grid import read_rows3 as _read_rows3
 from ..neural.sparse_hash_grid import read_rows3_then as _read_rows3_then
@@ -162,15 +162,6 @@ def _first_layer_pairs(xs, xp, group_count, n_group, block, w1_pairs, b1, slope,
         for i in range(n_rows):
             bias_leaky_bf16(dots, i * width, b1, 0, width, slope, hidden_flat, (start + rows[i]) * width)
     return m
-
-
-@numba.njit(cache=True)
-def _face_rows_of_points(point_x, point_y, point_z, point_code, n, res, mask, base, slots, weights):
-    """`face_rows` of points ``[0, n)`` into ``slots``/``weights`` ``[4, >= n]``: a function of its own
-    so that the loop compiles to SIMD code (its arrays are arguments, not the parallel kernel's locals)."""
-    for i in range(n):
-        slots[0, i], slots[1, i], slots[2, i], slots[3, i], weights[0, i], weights[1, i], weights[2, i], weights[3, i] = _face_rows(
-            point_x[i], point_y[i], point_z[i], point_code[i], res, mask, base)
 
 
 @numba.njit(cache=True)
