@@ -77,6 +77,25 @@ def set_ray(words, ids, ox, oy, oz, dx, dy, dz, tfar) -> None:
     ids[PRIM_ID], ids[GEOM_ID], ids[INST_ID] = INVALID_ID, INVALID_ID, INVALID_ID
 
 
+@numba.njit(cache=True, inline="always")
+def trace_closest(scene, words, ids, address, ox, oy, oz, dx, dy, dz, tfar) -> bool:
+    """Embree's closest hit of one ray from t = 0 to ``tfar`` (`set_ray` into the record at
+    ``address``); True on a hit, whose distance, triangle and (u, v) are then ``words[TFAR]``,
+    ``ids[PRIM_ID]``, ``words[HIT_U]`` / ``words[HIT_V]``."""
+    set_ray(words, ids, ox, oy, oz, dx, dy, dz, tfar)
+    rtc_intersect1(scene, address)
+    return ids[GEOM_ID] != INVALID_ID
+
+
+@numba.njit(cache=True, inline="always")
+def trace_occluded(scene, words, ids, address, ox, oy, oz, dx, dy, dz, tfar) -> bool:
+    """Embree's any-hit query of one ray from t = 0 to ``tfar``: True where a triangle blocks it
+    (Embree marks a blocked ray by setting its t_far to -inf)."""
+    set_ray(words, ids, ox, oy, oz, dx, dy, dz, tfar)
+    rtc_occluded1(scene, address)
+    return words[TFAR] == -np.inf
+
+
 @numba.njit(parallel=True, nogil=True, cache=True)
 def intersect_rays(
     scene, workers, origins, directions, t_min, t_max,
@@ -106,12 +125,10 @@ def intersect_rays(
             for i in range(start, stop):
                 ok, sx, sy, sz, tfar = row_embree_ray(origins, directions, t_min, t_max, i)
                 block_prim[i - start] = -1
-                if ok:
-                    set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
-                    rtc_intersect1(scene, address)
-                    if ids[GEOM_ID] != INVALID_ID:
-                        block_prim[i - start] = ids[PRIM_ID]
-                        block_t[i - start], block_u[i - start], block_v[i - start] = words[TFAR], words[HIT_U], words[HIT_V]
+                if ok and trace_closest(scene, words, ids, address, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2],
+                                        tfar):  # fmt: skip
+                    block_prim[i - start] = ids[PRIM_ID]
+                    block_t[i - start], block_u[i - start], block_v[i - start] = words[TFAR], words[HIT_U], words[HIT_V]
             for i in range(start, stop):
                 p = block_prim[i - start]
                 if p < 0:
@@ -140,10 +157,8 @@ def occluded_rays(scene, workers, origins, directions, t_min, t_max, blocked) ->
                 break
             for i in range(start, stop):
                 ok, sx, sy, sz, tfar = row_embree_ray(origins, directions, t_min, t_max, i)
-                if ok:
-                    set_ray(words, ids, sx, sy, sz, directions[i, 0], directions[i, 1], directions[i, 2], tfar)
-                    rtc_occluded1(scene, address)
-                blocked[i] = ok and words[TFAR] == -np.inf  # Embree's mark of a blocked ray
+                blocked[i] = ok and trace_occluded(scene, words, ids, address, sx, sy, sz, directions[i, 0], directions[i, 1],
+                                                   directions[i, 2], tfar)  # fmt: skip
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
@@ -160,10 +175,8 @@ def closest_prepared(scene, workers, shifted, directions, tfar, prim_id, bary_u,
             if start >= n:
                 break
             for i in range(start, stop):
-                set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
-                        directions[i, 2], tfar[i])  # fmt: skip
-                rtc_intersect1(scene, address)
-                found = ids[GEOM_ID] != INVALID_ID
+                found = trace_closest(scene, words, ids, address, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0],
+                                      directions[i, 1], directions[i, 2], tfar[i])  # fmt: skip
                 prim_id[i] = np.int32(ids[PRIM_ID]) if found else np.int32(-1)
                 if found:
                     tfar[i] = words[TFAR]
@@ -182,10 +195,9 @@ def occluded_prepared(scene, workers, shifted, directions, tfar, geom_id) -> Non
             if start >= n:
                 break
             for i in range(start, stop):
-                set_ray(words, ids, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0], directions[i, 1],
-                        directions[i, 2], tfar[i])  # fmt: skip
-                rtc_occluded1(scene, address)
-                geom_id[i] = 0 if words[TFAR] == -np.inf else -1
+                blocked = trace_occluded(scene, words, ids, address, shifted[i, 0], shifted[i, 1], shifted[i, 2], directions[i, 0],
+                                         directions[i, 1], directions[i, 2], tfar[i])  # fmt: skip
+                geom_id[i] = 0 if blocked else -1
 
 
 @numba.njit(cache=True, inline="always")

@@ -17,8 +17,8 @@ from numba.extending import intrinsic
 
 from ..rays_kernels import valid_ray, write_miss
 from ..simd import prefetch_row
-from .embree_api import GEOM_ID, HIT_U, HIT_V, INVALID_ID, PRIM_ID, TFAR, ray_record, rtc_intersect1, rtc_occluded1
-from .mesh_blas_kernels import embree_ray, next_rows, set_ray, surface_at
+from .embree_api import HIT_U, HIT_V, PRIM_ID, TFAR, ray_record
+from .mesh_blas_kernels import embree_ray, next_rows, surface_at, trace_closest, trace_occluded
 
 __all__ = ["instance_overlaps", "instance_pairs", "object_space_rays", "transform_rays", "merge_every_ray", "merge_pairs",
            "instance_closest_hits", "instance_occluded", "pair_embree_rays", "merge_pair_hits", "finish_hits", "mark_blocked"]
@@ -388,9 +388,7 @@ def instance_closest_hits(scene, workers, origins, directions, t_min, t_max, has
                                                                         world_to_object, identity)  # fmt: skip
                 if not ok:
                     continue
-                set_ray(words, ids, sx, sy, sz, dx, dy, dz, tfar)
-                rtc_intersect1(scene, address)
-                if ids[GEOM_ID] == INVALID_ID:
+                if not trace_closest(scene, words, ids, address, sx, sy, sz, dx, dy, dz, tfar):
                     continue
                 t = words[TFAR] + (t_min[i] if np.isfinite(t_min[i]) else zero)
                 if has_best and not (t < best_t[i]):
@@ -416,9 +414,7 @@ def instance_occluded(scene, workers, origins, directions, t_min, t_max, blocked
                 ok, sx, sy, sz, dx, dy, dz, tfar = _instance_embree_ray(origins, directions, t_min, t_max, i, t_max[i], lo, hi,
                                                                         world_to_object, identity)  # fmt: skip
                 if ok:
-                    set_ray(words, ids, sx, sy, sz, dx, dy, dz, tfar)
-                    rtc_occluded1(scene, address)
-                    blocked[i] = words[TFAR] == -np.inf
+                    blocked[i] = trace_occluded(scene, words, ids, address, sx, sy, sz, dx, dy, dz, tfar)
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
