@@ -164,3 +164,35 @@ def test_invalid_model_header_is_one_line(lsnif_file, tmp_path):
     _rewrite_header(bad, lambda h: h.update(bounds=[[0, 0], [1, 1, 1]]))
     with pytest.raises(ModelFileError, match=r"invalid model header \(bounds\.0"):
         load_model(bad)
+
+
+@pytest.mark.parametrize(
+    "bounds, message",
+    [([[float("nan"), 0, 0], [1, 1, 1]], r"bounds\.0\.0: Input should be a finite number"),
+     ([[0, 0, 0], [1, float("inf"), 1]], r"bounds\.1\.1: Input should be a finite number"),
+     ([[0, 2, 0], [1, 1, 1]], r"lo \[0\.0, 2\.0, 0\.0\] is above hi")],
+)
+def test_non_finite_or_inverted_bounds_are_refused(lsnif_file, tmp_path, bounds, message):
+    # The header is not covered by the arrays' checksum: an edited header must still be checked.
+    from neuralrt.methods import load_model
+
+    _, path = lsnif_file
+    bad = tmp_path / "bad.nrt"
+    bad.write_bytes(path.read_bytes())
+    _rewrite_header(bad, lambda h: h.update(bounds=bounds))
+    with pytest.raises(ModelFileError, match=message):
+        load_model(bad)
+
+
+def test_invalid_config_in_header_names_the_key(lsnif_file, tmp_path):
+    from neuralrt.methods import load_model
+
+    _, path = lsnif_file
+    bad = tmp_path / "bad.nrt"
+    bad.write_bytes(path.read_bytes())
+    _rewrite_header(bad, lambda h: h["config"]["inference"].update(occlusion_threshold=float("nan")))
+    with pytest.raises(ModelFileError) as err:
+        load_model(bad)
+    message = str(err.value)
+    assert "inference.occlusion_threshold: Input should be a finite number" in message
+    assert "\n" not in message and "errors.pydantic.dev" not in message

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 from .errors import ConfigError, DeviceError, NeuralRTError
+from .io.files import check_output_file, check_output_folder
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
@@ -32,20 +33,32 @@ def check_device(device) -> None:
         raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
 
 
-def check_count(name: str, value, minimum: int = 1) -> None:
-    """One-line `ConfigError` unless ``value`` is None or an integer >= ``minimum`` (``name`` as the user wrote it)."""
+def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
+    """One-line `ConfigError` unless ``value`` is None or an integer in [``minimum``, ``maximum``]
+    (``name`` as the user wrote it)."""
     if value is None:
         return
     if isinstance(value, bool) or not isinstance(value, int):
         raise ConfigError(f"{name}: must be an integer, got {value!r}")
     if value < minimum:
         raise ConfigError(f"{name}: must be at least {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ConfigError(f"{name}: must be at most {maximum}, got {value}")
+
+
+def _max_depth_limit() -> int:
+    """The largest ``max_depth`` a scene file takes (its schema's bound)."""
+    from .scene.schema import RenderSettings
+
+    return next(m.le for m in RenderSettings.model_fields["max_depth"].metadata if getattr(m, "le", None) is not None)
 
 
 def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> dict:
     """FLIP, PSNR and relMSE of ``test`` against ``reference``; writes the FLIP heat map PNG if asked."""
     from .eval.image_metrics import compare_files
 
+    if heatmap is not None:
+        check_output_file(heatmap, "heat map")
     result = compare_files(reference, test, heatmap=heatmap, hdr=hdr)
     out = result.as_dict()
     if heatmap is not None:
@@ -171,13 +184,14 @@ def render(
 
     check_device(device)
     check_count("spp", spp)
-    check_count("max_depth", max_depth, minimum=0)
+    check_count("max_depth", max_depth, minimum=1, maximum=_max_depth_limit())  # a scene file's bounds
     check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError("--nif-train-spp needs --nif OBJECTS|auto")
     output = Path(output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
+    check_output_file(output, "render output")
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch)
     primary = loaded.primary
@@ -260,6 +274,9 @@ def train(
     preset = preset or spec.default_preset(device)
     config = spec.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
     output = Path(output)
+    if output.suffix.lower() not in MODEL_SUFFIXES:
+        raise NeuralRTError(f"{output}: a model file must end in .nrt (`neuralrt info` and scene files tell models by it)")
+    check_output_file(output, "model file")
     checkpoint = output.with_name(output.name + ".ckpt")
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
@@ -309,6 +326,10 @@ def evaluate(
 
     check_device(device)
     check_count("rays", rays, minimum=2)
+    if image_dir is not None:
+        if not images:
+            raise ConfigError("--images DIR and --no-images contradict each other: give one")
+        check_output_folder(image_dir, "image")
     blas = model if is_neural(model) else load_model(model, device=device)
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()

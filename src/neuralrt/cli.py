@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import warnings
 
@@ -21,9 +22,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"neuralrt: error: {message} (see {self.prog} --help)\n")
 
 
+def _strict_json(value):
+    """``value`` with every non-finite float as None: JSON has no NaN or Infinity (PSNR of two equal
+    images is +inf), and strict readers (jq, JavaScript's JSON.parse) reject Python's tokens for them."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict_json(v) for v in value]
+    return value
+
+
 def _print_result(result: dict, as_json: bool) -> None:
     if as_json:
-        print(json.dumps(result, indent=None, default=float))
+        plain = json.loads(json.dumps(result, default=float))  # numpy scalars and the like as Python floats
+        print(json.dumps(_strict_json(plain), allow_nan=False))
         return
     for key, value in result.items():
         if isinstance(value, float):
@@ -201,10 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="held-out accuracy of a model against its mesh (+ orbit images with FLIP)")
     p.add_argument("model", help="model file (.nrt)")
     p.add_argument("mesh", help="the mesh the model was trained on")
-    p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays (half outside, half surface)")
-    p.add_argument("--seed", type=int, help="seed of the held-out rays")
-    p.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
-    p.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
+    p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays, half outside, half surface (default: 131072)")
+    p.add_argument("--seed", type=int, help="seed of the held-out rays (default: 1000003)")
+    images = p.add_mutually_exclusive_group()
+    images.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
+    images.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
     p.add_argument("--allow-mesh-mismatch", action="store_true",
                    help="evaluate even if the model was trained on another mesh (default: an error)")
     _add_common(p)
@@ -263,6 +278,10 @@ def main(argv: list[str] | None = None) -> int:
         args.func(args)
     except NeuralRTError as exc:
         print(f"neuralrt: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the system refused a read or write the checks above let through (disk full, ...)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"neuralrt: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         hint = getattr(args, "interrupt_hint", None)

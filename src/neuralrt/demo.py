@@ -120,10 +120,17 @@ def _markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _write_text(path: Path, text: str) -> None:
+    from .io.files import write_atomically
+
+    write_atomically(path, lambda tmp: Path(tmp).write_text(text))
+
+
 def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device: str = "cpu",
              progress: bool = True, settings: DemoSettings | None = None) -> dict:
     """Run the whole demo and return the report (also written to ``out_dir/report.json``)."""
     from .eval.image_metrics import compare_images, write_srgb_png
+    from .io.files import check_output_folder
     from .io.images import linear_to_srgb, tone_map
     from .render.integrator import render
     from .scene.convert import convert_scene, replaced_memory
@@ -136,7 +143,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     if s.preset is None:
         s = replace(s, preset=get_method(s.method).default_preset(device))
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out, "demo report")  # (made by the conversion, once the scene is known to be good)
 
     def say(msg: str) -> None:
         if progress:
@@ -200,7 +207,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
             "flip": "flip.png", "side_by_side": "side_by_side.png", "report_md": "report.md",
         },
     }
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    (out / "report.md").write_text(_markdown(report))
+    _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
+    _write_text(out / "report.md", _markdown(report))
     say(f"report: {(out / 'report.md').resolve()}")
     return report

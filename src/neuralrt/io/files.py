@@ -1,6 +1,7 @@
 """Output and input files: atomic writes that respect the user's umask, and input-file checks.
 
-`write_atomically` is the one way neuralrt writes an output file (images, model files, scene
+`check_output_file` / `check_output_folder` ask, before any long work, whether an output can be
+written there (without creating anything). `write_atomically` is the one way neuralrt writes an output file (images, model files, scene
 files, checkpoints): the data goes to a temporary sibling, then one ``os.replace`` puts it in
 place, so a crash leaves the old file or the new one, never half of one. The temporary file is
 created with mode ``0o666`` filtered by the umask, like any file a program opens for writing
@@ -15,7 +16,9 @@ import stat
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["write_atomically", "input_file_problem"]
+from ..errors import NeuralRTError
+
+__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_folder"]
 
 
 def _create_sibling(path: Path) -> Path:
@@ -65,3 +68,41 @@ def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
     if not path.is_file():
         return f"{path}: not a regular file (a {what} must be one)"
     return None
+
+
+def _writable_folder_problem(folder: Path, what: str) -> str | None:
+    """None when ``folder`` exists and takes new files, or can be created; else the problem."""
+    for ancestor in (folder, *folder.parents):
+        if not ancestor.exists():
+            continue
+        if not ancestor.is_dir():
+            where = "" if ancestor == folder else f" (on the way to {folder})"
+            return f"{ancestor}: is a file, not a folder{where}"
+        break
+    else:  # (a relative path whose ancestors are all missing: the current folder)
+        ancestor = Path(".")
+    # Probing with a real file: os.access does not see read-only mounts, ACLs or sysfs-like folders.
+    try:
+        probe = _create_sibling(ancestor / "neuralrt-write-probe")
+    except OSError as exc:
+        return f"{ancestor}: cannot write the {what} there ({exc.strerror or exc})"
+    probe.unlink()
+    return None
+
+
+def check_output_file(path: str | os.PathLike, what: str) -> None:
+    """A one-line `NeuralRTError` unless a file can be written at ``path``: not a folder, its folder
+    existing (or creatable) and writable. Nothing is created."""
+    path = Path(path)
+    if path.is_dir():
+        raise NeuralRTError(f"{path}: is a folder, not a {what}")
+    problem = _writable_folder_problem(path.parent, what)
+    if problem:
+        raise NeuralRTError(problem)
+
+
+def check_output_folder(folder: str | os.PathLike, what: str) -> None:
+    """A one-line `NeuralRTError` unless ``folder`` is (or can be made) a writable folder. Nothing is created."""
+    problem = _writable_folder_problem(Path(folder), what)
+    if problem:
+        raise NeuralRTError(problem)

@@ -20,13 +20,14 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass
+from typing import Annotated
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import ModelFileError, validation_message
 from .files import write_atomically
@@ -44,12 +45,15 @@ _CONTAINER_KEYS = ("format_version", "arrays_sha256")
 _DERIVED_V1_KEYS = ("box", "memory_bytes")
 
 
+_Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+
 class MaterialEntry(BaseModel):
     """One material slot of a model: its name (mapped to a scene material) and base colour."""
 
     model_config = ConfigDict(extra="forbid")
     name: str
-    base_color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    base_color: tuple[_Finite, _Finite, _Finite] = (1.0, 1.0, 1.0)
 
 
 class ModelHeader(BaseModel):
@@ -58,11 +62,19 @@ class ModelHeader(BaseModel):
     model_config = ConfigDict(extra="forbid")
     method: str = Field(description="registered method name, e.g. 'lsnif'")
     config: dict = Field(description="the method's full config (validated by the method's config class on load)")
-    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] = Field(description="tight object-space AABB (lo, hi)")
+    bounds: tuple[tuple[_Finite, _Finite, _Finite], tuple[_Finite, _Finite, _Finite]] = Field(
+        description="tight object-space AABB (lo, hi)")
     materials: list[MaterialEntry] = Field(min_length=1, description="material slots in material-index order")
     training: dict = Field(default_factory=dict, description="the training record (steps, rays, seconds, precision, ...)")
     mesh_sha256: str | None = Field(None, description="content hash of the source mesh")
     mesh_name: str | None = None
+
+    @model_validator(mode="after")
+    def _bounds_ordered(self) -> "ModelHeader":
+        lo, hi = self.bounds
+        if any(a > b for a, b in zip(lo, hi)):
+            raise ValueError(f"bounds: lo {list(lo)} is above hi {list(hi)} on some axis")
+        return self
 
 
 @dataclass

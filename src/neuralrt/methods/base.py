@@ -30,10 +30,11 @@ from pathlib import Path
 from typing import ClassVar
 
 import torch
+from pydantic import ValidationError
 from torch import Tensor, nn
 
 from ..accel.blas import MemoryReport
-from ..errors import DeviceError, MeshMismatchError, ModelFileError
+from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
 from ..io.model_file import ModelHeader, read_model, write_model
 from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
 from ..rays import AABB, Hits, Rays
@@ -306,6 +307,9 @@ class NeuralBLAS(nn.Module, ABC):
         header, arrays = read_model(path, method=cls.METHOD)
         try:
             config = cls.CONFIG.model_validate(header.config)
+        except ValidationError as exc:
+            raise ModelFileError(f"{path}: invalid {cls.TITLE} config in the model header ({validation_message(exc)[:300]})") from None
+        try:
             bounds = AABB(torch.tensor(header.bounds[0], dtype=torch.float32), torch.tensor(header.bounds[1], dtype=torch.float32))
             model = cls._from_arrays(config, bounds, [m.model_dump() for m in header.materials], arrays)
         except ModelFileError:

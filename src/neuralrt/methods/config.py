@@ -20,14 +20,18 @@ __all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig"]
 class ConfigSection(BaseModel):
     """A typed, validated config section: unknown keys and bad values are errors naming the key."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # NaN: "finite number", not "less than 1"
 
 
 class TrainingConfig(ConfigSection):
     """What the shared training loop and the training ray distribution read."""
 
     steps: int = Field(4000, ge=1, description="optimizer steps (paper: 2,000 of 2^18 rays; CPU default: 4,000 of 2^13, see docs/lsnif.md)")
-    batch_size: int = Field(1 << 13, ge=16, description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs/lsnif.md)")
+    batch_size: int = Field(
+        1 << 13, ge=16, le=1 << 22,
+        description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs/lsnif.md; at most 2^22: "
+        "LSNIF `hq` holds ~1.8 KB per ray in a step, so 2^22 rays take ~7.5 GB)",
+    )
     learning_rate: float = Field(0.01, gt=0.0, description="Adam learning rate (paper: 0.01)")
     adam_betas: tuple[float, float] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (instant-ngp's: tiny, so rarely-hit table entries still move)")
@@ -37,7 +41,7 @@ class TrainingConfig(ConfigSection):
         "0.1 measured better on the bunny: t error 0.37% -> 0.29%, normals 5.8 -> 5.0 deg)",
     )
     surface_fraction: float = Field(0.5, ge=0.0, le=1.0, description="share of rays starting on the surface (paper: 0.5)")
-    surface_pool_size: int = Field(1 << 16, ge=1, description="surface points kept for surface-ray origins")
+    surface_pool_size: int = Field(1 << 16, ge=1, le=1 << 24, description="surface points kept for surface-ray origins")
     surface_offset: float = Field(1e-4, ge=0.0, description="origin offset of surface rays along the normal, relative to the diagonal")
     compute_precision: Literal["auto", "fp32", "bf16"] = Field(
         "auto", description="hidden-layer arithmetic in training (weights stay fp32): auto = bf16 on CUDA or where the CPU "

@@ -24,7 +24,7 @@ import torch
 
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
-from ..io.files import write_atomically
+from ..io.files import check_output_file, check_output_folder, write_atomically
 from ..io.model_file import read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .convert_executors import Executor, TrainingJob, make_executor
@@ -231,6 +231,8 @@ def convert_scene(
     output = Path(output)
     if output.suffix.lower() not in (".toml", ".json"):
         raise SceneError(f"{output}: converted scene must end in .toml or .json")
+    check_output_file(output, "converted scene")
+    check_output_folder(Path(models_dir) if models_dir is not None else output.parent / "models", "models")
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)

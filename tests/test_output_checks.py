@@ -1,0 +1,125 @@
+"""Outputs that cannot be written are refused before any work, as one line, creating nothing; and
+what the CLI prints stays machine-readable (strict JSON) and one line on system errors."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from neuralrt import api
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError, NeuralRTError
+from neuralrt.io import files
+from neuralrt.io.files import check_output_file, check_output_folder
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("neuralrt: error: "), err
+    return err[0]
+
+
+@pytest.fixture
+def a_file(tmp_path):
+    path = tmp_path / "mesh.obj"
+    trimesh.creation.icosphere(subdivisions=1).export(path)
+    return path
+
+
+def test_checks_accept_new_nested_folders_and_create_nothing(tmp_path):
+    check_output_file(tmp_path / "a" / "b" / "img.exr", "render output")
+    check_output_folder(tmp_path / "c" / "d", "report")
+    assert list(tmp_path.iterdir()) == []  # the write probe is gone too
+
+
+def test_checks_refuse_a_file_on_the_way_and_a_folder_as_file(tmp_path, a_file):
+    with pytest.raises(NeuralRTError, match=r"mesh\.obj: is a file, not a folder$"):
+        check_output_file(a_file / "img.exr", "render output")
+    with pytest.raises(NeuralRTError, match=r"mesh\.obj: is a file, not a folder \(on the way to .*mesh\.obj/x/y\)"):
+        check_output_folder(a_file / "x" / "y", "report")
+    with pytest.raises(NeuralRTError, match=r"is a folder, not a model file"):
+        check_output_file(tmp_path, "model file")
+
+
+def test_checks_refuse_a_folder_that_takes_no_files(tmp_path, monkeypatch):
+    # (as root, a read-only mode does not stop writes: the refusal is simulated at the probe)
+    def refuse(path):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(files, "_create_sibling", refuse)
+    with pytest.raises(NeuralRTError, match=r": cannot write the render output there \(Permission denied\)"):
+        check_output_file(tmp_path / "new" / "img.exr", "render output")
+
+
+def test_render_into_a_file_fails_before_rendering(tmp_path, a_file, capsys):
+    assert main(["render", "builtin:nope", "-o", str(a_file / "img.exr"), "--quiet"]) == 2
+    assert "mesh.obj: is a file, not a folder" in _one_error_line(capsys)  # before the scene is even looked up
+
+
+def test_train_refuses_other_suffixes_and_unwritable_folders_before_training(tmp_path, a_file, capsys):
+    assert main(["train", str(a_file), "-o", str(tmp_path / "out" / "m.txt"), "--steps", "1", "--quiet"]) == 2
+    assert "m.txt: a model file must end in .nrt" in _one_error_line(capsys)
+    assert main(["train", str(a_file), "-o", str(a_file / "m.nrt"), "--steps", "1", "--quiet"]) == 2
+    assert "is a file, not a folder" in _one_error_line(capsys)
+    assert not (tmp_path / "out").exists()
+
+
+def test_convert_checks_both_folders_first_and_leaves_none(tmp_path, a_file, capsys):
+    out = tmp_path / "conv" / "scene.toml"
+    assert main(["convert", "builtin:cornell-statue?detail=0", "-o", str(out), "--models-dir", str(a_file),
+                 "--steps", "1", "--quiet"]) == 2
+    assert "mesh.obj: is a file, not a folder" in _one_error_line(capsys)
+    assert not (tmp_path / "conv").exists()
+
+
+def test_demo_refuses_a_file_and_a_bad_scene_leaves_no_folder(tmp_path, a_file, capsys):
+    assert main(["demo", "--quick", "--out", str(a_file)]) == 2
+    assert "mesh.obj: is a file, not a folder" in _one_error_line(capsys)
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--scene", "builtin:nope", "--out", str(out)]) == 2
+    assert "nope" in _one_error_line(capsys)
+    assert not out.exists()
+
+
+def test_eval_images_and_no_images_contradict(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["eval", "m.nrt", "mesh.obj", "--images", str(tmp_path), "--no-images"])
+    assert stop.value.code == 2
+    assert "not allowed with argument" in _one_error_line(capsys)
+    with pytest.raises(ConfigError, match="contradict"):
+        api.evaluate("m.nrt", "mesh.obj", images=False, image_dir=tmp_path)
+
+
+@pytest.mark.parametrize("depth, message", [("0", "max_depth: must be at least 1, got 0"),
+                                            ("257", "max_depth: must be at most 256, got 257")])
+def test_max_depth_bounds_are_the_scene_files(tmp_path, capsys, depth, message):
+    assert main(["render", "builtin:cornell-statue?detail=0", "-o", str(tmp_path / "i.exr"), "--max-depth", depth,
+                 "--quiet"]) == 2
+    assert message in _one_error_line(capsys)
+
+
+def test_training_batch_has_a_ceiling(a_file, tmp_path, capsys):
+    assert main(["train", str(a_file), "-o", str(tmp_path / "m.nrt"), "--batch", "100000000", "--quiet"]) == 2
+    assert "training.batch_size: Input should be less than or equal to 4194304" in _one_error_line(capsys)
+
+
+def test_json_output_is_strict(tmp_path, capsys):
+    from neuralrt.io.images import write_exr
+
+    image = np.random.default_rng(0).random((8, 8, 3)).astype(np.float32)
+    write_exr(tmp_path / "a.exr", image)
+    assert main(["compare", str(tmp_path / "a.exr"), str(tmp_path / "a.exr"), "--json"]) == 0
+    text = capsys.readouterr().out
+    assert "Infinity" not in text and "NaN" not in text
+    result = json.loads(text)
+    assert result["psnr"] is None and result["flip"] == 0.0  # equal images: PSNR +inf, printed as null
+
+
+def test_system_errors_are_one_line(monkeypatch, capsys):
+    def refuse(path):
+        raise PermissionError(13, "Permission denied", "/somewhere/model.nrt")
+
+    monkeypatch.setattr(api, "info", refuse)
+    assert main(["info", "x.nrt"]) == 2
+    assert _one_error_line(capsys) == "neuralrt: error: /somewhere/model.nrt: Permission denied"
