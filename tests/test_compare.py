@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from neuralrt.cli import main
+from neuralrt.errors import ImageError
 from neuralrt.eval.image_metrics import compare_images, psnr, relmse
 from neuralrt.io.images import read_image, write_exr, write_png
 
@@ -55,3 +56,98 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.startswith("neuralrt: error:") and "size" in err and "\n" not in err
     assert main(["compare", str(tmp_path / "missing.exr"), str(tmp_path / "b.exr")]) == 2
     assert "missing.exr" in capsys.readouterr().err
+
+
+def _one_error_line(err: str) -> str:
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("neuralrt: error:"), err
+    return lines[0]
+
+
+def _pair(tmp_path):
+    img = np.random.default_rng(3).random((16, 16, 3), dtype=np.float32)
+    write_exr(tmp_path / "ref.exr", img)
+    write_exr(tmp_path / "test.exr", img * 0.9)
+    return str(tmp_path / "ref.exr"), str(tmp_path / "test.exr")
+
+
+def test_cli_truncated_exr_prints_one_line_and_no_library_noise(tmp_path, capfd):
+    ref, test = _pair(tmp_path)
+    data = (tmp_path / "test.exr").read_bytes()
+    (tmp_path / "trunc.exr").write_bytes(data[: len(data) // 2])
+    assert main(["compare", ref, str(tmp_path / "trunc.exr")]) == 2
+    out, err = capfd.readouterr()  # fd-level: OpenEXR's own messages bypass sys.stderr
+    assert out == ""
+    assert "trunc.exr: truncated or corrupt EXR" in _one_error_line(err)
+
+
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("which", ["reference", "test"])
+def test_cli_refuses_nan_and_inf_pixels_naming_the_image(tmp_path, capsys, bad_value, which):
+    ref, test = _pair(tmp_path)
+    bad = read_image(ref if which == "reference" else test)
+    bad[2:5, 3:7, 1] = bad_value  # 12 pixels, one channel each
+    write_exr(tmp_path / "bad.exr", bad)
+    args = [str(tmp_path / "bad.exr"), test] if which == "reference" else [ref, str(tmp_path / "bad.exr")]
+    assert main(["compare", *args]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert _one_error_line(err).endswith("bad.exr: 12 pixels are NaN or infinite")
+
+
+def test_all_nan_image_is_refused_not_scored_as_black():
+    ref = np.zeros((8, 8, 3), np.float32)
+    with pytest.raises(ImageError, match="test image: 64 pixels are NaN or infinite"):
+        compare_images(ref, np.full_like(ref, np.nan))
+
+
+@pytest.mark.parametrize("name", ["flip.exr", "flip.txt", "flip"])
+def test_cli_heatmap_must_be_png_checked_before_any_work(tmp_path, capsys, name):
+    ref, _ = _pair(tmp_path)
+    nan_image = np.full((16, 16, 3), np.nan, np.float32)
+    write_exr(tmp_path / "nan.exr", nan_image)  # the heat map name is refused before the images are read
+    assert main(["compare", ref, str(tmp_path / "nan.exr"), "--heatmap", str(tmp_path / name)]) == 2
+    assert "must end in .png" in _one_error_line(capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nan.exr", "ref.exr", "test.exr"]
+
+
+def test_cli_heatmap_folder_is_created_but_a_file_in_its_way_fails_up_front(tmp_path, capsys):
+    ref, test = _pair(tmp_path)
+    assert main(["compare", ref, test, "--heatmap", str(tmp_path / "new" / "flip.png")]) == 0
+    assert read_image(tmp_path / "new" / "flip.png").shape == (16, 16, 3)
+    capsys.readouterr()
+    assert main(["compare", ref, test, "--heatmap", str(tmp_path / "ref.exr" / "flip.png")]) == 2
+    assert "ref.exr: is a file, not a folder" in _one_error_line(capsys.readouterr().err)
+    from neuralrt.eval.image_metrics import compare_files  # the library call checks it too, up front
+
+    with pytest.raises(ImageError, match="ref.exr: is a file, not a folder"):
+        compare_files(ref, str(tmp_path / "nan-never-read.exr"), heatmap=tmp_path / "ref.exr" / "flip.png")
+
+
+def test_heatmap_write_is_atomic_and_psnr_of_identical_files_is_inf(tmp_path, monkeypatch):
+    from neuralrt.eval.image_metrics import compare_files
+    from neuralrt.io import images
+
+    ref, _ = _pair(tmp_path)
+    heat = tmp_path / "flip.png"
+    result = compare_files(ref, ref, heatmap=heat)
+    assert result.psnr == float("inf") and result.flip == 0.0 and result.relmse == 0.0
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
+    # A write that fails half-way leaves the previous heat map, not a partial file.
+    before = heat.read_bytes()
+
+    real = images.write_atomically
+
+    def fail_half_way(path, write_to):
+        def partial(tmp):
+            with open(tmp, "wb") as f:
+                f.write(b"\x89PNG partial")
+            raise OSError("disk full")
+
+        return real(path, partial)
+
+    monkeypatch.setattr(images, "write_atomically", fail_half_way)
+    with pytest.raises(ImageError, match="flip.png: cannot write image"):
+        compare_files(ref, ref, heatmap=heat)
+    assert heat.read_bytes() == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

@@ -87,6 +87,8 @@ def test_selection_errors(converted):
         convert_scene(folder / "scene.toml", folder / "x.toml", select=["nope"], progress=False)
     with pytest.raises(SceneError, match="area light"):
         convert_scene(folder / "scene.toml", folder / "x.toml", select=["lamp"], progress=False)
+    with pytest.raises(SceneError, match=r"object 'ball1' already has a model \(.*models/sphere-"):
+        convert_scene(folder / "out" / "neural.toml", folder / "y.toml", select=["ball1"], progress=False)
 
 
 def _rays_at(centers: list[np.ndarray], n: int, seed: int) -> Rays:
@@ -204,3 +206,12 @@ def test_failed_conversion_leaves_no_folders(converted, tmp_path):
     with pytest.raises(ValueError, match="unknown lsnif preset 'mq'"):
         convert_scene(folder / "scene.toml", tmp_path / "c" / "x.toml", preset="mq", progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_nif_refuses_converted_objects_saying_why(converted):
+    from neuralrt.errors import ConfigError
+    from neuralrt.render.nif_render import select_nif_instances
+
+    folder, _ = converted
+    with pytest.raises(ConfigError, match="is answered by a neural model"):
+        select_nif_instances(load_scene(folder / "out" / "neural.toml"), "ball1")

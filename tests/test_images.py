@@ -1,5 +1,7 @@
 """Image I/O: EXR / PNG / HDR round trips, sRGB curve, atomic writes, one-line errors."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -102,3 +104,52 @@ def test_writes_are_atomic_and_leave_no_temporaries(tmp_path):
     write_exr(tmp_path / "a.exr", np.ones((2, 2, 3)))
     write_png(tmp_path / "a.png", np.ones((2, 2, 3)))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
+
+
+def _truncated_exr(tmp_path, name="trunc.exr"):
+    """A valid multi-chunk EXR cut short, the way an interrupted copy leaves it."""
+    write_exr(tmp_path / "full.exr", np.random.default_rng(4).random((64, 48, 3), dtype=np.float32))
+    data = (tmp_path / "full.exr").read_bytes()
+    (tmp_path / name).write_bytes(data[: len(data) // 2])
+    return tmp_path / name
+
+
+def test_truncated_exr_is_one_error_and_no_library_noise(tmp_path, capfd):
+    path = _truncated_exr(tmp_path)
+    with pytest.raises(ImageError, match=r"trunc\.exr: truncated or corrupt EXR file"):
+        read_image(path)
+    out, err = capfd.readouterr()  # fd-level: OpenEXR writes below Python's sys.stderr
+    assert out == "" and err == ""
+
+
+def test_exr_reader_restores_stdout_and_stderr(tmp_path, capfd):
+    with pytest.raises(ImageError):
+        read_image(_truncated_exr(tmp_path))
+    os.write(1, b"still here\n")
+    os.write(2, b"and here\n")
+    assert capfd.readouterr() == ("still here\n", "and here\n")
+
+
+def test_exr_decode_warning_with_pixels_is_an_error(tmp_path, monkeypatch, capfd):
+    # OpenEXR may only print a warning and still hand back (partial) pixels: that must not pass.
+    from neuralrt.io import images
+
+    write_exr(tmp_path / "w.exr", np.ones((2, 2, 3)))
+
+    def warn_and_return(path):
+        os.write(1, b"Warning: Exception raised reading pixel data for part 0 - Unable to run decoder\n")
+        return np.ones((2, 2, 3), np.float32)
+
+    monkeypatch.setattr(images, "_read_exr_pixels", warn_and_return)
+    with pytest.raises(ImageError, match=r"w\.exr: truncated or corrupt EXR"):
+        read_image(tmp_path / "w.exr")
+    assert capfd.readouterr() == ("", "")
+
+
+def test_non_exr_bytes_under_exr_name(tmp_path):
+    write_png(tmp_path / "a.png", np.ones((2, 2, 3)))
+    os.replace(tmp_path / "a.png", tmp_path / "png.exr")
+    (tmp_path / "empty.exr").write_bytes(b"")
+    for name in ("png.exr", "empty.exr"):
+        with pytest.raises(ImageError, match=rf"{name}: not an OpenEXR file"):
+            read_image(tmp_path / name)

@@ -5,6 +5,8 @@ Conventions (the same for every figure neuralrt reports):
   [0, 1] and sRGB-encoded. ``hdr=True`` uses HDR-FLIP on the linear values instead.
 - PSNR is over the same clamped sRGB values (peak 1).
 - relMSE is mean((test - ref)^2 / (ref^2 + 0.01)) over linear values and channels.
+- Identical images give PSNR ``float("inf")`` (zero error), FLIP 0 and relMSE 0.
+- Images with NaN or infinite pixels are refused (`ImageError`): any figure on them would mislead.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 from ..errors import ImageError
 from ..io.images import linear_to_srgb, read_image, tone_map
 
-__all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr"]
+__all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr", "nonfinite_problem", "heatmap_problem"]
 
 _RELMSE_EPSILON = 1e-2
 
@@ -25,7 +27,7 @@ _RELMSE_EPSILON = 1e-2
 @dataclass
 class ImageComparison:
     flip: float
-    psnr: float
+    psnr: float  # float("inf") for identical images
     relmse: float
     flip_map: np.ndarray  # [H, W, 3] magma-coloured FLIP error, sRGB-encoded in [0, 1]
 
@@ -50,11 +52,30 @@ def relmse(reference: np.ndarray, test: np.ndarray) -> float:
     return float(np.mean((tst - ref) ** 2 / (ref**2 + _RELMSE_EPSILON)))
 
 
-def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False) -> ImageComparison:
-    """Compare two linear RGB images of the same shape."""
+def nonfinite_problem(image: np.ndarray, name: str) -> str | None:
+    """None when every pixel of ``image`` is finite, else the one-line problem naming ``name``."""
+    finite = np.isfinite(np.asarray(image, np.float32))
+    bad = int(np.count_nonzero(~finite.all(axis=-1) if finite.ndim == 3 else ~finite))  # pixels, not channels
+    if bad == 0:
+        return None
+    return f"{name}: {bad} pixel{'s are' if bad != 1 else ' is'} NaN or infinite"
+
+
+def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False,
+                   names: tuple[str, str] = ("reference image", "test image")) -> ImageComparison:
+    """Compare two linear RGB images of the same shape; ``names`` label them in errors.
+
+    Raises `ImageError` when the sizes differ or either image has a NaN or infinite pixel (the
+    metrics would silently treat those as black or give absurd values). Identical images give
+    ``psnr == float("inf")``.
+    """
     import flip_evaluator
 
-    reference, test = _finite(reference), _finite(test)
+    for image, name in zip((reference, test), names):
+        problem = nonfinite_problem(image, name)
+        if problem:
+            raise ImageError(problem)
+    reference, test = np.asarray(reference, np.float32), np.asarray(test, np.float32)
     if reference.shape != test.shape:
         raise ImageError(f"images differ in size: reference {reference.shape[:2]} vs test {test.shape[:2]}")
     if hdr:
@@ -66,11 +87,47 @@ def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False) -
     return ImageComparison(float(mean_flip), psnr(reference, test), relmse(reference, test), np.asarray(flip_map, np.float32))
 
 
+def heatmap_problem(path: str | Path) -> str | None:
+    """None when the FLIP heat map can be written to ``path``, else the one-line problem.
+
+    Checked before any image is read: the map is always PNG, so another suffix would put PNG
+    bytes under a misleading name, and a file in the folder's place would only show after the
+    metrics. A missing folder is fine: it is created when the map is written.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        return f"{path}: the heat map is written as PNG, so its name must end in .png"
+    if path.is_dir():
+        return f"{path}: is a directory, not a heat map file name"
+    existing = next((a for a in path.parents if a.exists()), Path("."))
+    if not existing.is_dir():
+        return f"{existing}: is a file, not a folder (on the way to {path})"
+    return None
+
+
+def _write_heatmap(path: str | Path, flip_map: np.ndarray) -> None:
+    """Create the folder if needed (only once there is a map to write), then write the PNG atomically."""
+    folder = Path(path).parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot create folder {folder} ({exc.strerror or exc})") from None
+    write_srgb_png(path, flip_map)  # atomic: `write_png` goes through `write_atomically`
+
+
 def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> ImageComparison:
-    """Compare two image files (EXR, PNG, JPG, HDR); optionally write the FLIP heat map as PNG."""
-    result = compare_images(read_image(reference), read_image(test), hdr=hdr)
+    """Compare two image files (EXR, PNG, JPG, HDR); optionally write the FLIP heat map as PNG.
+
+    Errors (unreadable file, NaN/Inf pixels, sizes differ, heat map name not ``.png``) are one
+    `ImageError` naming the file, raised before any metric is computed or file written.
+    Identical images give ``psnr == float("inf")``.
+    """
+    problem = heatmap_problem(heatmap) if heatmap is not None else None
+    if problem:
+        raise ImageError(problem)
+    result = compare_images(read_image(reference), read_image(test), hdr=hdr, names=(str(reference), str(test)))
     if heatmap is not None:
-        write_srgb_png(heatmap, result.flip_map)
+        _write_heatmap(heatmap, result.flip_map)
     return result
 
 

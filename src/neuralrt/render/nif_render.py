@@ -35,7 +35,9 @@ SECOND_PART_SEED = 104_729  # added to the seed of the samples after training (a
 def _instance_problem(scene, inst) -> str | None:
     from ..methods.base import is_neural
 
-    if is_neural(inst.blas) or getattr(inst.blas, "mesh", None) is None:
+    if is_neural(inst.blas):
+        return "is answered by a neural model (NIF learns from exact shadow rays: give the object its mesh alone)"
+    if getattr(inst.blas, "mesh", None) is None:
         return "has no exact mesh (NIF learns from exact shadow rays)"
     emissive = scene.materials.emissive_mask.to(inst.material_map.device)[inst.material_map]
     if bool(emissive.any()):

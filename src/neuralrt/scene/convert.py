@@ -118,6 +118,8 @@ def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[st
     threshold = DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles
     for i, (obj, mesh) in enumerate(zip(spec.objects, meshes)):
         if mesh is None or obj.model is not None:
+            if select and names[i] in select and obj.model is not None:
+                raise SceneError(f"--select: object {names[i]!r} already has a model ({obj.model})")
             continue  # already neural
         if is_emissive(spec, obj, [m.name for m in mesh.materials]):
             if select and names[i] in select:
