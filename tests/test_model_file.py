@@ -196,3 +196,10 @@ def test_invalid_config_in_header_names_the_key(lsnif_file, tmp_path):
     message = str(err.value)
     assert "inference.occlusion_threshold: Input should be a finite number" in message
     assert "\n" not in message and "errors.pydantic.dev" not in message
+
+
+def test_data_beyond_the_arrays_is_corruption_not_truncation(model_path):
+    # safetensors reports both as "file not fully covered"; the sizes tell them apart
+    model_path.write_bytes(model_path.read_bytes() + b"\0" * 24)
+    with pytest.raises(ModelFileError, match=r"corrupted model file \(24 bytes after the arrays its header lists\)"):
+        read_model_file(model_path)

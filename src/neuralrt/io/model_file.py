@@ -117,6 +117,26 @@ def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays:
     return path
 
 
+def _check_data_size(path: Path, header_len: int, size: int) -> None:
+    """Tell a truncated file (less data than its arrays need) from a corrupted one (more), which
+    safetensors reports alike ("file not fully covered")."""
+    with open(path, "rb") as f:
+        f.seek(8)
+        try:
+            entries = json.loads(f.read(header_len))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            return  # (safetensors names the problem)
+    if not isinstance(entries, dict):
+        return
+    offsets = [v.get("data_offsets") for k, v in entries.items() if k != "__metadata__" and isinstance(v, dict)]
+    ends = [o[1] for o in offsets if isinstance(o, list) and len(o) == 2 and isinstance(o[1], int)]
+    needed, present = max(ends, default=0), size - 8 - header_len
+    if present < needed:
+        raise ModelFileError(f"{path}: truncated model file (arrays need {needed} bytes, file has {present})")
+    if present > needed:
+        raise ModelFileError(f"{path}: corrupted model file ({present - needed} bytes after the arrays its header lists)")
+
+
 def _open(path: Path):
     from safetensors import safe_open
 
@@ -134,6 +154,7 @@ def _open(path: Path):
         if header_len > 100_000_000:
             raise ModelFileError(f"{path}: not a neuralrt model file (no safetensors header)")
         raise ModelFileError(f"{path}: truncated model file (header says {header_len} bytes, file has {size - 8})")
+    _check_data_size(path, header_len, size)
     try:
         return safe_open(str(path), framework="pt", device="cpu")
     except Exception as exc:  # safetensors raises its own error types; report them as one line
