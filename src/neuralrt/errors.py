@@ -1,5 +1,7 @@
 """Errors neuralrt raises for bad input. The CLI prints them as one line, never a traceback."""
 
+import re
+
 
 class NeuralRTError(Exception):
     """Base class: a problem with the user's input, stated in one line."""
@@ -33,12 +35,116 @@ class DeviceError(NeuralRTError, ValueError):
     """A device is unavailable (``cuda`` on a CPU-only torch), or rays and model sit on different devices."""
 
 
-def validation_message(exc) -> str:
+def validation_message(exc, model=None) -> str:
     """One line from a pydantic ``ValidationError``: ``training.steps: Input should be greater than or
-    equal to 1 (got -3)``, errors joined by ``; ``."""
-    parts = []
-    for err in exc.errors():
-        where = ".".join(str(x) for x in err.get("loc", ())) or "value"
-        got = f" (got {err['input']!r})" if "input" in err and not isinstance(err["input"], dict) else ""
-        parts.append(f"{where}: {err.get('msg', 'invalid')}{got}")
-    return "; ".join(parts)
+    equal to 1 (got -3)``, errors joined by ``; ``. ``model``: the validated class, to tell union labels
+    from keys (see `validation_errors`)."""
+    return "; ".join(f"{key or 'value'}: {msg}" for key, msg in validation_errors(exc, model))
+
+
+def validation_errors(exc, model=None) -> list[tuple[str, str]]:
+    """(key path, one-line problem) per error of a pydantic ``ValidationError``, as the user wrote the keys
+    (``""`` for the top level).
+
+    pydantic puts a union member's label into the error location (``materials.0.conductor.roughness``,
+    ``albedo.tuple[constrained-float, ...].0``); those parts are dropped: all of them when ``model``
+    (the validated class) is given, else only labels with brackets. When one member of a union
+    fits the input's shape, the others' "Input should be a valid ..." errors are dropped too.
+    """
+    rows = []  # (key, message, union position or None, is a type mismatch)
+    for err in exc.errors(include_url=False):
+        key, union_at = _user_loc(err.get("loc", ()), model)
+        got = "" if isinstance(err.get("input"), dict) or "input" not in err else f" (got {_short_repr(err['input'])})"
+        rows.append((key, _one_line(err.get("msg", "invalid")) + got, union_at, _is_type_mismatch(err)))
+    fitting = {at for _, _, at, mismatch in rows if at is not None and not mismatch}
+    rows = [r for r in rows if not (r[3] and r[2] in fitting)]
+    return _merge_alternatives([(key, msg) for key, msg, _, _ in rows])
+
+
+def _user_loc(loc, model) -> tuple[str, tuple | None]:
+    """(dotted key path without pydantic's union labels, location of the first union label or None)."""
+    kept, union_at, tp = [], None, model
+    for i, part in enumerate(loc):
+        if tp is not None:
+            tp, inserted = _step(tp, part)
+        else:
+            inserted = isinstance(part, str) and "[" in part
+        if inserted and union_at is None:
+            union_at = tuple(loc[:i])
+        if not inserted:
+            kept.append(str(part))
+    return ".".join(kept), union_at
+
+
+def _step(tp, part):
+    """(the type below ``tp`` at loc part ``part`` or None if unknown, whether ``part`` is a union label)."""
+    from typing import Annotated, Literal, Union, get_args, get_origin
+    from types import UnionType
+
+    from pydantic import BaseModel
+
+    while get_origin(tp) is Annotated:
+        tp = get_args(tp)[0]
+    origin, args = get_origin(tp), get_args(tp)
+    if origin in (Union, UnionType):
+        members = [m for m in args if m is not type(None)]
+        if len(members) == 1:  # Optional: pydantic adds no label
+            return _step(members[0], part)
+        if not isinstance(part, str):
+            return None, False
+        for m in members:  # the member the label names: its tag (a Literal field value), class or type name
+            while get_origin(m) is Annotated:
+                m = get_args(m)[0]
+            if isinstance(m, type) and issubclass(m, BaseModel):
+                tags = [a for f in m.model_fields.values() if get_origin(f.annotation) is Literal for a in get_args(f.annotation)]
+                if part == m.__name__ or part in tags:
+                    return m, True
+            elif part.split("[")[0] == getattr(get_origin(m) or m, "__name__", None):
+                return m, True
+        return None, True
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        field = tp.model_fields.get(part) if isinstance(part, str) else None
+        return (field.annotation if field is not None else None), False
+    if origin in (list, set, frozenset) and isinstance(part, int):
+        return args[0] if args else None, False
+    if origin is tuple and isinstance(part, int):
+        if len(args) == 2 and args[1] is Ellipsis:
+            return args[0], False
+        return (args[part] if 0 <= part < len(args) else None), False
+    if origin is dict:
+        return (args[1] if len(args) == 2 else None), False
+    return None, False
+
+
+def _is_type_mismatch(err) -> bool:
+    """The input has another shape than this union member wants (a list for a string, ...)."""
+    return err.get("type", "").endswith("_type") or err.get("type") == "is_instance_of"
+
+
+def _merge_alternatives(rows: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Errors of one key from a union's members as one: ``Input should be a valid tuple or a valid string``."""
+    merged: dict[str, list[str]] = {}
+    for key, msg in rows:
+        merged.setdefault(key, []).append(msg)
+    out = []
+    for key, msgs in merged.items():
+        prefix = "Input should be "
+        if len(msgs) > 1 and all(m.startswith(prefix) for m in msgs):
+            got = [m[m.index(" (got "):] for m in msgs if " (got " in m][:1]
+            wants = [m.removeprefix(prefix).split(" (got ")[0] for m in msgs]
+            out.append((key, prefix + " or ".join(dict.fromkeys(wants)) + "".join(got)))
+        else:
+            out.extend((key, m) for m in msgs)
+    return out
+
+
+def _one_line(msg: str) -> str:
+    """A pydantic message as one line: no ``Value error, `` prefix, no "For further information" link."""
+    msg = re.sub(r"\s*For further information visit https://errors\.pydantic\.dev\S*", "", str(msg))
+    msg = msg.removeprefix("Value error, ").removeprefix("Assertion failed, ")
+    return " ".join(msg.split())
+
+
+def _short_repr(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

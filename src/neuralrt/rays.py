@@ -17,6 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .errors import ConfigError
+
 __all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",
            "resolve_device"]
 
@@ -273,24 +275,67 @@ def ray_box_intervals(
     return t_near, t_far
 
 
+# Limits of an object-to-world transform's linear part, for float32 rendering: each scale factor
+# (singular value) within [MIN_SCALE, MAX_SCALE] keeps squared lengths of mapped points and directions
+# finite; a ratio of largest to smallest above 1 / float32 epsilon flattens an axis to nothing.
+MIN_SCALE, MAX_SCALE = 1e-12, 1e12
+MAX_CONDITION = 1.0 / float(np.finfo(np.float32).eps)
+
+
+def affine_problem(matrix) -> str | None:
+    """What makes ``matrix`` (4x4, row-major) unusable as an object-to-world transform, or None:
+    NaN/Inf entries, a bottom row other than ``[0, 0, 0, 1]``, or a singular or ill-conditioned
+    3x3 part (see MIN_SCALE, MAX_SCALE, MAX_CONDITION)."""
+    try:
+        m = torch.as_tensor(matrix, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):  # ragged rows, non-numbers
+        return "matrix must be 4x4 numbers"
+    if m.shape != (4, 4):
+        return f"matrix must be 4x4, got {tuple(m.shape)}"
+    if not torch.isfinite(m).all():
+        return "not a finite affine transform (NaN or Inf entries)"
+    if not torch.allclose(m[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64), rtol=0, atol=1e-9):
+        return f"not an affine transform: the bottom row must be [0, 0, 0, 1], got {[round(v, 6) for v in m[3].tolist()]}"
+    sv = torch.linalg.svdvals(m[:3, :3])
+    lo, hi = float(sv[-1]), float(sv[0])
+    if lo == 0:
+        return "matrix is singular (a scale factor is 0: it flattens the object)"
+    if hi / lo > MAX_CONDITION:
+        return f"matrix is singular for float32 (scale factors {lo:.3g} .. {hi:.3g}: a ratio over {MAX_CONDITION:.3g})"
+    if lo < MIN_SCALE or hi > MAX_SCALE:
+        return f"scale factors {lo:.3g} .. {hi:.3g} are outside [{MIN_SCALE:g}, {MAX_SCALE:g}] (float32 would overflow)"
+    if not torch.isfinite(m.float()).all():
+        return "not a finite affine transform (entries overflow float32)"
+    return None
+
+
+def _affine_inverse(m: Tensor) -> Tensor:
+    """Inverse of an affine matrix; its bottom row stays exactly [0, 0, 0, 1]."""
+    inv = torch.eye(4, dtype=torch.float64)
+    inv[:3, :3] = torch.linalg.inv(m[:3, :3])
+    inv[:3, 3] = -inv[:3, :3] @ m[:3, 3]
+    return inv
+
+
 class Transform:
     """Affine object-to-world transform held as a 4x4 matrix and its inverse.
 
     Points map by the full matrix, directions by its linear part (unnormalised, so a hit's ``t``
-    is the same in both spaces), normals by the inverse transpose.
+    is the same in both spaces), normals by the inverse transpose. A matrix that is not finite,
+    not affine (bottom row ``[0, 0, 0, 1]``) or singular for float32 (`affine_problem`) raises
+    `neuralrt.errors.ConfigError` (a ValueError).
     """
 
     def __init__(self, matrix: Tensor | None = None, inverse: Tensor | None = None):
-        m = torch.eye(4) if matrix is None else torch.as_tensor(matrix, dtype=torch.float64)
-        m = m.to(torch.float64)
-        if m.shape != (4, 4):
-            raise ValueError(f"transform matrix must be 4x4, got {tuple(m.shape)}")
-        if not torch.isfinite(m).all():
-            raise ValueError("transform matrix has NaN or Inf entries")
-        if abs(float(torch.linalg.det(m[:3, :3]))) < 1e-30:
-            raise ValueError("transform matrix is singular (zero scale?)")
+        problem = None if matrix is None else affine_problem(matrix)
+        if problem:
+            raise ConfigError(f"transform: {problem}")
+        m = torch.eye(4, dtype=torch.float64) if matrix is None else torch.as_tensor(matrix, dtype=torch.float64).clone()
+        m[3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)  # exact, so products and inverses stay affine
         self._m64 = m
-        self._inv64 = torch.linalg.inv(m) if inverse is None else torch.as_tensor(inverse, dtype=torch.float64)
+        self._inv64 = _affine_inverse(m) if inverse is None else torch.as_tensor(inverse, dtype=torch.float64)
+        if not torch.isfinite(self._inv64.float()).all():
+            raise ConfigError("transform: not a finite affine transform (its inverse overflows float32)")
         self.matrix = self._m64.float()
         self.inverse_matrix = self._inv64.float()
 

@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from ..accel.blas import BLAS
 from ..accel.mesh_blas import MeshBLAS
 from ..accel.tlas import Instance, SceneAccel
-from ..errors import NeuralRTError, SceneError
+from ..errors import NeuralRTError, SceneError, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import resolve_device
@@ -36,6 +36,7 @@ from .schema import (
     ObjectSpec,
     PlasticMaterialSpec,
     SceneSpec,
+    check_resolution,
 )
 from .material_rules import is_emissive, material_index, material_map, scene_material_for, scene_materials
 from .scene import Scene, instance_ray_offsets
@@ -59,11 +60,13 @@ def load_scene(
     ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`). ``resolution`` (width, height)
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
     ``primary``: who answers camera rays of objects with a model; ``allow_mesh_mismatch``: accept
-    a model trained on another mesh than its object's (see `build_scene`).
+    a model trained on another mesh than its object's (see `build_scene`). A bad ``resolution``
+    raises `ConfigError` before the scene is read.
     """
+    size = None if resolution is None else check_resolution(resolution)
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
-    if resolution is not None:
-        spec.camera.resolution = tuple(int(v) for v in resolution)
+    if size is not None:
+        spec.camera.resolution = size
     return build_scene(spec, base_dir, device=device, label=label, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch)
 
 
@@ -160,12 +163,10 @@ def validate_spec(data, label: str) -> SceneSpec:
     try:
         spec = SceneSpec.model_validate(data)
     except ValidationError as exc:
-        errors = exc.errors()
-        first = errors[0]
-        key = ".".join(str(p) for p in first["loc"]) or "(top level)"
-        msg = first["msg"].removeprefix("Value error, ")
+        errors = validation_errors(exc, SceneSpec)  # keys as written: no pydantic union labels
+        key, msg = errors[0]
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
-        raise SceneError(f"{label}: {key}: {msg}{more}") from None
+        raise SceneError(f"{label}: {key or '(top level)'}: {msg}{more}") from None
     problems = spec.reference_errors()
     if problems:
         key, msg = problems[0]

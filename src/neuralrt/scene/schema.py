@@ -44,9 +44,10 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
-from ..rays import Transform
+from ..errors import ConfigError
+from ..rays import MAX_SCALE, MIN_SCALE, Transform
 
 __all__ = [
     "CameraSpec",
@@ -62,6 +63,8 @@ __all__ = [
     "EnvironmentSpec",
     "RenderSettings",
     "SceneSpec",
+    "MAX_RESOLUTION",
+    "check_resolution",
 ]
 
 # Every number in a scene is finite: TOML and JSON readers accept nan / inf, and a NaN in a transform
@@ -73,7 +76,29 @@ NonNegVec3 = tuple[NonNegFinite, NonNegFinite, NonNegFinite]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # allow_inf_nan=False for every float (bounded ones too): pydantic then reports NaN as
+    # "Input should be a finite number" before a bound check could say "less than 180".
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+
+MAX_RESOLUTION = 16384  # pixels per side
+Pixels = Annotated[int, Field(gt=0, le=MAX_RESOLUTION)]
+
+
+def check_resolution(resolution) -> tuple[int, int]:
+    """A caller's (width, height) override, checked like ``camera.resolution``; a one-line
+    `ConfigError` (``resolution: 100000x100000 is over the largest allowed 16384x16384``) if bad."""
+    try:
+        w, h = (int(v) if int(v) == v else None for v in resolution)
+    except (TypeError, ValueError, OverflowError):
+        w = h = None
+    if w is None or h is None:
+        raise ConfigError(f"resolution: expected two whole numbers (width, height), got {resolution!r}")
+    if w < 1 or h < 1:
+        raise ConfigError(f"resolution: {w}x{h} must be at least 1x1")
+    if max(w, h) > MAX_RESOLUTION:
+        raise ConfigError(f"resolution: {w}x{h} is over the largest allowed {MAX_RESOLUTION}x{MAX_RESOLUTION}")
+    return w, h
 
 
 class CameraSpec(_Strict):
@@ -83,8 +108,7 @@ class CameraSpec(_Strict):
     look_at: Vec3 = Field((0.0, 0.0, 0.0), description="point the camera looks at")
     up: Vec3 = Field((0.0, 1.0, 0.0), description="up direction (must not be parallel to the view direction)")
     fov: float = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
-    resolution: tuple[Annotated[int, Field(gt=0, le=16384)], Annotated[int, Field(gt=0, le=16384)]] = Field(
-        (256, 256), description="image width, height in pixels")
+    resolution: tuple[Pixels, Pixels] = Field((256, 256), description=f"image width, height in pixels (at most {MAX_RESOLUTION} each)")
 
     @model_validator(mode="after")
     def _not_degenerate(self) -> "CameraSpec":
@@ -94,19 +118,26 @@ class CameraSpec(_Strict):
         cross = (fwd[1] * self.up[2] - fwd[2] * self.up[1], fwd[2] * self.up[0] - fwd[0] * self.up[2], fwd[0] * self.up[1] - fwd[1] * self.up[0])
         if math.hypot(*cross) < 1e-9 * max(math.hypot(*fwd), 1e-30):
             raise ValueError("camera up is parallel to the view direction")
+        try:
+            Transform.look_at(self.position, self.look_at, self.up)  # its float32 copy must stay finite
+        except ConfigError:
+            raise ValueError("camera position is beyond the float32 range") from None
         return self
 
 
 class TransformSpec(_Strict):
-    """Object-to-world transform: ``translate @ rotate @ scale`` (scale first), or a full ``matrix``.
+    """Object-to-world transform: ``translate @ rotate @ scale`` (scale first), or a full affine ``matrix``.
 
-    ``rotate`` holds Euler angles in degrees about the world x, then y, then z axis.
+    ``rotate`` holds Euler angles in degrees about the world x, then y, then z axis. For float32, the
+    scale factors must lie within [1e-12, 1e12] and differ at most 8.4e6-fold.
     """
 
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset, world units (applied last)")
     rotate: Vec3 = Field((0.0, 0.0, 0.0), description="Euler angles in degrees about the world x, then y, then z axis")
-    scale: float | tuple[float, float, float] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); non-zero")
-    matrix: list[list[Finite]] | None = Field(None, description="4x4 row-major object-to-world matrix; replaces translate/rotate/scale")
+    scale: float | tuple[float, float, float] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); "
+                                                      f"magnitudes {MIN_SCALE:g} to {MAX_SCALE:g}")
+    matrix: list[list[Finite]] | None = Field(None, description="4x4 row-major object-to-world matrix: bottom row [0, 0, 0, 1], invertible; "
+                                              "replaces translate/rotate/scale")
 
     @field_validator("scale")
     @classmethod
@@ -114,6 +145,8 @@ class TransformSpec(_Strict):
         values = (v,) if isinstance(v, (int, float)) else v
         if any(x == 0 or not math.isfinite(x) for x in values):
             raise ValueError("scale must be finite and non-zero")
+        if any(not MIN_SCALE <= abs(x) <= MAX_SCALE for x in values):
+            raise ValueError(f"scale must be within {MIN_SCALE:g} to {MAX_SCALE:g} in magnitude, so float32 does not overflow")
         return v
 
     @field_validator("matrix")
@@ -127,6 +160,15 @@ class TransformSpec(_Strict):
     def _matrix_alone(self) -> "TransformSpec":
         if self.matrix is not None and (self.translate != (0, 0, 0) or self.rotate != (0, 0, 0) or self.scale != 1.0):
             raise ValueError("give either matrix or translate/rotate/scale, not both")
+        return self
+
+    @model_validator(mode="after")
+    def _usable(self) -> "TransformSpec":
+        # Singular or float32-overflowing matrices fail here, at load time, naming the key, not mid-render.
+        try:
+            self.to_transform()
+        except ConfigError as exc:
+            raise ValueError(str(exc).removeprefix("transform: ")) from None
         return self
 
     def to_transform(self) -> Transform:
@@ -143,7 +185,7 @@ Albedo = Union[NonNegVec3, str]  # linear RGB, or a texture image path
 class DiffuseMaterialSpec(_Strict):
     """Lambertian reflector."""
 
-    type: Literal["diffuse"] = Field("diffuse", description="material kind")
+    type: Literal["diffuse"] = Field("diffuse", description="material kind (the default when `type` is omitted)")
     name: str = Field(description="referenced by objects' material / materials")
     albedo: Albedo = Field((0.8, 0.8, 0.8), description="linear RGB reflectance, or a texture image path")
 
@@ -176,9 +218,17 @@ class EmissiveMaterialSpec(_Strict):
     albedo: Albedo = Field((0.0, 0.0, 0.0), description="diffuse reflectance of the emitter's surface")
 
 
+def _default_material_type(value):
+    """A material table without ``type`` is diffuse (the discriminator alone would reject it)."""
+    if isinstance(value, dict) and "type" not in value:
+        return {"type": "diffuse", **value}
+    return value
+
+
 MaterialSpec = Annotated[
     Union[DiffuseMaterialSpec, ConductorMaterialSpec, PlasticMaterialSpec, EmissiveMaterialSpec],
     Field(discriminator="type"),
+    BeforeValidator(_default_material_type),
 ]
 
 

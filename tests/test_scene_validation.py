@@ -1,0 +1,230 @@
+"""Bad scene input is one line naming the key, raised at load time: singular / non-affine / float32-
+overflowing transforms, a resolution override over the cap, materials without ``type``, NaN in
+bounded fields, and pydantic's union labels kept out of key paths."""
+
+import json
+import math
+
+import pytest
+from pydantic import ValidationError, field_validator
+
+from neuralrt import api
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError, NeuralRTError, SceneError, validation_errors, validation_message
+from neuralrt.rays import Transform
+from neuralrt.scene import schema
+from neuralrt.scene.loader import load_dict, load_scene, load_scene_spec
+from neuralrt.scene.schema import DiffuseMaterialSpec, SceneSpec
+
+SPHERE = {"generator": {"name": "sphere", "params": {"subdivisions": 1}}}
+ROW_ZERO = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]
+BOTTOM_ZERO = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0]]
+TINY_AXIS = [[1e-30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+FAR = [[1, 0, 0, 1e39], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+
+
+def scene_file(tmp_path, obj: dict | None = None, name: str = "scene.json", **sections) -> str:
+    """A small JSON scene (a procedural sphere; json writes NaN / Infinity as given)."""
+    data = {"camera": {"resolution": [8, 8]}, "objects": [{**SPHERE, **(obj or {})}], **sections}
+    path = tmp_path / name
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def cli_error(capsys, args: list[str]) -> str:
+    """The CLI's single ``neuralrt: error:`` line (exit 2, nothing else on stderr)."""
+    assert main(args) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("neuralrt: error: "), lines
+    return lines[0].removeprefix("neuralrt: error: ")
+
+
+# --- transforms ------------------------------------------------------------------------------------
+
+BAD_TRANSFORMS = [
+    ({"matrix": ROW_ZERO}, "objects.0.transform: matrix is singular"),
+    ({"matrix": BOTTOM_ZERO}, "objects.0.transform: not an affine transform: the bottom row must be [0, 0, 0, 1]"),
+    ({"matrix": TINY_AXIS}, "objects.0.transform: matrix is singular for float32"),
+    ({"matrix": FAR}, "objects.0.transform: not a finite affine transform"),
+    ({"scale": 1e-300}, "objects.0.transform.scale: scale must be within 1e-12 to 1e+12"),
+    ({"scale": 1e300}, "objects.0.transform.scale: scale must be within 1e-12 to 1e+12"),
+    ({"scale": [1, 1e-8, 1]}, "objects.0.transform: matrix is singular for float32"),
+    ({"scale": [1, 0, 1]}, "objects.0.transform.scale: scale must be finite and non-zero"),
+]
+
+
+@pytest.mark.parametrize("transform,message", BAD_TRANSFORMS)
+def test_bad_transform_is_a_scene_error_at_load(tmp_path, transform, message):
+    path = scene_file(tmp_path, {"transform": transform})
+    with pytest.raises(SceneError) as info:
+        load_scene_spec(path)  # validation alone: nothing is built
+    assert str(info.value).startswith(f"scene.json: {message}") and "\n" not in str(info.value)
+    with pytest.raises(SceneError, match="objects.0.transform"):
+        load_dict({"objects": [{**SPHERE, "transform": transform}]})
+
+
+@pytest.mark.parametrize("command", ["info", "render"])
+@pytest.mark.parametrize("transform,message", BAD_TRANSFORMS[:4])
+def test_bad_transform_is_one_line_from_the_cli(tmp_path, capsys, command, transform, message):
+    path = scene_file(tmp_path, {"transform": transform})
+    out = tmp_path / "out"
+    args = [command, path] + (["-o", str(out / "x.exr")] if command == "render" else [])
+    assert cli_error(capsys, args).startswith(f"scene.json: {message}")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("matrix", [ROW_ZERO, BOTTOM_ZERO, TINY_AXIS, FAR, [[1, 0], [0, 1]], [[1, 2, 3], [4]]])
+def test_transform_class_raises_config_error(matrix):
+    with pytest.raises(ConfigError, match="^transform: ") as info:
+        Transform(matrix)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, NeuralRTError)
+
+
+@pytest.mark.parametrize("factors", [0.0, 1e-300, 1e300, [1.0, 1e-8, 1.0]])
+def test_transform_scale_out_of_float32_range(factors):
+    with pytest.raises(ConfigError):
+        Transform.scale(factors)
+
+
+def test_valid_transforms_stay_affine_and_invertible():
+    xf = Transform.translate([1, 2, 3]) @ Transform.rotate([1, 1, 0], 37) @ Transform.scale([1e-3, 2, 1e3])
+    assert xf.tolist()[3] == [0, 0, 0, 1] and xf.inverse().tolist()[3] == [0, 0, 0, 1]
+    identity = (xf @ xf.inverse()).tolist()
+    assert all(math.isclose(identity[i][j], float(i == j), abs_tol=1e-9) for i in range(4) for j in range(4))
+    # Bottom-row noise from an exporter is accepted and made exact.
+    assert Transform([[2, 0, 0, 1], [0, 2, 0, 0], [0, 0, 2, 0], [1e-12, 0, 0, 1]]).tolist()[3] == [0, 0, 0, 1]
+
+
+def test_camera_position_beyond_float32(tmp_path):
+    path = scene_file(tmp_path, camera={"position": [0, 0, 1e39]})
+    with pytest.raises(SceneError, match="scene.json: camera: camera position is beyond the float32 range"):
+        load_scene_spec(path)
+
+
+# --- resolution override ---------------------------------------------------------------------------
+
+def test_resolution_over_the_cap_from_the_cli(tmp_path, capsys):
+    out = tmp_path / "out"
+    err = cli_error(capsys, ["render", scene_file(tmp_path), "-o", str(out / "b.exr"), "--res", "100000x100000"])
+    assert err == "resolution: 100000x100000 is over the largest allowed 16384x16384"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("resolution,message", [
+    ((100000, 100000), "resolution: 100000x100000 is over the largest allowed 16384x16384"),
+    ((16385, 8), "resolution: 16385x8 is over the largest allowed"),
+    ((0, 8), "resolution: 0x8 must be at least 1x1"),
+    ((8.5, 8), "resolution: expected two whole numbers"),
+    ((8,), "resolution: expected two whole numbers"),
+])
+def test_resolution_override_is_a_config_error(tmp_path, resolution, message):
+    with pytest.raises(ConfigError) as info:
+        load_scene(scene_file(tmp_path), resolution=resolution)
+    assert str(info.value).startswith(message)
+    with pytest.raises(ConfigError, match="^resolution: "):
+        api.render(scene_file(tmp_path), tmp_path / "x.exr", resolution=resolution, progress=False)
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_resolution_override_within_the_cap(tmp_path):
+    scene = load_scene(scene_file(tmp_path), resolution=(6.0, 4))
+    assert (scene.camera.width, scene.camera.height) == (6, 4)
+
+
+# --- materials without type ------------------------------------------------------------------------
+
+def test_material_without_type_is_diffuse(tmp_path, capsys):
+    materials = [{"name": "m"}, {"name": "gold", "albedo": [0.9, 0.7, 0.2]}]
+    spec, _, _ = load_scene_spec(scene_file(tmp_path, {"material": "m"}, materials=materials))
+    assert all(isinstance(m, DiffuseMaterialSpec) for m in spec.materials)
+    assert spec.materials[1].albedo == (0.9, 0.7, 0.2)
+    assert main(["info", scene_file(tmp_path, {"material": "m"}, materials=materials)]) == 0
+    assert load_dict({"materials": materials, "objects": [{**SPHERE, "material": "m"}]}).materials.names[:2] == ["m", "gold"]
+
+
+def test_unknown_or_incomplete_material_type_still_named(tmp_path):
+    with pytest.raises(SceneError, match=r"scene.json: materials.0: .*'glass'.*'diffuse', 'conductor', 'plastic', 'emissive'"):
+        load_scene_spec(scene_file(tmp_path, materials=[{"name": "m", "type": "glass"}]))
+    with pytest.raises(SceneError, match=r"scene.json: materials.0.emission: Field required"):
+        load_scene_spec(scene_file(tmp_path, materials=[{"name": "m", "type": "emissive"}]))
+    with pytest.raises(SceneError, match=r"scene.json: materials.0.roughness: Extra inputs are not permitted"):
+        load_scene_spec(scene_file(tmp_path, materials=[{"name": "m", "roughness": 0.5}]))  # diffuse by default
+
+
+# --- non-finite numbers ----------------------------------------------------------------------------
+
+NAN = float("nan")
+
+
+@pytest.mark.parametrize("sections,key", [
+    ({"camera": {"fov": NAN}}, "camera.fov"),
+    ({"camera": {"fov": float("inf")}}, "camera.fov"),
+    ({"materials": [{"name": "m", "type": "plastic", "roughness": NAN}]}, "materials.0.roughness"),
+    ({"materials": [{"name": "m", "type": "plastic", "ior": NAN}]}, "materials.0.ior"),
+    ({"materials": [{"name": "m", "type": "conductor", "roughness": NAN}]}, "materials.0.roughness"),
+    ({"materials": [{"name": "m", "albedo": [0.5, NAN, 0.5]}]}, "materials.0.albedo.1"),
+    ({"materials": [{"name": "m", "type": "emissive", "emission": [1, 1, NAN]}]}, "materials.0.emission.2"),
+    ({"environment": {"color": [1, 1, 1], "scale": NAN}}, "environment.scale"),
+    ({"lights": [{"position": [0, 2, 0], "intensity": [NAN, 1, 1]}]}, "lights.0.intensity.0"),
+    ({"objects": [{"generator": {"name": "sphere", "params": {"radius": NAN}}}]}, "objects.0.generator.params.radius"),
+    ({"objects": [{**SPHERE, "transform": {"scale": NAN}}]}, "objects.0.transform.scale"),
+])
+def test_non_finite_numbers_say_finite_and_name_the_key(tmp_path, capsys, sections, key):
+    path = scene_file(tmp_path, **sections)
+    with pytest.raises(SceneError) as info:
+        load_scene_spec(path)
+    assert str(info.value).startswith(f"scene.json: {key}: Input should be a finite number (got ")
+    assert "more problems" not in str(info.value)  # the other union members' complaints are dropped
+    assert cli_error(capsys, ["info", path]) == str(info.value)
+
+
+def test_every_scene_model_rejects_nan_before_bounds():
+    models = [v for v in vars(schema).values() if isinstance(v, type) and issubclass(v, schema._Strict)]
+    assert len(models) >= 12 and all(m.model_config.get("allow_inf_nan") is False for m in models)
+
+
+# --- validation_message ----------------------------------------------------------------------------
+
+def _errors(data) -> ValidationError:
+    with pytest.raises(ValidationError) as info:
+        SceneSpec.model_validate(data)
+    return info.value
+
+
+def test_union_labels_are_dropped_from_keys():
+    exc = _errors({"materials": [{"name": "m", "type": "conductor", "albedo": [1, NAN, 1]}], "objects": [SPHERE]})
+    assert validation_errors(exc, SceneSpec) == [("materials.0.albedo.1", "Input should be a finite number (got nan)")]
+    # Without the model, only bracketed labels can be told from keys.
+    assert validation_message(exc).startswith("materials.0.conductor.albedo.1: Input should be a finite number")
+
+
+def test_keys_that_look_like_labels_are_kept():
+    # A mesh material slot named like a union tag / type label is a user key, not pydantic's.
+    exc = _errors({"objects": [{**SPHERE, "materials": {"diffuse": 3, "str": "x"}}]})
+    assert validation_errors(exc, SceneSpec) == [("objects.0.materials.diffuse", "Input should be a valid string (got 3)")]
+
+
+def test_alternatives_of_a_union_read_as_one_error():
+    exc = _errors({"materials": [{"name": "m", "albedo": 5}], "objects": [SPHERE]})
+    assert validation_message(exc, SceneSpec) == "materials.0.albedo: Input should be a valid tuple or a valid string (got 5)"
+
+
+def test_messages_are_one_line_without_prefix_or_link():
+    exc = _errors({"objects": [{**SPHERE, "mesh": "a.obj"}]})
+    assert validation_message(exc, SceneSpec) == "objects.0: give either mesh or generator, not both"
+
+    class Linked(schema._Strict):
+        x: int = 0
+
+        @field_validator("x")
+        @classmethod
+        def _nested(cls, v):
+            try:
+                Linked(x="no")
+            except ValidationError as inner:
+                raise ValueError(str(inner)) from None  # multi-line, with pydantic's link
+
+    with pytest.raises(ValidationError) as info:
+        Linked(x=1)
+    msg = validation_message(info.value)
+    assert "\n" not in msg and "errors.pydantic.dev" not in msg and not msg.startswith("x: Value error")
