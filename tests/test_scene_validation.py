@@ -228,3 +228,19 @@ def test_messages_are_one_line_without_prefix_or_link():
         Linked(x=1)
     msg = validation_message(info.value)
     assert "\n" not in msg and "errors.pydantic.dev" not in msg and not msg.startswith("x: Value error")
+
+
+# --- detail -------------------------------------------------------------------------------------------
+
+
+def test_detail_given_twice_differently_is_an_error(tmp_path, capsys):
+    assert load_scene_spec("builtin:cornell-statue?detail=0", detail=0)[0].objects  # the same value twice is fine
+    message = cli_error(capsys, ["render", "builtin:cornell-statue?detail=0", "--detail", "1", "-o",
+                                 str(tmp_path / "i.exr"), "--quiet"])
+    assert "detail given twice (0 in the name, 1 as --detail): give it once" in message
+    assert not list(tmp_path.iterdir())
+
+
+def test_detail_on_a_scene_file_is_an_error(tmp_path, capsys):
+    message = cli_error(capsys, ["render", scene_file(tmp_path), "--detail", "1", "-o", str(tmp_path / "i.exr"), "--quiet"])
+    assert "--detail applies to built-in scenes (builtin:NAME), not to a scene file" in message

@@ -204,8 +204,12 @@ def render(
                                             progress=progress, primary=primary)
         else:
             result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
-    except ValueError as exc:
-        raise NeuralRTError(str(exc)) from None
+    except ValueError as exc:  # settings the integrator refuses (pydantic's errors are ValueErrors too)
+        from pydantic import ValidationError
+
+        from .errors import validation_message
+
+        raise NeuralRTError(validation_message(exc) if isinstance(exc, ValidationError) else str(exc)) from None
     files = result.save(output)
     h, w = result.image.shape[:2]
     return {

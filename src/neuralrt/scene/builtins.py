@@ -155,7 +155,8 @@ def list_builtins() -> list[tuple[str, str]]:
 
 
 def builtin_spec(query: str, detail: int | None = None) -> SceneSpec:
-    """Spec of builtin ``name[?detail=N]``; the ``detail`` argument wins over the query string."""
+    """Spec of builtin ``name[?detail=N]``; a ``detail`` argument that differs from the query
+    string's is an error (which one was meant?)."""
     name, _, params = query.partition("?")
     builtin = BUILTIN_SCENES.get(name)
     if builtin is None:
@@ -171,6 +172,8 @@ def builtin_spec(query: str, detail: int | None = None) -> SceneSpec:
         except ValueError:
             raise SceneError(f"builtin:{query}: detail must be an integer") from None
     if detail is not None:
+        if "detail" in options and int(detail) != level:
+            raise SceneError(f"builtin:{query}: detail given twice ({level} in the name, {detail} as --detail): give it once")
         level = int(detail)
     if level < 0:
         raise SceneError(f"builtin:{query}: detail must be >= 0")

@@ -135,6 +135,8 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         return spec, Path.cwd(), text
     path = Path(path_or_builtin)
     label = path.name
+    if detail is not None:
+        raise SceneError(f"{path}: --detail applies to built-in scenes (builtin:NAME), not to a scene file")
     problem = input_file_problem(path, "scene file")
     if problem:
         raise SceneError(problem)
