@@ -135,7 +135,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     from .render.integrator import render
     from .scene.convert import convert_scene, replaced_memory
     from .scene.memory import scene_memory
-    from .scene.loader import load_scene
+    from .scene.loader import load_scene, load_scene_spec
 
     from .methods import get_method
 
@@ -144,6 +144,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         s = replace(s, preset=get_method(s.method).default_preset(device))
     out = Path(out_dir)
     check_output_folder(out, "demo report")  # (made by the conversion, once the scene is known to be good)
+    load_scene_spec(s.scene, detail=s.detail)  # a bad scene fails here, before any step starts
 
     def say(msg: str) -> None:
         if progress:
