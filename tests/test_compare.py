@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from neuralrt.cli import main
-from neuralrt.errors import ImageError
+from neuralrt.errors import ImageError, NeuralRTError
 from neuralrt.eval.image_metrics import compare_images, psnr, relmse
 from neuralrt.io.images import read_image, write_exr, write_png
 
@@ -120,7 +120,7 @@ def test_cli_heatmap_folder_is_created_but_a_file_in_its_way_fails_up_front(tmp_
     assert "ref.exr: is a file, not a folder" in _one_error_line(capsys.readouterr().err)
     from neuralrt.eval.image_metrics import compare_files  # the library call checks it too, up front
 
-    with pytest.raises(ImageError, match="ref.exr: is a file, not a folder"):
+    with pytest.raises(NeuralRTError, match="ref.exr: is a file, not a folder"):
         compare_files(ref, str(tmp_path / "nan-never-read.exr"), heatmap=tmp_path / "ref.exr" / "flip.png")
 
 

@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ImageError
+from ..io.files import check_output_file
 from ..io.images import linear_to_srgb, read_image, tone_map
 
-__all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr", "nonfinite_problem", "heatmap_problem"]
+__all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr", "nonfinite_problem", "check_heatmap_path"]
 
 _RELMSE_EPSILON = 1e-2
 
@@ -87,22 +88,14 @@ def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False,
     return ImageComparison(float(mean_flip), psnr(reference, test), relmse(reference, test), np.asarray(flip_map, np.float32))
 
 
-def heatmap_problem(path: str | Path) -> str | None:
-    """None when the FLIP heat map can be written to ``path``, else the one-line problem.
-
-    Checked before any image is read: the map is always PNG, so another suffix would put PNG
-    bytes under a misleading name, and a file in the folder's place would only show after the
-    metrics. A missing folder is fine: it is created when the map is written.
-    """
+def check_heatmap_path(path: str | Path) -> None:
+    """A one-line error unless the FLIP heat map can be written to ``path``, checked before any
+    image is read: the map is always PNG (another suffix would put PNG bytes under a misleading
+    name), and its folder must exist or be creatable, and take files."""
     path = Path(path)
     if path.suffix.lower() != ".png":
-        return f"{path}: the heat map is written as PNG, so its name must end in .png"
-    if path.is_dir():
-        return f"{path}: is a directory, not a heat map file name"
-    existing = next((a for a in path.parents if a.exists()), Path("."))
-    if not existing.is_dir():
-        return f"{existing}: is a file, not a folder (on the way to {path})"
-    return None
+        raise ImageError(f"{path}: the heat map is written as PNG, so its name must end in .png")
+    check_output_file(path, "heat map")
 
 
 def _write_heatmap(path: str | Path, flip_map: np.ndarray) -> None:
@@ -122,9 +115,8 @@ def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path |
     `ImageError` naming the file, raised before any metric is computed or file written.
     Identical images give ``psnr == float("inf")``.
     """
-    problem = heatmap_problem(heatmap) if heatmap is not None else None
-    if problem:
-        raise ImageError(problem)
+    if heatmap is not None:
+        check_heatmap_path(heatmap)
     result = compare_images(read_image(reference), read_image(test), hdr=hdr, names=(str(reference), str(test)))
     if heatmap is not None:
         _write_heatmap(heatmap, result.flip_map)

@@ -1,11 +1,11 @@
 """Output and input files: atomic writes that respect the user's umask, and input-file checks.
 
 `check_output_file` / `check_output_folder` ask, before any long work, whether an output can be
-written there (without creating anything). `write_atomically` is the one way neuralrt writes an output file (images, model files, scene
-files, checkpoints): the data goes to a temporary sibling, then one ``os.replace`` puts it in
-place, so a crash leaves the old file or the new one, never half of one. The temporary file is
-created with mode ``0o666`` filtered by the umask, like any file a program opens for writing
-(``tempfile.mkstemp`` would make every output ``0600``).
+written there (without creating anything). `write_atomically` is the one way neuralrt writes an
+output file (images, model files, scene files, checkpoints): the data goes to a temporary
+sibling, then one ``os.replace`` puts it in place, so a crash leaves the old file or the new one,
+never half of one. The temporary file is created with mode ``0o666`` filtered by the umask, like
+any file a program opens for writing (``tempfile.mkstemp`` would make every output ``0600``).
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ def _writable_folder_problem(folder: Path, what: str) -> str | None:
         break
     else:  # (a relative path whose ancestors are all missing: the current folder)
         ancestor = Path(".")
-    # Probing with a real file: os.access does not see read-only mounts, ACLs or sysfs-like folders.
+    # Probing with a real file: os.access says yes to root everywhere (sysfs, ACLs, some network mounts).
     try:
         probe = _create_sibling(ancestor / "neuralrt-write-probe")
     except OSError as exc:
