@@ -15,22 +15,31 @@ MODEL_SUFFIXES = {".nrt"}
 SCENE_SUFFIXES = {".toml", ".json"}
 
 
-def check_device(device) -> None:
-    """One-line `DeviceError` unless ``device`` names a torch device this process can use."""
+def check_device_name(device):
+    """``device`` as a `torch.device`; a one-line `DeviceError` unless it names a CPU or CUDA device
+    (whether this process has one is `check_device`'s question)."""
     import torch
 
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
         raise DeviceError(f"--device {device}: not a torch device (use cpu or cuda)") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
+    return dev
+
+
+def check_device(device) -> None:
+    """One-line `DeviceError` unless ``device`` names a torch device this process can use."""
+    import torch
+
+    dev = check_device_name(device)
     if dev.type == "cuda":
         if not torch.backends.cuda.is_built():
             raise DeviceError(f"--device {device}: this torch ({torch.__version__}) is built without CUDA; "
                               "install a CUDA build of torch to use a GPU")
         if not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count():
             raise DeviceError(f"--device {device}: no CUDA device is available")
-    elif dev.type != "cpu":
-        raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
 
 
 def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
@@ -46,6 +55,31 @@ def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) 
         raise ConfigError(f"{name}: must be at most {maximum}, got {value}")
 
 
+SEED_LIMIT = 1 << 63  # seeds feed torch's and numba's 64-bit generators
+
+
+def check_seed(name: str, value) -> None:
+    """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
+    if value is not None:
+        check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
+
+
+def check_path(name: str, value, optional: bool = False) -> Path | None:
+    """``value`` as a `Path`; a one-line `ConfigError` unless it is a str or os.PathLike (or None when ``optional``)."""
+    if value is None and optional:
+        return None
+    if isinstance(value, (str, os.PathLike)) and str(value) != "":
+        return Path(value)
+    got = "an empty string" if value == "" else type(value).__name__
+    raise ConfigError(f"{name}: expected a path (str or os.PathLike), got {got}")
+
+
+def check_name(name: str, value) -> None:
+    """One-line `ConfigError` unless ``value`` is None or a str (a method, preset or executor name)."""
+    if value is not None and not isinstance(value, str):
+        raise ConfigError(f"{name}: expected a name (str), got {type(value).__name__}")
+
+
 def _max_depth_limit() -> int:
     """The largest ``max_depth`` a scene file takes (its schema's bound)."""
     from .scene.schema import RenderSettings
@@ -57,6 +91,8 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
     """FLIP, PSNR and relMSE of ``test`` against ``reference``; writes the FLIP heat map PNG if asked."""
     from .eval.image_metrics import compare_files
 
+    reference, test = check_path("reference", reference), check_path("test", test)
+    heatmap = check_path("heatmap", heatmap, optional=True)
     result = compare_files(reference, test, heatmap=heatmap, hdr=hdr)
     out = result.as_dict()
     if heatmap is not None:
@@ -66,7 +102,7 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
 
 def info(path: str | Path) -> dict:
     """Facts about a mesh, scene (file or ``builtin:NAME``) or model file."""
-    spec = str(path)
+    spec = str(check_path("path", path))
     suffix = Path(spec).suffix.lower()
     if suffix in MODEL_SUFFIXES:
         return _model_info(Path(spec))
@@ -98,7 +134,7 @@ def _scene_info(spec: str) -> dict:
     from .scene.loader import load_scene
     from .scene.memory import scene_memory
 
-    scene = load_scene(spec)
+    scene = load_scene(spec, allow_mesh_mismatch=True)  # info inspects: a mismatch matters when rendering
     accel = scene.accel
     blases = accel.unique_blases
     triangles = sum(b.mesh.num_triangles for b in blases if not is_neural(b))
@@ -183,10 +219,13 @@ def render(
     check_device(device)
     check_count("spp", spp)
     check_count("max_depth", max_depth, minimum=1, maximum=_max_depth_limit())  # a scene file's bounds
+    check_seed("seed", seed)
     check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError("--nif-train-spp needs --nif OBJECTS|auto")
-    output = Path(output)
+    if nif is not None and not (isinstance(nif, str) or (isinstance(nif, (list, tuple)) and all(isinstance(n, str) for n in nif))):
+        raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
+    output = check_path("output", output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
     check_output_file(output, "render output")
@@ -272,10 +311,15 @@ def train(
     from .training.api import train as _train
 
     check_device(device)
+    check_name("method", method)
+    check_name("preset", preset)
+    check_seed("seed", seed)
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
     config = spec.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
-    output = Path(output)
+    output = check_path("output", output)
+    if not isinstance(mesh, Mesh):
+        mesh = check_path("mesh", mesh)
     if output.suffix.lower() not in MODEL_SUFFIXES:
         raise NeuralRTError(f"{output}: a model file must end in .nrt (`neuralrt info` and scene files tell models by it)")
     check_output_file(output, "model file")
@@ -284,13 +328,25 @@ def train(
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
     if not isinstance(mesh, Mesh):
         mesh = load_mesh(mesh)
+    made = _missing_folders(output.parent)
     output.parent.mkdir(parents=True, exist_ok=True)
-    model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
+    try:
+        model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
+    except BaseException:  # (an interrupt too) stopped before the first checkpoint: leave no new empty folders
+        for folder in made:
+            if not any(folder.iterdir()):
+                folder.rmdir()
+        raise
     model.save(output)
     checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
     return {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
             "memory_parts": dict(memory.parts), "training": model.training_record}
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and its ancestors that do not exist yet, deepest first."""
+    return [f for f in (folder, *folder.parents) if not f.exists()]
 
 
 def list_presets() -> list[dict]:
@@ -328,6 +384,14 @@ def evaluate(
 
     check_device(device)
     check_count("rays", rays, minimum=2)
+    check_seed("seed", seed)
+    if not is_neural(model):
+        if isinstance(model, Mesh):
+            raise ConfigError("model: got a Mesh; evaluate(model, mesh) takes the model first")
+        model = check_path("model", model)
+    if not isinstance(mesh, Mesh):
+        mesh = check_path("mesh", mesh)
+    image_dir = check_path("image_dir", image_dir, optional=True)
     if image_dir is not None:
         if not images:
             raise ConfigError("--images DIR and --no-images contradict each other: give one")
@@ -346,21 +410,47 @@ def convert(scene: str | Path, output: str | Path, **options) -> dict:
     """Train models for a scene's complex objects and write a scene that uses them
     (see `neuralrt.scene.convert.convert_scene` for the options; ``executor="ray"`` trains them
     on a Ray cluster, `neuralrt.scene.convert_executors`)."""
+    import inspect
+
     from .scene.convert import convert_scene
 
-    if options.get("executor", "local") != "ray":  # Ray tasks train on the cluster's devices, checked there
+    known = [k for k in inspect.signature(convert_scene).parameters if k not in ("scene", "output")]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ConfigError(f"convert: unknown option(s) {', '.join(unknown)} (known: {', '.join(known)})")
+    if not isinstance(scene, dict):
+        scene = check_path("scene", scene)
+    output = check_path("output", output)
+    options["models_dir"] = check_path("models_dir", options.get("models_dir"), optional=True)
+    for name in ("method", "preset", "executor", "address"):
+        check_name(name, options.get(name))
+    check_seed("seed", options.get("seed"))
+    check_count("min_triangles", options.get("min_triangles"), minimum=0)
+    select = options.get("select")
+    if isinstance(select, str):  # as on the command line: comma-separated names
+        options["select"] = [n.strip() for n in select.split(",") if n.strip()]
+    elif select is not None and not (isinstance(select, (list, tuple)) and all(isinstance(n, str) for n in select)):
+        raise ConfigError(f"select: expected object names (a str or a list of str), got {type(select).__name__}")
+    if options.get("executor", "local") != "ray":
         check_device(options.get("device", "cpu"))
+    else:  # Ray tasks train on the cluster's devices, whose presence is checked there; the name, here
+        check_device_name(options.get("device", "cpu"))
     return convert_scene(scene, output, **options).as_dict()
 
 
 def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: str = "cpu", progress: bool = True,
          **overrides) -> dict:
     """Convert a built-in scene, render exact and hybrid, compare, and write a report folder."""
-    from dataclasses import replace
+    from dataclasses import fields, replace
 
     from . import demo as demo_module
 
     check_device(device)
+    out_dir = check_path("out_dir", out_dir)
+    known = [f.name for f in fields(demo_module.DemoSettings)]
+    unknown = sorted(set(overrides) - set(known))
+    if unknown:
+        raise ConfigError(f"demo: unknown setting(s) {', '.join(unknown)} (known: {', '.join(known)})")
     base = demo_module.DEMO_QUICK if quick else demo_module.DEMO_DEFAULT
     settings = replace(base, **{k: v for k, v in overrides.items() if v is not None})  # validated on construction
     return demo_module.run_demo(out_dir, quick=quick, device=device, progress=progress, settings=settings)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import warnings
 
@@ -95,7 +96,10 @@ def _cmd_train(args) -> None:
         return
     if args.mesh is None or args.output is None:
         raise NeuralRTError("train needs MESH and -o OUTPUT.nrt (or --list-presets)")
-    args.interrupt_hint = "run the same command with --resume to continue from the last checkpoint"
+    checkpoint = f"{args.output}.ckpt"
+    args.interrupt_hint = lambda: (  # (asked once interrupted: has a checkpoint been written yet?)
+        "run the same command with --resume to continue from the last checkpoint" if os.path.isfile(checkpoint)
+        else "no checkpoint was written yet: run the command again to start over")
     result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
                        seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet)
     _print_result(result, args.json)
@@ -285,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         hint = getattr(args, "interrupt_hint", None)
+        hint = hint() if callable(hint) else hint
         print(f"neuralrt: interrupted{f' ({hint})' if hint else ''}", file=sys.stderr)
         return 130
     finally:

@@ -171,7 +171,7 @@ _FLAGS = {"address": "--address", "cpus_per_model": "--cpus-per-model", "gpus_pe
 class RayOptions(BaseModel):
     """Settings of the Ray executor (the CLI's flags of the same names)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # (--cpus-per-model inf: one line)
 
     address: str | None = Field(None, description="existing cluster: 'auto', HOST:PORT or ray://HOST:PORT; "
                                                   "None: start a local Ray instance on this machine's cores")

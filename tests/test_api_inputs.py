@@ -1,0 +1,106 @@
+"""`neuralrt.api` checks its arguments as the CLI does: a wrong type or value is one `NeuralRTError`
+naming the argument, before any work (never a TypeError from deep inside)."""
+
+import pytest
+import trimesh
+
+from neuralrt import api
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError, DeviceError, NeuralRTError
+
+
+@pytest.fixture
+def ball(tmp_path):
+    path = tmp_path / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=1).export(path)
+    return path
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda d, b: api.render("builtin:cornell-statue", ["a.exr"]), "output: expected a path \\(str or os.PathLike\\), got list"),
+    (lambda d, b: api.train(None, d / "m.nrt"), "mesh: expected a path"),
+    (lambda d, b: api.train(b, [d / "m.nrt"]), "output: expected a path"),
+    (lambda d, b: api.evaluate([d / "m.nrt"], b), "model: expected a path"),
+    (lambda d, b: api.evaluate(d / "m.nrt", None), "mesh: expected a path"),
+    (lambda d, b: api.evaluate(d / "m.nrt", b, image_dir=["x"]), "image_dir: expected a path"),
+    (lambda d, b: api.compare(None, d / "b.exr"), "reference: expected a path"),
+    (lambda d, b: api.compare(d / "a.exr", d / "b.exr", heatmap=["h.png"]), "heatmap: expected a path"),
+    (lambda d, b: api.info(""), "path: expected a path \\(str or os.PathLike\\), got an empty string"),
+    (lambda d, b: api.demo(["x"]), "out_dir: expected a path"),
+    (lambda d, b: api.convert(["s.toml"], d / "o.toml"), "scene: expected a path"),
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", models_dir=["m"]), "models_dir: expected a path"),
+])
+def test_paths_of_the_wrong_type_are_named(tmp_path, ball, call, message):
+    with pytest.raises(ConfigError, match=message):
+        call(tmp_path, ball)
+
+
+def test_a_mesh_given_as_the_model_says_so(ball):
+    from neuralrt import load_mesh
+
+    with pytest.raises(ConfigError, match="model: got a Mesh; evaluate\\(model, mesh\\) takes the model first"):
+        api.evaluate(load_mesh(ball), ball)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda d, b: api.render("builtin:cornell-statue", d / "i.exr", seed="x"), "seed: must be an integer, got 'x'"),
+    (lambda d, b: api.render("builtin:cornell-statue", d / "i.exr", seed=-1), "seed: must be at least 0, got -1"),
+    (lambda d, b: api.render("builtin:cornell-statue", d / "i.exr", nif=123), "nif: expected 'auto' or object names"),
+    (lambda d, b: api.train(b, d / "m.nrt", seed=2**70), "seed: must be at most 9223372036854775807"),
+    (lambda d, b: api.train(b, d / "m.nrt", preset=["lq"]), "preset: expected a name \\(str\\), got list"),
+    (lambda d, b: api.evaluate(d / "m.nrt", b, seed=1.5), "seed: must be an integer, got 1.5"),
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", bogus=1), "convert: unknown option\\(s\\) bogus \\(known: models_dir"),
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", min_triangles=-5), "min_triangles: must be at least 0"),
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", select=123), "select: expected object names"),
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", seed=2**70), "seed: must be at most"),
+    (lambda d, b: api.demo(d / "demo", quick=True, bogus=3), "demo: unknown setting\\(s\\) bogus \\(known: scene"),
+])
+def test_bad_values_are_named(tmp_path, ball, call, message):
+    with pytest.raises(ConfigError, match=message):
+        call(tmp_path, ball)
+    assert not (tmp_path / "demo").exists() and not (tmp_path / "o.toml").exists()
+
+
+def test_convert_select_string_is_comma_separated_as_on_the_command_line(tmp_path):
+    # (a plain string used to be read as a list of one-letter names)
+    with pytest.raises(NeuralRTError, match="--select: no object named 'nope' \\(objects: "):
+        api.convert("builtin:cornell-statue?detail=0", tmp_path / "o.toml", select="statue, nope", steps=1)
+
+
+def test_ray_executor_checks_the_device_name_and_cpus_up_front(tmp_path, capsys):
+    with pytest.raises(DeviceError, match="--device tpu: not a torch device"):
+        api.convert("builtin:cornell-statue", tmp_path / "o.toml", executor="ray", device="tpu")
+    assert main(["convert", "builtin:cornell-statue", "-o", str(tmp_path / "o.toml"), "--executor", "ray",
+                 "--cpus-per-model", "inf"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cpus-per-model: Input should be a finite number" in err[0], err
+
+
+def test_seed_beyond_64_bits_is_one_line_from_the_cli(ball, tmp_path, capsys):
+    assert main(["eval", str(tmp_path / "m.nrt"), str(ball), "--seed", str(10**23)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "seed: must be at most" in err[0], err
+
+
+def test_interrupted_before_the_first_checkpoint_says_so_and_leaves_no_folder(tmp_path, ball, monkeypatch, capsys):
+    from neuralrt.training import api as training_api
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training_api, "train", interrupted)
+    out = tmp_path / "new" / "sub" / "m.nrt"
+    assert main(["train", str(ball), "-o", str(out), "--steps", "5", "--quiet"]) == 130
+    assert "no checkpoint was written yet: run the command again to start over" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
+def test_info_shows_a_scene_whose_model_belongs_to_another_mesh(tmp_path, capsys):
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    LSNIFModel.from_mesh(sphere(1), LSNIFConfig.preset("lq")).save(tmp_path / "m.nrt")
+    (tmp_path / "scene.toml").write_text(
+        '[[objects]]\nmodel = "m.nrt"\ngenerator = { name = "sphere", params = { subdivisions = 2 } }\n')
+    assert main(["info", str(tmp_path / "scene.toml"), "--json"]) == 0
+    assert '"neural_instances": 1' in capsys.readouterr().out
