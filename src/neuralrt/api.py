@@ -6,40 +6,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .errors import ConfigError, DeviceError, NeuralRTError
+from .devices import check_device, check_device_name, check_path
+from .errors import ConfigError, NeuralRTError
 from .io.files import check_output_file, check_output_folder
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
 MODEL_SUFFIXES = {".nrt"}
 SCENE_SUFFIXES = {".toml", ".json"}
-
-
-def check_device_name(device):
-    """``device`` as a `torch.device`; a one-line `DeviceError` unless it names a CPU or CUDA device
-    (whether this process has one is `check_device`'s question)."""
-    import torch
-
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, TypeError):
-        raise DeviceError(f"--device {device}: not a torch device (use cpu or cuda)") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
-    return dev
-
-
-def check_device(device) -> None:
-    """One-line `DeviceError` unless ``device`` names a torch device this process can use."""
-    import torch
-
-    dev = check_device_name(device)
-    if dev.type == "cuda":
-        if not torch.backends.cuda.is_built():
-            raise DeviceError(f"--device {device}: this torch ({torch.__version__}) is built without CUDA; "
-                              "install a CUDA build of torch to use a GPU")
-        if not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count():
-            raise DeviceError(f"--device {device}: no CUDA device is available")
 
 
 def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
@@ -62,16 +36,6 @@ def check_seed(name: str, value) -> None:
     """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
     if value is not None:
         check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
-
-
-def check_path(name: str, value, optional: bool = False) -> Path | None:
-    """``value`` as a `Path`; a one-line `ConfigError` unless it is a str or os.PathLike (or None when ``optional``)."""
-    if value is None and optional:
-        return None
-    if isinstance(value, (str, os.PathLike)) and str(value) != "":
-        return Path(value)
-    got = "an empty string" if value == "" else type(value).__name__
-    raise ConfigError(f"{name}: expected a path (str or os.PathLike), got {got}")
 
 
 def check_name(name: str, value) -> None:

@@ -17,10 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import ConfigError
+from .devices import DEVICE_TYPES, resolve_device  # (resolve_device: re-exported, its old home)
+from .errors import ConfigError, DeviceError
 
 __all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",
-           "resolve_device"]
+           "resolve_device", "check_rays"]
 
 # Tensor type hints carrying shape and dtype (read them with typing.get_type_hints(..., include_extras=True)).
 Points = Annotated[Tensor, "[N, 3] float32"]
@@ -46,7 +47,9 @@ class Rays:
     Batch shapes: origins and directions may be ``[..., 3]`` (e.g. ``[H, W, 3]``); they are
     flattened row-major to ``[N, 3]`` and ``batch_shape`` keeps the original leading shape, so
     answers reshape back with ``hits.t.reshape(rays.batch_shape)``. Rays with NaN/Inf or zero
-    directions, or an empty interval, are valid input: they miss.
+    directions, or an empty interval, are valid input: they miss. Mis-shaped or non-numeric input
+    raises a one-line `ConfigError` (a ValueError), tensors on another device than cpu or cuda
+    (e.g. ``meta``) a `DeviceError`.
     """
 
     origins: Points
@@ -57,29 +60,32 @@ class Rays:
     """Leading shape the rays were given in (default ``(N,)``); ``N = prod(batch_shape)``."""
 
     def __post_init__(self) -> None:
-        origins = torch.as_tensor(self.origins, dtype=torch.float32)
-        directions = torch.as_tensor(self.directions, dtype=torch.float32, device=origins.device)
+        origins = _float_tensor("origins", self.origins)
+        directions = _float_tensor("directions", self.directions, origins.device)
         if origins.ndim < 1 or origins.shape[-1] != 3:
-            raise ValueError(f"ray origins must have shape [..., 3], got {tuple(origins.shape)}")
+            raise ConfigError(f"ray origins must have shape [..., 3], got {tuple(origins.shape)}")
         if directions.shape != origins.shape:
-            raise ValueError(f"ray directions {tuple(directions.shape)} do not match origins {tuple(origins.shape)}")
+            raise ConfigError(f"ray directions {tuple(directions.shape)} do not match origins {tuple(origins.shape)}")
         shape = tuple(origins.shape[:-1])
         if self.batch_shape is None:
             self.batch_shape = shape
         n, dev = math.prod(shape), origins.device
         if math.prod(self.batch_shape) != n:
-            raise ValueError(f"batch_shape {self.batch_shape} does not hold {n} rays")
+            raise ConfigError(f"batch_shape {self.batch_shape} does not hold {n} rays")
         if origins.ndim != 2:
             origins, directions = origins.reshape(n, 3), directions.reshape(n, 3)
         self.origins, self.directions = origins, directions
-        self.t_min = torch.zeros(n, device=dev) if self.t_min is None else self._interval(self.t_min, shape, n, dev)
-        self.t_max = torch.full((n,), float("inf"), device=dev) if self.t_max is None else self._interval(self.t_max, shape, n, dev)
+        self.t_min = torch.zeros(n, device=dev) if self.t_min is None else self._interval("t_min", self.t_min, shape, n, dev)
+        self.t_max = torch.full((n,), float("inf"), device=dev) if self.t_max is None else self._interval("t_max", self.t_max, shape, n, dev)
 
     @staticmethod
-    def _interval(value, shape: tuple[int, ...], n: int, dev) -> Tensor:
-        t = torch.as_tensor(value, dtype=torch.float32, device=dev)
+    def _interval(name: str, value, shape: tuple[int, ...], n: int, dev) -> Tensor:
+        t = _float_tensor(name, value, dev)
         if t.ndim == 1 and t.shape[0] == n:
             return t  # already per ray: the common case, no copy
+        if not _broadcasts_to(tuple(t.shape), shape):
+            raise ConfigError(f"ray {name} of shape {tuple(t.shape)} does not broadcast to the rays' shape {shape} "
+                              f"(give a scalar or one value per ray, [{n}])")
         return t.expand(shape).reshape(n).contiguous()
 
     def __len__(self) -> int:
@@ -100,6 +106,30 @@ class Rays:
     def point_at(self, t: Tensor) -> Tensor:
         """``origins + t * directions`` [N, 3] for ``t`` [N]."""
         return self.origins + t[:, None] * self.directions
+
+
+def _float_tensor(name: str, value, device=None) -> Tensor:
+    """``value`` as a float32 tensor (on ``device`` if given); a one-line error for what torch cannot
+    take or compute on (strings, None; the meta device, whose tensors hold no data)."""
+    if isinstance(value, Tensor):
+        if value.device.type not in DEVICE_TYPES:
+            raise DeviceError(f"ray {name} are on {value.device}: neuralrt computes on cpu or cuda")
+        return torch.as_tensor(value, dtype=torch.float32, device=device)  # (its errors, e.g. out of memory, are torch's)
+    try:
+        return torch.as_tensor(value, dtype=torch.float32, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise ConfigError(f"ray {name}: expected a float tensor or array, got {type(value).__name__}") from None
+
+
+def _broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
+    """Whether a tensor of ``shape`` expands to ``target`` (numpy broadcasting, no new dimensions in ``target``)."""
+    return len(shape) <= len(target) and all(s in (1, t) for s, t in zip(reversed(shape), reversed(target)))
+
+
+def check_rays(rays, where: str) -> None:
+    """One-line `ConfigError` unless ``rays`` is a `Rays` (a BLAS's entry points call it: one isinstance)."""
+    if not isinstance(rays, Rays):
+        raise ConfigError(f"{where}: expected neuralrt.Rays, got {type(rays).__name__}")
 
 
 @dataclass
@@ -228,15 +258,6 @@ class AABB:
 
     def tolist(self) -> list[list[float]]:
         return [self.lo.tolist(), self.hi.tolist()]
-
-
-def resolve_device(device) -> torch.device:
-    """``device`` as tensors report it: ``"cuda"`` becomes ``cuda:<current index>`` (so it compares
-    equal to a CUDA tensor's ``.device``); other devices as given."""
-    dev = torch.device(device)
-    if dev.type == "cuda" and dev.index is None:
-        return torch.device("cuda", torch.cuda.current_device())
-    return dev
 
 
 def valid_ray_mask(rays: Rays) -> Tensor:
@@ -461,7 +482,7 @@ def pinhole_rays(
     from .render.camera import Camera
 
     if width < 1 or height < 1 or not 0 < fov_y_degrees < 180:
-        raise ValueError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees}")
+        raise ConfigError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees}")
     camera = Camera.look_at(origin, look_at, up, fov_y_degrees, (width, height))
     dev = torch.device(device)
     pixels = torch.arange(width * height, device=dev)

@@ -16,9 +16,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..devices import check_device
+from ..errors import ConfigError
 from ..geometry.mesh import Mesh
 from ..host_threads import numba_threads
-from ..rays import AABB, Hits, Rays
+from ..rays import AABB, Hits, Rays, check_rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
 from .embree_api import TriangleScene
@@ -41,6 +43,14 @@ def _rays_as_numpy(rays: Rays) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
                  for x in (rays.origins, rays.directions, rays.t_min, rays.t_max))  # fmt: skip
 
 
+def _checked_arguments(mesh, device) -> torch.device:
+    """The BLAS's device (`check_device`), after one-line errors for a ``mesh`` that is not a `Mesh`
+    (a path, None) or a device this process cannot use: raised before a backend is picked."""
+    if not isinstance(mesh, Mesh):
+        raise ConfigError(f"mesh: expected a neuralrt.Mesh, got {type(mesh).__name__} (read a mesh file with neuralrt.load_mesh(path))")
+    return check_device("cpu" if device is None else device)
+
+
 def _backend_for(device: torch.device) -> type["MeshBLAS"]:
     """The `MeshBLAS` implementation for ``device``: decided once, when a BLAS is built."""
     if device.type != "cuda":
@@ -61,7 +71,8 @@ class MeshBLAS(ABC):
 
     ``MeshBLAS(mesh, device=None)`` builds the backend for ``device`` (default CPU): an
     `EmbreeMeshBLAS` on the CPU, a `MitsubaMeshBLAS` (OptiX) on CUDA when Mitsuba 3 is installed.
-    Built once per mesh (instances share it through the scene TLAS).
+    Built once per mesh (instances share it through the scene TLAS). A ``mesh`` that is not a `Mesh`
+    raises `ConfigError`, a device this process cannot use (``cuda`` on a CPU-only torch) `DeviceError`.
 
     Contract, whatever the backend: ``intersect(rays)`` returns `Hits` on ``rays.device`` (the
     closest hit in ``(t_min, t_max)``: t in units of the direction's length, triangle index,
@@ -78,14 +89,15 @@ class MeshBLAS(ABC):
     backend: str  # "embree", or the Mitsuba variant ("cuda_ad_rgb", "llvm_ad_rgb")
 
     def __new__(cls, mesh: Mesh, device=None, threads: int | None = None):
+        checked = _checked_arguments(mesh, device)
         if cls is MeshBLAS:
-            cls = _backend_for(torch.device(device if device is not None else "cpu"))
+            cls = _backend_for(checked)
         return super().__new__(cls)
 
     def _init_common(self, mesh: Mesh, device) -> None:
         """What every backend shares: the mesh, its bounds (CPU tensors), the secondary-ray offset."""
         self.mesh = mesh
-        self.device = torch.device(device if device is not None else "cpu")
+        self.device = _checked_arguments(mesh, device)
         lo, hi = mesh.bounds
         self.bounds = AABB(torch.from_numpy(lo.copy()), torch.from_numpy(hi.copy()))
         # Offset for secondary rays: a few float32 ulps of the object's extent.
@@ -169,6 +181,7 @@ class EmbreeMeshBLAS(MeshBLAS):
     # -- queries ---------------------------------------------------------------------------------
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
+        check_rays(rays, "intersect")
         n = len(rays)
         if n == 0:
             return Hits.empty(0, rays.device)
@@ -219,6 +232,7 @@ class EmbreeMeshBLAS(MeshBLAS):
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any triangle lie within (t_min, t_max)?"""
+        check_rays(rays, "occluded")
         n = len(rays)
         if n == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from ..errors import DeviceError, NeuralRTError
 from ..geometry.mesh import Mesh
-from ..rays import Hits, Rays, valid_ray_mask
+from ..rays import Hits, Rays, check_rays, valid_ray_mask
 from .mesh_blas import MeshBLAS
 from .mesh_blas_attributes import MeshAttributeTables, closest_hit_records
 from .mesh_blas_kernels import EMBREE_TFAR_MAX
@@ -102,7 +102,8 @@ class MitsubaMeshBLAS(MeshBLAS):
         self._zero, self._minus_one = torch.tensor(0.0, device=self.device), torch.tensor(-1.0, device=self.device)
 
     # -- queries ---------------------------------------------------------------------------------
-    def _check_device(self, rays: Rays) -> None:
+    def _check_device(self, rays: Rays, where: str) -> None:
+        check_rays(rays, where)
         if rays.device.type != self.device.type:
             raise DeviceError(f"rays are on {rays.device} but this exact BLAS is on {self.device}: move them with rays.to()")
 
@@ -132,7 +133,7 @@ class MitsubaMeshBLAS(MeshBLAS):
 
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray: t, triangle, shading/geometric normal, UV, albedo, material id."""
-        self._check_device(rays)
+        self._check_device(rays, "intersect")
         if len(rays) == 0:
             return Hits.empty(0, rays.device)
         return closest_hit_records(self._tables, *self.closest_hits(rays))
@@ -154,7 +155,7 @@ class MitsubaMeshBLAS(MeshBLAS):
         """[N] bool: does any triangle lie within (t_min, t_max)?"""
         import drjit as dr
 
-        self._check_device(rays)
+        self._check_device(rays, "occluded")
         if len(rays) == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
         columns, _ = self._trace_inputs(rays)

@@ -10,6 +10,7 @@ import os
 
 import torch
 
+from ..devices import check_device, check_path
 from ..errors import ModelFileError
 from ..io.model_file import read_header
 from .base import MeshMismatchWarning, NeuralBLAS, check_mesh_match, is_neural
@@ -50,7 +51,9 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> N
         returns ``[N]`` bool. Rays on another device raise a one-line `DeviceError`.
 
     Missing, truncated, corrupted, newer-version or unknown-method files raise `ModelFileError`
-    with one line."""
+    with one line; a ``path`` that is no path `ConfigError`, a device this process cannot use
+    (``cuda`` on a CPU-only torch) `DeviceError`."""
+    path, device = check_path("path", path), check_device(device)  # before the file is read
     method = read_header(path)["method"]
     if method not in method_names():
         raise ModelFileError(f"{path}: method '{method}' is not a loadable model (this neuralrt reads: {', '.join(method_names())})")

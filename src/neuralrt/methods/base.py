@@ -34,10 +34,11 @@ from pydantic import ValidationError
 from torch import Tensor, nn
 
 from ..accel.blas import MemoryReport
+from ..devices import check_device, check_path
 from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
 from ..io.model_file import ModelHeader, read_model, write_model
 from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
-from ..rays import AABB, Hits, Rays
+from ..rays import AABB, Hits, Rays, check_rays
 from .config import MethodConfig
 
 __all__ = ["NeuralBLAS", "is_neural", "ray_views", "memory_owner", "check_mesh_match", "MeshMismatchWarning", "material_table"]
@@ -220,6 +221,7 @@ class NeuralBLAS(nn.Module, ABC):
 
         ``rays`` must be on the model's device; hits come back on it. Rays with NaN/Inf origins or
         directions, zero directions or an empty ``(t_min, t_max)`` miss."""
+        check_rays(rays, "intersect")
         self._check_device(rays)
         n = len(rays)
         chunk = self.rays_per_chunk(rays.device)
@@ -249,9 +251,11 @@ class NeuralBLAS(nn.Module, ABC):
     @torch.no_grad()
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: the model predicts a hit within (t_min, t_max) (same decision as `intersect`)."""
+        check_rays(rays, "occluded")
         return self.intersect(rays).hit
 
     def _check_device(self, rays: Rays) -> None:
+        check_rays(rays, "rays")  # (a method's own entry points call only this)
         if rays.device != self.device:
             raise DeviceError(f"rays are on {rays.device} but the {self.TITLE} model is on {self.device}: move one with .to()")
 
@@ -303,7 +307,9 @@ class NeuralBLAS(nn.Module, ABC):
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "NeuralBLAS":
-        """Load a model file; bad, truncated, corrupted, newer or other-method files raise `ModelFileError`."""
+        """Load a model file; bad, truncated, corrupted, newer or other-method files raise `ModelFileError`,
+        a ``path`` that is no path `ConfigError`, a device this process cannot use `DeviceError`."""
+        path, device = check_path("path", path), check_device(device)  # before the file is read
         header, arrays = read_model(path, method=cls.METHOD)
         try:
             config = cls.CONFIG.model_validate(header.config)

@@ -10,6 +10,8 @@ Objects that use the same mesh (same resolved file, or same generator and parame
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
 import tomllib
 from dataclasses import dataclass
@@ -21,10 +23,11 @@ from pydantic import ValidationError
 from ..accel.blas import BLAS
 from ..accel.mesh_blas import MeshBLAS
 from ..accel.tlas import Instance, SceneAccel
+from ..devices import check_device, check_path
 from ..errors import NeuralRTError, SceneError, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
-from ..rays import resolve_device
+from ..rays import AABB
 from ..methods.base import check_mesh_match, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
@@ -61,8 +64,10 @@ def load_scene(
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
     ``primary``: who answers camera rays of objects with a model; ``allow_mesh_mismatch``: accept
     a model trained on another mesh than its object's (see `build_scene`). A bad ``resolution``
-    raises `ConfigError` before the scene is read.
+    or ``path_or_builtin`` raises `ConfigError`, a device this process cannot use `DeviceError`,
+    before the scene is read.
     """
+    device = check_device(device)
     size = None if resolution is None else check_resolution(resolution)
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
     if size is not None:
@@ -91,7 +96,9 @@ def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", prim
         })
 
     The returned scene's ``spec`` names in-memory objects ``<in-memory ...>``: it cannot be saved.
+    A ``base_dir`` that is no path raises `ConfigError`, a device this process cannot use `DeviceError`.
     """
+    base_dir, device = check_path("base_dir", base_dir), check_device(device)  # before the scene is read
     if not isinstance(scene, dict):
         raise SceneError(f"{label}: a scene must be a dict, got {type(scene).__name__}")
     data = dict(scene)
@@ -113,21 +120,57 @@ def _take_in_memory(obj, i: int, given: _InMemory, label: str):
         obj["mesh"] = f"<in-memory mesh {mesh.name!r}>"
     elif isinstance(mesh, os.PathLike):
         obj["mesh"] = os.fspath(mesh)
+    elif mesh is not None and not isinstance(mesh, str):  # (pydantic would print an array's repr over lines)
+        raise SceneError(f"{label}: objects.{i}.mesh: expected a mesh file path or a neuralrt.Mesh, got {type(mesh).__name__}")
     if isinstance(model, os.PathLike):
         obj["model"] = os.fspath(model)
     elif model is not None and not isinstance(model, str):
-        missing = [a for a in ("bounds", "intersect", "occluded", "material_names") if not hasattr(model, a)]
-        if missing:
+        problem = _blas_problem(model)
+        if problem:
             raise SceneError(f"{label}: objects.{i}.model: expected a model file path or a BLAS, got "
-                             f"{type(model).__name__} (no {', '.join(missing)})")
+                             f"{type(model).__name__} ({problem})")
         given.models[i] = model
         obj["model"] = f"<in-memory model {type(model).__name__}>"
     return obj
 
 
+# What a scene uses of a BLAS object (`neuralrt.accel.blas.BLAS`): checked when it is given, not at render.
+BLAS_ATTRIBUTES = ("bounds", "intersect", "occluded", "memory_bytes", "secondary_offset", "material_names")
+
+
+def _blas_problem(model) -> str | None:
+    """Why ``model`` is no BLAS (a missing or mistyped attribute of `BLAS_ATTRIBUTES`), or None.
+    Reads attributes only: nothing is traced."""
+    missing = [a for a in BLAS_ATTRIBUTES if not hasattr(model, a)]
+    if missing:
+        hint = "; a Mesh goes in 'mesh'" if isinstance(model, Mesh) else ""
+        return f"no {', '.join(missing)}{hint}"
+    if not isinstance(model.bounds, AABB):
+        return f"bounds must be a neuralrt.AABB, got {type(model.bounds).__name__}"
+    uncallable = [a for a in ("intersect", "occluded", "memory_bytes") if not callable(getattr(model, a))]
+    if uncallable:
+        return f"{', '.join(uncallable)} must be methods"
+    offset = model.secondary_offset
+    if isinstance(offset, bool) or not isinstance(offset, numbers.Real) or not math.isfinite(offset) or offset < 0:
+        shown = offset if isinstance(offset, numbers.Real) else type(offset).__name__
+        return f"secondary_offset must be a finite number >= 0, got {shown}"
+    if _names_problem(model.material_names):
+        return f"material_names {_names_problem(model.material_names)}"
+    return None
+
+
+def _names_problem(names) -> str | None:
+    """Why ``names`` is no list of material slot names (`BLAS.material_names`), or None."""
+    if isinstance(names, str) or not isinstance(names, (list, tuple)):
+        return f"must be a list of str, got {type(names).__name__}"
+    if not names or not all(isinstance(n, str) for n in names):
+        return "must name each material slot (a non-empty list of str)"
+    return None
+
+
 def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = None) -> tuple[SceneSpec, Path, str]:
     """(validated spec with file paths made absolute, folder paths were relative to, label for errors)."""
-    text = str(path_or_builtin)
+    text = str(check_path("path_or_builtin", path_or_builtin))
     if text.startswith(BUILTIN_PREFIX):
         from .builtins import builtin_spec
 
@@ -168,13 +211,25 @@ def validate_spec(data, label: str) -> SceneSpec:
         errors = validation_errors(exc, SceneSpec)  # keys as written: no pydantic union labels
         key, msg = errors[0]
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        msg = " ".join(msg.split())  # one line, whatever the input's repr (an array spans several)
         raise SceneError(f"{label}: {key or '(top level)'}: {msg}{more}") from None
-    problems = spec.reference_errors()
+    problems = spec.reference_errors() + _empty_path_errors(spec)
     if problems:
         key, msg = problems[0]
         more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
         raise SceneError(f"{label}: {key}: {msg}{more}")
     return spec
+
+
+def _empty_path_errors(spec: SceneSpec) -> list[tuple[str, str]]:
+    """(key, "empty path") for each file path given as "" (resolved, it would name the scene's folder:
+    a confusing "is a directory" later). The paths of `SceneSpec.with_paths`, with their keys."""
+    paths = [(f"materials.{i}.albedo", m.albedo) for i, m in enumerate(spec.materials) if isinstance(m.albedo, str)]
+    for i, obj in enumerate(spec.objects):
+        paths += [(f"objects.{i}.mesh", obj.mesh), (f"objects.{i}.model", obj.model)]
+    if spec.environment is not None:
+        paths.append(("environment.image", spec.environment.image))
+    return [(key, "empty path") for key, path in paths if path is not None and not path.strip()]
 
 
 def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
@@ -229,6 +284,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     ``allow_mesh_mismatch``; a model-only object warns that nothing checks it
     (`neuralrt.methods.check_mesh_match`).
     """
+    base_dir, device = check_path("base_dir", base_dir), check_device(device)
     return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
 
 
@@ -237,7 +293,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     if primary not in PRIMARY_CHOICES:
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
     spec = absolutize_paths(spec, Path(base_dir))
-    dev = resolve_device(device)
+    dev = device  # (checked by the public callers: `check_device`)
     index = material_index(spec)
     materials = _material_table(scene_materials(spec), label, dev)
 
@@ -296,7 +352,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
 def _material_names(blas, label: str, key: str) -> list[str]:
     """The model's material slot names (`BLAS.material_names`: what its ``material_id`` indexes)."""
     names = getattr(blas, "material_names", None)
-    if not names or not all(isinstance(n, str) for n in names):
+    if _names_problem(names):
         raise SceneError(f"{label}: {key}.model: {type(blas).__name__} has no material_names (the BLAS contract: "
                          "one name per material slot)")
     return list(names)
