@@ -226,3 +226,12 @@ def test_validation_messages_stay_one_line_for_array_values():
     with pytest.raises(SceneError, match=r"^scene: camera.position") as info:
         load_dict(_scene([{"generator": {"name": "sphere"}, "material": "w"}], camera={"position": np.zeros((3, 3))}))
     _one_line(info)
+
+
+def test_lsnif_occluded_names_a_non_rays_argument():
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    model = LSNIFModel.from_mesh(sphere(1), LSNIFConfig.preset("lq"))
+    with pytest.raises(ConfigError, match="expected neuralrt.Rays, got NoneType"):
+        model.occluded(None)

@@ -372,9 +372,9 @@ class LSNIFModel(NeuralBLAS):
         (`lsnif_fused_cpu.fused_occluded_cpu`: no normals, albedo or materials)."""
         from . import lsnif_fused_cpu
 
+        self._check_device(rays)
         if rays.device.type != "cpu" or not lsnif_fused_cpu.WRITE_HITS:
             return super().occluded(rays)
-        self._check_device(rays)
         n = len(rays)
         hit = torch.empty(n, dtype=torch.bool)  # (the pass writes every row)
         chunk = self.rays_per_chunk(rays.device)
