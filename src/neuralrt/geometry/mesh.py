@@ -17,7 +17,7 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 
-__all__ = ["Mesh", "MeshMaterial", "load_mesh"]
+__all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent"]
 
 
 @dataclass
@@ -43,7 +43,7 @@ class Mesh:
     name: str = "mesh"
 
     def __post_init__(self) -> None:
-        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32)
+        self.vertices = _as_float32(self.vertices)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int32)
         validate_arrays(self.vertices, self.faces, self.name)
         if self.face_material_ids is None:
@@ -140,6 +140,43 @@ def validate_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
         )
     if not any((_cross_lengths(vertices, faces[s:s + _CHUNK]) > 0).any() for s in range(0, len(faces), _CHUNK)):
         raise MeshError(f"{name}: mesh is degenerate (all {len(faces)} triangles have zero area)")
+
+
+def _as_float32(vertices) -> np.ndarray:
+    """Contiguous float32 vertices. Coordinates beyond float32's range become Inf, which `validate_arrays`
+    reports in one line: numpy's "overflow encountered in cast" warning would only repeat it."""
+    with np.errstate(over="ignore"):
+        return np.ascontiguousarray(vertices, dtype=np.float32)
+
+
+# The sizes float32 ray tracing (MeshBLAS, the training rays, the neural models) handles: ray-triangle
+# tests multiply up to four lengths (a squared cross product), and 1e±8 keeps those within 1e±32, well
+# inside float32's normal range [1.2e-38, 3.4e38]. Measured on a sphere: exact hits and LSNIF/N-BVH
+# training unchanged from diagonal 1e-9 to 1e12; exact hits fail at 1e-15 and 1e15.
+FLOAT32_DIAGONAL_RANGE = (1e-8, 1e8)
+# Rays leaving the surface start this far off it, relative to the diagonal (MeshBLAS's secondary offset,
+# the training default): coordinates rounded by more than that put them back on the surface.
+SURFACE_OFFSET = 1e-4
+
+
+def check_float32_extent(mesh: "Mesh", name: str | None = None) -> None:
+    """Raise a one-line `MeshError` unless float32 ray tracing keeps ``mesh``'s geometry: its bounding-box
+    diagonal within `FLOAT32_DIAGONAL_RANGE`, and its coordinates, rounded to float32, off by less than
+    `SURFACE_OFFSET` of the diagonal (a small mesh far from the origin loses its shape). Training checks
+    this before any work; loading does not, so ``neuralrt info`` still reports such meshes."""
+    name = name or mesh.name
+    lo, hi = (b.astype(np.float64) for b in mesh.bounds)
+    diagonal = float(np.linalg.norm(hi - lo))
+    low, high = FLOAT32_DIAGONAL_RANGE
+    if not low <= diagonal <= high:
+        raise MeshError(f"{name}: bounding-box diagonal {diagonal:.3g} is outside [{low:g}, {high:g}], the sizes float32 "
+                        "ray tracing keeps precise; scale the mesh")
+    farthest = float(np.abs(np.concatenate([lo, hi])).max())
+    rounding = float(np.spacing(np.float32(farthest)))
+    if rounding > SURFACE_OFFSET * diagonal:
+        raise MeshError(f"{name}: coordinates reach {farthest:.3g}, too far from the origin for the mesh's size (diagonal "
+                        f"{diagonal:.3g}): float32 rounds them by {rounding:.2g}, more than the {SURFACE_OFFSET:.0e} x diagonal "
+                        "offset of rays leaving the surface; move the mesh near the origin")
 
 
 # Faces per step of the per-face passes: bounds their float64 temporaries (~300 B per face) to ~80 MB
@@ -266,7 +303,7 @@ def load_mesh(path: str | Path) -> Mesh:
     any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
-        v = np.asarray(part.vertices, np.float32)
+        v = _as_float32(part.vertices)
         f = np.asarray(part.faces).astype(np.int32)
         try:
             validate_arrays(v, f, str(path))

@@ -12,7 +12,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..errors import ConfigError, validation_message
 
 __all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig"]
 
@@ -47,7 +49,11 @@ class TrainingConfig(ConfigSection):
         "auto", description="hidden-layer arithmetic in training (weights stay fp32): auto = bf16 on CUDA or where the CPU "
         "has native bf16 (decided once per process; the training record stores the choice)"
     )
-    seed: int = Field(0, description="seeds the weights, the hash-table init and the training rays")
+    seed: int = Field(
+        0, ge=0, lt=1 << 63,
+        description="seeds the weights, the hash-table init and the training rays; 0 <= seed < 2^63 (numba kernels take "
+        "it as an int64; torch generators take 64 bits, so derived seeds such as seed + 1 fit too)",
+    )
     checkpoint_every: int = Field(200, ge=1, description="steps between checkpoints when a checkpoint path is given")
 
 
@@ -82,18 +88,32 @@ class MethodConfig(ConfigSection):
     def preset(cls, name: str, **overrides) -> "MethodConfig":
         """The preset ``name``, with ``overrides`` merged in key by key: ``preset("hq", training={"steps": 100})``
         changes only ``training.steps`` and keeps every other training key of the preset. Values may
-        be dicts or config sections; unknown presets raise ``ValueError`` naming the known ones."""
-        if name not in cls.PRESETS:
-            raise ValueError(f"unknown {cls.model_fields['method'].default} preset {name!r} (choose from {', '.join(cls.PRESETS)})")
+        be dicts or config sections. An unknown preset or a bad override is a one-line `ConfigError`
+        (a ``ValueError``) naming the known presets or the key."""
+        if not isinstance(name, str) or name not in cls.PRESETS:
+            raise ConfigError(f"unknown {cls._method_name()} preset {name!r} (choose from {', '.join(cls.PRESETS)})")
         data = cls.PRESETS[name]().model_dump()
         for section, values in overrides.items():
             if isinstance(values, BaseModel):
                 values = values.model_dump(exclude_unset=True)
-            data[section] = {**data[section], **values} if isinstance(data.get(section), dict) else values
-        return cls.model_validate(data)
+            data[section] = {**data[section], **values} if isinstance(data.get(section), dict) and isinstance(values, dict) else values
+        return cls.validated(data)
 
     def with_training(self, **changes) -> "MethodConfig":
-        """A copy with some training keys changed (``None`` values are ignored): ``with_training(steps=100, batch_size=4096)``."""
+        """A copy with some training keys changed (``None`` values are ignored): ``with_training(steps=100, batch_size=4096)``.
+        A bad value or unknown key is a one-line `ConfigError` naming ``training.<key>``."""
         data = self.model_dump()
         data["training"].update({k: v for k, v in changes.items() if v is not None})
-        return type(self).model_validate(data)
+        return type(self).validated(data)
+
+    @classmethod
+    def validated(cls, data: dict) -> "MethodConfig":
+        """``data`` as a config; pydantic's multi-line errors become one `ConfigError` line (``lsnif config: training.steps: ...``)."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise ConfigError(f"{cls._method_name()} config: {validation_message(exc, cls)}") from None
+
+    @classmethod
+    def _method_name(cls) -> str:
+        return cls.model_fields["method"].default

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from pydantic import ValidationError
 
+from ..devices import check_device_name
 from ..errors import ConfigError, validation_message
 from .config import MethodConfig
 
@@ -51,21 +52,13 @@ class MethodSpec:
         return getattr(importlib.import_module(module), name)
 
     def default_preset(self, device: str = "cpu") -> str:
-        import torch
-
-        kind = torch.device(device).type
+        kind = check_device_name(device).type  # a bad name is one line, not torch's RuntimeError
         return self.default_presets.get(kind) or self.default_presets.get("*") or next(iter(self.presets))
 
     def config(self, preset: str | None = None, device: str = "cpu", **training) -> MethodConfig:
         """The preset's config (default: the device's default preset) with training keys changed
         (``steps=..., batch_size=..., seed=...``; ``None`` keeps the preset's). Errors are one-line `ConfigError`s."""
-        preset = preset or self.default_preset(device)
-        if preset not in self.presets:
-            raise ConfigError(f"unknown {self.name} preset {preset!r} (choose from {', '.join(self.presets)})")
-        try:
-            return self.presets[preset]().with_training(**training)
-        except ValidationError as exc:
-            raise ConfigError(f"{self.name} config: {validation_message(exc)}") from None
+        return self.config_class.preset(preset or self.default_preset(device)).with_training(**training)
 
 
 _METHODS: dict[str, MethodSpec] = {}
@@ -101,4 +94,4 @@ def config_from_dict(data: dict) -> MethodConfig:
     try:
         return spec.config_class.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{spec.name} config: {validation_message(exc)}") from None
+        raise ConfigError(f"{spec.name} config: {validation_message(exc, spec.config_class)}") from None

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
 
 from ..accel.mesh_blas import MeshBLAS
-from ..geometry.mesh import Mesh, load_mesh
+from ..devices import check_device, check_path
+from ..errors import ConfigError
+from ..geometry.mesh import Mesh, check_float32_extent, load_mesh
 from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
 from ..neural.precision import precision_name
 from .trainer import TrainingRecord, train_model
@@ -53,13 +54,25 @@ def train(
     ``config`` defaults to the default method's default preset for ``device`` (LSNIF: ``hq`` on
     the CPU, ``gpu`` on CUDA). Rays come from ``model.training_rays`` (default `BoxRayDistribution`) with exact ground truth, on
     ``device``. With ``checkpoint``, training state is saved periodically there; ``resume=True``
-    continues from it. The returned model's parameters are rounded to the storage precision, so
-    it answers exactly as its saved file. ``on_step(step, optimizer)`` runs after the model's own
-    per-step work (e.g. progress reports from `neuralrt.scene.convert_executors`).
+    continues from it if that file exists, else starts afresh (the scene converter makes the same
+    call for a first run and a rerun; ``neuralrt.api.train`` is the one that requires the file).
+    The returned model's parameters are rounded to the storage precision, so it answers exactly as
+    its saved file. ``on_step(step, optimizer)`` runs after the model's own per-step work (e.g.
+    progress reports from `neuralrt.scene.convert_executors`).
+
+    Bad arguments, a config with bad values and a mesh float32 cannot trace (`check_float32_extent`)
+    are one-line `NeuralRTError`s, raised before any work.
     """
-    if isinstance(mesh, (str, Path, os.PathLike)):
-        mesh = load_mesh(mesh)
-    device = torch.device(device)
+    device = check_device(device)
+    config = _checked_config(config)
+    checkpoint = check_path("checkpoint", checkpoint, optional=True)
+    if not isinstance(resume, bool):
+        raise ConfigError(f"resume: expected True or False, got {type(resume).__name__}")
+    if resume and checkpoint is None:
+        raise ConfigError("resume=True needs checkpoint=PATH, the checkpoint to resume from")
+    if on_step is not None and not callable(on_step):
+        raise ConfigError(f"on_step: expected a function (step, optimizer) or None, got {type(on_step).__name__}")
+    mesh = _checked_mesh(mesh)
     spec = get_method(config.method if config is not None else DEFAULT_METHOD)
     config = config or spec.config(device=device.type)
     tc = config.training
@@ -74,3 +87,25 @@ def train(
     )
     model.training_record = record.as_dict()
     return model.round_to_storage_precision_().eval()
+
+
+def _checked_config(config) -> MethodConfig | None:
+    """``config``, checked again: values set past validation (``model_construct``) fail here, in one line."""
+    if config is None:
+        return None
+    if not isinstance(config, MethodConfig):
+        raise ConfigError(f"config: expected a method config such as LSNIFConfig.preset('lq') (or None), got {type(config).__name__}")
+    type(config).validated(config.model_dump(warnings=False))
+    return config
+
+
+def _checked_mesh(mesh) -> Mesh:
+    """``mesh`` (a `Mesh` or a mesh file path) loaded, and one that float32 ray tracing keeps (checked before any work)."""
+    if isinstance(mesh, Mesh):
+        check_float32_extent(mesh)
+        return mesh
+    if not isinstance(mesh, (str, os.PathLike)):
+        raise ConfigError(f"mesh: expected a Mesh or a mesh file path, got {type(mesh).__name__}")
+    loaded = load_mesh(mesh)
+    check_float32_extent(loaded, str(mesh))
+    return loaded

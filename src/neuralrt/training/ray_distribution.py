@@ -26,6 +26,7 @@ from torch import Tensor
 
 from . import ray_distribution_cpu as cpu
 from ..accel.blas import BLAS
+from ..errors import ConfigError, MeshError
 from ..rays import AABB, Hits, Rays, face_forward
 
 __all__ = ["TrainingBatch", "BoxRayDistribution", "cosine_weighted_directions", "uniform_sphere_points"]
@@ -93,7 +94,7 @@ class BoxRayDistribution:
         device: str | torch.device = "cpu",
     ):
         if not 0.0 <= surface_fraction <= 1.0:
-            raise ValueError(f"surface_fraction must be in [0, 1], got {surface_fraction}")
+            raise ConfigError(f"surface_fraction must be in [0, 1], got {surface_fraction}")
         self.truth = truth
         self.device = torch.device(device)
         self.bounds = box if box is not None else truth.bounds
@@ -141,8 +142,10 @@ class BoxRayDistribution:
             rays = self.outside_rays(1 << 16)
             self._add_to_pool(rays, self.truth.intersect(rays))
             tries += 1
-            if tries > 64 and len(self.pool_points) == 0:
-                raise ValueError("no sampled ray hits the mesh: cannot build the surface-point pool")
+            if tries > 64 and len(self.pool_points) == 0:  # training checks the mesh first: this should not happen
+                name = getattr(getattr(self.truth, "mesh", None), "name", "the mesh")
+                raise MeshError(f"{name}: none of {tries} x 65536 rays from its bounding sphere hits it: cannot build "
+                                "the surface-point pool (too small, too large or too far from the origin for float32?)")
 
     # -- surface rays ----------------------------------------------------------------------
     def surface_rays(self, n: int) -> Rays:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ from ..errors import ModelFileError
 from ..io.model_file import read_model_file, write_model_file
 from .prefetch import BatchSource
 
-__all__ = ["TrainingRecord", "train_model", "CHECKPOINT_METHOD"]
+__all__ = ["TrainingRecord", "train_model", "identity_differences", "CHECKPOINT_METHOD"]
 
 CHECKPOINT_METHOD = "checkpoint"
 
@@ -104,13 +105,53 @@ def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, recor
 def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) -> tuple[int, TrainingRecord]:
     f = read_model_file(path, method=CHECKPOINT_METHOD)
     if f.header.get("identity") != identity:
-        raise ModelFileError(f"{path}: checkpoint belongs to another run (different mesh or config); delete it or drop --resume")
+        raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(f.header.get('identity'), identity)}); "
+                             "delete it or drop --resume")
     state = {k[len("model."):]: v for k, v in f.arrays.items() if k.startswith("model.")}
     dev = next(model.parameters()).device
     model.load_state_dict({k: v.to(dev) for k, v in state.items()})
     _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
     sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
     return int(f.header["step"]), TrainingRecord(**f.header["record"])
+
+
+_ABSENT = object()  # a key one identity has and the other lacks
+
+
+def identity_differences(saved, now: dict, limit: int = 3) -> str:
+    """What differs between a checkpoint's identity and this run's (`run_identity`'s form), at most
+    ``limit`` parts: ``mesh: a different mesh (hash 1a2b3c4d5e6f in the checkpoint, ... now); training.seed: checkpoint 0, now 3``.
+    The config's keys are named as in a config file; a different method is named alone (every key follows from it)."""
+    if not isinstance(saved, dict):
+        return "the checkpoint records no run identity"
+    diffs = dict(_differing_keys(saved, now))
+    if "config.method" in diffs:
+        diffs = {"config.method": diffs["config.method"]}
+    parts = [_difference(key, *values) for key, values in diffs.items()]
+    more = f" and {len(parts) - limit} more" if len(parts) > limit else ""
+    return "; ".join(parts[:limit]) + more
+
+
+def _differing_keys(saved: dict, now: dict, prefix: str = ""):
+    """(dotted key, (checkpoint value, current value)) for each leaf that differs; the mesh first, then the config in its key order."""
+    keys = sorted(dict.fromkeys([*now, *saved]), key=lambda k: k != "mesh_sha256")
+    for key in keys:
+        a, b = saved.get(key, _ABSENT), now.get(key, _ABSENT)
+        if isinstance(a, dict) and isinstance(b, dict):
+            yield from _differing_keys(a, b, f"{prefix}{key}.")
+        elif a != b:
+            yield f"{prefix}{key}", (a, b)
+
+
+def _difference(key: str, saved, now) -> str:
+    if key == "mesh_sha256":
+        return f"mesh: a different mesh (hash {_shown(saved)[:12]} in the checkpoint, {_shown(now)[:12]} now)"
+    return f"{key.removeprefix('config.')}: checkpoint {_shown(saved)}, now {_shown(now)}"
+
+
+def _shown(value) -> str:
+    text = "(none)" if value is _ABSENT else str(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def train_model(
@@ -156,6 +197,9 @@ def train_model(
     if ckpt is not None and resume and ckpt.exists():
         start, record = load_checkpoint(ckpt, model, opt, sampler, identity)
         record.resumed_from = start
+        if start > steps:  # kept (see below), but the run then ends with more steps than asked: say so
+            warnings.warn(f"{ckpt}: the checkpoint is already at step {start}, past steps={steps}: "
+                          f"the model is saved as of step {start}", stacklevel=2)
     running = _Running(record.window)
     model.train()
     bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
