@@ -401,11 +401,11 @@ class Transform:
         eye, target, up = (torch.as_tensor(v, dtype=torch.float64) for v in (eye, target, up))
         fwd = target - eye
         if torch.linalg.norm(fwd) == 0:
-            raise ValueError("look_at: position and target coincide")
+            raise ConfigError("look_at: position and target coincide")
         fwd = fwd / torch.linalg.norm(fwd)
         right = torch.linalg.cross(fwd, up)
         if torch.linalg.norm(right) < 1e-12:
-            raise ValueError("look_at: up vector is parallel to the view direction")
+            raise ConfigError("look_at: up vector is parallel to the view direction")
         right = right / torch.linalg.norm(right)
         true_up = torch.linalg.cross(right, fwd)
         m = torch.eye(4, dtype=torch.float64)

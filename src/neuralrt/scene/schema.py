@@ -120,8 +120,10 @@ class CameraSpec(_Strict):
             raise ValueError("camera up is parallel to the view direction")
         try:
             Transform.look_at(self.position, self.look_at, self.up)  # its float32 copy must stay finite
-        except ConfigError:
-            raise ValueError("camera position is beyond the float32 range") from None
+        except ConfigError as exc:  # look_at's own checks (above, in other words) or a matrix float32 cannot hold
+            message = str(exc)
+            raise ValueError(message.removeprefix("look_at: ") if message.startswith("look_at:")
+                             else "camera position is beyond the float32 range") from None
         return self
 
 
