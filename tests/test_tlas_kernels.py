@@ -115,11 +115,15 @@ def test_rays_on_another_device_are_one_line_errors(blases):
     from neuralrt.errors import DeviceError
 
     accel = _scene("mixed", *blases)
-    rays = _rays(1000, seed=3).to("meta")
-    for query in (accel.intersect, accel.occluded):
-        with pytest.raises(DeviceError, match="rays are on meta but the scene is on cpu") as info:
-            query(rays)
-        assert "\n" not in str(info.value)
+    with pytest.raises(DeviceError, match="ray origins are on meta: neuralrt computes on cpu or cuda") as info:
+        _rays(1000, seed=3).to("meta")  # (Rays refuse a device no BLAS computes on, before any scene sees them)
+    assert "\n" not in str(info.value)
+    if torch.cuda.is_available():  # rays on another device than the scene's
+        rays = _rays(1000, seed=3).to("cuda")
+        for query in (accel.intersect, accel.occluded):
+            with pytest.raises(DeviceError, match="rays are on cuda:0 but the scene is on cpu") as info:
+                query(rays)
+            assert "\n" not in str(info.value)
 
 
 class _HostBLAS:
