@@ -244,3 +244,13 @@ def test_detail_given_twice_differently_is_an_error(tmp_path, capsys):
 def test_detail_on_a_scene_file_is_an_error(tmp_path, capsys):
     message = cli_error(capsys, ["render", scene_file(tmp_path), "--detail", "1", "-o", str(tmp_path / "i.exr"), "--quiet"])
     assert "--detail applies to built-in scenes (builtin:NAME), not to a scene file" in message
+
+
+def test_the_reference_page_states_each_enforced_range():
+    # derived from the schema's bounds, so the page says what validation refuses
+    from neuralrt.scene.schemadoc import scene_reference
+
+    page = scene_reference()
+    for row in ("| `fov` | `40.0` | > 0, < 180 |", "| `ior` | `1.5` | > 1, <= 4 |", "| `max_depth` | `5` | >= 1, <= 256 |",
+                "| `resolution` | `[256, 256]` | each > 0, <= 16384 |", "| `emission` |"):
+        assert row in page, row

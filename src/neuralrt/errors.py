@@ -39,7 +39,7 @@ def validation_message(exc, model=None) -> str:
     """One line from a pydantic ``ValidationError``: ``training.steps: Input should be greater than or
     equal to 1 (got -3)``, errors joined by ``; ``. ``model``: the validated class, to tell union labels
     from keys (see `validation_errors`)."""
-    return "; ".join(f"{key or 'value'}: {msg}" for key, msg in validation_errors(exc, model))
+    return "; ".join(f"{key}: {msg}" if key else msg for key, msg in validation_errors(exc, model))  # (a whole-model check names its keys itself)
 
 
 def validation_errors(exc, model=None) -> list[tuple[str, str]]:

@@ -47,7 +47,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from ..errors import ConfigError
-from ..rays import MAX_SCALE, MIN_SCALE, Transform
+from ..rays import MAX_CONDITION, MAX_SCALE, MIN_SCALE, Transform
 
 __all__ = [
     "CameraSpec",
@@ -137,7 +137,7 @@ class TransformSpec(_Strict):
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset, world units (applied last)")
     rotate: Vec3 = Field((0.0, 0.0, 0.0), description="Euler angles in degrees about the world x, then y, then z axis")
     scale: float | tuple[float, float, float] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); "
-                                                      f"magnitudes {MIN_SCALE:g} to {MAX_SCALE:g}")
+                                                      f"magnitudes {MIN_SCALE:g} to {MAX_SCALE:g}, per-axis factors at most {MAX_CONDITION:.2g}-fold apart")
     matrix: list[list[Finite]] | None = Field(None, description="4x4 row-major object-to-world matrix: bottom row [0, 0, 0, 1], invertible; "
                                               "replaces translate/rotate/scale")
 
@@ -198,7 +198,7 @@ class ConductorMaterialSpec(_Strict):
     type: Literal["conductor"] = Field("conductor", description="material kind")
     name: str = Field(description="referenced by objects' material / materials")
     albedo: Albedo = Field((0.9, 0.9, 0.9), description="reflectance at normal incidence (Schlick F0), RGB or texture path")
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha (clamped to >= 1e-3)")
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha (values below 1e-3 act as 1e-3)")
 
 
 class PlasticMaterialSpec(_Strict):
@@ -207,7 +207,7 @@ class PlasticMaterialSpec(_Strict):
     type: Literal["plastic"] = Field("plastic", description="material kind")
     name: str = Field(description="referenced by objects' material / materials")
     albedo: Albedo = Field((0.5, 0.5, 0.5), description="diffuse base colour, RGB or texture path")
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha of the coat (clamped to >= 1e-3)")
+    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha of the coat (values below 1e-3 act as 1e-3)")
     ior: float = Field(1.5, gt=1.0, le=4.0, description="index of refraction of the coat")
 
 

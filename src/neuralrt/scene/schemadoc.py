@@ -118,6 +118,32 @@ def _default(field) -> str:
     return f"`{json.dumps(value)}`"
 
 
+_BOUNDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
+
+
+def _bounds(metadata) -> list[str]:
+    """``["> 0", "< 180"]`` from a field's or an element type's annotated constraints."""
+    return [f"{sign} {getattr(m, attr):g}" for m in metadata for attr, sign in _BOUNDS if getattr(m, attr, None) is not None]
+
+
+def _range(field) -> str:
+    """The allowed values the schema enforces on a key (its own bounds, or each element's), derived,
+    so the page cannot drift from the checks."""
+    from typing import Annotated, get_args, get_origin
+
+    own = _bounds(field.metadata)
+    if own:
+        return ", ".join(own)
+    elements = set()
+    for arg in get_args(field.annotation):  # a tuple or list of bounded numbers (Vec3 of NonNegFinite, ...)
+        for inner in (arg, *get_args(arg)):
+            if get_origin(inner) is Annotated:  # (pydantic's Field(...) there holds its bounds in .metadata)
+                constraints = [m for a in get_args(inner)[1:] for m in getattr(a, "metadata", [a])]
+                elements.add(", ".join(_bounds(constraints)))
+    elements.discard("")
+    return f"each {' or '.join(sorted(elements))}" if elements else ""
+
+
 def scene_reference() -> str:
     """The reference page as Markdown."""
     lines = [_INTRO]
@@ -125,10 +151,10 @@ def scene_reference() -> str:
         lines.append(f"## {title}\n")
         doc = (model.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
         lines.append(f"{doc}\n")
-        lines.append("| key | default | meaning |")
-        lines.append("|---|---|---|")
+        lines.append("| key | default | allowed | meaning |")
+        lines.append("|---|---|---|---|")
         for name, field in model.model_fields.items():
-            lines.append(f"| `{name}` | {_default(field)} | {field.description or ''} |")
+            lines.append(f"| `{name}` | {_default(field)} | {_range(field)} | {field.description or ''} |")
         lines.append("")
     lines.append("## Built-in scenes\n")
     lines.append("`builtin:<name>` or `builtin:<name>?detail=N` (or `load_scene(..., detail=N)`) needs no files; "
@@ -136,7 +162,7 @@ def scene_reference() -> str:
     lines.append("| name | default detail | scene |")
     lines.append("|---|---|---|")
     for name, b in BUILTIN_SCENES.items():
-        lines.append(f"| `{name}` | {b.default_detail} | {b.description.strip()} |")
+        lines.append(f"| `{name}` | {b.default_detail} | {' '.join(b.description.split())} |")
     lines.append("")
     return "\n".join(lines)
 
