@@ -235,3 +235,20 @@ def test_lsnif_occluded_names_a_non_rays_argument():
     model = LSNIFModel.from_mesh(sphere(1), LSNIFConfig.preset("lq"))
     with pytest.raises(ConfigError, match="expected neuralrt.Rays, got NoneType"):
         model.occluded(None)
+
+
+def test_load_dict_objects_must_be_a_list():
+    from neuralrt.scene.loader import load_dict
+
+    with pytest.raises(SceneError, match="objects: expected a list of objects, got generator"):
+        load_dict({"objects": ({"generator": {"name": "sphere"}} for _ in range(2))})
+
+
+def test_nif_seed_is_bounded_like_the_training_seed():
+    from pydantic import ValidationError
+
+    from neuralrt.methods.nif_config import NIFConfig
+
+    NIFConfig(training={"seed": (1 << 63) - 1})
+    with pytest.raises(ValidationError, match="training.seed"):
+        NIFConfig(training={"seed": 1 << 63})

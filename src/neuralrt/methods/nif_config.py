@@ -60,7 +60,7 @@ class NIFTrainingConfig(ConfigSection):
     adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (paper: 0.9, 0.999)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (paper: 1e-15)")
     init_scale: float = Field(1e-4, gt=0.0, description="grid features start U(-s, s)")
-    seed: int = Field(0, description="seeds grids, MLP weights and the batch order")
+    seed: int = Field(0, ge=0, lt=1 << 63, description="seeds grids, MLP weights and the batch order; 0 <= seed < 2^63, as `training.seed`")
 
 
 class NIFConfig(ConfigSection):

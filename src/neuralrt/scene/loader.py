@@ -104,6 +104,8 @@ def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", prim
     data = dict(scene)
     given = _InMemory({}, {})
     objects = data.get("objects")
+    if objects is not None and not isinstance(objects, (list, tuple)):  # (a generator would be read as one object)
+        raise SceneError(f"{label}: objects: expected a list of objects, got {type(objects).__name__}")
     if isinstance(objects, (list, tuple)):
         data["objects"] = [_take_in_memory(obj, i, given, label) for i, obj in enumerate(objects)]
     return _build(validate_spec(data, label), base_dir, device, label, primary, given, allow_mesh_mismatch)
