@@ -35,6 +35,7 @@ from bench_lsnif import best_rate, resolve_mesh  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
 from neuralrt.methods import get_method  # noqa: E402
+from neuralrt.methods.config import parse_settings  # noqa: E402
 from neuralrt.training.api import train  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
@@ -65,15 +66,7 @@ def run(spec: str, preset: str, args) -> dict:
     mesh = resolve_mesh(spec)
     cfg = get_method("nbvh").config(preset, steps=args.steps, batch_size=args.batch, seed=args.seed)
     if args.set:
-        overrides: dict = {}
-        for item in args.set:
-            key, _, value = item.partition("=")
-            section, _, name = key.partition(".")
-            try:
-                parsed = json.loads(value)
-            except json.JSONDecodeError:
-                parsed = value  # a plain word, e.g. stratified
-            overrides.setdefault(section, {})[name] = parsed
+        overrides = parse_settings(args.set)
         data = cfg.model_dump()
         for section, values in overrides.items():
             data[section].update(values)

@@ -1,6 +1,8 @@
 """`neuralrt.api` checks its arguments as the CLI does: a wrong type or value is one `NeuralRTError`
 naming the argument, before any work (never a TypeError from deep inside)."""
 
+import json
+
 import pytest
 import trimesh
 
@@ -104,3 +106,27 @@ def test_info_shows_a_scene_whose_model_belongs_to_another_mesh(tmp_path, capsys
         '[[objects]]\nmodel = "m.nrt"\ngenerator = { name = "sphere", params = { subdivisions = 2 } }\n')
     assert main(["info", str(tmp_path / "scene.toml"), "--json"]) == 0
     assert '"neural_instances": 1' in capsys.readouterr().out
+
+
+def test_set_changes_config_keys_of_the_preset(ball, tmp_path, capsys):
+    model = tmp_path / "m.nrt"
+    assert main(["train", str(ball), "-o", str(model), "--preset", "lq", "--steps", "2", "--batch", "256", "--quiet",
+                 "--set", "voxel.resolution=16", "--set", "inference.occlusion_threshold=0.4"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(model), "--json"]) == 0
+    config = json.loads(capsys.readouterr().out)["config"]
+    assert config["voxel"]["resolution"] == 16 and config["inference"]["occlusion_threshold"] == 0.4
+    assert config["network"]["hidden_width"] == 64  # the rest is the preset's
+
+
+@pytest.mark.parametrize("item, message", [
+    ("bogus", "--set bogus: expected SECTION.KEY=VALUE"),
+    ("voxel.resolution=31", "hash grid resolutions (64, 128) must be positive multiples of the voxel resolution 31"),
+    ("voxel.nope=1", "voxel.nope: Extra inputs are not permitted"),
+])
+def test_bad_set_is_one_line_before_training(ball, tmp_path, capsys, item, message):
+    assert main(["train", str(ball), "-o", str(tmp_path / "m.nrt"), "--set", item, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+    with pytest.raises(ConfigError, match="settings: expected a dict"):
+        api.convert("builtin:cornell-statue", tmp_path / "o.toml", settings=["voxel.resolution=16"])

@@ -262,10 +262,12 @@ def train(
     resume: bool = False,
     device: str = "cpu",
     progress: bool = True,
+    settings: dict | None = None,
 ) -> dict:
     """Train a model of ``mesh`` (a path or a `Mesh`) with ``method`` (default: lsnif) and ``preset``
     (default: the method's default for ``device``; LSNIF: ``hq`` on the CPU, ``gpu`` on CUDA), and
-    write it to ``output`` (atomically).
+    write it to ``output`` (atomically). ``settings`` changes config keys of the preset
+    (``{"voxel": {"resolution": 64}}``; the CLI's ``--set voxel.resolution=64``; keys: docs/config.md).
 
     A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
     interrupted run from it. It is removed once the model file is written.
@@ -280,7 +282,7 @@ def train(
     check_seed("seed", seed)
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
-    config = spec.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
+    config = spec.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
     output = check_path("output", output)
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)

@@ -14,6 +14,7 @@ import warnings
 
 from . import __version__, api
 from .errors import NeuralRTError
+from .methods.config import parse_settings
 
 
 class _Parser(argparse.ArgumentParser):
@@ -101,7 +102,8 @@ def _cmd_train(args) -> None:
         "run the same command with --resume to continue from the last checkpoint" if os.path.isfile(checkpoint)
         else "no checkpoint was written yet: run the command again to start over")
     result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
-                       seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet)
+                       seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet,
+                       settings=parse_settings(args.settings) or None)
     _print_result(result, args.json)
 
 
@@ -129,7 +131,8 @@ def _cmd_convert(args) -> None:
                          batch=args.batch, seed=args.seed, detail=args.detail, device=args.device,
                          progress=not args.quiet, executor=args.executor, address=args.address,
                          cpus_per_model=args.cpus_per_model, gpus_per_model=args.gpus_per_model,
-                         threads_per_model=args.threads_per_model, max_retries=args.max_retries)
+                         threads_per_model=args.threads_per_model, max_retries=args.max_retries,
+                         settings=parse_settings(args.settings) or None)
     _print_result(result, args.json)
 
 
@@ -157,6 +160,8 @@ def _add_training(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, help="training steps per model (default: the preset's)")
     p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
     p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", dest="settings",
+                   help="change one config key of the preset, e.g. --set voxel.resolution=64 (repeatable; keys: docs/config.md)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 

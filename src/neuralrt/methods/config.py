@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..errors import ConfigError, validation_message
 
-__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig"]
+__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings"]
 
 
 class ConfigSection(BaseModel):
@@ -117,3 +117,23 @@ class MethodConfig(ConfigSection):
     @classmethod
     def _method_name(cls) -> str:
         return cls.model_fields["method"].default
+
+
+def parse_settings(items: list[str] | None) -> dict:
+    """``["training.steps=100", "voxel.resolution=64"]`` (the CLI's ``--set``) as the nested overrides
+    `MethodConfig.preset` takes: ``{"training": {"steps": 100}, "voxel": {"resolution": 64}}``. Values
+    are JSON (``64``, ``0.5``, ``true``, ``[64, 128]``), else plain words (``stratified``)."""
+    import json
+
+    overrides: dict = {}
+    for item in items or []:
+        key, eq, value = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not eq or not dot or not section or not name:
+            raise ConfigError(f"--set {item}: expected SECTION.KEY=VALUE, e.g. training.steps=100 (keys: docs/config.md)")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            parsed = value  # a plain word
+        overrides.setdefault(section, {})[name] = parsed
+    return overrides

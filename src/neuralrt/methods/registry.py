@@ -55,10 +55,13 @@ class MethodSpec:
         kind = check_device_name(device).type  # a bad name is one line, not torch's RuntimeError
         return self.default_presets.get(kind) or self.default_presets.get("*") or next(iter(self.presets))
 
-    def config(self, preset: str | None = None, device: str = "cpu", **training) -> MethodConfig:
-        """The preset's config (default: the device's default preset) with training keys changed
-        (``steps=..., batch_size=..., seed=...``; ``None`` keeps the preset's). Errors are one-line `ConfigError`s."""
-        return self.config_class.preset(preset or self.default_preset(device)).with_training(**training)
+    def config(self, preset: str | None = None, device: str = "cpu", settings: dict | None = None, **training) -> MethodConfig:
+        """The preset's config (default: the device's default preset) with ``settings`` merged in
+        (``{"voxel": {"resolution": 64}}``, `parse_settings` of the CLI's ``--set``), then training keys
+        changed (``steps=..., batch_size=..., seed=...``; ``None`` keeps the preset's). Errors are one-line `ConfigError`s."""
+        if settings is not None and not isinstance(settings, dict):
+            raise ConfigError(f"settings: expected a dict of config sections, got {type(settings).__name__}")
+        return self.config_class.preset(preset or self.default_preset(device), **(settings or {})).with_training(**training)
 
 
 _METHODS: dict[str, MethodSpec] = {}

@@ -213,6 +213,7 @@ def convert_scene(
     gpus_per_model: float | None = None,
     threads_per_model: int | None = None,
     max_retries: int | None = None,
+    settings: dict | None = None,
 ) -> ConversionReport:
     """Convert ``scene`` (file or ``builtin:NAME``) into ``output`` (a .toml/.json scene file).
 
@@ -221,7 +222,8 @@ def convert_scene(
     mesh (instances share it), or one for all selected objects with ``group=True``, with
     ``method`` (default: lsnif) and its ``preset`` (default: the method's default for ``device``).
     Models go to ``models_dir`` (default: ``<output folder>/models``) and are reused when their
-    mesh hash and config match.
+    mesh hash and config match. ``settings`` changes config keys of the preset
+    (``{"voxel": {"resolution": 64}}``; the CLI's ``--set voxel.resolution=64``).
 
     ``executor`` trains the missing models: ``"local"`` one after another in this process,
     ``"ray"`` one Ray task each on a local Ray instance or the cluster at ``address``, with
@@ -237,7 +239,7 @@ def convert_scene(
     check_output_folder(Path(models_dir) if models_dir is not None else output.parent / "models", "models")
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
-    config = spec_of_method.config(preset, device=device, steps=steps, batch_size=batch, seed=seed)
+    config = spec_of_method.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
     # Checked before the scene loads: Ray installed, a given cluster reachable, the options valid.
     runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
                            address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
