@@ -236,7 +236,8 @@ def convert_scene(
     if output.suffix.lower() not in (".toml", ".json"):
         raise SceneError(f"{output}: converted scene must end in .toml or .json")
     check_output_file(output, "converted scene")
-    check_output_folder(Path(models_dir) if models_dir is not None else output.parent / "models", "models")
+    models_dir = Path(models_dir) if models_dir is not None else output.parent / "models"
+    check_output_folder(models_dir, "models")
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
@@ -249,7 +250,7 @@ def convert_scene(
                         config=config, preset=preset, group=group, detail=detail, progress=progress)
 
 
-def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_triangles, config: MethodConfig,
+def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select, min_triangles, config: MethodConfig,
              preset: str, group: bool, detail, progress: bool) -> ConversionReport:
     spec, _, label = load_scene_spec(scene, detail=detail)
     shapes: dict = {}  # instances of one mesh share one load
@@ -261,7 +262,6 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir, select, min_t
     names = _object_names(spec)
     # Folders are made only once the input is known to be good (a failed convert leaves none behind).
     output.parent.mkdir(parents=True, exist_ok=True)
-    models_dir = Path(models_dir) if models_dir is not None else output.parent / "models"
     models_dir.mkdir(parents=True, exist_ok=True)
     out_spec = spec.model_copy(deep=True)
     report = ConversionReport(scene_path=str(output))
