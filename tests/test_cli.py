@@ -136,7 +136,7 @@ def test_list_presets(capsys):
         (["demo", "--spp", "-1", "--out", "demo"], "spp: must be at least 1, got -1"),
         (["demo", "--preset", "mq", "--out", "demo"], "unknown lsnif preset 'mq'"),
         (["eval", "m.nrt", "mesh.obj", "--rays", "-1"], "rays: must be at least 2, got -1"),
-        (["train", "mesh.obj", "-o", "m.nrt", "--steps", "-3"], "training.steps: Input should be greater than or equal to 1"),
+        (["train", "mesh.obj", "-o", "m.nrt", "--steps", "-3"], "steps: must be at least 1, got -3"),
         (["train", "mesh.obj", "-o", "m.nrt", "--preset", "xx"], "unknown lsnif preset 'xx' (choose from hq, lq, gpu)"),
         (["train", "mesh.obj", "-o", "m.nrt", "--method", "nope"], "invalid choice: 'nope'"),
         (["train", "mesh.obj", "-o", "m.nrt", "--device", "tpu"], "--device tpu"),

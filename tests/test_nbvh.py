@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.errors import TrainingError
 from neuralrt.geometry.mesh import Mesh
 from neuralrt.geometry.procedural import sphere
 from neuralrt.methods import load_model
@@ -635,7 +636,7 @@ def test_cpu_sampler_draws_are_philox_streams_of_the_draw_number(ball):
     model.config = model.config.model_copy(update={"training": model.config.training.model_copy(update={"min_acceptance": 0.0})})
     nothing = sample_leaf_chords_cpu(model, 100, 1, 0, max_rounds=3)
     assert int(nothing.flag) == UNFILLED and (nothing.node == 0).all() and (nothing.rounds == 3).all()
-    with pytest.raises(RuntimeError, match="no sampled ray"):
+    with pytest.raises(TrainingError, match="no sampled ray"):
         NBVHRayDistribution(model, MeshBLAS(ball), torch.device("cpu"))._ordered(nothing)
     with pytest.raises(ValueError, match="cpu ray sampler draws on the CPU"):
         NBVHRayDistribution(model, MeshBLAS(ball), torch.device("cuda"), implementation="cpu")

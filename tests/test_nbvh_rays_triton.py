@@ -20,6 +20,8 @@ pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")
 if not CUDA and os.environ.get("TRITON_INTERPRET") != "1":
     pytest.skip("no GPU and TRITON_INTERPRET is not 1", allow_module_level=True)
 
+from neuralrt.errors import TrainingError  # noqa: E402 (after the interpreter switch)
+
 DEVICE = torch.device("cuda" if CUDA else "cpu")
 N = 8192
 P_SMALL = 1e-4  # two-sample and goodness-of-fit p-values must stay above this
@@ -224,7 +226,7 @@ def test_batch_checkpoint_and_a_cut_nothing_can_be_kept_from(model, kernels):
         depth = kernels.tree_depth(model.node_children)
         chords = kernels.sample_leaf_chords_triton(model, 100, 1, 0, depth, max_rounds=2)
         assert int(chords.flag) & kernels.UNFILLED and (chords.node == 0).all()
-        with pytest.raises(RuntimeError, match="no sampled ray"):
+        with pytest.raises(TrainingError, match="no sampled ray"):
             sampler._watch(chords.flag)
             sampler._check_flags(wait=True)
     finally:

@@ -210,7 +210,7 @@ def checkpoint(tmp_path):
     (sphere(1), lambda: _lq().with_training(seed=3), "(training.seed: checkpoint 0, now 3)"),
     (sphere(1), lambda: _lq().with_training(batch_size=512), "(training.batch_size: checkpoint 256, now 512)"),
     (sphere(2), _lq, "(mesh: a different mesh (hash "),
-    (sphere(1), lambda: get_method("nbvh").config("cpu", **SMALL), "(method: checkpoint lsnif, now nbvh)"),
+    (sphere(1), lambda: get_method("nbvh").config("cpu", steps=4, batch_size=256), "(method: checkpoint lsnif, now nbvh)"),
 ])
 def test_resume_mismatch_names_what_differs(checkpoint, mesh, config, difference):
     with pytest.raises(ModelFileError, match="checkpoint belongs to another run") as err:

@@ -6,42 +6,17 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .arguments import check_count, check_name, check_seed
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, NeuralRTError
 from .io.files import check_output_file, check_output_folder
+from .io.model_file import MODEL_SUFFIX
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
-MODEL_SUFFIXES = {".nrt"}
+MODEL_SUFFIXES = {MODEL_SUFFIX}
+CHECKPOINT_SUFFIX = ".ckpt"  # training writes MODEL.nrt.ckpt beside MODEL.nrt
 SCENE_SUFFIXES = {".toml", ".json"}
-
-
-def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
-    """One-line `ConfigError` unless ``value`` is None or an integer in [``minimum``, ``maximum``]
-    (``name`` as the user wrote it)."""
-    if value is None:
-        return
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{name}: must be an integer, got {value!r}")
-    if value < minimum:
-        raise ConfigError(f"{name}: must be at least {minimum}, got {value}")
-    if maximum is not None and value > maximum:
-        raise ConfigError(f"{name}: must be at most {maximum}, got {value}")
-
-
-SEED_LIMIT = 1 << 63  # seeds feed torch's and numba's 64-bit generators
-
-
-def check_seed(name: str, value) -> None:
-    """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
-    if value is not None:
-        check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
-
-
-def check_name(name: str, value) -> None:
-    """One-line `ConfigError` unless ``value`` is None or a str (a method, preset or executor name)."""
-    if value is not None and not isinstance(value, str):
-        raise ConfigError(f"{name}: expected a name (str), got {type(value).__name__}")
 
 
 def _max_depth_limit() -> int:
@@ -68,7 +43,7 @@ def info(path: str | Path) -> dict:
     """Facts about a mesh, scene (file or ``builtin:NAME``) or model file."""
     spec = str(check_path("path", path))
     suffix = Path(spec).suffix.lower()
-    if suffix in MODEL_SUFFIXES:
+    if suffix in MODEL_SUFFIXES or suffix == CHECKPOINT_SUFFIX:
         return _model_info(Path(spec))
     if spec.startswith("builtin:") or suffix in SCENE_SUFFIXES:
         return _scene_info(spec)
@@ -126,7 +101,13 @@ def _scene_info(spec: str) -> dict:
 def _model_info(path: Path) -> dict:
     from .io.model_file import FORMAT_VERSION, read_header, read_model_header
     from .methods import load_model
+    from .training.trainer import CHECKPOINT_METHOD
 
+    raw = read_header(path)
+    if raw.get("method") == CHECKPOINT_METHOD:
+        return _checkpoint_info(path, raw)
+    if path.suffix.lower() == CHECKPOINT_SUFFIX:
+        raise NeuralRTError(f"{path}: a {CHECKPOINT_SUFFIX} file that holds no training checkpoint (method {raw.get('method')!r})")
     header = read_model_header(path)
     model = load_model(path)
     report = model.memory_bytes()
@@ -144,6 +125,24 @@ def _model_info(path: Path) -> dict:
         "mesh_sha256": header.mesh_sha256,
         "config": model.config.model_dump(mode="json"),
         "training": header.training,
+    }
+
+
+def _checkpoint_info(path: Path, header: dict) -> dict:
+    """What an interrupted training run left: its method, step and figures so far (``train --resume`` continues it)."""
+    identity = header.get("identity") if isinstance(header.get("identity"), dict) else {}
+    config = identity.get("config") if isinstance(identity.get("config"), dict) else {}
+    record = header.get("record") if isinstance(header.get("record"), dict) else {}
+    return {
+        "kind": "checkpoint",
+        "path": str(path),
+        "method": config.get("method"),
+        "step": header.get("step"),
+        "format_version": header.get("format_version"),
+        "mesh_sha256": identity.get("mesh_sha256"),
+        "config": config,  # without training.steps and checkpoint_every: a resumed run may change them
+        "training": record,
+        "resume": "neuralrt train MESH -o MODEL.nrt --resume (with the run's method and settings)",
     }
 
 
@@ -205,6 +204,8 @@ def render(
                                             progress=progress, primary=primary)
         else:
             result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
+    except NeuralRTError:
+        raise  # already ours (a ConfigError is a ValueError too): keep its class
     except ValueError as exc:  # settings the integrator refuses (pydantic's errors are ValueErrors too)
         from pydantic import ValidationError
 
@@ -279,6 +280,8 @@ def train(
     check_device(device)
     check_name("method", method)
     check_name("preset", preset)
+    check_count("steps", steps)
+    check_count("batch", batch)  # its bounds are the config's (training.batch_size)
     check_seed("seed", seed)
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
@@ -289,9 +292,14 @@ def train(
     if output.suffix.lower() not in MODEL_SUFFIXES:
         raise NeuralRTError(f"{output}: a model file must end in .nrt (`neuralrt info` and scene files tell models by it)")
     check_output_file(output, "model file")
-    checkpoint = output.with_name(output.name + ".ckpt")
+    checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
+    if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
+        import warnings
+
+        warnings.warn(f"{checkpoint}: an earlier interrupted run's checkpoint is there; this run starts afresh and "
+                      "replaces it (--resume continues it instead)", stacklevel=2)
     if not isinstance(mesh, Mesh):
         mesh = load_mesh(mesh)
     made = _missing_folders(output.parent)

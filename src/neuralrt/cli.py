@@ -207,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use models trained on another mesh than their object's (default: an error)")
     p.add_argument("--nif", metavar="OBJECTS|auto", help="answer these objects' shadow rays with NIF, trained online "
                    "(comma-separated names; auto: objects over 100K triangles; docs/nif.md)")
-    p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32)")
+    p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32, or half of the spp when 32 is not below it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_render)
@@ -288,6 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     except NeuralRTError as exc:
         print(f"neuralrt: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader went away (`neuralrt info X | head`): stop quietly, as other tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the interpreter's final flush cannot fail too
+        return 141
     except OSError as exc:  # the system refused a read or write the checks above let through (disk full, ...)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"neuralrt: error: {where}{exc.strerror or exc}", file=sys.stderr)

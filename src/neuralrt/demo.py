@@ -45,7 +45,7 @@ class DemoSettings:
     seed: int = 1
 
     def __post_init__(self) -> None:
-        from .api import check_count
+        from .arguments import check_count
         from .errors import ConfigError
         from .methods import get_method
 

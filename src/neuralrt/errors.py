@@ -31,6 +31,10 @@ class MeshMismatchError(NeuralRTError):
     """A model is used with a mesh it was not trained on."""
 
 
+class TrainingError(NeuralRTError):
+    """Training cannot go on: the loss became NaN or infinite (diverged), or no training ray could be drawn."""
+
+
 class DeviceError(NeuralRTError, ValueError):
     """A device is unavailable (``cuda`` on a CPU-only torch), or rays and model sit on different devices."""
 

@@ -33,11 +33,13 @@ from ..errors import ModelFileError, validation_message
 from .files import write_atomically
 
 __all__ = [
+    "MODEL_SUFFIX",
     "FORMAT_VERSION", "METADATA_KEY", "ModelFile", "ModelHeader", "MaterialEntry", "read_model_file", "read_header",
     "read_model", "read_model_header", "write_model", "write_model_file", "arrays_digest",
 ]
 
 FORMAT_VERSION = 2
+MODEL_SUFFIX = ".nrt"  # how `neuralrt info`, scene files and the CLI tell model files
 METADATA_KEY = "neuralrt"
 # Keys of the container itself, added by `write_model_file` (not part of a `ModelHeader`).
 _CONTAINER_KEYS = ("format_version", "arrays_sha256")

@@ -122,8 +122,11 @@ class MethodConfig(ConfigSection):
 def parse_settings(items: list[str] | None) -> dict:
     """``["training.steps=100", "voxel.resolution=64"]`` (the CLI's ``--set``) as the nested overrides
     `MethodConfig.preset` takes: ``{"training": {"steps": 100}, "voxel": {"resolution": 64}}``. Values
-    are JSON (``64``, ``0.5``, ``true``, ``[64, 128]``), else plain words (``stratified``)."""
+    are JSON (``64``, ``0.5``, ``true``, ``null``, ``[64, 128]``) or Python's ``None``/``True``/``False``
+    (docs/config.md shows defaults that way), else plain words (``stratified``)."""
     import json
+
+    python_words = {"None": None, "True": True, "False": False}
 
     overrides: dict = {}
     for item in items or []:
@@ -132,7 +135,7 @@ def parse_settings(items: list[str] | None) -> dict:
         if not eq or not dot or not section or not name:
             raise ConfigError(f"--set {item}: expected SECTION.KEY=VALUE, e.g. training.steps=100 (keys: docs/config.md)")
         try:
-            parsed = json.loads(value)
+            parsed = python_words[value.strip()] if value.strip() in python_words else json.loads(value)
         except json.JSONDecodeError:
             parsed = value  # a plain word
         overrides.setdefault(section, {})[name] = parsed

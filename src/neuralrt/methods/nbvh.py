@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..accel.blas import MemoryReport
+from ..errors import ConfigError
 from ..geometry.mesh import Mesh
 from ..neural.hash_grid import HashGrid
 from ..neural.mlp import MLP
@@ -185,8 +186,9 @@ class NBVHModel(NeuralBLAS):
         """A view of this model answering rays with the cut of LoD ``lod``: it shares every parameter
         and buffer (a shallow copy with its own config), reports this model as `memory_owner`, and is
         made once per LoD (instances of one model share it)."""
-        if not 0 <= lod <= 6:
-            raise ValueError(f"N-BVH level of detail must be in 0..6, got {lod}")
+        lods = self.config.cut.lods
+        if isinstance(lod, bool) or not isinstance(lod, int) or not 0 <= lod < lods:
+            raise ConfigError(f"N-BVH level of detail: expected an integer in 0..{lods - 1} (cut.lods = {lods}), got {lod!r}")
         if lod == self.config.inference.lod:
             return self
         owner = self.memory_owner

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import ClassVar, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from .config import ConfigSection as _Section
 from .config import InferenceConfig, MethodConfig, TrainingConfig
@@ -73,17 +73,28 @@ class NBVHTrainingConfig(TrainingConfig):
     adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (the code's)")
     adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")
     lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant, as in the paper)")
-    surface_fraction: float = Field(0.0, ge=0.0, le=1.0, description="unused by N-BVH (its rays start in the scaled box)")
+    surface_fraction: float = Field(0.0, ge=0.0, le=1.0, description="unused by N-BVH (its rays start in the scaled box): only 0")
+    surface_pool_size: int = Field(1 << 16, ge=1, le=1 << 24, description="unused by N-BVH (its rays start in the scaled box): only the default")
+    surface_offset: float = Field(1e-4, ge=0.0, description="unused by N-BVH (its rays start in the scaled box): only the default")
     origin_box_scale: float = Field(1.5, ge=1.0, le=4.0, description="ray origins are uniform in the object box scaled by this about its centre (paper: 1.5)")
-    dilation: float = Field(1e-5, ge=0.0, description="leaf boxes grow by this (unit cube) in training, plus U(0, dilation_jitter) per sample")
-    dilation_jitter: float = Field(1e-4, ge=0.0, description="random extra leaf-box growth per training sample (against thin leaves)")
+    dilation: float = Field(1e-5, ge=0.0, le=0.1, description="leaf boxes grow by this (unit cube) in training, plus U(0, dilation_jitter) per sample")
+    dilation_jitter: float = Field(1e-4, ge=0.0, le=0.1, description="random extra leaf-box growth per training sample (against thin leaves)")
     min_acceptance: float = Field(0.005, ge=0.0, le=1.0, description="samples are kept with p = max(h / h_max, this) (paper: 0.005)")
+
+    @field_validator("surface_fraction", "surface_pool_size", "surface_offset")
+    @classmethod
+    def _unused(cls, value, info):
+        # Shared training keys N-BVH's ray distribution never reads: a changed value would be silently ignored.
+        default = cls.model_fields[info.field_name].default
+        if value != default:
+            raise ValueError(f"unused by N-BVH (its rays start in the scaled box); leave it at {default}")
+        return value
 
 
 class NBVHInferenceConfig(InferenceConfig):
     lod: int = Field(0, ge=0, le=6, description="level of detail of the cut that answers rays (0: finest)")
     secondary_lod: int | None = Field(1, ge=0, le=6, description="in a scene, the level of detail that answers every ray but camera rays (paper Sec. 7.1: a coarser cut after the first bounce); the coarsest registered LoD up to it, never finer than `lod`; None: `lod` for every ray")
-    box_dilation: float = Field(1e-5, ge=0.0, description="leaf boxes grow by this (unit cube) at inference")
+    box_dilation: float = Field(1e-5, ge=0.0, le=0.1, description="leaf boxes grow by this (unit cube) at inference")
     max_steps: int = Field(1000, ge=1, description="wavefront steps (leaves per ray) at most")
 
 
@@ -101,6 +112,13 @@ class NBVHConfig(MethodConfig):
     inference: NBVHInferenceConfig = Field(default_factory=NBVHInferenceConfig)
 
     PRESETS: ClassVar[dict] = {}  # filled below
+
+    @model_validator(mode="after")
+    def _lod_registered(self):
+        if self.inference.lod >= self.cut.lods:
+            raise ValueError(f"inference.lod: {self.inference.lod} is coarser than every level of detail "
+                             f"cut.lods = {self.cut.lods} registers (0..{self.cut.lods - 1})")
+        return self
 
 
 def _paper() -> NBVHConfig:

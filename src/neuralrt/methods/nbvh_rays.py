@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..errors import TrainingError
 from ..rays import Rays
 from ..training.ray_distribution import TrainingBatch
 
@@ -119,7 +120,8 @@ class NBVHRayDistribution:
                 done.synchronize()
             value = int(flag[0])
             if value & UNFILLED:
-                raise RuntimeError("N-BVH training rays: no sampled ray crosses a leaf of the cut")
+                raise TrainingError("N-BVH training rays: no sampled ray crosses a leaf of the cut "
+                                    "(the leaf boxes or their error statistics are degenerate)")
             if value & OVERFLOW:
                 raise RuntimeError("N-BVH training rays: the first-leaf walk overflowed its stack (a bug)")
 

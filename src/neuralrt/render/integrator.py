@@ -104,6 +104,7 @@ def render(
     settings: IntegratorSettings | None = None,
     primary: str | None = None,
     shading: str | None = None,
+    progress_label: str = "render",
 ) -> RenderResult:
     """Render ``scene`` (a `neuralrt.scene.Scene`) progressively and return the pixel means.
 
@@ -115,7 +116,8 @@ def render(
     bar counts samples per pixel. ``device`` defaults to the scene's. ``primary`` ("exact" or
     "neural", default: what the scene was loaded for) picks who answers camera rays for neural
     objects; "exact" needs a scene loaded with ``primary="exact"`` (their meshes kept). ``shading``
-    ("auto", "torch" or "numba") picks the shading implementation (`IntegratorSettings.shading`).
+    ("auto", "torch" or "numba") picks the shading implementation (`IntegratorSettings.shading`);
+    ``progress_label`` names the progress bar.
     """
     from dataclasses import replace
 
@@ -146,7 +148,7 @@ def render(
     start = time.perf_counter()
     done = 0
     wavefront = 0
-    with tqdm(total=spp, unit="spp", desc="render", disable=not progress, leave=False) as bar:
+    with tqdm(total=spp, unit="spp", desc=progress_label, disable=not progress, leave=False) as bar:
         while done < spp:
             k = min(per_pass, spp - done)
             samples = torch.arange(n_pixels, device=dev).repeat(k)  # pixel index of each path

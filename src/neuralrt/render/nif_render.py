@@ -14,12 +14,15 @@ trains afresh: the networks hold only what this view and these lights taught the
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import replace
 
 import numpy as np
 import torch
+from pydantic import ValidationError
 
-from ..errors import ConfigError
+from ..arguments import check_count, check_seed
+from ..errors import ConfigError, validation_message
 from ..methods.nif import NIFNetworks
 from ..methods.nif_config import NIFConfig
 from ..methods.nif_training import NIFTrainer
@@ -43,6 +46,20 @@ def _instance_problem(scene, inst) -> str | None:
     if bool(emissive.any()):
         return "is emissive (a light): its shadow rays end on it"
     return None
+
+
+def _nif_config(config) -> NIFConfig:
+    """``config`` (None, a `NIFConfig` or a dict shaped like one) as a `NIFConfig`; a bad one is a one-line `ConfigError`."""
+    if config is None:
+        return NIFConfig()
+    if isinstance(config, NIFConfig):
+        return config
+    if not isinstance(config, dict):
+        raise ConfigError(f"config: expected a NIFConfig or a dict, got {type(config).__name__}")
+    try:
+        return NIFConfig.model_validate(config)
+    except ValidationError as exc:
+        raise ConfigError(f"nif config: {validation_message(exc, NIFConfig)}") from None
 
 
 def select_nif_instances(scene, nif: str | list[str], config: NIFConfig | None = None) -> list[int]:
@@ -100,8 +117,9 @@ def _merge(a: RenderResult, b: RenderResult, seconds: float) -> RenderResult:
 def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, train_spp: int | None = None, seed: int = 0,
                config: NIFConfig | None = None, answer: str = "answer", audit: bool = False, **render_kwargs) -> tuple[RenderResult, dict]:
     """Render ``scene`` with NIF answering the shadow rays of the objects ``nif`` names (see
-    `select_nif_instances`). ``train_spp`` (default ``config.training.train_spp``) samples per
-    pixel train the networks; the other ``spp - train_spp`` use them. ``answer="exact"`` renders
+    `select_nif_instances`). ``train_spp`` (default ``config.training.train_spp``, or half of
+    ``spp`` with a warning when that is not below ``spp``) samples per pixel train the networks;
+    the other ``spp - train_spp`` use them. ``config``: a `NIFConfig` or a dict shaped like one. ``answer="exact"`` renders
     the same samples with exact shadow rays instead (the reference that differs only in who
     answered); ``audit=True`` also runs every shadow ray exactly, timing it and counting
     disagreements. ``render_kwargs`` go to `neuralrt.render.integrator.render` (``resolution``,
@@ -109,18 +127,31 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
 
     Returns the merged `RenderResult` and the NIF report (objects, memory, training time per spp,
     shadow rays by network, times)."""
-    config = config or NIFConfig()
-    if train_spp is not None:
-        config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": int(train_spp)})})
+    from ..scene.scene import Scene
+
+    if not isinstance(scene, Scene):
+        raise ConfigError(f"render_nif: scene must be a loaded Scene (neuralrt.scene.load_scene), not {type(scene).__name__}")
+    if not (isinstance(nif, str) or (isinstance(nif, (list, tuple)) and all(isinstance(n, str) for n in nif))):
+        raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
+    check_count("spp", spp)
+    check_count("--nif-train-spp", train_spp)
+    check_seed("seed", seed)
+    if answer not in ("answer", "exact"):
+        raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
+    config = _nif_config(config)
     chosen = select_nif_instances(scene, nif, config)
+    spp = spp if spp is not None else scene.settings.spp
+    if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
+        if spp < 2:
+            raise ConfigError(f"--spp {spp}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
+        warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (training.train_spp "
+                      f"{config.training.train_spp} is not below spp; set --nif-train-spp to choose)", stacklevel=2)
+        train_spp = spp // 2
+    if train_spp is not None:
+        config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": train_spp})})
     train_spp = config.training.train_spp
-    spp = int(spp if spp is not None else scene.settings.spp)
-    if train_spp < 1:
-        raise ConfigError(f"--nif-train-spp: must be at least 1, got {train_spp}")
     if spp <= train_spp:
         raise ConfigError(f"--nif-train-spp {train_spp} leaves no samples for NIF at --spp {spp} (it must be below spp)")
-    if answer not in ("answer", "exact"):
-        raise ValueError(f"answer must be 'answer' or 'exact', got {answer!r}")
 
     accel = scene.accel
     blases = list({id(accel.instances[k].blas): accel.instances[k].blas for k in chosen}.values())
@@ -133,10 +164,14 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
 
     start = time.perf_counter()
     shadows.mode = "collect"
-    first = render(nif_scene, spp=train_spp, seed=seed, **render_kwargs)
+    first = render(nif_scene, spp=train_spp, seed=seed, progress_label="render, NIF collecting", **render_kwargs)
     trainer.finish()
+    if answer == "answer" and trainer.stats.outer_pairs == 0:
+        warnings.warn("NIF: no shadow ray toward the chosen objects was traced while training (has the scene "
+                      "lights that they can shadow?): the networks answer untrained", stacklevel=2)
     shadows.mode = answer
-    second = render(nif_scene, spp=spp - train_spp, seed=seed + SECOND_PART_SEED, **render_kwargs)
+    second = render(nif_scene, spp=spp - train_spp, seed=seed + SECOND_PART_SEED,
+                    progress_label="render, NIF answering" if answer == "answer" else "render, exact shadows", **render_kwargs)
     total = time.perf_counter() - start
     result = _merge(first, second, total)
 

@@ -12,6 +12,7 @@ for bit. The global torch RNG is neither used nor touched.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
@@ -22,7 +23,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..errors import ModelFileError
+from ..errors import ModelFileError, TrainingError
 from ..io.model_file import read_model_file, write_model_file
 from .prefetch import BatchSource
 
@@ -221,13 +222,16 @@ def train_model(
             opt.zero_grad(set_to_none=True)
             result.loss.backward()
             opt.step()
+            loss = result.loss.item()
+            if not math.isfinite(loss):  # before on_step: N-BVH's cut would split on NaN statistics
+                raise TrainingError(_diverged(step + 1, loss, learning_rate))
             if on_step is not None:
                 on_step(step, opt)
             dt = time.perf_counter() - t0
             record.seconds += dt
             record.rays += result.count
             record.network_rays += result.network_rays
-            running.add(loss=result.loss.item(), correct=result.correct, count=result.count,
+            running.add(loss=loss, correct=result.correct, count=result.count,
                         **{f"count_{k}": v for k, v in result.ray_counts.items()},
                         **{f"loss_{k}": v for k, v in result.parts.items()})
             bar.update(1)
@@ -247,6 +251,11 @@ def train_model(
         save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
     model.eval()
     return record
+
+
+def _diverged(step: int, loss: float, learning_rate: float) -> str:
+    return (f"training diverged at step {step}: the loss is {loss} (try a lower training.learning_rate, "
+            f"now {learning_rate:g}); no model was written")
 
 
 def _finish(record: TrainingRecord, running: _Running, steps: int) -> None:

@@ -1,0 +1,37 @@
+"""Checks of count, seed and name arguments shared by the API and the lower-level entry points
+(`neuralrt.api`, `render_nif`, the demo): a value of the wrong type or out of range is a one-line
+`ConfigError` naming the argument, before any work."""
+
+from __future__ import annotations
+
+from .errors import ConfigError
+
+__all__ = ["SEED_LIMIT", "check_count", "check_seed", "check_name"]
+
+
+def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
+    """One-line `ConfigError` unless ``value`` is None or an integer in [``minimum``, ``maximum``]
+    (``name`` as the user wrote it)."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{name}: must be an integer, got {value!r}")
+    if value < minimum:
+        raise ConfigError(f"{name}: must be at least {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ConfigError(f"{name}: must be at most {maximum}, got {value}")
+
+
+SEED_LIMIT = 1 << 63  # seeds feed torch's and numba's 64-bit generators
+
+
+def check_seed(name: str, value) -> None:
+    """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
+    if value is not None:
+        check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
+
+
+def check_name(name: str, value) -> None:
+    """One-line `ConfigError` unless ``value`` is None or a str (a method, preset or executor name)."""
+    if value is not None and not isinstance(value, str):
+        raise ConfigError(f"{name}: expected a name (str), got {type(value).__name__}")
