@@ -160,8 +160,12 @@ def test_missing_file_and_unknown_builtin(tmp_path):
         load_scene("builtin:nope")
     with pytest.raises(SceneError, match="unknown option"):
         load_scene("builtin:hairball?size=3")
-    with pytest.raises(SceneError, match="generator.params"):
+    with pytest.raises(SceneError, match=r"builtin:hairball: detail must be in 0..8, got 99"):
         load_scene("builtin:hairball?detail=99")
+    with pytest.raises(SceneError, match=r"builtin:instances: detail must be in 0..6, got 7"):  # its statue is at detail - 1
+        load_scene("builtin:instances", detail=7)
+    with pytest.raises(SceneError, match="detail given 2 times"):
+        load_scene("builtin:hairball?detail=1&detail=2")
 
 
 def test_textured_albedo(scene_dir):
@@ -238,5 +242,5 @@ def test_nan_transform_is_one_line_from_the_cli(scene_dir, capsys, command):
     args = [command, str(scene_dir / "scene.toml")] + (["-o", str(scene_dir / "out" / "x.exr")] if command == "render" else [])
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("neuralrt: error: scene.toml: objects.1.transform.translate.1:") and "\n" not in err
+    assert err.startswith(f"neuralrt: error: {scene_dir / 'scene.toml'}: objects.1.transform.translate.1:") and "\n" not in err
     assert not (scene_dir / "out").exists()

@@ -58,7 +58,7 @@ def test_bad_transform_is_a_scene_error_at_load(tmp_path, transform, message):
     path = scene_file(tmp_path, {"transform": transform})
     with pytest.raises(SceneError) as info:
         load_scene_spec(path)  # validation alone: nothing is built
-    assert str(info.value).startswith(f"scene.json: {message}") and "\n" not in str(info.value)
+    assert str(info.value).startswith(f"{path}: {message}") and "\n" not in str(info.value)  # the path as given
     with pytest.raises(SceneError, match="objects.0.transform"):
         load_dict({"objects": [{**SPHERE, "transform": transform}]})
 
@@ -69,7 +69,7 @@ def test_bad_transform_is_one_line_from_the_cli(tmp_path, capsys, command, trans
     path = scene_file(tmp_path, {"transform": transform})
     out = tmp_path / "out"
     args = [command, path] + (["-o", str(out / "x.exr")] if command == "render" else [])
-    assert cli_error(capsys, args).startswith(f"scene.json: {message}")
+    assert cli_error(capsys, args).startswith(f"{path}: {message}")
     assert not out.exists()
 
 
@@ -173,7 +173,7 @@ def test_non_finite_numbers_say_finite_and_name_the_key(tmp_path, capsys, sectio
     path = scene_file(tmp_path, **sections)
     with pytest.raises(SceneError) as info:
         load_scene_spec(path)
-    assert str(info.value).startswith(f"scene.json: {key}: Input should be a finite number (got ")
+    assert str(info.value).startswith(f"{path}: {key}: Input should be a finite number (got ")
     assert "more problems" not in str(info.value)  # the other union members' complaints are dropped
     assert cli_error(capsys, ["info", path]) == str(info.value)
 

@@ -15,15 +15,16 @@ from .io.model_file import MODEL_SUFFIX
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
 MODEL_SUFFIXES = {MODEL_SUFFIX}
+MAX_EVAL_RAYS = 1 << 22  # ~0.44 KB per held-out ray measured (bunny, 2^18 vs 2^20 rays): 2^22 take ~1.9 GB
 CHECKPOINT_SUFFIX = ".ckpt"  # training writes MODEL.nrt.ckpt beside MODEL.nrt
 SCENE_SUFFIXES = {".toml", ".json"}
 
 
-def _max_depth_limit() -> int:
-    """The largest ``max_depth`` a scene file takes (its schema's bound)."""
+def _render_limit(key: str) -> int:
+    """The largest ``spp`` or ``max_depth`` a scene file takes (its schema's bound)."""
     from .scene.schema import RenderSettings
 
-    return next(m.le for m in RenderSettings.model_fields["max_depth"].metadata if getattr(m, "le", None) is not None)
+    return next(m.le for m in RenderSettings.model_fields[key].metadata if getattr(m, "le", None) is not None)
 
 
 def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> dict:
@@ -180,8 +181,9 @@ def render(
     from .render.integrator import render as _render
 
     check_device(device)
-    check_count("spp", spp)
-    check_count("max_depth", max_depth, minimum=1, maximum=_max_depth_limit())  # a scene file's bounds
+    check_count("spp", spp, maximum=_render_limit("spp"))  # a scene file's bounds
+    check_count("max_depth", max_depth, minimum=1, maximum=_render_limit("max_depth"))
+    seed = 0 if seed is None else seed
     check_seed("seed", seed)
     check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
@@ -191,7 +193,10 @@ def render(
     output = check_path("output", output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    check_output_file(output, "render output")
+    from .render.film import output_files
+
+    for path in output_files(output):  # the image and every AOV beside it, before the scene loads
+        check_output_file(path, "render output")
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch)
     primary = loaded.primary
@@ -357,7 +362,7 @@ def evaluate(
     from .methods import check_mesh_match, is_neural, load_model
 
     check_device(device)
-    check_count("rays", rays, minimum=2)
+    check_count("rays", rays, minimum=2, maximum=MAX_EVAL_RAYS)
     check_seed("seed", seed)
     if not is_neural(model):
         if isinstance(model, Mesh):

@@ -74,7 +74,10 @@ def _resolution(text: str) -> tuple[int, int]:
 
 def _cmd_render(args) -> None:
     if args.list_builtins:
-        for name, description in api.list_builtins():
+        rows = api.list_builtins()
+        if args.json:
+            print(json.dumps([{"scene": f"builtin:{name}", "description": description} for name, description in rows]))
+        for name, description in [] if args.json else rows:
             print(f"builtin:{name:<16} {description}")
         return
     if args.scene is None or args.output is None:
@@ -224,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="held-out accuracy of a model against its mesh (+ orbit images with FLIP)")
     p.add_argument("model", help="model file (.nrt)")
     p.add_argument("mesh", help="the mesh the model was trained on")
-    p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays, half outside, half surface (default: 131072)")
+    p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays, half outside, half surface (default: 131072, at most 4194304)")
     p.add_argument("--seed", type=int, help="seed of the held-out rays (default: 1000003)")
     images = p.add_mutually_exclusive_group()
     images.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")

@@ -1,5 +1,6 @@
 """Errors neuralrt raises for bad input. The CLI prints them as one line, never a traceback."""
 
+import math
 import re
 
 
@@ -59,7 +60,7 @@ def validation_errors(exc, model=None) -> list[tuple[str, str]]:
     for err in exc.errors(include_url=False):
         key, union_at = _user_loc(err.get("loc", ()), model)
         got = "" if isinstance(err.get("input"), dict) or "input" not in err else f" (got {_short_repr(err['input'])})"
-        rows.append((key, _one_line(err.get("msg", "invalid")) + got, union_at, _is_type_mismatch(err)))
+        rows.append((key, _bound_as_written(_one_line(err.get("msg", "invalid")), err.get("ctx")) + got, union_at, _is_type_mismatch(err)))
     fitting = {at for _, _, at, mismatch in rows if at is not None and not mismatch}
     rows = [r for r in rows if not (r[3] and r[2] in fitting)]
     return _merge_alternatives([(key, msg) for key, msg, _, _ in rows])
@@ -147,6 +148,14 @@ def _one_line(msg: str) -> str:
     msg = re.sub(r"\s*For further information visit https://errors\.pydantic\.dev\S*", "", str(msg))
     msg = msg.removeprefix("Value error, ").removeprefix("Assertion failed, ")
     return " ".join(msg.split())
+
+
+def _bound_as_written(msg: str, ctx) -> str:
+    """pydantic writes a float bound in full (1e20 as 100000000000000000000, 1e-12 as 0.000000000001): as Python would."""
+    for bound in (ctx or {}).values():
+        if isinstance(bound, float) and math.isfinite(bound) and (abs(bound) >= 1e6 or 0 < abs(bound) < 1e-4):
+            msg = re.sub(r"(?<=to )-?[0-9.]+$", f"{bound:g}", msg)
+    return msg
 
 
 def _short_repr(value, limit: int = 60) -> str:

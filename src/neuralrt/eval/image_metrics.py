@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import ImageError
 from ..io.files import check_output_file
-from ..io.images import linear_to_srgb, read_image, tone_map
+from ..io.images import linear_to_srgb, nonfinite_problem, read_image, tone_map
 
 __all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr", "nonfinite_problem", "check_heatmap_path"]
 
@@ -51,15 +51,6 @@ def psnr(reference: np.ndarray, test: np.ndarray) -> float:
 def relmse(reference: np.ndarray, test: np.ndarray) -> float:
     ref, tst = _finite(reference).astype(np.float64), _finite(test).astype(np.float64)
     return float(np.mean((tst - ref) ** 2 / (ref**2 + _RELMSE_EPSILON)))
-
-
-def nonfinite_problem(image: np.ndarray, name: str) -> str | None:
-    """None when every pixel of ``image`` is finite, else the one-line problem naming ``name``."""
-    finite = np.isfinite(np.asarray(image, np.float32))
-    bad = int(np.count_nonzero(~finite.all(axis=-1) if finite.ndim == 3 else ~finite))  # pixels, not channels
-    if bad == 0:
-        return None
-    return f"{name}: {bad} pixel{'s are' if bad != 1 else ' is'} NaN or infinite"
 
 
 def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False,

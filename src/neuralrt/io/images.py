@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import ImageError
 from .files import input_file_problem, write_atomically
 
-__all__ = ["write_exr", "write_png", "write_hdr", "read_image", "linear_to_srgb", "srgb_to_linear", "tone_map"]
+__all__ = ["write_exr", "write_png", "write_hdr", "read_image", "nonfinite_problem", "linear_to_srgb", "srgb_to_linear", "tone_map"]
 
 
 # --- transfer functions ------------------------------------------------------------------------
@@ -126,6 +126,15 @@ def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
 
 
 # --- reading -----------------------------------------------------------------------------------
+
+
+def nonfinite_problem(image: np.ndarray, name: str) -> str | None:
+    """None when every pixel of ``image`` is finite, else the one-line problem naming ``name``."""
+    finite = np.isfinite(np.asarray(image, np.float32))
+    bad = int(np.count_nonzero(~finite.all(axis=-1) if finite.ndim == 3 else ~finite))  # pixels, not channels
+    if bad == 0:
+        return None
+    return f"{name}: {bad} pixel{'s are' if bad != 1 else ' is'} NaN or infinite"
 
 
 def read_image(path: str | Path) -> np.ndarray:

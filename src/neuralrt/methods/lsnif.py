@@ -13,8 +13,10 @@ conservative) and never reach the network, in training or inference. The affine 
 box keeps the ray parameter ``t`` unchanged (directions are not renormalised), so the model's
 distances are object-space distances.
 
-Normals are learned and returned in object space, turned to face the incoming ray (open meshes
-have either side); ``Hits.geometric_normal`` carries the same vector.
+Normals are learned in object space from targets turned to face the incoming ray (open meshes
+have either side) and returned as predicted: like every BLAS's, not flipped towards the ray, so an
+undertrained model may return some that face away (``eval``'s ``normal_backfacing_fraction``);
+``Hits.geometric_normal`` carries the same vector.
 """
 
 from __future__ import annotations

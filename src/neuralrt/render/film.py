@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Film", "RenderResult"]
+__all__ = ["Film", "RenderResult", "output_files", "AOV_SUFFIXES"]
 
 
 class Film:
@@ -73,6 +73,18 @@ class Film:
                             stats={"nonfinite_samples": self.nonfinite_samples})
 
 
+AOV_SUFFIXES = ("", "_albedo", "_normal", "_depth", "_coverage")  # the image, then each AOV, as `RenderResult.save` writes them
+
+
+def output_files(path: str | Path) -> list[Path]:
+    """The files `RenderResult.save` writes for ``path``, in order: ``path`` itself (the EXR, its name
+    as given), its PNG, then ``<stem>_<aov>.exr`` and ``.png`` for each AOV (checked up front by
+    ``api.render``: a folder or unwritable file in the way stops the render before it starts)."""
+    path = Path(path)
+    stem = path.with_suffix("")
+    return [name for aov in AOV_SUFFIXES for name in (path if not aov else Path(f"{stem}{aov}.exr"), Path(f"{stem}{aov}.png"))]
+
+
 @dataclass
 class RenderResult:
     """A finished render: linear HDR image and first-hit AOVs (pixel means), as numpy float32.
@@ -103,13 +115,14 @@ class RenderResult:
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        stem = path.with_suffix("")
+        names = iter(output_files(path))
         out: list[Path] = []
 
         def both(suffix: str, linear: np.ndarray, png: np.ndarray, png_exposure: float = 0.0) -> None:
-            write_exr(f"{stem}{suffix}.exr", linear)
-            write_png(f"{stem}{suffix}.png", png, exposure=png_exposure)
-            out.extend([Path(f"{stem}{suffix}.exr"), Path(f"{stem}{suffix}.png")])
+            exr, png_path = next(names), next(names)
+            write_exr(exr, linear)
+            write_png(png_path, png, exposure=png_exposure)
+            out.extend([exr, png_path])
 
         both("", self.image, self.image, exposure)
         both("_albedo", self.albedo, self.albedo)

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..arguments import check_count, check_seed
+from ..errors import ConfigError
 from ..rays import resolve_device
 from .film import Film, RenderResult
 from .shading_stages import PathState, WavefrontFilm, shading_stages_for
@@ -125,14 +127,17 @@ def render(
         settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
+    check_count("spp", spp)
+    check_count("max_depth", settings.max_depth)
+    check_count("max_paths", settings.max_paths)
+    seed = 0 if seed is None else seed
+    check_seed("seed", seed)
     if settings.primary not in ("exact", "neural"):
-        raise ValueError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
+        raise ConfigError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     if settings.primary == "exact" and scene.primary == "neural":
         raise ValueError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
                          "load it with primary='exact' to render that way")
-    spp = int(spp if spp is not None else scene.settings.spp)
-    if spp < 1 or settings.max_depth < 1 or settings.max_paths < 1:
-        raise ValueError("spp, max_depth and max_paths must be >= 1")
+    spp = spp if spp is not None else scene.settings.spp
     camera = scene.camera.with_resolution(resolution) if resolution is not None else scene.camera
     dev = resolve_device(device) if device is not None else scene.device
     if dev != scene.device:

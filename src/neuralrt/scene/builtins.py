@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Callable
 from urllib.parse import parse_qs
 
-from ..errors import SceneError
+from ..errors import ConfigError, SceneError
 from .schema import (
     CameraSpec,
     ConductorMaterialSpec,
@@ -35,6 +35,7 @@ class BuiltinScene:
     description: str
     build: Callable[[int], SceneSpec]  # detail -> spec
     default_detail: int
+    max_detail: int  # the finest level every generator of the scene takes (`neuralrt.geometry.procedural`)
 
 
 def _gen(name: str, **params) -> GeneratorSpec:
@@ -143,10 +144,10 @@ def instances(detail: int) -> SceneSpec:
 
 
 BUILTIN_SCENES: dict[str, BuiltinScene] = {
-    "cornell-statue": BuiltinScene(cornell_statue.__doc__, cornell_statue, 2),
-    "hairball": BuiltinScene(hairball.__doc__, hairball, 2),
-    "foliage": BuiltinScene(foliage.__doc__, foliage, 2),
-    "instances": BuiltinScene(instances.__doc__, instances, 2),
+    "cornell-statue": BuiltinScene(cornell_statue.__doc__, cornell_statue, 2, 5),  # statue: 0..5
+    "hairball": BuiltinScene(hairball.__doc__, hairball, 2, 8),  # hairball: 0..8
+    "foliage": BuiltinScene(foliage.__doc__, foliage, 2, 6),  # foliage: 0..6
+    "instances": BuiltinScene(instances.__doc__, instances, 2, 6),  # statue at detail - 1: 0..5
 }
 
 
@@ -167,15 +168,19 @@ def builtin_spec(query: str, detail: int | None = None) -> SceneSpec:
     if unknown:
         raise SceneError(f"builtin:{query}: unknown option(s) {', '.join(unknown)} (accepted: detail)")
     level = builtin.default_detail
+    if len(options.get("detail", ())) > 1:
+        raise SceneError(f"builtin:{query}: detail given {len(options['detail'])} times: give it once")
     if "detail" in options:
         try:
             level = int(options["detail"][-1])
         except ValueError:
             raise SceneError(f"builtin:{query}: detail must be an integer") from None
     if detail is not None:
-        if "detail" in options and int(detail) != level:
+        if isinstance(detail, bool) or not isinstance(detail, int):
+            raise ConfigError(f"detail: must be an integer, got {detail!r}")
+        if "detail" in options and detail != level:
             raise SceneError(f"builtin:{query}: detail given twice ({level} in the name, {detail} as --detail): give it once")
-        level = int(detail)
-    if level < 0:
-        raise SceneError(f"builtin:{query}: detail must be >= 0")
+        level = detail
+    if not 0 <= level <= builtin.max_detail:
+        raise SceneError(f"builtin:{name}: detail must be in 0..{builtin.max_detail}, got {level}")
     return builtin.build(level)

@@ -35,6 +35,7 @@ from ..render.materials import MaterialKind, MaterialTable
 from .schema import (
     ConductorMaterialSpec,
     DiffuseMaterialSpec,
+    MAX_RADIANCE,
     EmissiveMaterialSpec,
     ObjectSpec,
     PlasticMaterialSpec,
@@ -179,7 +180,7 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         spec = builtin_spec(text[len(BUILTIN_PREFIX):], detail=detail)
         return spec, Path.cwd(), text
     path = Path(path_or_builtin)
-    label = path.name
+    label = str(path)  # as the user wrote it, like the file-level errors
     if detail is not None:
         raise SceneError(f"{path}: --detail applies to built-in scenes (builtin:NAME), not to a scene file")
     problem = input_file_problem(path, "scene file")
@@ -366,7 +367,7 @@ def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None) 
     if obj.mesh is not None:
         cache_key = ("file", obj.mesh)
     elif obj.generator is not None:
-        cache_key = ("generator", obj.generator.name, json.dumps(obj.generator.params, sort_keys=True))
+        cache_key = ("generator", obj.generator.name, _generator_arguments(obj.generator.name, obj.generator.params))
     else:
         return None
     if cache_key not in shapes:
@@ -379,6 +380,28 @@ def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None) 
             mesh = _generate(obj, label, key)
         shapes[cache_key] = _Shape(mesh, device)
     return shapes[cache_key]
+
+
+def _generator_arguments(name: str, params: dict) -> str:
+    """A generator's arguments as one key: defaults filled in and whole floats written as ints, so that
+    ``{}``, ``{subdivisions = 4}`` and ``{subdivisions = 4.0}`` share one mesh (bad arguments: as given,
+    for `_generate` to report)."""
+    import inspect
+
+    from ..geometry import procedural
+
+    def plain(value):
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        return [plain(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+    try:
+        bound = inspect.signature(procedural.GENERATORS[name]).bind(**params)
+        bound.apply_defaults()
+        params = bound.arguments
+    except (KeyError, TypeError):
+        pass
+    return json.dumps({k: plain(v) for k, v in params.items()}, sort_keys=True, default=str)
 
 
 def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:
@@ -409,7 +432,7 @@ def _load_model(path: str, label: str, key: str, device):
 
 
 def _material_table(specs: list, label: str, device) -> MaterialTable:
-    from ..io.images import read_image
+    from ..io.images import nonfinite_problem, read_image
 
     kind, albedo, rough, ior, emission, textures = [], [], [], [], [], []
     kinds = {DiffuseMaterialSpec: MaterialKind.DIFFUSE, ConductorMaterialSpec: MaterialKind.CONDUCTOR,
@@ -418,9 +441,13 @@ def _material_table(specs: list, label: str, device) -> MaterialTable:
         kind.append(int(kinds[type(m)]))
         if isinstance(m.albedo, str):
             try:
-                textures.append(torch.from_numpy(read_image(m.albedo)))
+                pixels = read_image(m.albedo)
             except NeuralRTError as exc:
                 raise SceneError(f"{label}: materials.{i}.albedo: {exc}") from None
+            problem = nonfinite_problem(pixels, m.albedo)
+            if problem:
+                raise SceneError(f"{label}: materials.{i}.albedo: {problem}")
+            textures.append(torch.from_numpy(pixels))
             albedo.append((1.0, 1.0, 1.0))
         else:
             textures.append(None)
@@ -454,6 +481,22 @@ def _area_lights(instances: list[Instance], meshes: list[Mesh | None], materials
     return AreaLights(torch.cat(tris), torch.cat(normals), torch.cat(emission), torch.cat(inst_ids), torch.cat(prim_ids), counts, device=device)
 
 
+def _radiance_image_problem(pixels, name: str, scale: float) -> str | None:
+    """Why an image cannot be rendered as radiance (NaN/Inf or negative pixels, or values that overflow
+    float32 once scaled), or None."""
+    from ..io.images import nonfinite_problem
+
+    problem = nonfinite_problem(pixels, name)
+    if problem:
+        return problem
+    negative = int((pixels < 0).any(axis=-1).sum())
+    if negative:
+        return f"{name}: {negative} pixel{'s are' if negative != 1 else ' is'} negative (radiance must be >= 0)"
+    if pixels.size and float(pixels.max()) * scale > MAX_RADIANCE:
+        return f"{name}: pixel values times scale reach {float(pixels.max()) * scale:.3g}, above {MAX_RADIANCE:g} (float32 rendering would overflow)"
+    return None
+
+
 def _environment(spec: SceneSpec, label: str, device) -> Environment | None:
     env = spec.environment
     if env is None:
@@ -463,7 +506,11 @@ def _environment(spec: SceneSpec, label: str, device) -> Environment | None:
     from ..io.images import read_image
 
     try:
-        image = torch.from_numpy(read_image(env.image))
+        pixels = read_image(env.image)
     except NeuralRTError as exc:
         raise SceneError(f"{label}: environment.image: {exc}") from None
+    problem = _radiance_image_problem(pixels, env.image, env.scale)
+    if problem:
+        raise SceneError(f"{label}: environment.image: {problem}")
+    image = torch.from_numpy(pixels)
     return Environment(image=image, scale=env.scale, device=device, rotate_y=env.rotate_y)

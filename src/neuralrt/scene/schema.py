@@ -64,6 +64,7 @@ __all__ = [
     "RenderSettings",
     "SceneSpec",
     "MAX_RESOLUTION",
+    "MAX_RADIANCE",
     "check_resolution",
 ]
 
@@ -73,6 +74,11 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 NonNegFinite = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 NonNegVec3 = tuple[NonNegFinite, NonNegFinite, NonNegFinite]
+# Radiance and intensity are rendered in float32: a value near its 3.4e38 limit overflows once scaled by
+# a pdf or summed into a light-sampling table (a traceback, or silently black pixels). 1e20 leaves room.
+MAX_RADIANCE = 1e20
+Radiance = Annotated[float, Field(ge=0, le=MAX_RADIANCE, allow_inf_nan=False)]
+RadianceVec3 = tuple[Radiance, Radiance, Radiance]
 
 
 class _Strict(BaseModel):
@@ -216,7 +222,7 @@ class EmissiveMaterialSpec(_Strict):
 
     type: Literal["emissive"] = Field("emissive", description="material kind")
     name: str = Field(description="referenced by objects' material / materials")
-    emission: NonNegVec3 = Field(description="emitted radiance (linear RGB), from the front face only")
+    emission: RadianceVec3 = Field(description="emitted radiance (linear RGB), from the front face only")
     albedo: Albedo = Field((0.0, 0.0, 0.0), description="diffuse reflectance of the emitter's surface")
 
 
@@ -275,29 +281,31 @@ class PointLightSpec(_Strict):
 
     type: Literal["point"] = Field("point", description="light kind")
     position: Vec3 = Field(description="world position")
-    intensity: NonNegVec3 = Field(description="radiant intensity, W/sr (linear RGB)")
+    intensity: RadianceVec3 = Field(description="radiant intensity, W/sr (linear RGB)")
 
 
 class EnvironmentSpec(_Strict):
     """Distant lighting: constant ``color`` or a lat-long ``image`` (importance sampled), times ``scale``."""
 
-    color: NonNegVec3 | None = Field(None, description="constant radiance (linear RGB)")
+    color: RadianceVec3 | None = Field(None, description="constant radiance (linear RGB)")
     image: str | None = Field(None, description="lat-long image (EXR, HDR, PNG, JPG), relative to the scene file; "
                               "its centre is seen looking down -z, row 0 is straight up")
-    scale: NonNegFinite = Field(1.0, description="multiplies the colour or image")
+    scale: Radiance = Field(1.0, description="multiplies the colour or image")
     rotate_y: Finite = Field(0.0, description="turns the image about +y, degrees (right-handed)")
 
     @model_validator(mode="after")
     def _one_source(self) -> "EnvironmentSpec":
         if (self.color is None) == (self.image is None):
             raise ValueError("give exactly one of color or image")
+        if self.color is not None and max(self.color) * self.scale > MAX_RADIANCE:
+            raise ValueError(f"color times scale is above {MAX_RADIANCE:g} (rendering in float32 would overflow)")
         return self
 
 
 class RenderSettings(_Strict):
     """Render defaults stored with the scene (callers may override)."""
 
-    spp: int = Field(16, gt=0, description="samples per pixel")
+    spp: int = Field(16, gt=0, le=1 << 20, description="samples per pixel")
     max_depth: int = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
 
 
@@ -332,10 +340,11 @@ class SceneSpec(_Strict):
             if m.name in names:
                 errors.append((f"materials.{i}.name", f"duplicate material name {m.name!r} (also materials.{names[m.name]})"))
             names.setdefault(m.name, i)
+        known = set(names) | {"default"}  # the implicit diffuse material (`material_rules.DEFAULT_MATERIAL`) is always there
         for i, obj in enumerate(self.objects):
-            if obj.material is not None and obj.material not in names:
+            if obj.material is not None and obj.material not in known:
                 errors.append((f"objects.{i}.material", f"unknown material {obj.material!r}"))
             for slot, target in obj.materials.items():
-                if target not in names:
+                if target not in known:
                     errors.append((f"objects.{i}.materials.{slot}", f"unknown material {target!r}"))
         return errors

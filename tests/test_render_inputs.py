@@ -1,0 +1,148 @@
+"""Bad input to render, eval and scene files (found by a new-user trial): radiance that would overflow
+float32, unreadable radiance images, outputs blocked beside the image, unbounded counts, argument
+types, and scene spellings that should mean the same thing."""
+
+import json
+
+import numpy as np
+import pytest
+
+from neuralrt import api
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError, NeuralRTError, SceneError
+from neuralrt.io.images import write_exr
+from neuralrt.render.film import output_files
+from neuralrt.render.integrator import render
+from neuralrt.scene.loader import load_dict, load_scene
+
+SPHERE = {"name": "ball", "generator": {"name": "sphere", "params": {"subdivisions": 1}}}
+
+
+def scene_file(tmp_path, objects=None, **sections) -> str:
+    data = {"camera": {"resolution": [6, 4]}, "objects": objects or [dict(SPHERE)], **sections}
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+# -- radiance -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sections,key", [
+    ({"lights": [{"position": [0, 2, 0], "intensity": [1e39, 1, 1]}]}, "lights.0.intensity.0"),
+    ({"materials": [{"name": "lamp", "type": "emissive", "emission": [1, 1e21, 1]}]}, "materials.0.emission.1"),
+    ({"environment": {"color": [1, 1, 3e38]}}, "environment.color.2"),
+    ({"environment": {"color": [1, 1, 1], "scale": 1e30}}, "environment.scale"),
+])
+def test_radiance_beyond_the_float32_margin_is_refused(tmp_path, sections, key):
+    with pytest.raises(SceneError, match=rf"{key}: Input should be less than or equal to 1e\+20"):
+        load_scene(scene_file(tmp_path, **sections))
+
+
+def test_environment_color_times_scale_is_bounded(tmp_path):
+    with pytest.raises(SceneError, match=r"environment: color times scale is above 1e\+20"):
+        load_scene(scene_file(tmp_path, environment={"color": [1e15, 1, 1], "scale": 1e10}))
+
+
+@pytest.mark.parametrize("value,problem", [
+    (np.nan, "1 pixel is NaN or infinite"),
+    (np.inf, "1 pixel is NaN or infinite"),
+    (-1.0, "1 pixel is negative"),
+    (1e30, r"pixel values times scale reach 1e\+30, above 1e\+20"),
+])
+def test_environment_images_must_be_renderable_radiance(tmp_path, capsys, value, problem):
+    pixels = np.ones((4, 8, 3), np.float32)
+    pixels[1, 2, 0] = value
+    write_exr(tmp_path / "sky.exr", pixels)
+    path = scene_file(tmp_path, environment={"image": "sky.exr"})
+    with pytest.raises(SceneError, match=rf"environment.image: .*sky.exr: {problem}"):
+        load_scene(path)
+    assert main(["render", path, "-o", str(tmp_path / "out" / "x.exr"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("neuralrt: error: ") and err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+def test_texture_with_nan_pixels_is_refused(tmp_path):
+    pixels = np.full((4, 4, 3), 0.5, np.float32)
+    pixels[0, 0] = np.nan
+    write_exr(tmp_path / "tex.exr", pixels)
+    path = scene_file(tmp_path, materials=[{"name": "t", "type": "diffuse", "albedo": "tex.exr"}],
+                      objects=[{**SPHERE, "material": "t"}])
+    with pytest.raises(SceneError, match=r"materials.0.albedo: .*tex.exr: 1 pixel is NaN or infinite"):
+        load_scene(path)
+
+
+# -- outputs and counts ---------------------------------------------------------------------------
+
+
+def test_render_checks_every_output_before_it_starts(tmp_path):
+    (tmp_path / "y_depth.exr").mkdir()  # in the way of one AOV
+    with pytest.raises(NeuralRTError, match=r"y_depth.exr: is a folder, not a render output"):
+        api.render(scene_file(tmp_path), tmp_path / "y.exr", spp=1, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.json", "y_depth.exr"]  # nothing rendered, nothing written
+
+
+def test_output_name_is_kept_as_given(tmp_path):
+    result = api.render(scene_file(tmp_path), tmp_path / "Up.EXR", spp=1, progress=False)
+    assert result["output"].endswith("Up.EXR") and (tmp_path / "Up.EXR").is_file()
+    assert [str(p) for p in output_files(tmp_path / "Up.EXR")] == result["files"]
+    assert all(p.is_file() for p in output_files(tmp_path / "Up.EXR"))
+
+
+def test_spp_and_eval_rays_are_bounded(tmp_path):
+    with pytest.raises(ConfigError, match=r"spp: must be at most 1048576"):
+        api.render(scene_file(tmp_path), tmp_path / "x.exr", spp=1 << 40, progress=False)
+    with pytest.raises(SceneError, match=r"render.spp: Input should be less than or equal to 1048576"):
+        load_scene(scene_file(tmp_path, render={"spp": 1 << 21}))
+    with pytest.raises(ConfigError, match=r"rays: must be at most 4194304"):
+        api.evaluate(tmp_path / "m.nrt", tmp_path / "mesh.obj", rays=99999999999999)
+
+
+def test_api_render_takes_seed_none_as_the_default(tmp_path):
+    a = api.render(scene_file(tmp_path), tmp_path / "a.exr", spp=1, seed=None, progress=False)
+    b = api.render(scene_file(tmp_path), tmp_path / "b.exr", spp=1, seed=0, progress=False)
+    from neuralrt.io.images import read_image
+
+    assert np.array_equal(read_image(a["output"]), read_image(b["output"]))
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"spp": 0}, "spp: must be at least 1"),
+    ({"spp": 2.5}, "spp: must be an integer"),
+    ({"spp": True}, "spp: must be an integer"),
+    ({"max_depth": 0}, "max_depth: must be at least 1"),
+    ({"max_depth": 2.5}, "max_depth: must be an integer"),
+    ({"seed": -1}, "seed: must be at least 0"),
+    ({"primary": "x"}, "primary must be 'exact' or 'neural'"),
+])
+def test_integrator_render_checks_its_arguments(kwargs, message):
+    scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]})
+    with pytest.raises(ConfigError, match=message):
+        render(scene, progress=False, **{"spp": 1, **kwargs})
+
+
+def test_detail_of_the_wrong_type_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="detail: must be an integer, got 'x'"):
+        api.render("builtin:instances", tmp_path / "x.exr", spp=1, detail="x", progress=False)
+
+
+# -- scene spellings ------------------------------------------------------------------------------
+
+
+def test_the_implicit_default_material_can_be_named(tmp_path):
+    scene = load_scene(scene_file(tmp_path, objects=[{**SPHERE, "material": "default"},
+                                                     {"name": "b", "generator": {"name": "box"}, "materials": {"material0": "default"}}]))
+    assert scene.materials.names == ["default"]
+
+
+def test_equal_generator_arguments_share_one_mesh(tmp_path):
+    spellings = [{}, {"subdivisions": 4}, {"subdivisions": 4.0}, {"radius": 1.0}, {"subdivisions": 4, "radius": 1}]
+    objects = [{"name": f"s{i}", "generator": {"name": "sphere", "params": p}} for i, p in enumerate(spellings)]
+    info = api.info(scene_file(tmp_path, objects=objects + [{"name": "other", "generator": {"name": "sphere", "params": {"subdivisions": 2}}}]))
+    assert info["instances"] == 6 and info["unique_blas"] == 2
+
+
+def test_list_builtins_as_json(capsys):
+    assert main(["render", "--list-builtins", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["scene"] for r in rows] == [f"builtin:{name}" for name, _ in api.list_builtins()]
