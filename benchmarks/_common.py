@@ -1,15 +1,29 @@
-"""Shared benchmark helpers: machine description, a plain-text table, JSON results."""
+"""Shared benchmark helpers: machine description, a plain-text table, JSON results, and the
+argument checks every script runs before any long work.
+
+Bad input is one line on stderr, ``<script>: error: <problem>``, and exit status 2, before anything
+is trained, rendered or written (never a traceback, never a partial results file): scripts parse
+with `ArgumentParser` (argument errors as that one line), use the argparse types below
+(`positive_int`, `result_name`, ...), check meshes, presets and scenes up front (`check_mesh_spec`,
+`check_presets`, `check_scene`) and run their ``main`` through `run_main`, which turns any
+`neuralrt.errors.NeuralRTError` into the one line.
+
+``NEURALRT_BENCH_RESULTS`` (an environment variable) moves the results folder (tests use it).
+"""
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import json
 import os
 import platform
+import sys
 from importlib import metadata
 from pathlib import Path
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
+RESULTS_DIR = Path(os.environ.get("NEURALRT_BENCH_RESULTS") or Path(__file__).resolve().parent / "results")
+SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
 _PACKAGES = ("neuralrt", "numpy", "torch", "numba", "embreex", "trimesh")
 
@@ -66,11 +80,283 @@ def print_table(rows: list[dict], columns: list[str]) -> None:
 
 
 def write_results(name: str, rows: list[dict], extra: dict | None = None) -> Path:
-    """Write ``{"benchmark", "machine", "rows", **extra}`` to ``benchmarks/results/<name>.json``."""
+    """Write ``{"benchmark", "machine", "rows", **extra}`` to ``benchmarks/results/<name>.json``
+    atomically (a unique temporary file beside it, mode 0o666 less the umask, then one rename: a
+    crash or a concurrent run leaves the old file or a whole new one). ``name`` must be a plain
+    file stem (`name_problem`), else a `neuralrt.errors.ConfigError`, before anything is written."""
+    from neuralrt.errors import ConfigError
+    from neuralrt.io.files import write_atomically
+
+    problem = name_problem(name)
+    if problem:
+        raise ConfigError(f"results name {name!r}: {problem}")
+    payload = {"benchmark": name, "machine": machine_info(), **(extra or {}), "rows": rows}
+    text = json.dumps(payload, indent=2, default=float) + "\n"  # (before the file: an unserialisable value writes nothing)
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.json"
-    payload = {"benchmark": name, "machine": machine_info(), **(extra or {}), "rows": rows}
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
-    tmp.replace(path)
+    write_atomically(path, lambda tmp: Path(tmp).write_text(text))
     return path
+
+
+def save_figure(fig, path: Path) -> Path:
+    """``fig.savefig(path)`` atomically (as `write_results`; the format from ``path``'s suffix)."""
+    from neuralrt.io.files import write_atomically
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_atomically(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or None))
+
+
+def read_results(name: str) -> dict:
+    """The results file ``name`` (`write_results`) as written, ``{}`` when there is none; a file
+    that is not a JSON object is a one-line `neuralrt.errors.ConfigError` (runs merge into it)."""
+    from neuralrt.errors import ConfigError
+
+    problem = name_problem(name)
+    if problem:
+        raise ConfigError(f"results name {name!r}: {problem}")
+    path = RESULTS_DIR / f"{name}.json"
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the earlier results to merge into ({exc}); move it away or use another --name") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: not a results file (a JSON object); move it away or use another --name")
+    return data
+
+
+# --- arguments ----------------------------------------------------------------------------------
+
+
+def prog() -> str:
+    """The script's name as argparse shows it (``bench_lsnif.py``)."""
+    return os.path.basename(sys.argv[0]) or "benchmark"
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """Argument errors as one line ``<script>: error: ...`` and exit 2 (argparse prints the usage too)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def fail(message: str):
+    """End the script with the one error line and exit 2 (for checks outside argparse and neuralrt)."""
+    print(f"{prog()}: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def run_main(main, *args):
+    """Run ``main(*args)`` and exit with what it returns; a `neuralrt.errors.NeuralRTError` (bad input
+    found by the up-front checks, or later) ends the script as one line and exit 2, not a traceback."""
+    try:
+        result = main(*args)
+    except Exception as exc:
+        errors = sys.modules.get("neuralrt.errors")  # (none raised if neuralrt was never imported)
+        if errors is None or not isinstance(exc, errors.NeuralRTError):
+            raise
+        fail(str(exc))
+    raise SystemExit(result)
+
+
+def name_problem(name) -> str | None:
+    """None when ``name`` can name a results file in the results folder (a plain file stem), else why not."""
+    if not isinstance(name, str) or not name:
+        return "must not be empty"
+    if "/" in name or "\\" in name or (os.altsep and os.altsep in name):
+        return "must be a plain file name, without a folder (no / or \\)"
+    if name.startswith("."):
+        return "must not start with '.'"
+    if not name.isprintable():
+        return "must not contain control characters"
+    return None
+
+
+def result_name(text: str) -> str:
+    """argparse type of ``--name``: a plain file stem (results go to the results folder as NAME.json)."""
+    problem = name_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{text!r}: {problem}")
+    return text
+
+
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (counts, repeats, resolutions, thread counts)."""
+    value = _integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0 (a count where 0 skips a part, a detail level)."""
+    value = _integer(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a seed, an integer in [0, 2^63)."""
+    value = nonnegative_int(text)
+    if value >= 1 << 63:
+        raise argparse.ArgumentTypeError(f"must be below 2^63, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+# --- meshes, presets, scenes, devices (checked before any work) ---------------------------------
+
+# Procedural meshes a ``procedural:NAME:DETAIL`` spec can name (generators with a detail level) and
+# the highest detail neuralrt.geometry.procedural accepts for each (tests/test_bench_arguments.py
+# checks these against the generators).
+PROCEDURAL_DETAIL = {"statue": 5, "hairball": 8, "foliage": 6}
+MESH_SPECS = ("a mesh file (a path, or a file in ../shared/meshes) with an optional @loopK (K Loop subdivisions), "
+              f"or procedural:NAME:DETAIL with NAME one of {', '.join(PROCEDURAL_DETAIL)}")
+
+
+def parse_mesh_spec(spec: str) -> tuple:
+    """``("procedural", NAME, DETAIL)`` or ``("file", path, loops)`` of a benchmark mesh spec:
+    ``procedural:NAME:DETAIL``, or a file name in ../shared/meshes or a path, optionally ``@loopK``.
+    A bad spec or a missing file is a one-line `neuralrt.errors.MeshError`; nothing is loaded."""
+    from neuralrt.errors import MeshError
+    from neuralrt.io.files import input_file_problem
+
+    if not isinstance(spec, str) or not spec:
+        raise MeshError(f"empty mesh spec (use {MESH_SPECS})")
+    if spec.startswith("procedural:"):
+        parts = spec.split(":")
+        name = parts[1] if len(parts) > 1 else ""
+        limit = PROCEDURAL_DETAIL.get(name)
+        if len(parts) != 3 or limit is None:
+            raise MeshError(f"{spec}: not a procedural mesh spec: use procedural:NAME:DETAIL with NAME one of "
+                            f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in PROCEDURAL_DETAIL.items())}")
+        try:
+            detail = int(parts[2])
+        except ValueError:
+            detail = None
+        if detail is None or not 0 <= detail <= limit:
+            raise MeshError(f"{spec}: DETAIL must be an integer in 0..{limit} for {name}, got {parts[2]!r}")
+        return "procedural", name, detail
+    name, at, loop = spec.partition("@loop")
+    loops = 0
+    if at:
+        try:
+            loops = int(loop)
+        except ValueError:
+            loops = -1
+        if loops < 0:
+            raise MeshError(f"{spec}: @loopK needs K, a whole number of Loop subdivisions >= 0, got {loop!r}")
+    if "@" in name:
+        raise MeshError(f"{spec}: not a mesh spec (use {MESH_SPECS})")
+    path = Path(name)
+    if not path.exists() and not path.is_absolute() and (SHARED_MESHES / name).exists():
+        path = SHARED_MESHES / name
+    if not path.exists():
+        raise MeshError(f"{name}: mesh file not found (neither a path nor a file in {SHARED_MESHES})")
+    problem = input_file_problem(path, "mesh file")
+    if problem:
+        raise MeshError(problem)
+    return "file", path, loops
+
+
+def check_mesh_spec(spec: str) -> str:
+    """``spec`` when `parse_mesh_spec` accepts it (its one-line error otherwise)."""
+    parse_mesh_spec(spec)
+    return spec
+
+
+def load_mesh_spec(spec: str):
+    """The `Mesh` of a benchmark mesh spec (`parse_mesh_spec`)."""
+    kind, name, detail = parse_mesh_spec(spec)
+    if kind == "procedural":
+        from neuralrt.geometry.procedural import make_procedural
+
+        return make_procedural(name, detail=detail)
+    from neuralrt.geometry.mesh import load_mesh
+
+    mesh = load_mesh(name)
+    return mesh.subdivided(detail) if detail else mesh
+
+
+def check_presets(method: str, presets, **training) -> list:
+    """The configs of ``method``'s ``presets`` with the training keys ``training`` (None: the
+    preset's); an unknown method or preset or a bad value is a one-line `ConfigError`."""
+    from neuralrt.methods import get_method
+
+    spec = get_method(method)
+    return [spec.config(preset, **training) for preset in presets]
+
+
+def check_device(device: str):
+    """``device`` as a torch device this process can use, else a one-line `DeviceError`."""
+    from neuralrt.devices import check_device as check
+
+    return check(device)
+
+
+def check_scene(scene: str, detail: int | None = None):
+    """The spec of ``scene`` (``builtin:NAME[?detail=N]`` or a .toml/.json scene file) when it names
+    a valid scene (`load_scene_spec`: syntax and keys; no mesh is built, but procedural detail levels
+    are checked), else a one-line `SceneError`."""
+    from neuralrt.errors import SceneError
+    from neuralrt.scene.loader import load_scene_spec
+
+    spec, _, label = load_scene_spec(scene, detail=detail)
+    for i, obj in enumerate(spec.objects):
+        gen = obj.generator
+        level = gen.params.get("detail") if gen is not None and gen.name in PROCEDURAL_DETAIL else None
+        if level is not None and not (isinstance(level, int) and 0 <= level <= PROCEDURAL_DETAIL[gen.name]):
+            raise SceneError(f"{label}: objects.{i} ({obj.name}): {gen.name} detail must be an integer in "
+                             f"0..{PROCEDURAL_DETAIL[gen.name]}, got {level!r}")
+    return spec
+
+
+def check_output_folder(folder, what: str) -> None:
+    """A one-line error unless ``folder`` is, or can be made, a writable folder (nothing is created)."""
+    from neuralrt.io.files import check_output_folder as check
+
+    check(folder, what)
+
+
+def per_method_counts(items: list[str], option: str) -> dict[str, int]:
+    """``["lsnif=2000", "nbvh=1000"]`` as ``{"lsnif": 2000, "nbvh": 1000}`` (``--steps`` / ``--batch``
+    METHOD=N); a malformed item, an unknown method or N < 1 is a one-line `ConfigError`."""
+    from neuralrt.errors import ConfigError
+    from neuralrt.methods import get_method
+
+    counts = {}
+    for item in items:
+        method, eq, value = item.partition("=")
+        try:
+            count = int(value) if eq else None
+        except ValueError:
+            count = None
+        if count is None:
+            raise ConfigError(f"{option} {item}: expected METHOD=N, e.g. lsnif=2000")
+        try:
+            get_method(method)
+        except ConfigError as exc:
+            raise ConfigError(f"{option} {item}: {exc}") from None
+        if count < 1:
+            raise ConfigError(f"{option} {item}: N must be at least 1")
+        counts[method] = count
+    return counts

@@ -2,7 +2,7 @@
 this machine: wall time and CPU utilisation of the whole command.
 
     flock /tmp/neuralrt-bench.lock python benchmarks/bench_convert_executors.py [--steps 300] [--preset hq]
-        [--runs local,ray,ray-2cpu] [--repeats 2]
+        [--runs local,ray,ray-2cpu] [--repeats 2] [--name convert_executors]
 
 Each run is the real command in a fresh process (`python -m neuralrt convert ... --quiet --json`,
 its own empty models folder), so each pays what a user pays: imports, numba's cached kernels,
@@ -15,12 +15,12 @@ and for Ray starting a local instance and its workers. Runs:
 CPU utilisation = CPU seconds of the command's process tree (it, and for Ray the raylet, GCS and
 workers), sampled from /proc every 0.2 s, over wall time x cores. The machine's busy fraction
 over the same interval (/proc/stat) and the load average say how much else was running. Also
-checks that every run wrote the same model arrays. Writes benchmarks/results/convert_executors.json.
+checks that every run wrote the same model arrays. Writes benchmarks/results/NAME.json (``--name``,
+default convert_executors).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -33,8 +33,9 @@ from pathlib import Path
 import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import print_table, write_results  # noqa: E402
+from _common import ArgumentParser, check_presets, positive_int, print_table, result_name, run_main, write_results  # noqa: E402
 
+from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.io.model_file import read_header  # noqa: E402
 
 # 8 unique meshes, 10k-76k triangles (generator, params); the trainings dominate, not the meshes.
@@ -170,16 +171,20 @@ def run_once(name: str, scene: Path, folder: Path, args) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--steps", type=int, default=300, help="training steps per model (preset's batch)")
+    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=positive_int, default=300, help="training steps per model (preset's batch)")
     parser.add_argument("--preset", default="hq")
     parser.add_argument("--runs", default="local,ray,ray-2cpu", help=f"comma-separated, from {', '.join(RUNS)}")
-    parser.add_argument("--repeats", type=int, default=1, help="rounds; every other round runs in reverse order")
+    parser.add_argument("--repeats", type=positive_int, default=1, help="rounds; every other round runs in reverse order")
+    parser.add_argument("--name", type=result_name, default="convert_executors", help="results file: benchmarks/results/NAME.json")
     args = parser.parse_args()
-    names = [n for n in args.runs.split(",") if n]
-    unknown = set(names) - set(RUNS)
+    names = [n.strip() for n in args.runs.split(",") if n.strip()]
+    unknown = [n for n in names if n not in RUNS]
     if unknown:
-        raise SystemExit(f"unknown runs: {', '.join(sorted(unknown))}")
+        raise ConfigError(f"--runs {args.runs}: unknown run(s) {', '.join(unknown)} (choose from {', '.join(RUNS)})")
+    if not names:
+        raise ConfigError(f"--runs {args.runs!r}: no run named (choose from {', '.join(RUNS)}, comma-separated)")
+    check_presets("lsnif", [args.preset], steps=args.steps)  # (the command's default method)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-convert-") as tmp:
         folder = Path(tmp)
@@ -196,7 +201,7 @@ def main() -> None:
             r["same_arrays_as_local"] = r["arrays"] == base["arrays"]
     print_table(rows, ["round", "run", "wall_s", "wall_vs_local", "train_s_sum", "cpu_s", "cpu_utilisation", "machine_busy",
                        "processes", "load_before", "same_arrays_as_local"])
-    path = write_results("convert_executors", rows, {
+    path = write_results(args.name, rows, {
         "meshes": [f"{n}({', '.join(f'{k}={v}' for k, v in p.items())})" for n, p in MESHES],
         "preset": args.preset, "steps": args.steps, "repeats": args.repeats,
         "notes": "wall and CPU of the whole command in a fresh process; cpu_utilisation = process-tree CPU seconds / "
@@ -206,4 +211,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

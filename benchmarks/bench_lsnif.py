@@ -13,8 +13,6 @@ reported next to Embree's on the same rays, measured interleaved in the same pro
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,27 +23,25 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import (ArgumentParser, SHARED_MESHES, check_mesh_spec, check_output_folder, check_presets,  # noqa: E402
+                     load_mesh_spec, nonnegative_int, positive_int, result_name, run_main, seed_int)
+
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
-from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
+from neuralrt.errors import ConfigError  # noqa: E402
+from neuralrt.geometry.mesh import Mesh  # noqa: E402
 from neuralrt.methods import get_method  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFModel  # noqa: E402
 from neuralrt.training.api import train  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "meshes"
+SHARED = SHARED_MESHES
 
 
 def resolve_mesh(spec: str) -> Mesh:
-    if spec.startswith("procedural:"):
-        from neuralrt.geometry.procedural import make_procedural
-
-        _, name, detail = spec.split(":")
-        return make_procedural(name, detail=int(detail))
-    name, _, loop = spec.partition("@loop")
-    path = Path(name) if Path(name).exists() else SHARED / name
-    mesh = load_mesh(path)
-    return mesh.subdivided(int(loop)) if loop else mesh
+    """The mesh of ``spec``: a file in ../shared/meshes or a path, optionally ``@loopK``, or
+    ``procedural:NAME:DETAIL`` (`_common.parse_mesh_spec`; a bad spec is a one-line `MeshError`)."""
+    return load_mesh_spec(spec)
 
 
 def best_rate(fn, n: int, repeats: int) -> float:
@@ -158,27 +154,43 @@ def summary_row(r: dict) -> dict:
 
 
 def main() -> None:
-    from _common import RESULTS_DIR, print_table, write_results
+    from _common import RESULTS_DIR, print_table, read_results, write_results
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["hq", "lq"])
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the config's)")
-    p.add_argument("--batch", type=int, default=None, help="rays per step (default: the config's)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eval-rays", type=int, default=1 << 18)
-    p.add_argument("--image-resolution", type=int, default=256)
-    p.add_argument("--inference-rays", type=int, default=1_000_000, help="0 skips the speed test")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the config's)")
+    p.add_argument("--batch", type=positive_int, default=None, help="rays per step (default: the config's)")
+    p.add_argument("--seed", type=seed_int, default=0)
+    p.add_argument("--eval-rays", type=positive_int, default=1 << 18)
+    p.add_argument("--image-resolution", type=positive_int, default=256)
+    p.add_argument("--inference-rays", type=nonnegative_int, default=1_000_000, help="0 skips the speed test")
+    p.add_argument("--repeats", type=positive_int, default=3)
     p.add_argument("--models-dir", default=None, help="also save the trained models here")
     p.add_argument("--remeasure-inference", action="store_true",
                    help="only re-measure inference speed of models saved in --models-dir, updating existing runs")
-    p.add_argument("--name", default="lsnif", help="results file: benchmarks/results/NAME.json (runs merge into it)")
+    p.add_argument("--name", type=result_name, default="lsnif", help="results file: benchmarks/results/NAME.json (runs merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
 
+    # Every check before the first training (a bad second preset or mesh must not cost the first's run).
+    for spec in args.meshes:
+        check_mesh_spec(spec)
+    check_presets("lsnif", args.presets, steps=args.steps, batch_size=args.batch, seed=args.seed)
     path = RESULTS_DIR / f"{args.name}.json"
-    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    runs = read_results(args.name).get("runs", {})
+    if args.remeasure_inference:
+        if not args.models_dir:
+            raise ConfigError("--remeasure-inference needs --models-dir (the folder the models were saved in)")
+        for spec in args.meshes:
+            for preset in args.presets:
+                model_path = Path(args.models_dir) / model_file_name(spec, preset)
+                if f"{spec}|{preset}" not in runs:
+                    raise ConfigError(f"--remeasure-inference: {path} has no run of {spec} {preset} to update")
+                if not model_path.is_file():
+                    raise ConfigError(f"--remeasure-inference: {model_path}: model file not found")
+    elif args.models_dir:
+        check_output_folder(args.models_dir, "models")
     for spec in args.meshes:
         for preset in args.presets:
             if args.remeasure_inference:
@@ -195,4 +207,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

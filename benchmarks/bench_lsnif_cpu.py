@@ -25,7 +25,6 @@ inference precision (interleaved, and back to back with ``intersect`` for a like
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import sys
@@ -38,7 +37,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, check_presets, positive_int, print_table, result_name,  # noqa: E402
+                     run_main, write_results)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -203,13 +203,16 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="+", help="as bench_lsnif.py: a file in ../shared/meshes, a path, or procedural:NAME:DETAIL")
     p.add_argument("--presets", nargs="+", default=["hq", "lq"])
-    p.add_argument("--rays", type=int, default=1 << 18)
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--name", default="lsnif_cpu")
+    p.add_argument("--rays", type=positive_int, default=1 << 18)
+    p.add_argument("--repeats", type=positive_int, default=5)
+    p.add_argument("--name", type=result_name, default="lsnif_cpu")
     args = p.parse_args()
+    for spec in args.meshes:  # every check before the first mesh's work
+        check_mesh_spec(spec)
+    check_presets("lsnif", args.presets)
     rows = []
     for spec in args.meshes:
         for preset in args.presets:
@@ -220,4 +223,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -11,7 +11,6 @@ diagonal) where Embree finds nothing that close. Results go to benchmarks/result
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -25,20 +24,22 @@ from neuralrt.methods import load_model  # noqa: E402
 from neuralrt.rays import Rays  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution, cosine_weighted_directions  # noqa: E402
 
+from _common import ArgumentParser, check_mesh_spec, positive_int, run_main  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 
 def main() -> None:
     from _common import print_table, write_results
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("model")
     p.add_argument("mesh")
-    p.add_argument("--rays", type=int, default=1 << 16)
+    p.add_argument("--rays", type=positive_int, default=1 << 16)
     p.add_argument("--offsets", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 3e-3, 1e-2])
     p.add_argument("--self-distance", type=float, default=0.02, help="self-hit: neural t*|d| below this x diagonal")
     args = p.parse_args()
 
+    check_mesh_spec(args.mesh)
     model = load_model(args.model)
     mesh = resolve_mesh(args.mesh)
     exact = MeshBLAS(mesh)
@@ -70,4 +71,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -21,7 +21,6 @@ and config; a model found there is not retrained (its recorded training time is 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -35,11 +34,14 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import (ArgumentParser, check_mesh_spec, check_output_folder, nonnegative_int, per_method_counts,  # noqa: E402
+                     positive_int, result_name, run_main, save_figure)
 from bench_lsnif import resolve_mesh  # noqa: E402
 from bench_nbvh import inference_speed  # noqa: E402
 
 from neuralrt.accel.classical_memory import classical_memory  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
 from neuralrt.geometry.mesh import Mesh  # noqa: E402
 from neuralrt.io.files import write_atomically  # noqa: E402
@@ -50,20 +52,25 @@ DEFAULT_VARIANTS = ["lsnif:hq", "nbvh:cpu:t15", "nbvh:cpu:t16", "nbvh:cpu:t18"]
 DEFAULT_MODELS = Path("/tmp/methods-models")
 
 
-def per_method(items: list[str]) -> dict[str, int]:
-    """["lsnif=2000", "nbvh=1000"] -> {"lsnif": 2000, "nbvh": 1000} (``--steps`` / ``--batch``)."""
-    return {k: int(v) for k, v in (item.split("=") for item in items)}
+def per_method(items: list[str], option: str = "--steps") -> dict[str, int]:
+    """["lsnif=2000", "nbvh=1000"] -> {"lsnif": 2000, "nbvh": 1000} (``--steps`` / ``--batch``;
+    a malformed item, an unknown method or N < 1 is a one-line `ConfigError` naming ``option``)."""
+    return per_method_counts(items, option)
 
 
 def variant_config(variant: str, steps: dict[str, int], batch: dict[str, int] | None = None):
     """``METHOD:PRESET[:tN]`` -> (method, config); ``steps`` / ``batch`` map a method to its
-    training steps / rays per step (absent: the preset's)."""
-    method, preset, *rest = variant.split(":")
+    training steps / rays per step (absent: the preset's). A bad variant is a one-line `ConfigError`."""
+    parts = variant.split(":")
+    table = parts[2].removeprefix("t") if len(parts) == 3 else None
+    if len(parts) not in (2, 3) or (table is not None and not table.isdigit()):
+        raise ConfigError(f"variant {variant!r}: want METHOD:PRESET or METHOD:PRESET:tN (N: log2 of the hash table size), e.g. nbvh:cpu:t15")
+    method, preset = parts[:2]
     cfg = get_method(method).config(preset, steps=steps.get(method), batch_size=(batch or {}).get(method))
-    if rest:
+    if table is not None:
         data = cfg.model_dump()
-        data["encoding"]["log2_table_size"] = int(rest[0].removeprefix("t"))
-        cfg = type(cfg).model_validate(data)
+        data["encoding"]["log2_table_size"] = int(table)
+        cfg = type(cfg).validated(data)
     return method, cfg
 
 
@@ -222,13 +229,13 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
     if scene_rows:
         axes[-1][0].set_ylabel("render FLIP vs exact")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
 
 
 def main() -> None:
-    from _common import RESULTS_DIR, print_table, write_results
+    from _common import RESULTS_DIR, print_table, read_results, write_results
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="*")
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, help="METHOD:PRESET[:tN] (default: %(default)s)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the preset's)")
@@ -236,22 +243,36 @@ def main() -> None:
     p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
                    help="also decimate the mesh to the bytes of these variants (no names: every variant's)")
     p.add_argument("--decimate-only", action="store_true", help="only the decimation rows (the variants' rows must exist)")
-    p.add_argument("--eval-rays", type=int, default=1 << 17)
-    p.add_argument("--image-resolution", type=int, default=256)
-    p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--eval-rays", type=positive_int, default=1 << 17)
+    p.add_argument("--image-resolution", type=positive_int, default=256)
+    p.add_argument("--inference-rays", type=nonnegative_int, default=1 << 18, help="0 skips the speed test")
+    p.add_argument("--repeats", type=positive_int, default=3)
     p.add_argument("--models-dir", type=Path, default=DEFAULT_MODELS)
     p.add_argument("--train-only", action="store_true", help="only train (or find) the models")
     p.add_argument("--plot", action="store_true",
                    help="draw results/NAME_flip_memory.png from the JSON (rows trained as --steps/--batch say; and --scenes-json)")
     p.add_argument("--scenes-json", type=Path, default=RESULTS_DIR / "scenes_methods.json")
-    p.add_argument("--name", default="methods", help="results file: benchmarks/results/NAME.json (rows merge into it)")
+    p.add_argument("--name", type=result_name, default="methods", help="results file: benchmarks/results/NAME.json (rows merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
-    steps, batch = per_method(args.steps), per_method(args.batch)
+    # Every check before the first training (a bad later mesh or variant must not cost the earlier ones' runs).
+    steps, batch = per_method(args.steps, "--steps"), per_method(args.batch, "--batch")
+    for spec in args.meshes:
+        check_mesh_spec(spec)
+    for variant in args.variants + (args.decimate or []):
+        variant_config(variant, steps, batch)
 
     path = RESULTS_DIR / f"{args.name}.json"
-    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    runs = read_results(args.name).get("runs", {})
+    if args.decimate is not None and not args.train_only and not args.plot:
+        for variant in args.decimate or args.variants:  # each needs its variant's row: made by this run or an earlier one
+            _, cfg = variant_config(variant, steps, batch)
+            for spec in args.meshes if args.decimate_only or variant not in args.variants else []:
+                if f"{spec}|{variant}|{cfg.training.steps}x{cfg.training.batch_size}" not in runs:
+                    raise ConfigError(f"--decimate {variant}: {path} has no {variant} row of {spec} at these steps and batch "
+                                      "(run the variant first, or name it in --variants)")
+    if not args.plot:
+        check_output_folder(args.models_dir, "models")
     if args.plot:
         out = RESULTS_DIR / f"{args.name}_flip_memory.png"
         # Only models trained as --steps / --batch say (one consistent setting per method), and their decimations.
@@ -298,4 +319,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

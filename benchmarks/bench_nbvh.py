@@ -17,8 +17,6 @@ load average at the start and end of training is recorded beside every training 
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import sys
 import time
@@ -30,9 +28,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import (ArgumentParser, check_device, check_mesh_spec, check_output_folder, fail, nonnegative_int,  # noqa: E402
+                     positive_int, result_name, run_main, seed_int)
 from bench_lsnif import best_rate, resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
+from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
 from neuralrt.methods import get_method  # noqa: E402
 from neuralrt.methods.config import parse_settings  # noqa: E402
@@ -61,16 +62,25 @@ def inference_speed(model, exact, rays_n: int, repeats: int, device: torch.devic
             "exact_rays_per_s": max(exact_rate), "speedup_vs_exact": max(neural) / max(exact_rate)}
 
 
-def run(spec: str, preset: str, args) -> dict:
-    device = torch.device(args.device)
-    mesh = resolve_mesh(spec)
+def preset_config(preset: str, args):
+    """The preset's config with --steps / --batch / --seed, then the --set keys (one-line `ConfigError`s)."""
     cfg = get_method("nbvh").config(preset, steps=args.steps, batch_size=args.batch, seed=args.seed)
     if args.set:
         overrides = parse_settings(args.set)
         data = cfg.model_dump()
         for section, values in overrides.items():
+            if not isinstance(data.get(section), dict):
+                raise ConfigError(f"--set {section}.*: unknown config section {section!r} (sections: "
+                                  f"{', '.join(k for k, v in data.items() if isinstance(v, dict))})")
             data[section].update(values)
-        cfg = type(cfg).model_validate(data)
+        cfg = type(cfg).validated(data)
+    return cfg
+
+
+def run(spec: str, preset: str, args) -> dict:
+    device = torch.device(args.device)
+    mesh = resolve_mesh(spec)
+    cfg = preset_config(preset, args)
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     model = train(mesh, cfg, progress=not args.quiet, device=device)
@@ -156,32 +166,51 @@ def _has_leaf_ancestor(model, lod: int) -> torch.Tensor:
     return below
 
 
-def main() -> None:
-    from _common import RESULTS_DIR, print_table, write_results
+def _check_model_and_mesh(option: str, rest: list[str]) -> None:
+    """``--offsets`` / ``--lods`` take exactly MODEL.nrt and a mesh spec: both checked before any work."""
+    from neuralrt.io.files import input_file_problem
 
-    if sys.argv[1:2] == ["--offsets"]:
-        return offsets(*sys.argv[2:4])
-    if sys.argv[1:2] == ["--lods"]:
-        return lods(*sys.argv[2:4])
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    if len(rest) != 2:
+        fail(f"{option} takes MODEL.nrt MESH, got {len(rest)} argument(s): {' '.join(rest) or 'none'}")
+    problem = input_file_problem(rest[0], "model file")
+    if problem:
+        fail(problem)
+    check_mesh_spec(rest[1])
+
+
+def main() -> None:
+    from _common import RESULTS_DIR, print_table, read_results, write_results
+
+    if sys.argv[1:2] in (["--offsets"], ["--lods"]):
+        _check_model_and_mesh(sys.argv[1], sys.argv[2:])
+        return (offsets if sys.argv[1] == "--offsets" else lods)(*sys.argv[2:4])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["cpu"])
-    p.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
-    p.add_argument("--batch", type=int, default=None, help="samples per step (default: the preset's)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--batch", type=positive_int, default=None, help="samples per step (default: the preset's)")
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--device", default="cpu")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="change one config key of the preset (repeatable)")
-    p.add_argument("--eval-rays", type=int, default=1 << 17)
-    p.add_argument("--image-resolution", type=int, default=128)
-    p.add_argument("--inference-rays", type=int, default=1 << 18, help="0 skips the speed test")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--eval-rays", type=positive_int, default=1 << 17)
+    p.add_argument("--image-resolution", type=positive_int, default=128)
+    p.add_argument("--inference-rays", type=nonnegative_int, default=1 << 18, help="0 skips the speed test")
+    p.add_argument("--repeats", type=positive_int, default=3)
     p.add_argument("--models-dir", default=None, help="also save the trained models here")
-    p.add_argument("--name", default="nbvh", help="results file: benchmarks/results/NAME.json (runs merge into it)")
+    p.add_argument("--name", type=result_name, default="nbvh", help="results file: benchmarks/results/NAME.json (runs merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
 
+    # Every check before the first training (a bad second preset or mesh must not cost the first's run).
+    for spec in args.meshes:
+        check_mesh_spec(spec)
+    check_device(args.device)
+    for preset in args.presets:
+        preset_config(preset, args)
+    if args.models_dir:
+        check_output_folder(args.models_dir, "models")
     path = RESULTS_DIR / f"{args.name}.json"
-    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    runs = read_results(args.name).get("runs", {})
     for spec in args.meshes:
         for preset in args.presets:
             r = run(spec, preset, args)
@@ -193,4 +222,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -35,7 +35,6 @@ before and after each row. Writes benchmarks/results/nif[_<device>].json.
 
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import statistics
@@ -47,8 +46,10 @@ import neuralrt  # noqa: F401  (before torch: sets how OpenMP threads wait)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_device, check_scene, nonnegative_int, parse_mesh_spec, positive_int, print_table,  # noqa: E402
+                     result_name, run_main, write_results)
 
+from neuralrt.errors import ConfigError, MeshError, validation_message  # noqa: E402
 from neuralrt.eval.image_metrics import compare_images  # noqa: E402
 from neuralrt.methods.nif_config import NIFConfig, NIFTrainingConfig  # noqa: E402
 from neuralrt.render.integrator import render  # noqa: E402
@@ -132,6 +133,39 @@ def builtin_scene(builtin: str, detail: int, args):
     return scene, statues
 
 
+def check_scene_item(item: str) -> None:
+    """One ``--scenes`` item checked before any scene loads: ``mesh:FILE@loopK`` (FILE found, K a whole
+    number) or ``NAME[:D]``, a built-in scene with statues (NIF goes on them) at detail D."""
+    from neuralrt.scene.builtins import BUILTIN_SCENES, builtin_spec
+
+    if not item:
+        raise ConfigError("--scenes: an empty item (want NAME:DETAIL or mesh:FILE@loopK, comma-separated)")
+    if item.startswith("mesh:"):
+        spec = item[len("mesh:"):]
+        if spec.startswith("procedural:"):
+            raise MeshError(f"--scenes {item}: mesh:FILE@loopK takes a mesh file, not a procedural mesh")
+        parse_mesh_spec(spec)
+        return
+    builtin, _, detail = item.partition(":")
+    if not detail.isdigit() and detail != "":
+        raise ConfigError(f"--scenes {item}: want NAME:DETAIL (DETAIL a whole number) or mesh:FILE@loopK")
+    spec = check_scene(f"builtin:{builtin}?detail={int(detail or 2)}")
+    if not any(obj.generator is not None and obj.generator.name == "statue" for obj in spec.objects):
+        with_statues = [n for n in BUILTIN_SCENES if any(o.generator is not None and o.generator.name == "statue"
+                                                          for o in builtin_spec(n).objects)]
+        raise ConfigError(f"--scenes {item}: builtin:{builtin} has no statue to put NIF on (use {' or '.join(with_statues)}, or mesh:FILE@loopK)")
+
+
+def nif_config(args) -> NIFConfig:
+    """The NIF config of --passes, --train-spp and --pair-fraction (a bad value is a one-line `ConfigError`)."""
+    from pydantic import ValidationError
+
+    try:
+        return NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp, pair_fraction=args.pair_fraction))
+    except ValidationError as exc:
+        raise ConfigError(f"nif config: {validation_message(exc, NIFTrainingConfig)}") from None
+
+
 def bench_scene(item: str, args) -> dict:
     load_before = os.getloadavg()
     t0 = time.perf_counter()
@@ -143,7 +177,7 @@ def bench_scene(item: str, args) -> dict:
         label = f"{builtin}?detail={int(detail or 2)}"
         scene, objects = builtin_scene(builtin, int(detail or 2), args)
     load_s = time.perf_counter() - t0
-    cfg = NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp, pair_fraction=args.pair_fraction))
+    cfg = nif_config(args)
     render_nif(scene, objects, spp=2, train_spp=1, seed=0, progress=False, resolution=(16, 16))  # compile everything once
     kw = dict(spp=args.spp, seed=0, config=cfg, progress=False)
     nif, report = render_nif(scene, objects, audit=True, **kw)
@@ -192,19 +226,25 @@ def bench_scene(item: str, args) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--resolution", type=int, default=128)
-    ap.add_argument("--spp", type=int, default=64)
-    ap.add_argument("--train-spp", type=int, default=32)
-    ap.add_argument("--passes", type=int, default=NIFTrainingConfig().passes_per_spp)
+    ap = ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--resolution", type=positive_int, default=128)
+    ap.add_argument("--spp", type=positive_int, default=64)
+    ap.add_argument("--train-spp", type=positive_int, default=32)
+    ap.add_argument("--passes", type=positive_int, default=NIFTrainingConfig().passes_per_spp)
     ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
     ap.add_argument("--pair-fraction", type=float, default=NIFTrainingConfig().pair_fraction,
                     help="share of each round's pairs a training pass uses (NIFTrainingConfig.pair_fraction)")
-    ap.add_argument("--repeats", type=int, default=3, help="NIF renders without the audit, for the training share (median; 0: quality only)")
+    ap.add_argument("--repeats", type=nonnegative_int, default=3, help="NIF renders without the audit, for the training share (median; 0: quality only)")
     ap.add_argument("--mesh-cache", default="/tmp/neuralrt-nif-meshes", help="where mesh:FILE@loopK scenes keep their subdivided meshes")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--name", help="results file name (default: nif, or nif_<device>)")
+    ap.add_argument("--name", type=result_name, help="results file name (default: nif, or nif_<device>)")
     args = ap.parse_args()
+    check_device(args.device)  # every check before the first scene's work
+    nif_config(args)
+    if not args.scenes.strip(","):
+        raise ConfigError("--scenes: no scene given")
+    for item in args.scenes.split(","):
+        check_scene_item(item)
     warm_up(args.device)
     rows = []
     for item in args.scenes.split(","):
@@ -219,4 +259,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -37,7 +37,6 @@ kernels use their own threads.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -49,9 +48,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_scene, nonnegative_int, positive_int, print_table, result_name,  # noqa: E402
+                     run_main, write_results)
 
 from neuralrt.accel.tlas_stages import NumbaTLASStages  # noqa: E402
+from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.render import shading_stages  # noqa: E402
 from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.builtins import BUILTIN_SCENES  # noqa: E402
@@ -111,10 +112,24 @@ class _StageTimer:
 
 
 
+def _is_file(name: str) -> bool:
+    return name.endswith((".toml", ".json"))
+
+
+def check_scenes(names: list[str], detail: int | None) -> None:
+    """Every --scenes item (a built-in name, or a .toml/.json scene file) before any render (one-line errors)."""
+    if not any(names):
+        raise ConfigError("--scenes: no scene given")
+    for name in names:
+        if not name:
+            raise ConfigError(f"--scenes {','.join(names)}: an empty item (built-in names and/or scene files, comma-separated)")
+        check_scene(name if _is_file(name) else f"builtin:{name}", detail=None if _is_file(name) else detail)
+
+
 def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeats: int, threads: int,
                 stage_timer: _StageTimer) -> dict:
     # A built-in name, or a scene file (e.g. one `neuralrt convert` wrote: neural models beside meshes).
-    is_file = name.endswith((".toml", ".json"))
+    is_file = _is_file(name)
     scene = load_scene(name if is_file else f"builtin:{name}", resolution=(resolution, resolution), detail=None if is_file else detail)
     unique = {id(i.blas): i.blas for i in scene.accel.instances}
     stages = {backend: NumbaTLASStages(scene.accel.table, broad_phase=CONFIGS[backend][1], fused_meshes=CONFIGS[backend][2])
@@ -169,16 +184,17 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--resolution", type=int, default=256)
-    parser.add_argument("--spp", type=int, default=4)
-    parser.add_argument("--detail", type=int, default=None, help="procedural detail (default: each scene's)")
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--resolution", type=positive_int, default=256)
+    parser.add_argument("--spp", type=positive_int, default=4)
+    parser.add_argument("--detail", type=nonnegative_int, default=None, help="procedural detail (default: each scene's)")
     parser.add_argument("--scenes", default=",".join(BUILTIN_SCENES),
                         help="built-in names and/or scene files (.toml/.json, e.g. converted hybrid scenes), comma-separated")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    parser.add_argument("--name", default="render", help="results file: benchmarks/results/NAME.json")
-    parser.add_argument("--repeats", type=int, default=3, help="renders per scene and implementation; the fastest is reported")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads")
+    parser.add_argument("--name", type=result_name, default="render", help="results file: benchmarks/results/NAME.json")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="renders per scene and implementation; the fastest is reported")
     args = parser.parse_args(argv)
+    check_scenes(args.scenes.split(","), args.detail)
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()[0]
     start = time.perf_counter()
@@ -197,4 +213,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -39,6 +39,12 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _common import (ArgumentParser, check_mesh_spec, check_presets, fail, positive_int, prog, result_name,  # noqa: E402
+                     run_main)
+
+SCATTERS = ("auto", "row_ranges", "buckets", "saved_rows", "thread_tables")  # SparseHashGrid.backward_scatter
 
 
 def _at_batch(config, batch: int, default_steps: int):
@@ -130,7 +136,6 @@ def _child(args) -> dict:
     import numba
     import torch
 
-    sys.path.insert(0, str(HERE))
     from bench_lsnif import resolve_mesh
     from _stage_timer import StageTimer
     from bench_training import _train
@@ -206,7 +211,6 @@ def _child(args) -> dict:
 
 def _write(args, rows: list[dict], show: bool) -> Path:
     """The table (each figure against the 2-thread and 1-thread processes, where run) and the JSON."""
-    sys.path.insert(0, str(HERE))
     from _common import machine_info, print_table, write_results
 
     figures = [k for k in rows[0] if k.endswith("rays/s")]
@@ -248,35 +252,39 @@ def _serial_parts(one: dict, two: dict) -> list[dict]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=positive_int, nargs="+", default=[1, 2, 4, 8, 16])
     ap.add_argument("--train-mesh", default="procedural:statue:2")
     ap.add_argument("--infer-mesh", default="procedural:hairball:6")
     ap.add_argument("--presets", nargs="+", default=["hq", "lq"])
-    ap.add_argument("--steps", type=int, default=40)
-    ap.add_argument("--train-batches", type=int, nargs="*", default=[],
+    ap.add_argument("--steps", type=positive_int, default=40)
+    ap.add_argument("--train-batches", type=positive_int, nargs="*", default=[],
                     help="training rays/s also at these batch sizes (the same rays drawn: fewer steps)")
     ap.add_argument("--profile", action="store_true",
                     help="one more training run per preset and batch size with stage timers: ms per step in each stage")
-    ap.add_argument("--scatters", nargs="*", default=[],
+    ap.add_argument("--scatters", nargs="*", default=[], choices=SCATTERS,
                     help="also time the encoder's backward with these table-gradient scatters (row_ranges, buckets, saved_rows)")
     ap.add_argument("--skip-training", action="store_true", help="inference alone")
     ap.add_argument("--switches", nargs="*", type=_switch_argument, default=[],
                     help="inference also with each of these settings (NAME=VALUE[,NAME=VALUE...]: switches of lsnif_fused_cpu "
                          "such as HIDDEN_LAYERS_IN_DECODE=True, or chunk_size=N), interleaved with the default")
-    ap.add_argument("--rays", type=int, default=1 << 18)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--name", default="scaling_cpu")
+    ap.add_argument("--rays", type=positive_int, default=1 << 18)
+    ap.add_argument("--repeats", type=positive_int, default=5)
+    ap.add_argument("--name", type=result_name, default="scaling_cpu")
     ap.add_argument("--child", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print("RESULT " + json.dumps(_child(args)), flush=True)
         return
 
+    # Every check here, before the first process starts (a bad argument is one line, not each child's traceback).
+    check_mesh_spec(args.train_mesh)
+    check_mesh_spec(args.infer_mesh)
+    check_presets("lsnif", args.presets)
     cores = sorted(os.sched_getaffinity(0))
     counts = [n for n in args.threads if n <= len(cores)]
     if not counts:
-        sys.exit(f"neuralrt: error: no thread count in {args.threads} fits this machine's {len(cores)} cores")
+        fail(f"no thread count in {' '.join(map(str, args.threads))} fits this machine's {len(cores)} cores")
     rows = []
     for n in counts:
         env = dict(os.environ, NUMBA_NUM_THREADS=str(n), OMP_NUM_THREADS=str(n), MKL_NUM_THREADS=str(n))
@@ -286,7 +294,7 @@ def main() -> None:
         lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
         if done.returncode or not lines:
             sys.stderr.write(done.stdout[-4000:] + done.stderr[-4000:])
-            sys.exit(f"neuralrt: error: the {n}-thread process failed (exit {done.returncode})")
+            sys.exit(f"{prog()}: error: the {n}-thread process failed (exit {done.returncode})")
         row = json.loads(lines[-1][len("RESULT "):])
         row["process_s"] = time.perf_counter() - t0
         rows.append(row)
@@ -296,4 +304,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -23,7 +23,6 @@ Rows merge by scene into benchmarks/results/NAME.json; a FLIP-vs-memory plot goe
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -31,7 +30,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import RESULTS_DIR, print_table, write_results  # noqa: E402
+from _common import (RESULTS_DIR, ArgumentParser, check_output_folder, check_scene, nonnegative_int,  # noqa: E402
+                     positive_int, print_table, read_results, result_name, run_main, save_figure, seed_int, write_results)
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 DEFAULT_SCENES = ["builtin:cornell-statue", "builtin:hairball", "builtin:foliage", "builtin:instances", "shared"]
@@ -265,35 +265,57 @@ def plot(rows: list[dict], path: Path) -> None:
     ax.set_ylabel("FLIP vs exact render")
     ax.set_title("Hybrid rendering: error vs memory")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
+
+
+def check_arguments(args) -> None:
+    """Every scene, variant, count and folder, before anything is trained or written (one-line errors)."""
+    from bench_methods import per_method, variant_config
+    from neuralrt.errors import ConfigError
+
+    if not args.scenes:
+        raise ConfigError("--scenes: no scene given")
+    for scene in args.scenes:
+        if scene != "shared":
+            check_scene(scene)
+    steps, batch = per_method(args.steps, "--steps"), per_method(args.batch, "--batch")
+    for variant in args.variants:
+        variant_config(variant.removesuffix("+neural"), steps, batch)
+    if all(v.endswith("+neural") for v in args.variants):
+        raise ConfigError("--variants: at least one variant without +neural (its scene gives the replaced objects' figures)")
+    for source in args.decimate or []:
+        if source not in args.variants:
+            raise ConfigError(f"--decimate {source}: not one of --variants ({' '.join(args.variants)}): decimation matches the bytes of a variant's models")
+    check_output_folder(args.work, "work files")
+    check_output_folder(args.models_dir, "models")
+    read_results(args.name)  # (an unreadable earlier results file: said now, not after the renders)
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="*", default=DEFAULT_SCENES)
-    p.add_argument("--res", type=int, default=256)
-    p.add_argument("--spp", type=int, default=64)
-    p.add_argument("--max-depth", type=int, default=4)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--repeats", type=int, default=2, help="timed renders per scene and mode (best is kept)")
+    p.add_argument("--res", type=positive_int, default=256)
+    p.add_argument("--spp", type=positive_int, default=64)
+    p.add_argument("--max-depth", type=positive_int, default=4)
+    p.add_argument("--seed", type=seed_int, default=1)
+    p.add_argument("--repeats", type=positive_int, default=2, help="timed renders per scene and mode (best is kept)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the presets')")
     p.add_argument("--batch", nargs="*", default=[], metavar="METHOD=N", help="training rays per step per method (default: the presets')")
-    p.add_argument("--min-triangles", type=int, default=None)
+    p.add_argument("--min-triangles", type=nonnegative_int, default=None)
     p.add_argument("--variants", nargs="+", default=["lsnif:hq", "lsnif:lq"],
                    help="METHOD:PRESET[:tN] answering the large objects (bench_methods.py's variants; default: %(default)s); "
                         "a trailing +neural: the same models answer camera rays too (--primary neural)")
     p.add_argument("--decimate", nargs="*", default=None, metavar="VARIANT",
                    help="also render with each large mesh decimated to the bytes of these variants' models")
     p.add_argument("--models-dir", type=Path, default=None, help="model cache (default: WORK/models); bench_methods.py's is /tmp/methods-models")
-    p.add_argument("--name", default="scenes", help="results: benchmarks/results/NAME.json and NAME.png (rows merge by scene)")
+    p.add_argument("--name", type=result_name, default="scenes", help="results: benchmarks/results/NAME.json and NAME.png (rows merge by scene)")
     p.add_argument("--work", type=Path, default=Path("/tmp/neuralrt-bench-scenes"))
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
     args.models_dir = args.models_dir or args.work / "models"
+    check_arguments(args)
     path = RESULTS_DIR / f"{args.name}.json"
-    import json
-
-    previous = json.loads(path.read_text()) if path.exists() else {}
+    previous = read_results(args.name)
     rows = previous.get("rows", [])
     settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     # Rows carry the settings they were measured with; the file's earlier run-level settings are kept
@@ -324,4 +346,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

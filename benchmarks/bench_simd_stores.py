@@ -14,7 +14,6 @@ the 2-core Zen 4 of session 41 the memory-form compress took 22 ns, the register
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -28,7 +27,7 @@ from numba import types
 from numba.extending import intrinsic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import print_table, write_results  # noqa: E402
+from _common import ArgumentParser, positive_int, print_table, result_name, run_main, write_results  # noqa: E402
 
 from neuralrt.simd import HAS_AVX512, _llvm_function, element_pointer, prefix_mask  # noqa: E402
 from neuralrt.simd16 import (  # noqa: E402
@@ -113,10 +112,10 @@ def _gather_scatter_loop(table, indices, masks, scatter):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ops", type=int, default=1 << 20)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--name", default="simd_stores")
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ops", type=positive_int, default=1 << 20)
+    ap.add_argument("--repeats", type=positive_int, default=5)
+    ap.add_argument("--name", type=result_name, default="simd_stores")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     source = rng.random(2048, dtype=np.float32)
@@ -147,4 +146,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

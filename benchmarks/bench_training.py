@@ -58,7 +58,6 @@ Writes benchmarks/results/<--name>.json (training_cpu.json holds the earlier pai
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import os
 import statistics
@@ -71,7 +70,8 @@ import numba
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine_info, print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, check_presets, machine_info, positive_int, print_table,  # noqa: E402
+                     result_name, run_main, write_results)
 from _stage_timer import StageTimer  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
@@ -203,15 +203,17 @@ def _profile(mesh, truth, config, steps: int, variant: str) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", default="/work/shared/meshes/bunny00.off")
     ap.add_argument("--preset", default="hq")
-    ap.add_argument("--steps", type=int, default=60)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--name", default="training_cpu_step")
+    ap.add_argument("--steps", type=positive_int, default=60)
+    ap.add_argument("--repeats", type=positive_int, default=3)
+    ap.add_argument("--name", type=result_name, default="training_cpu_step")
     ap.add_argument("--pair", choices=("step", "mlp", "previous", "saved_rows", "rows", "saved_rows_and_index", "prepare_ahead", "row_bucket", "draw_priority", "overlap", "overlap_trial", "loss_threads", "scatter", "draw_threads", "loss_chunks", "draw_pool", "float32_walk"), default="step", help="which before/after pair (module docstring)")
-    ap.add_argument("--draw-threads", type=int, default=1, help="the drawing thread's numba threads in draw_threads' after")
+    ap.add_argument("--draw-threads", type=positive_int, default=1, help="the drawing thread's numba threads in draw_threads' after")
     args = ap.parse_args()
+    check_mesh_spec(args.mesh)  # every check before the warm-up trainings
+    check_presets("lsnif", [args.preset])
     global PAIR, DRAW_THREADS
     PAIR, DRAW_THREADS = args.pair, args.draw_threads
     mesh = resolve_mesh(args.mesh)  # a path, or procedural:NAME:DETAIL (machines without ../shared)
@@ -251,4 +253,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

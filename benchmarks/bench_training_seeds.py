@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, check_presets, positive_int, print_table, result_name,  # noqa: E402
+                     run_main, write_results)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -45,8 +46,17 @@ def _mesh(spec: str) -> Mesh:
 
 
 def _seeds(text: str) -> list[int]:
-    lo, _, hi = text.partition("-")
-    return list(range(int(lo), int(hi) + 1)) if hi else [int(s) for s in text.split(",")]
+    """``"0-15"`` (a range, both ends included) or ``"0,3,7"`` (argparse type: a bad list is one line)."""
+    lo, dash, hi = text.partition("-")
+    try:
+        seeds = list(range(int(lo), int(hi) + 1)) if dash else [int(s) for s in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: want FIRST-LAST (e.g. 0-15) or a comma-separated list (e.g. 0,3,7) of seeds >= 0") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError(f"{text!r}: an empty range (FIRST-LAST needs FIRST <= LAST)")
+    if min(seeds) < 0 or max(seeds) >= 1 << 63:
+        raise argparse.ArgumentTypeError(f"{text!r}: seeds must be in [0, 2^63)")
+    return seeds
 
 
 def _score(model, blas: MeshBLAS) -> dict:
@@ -61,16 +71,20 @@ def _score(model, blas: MeshBLAS) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--mesh", default="sphere")
+    ap = ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--mesh", default="sphere", help="sphere (tests/test_lsnif.py's ball) or a mesh spec as bench_lsnif.py's")
     ap.add_argument("--preset", default="hq")
-    ap.add_argument("--steps", type=int, default=150)
-    ap.add_argument("--batch", type=int, default=4096)
+    ap.add_argument("--steps", type=positive_int, default=150)
+    ap.add_argument("--batch", type=positive_int, default=4096)
     ap.add_argument("--lr-decay", type=float, default=0.5, help="lr_decay_final (1: a constant rate)")
-    ap.add_argument("--seeds", default="0-15", help="'0-15' or '0,3,7'")
+    ap.add_argument("--seeds", type=_seeds, default="0-15", help="'0-15' or '0,3,7'")
     ap.add_argument("--walks", nargs="+", choices=("float64", "float32"), default=["float64", "float32"])
-    ap.add_argument("--name", default="training_seeds")
+    ap.add_argument("--name", type=result_name, default="training_seeds")
     args = ap.parse_args()
+    if args.mesh != "sphere":  # every check before the first training
+        check_mesh_spec(args.mesh)
+    check_presets("lsnif", [args.preset], steps=args.steps, batch_size=args.batch, lr_decay_final=args.lr_decay,
+                  seed=max(args.seeds))
     mesh = _mesh(args.mesh)
     blas = MeshBLAS(mesh)
     init = LSNIFModel.__init__
@@ -82,7 +96,7 @@ def main() -> None:
             self.float32_walk = _walk == "float32"
 
         LSNIFModel.__init__ = with_walk
-        for seed in _seeds(args.seeds):
+        for seed in args.seeds:
             config = LSNIFConfig.preset(args.preset).with_training(steps=args.steps, batch_size=args.batch, seed=seed,
                                                                    lr_decay_final=args.lr_decay)  # fmt: skip
             t0 = time.perf_counter()
@@ -103,4 +117,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

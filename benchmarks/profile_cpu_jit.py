@@ -19,7 +19,6 @@ the profile this gave and what it led to.
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import sys
@@ -31,6 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _common import ArgumentParser, check_mesh_spec, check_presets, run_main  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -102,7 +102,7 @@ def build_model(mesh, method: str, preset: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh", nargs="?", default="procedural:hairball:6", help="a mesh file or procedural:NAME:DETAIL")
     parser.add_argument("--method", choices=["lsnif", "nbvh"], default="lsnif")
     parser.add_argument("--preset", default=None, help="the method's preset (default: lq for LSNIF, cpu for N-BVH)")
@@ -114,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.rays < 1 or args.seconds <= 0:
         parser.error("--rays and --seconds must be positive")
     preset = args.preset or ("lq" if args.method == "lsnif" else "cpu")
+    check_mesh_spec(args.mesh)  # both before the mesh is built
+    check_presets(args.method, [preset])
     mesh = resolve_mesh(args.mesh)
     model = load_model(args.model) if args.model else build_model(mesh, args.method, preset)
     rays = BoxRayDistribution(MeshBLAS(mesh), model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays
@@ -131,4 +133,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run_main(main)

@@ -215,3 +215,22 @@ def test_nif_refuses_converted_objects_saying_why(converted):
     folder, _ = converted
     with pytest.raises(ConfigError, match="is answered by a neural model"):
         select_nif_instances(load_scene(folder / "out" / "neural.toml"), "ball1")
+
+
+def test_checkpoints_are_at_absolute_paths_for_a_relative_output(tmp_path, monkeypatch):
+    """A Ray worker runs in its own folder: a relative checkpoint path would write (and look) elsewhere."""
+    import neuralrt.scene.convert as convert_module
+
+    jobs = []
+    real = convert_module.TrainingJob
+
+    def recording(*args, **kwargs):
+        jobs.append(real(*args, **kwargs))
+        return jobs[-1]
+
+    monkeypatch.setattr(convert_module, "TrainingJob", recording)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scene.json").write_text('{"camera": {"resolution": [8, 8]}, "objects": [{"name": "ball", '
+                                         '"generator": {"name": "sphere", "params": {"subdivisions": 2}}}]}')
+    convert_module.convert_scene("scene.json", "out/scene.json", preset="lq", steps=2, batch=256, min_triangles=0, progress=False)
+    assert len(jobs) == 1 and jobs[0].checkpoint == tmp_path / "out" / "models" / f"{jobs[0].key}.ckpt"

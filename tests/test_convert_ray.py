@@ -181,7 +181,8 @@ def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
         port = s.getsockname()[1]
     out = tmp_path / "out" / "scene.toml"
     start = time.monotonic()
-    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--address", f"127.0.0.1:{port}"]) == 2
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--address", f"127.0.0.1:{port}",
+                 "--min-triangles", "100", "--quiet"]) == 2  # (reached once a model needs training)
     assert "ray start --head" in _one_error_line(capsys) and time.monotonic() - start < 10
     for extra, words in [(["--address", "auto"], "only with --executor ray"),
                          (["--executor", "ray", "--gpus-per-model", "1"], "needs --device cuda"),
@@ -192,3 +193,46 @@ def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
         assert main(["convert", str(scene), "-o", str(out), "--min-triangles", "100", *extra]) == 2
         assert words in _one_error_line(capsys), extra
     assert not (tmp_path / "out").exists()
+
+
+def _serve_once(reply: bytes) -> tuple[int, threading.Thread]:
+    """A port on which one connection gets ``reply`` (then closed): another kind of server, or a fake gRPC one."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+
+    def answer():
+        with server:
+            conn, _ = server.accept()
+            with conn:
+                conn.recv(64)
+                conn.sendall(reply)
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    return server.getsockname()[1], thread
+
+
+def test_an_address_where_another_server_listens_is_one_line_at_once(tmp_path, capsys):
+    from neuralrt.scene.convert_executors import _probe
+
+    port, _ = _serve_once(b"HTTP/1.0 400 Bad Request\r\n\r\n")
+    scene, out = _scene(tmp_path, THREE[:1]), tmp_path / "out" / "scene.toml"
+    start = time.monotonic()
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--address", f"127.0.0.1:{port}",
+                 "--min-triangles", "100", "--quiet"]) == 2
+    assert "something listens there, but not Ray" in _one_error_line(capsys) and time.monotonic() - start < 10
+    assert not (tmp_path / "out").exists()  # made for the conversion, removed when it failed
+    port, thread = _serve_once(b"\x00\x00\x18\x04\x00\x00\x00\x00\x00")  # a gRPC server's first frame: SETTINGS
+    _probe(f"127.0.0.1:{port}")
+    thread.join(5)
+
+
+def test_a_rerun_with_every_model_present_needs_no_cluster(tmp_path, capsys):
+    scene, out = _scene(tmp_path, THREE[:1]), tmp_path / "out" / "scene.toml"
+    first = convert_scene(scene, out, executor="local", **TRAIN)
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    again = convert_scene(scene, out, executor="ray", address=f"127.0.0.1:{port}", **TRAIN)
+    assert [m.reused for m in again.models] == [True] and again.models[0].model_path == first.models[0].model_path

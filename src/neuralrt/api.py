@@ -9,7 +9,7 @@ from pathlib import Path
 from .arguments import check_count, check_name, check_seed
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, NeuralRTError
-from .io.files import check_output_file, check_output_folder
+from .io.files import check_output_file, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
@@ -307,25 +307,14 @@ def train(
                       "replaces it (--resume continues it instead)", stacklevel=2)
     if not isinstance(mesh, Mesh):
         mesh = load_mesh(mesh)
-    made = _missing_folders(output.parent)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    try:
+    with folders_removed_if_left_empty(output.parent):  # (an interrupt too) stopped before the first checkpoint
+        output.parent.mkdir(parents=True, exist_ok=True)
         model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
-    except BaseException:  # (an interrupt too) stopped before the first checkpoint: leave no new empty folders
-        for folder in made:
-            if not any(folder.iterdir()):
-                folder.rmdir()
-        raise
     model.save(output)
     checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
     return {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
             "memory_parts": dict(memory.parts), "training": model.training_record}
-
-
-def _missing_folders(folder: Path) -> list[Path]:
-    """``folder`` and its ancestors that do not exist yet, deepest first."""
-    return [f for f in (folder, *folder.parents) if not f.exists()]
 
 
 def list_presets() -> list[dict]:

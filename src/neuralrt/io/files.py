@@ -10,6 +10,7 @@ any file a program opens for writing (``tempfile.mkstemp`` would make every outp
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import stat
@@ -18,7 +19,7 @@ from pathlib import Path
 
 from ..errors import NeuralRTError
 
-__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_folder"]
+__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_folder", "folders_removed_if_left_empty"]
 
 
 def _create_sibling(path: Path) -> Path:
@@ -106,3 +107,17 @@ def check_output_folder(folder: str | os.PathLike, what: str) -> None:
     problem = _writable_folder_problem(Path(folder), what)
     if problem:
         raise NeuralRTError(problem)
+
+
+@contextlib.contextmanager
+def folders_removed_if_left_empty(*folders: str | os.PathLike):
+    """Run the block; if it fails (an interrupt too), remove those of ``folders`` and their ancestors
+    that did not exist before it and are still empty: a failed command leaves no new empty folders."""
+    new = list(dict.fromkeys(f for folder in folders for f in (Path(folder), *Path(folder).parents) if not f.exists()))
+    try:
+        yield
+    except BaseException:
+        for folder in sorted(new, key=lambda f: len(f.parts), reverse=True):  # deepest first
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise

@@ -24,7 +24,7 @@ import torch
 
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
-from ..io.files import check_output_file, check_output_folder, write_atomically
+from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .convert_executors import Executor, TrainingJob, make_executor
@@ -245,7 +245,7 @@ def convert_scene(
     runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
                            address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
                            max_retries=max_retries)
-    with runner:
+    with runner, folders_removed_if_left_empty(output.parent, models_dir):  # (Ray may fail once they exist)
         return _convert(scene, output, runner, models_dir=models_dir, select=select, min_triangles=min_triangles,
                         config=config, preset=preset, group=group, detail=detail, progress=progress)
 
@@ -291,7 +291,8 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
             if progress:
                 print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
             continue
-        to_train.append(TrainingJob(stem, mesh, config, method, models_dir / f"{stem}.ckpt",
+        # Absolute: a Ray worker runs in its own folder, where a relative path would put (and look for) another file.
+        to_train.append(TrainingJob(stem, mesh, config, method, models_dir.absolute() / f"{stem}.ckpt",
                                     f"{config.method} {preset} model of {mesh.name!r} ({mesh.num_triangles:,} triangles, "
                                     f"{len(users)} object(s))"))
     trained = {}

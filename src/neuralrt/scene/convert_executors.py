@@ -175,12 +175,12 @@ class RayOptions(BaseModel):
 
     address: str | None = Field(None, description="existing cluster: 'auto', HOST:PORT or ray://HOST:PORT; "
                                                   "None: start a local Ray instance on this machine's cores")
-    cpus_per_model: float = Field(1.0, gt=0, description="Ray CPUs each training task asks for")
-    gpus_per_model: float | None = Field(None, ge=0, description="Ray GPUs each task asks for (default: 1 on cuda, 0 on cpu; "
+    cpus_per_model: float = Field(1.0, gt=0, strict=True, description="Ray CPUs each training task asks for")
+    gpus_per_model: float | None = Field(None, ge=0, strict=True, description="Ray GPUs each task asks for (default: 1 on cuda, 0 on cpu; "
                                                                  "a fraction shares a GPU)")
-    threads_per_model: int | None = Field(None, ge=1, description="torch and numba threads of each task "
+    threads_per_model: int | None = Field(None, ge=1, strict=True, description="torch and numba threads of each task "
                                                                   "(default: cpus_per_model, at least 1)")
-    max_retries: int = Field(3, ge=0, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
+    max_retries: int = Field(3, ge=0, strict=True, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
 
     @classmethod
     def parse(cls, **values) -> "RayOptions":
@@ -201,11 +201,15 @@ def _import_ray():
     return ray
 
 
-def _probe(address: str, timeout: float = 3.0) -> None:
-    """One-line error unless something listens at ``address`` (HOST:PORT or ray://HOST:PORT): Ray
-    itself retries an unreachable address for minutes before giving up."""
-    if address == "auto":
-        return  # Ray finds the cluster on this machine, or says at once that there is none
+_NO_CLUSTER_HINT = "start one with `ray start --head` on the head node, or leave --address out for a local Ray instance"
+# A client's HTTP/2 connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the
+# Ray Client server) answers with its own SETTINGS frame at once; anything else does not.
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+_SETTINGS_FRAME = 0x04
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    """(host, port) of HOST:PORT or ray://HOST:PORT; a one-line error for anything else."""
     parsed = urlparse(address if "://" in address else f"tcp://{address}")
     try:
         host, port = parsed.hostname, parsed.port
@@ -213,11 +217,26 @@ def _probe(address: str, timeout: float = 3.0) -> None:
         host = port = None
     if not host or not port:
         raise ConfigError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+    return host, port
+
+
+def _probe(address: str, timeout: float = 3.0) -> None:
+    """One-line error unless a gRPC server (as Ray's are) answers at ``address`` (HOST:PORT or
+    ray://HOST:PORT): Ray itself retries an unreachable address for minutes, and an address where
+    another kind of server listens forever."""
+    if address == "auto":
+        return  # Ray finds the cluster on this machine, or says at once that there is none
+    host, port = _host_port(address)
     try:
-        socket.create_connection((host, port), timeout=timeout).close()
+        with socket.create_connection((host, port), timeout=timeout) as conn:
+            conn.settimeout(timeout)
+            conn.sendall(_HTTP2_PREFACE)
+            head = conn.recv(9)
     except OSError as exc:
-        raise ConfigError(f"--address {address}: no Ray cluster reachable ({exc.strerror or exc}); start one with "
-                          f"`ray start --head` on the head node, or leave --address out for a local Ray instance") from None
+        raise ConfigError(f"--address {address}: no Ray cluster reachable ({exc.strerror or exc}); {_NO_CLUSTER_HINT}") from None
+    if len(head) < 9 or head[3] != _SETTINGS_FRAME:
+        raise ConfigError(f"--address {address}: something listens there, but not Ray (no gRPC answer); give the Ray "
+                          f"head's GCS port (`ray start --head --port`, 6379 by default) or ray://HOST:10001")
 
 
 class _ProgressBoard:
@@ -316,13 +335,13 @@ class RayExecutor(Executor):
         self._started = False  # this executor started (and so stops) the Ray instance
         self._running: dict = {}  # ObjectRef -> TrainingJob of each task still running
 
-    # Connecting to a given address happens on entry (fails fast); a local instance starts only
-    # when there is something to train (a rerun with every model present never starts Ray).
+    # Ray is reached only when there is something to train (a rerun with every model present needs
+    # no cluster and never starts one); entry checks what it can without it.
     def __enter__(self):
         self._ray = _import_ray()
         if self.options.address is not None:
-            _probe(self.options.address)
-            self._connect()
+            if self.options.address != "auto":
+                _host_port(self.options.address)  # the syntax now; whether Ray answers there, in `run`
         elif self._ray.is_initialized():
             self._check_resources()
         else:  # the local instance to come gets this machine's cores and GPUs
@@ -335,6 +354,8 @@ class RayExecutor(Executor):
         import logging
 
         ray = self._ray
+        if self.options.address is not None:
+            _probe(self.options.address)
         if not ray.is_initialized():  # else: a caller's own ray.init (tests, notebooks), used as it is
             try:
                 if self.options.address is None:
@@ -346,6 +367,9 @@ class RayExecutor(Executor):
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 if self.options.address is None:
                     raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
+                if self.options.address == "auto":
+                    raise ConfigError(f"--address auto: no running Ray cluster found on this machine ({str(exc).splitlines()[0]}); "
+                                      f"{_NO_CLUSTER_HINT}") from None
                 # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
                 raise ConfigError(f"--address {self.options.address}: could not connect to Ray ({str(exc).splitlines()[0]}); "
                                   f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
@@ -380,7 +404,12 @@ class RayExecutor(Executor):
             return
         self._connect()
         ray = self._ray
-        board = ray.remote(num_cpus=0)(_ProgressBoard).remote()
+        # On the driver's node: if the board's node died with it, the driver would lose its progress
+        # (and, before, the whole run); this node lives as long as the driver does.
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        here = NodeAffinitySchedulingStrategy(node_id=ray.get_runtime_context().get_node_id(), soft=False)
+        board = ray.remote(num_cpus=0)(_ProgressBoard).options(scheduling_strategy=here).remote()
         # One task per worker process (max_calls=1): a cancelled task's KeyboardInterrupt can land
         # inside a lazy import (torch imports its compiler, ~1.6 s, when training builds the
         # optimizer) and leave that module half-initialized in the process, and a reused worker
@@ -406,8 +435,12 @@ class RayExecutor(Executor):
         try:
             while running:
                 done, _ = ray.wait(list(running), num_returns=1, timeout=_PROGRESS_SECONDS)
-                if self.progress:
-                    self._show(bar, ray.get(board.snapshot.remote()), seen)
+                if self.progress and board is not None:
+                    try:
+                        self._show(bar, ray.get(board.snapshot.remote(), timeout=10), seen)
+                    except ray.exceptions.RayError:  # the board is gone: the models still come, without step counts
+                        board = None
+                        bar.write("(the progress board was lost: step counts stop, training goes on)")
                 for ref in done:
                     job = running.pop(ref)
                     try:

@@ -1,0 +1,254 @@
+"""Benchmark scripts refuse bad arguments before any work: one line ``<script>: error: ...`` on
+stderr, exit status 2, no traceback and nothing written to the results folder; `_common.write_results`
+checks the results name and writes atomically.
+
+A few cases per script run the script as a real subprocess (its own imports, its own exit status);
+the other cases run the script's code in this process (``runpy``, the same ``__main__`` path) to
+stay fast. Every mesh is procedural: nothing here needs ../shared/meshes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import runpy
+import stat
+import subprocess
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+REAL_RESULTS = BENCH / "results"
+sys.path.insert(0, str(BENCH))
+
+import _common  # noqa: E402
+
+from neuralrt.errors import ConfigError, NeuralRTError  # noqa: E402
+
+
+def _snapshot(folder: Path) -> dict:
+    return {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.iterdir()} if folder.is_dir() else {}
+
+
+_REAL_BEFORE = _snapshot(REAL_RESULTS)
+
+
+def _assert_one_error_line(script: str, code, stderr: str, expect: str) -> None:
+    lines = stderr.strip().splitlines()
+    assert code == 2, (code, stderr)
+    assert "Traceback" not in stderr, stderr
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith(f"{script}: error: "), stderr
+    assert expect in lines[0], stderr
+
+
+# --- real subprocesses: one or two cases per script ----------------------------------------------
+
+SUBPROCESS_CASES = [
+    ("bench_lsnif.py", ["procedural:statue:0", "nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--name", "trial_a/b"], "argument --name: 'trial_a/b'"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--device", "bogus"], "--device bogus"),
+    ("bench_lsnif_cpu.py", ["procedural:statue:0", "--rays", "0"], "argument --rays: must be at least 1"),
+    ("bench_training.py", ["--mesh", "procedural:statue:0", "--steps", "0"], "argument --steps: must be at least 1"),
+    ("bench_training_seeds.py", ["--seeds", "3-1"], "argument --seeds: '3-1'"),
+    ("bench_methods.py", ["procedural:statue:0", "--variants", "lsnif:bogus"], "unknown lsnif preset 'bogus'"),
+    ("bench_nif.py", ["--scenes", "bogus:2"], "builtin:bogus: unknown built-in scene"),
+    ("bench_scenes.py", ["--res", "0"], "argument --res: must be at least 1"),
+    ("bench_scenes.py", ["--scenes", "builtin:bogus"], "builtin:bogus: unknown built-in scene"),
+    ("bench_render.py", ["--threads", "0"], "argument --threads: must be at least 1"),
+    ("bench_scaling.py", ["--threads", "-1"], "argument --threads: must be at least 1"),
+    ("bench_convert_executors.py", ["--repeats", "0"], "argument --repeats: must be at least 1"),
+    ("bench_simd_stores.py", ["--name", "../../x"], "argument --name: '../../x'"),
+]
+
+
+@pytest.fixture(scope="module")
+def subprocess_results(tmp_path_factory):
+    """All subprocess cases, run a few at a time (each is mostly imports), with the results folder
+    moved to an empty temporary one: (exit status, stderr) per case, and that folder."""
+    results = tmp_path_factory.mktemp("results")
+    env = dict(os.environ, NEURALRT_BENCH_RESULTS=str(results))
+
+    def run(case):
+        script, args, _ = case
+        done = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True, text=True, env=env,
+                              cwd=tmp_path_factory.getbasetemp(), timeout=120)
+        return done.returncode, done.stderr
+
+    with ThreadPoolExecutor(max_workers=max(2, min(4, os.cpu_count() or 2))) as pool:
+        outcomes = list(pool.map(run, SUBPROCESS_CASES))
+    return outcomes, results
+
+
+@pytest.mark.parametrize("index", range(len(SUBPROCESS_CASES)),
+                         ids=[f"{s}:{' '.join(a)}" for s, a, _ in SUBPROCESS_CASES])
+def test_script_refuses_bad_argument_in_one_line(subprocess_results, index):
+    outcomes, results = subprocess_results
+    script, _, expect = SUBPROCESS_CASES[index]
+    code, stderr = outcomes[index]
+    _assert_one_error_line(script, code, stderr, expect)
+    assert not any(results.iterdir()), list(results.iterdir())
+
+
+# --- the same entry points in this process: the remaining cases -----------------------------------
+
+IN_PROCESS_CASES = [
+    # bench_lsnif: mesh specs, presets, counts, names (defects 1, 2, 4)
+    ("bench_lsnif.py", ["procedural:statue"], "procedural:statue: not a procedural mesh spec"),
+    ("bench_lsnif.py", ["procedural:sphere:2"], "use procedural:NAME:DETAIL with NAME one of statue"),
+    ("bench_lsnif.py", ["procedural:statue:9"], "DETAIL must be an integer in 0..5"),
+    ("bench_lsnif.py", ["procedural:statue:0", "procedural:hairball:0@loop1"], "DETAIL must be an integer in 0..8"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--presets", "lq", "bogus"], "unknown lsnif preset 'bogus'"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--batch", "-5"], "argument --batch: must be at least 1"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--name", "../../x"], "argument --name"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--name", ""], "argument --name: '': must not be empty"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--name", ".hidden"], "must not start with '.'"),
+    ("bench_lsnif.py", ["procedural:statue:0", "--remeasure-inference"], "--remeasure-inference needs --models-dir"),
+    # bench_nbvh
+    ("bench_nbvh.py", ["nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--presets", "cpu", "bogus"], "unknown nbvh preset 'bogus'"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--set", "training.steps=-1"], "training.steps"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--set", "nosuch.key=1"], "unknown config section 'nosuch'"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--name", "a/b"], "argument --name"),
+    ("bench_nbvh.py", ["--lods", "nonexistent.nrt"], "--lods takes MODEL.nrt MESH"),
+    # bench_lsnif_cpu
+    ("bench_lsnif_cpu.py", ["procedural:statue:0", "nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_lsnif_cpu.py", ["procedural:statue:0", "--presets", "hq", "bogus"], "unknown lsnif preset 'bogus'"),
+    # bench_training
+    ("bench_training.py", ["--mesh", "nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_training.py", ["--mesh", "procedural:statue:0", "--preset", "bogus"], "unknown lsnif preset 'bogus'"),
+    ("bench_training.py", ["--mesh", "procedural:statue:0", "--repeats", "0"], "argument --repeats"),
+    # bench_training_seeds
+    ("bench_training_seeds.py", ["--seeds", "bogus"], "argument --seeds: 'bogus'"),
+    ("bench_training_seeds.py", ["--preset", "bogus"], "unknown lsnif preset 'bogus'"),
+    ("bench_training_seeds.py", ["--steps", "0"], "argument --steps"),
+    ("bench_training_seeds.py", ["--mesh", "procedural:sphere:2"], "not a procedural mesh spec"),
+    # bench_methods
+    ("bench_methods.py", ["nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_methods.py", ["procedural:statue:0", "--variants", "bogus:hq"], "unknown method 'bogus'"),
+    ("bench_methods.py", ["procedural:statue:0", "--variants", "nbvh:cpu:tx"], "variant 'nbvh:cpu:tx'"),
+    ("bench_methods.py", ["procedural:statue:0", "--steps", "lsnif"], "--steps lsnif: expected METHOD=N"),
+    ("bench_methods.py", ["procedural:statue:0", "--batch", "nbvh=0"], "--batch nbvh=0: N must be at least 1"),
+    ("bench_methods.py", ["procedural:statue:0", "--decimate-only", "--decimate"], "--decimate lsnif:hq"),
+    # bench_nif
+    ("bench_nif.py", ["--device", "bogus"], "--device bogus"),
+    ("bench_nif.py", ["--scenes", "hairball:2"], "no statue to put NIF on"),
+    ("bench_nif.py", ["--scenes", "mesh:nonexistent.off@loop1"], "nonexistent.off: mesh file not found"),
+    ("bench_nif.py", ["--pair-fraction", "2"], "pair_fraction"),
+    ("bench_nif.py", ["--spp", "0"], "argument --spp"),
+    # bench_scenes
+    ("bench_scenes.py", ["--scenes", "nosuch.toml"], "nosuch.toml: scene file not found"),
+    ("bench_scenes.py", ["--variants", "lsnif:bogus"], "unknown lsnif preset 'bogus'"),
+    ("bench_scenes.py", ["--variants", "lsnif:hq", "--decimate", "lsnif:lq"], "--decimate lsnif:lq: not one of --variants"),
+    ("bench_scenes.py", ["--name", "x/y"], "argument --name"),
+    # bench_render
+    ("bench_render.py", ["--scenes", "bogus"], "builtin:bogus: unknown built-in scene"),
+    ("bench_render.py", ["--scenes", "hairball,,foliage"], "an empty item"),
+    ("bench_render.py", ["--resolution", "0"], "argument --resolution"),
+    # bench_scaling (all before the first per-thread-count process)
+    ("bench_scaling.py", ["--threads", "0"], "argument --threads: must be at least 1"),
+    ("bench_scaling.py", ["--train-mesh", "procedural:statue"], "not a procedural mesh spec"),
+    ("bench_scaling.py", ["--presets", "hq", "bogus"], "unknown lsnif preset 'bogus'"),
+    # bench_convert_executors (defect 3)
+    ("bench_convert_executors.py", ["--repeats", "-1"], "argument --repeats"),
+    ("bench_convert_executors.py", ["--runs", ","], "--runs ','"),
+    ("bench_convert_executors.py", ["--runs", "local,bogus"], "unknown run(s) bogus"),
+    ("bench_convert_executors.py", ["--name", "a/b"], "argument --name"),
+]
+
+
+@pytest.fixture
+def results_dir(tmp_path, monkeypatch):
+    folder = tmp_path / "results"
+    monkeypatch.setattr(_common, "RESULTS_DIR", folder)
+    monkeypatch.chdir(tmp_path)
+    return folder
+
+
+@pytest.mark.parametrize("script,args,expect", IN_PROCESS_CASES, ids=[f"{s}:{' '.join(a)}" for s, a, _ in IN_PROCESS_CASES])
+def test_script_checks_before_work(script, args, expect, results_dir, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [str(BENCH / script), *args])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(BENCH / script), run_name="__main__")
+    _assert_one_error_line(script, exit_info.value.code, capsys.readouterr().err, expect)
+    assert not results_dir.exists() or not any(results_dir.iterdir())
+
+
+# --- _common -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["", "a/b", "../../x", "/abs", ".hidden", "a\\b", "tab\there"])
+def test_write_results_refuses_names_outside_the_results_folder(name, results_dir):
+    with pytest.raises(ConfigError, match="results name"):
+        _common.write_results(name, [{"a": 1}])
+    assert not results_dir.exists() or not any(results_dir.iterdir())
+
+
+def test_write_results_is_atomic_and_respects_umask(results_dir):
+    old = os.umask(0o022)
+    try:
+        path = _common.write_results("trial_a", [{"a": 1}], {"settings": {"x": 2}})
+    finally:
+        os.umask(old)
+    assert path == results_dir / "trial_a.json"
+    data = json.loads(path.read_text())
+    assert data["rows"] == [{"a": 1}] and data["settings"] == {"x": 2} and data["benchmark"] == "trial_a"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    assert [p.name for p in results_dir.iterdir()] == ["trial_a.json"]  # no temporary file left
+
+    with pytest.raises(TypeError):  # a value JSON cannot hold: the earlier file stays whole
+        _common.write_results("trial_a", [{"a": object()}])
+    assert json.loads(path.read_text())["rows"] == [{"a": 1}]
+    assert [p.name for p in results_dir.iterdir()] == ["trial_a.json"]
+
+
+def test_concurrent_writes_of_one_name_do_not_clash(results_dir):
+    errors = []
+
+    def write(i):
+        try:
+            for _ in range(5):
+                _common.write_results("same", [{"writer": i}])
+        except Exception as exc:  # noqa: BLE001 (reported below)
+            errors.append(exc)
+
+    threads = [threading.Thread(target=write, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert json.loads((results_dir / "same.json").read_text())["rows"][0]["writer"] in range(4)
+    assert [p.name for p in results_dir.iterdir()] == ["same.json"]
+
+
+def test_read_results_refuses_a_broken_file(results_dir):
+    results_dir.mkdir()
+    (results_dir / "broken.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot read the earlier results"):
+        _common.read_results("broken")
+    assert _common.read_results("absent") == {}
+
+
+def test_procedural_detail_limits_match_the_generators():
+    from neuralrt.geometry import procedural
+
+    for name, limit in _common.PROCEDURAL_DETAIL.items():
+        with pytest.raises(NeuralRTError, match=rf"0\.\.{limit}\b"):
+            getattr(procedural, name)(detail=limit + 1)  # (checked before any geometry is made)
+
+
+def test_mesh_specs_parse_without_loading():
+    assert _common.parse_mesh_spec("procedural:hairball:3") == ("procedural", "hairball", 3)
+    for bad in ("procedural:statue", "procedural:sphere:2", "procedural:statue:x", "procedural:statue:-1", "", "nonexistent.off@loop2"):
+        with pytest.raises(NeuralRTError):
+            _common.parse_mesh_spec(bad)
+
+
+def test_results_folder_untouched():
+    """Nothing above wrote to benchmarks/results (keep last in this file)."""
+    assert _snapshot(REAL_RESULTS) == _REAL_BEFORE
