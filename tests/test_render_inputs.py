@@ -146,3 +146,20 @@ def test_list_builtins_as_json(capsys):
     assert main(["render", "--list-builtins", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert [r["scene"] for r in rows] == [f"builtin:{name}" for name, _ in api.list_builtins()]
+
+
+@pytest.mark.parametrize("sections,key", [
+    ({"camera": {"fov": "40"}}, "camera.fov"),
+    ({"camera": {"resolution": [True, 4]}}, "camera.resolution.0"),
+    ({"render": {"spp": True}}, "render.spp"),
+    ({"materials": [{"name": "m", "type": "plastic", "albedo": [0.5, 0.5, 0.5], "ior": "1.5"}]}, "materials.0.ior"),
+])
+def test_text_and_booleans_are_not_numbers(tmp_path, sections, key):
+    with pytest.raises(SceneError, match=rf"{key}: expected a number, got"):
+        load_scene(scene_file(tmp_path, **sections))
+
+
+def test_numpy_numbers_are_numbers():
+    scene = load_dict({"camera": {"resolution": [np.int64(6), 4], "fov": np.float32(35)}, "objects": [SPHERE],
+                       "render": {"spp": np.int32(2)}})
+    assert (scene.camera.width, scene.camera.height) == (6, 4) and scene.settings.spp == 2

@@ -69,15 +69,25 @@ __all__ = [
 ]
 
 # Every number in a scene is finite: TOML and JSON readers accept nan / inf, and a NaN in a transform
-# or camera would only surface deep inside rendering.
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-NonNegFinite = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+# or camera would only surface deep inside rendering. Text and booleans are not numbers ("40" and true
+# would be read as 40.0 and 1); numpy numbers are (pydantic's strict mode would refuse np.int64).
+def _not_text_or_bool(value):
+    if isinstance(value, (str, bytes, bool)):
+        raise ValueError(f"expected a number, got {value!r}")
+    return value
+
+
+NumberOnly = BeforeValidator(_not_text_or_bool)
+Real = Annotated[float, NumberOnly]
+Count = Annotated[int, NumberOnly]
+Finite = Annotated[float, NumberOnly, Field(allow_inf_nan=False)]
+NonNegFinite = Annotated[float, NumberOnly, Field(ge=0, allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 NonNegVec3 = tuple[NonNegFinite, NonNegFinite, NonNegFinite]
 # Radiance and intensity are rendered in float32: a value near its 3.4e38 limit overflows once scaled by
 # a pdf or summed into a light-sampling table (a traceback, or silently black pixels). 1e20 leaves room.
 MAX_RADIANCE = 1e20
-Radiance = Annotated[float, Field(ge=0, le=MAX_RADIANCE, allow_inf_nan=False)]
+Radiance = Annotated[float, NumberOnly, Field(ge=0, le=MAX_RADIANCE, allow_inf_nan=False)]
 RadianceVec3 = tuple[Radiance, Radiance, Radiance]
 
 
@@ -88,7 +98,7 @@ class _Strict(BaseModel):
 
 
 MAX_RESOLUTION = 16384  # pixels per side
-Pixels = Annotated[int, Field(gt=0, le=MAX_RESOLUTION)]
+Pixels = Annotated[int, NumberOnly, Field(gt=0, le=MAX_RESOLUTION)]
 
 
 def check_resolution(resolution) -> tuple[int, int]:
@@ -113,7 +123,7 @@ class CameraSpec(_Strict):
     position: Vec3 = Field((0.0, 0.0, 3.9), description="eye point, world units")
     look_at: Vec3 = Field((0.0, 0.0, 0.0), description="point the camera looks at")
     up: Vec3 = Field((0.0, 1.0, 0.0), description="up direction (must not be parallel to the view direction)")
-    fov: float = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
+    fov: Real = Field(40.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
     resolution: tuple[Pixels, Pixels] = Field((256, 256), description=f"image width, height in pixels (at most {MAX_RESOLUTION} each)")
 
     @model_validator(mode="after")
@@ -204,7 +214,7 @@ class ConductorMaterialSpec(_Strict):
     type: Literal["conductor"] = Field("conductor", description="material kind")
     name: str = Field(description="referenced by objects' material / materials")
     albedo: Albedo = Field((0.9, 0.9, 0.9), description="reflectance at normal incidence (Schlick F0), RGB or texture path")
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha (values below 1e-3 act as 1e-3)")
+    roughness: Real = Field(0.1, gt=0.0, le=1.0, description="GGX alpha (values below 1e-3 act as 1e-3)")
 
 
 class PlasticMaterialSpec(_Strict):
@@ -213,8 +223,8 @@ class PlasticMaterialSpec(_Strict):
     type: Literal["plastic"] = Field("plastic", description="material kind")
     name: str = Field(description="referenced by objects' material / materials")
     albedo: Albedo = Field((0.5, 0.5, 0.5), description="diffuse base colour, RGB or texture path")
-    roughness: float = Field(0.1, gt=0.0, le=1.0, description="GGX alpha of the coat (values below 1e-3 act as 1e-3)")
-    ior: float = Field(1.5, gt=1.0, le=4.0, description="index of refraction of the coat")
+    roughness: Real = Field(0.1, gt=0.0, le=1.0, description="GGX alpha of the coat (values below 1e-3 act as 1e-3)")
+    ior: Real = Field(1.5, gt=1.0, le=4.0, description="index of refraction of the coat")
 
 
 class EmissiveMaterialSpec(_Strict):
@@ -305,8 +315,8 @@ class EnvironmentSpec(_Strict):
 class RenderSettings(_Strict):
     """Render defaults stored with the scene (callers may override)."""
 
-    spp: int = Field(16, gt=0, le=1 << 20, description="samples per pixel")
-    max_depth: int = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
+    spp: Count = Field(16, gt=0, le=1 << 20, description="samples per pixel")
+    max_depth: Count = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
 
 
 class SceneSpec(_Strict):
