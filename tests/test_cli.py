@@ -181,10 +181,10 @@ def test_interrupted_training_says_how_to_resume(tmp_path, capsys, monkeypatch):
     from neuralrt import api
 
     def interrupted(*args, **kwargs):
+        (tmp_path / "m.nrt.ckpt").write_bytes(b"")  # this run wrote a checkpoint before the interrupt
         raise KeyboardInterrupt
 
     monkeypatch.setattr(api, "train", interrupted)
-    (tmp_path / "m.nrt.ckpt").write_bytes(b"")  # a checkpoint was written before the interrupt
     assert main(["train", "mesh.obj", "-o", str(tmp_path / "m.nrt")]) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("neuralrt: interrupted") and "--resume" in err

@@ -298,6 +298,7 @@ def train(
         raise NeuralRTError(f"{output}: a model file must end in .nrt (`neuralrt info` and scene files tell models by it)")
     check_output_file(output, "model file")
     checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
+    check_output_file(checkpoint, "checkpoint")  # (its name is longer)
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
     if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
@@ -368,8 +369,9 @@ def evaluate(
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")
-    result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
-                            images=images, image_dir=image_dir)
+    with folders_removed_if_left_empty(*([image_dir] if image_dir is not None else [])):
+        result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
+                                images=images, image_dir=image_dir)
     result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash
     return result
 

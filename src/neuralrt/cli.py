@@ -9,7 +9,9 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import warnings
 
 from . import __version__, api
@@ -89,6 +91,13 @@ def _cmd_render(args) -> None:
     _print_result(result, args.json)
 
 
+def _modified(path: str) -> int | None:
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
 def _cmd_train(args) -> None:
     if args.list_presets:
         rows = api.list_presets()
@@ -101,8 +110,10 @@ def _cmd_train(args) -> None:
     if args.mesh is None or args.output is None:
         raise NeuralRTError("train needs MESH and -o OUTPUT.nrt (or --list-presets)")
     checkpoint = f"{args.output}.ckpt"
-    args.interrupt_hint = lambda: (  # (asked once interrupted: has a checkpoint been written yet?)
-        "run the same command with --resume to continue from the last checkpoint" if os.path.isfile(checkpoint)
+    before = _modified(checkpoint)  # a checkpoint there now is an earlier run's (or the one --resume continues)
+    args.interrupt_hint = lambda: (  # (asked once interrupted: has this run written a checkpoint?)
+        "run the same command with --resume to continue from the last checkpoint"
+        if _modified(checkpoint) not in (None, before) or (args.resume and before is not None)
         else "no checkpoint was written yet: run the command again to start over")
     result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
                        seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet,
@@ -127,7 +138,8 @@ def _cmd_evaluate(args) -> None:
 
 def _cmd_convert(args) -> None:
     select = [n.strip() for n in args.select.split(",") if n.strip()] if args.select else None
-    args.interrupt_hint = "run the same command again: training resumes from the checkpoints in the models folder"
+    args.interrupt_hint = ("run the same command again: finished models are reused, and unfinished ones resume "
+                           "from their checkpoints where one was written")
     result = api.convert(args.scene, args.output, models_dir=args.models_dir, select=select,
                          min_triangles=args.min_triangles, method=args.method, preset=args.preset, group=args.group,
                          steps=args.steps,
@@ -140,6 +152,7 @@ def _cmd_convert(args) -> None:
 
 
 def _cmd_demo(args) -> None:
+    args.interrupt_hint = "run the same command again: a model already trained in the folder is reused"
     report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene, method=args.method,
                       preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps, detail=args.detail)
     m, t = report["memory"], report["time"]
@@ -286,6 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     show = warnings.showwarning
     warnings.showwarning = _show_warning  # one line per warning, no source line
+    on_term = _terminate_as_interrupt()
     try:
         args.func(args)
     except NeuralRTError as exc:
@@ -298,14 +312,33 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"neuralrt: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         hint = getattr(args, "interrupt_hint", None)
         hint = hint() if callable(hint) else hint
-        print(f"neuralrt: interrupted{f' ({hint})' if hint else ''}", file=sys.stderr)
-        return 130
+        terminated = isinstance(exc, Terminated)
+        print(f"neuralrt: {'terminated' if terminated else 'interrupted'}{f' ({hint})' if hint else ''}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
     finally:
         warnings.showwarning = show
+        if on_term is not None:
+            signal.signal(signal.SIGTERM, on_term)
     return 0
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a job scheduler), raised where Ctrl-C would be: the same clean stop."""
+
+
+def _terminate_as_interrupt():
+    """Make SIGTERM stop a command as Ctrl-C does (checkpoints kept, temporary files and new empty
+    folders removed, one line); returns the previous handler (None off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    return signal.signal(signal.SIGTERM, stop)
 
 
 if __name__ == "__main__":

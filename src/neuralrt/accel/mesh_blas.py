@@ -18,7 +18,7 @@ from torch import Tensor
 
 from ..devices import check_device
 from ..errors import ConfigError
-from ..geometry.mesh import Mesh
+from ..geometry.mesh import Mesh, check_float32_extent
 from ..host_threads import numba_threads
 from ..rays import AABB, Hits, Rays, check_rays
 from . import mesh_blas_kernels as kernels
@@ -48,6 +48,7 @@ def _checked_arguments(mesh, device) -> torch.device:
     (a path, None) or a device this process cannot use: raised before a backend is picked."""
     if not isinstance(mesh, Mesh):
         raise ConfigError(f"mesh: expected a neuralrt.Mesh, got {type(mesh).__name__} (read a mesh file with neuralrt.load_mesh(path))")
+    check_float32_extent(mesh)  # else rays would silently miss it (Embree and OptiX trace in float32)
     return check_device("cpu" if device is None else device)
 
 

@@ -17,7 +17,27 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 
-__all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent"]
+
+def import_trimesh():
+    """``trimesh``, imported the first time with Ctrl-C and SIGTERM held until it is done: its optional
+    imports catch ``BaseException``, so an interrupt landing inside them was swallowed and the run
+    went on (a pending signal is delivered once the import returns)."""
+    import signal
+    import sys
+    import threading
+
+    if "trimesh" in sys.modules or threading.current_thread() is not threading.main_thread():
+        import trimesh
+
+        return trimesh
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        import trimesh
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+    return trimesh
+
+__all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
 
 
 @dataclass
@@ -44,7 +64,7 @@ class Mesh:
 
     def __post_init__(self) -> None:
         self.vertices = _as_float32(self.vertices)
-        self.faces = np.ascontiguousarray(self.faces, dtype=np.int32)
+        self.faces = _as_indices(self.faces, self.name)
         validate_arrays(self.vertices, self.faces, self.name)
         if self.face_material_ids is None:
             self.face_material_ids = np.zeros(len(self.faces), np.int32)
@@ -59,11 +79,10 @@ class Mesh:
                             f"[{self.face_material_ids.min(initial=0)}, {self.face_material_ids.max(initial=0)}])")
         if self.vertex_normals is None:
             self.vertex_normals = smooth_vertex_normals(self.vertices, self.faces)
-        self.vertex_normals = np.ascontiguousarray(self.vertex_normals, dtype=np.float32)
-        if self.uvs is not None:
-            self.uvs = np.ascontiguousarray(self.uvs, dtype=np.float32)
-        if self.vertex_colors is not None:
-            self.vertex_colors = np.ascontiguousarray(self.vertex_colors, dtype=np.float32)
+        # Per-vertex attributes are read by vertex index in the kernels: a wrong shape reads past the array.
+        self.vertex_normals = _per_vertex(self.vertex_normals, 3, "vertex_normals", self)
+        self.uvs = _per_vertex(self.uvs, 2, "uvs", self)
+        self.vertex_colors = _per_vertex(self.vertex_colors, 3, "vertex_colors", self)
 
     @property
     def num_triangles(self) -> int:
@@ -112,7 +131,7 @@ class Mesh:
 
     def subdivided(self, iterations: int = 1) -> "Mesh":
         """Loop subdivision (trimesh), keeping one material per face; UVs/colours are dropped."""
-        import trimesh
+        trimesh = import_trimesh()
 
         tm = trimesh.Trimesh(self.vertices, self.faces, process=False)
         mat = self.face_material_ids
@@ -142,6 +161,33 @@ def validate_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
         raise MeshError(f"{name}: mesh is degenerate (all {len(faces)} triangles have zero area)")
 
 
+def _as_indices(faces, name: str) -> np.ndarray:
+    """Contiguous int32 face indices; whole numbers only, and none that int32 would wrap."""
+    try:
+        array = np.asarray(faces)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"{name}: faces are not an array of vertex indices ({exc})") from None
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        if not np.issubdtype(array.dtype, np.floating) or not np.all(np.isfinite(array)) or not np.all(array == np.round(array)):
+            raise MeshError(f"{name}: face indices must be whole numbers (got dtype {array.dtype})")
+    if array.size and (array.min() < np.iinfo(np.int32).min or array.max() > np.iinfo(np.int32).max):
+        raise MeshError(f"{name}: face indices out of range (found {array.min()}..{array.max()})")
+    return np.ascontiguousarray(array, dtype=np.int32)
+
+
+def _per_vertex(values, width: int, what: str, mesh: "Mesh") -> np.ndarray | None:
+    """``values`` as contiguous float32 [V, width], or a `MeshError` naming ``what``; None stays None."""
+    if values is None:
+        return None
+    try:
+        array = np.ascontiguousarray(values, dtype=np.float32)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"{mesh.name}: {what} are not numbers ({exc})") from None
+    if array.shape != (len(mesh.vertices), width):
+        raise MeshError(f"{mesh.name}: {what} must have shape [{len(mesh.vertices)}, {width}] (one per vertex), got {list(array.shape)}")
+    return array
+
+
 def _as_float32(vertices) -> np.ndarray:
     """Contiguous float32 vertices. Coordinates beyond float32's range become Inf, which `validate_arrays`
     reports in one line: numpy's "overflow encountered in cast" warning would only repeat it."""
@@ -163,7 +209,7 @@ def check_float32_extent(mesh: "Mesh", name: str | None = None) -> None:
     """Raise a one-line `MeshError` unless float32 ray tracing keeps ``mesh``'s geometry: its bounding-box
     diagonal within `FLOAT32_DIAGONAL_RANGE`, and its coordinates, rounded to float32, off by less than
     `SURFACE_OFFSET` of the diagonal (a small mesh far from the origin loses its shape). Training checks
-    this before any work; loading does not, so ``neuralrt info`` still reports such meshes."""
+    this before any work, and so does `MeshBLAS`; loading does not, so ``neuralrt info`` still reports such meshes."""
     name = name or mesh.name
     lo, hi = (b.astype(np.float64) for b in mesh.bounds)
     diagonal = float(np.linalg.norm(hi - lo))
@@ -252,6 +298,8 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
         if hasattr(mat, "to_simple"):  # PBR -> simple (diffuse + image)
             mat = mat.to_simple()
         material.name = getattr(mat, "name", None) or fallback_name
+        if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
+            return material, uv, colors
         diffuse = getattr(mat, "diffuse", None)
         if diffuse is not None:
             material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
@@ -268,15 +316,28 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
     return material, uv, colors
 
 
+def _is_placeholder(mat) -> bool:
+    """Whether ``mat`` is trimesh's stand-in for a missing material (`empty_material`: a grey 2x2
+    image and diffuse 102/255, which would render 0.13 linear instead of the white of no material)."""
+    from trimesh.visual.material import empty_material
+
+    stand_in = empty_material()
+    image = getattr(mat, "image", None)
+    return (image is not None and image.size == stand_in.image.size
+            and np.array_equal(np.asarray(image), np.asarray(stand_in.image))
+            and np.array_equal(np.asarray(getattr(mat, "diffuse", None)), np.asarray(stand_in.diffuse)))
+
+
 def load_mesh(path: str | Path) -> Mesh:
     """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB).
 
     Multi-part files are merged into one mesh; each part's material becomes one entry of
     ``materials`` and its faces get that ``face_material_ids``. Errors name the file.
     """
-    import trimesh
+    from ..devices import check_path
 
-    path = Path(path)
+    path = check_path("path", path)  # (None, a number, a trimesh object: one-line ConfigError)
+    trimesh = import_trimesh()
     problem = input_file_problem(path, "mesh file")
     if problem:
         raise MeshError(problem)

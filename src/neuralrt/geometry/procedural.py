@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import NeuralRTError
-from .mesh import Mesh, MeshMaterial
+from .mesh import Mesh, MeshMaterial, import_trimesh
 
 __all__ = [
     "GENERATORS",
@@ -154,7 +154,7 @@ def plane(size: float = 1.0) -> Mesh:
 
 def sphere(subdivisions: int = 4, radius: float = 1.0) -> Mesh:
     """Icosphere (trimesh): ``20 * 4**subdivisions`` triangles, exact smooth (radial) normals."""
-    import trimesh
+    trimesh = import_trimesh()
 
     if int(subdivisions) != subdivisions or not 0 <= subdivisions <= 9:
         raise NeuralRTError(f"sphere: subdivisions must be an integer in 0..9, got {subdivisions!r}")

@@ -22,11 +22,15 @@ from ..errors import NeuralRTError
 __all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_folder", "folders_removed_if_left_empty"]
 
 
+def _sibling_name(path: Path) -> Path:
+    # The suffix stays last: some writers pick the format from the name.
+    return path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+
+
 def _create_sibling(path: Path) -> Path:
     """A new empty file beside ``path`` (mode 0o666 & ~umask) with an unused hidden name."""
     while True:
-        # The suffix stays last: some writers pick the format from the name.
-        tmp = path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+        tmp = _sibling_name(path)
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:
@@ -42,7 +46,7 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
     (model files and checkpoints: a power cut must not leave an empty file under the final name).
     Whatever ``write_to`` raises propagates after the temporary file is removed.
     """
-    path = Path(path)
+    path = _link_target(Path(path))
     tmp = _create_sibling(path)
     mode = stat.S_IMODE(os.stat(tmp).st_mode)  # 0o666 & ~umask, as the kernel applied it
     try:
@@ -52,10 +56,20 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is None or str(exc.filename) == str(tmp):  # name the file the user asked for, not our temporary
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+        raise
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def _link_target(path: Path) -> Path:
+    """Where writing ``path`` should land: a symlink's target (as ``cp`` or a shell redirection write
+    through it; renaming over the link would replace the link instead), else ``path`` itself."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
@@ -97,9 +111,25 @@ def check_output_file(path: str | os.PathLike, what: str) -> None:
     path = Path(path)
     if path.is_dir():
         raise NeuralRTError(f"{path}: is a folder, not a {what}")
-    problem = _writable_folder_problem(path.parent, what)
+    target = _link_target(path)
+    problem = _writable_folder_problem(target.parent, what) or _name_length_problem(target, what)
     if problem:
         raise NeuralRTError(problem)
+
+
+def _name_length_problem(path: Path, what: str) -> str | None:
+    """Too long a name for its filesystem, counting the temporary sibling `write_atomically` writes
+    first (a name that fits alone would fail only at that write, after the work)."""
+    folder = next((f for f in (path.parent, *path.parent.parents) if f.exists()), Path("."))
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    longest = len(os.fsencode(_sibling_name(path).name))
+    if longest > limit:
+        return (f"{path.name[:40]}...: the {what}'s name is too long ({len(os.fsencode(path.name))} bytes; with the "
+                f"temporary name it is written under first, {longest} of at most {limit})")
+    return None
 
 
 def check_output_folder(folder: str | os.PathLike, what: str) -> None:

@@ -17,6 +17,7 @@ Every problem with a file raises `ModelFileError` with one line naming the file 
 from __future__ import annotations
 
 import hashlib
+import errno
 import json
 import os
 from dataclasses import dataclass
@@ -108,15 +109,23 @@ def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays:
     The file is written to a temporary sibling, flushed to disk, then renamed over ``path``: a
     crash leaves either the old file or the new one, never a half-written model.
     """
-    from safetensors.torch import save_file
-
     path = Path(path)
     arrays = {k: v.detach().cpu().contiguous() for k, v in arrays.items()}
     full_header = {**header, "format_version": FORMAT_VERSION, "method": method, "arrays_sha256": arrays_digest(arrays)}
     metadata = {METADATA_KEY: json.dumps(full_header, sort_keys=True)}
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, lambda tmp: save_file(arrays, tmp, metadata=metadata), fsync=True)
+    write_atomically(path, lambda tmp: _save(arrays, tmp, metadata), fsync=True)
     return path
+
+
+def _save(arrays: dict[str, Tensor], tmp: str, metadata: dict) -> None:
+    from safetensors import SafetensorError
+    from safetensors.torch import save_file
+
+    try:
+        save_file(arrays, tmp, metadata=metadata)
+    except SafetensorError as exc:  # its I/O errors (a full disk) are not OSErrors: make them one
+        raise OSError(errno.EIO, str(exc).removeprefix("Error while serializing: "), tmp) from None
 
 
 def _check_data_size(path: Path, header_len: int, size: int) -> None:

@@ -25,7 +25,7 @@ import torch
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
-from ..io.model_file import read_model_header
+from ..io.model_file import read_model_file, read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .convert_executors import Executor, TrainingJob, make_executor
 from .loader import load_scene_spec, shape_for
@@ -88,9 +88,12 @@ def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> b
     try:
         header = read_model_header(path, method=config.method)
         stored = config_from_dict(header.config)
+        if header.mesh_sha256 != mesh_hash or stored != config:
+            return False
+        read_model_file(path, method=config.method)  # the arrays' checksum too: a corrupted file is retrained, not reused
     except (ModelFileError, ConfigError):
         return False
-    return header.mesh_sha256 == mesh_hash and stored == config
+    return True
 
 
 def _safe_name(name: str) -> str:
@@ -161,13 +164,17 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
     """``mesh`` written as OBJ and read back (a second round trip changes nothing)."""
     from ..geometry.mesh import load_mesh
 
-    path = Path(folder) / f".{_safe_name(mesh.name)}-round-trip.obj"
+    import shutil
+    import tempfile
+
+    # A folder of its own: two conversions into one models folder must not read each other's files.
+    private = Path(tempfile.mkdtemp(prefix=".round-trip-", dir=folder))
     try:
+        path = private / f"{_safe_name(mesh.name)}-round-trip.obj"
         write_mesh_obj(mesh, path)
         again = load_mesh(path)
     finally:
-        path.unlink(missing_ok=True)
-        path.with_suffix(".mtl").unlink(missing_ok=True)
+        shutil.rmtree(private, ignore_errors=True)
     again.name = mesh.name
     return again
 

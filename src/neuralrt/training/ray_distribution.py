@@ -18,6 +18,8 @@ exact BLAS passed in, which takes and returns tensors on that device.
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,16 +138,26 @@ class BoxRayDistribution:
             self.pool_points[slots], self.pool_normals[slots] = p, ng
             self._pool_cursor = int((self._pool_cursor + len(p)) % self._pool_size)
 
+    # Rounds of 65,536 rays that fill the pool at most: a mesh that covers little of its bounding
+    # sphere (a needle, r = 1e-3 x 10: ~2e-4 of the rays hit) took minutes; capped, its whole `train
+    # --preset lq --steps 20` takes 5 s on 2 cores. Later batches' hits
+    # keep filling the rest (`_add_to_pool`), as for any pool larger than the first rounds found.
+    FILL_ROUNDS = 64
+
     def _fill_pool(self) -> None:
         tries = 0
-        while len(self.pool_points) < self._pool_size:
+        while len(self.pool_points) < self._pool_size and tries < self.FILL_ROUNDS:
             rays = self.outside_rays(1 << 16)
             self._add_to_pool(rays, self.truth.intersect(rays))
             tries += 1
-            if tries > 64 and len(self.pool_points) == 0:  # training checks the mesh first: this should not happen
-                name = getattr(getattr(self.truth, "mesh", None), "name", "the mesh")
-                raise MeshError(f"{name}: none of {tries} x 65536 rays from its bounding sphere hits it: cannot build "
-                                "the surface-point pool (too small, too large or too far from the origin for float32?)")
+        name = getattr(getattr(self.truth, "mesh", None), "name", "the mesh")
+        if len(self.pool_points) == 0:  # training checks the mesh first: this should not happen
+            raise MeshError(f"{name}: none of {tries} x 65536 rays from its bounding sphere hits it: cannot build "
+                            "the surface-point pool (too small, too large or too far from the origin for float32?)")
+        if len(self.pool_points) < self._pool_size:
+            warnings.warn(f"{name}: {tries} x 65536 rays from its bounding sphere found {len(self.pool_points):,} of "
+                          f"{self._pool_size:,} surface points (the mesh covers little of its box); training starts with "
+                          "them and keeps adding hits", stacklevel=3)
 
     # -- surface rays ----------------------------------------------------------------------
     def surface_rays(self, n: int) -> Rays:

@@ -248,7 +248,11 @@ def train_model(
     if steps > start:  # a run resumed at (or past) its last step trained nothing: keep the checkpoint's figures
         _finish(record, running, steps)
     if ckpt is not None:
-        save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
+        try:
+            save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
+        except OSError as exc:  # insurance only (~7x the model's bytes): a full disk must not cost the trained model
+            warnings.warn(f"{ckpt}: the final checkpoint could not be written ({exc.strerror or exc}); the trained "
+                          "model is kept", stacklevel=2)
     model.eval()
     return record
 

@@ -1,0 +1,172 @@
+"""Files, signals and meshes as a new user brings them (found by two trials): a full disk, SIGTERM,
+symlinked outputs, names too long for the filesystem, corrupted cached models, UV meshes without
+materials, attribute arrays of the wrong shape, meshes float32 cannot trace, a needle's surface pool."""
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt import api, cli
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.errors import ConfigError, MeshError, NeuralRTError
+from neuralrt.geometry.mesh import Mesh, load_mesh
+from neuralrt.geometry.procedural import sphere
+from neuralrt.io.files import check_output_file, write_atomically
+from neuralrt.methods.lsnif import LSNIFModel
+from neuralrt.methods.lsnif_config import LSNIFConfig
+
+
+# -- writing files --------------------------------------------------------------------------------
+
+
+def test_writing_through_a_symlink_writes_its_target(tmp_path):
+    (tmp_path / "real").mkdir()
+    link = tmp_path / "link.txt"
+    link.symlink_to(tmp_path / "real" / "target.txt")  # dangling until written
+    write_atomically(link, lambda tmp: open(tmp, "w").write("data"))
+    assert link.is_symlink() and (tmp_path / "real" / "target.txt").read_text() == "data"
+
+
+def test_a_name_too_long_with_its_temporary_sibling_is_refused_up_front(tmp_path):
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    fits_alone = "m" * (limit - 8) + ".nrt"  # fits, but not as `.NAME.xxxxxxxx.tmp.nrt`
+    with pytest.raises(NeuralRTError, match=r"name is too long"):
+        check_output_file(tmp_path / fits_alone, "model file")
+    check_output_file(tmp_path / "short.nrt", "model file")
+
+
+def test_a_full_disk_is_an_oserror_naming_the_model_file(tmp_path, monkeypatch):
+    from safetensors import SafetensorError
+
+    import safetensors.torch
+
+    def full(*args, **kwargs):
+        raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+
+    monkeypatch.setattr(safetensors.torch, "save_file", full)
+    model = LSNIFModel.from_mesh(sphere(1), LSNIFConfig.preset("lq"))
+    with pytest.raises(OSError) as info:
+        model.save(tmp_path / "m.nrt")
+    assert info.value.filename == str(tmp_path / "m.nrt") and "No space left on device" in info.value.strerror
+    assert list(tmp_path.iterdir()) == []  # no temporary file left
+
+
+def test_a_final_checkpoint_that_cannot_be_written_keeps_the_model(tmp_path, monkeypatch):
+    from neuralrt.training import trainer
+    from neuralrt.training.api import train
+
+    real = trainer.save_checkpoint
+
+    def full_at_the_end(path, model, opt, sampler, step, record, identity):
+        if step == 4:
+            raise OSError(28, "No space left on device", str(path))
+        real(path, model, opt, sampler, step, record, identity)
+
+    monkeypatch.setattr(trainer, "save_checkpoint", full_at_the_end)
+    config = LSNIFConfig.preset("lq").with_training(steps=4, batch_size=256)
+    with pytest.warns(UserWarning, match="the final checkpoint could not be written .*the trained model is kept"):
+        model = train(sphere(1), config, progress=False, checkpoint=tmp_path / "m.nrt.ckpt")
+    assert model.training_record["steps"] == 4
+
+
+def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path, monkeypatch, capsys):
+    mesh = tmp_path / "ball.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    stale = tmp_path / "m.nrt.ckpt"
+    stale.write_bytes(b"an earlier run's")
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler interrupts this
+        raise AssertionError("SIGTERM did not stop the command")
+
+    monkeypatch.setattr(api, "train", terminated)
+    previous = signal.getsignal(signal.SIGTERM)
+    assert cli.main(["train", str(mesh), "-o", str(tmp_path / "m.nrt"), "--quiet"]) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err
+    # The checkpoint there is an earlier run's: the hint must not send the user to --resume it.
+    assert err.strip() == "neuralrt: terminated (no checkpoint was written yet: run the command again to start over)"
+    assert signal.getsignal(signal.SIGTERM) == previous
+
+
+# -- converted scenes -----------------------------------------------------------------------------
+
+
+def test_a_corrupted_cached_model_is_not_reused(tmp_path):
+    from neuralrt.scene.convert import cached_model_is_valid
+
+    config = LSNIFConfig.preset("lq")
+    mesh = sphere(1)
+    path = LSNIFModel.from_mesh(mesh, config).save(tmp_path / "m.nrt")
+    assert cached_model_is_valid(path, mesh.content_hash(), config)
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0xFF  # inside the arrays: the header still reads
+    path.write_bytes(bytes(data))
+    assert not cached_model_is_valid(path, mesh.content_hash(), config)
+
+
+def test_the_group_round_trip_uses_a_private_folder(tmp_path):
+    from neuralrt.scene.convert import _obj_round_trip
+
+    again = _obj_round_trip(sphere(1), tmp_path)
+    assert again.num_triangles == sphere(1).num_triangles and list(tmp_path.iterdir()) == []
+
+
+# -- meshes -----------------------------------------------------------------------------------------
+
+
+def test_uvs_without_a_material_are_white_not_trimesh_grey(tmp_path):
+    (tmp_path / "uv.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nf 1/1 2/2 3/3\n")
+    material = load_mesh(tmp_path / "uv.obj").materials[0]
+    assert material.texture is None and np.array_equal(material.base_color, np.ones(3, np.float32))
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"vertex_colors": np.ones((1, 3))}, r"vertex_colors must have shape \[12, 3\] \(one per vertex\), got \[1, 3\]"),
+    ({"uvs": np.zeros((12, 3))}, r"uvs must have shape \[12, 2\]"),
+    ({"vertex_normals": np.ones((5, 3))}, r"vertex_normals must have shape \[12, 3\]"),
+])
+def test_per_vertex_arrays_must_match_the_vertices(kwargs, message):
+    ball = sphere(0)
+    with pytest.raises(MeshError, match=message):
+        Mesh(ball.vertices, ball.faces, **kwargs)
+
+
+@pytest.mark.parametrize("faces,message", [
+    ([[0, 1, 2**33 + 2]], "face indices out of range"),  # int32 would wrap it to 2
+    ([[0.5, 1, 2]], "face indices must be whole numbers"),
+    ([["a", 1, 2]], "face indices must be whole numbers"),
+])
+def test_face_indices_are_not_silently_changed(faces, message):
+    with pytest.raises(MeshError, match=message):
+        Mesh(np.eye(3), np.array(faces))
+    assert Mesh(np.eye(3), np.array([[0.0, 1.0, 2.0]])).faces.tolist() == [[0, 1, 2]]  # whole floats are indices
+
+
+def test_meshblas_refuses_a_mesh_float32_cannot_trace():
+    ball = sphere(1)
+    with pytest.raises(MeshError, match="bounding-box diagonal"):
+        MeshBLAS(Mesh(ball.vertices.astype(np.float64) * 1e20, ball.faces))
+
+
+def test_load_mesh_of_no_path_is_a_config_error():
+    with pytest.raises(ConfigError, match="path: expected a path"):
+        load_mesh(None)
+
+
+def test_a_needle_fills_what_it_can_of_the_surface_pool_with_a_warning():
+    from neuralrt.training.ray_distribution import BoxRayDistribution
+
+    import trimesh
+
+    needle = trimesh.creation.cylinder(radius=1e-3, height=10, sections=8)
+    mesh = Mesh(np.asarray(needle.vertices), np.asarray(needle.faces), name="needle")
+    with pytest.warns(UserWarning, match=r"needle: 64 x 65536 rays .* found [\d,]+ of 65,536 surface points"):
+        rays = BoxRayDistribution(MeshBLAS(mesh), pool_size=1 << 16)
+    assert 0 < len(rays.pool_points) < 1 << 16
+    batch = rays.sample(512)
+    assert torch.isfinite(batch.rays.origins).all()
