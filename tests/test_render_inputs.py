@@ -163,3 +163,8 @@ def test_numpy_numbers_are_numbers():
     scene = load_dict({"camera": {"resolution": [np.int64(6), 4], "fov": np.float32(35)}, "objects": [SPHERE],
                        "render": {"spp": np.int32(2)}})
     assert (scene.camera.width, scene.camera.height) == (6, 4) and scene.settings.spp == 2
+
+
+def test_numpy_integer_counts_are_counts():
+    scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]})
+    assert render(scene, spp=np.int64(2), max_depth=np.int32(2), seed=np.uint8(3), progress=False).spp == 2

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import numbers
+
 from .errors import ConfigError
 
 __all__ = ["SEED_LIMIT", "check_count", "check_seed", "check_name"]
@@ -14,7 +16,7 @@ def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) 
     (``name`` as the user wrote it)."""
     if value is None:
         return
-    if isinstance(value, bool) or not isinstance(value, int):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # (numpy integers are integers)
         raise ConfigError(f"{name}: must be an integer, got {value!r}")
     if value < minimum:
         raise ConfigError(f"{name}: must be at least {minimum}, got {value}")

@@ -132,12 +132,14 @@ def render(
     check_count("max_paths", settings.max_paths)
     seed = 0 if seed is None else seed
     check_seed("seed", seed)
+    # As Python ints: numpy integers are accepted, and their fixed-width arithmetic would overflow.
+    seed, settings = int(seed), replace(settings, max_depth=int(settings.max_depth), max_paths=int(settings.max_paths))
     if settings.primary not in ("exact", "neural"):
         raise ConfigError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     if settings.primary == "exact" and scene.primary == "neural":
         raise ValueError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
                          "load it with primary='exact' to render that way")
-    spp = spp if spp is not None else scene.settings.spp
+    spp = int(spp if spp is not None else scene.settings.spp)
     camera = scene.camera.with_resolution(resolution) if resolution is not None else scene.camera
     dev = resolve_device(device) if device is not None else scene.device
     if dev != scene.device:

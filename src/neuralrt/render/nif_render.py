@@ -140,7 +140,9 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
     config = _nif_config(config)
     chosen = select_nif_instances(scene, nif, config)
-    spp = spp if spp is not None else scene.settings.spp
+    # As Python ints: numpy integers pass the checks, and their fixed-width arithmetic would overflow.
+    seed, spp = int(seed), int(spp if spp is not None else scene.settings.spp)
+    train_spp = None if train_spp is None else int(train_spp)
     if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
         if spp < 2:
             raise ConfigError(f"--spp {spp}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
