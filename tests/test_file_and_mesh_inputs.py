@@ -170,3 +170,35 @@ def test_a_needle_fills_what_it_can_of_the_surface_pool_with_a_warning():
     assert 0 < len(rays.pool_points) < 1 << 16
     batch = rays.sample(512)
     assert torch.isfinite(batch.rays.origins).all()
+
+
+def _glb(path, *meshes):
+    import trimesh
+
+    trimesh.Scene(list(meshes)).export(path)
+    return path
+
+
+def test_materials_of_one_name_but_different_colours_stay_apart(tmp_path):
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    red, blue = trimesh.creation.box(), trimesh.creation.box()
+    blue.apply_translation([3, 0, 0])
+    red.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name="paint", baseColorFactor=[255, 0, 0, 255]))
+    blue.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name="paint", baseColorFactor=[0, 0, 255, 255]))
+    mesh = load_mesh(_glb(tmp_path / "paint.glb", red, blue))
+    colours = sorted(tuple(m.base_color.round(3)) for m in mesh.materials)
+    assert colours == [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0)] and sorted(set(mesh.face_material_ids.tolist())) == [0, 1]
+
+
+def test_a_part_left_out_of_a_file_is_a_warning(tmp_path):
+    import trimesh
+
+    good, bad = trimesh.creation.box(), trimesh.creation.icosphere(1)
+    vertices = bad.vertices.copy()
+    vertices[0] = np.nan
+    bad = trimesh.Trimesh(vertices, bad.faces, process=False)
+    with pytest.warns(UserWarning, match=r"part \d of 2 is left out \(1 vertices have NaN or Inf coordinates\)"):
+        mesh = load_mesh(_glb(tmp_path / "part.glb", good, bad))
+    assert mesh.num_triangles == 12

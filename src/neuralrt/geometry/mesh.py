@@ -7,6 +7,7 @@ models are trained against them.
 from __future__ import annotations
 
 import hashlib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -368,13 +369,17 @@ def load_mesh(path: str | Path) -> Mesh:
         f = np.asarray(part.faces).astype(np.int32)
         try:
             validate_arrays(v, f, str(path))
-        except MeshError:
+        except MeshError as exc:
             if len(parts) == 1:
                 raise
+            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
         material, uv, col = _material_from_visual(part.visual, f"material{i}")
         key = material.name
-        if key not in names or materials[names[key]].texture is not None:
+        known = materials[names[key]] if key in names else None
+        # One slot per name only where the parts agree on it: two "paint"s of different colours stay two.
+        if known is None or known.texture is not None or material.texture is not None \
+                or not np.array_equal(known.base_color, material.base_color):
             names[key] = len(materials)
             materials.append(material)
         mat_ids.append(np.full(len(f), names[key], np.int32))
