@@ -131,7 +131,7 @@ def test_detail_of_the_wrong_type_is_a_config_error(tmp_path):
 
 def test_the_implicit_default_material_can_be_named(tmp_path):
     scene = load_scene(scene_file(tmp_path, objects=[{**SPHERE, "material": "default"},
-                                                     {"name": "b", "generator": {"name": "box"}, "materials": {"material0": "default"}}]))
+                                                     {"name": "b", "generator": {"name": "box"}, "materials": {"default": "default"}}]))
     assert scene.materials.names == ["default"]
 
 
@@ -168,3 +168,9 @@ def test_numpy_numbers_are_numbers():
 def test_numpy_integer_counts_are_counts():
     scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]})
     assert render(scene, spp=np.int64(2), max_depth=np.int32(2), seed=np.uint8(3), progress=False).spp == 2
+
+
+def test_a_materials_map_naming_no_slot_warns(tmp_path):
+    objects = [{"name": "b", "generator": {"name": "box"}, "materials": {"default": "default", "nonexist": "default"}}]
+    with pytest.warns(UserWarning, match=r"objects.0.materials: no material slot named 'nonexist' \(the object's slots: default\)"):
+        load_scene(scene_file(tmp_path, objects=objects))

@@ -14,6 +14,7 @@ import math
 import numbers
 import os
 import tomllib
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -334,6 +335,10 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                 camera_blas = shape.blas
             else:
                 camera_blas = camera_view if camera_view is not blas else None
+        unknown = [slot for slot in obj.materials if slot not in slots]
+        if unknown:  # a typo would silently leave the slot at its default
+            warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
+                          f"(the object's slots: {', '.join(slots)})", stacklevel=2)
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map(obj, slots, index)),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
