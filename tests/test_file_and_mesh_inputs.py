@@ -202,3 +202,13 @@ def test_a_part_left_out_of_a_file_is_a_warning(tmp_path):
     with pytest.warns(UserWarning, match=r"part \d of 2 is left out \(1 vertices have NaN or Inf coordinates\)"):
         mesh = load_mesh(_glb(tmp_path / "part.glb", good, bad))
     assert mesh.num_triangles == 12
+
+
+def test_a_16_bit_grey_texture_keeps_its_gradient(tmp_path):
+    from PIL import Image
+
+    Image.fromarray(np.tile(np.linspace(0, 65535, 16), (16, 1)).astype(np.uint16)).save(tmp_path / "g16.png")
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd g16.png\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nusemtl tex\nf 1/1 2/2 3/3\n")
+    row = load_mesh(tmp_path / "t.obj").materials[0].texture[0, :, 0]
+    assert row[0] == 0 and row[-1] == pytest.approx(1.0) and np.all(np.diff(row) > 0)  # (was 0, then all 1)

@@ -306,7 +306,7 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
             material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
         image = getattr(mat, "image", None)
         if image is not None and uv is not None:
-            material.texture = srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
+            material.texture = _texture_pixels(image)
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
     elif kind == "vertex":
         colors = srgb_to_linear(np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0)
@@ -315,6 +315,15 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
         if np.allclose(fc, fc[0]):
             material.base_color = srgb_to_linear(fc[0])
     return material, uv, colors
+
+
+def _texture_pixels(image) -> np.ndarray:
+    """[H, W, 3] linear RGB of a PIL image; 16-bit grey (PIL mode I;16 or I) scaled from 65535, where
+    ``convert("RGB")`` would clip every value above 255 to white."""
+    if image.mode.startswith("I"):
+        grey = np.clip(np.asarray(image, np.float32) / 65535.0, 0.0, 1.0)
+        return srgb_to_linear(np.repeat(grey[..., None], 3, axis=-1))
+    return srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
 
 
 def _is_placeholder(mat) -> bool:
