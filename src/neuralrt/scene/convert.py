@@ -248,7 +248,8 @@ def convert_scene(
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
-    # Checked before the scene loads: Ray installed, a given cluster reachable, the options valid.
+    # Checked before the scene loads: Ray installed, the options valid (a given cluster is reached
+    # once a model needs training: a rerun with every model present needs none).
     runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
                            address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
                            max_retries=max_retries)

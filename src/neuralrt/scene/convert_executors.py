@@ -11,7 +11,7 @@ the models folder as it arrives:
   ``gpus_per_model`` GPUs (one by default when training on CUDA). A mesh is put into Ray's object
   store once by the driver, so workers never read or generate the scene; a task returns the
   model file's bytes and the driver writes the file, so no shared filesystem is needed for the
-  models. Tasks checkpoint to the models folder's path: a worker that dies is retried by Ray
+  models. Tasks checkpoint to the models folder's absolute path: a worker that dies is retried by Ray
   (``max_retries``) and resumes from that checkpoint where the path is visible to it (this
   machine, or a shared filesystem).
 
