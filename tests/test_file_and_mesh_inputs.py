@@ -212,3 +212,19 @@ def test_a_16_bit_grey_texture_keeps_its_gradient(tmp_path):
     (tmp_path / "t.obj").write_text("mtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nusemtl tex\nf 1/1 2/2 3/3\n")
     row = load_mesh(tmp_path / "t.obj").materials[0].texture[0, :, 0]
     assert row[0] == 0 and row[-1] == pytest.approx(1.0) and np.all(np.diff(row) > 0)  # (was 0, then all 1)
+
+
+def test_per_face_colours_are_kept_exactly(tmp_path):
+    import trimesh
+
+    ball = trimesh.creation.icosphere(1)
+    colours = np.zeros((len(ball.faces), 4), np.uint8)
+    colours[:, 3], colours[::2, 0], colours[1::2, 2] = 255, 255, 255  # red and blue faces, alternating
+    ball.visual.face_colors = colours
+    ball.export(tmp_path / "faces.ply")
+    mesh = load_mesh(tmp_path / "faces.ply")  # (were dropped: every face white)
+    assert mesh.num_triangles == len(ball.faces) and len(mesh.vertices) == 3 * len(ball.faces)
+    per_face = mesh.vertex_colors[mesh.faces[:, 0]]
+    assert np.array_equal(per_face[::2], np.tile([1, 0, 0], (len(per_face[::2]), 1)))
+    assert np.array_equal(per_face[1::2], np.tile([0, 0, 1], (len(per_face[1::2]), 1)))
+    assert np.allclose(np.linalg.norm(mesh.vertex_normals, axis=1), 1, atol=1e-5)  # smooth normals, per corner

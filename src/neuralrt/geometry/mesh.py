@@ -326,6 +326,15 @@ def _texture_pixels(image) -> np.ndarray:
     return srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
 
 
+def _varying_face_colors(visual) -> np.ndarray | None:
+    """[F, 3] linear colours of a visual with per-face colours that differ (a PLY's face colours),
+    else None (one colour for every face becomes the material's base colour instead)."""
+    if getattr(visual, "kind", None) != "face":
+        return None
+    colors = np.asarray(visual.face_colors, np.float32)[:, :3] / 255.0
+    return None if np.allclose(colors, colors[0]) else srgb_to_linear(colors)
+
+
 def _is_placeholder(mat) -> bool:
     """Whether ``mat`` is trimesh's stand-in for a missing material (`empty_material`: a grey 2x2
     image and diffuse 102/255, which would render 0.13 linear instead of the white of no material)."""
@@ -371,7 +380,7 @@ def load_mesh(path: str | Path) -> Mesh:
     names: dict[str, int] = {}
     offset = 0
     any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
-    any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts)
+    any_color = any(getattr(p.visual, "kind", None) == "vertex" or _varying_face_colors(p.visual) is not None for p in parts)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -384,6 +393,7 @@ def load_mesh(path: str | Path) -> Mesh:
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
         material, uv, col = _material_from_visual(part.visual, f"material{i}")
+        face_colors = _varying_face_colors(part.visual)
         key = material.name
         known = materials[names[key]] if key in names else None
         # One slot per name only where the parts agree on it: two "paint"s of different colours stay two.
@@ -392,17 +402,23 @@ def load_mesh(path: str | Path) -> Mesh:
             names[key] = len(materials)
             materials.append(material)
         mat_ids.append(np.full(len(f), names[key], np.int32))
-        verts.append(v)
-        faces.append(f + np.int32(offset) if offset else f)
         file_normals = "vertex_normals" in part._cache
         vn = np.asarray(part.vertex_normals, np.float32) if file_normals else None
         vertices64 = np.asarray(part.vertices)
         del part  # frees trimesh's int64 faces before the normals pass
         if file_normals:
-            normals.append(vn if vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f))
+            vn = vn if vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f)
         else:  # what trimesh would compute, from its float64 vertices, without its caches
-            normals.append(angle_weighted_vertex_normals(vertices64, f))
+            vn = angle_weighted_vertex_normals(vertices64, f)
         del vertices64
+        if face_colors is not None:  # colours per face, exactly: each face gets its own three vertices (normals kept)
+            corners = f.reshape(-1)
+            v, vn, uv = v[corners], vn[corners], None
+            col = np.repeat(face_colors, 3, axis=0)
+            f = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+        normals.append(vn)
+        verts.append(v)
+        faces.append(f + np.int32(offset) if offset else f)
         uvs.append(uv if uv is not None and len(uv) == len(v) else np.zeros((len(v), 2), np.float32))
         colors.append(col if col is not None and len(col) == len(v) else np.ones((len(v), 3), np.float32))
         offset += len(v)
