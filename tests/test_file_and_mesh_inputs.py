@@ -228,3 +228,19 @@ def test_per_face_colours_are_kept_exactly(tmp_path):
     assert np.array_equal(per_face[::2], np.tile([1, 0, 0], (len(per_face[::2]), 1)))
     assert np.array_equal(per_face[1::2], np.tile([0, 0, 1], (len(per_face[1::2]), 1)))
     assert np.allclose(np.linalg.norm(mesh.vertex_normals, axis=1), 1, atol=1e-5)  # smooth normals, per corner
+
+
+def test_trimesh_is_imported_with_interrupts_held(tmp_path, monkeypatch):
+    """trimesh's optional imports catch BaseException: an interrupt inside them was swallowed."""
+    import sys
+
+    from neuralrt.geometry.mesh import import_trimesh
+
+    (tmp_path / "trimesh.py").write_text("import signal\nheld = signal.pthread_sigmask(signal.SIG_BLOCK, [])\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(sys.modules, "trimesh", sys.modules.get("trimesh"))  # (restored, or removed, afterwards)
+    del sys.modules["trimesh"]
+    fake = import_trimesh()
+    assert fake.__file__ == str(tmp_path / "trimesh.py")
+    assert {signal.SIGINT, signal.SIGTERM} <= fake.held  # held while it imported
+    assert not {signal.SIGINT, signal.SIGTERM} & signal.pthread_sigmask(signal.SIG_BLOCK, [])  # and released after
