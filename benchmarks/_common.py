@@ -225,12 +225,19 @@ def positive_float(text: str) -> float:
 
 # --- meshes, presets, scenes, devices (checked before any work) ---------------------------------
 
-# Procedural meshes a ``procedural:NAME:DETAIL`` spec can name (generators with a detail level) and
-# the highest detail neuralrt.geometry.procedural accepts for each (tests/test_bench_arguments.py
-# checks these against the generators).
-PROCEDURAL_DETAIL = {"statue": 5, "hairball": 8, "foliage": 6}
-MESH_SPECS = ("a mesh file (a path, or a file in ../shared/meshes) with an optional @loopK (K Loop subdivisions), "
-              f"or procedural:NAME:DETAIL with NAME one of {', '.join(PROCEDURAL_DETAIL)}")
+def procedural_detail() -> dict[str, int]:
+    """Procedural meshes a ``procedural:NAME:DETAIL`` spec can name (generators with a detail level)
+    and the finest detail each builds (`neuralrt.geometry.procedural.MAX_DETAIL`; imported when
+    asked: this module stays light for ``--help``)."""
+    from neuralrt.geometry.procedural import MAX_DETAIL
+
+    return MAX_DETAIL
+
+
+def mesh_specs() -> str:
+    """What a mesh argument may be, for error messages."""
+    return ("a mesh file (a path, or a file in ../shared/meshes) with an optional @loopK (K Loop subdivisions), "
+            f"or procedural:NAME:DETAIL with NAME one of {', '.join(procedural_detail())}")
 
 
 def parse_mesh_spec(spec: str) -> tuple:
@@ -241,14 +248,14 @@ def parse_mesh_spec(spec: str) -> tuple:
     from neuralrt.io.files import input_file_problem
 
     if not isinstance(spec, str) or not spec:
-        raise MeshError(f"empty mesh spec (use {MESH_SPECS})")
+        raise MeshError(f"empty mesh spec (use {mesh_specs()})")
     if spec.startswith("procedural:"):
         parts = spec.split(":")
         name = parts[1] if len(parts) > 1 else ""
-        limit = PROCEDURAL_DETAIL.get(name)
+        limit = procedural_detail().get(name)
         if len(parts) != 3 or limit is None:
             raise MeshError(f"{spec}: not a procedural mesh spec: use procedural:NAME:DETAIL with NAME one of "
-                            f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in PROCEDURAL_DETAIL.items())}")
+                            f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in procedural_detail().items())}")
         try:
             detail = int(parts[2])
         except ValueError:
@@ -266,7 +273,7 @@ def parse_mesh_spec(spec: str) -> tuple:
         if loops < 0:
             raise MeshError(f"{spec}: @loopK needs K, a whole number of Loop subdivisions >= 0, got {loop!r}")
     if "@" in name:
-        raise MeshError(f"{spec}: not a mesh spec (use {MESH_SPECS})")
+        raise MeshError(f"{spec}: not a mesh spec (use {mesh_specs()})")
     path = Path(name)
     if not path.exists() and not path.is_absolute() and (SHARED_MESHES / name).exists():
         path = SHARED_MESHES / name
@@ -321,12 +328,13 @@ def check_scene(scene: str, detail: int | None = None):
     from neuralrt.scene.loader import load_scene_spec
 
     spec, _, label = load_scene_spec(scene, detail=detail)
+    limits = procedural_detail()
     for i, obj in enumerate(spec.objects):
         gen = obj.generator
-        level = gen.params.get("detail") if gen is not None and gen.name in PROCEDURAL_DETAIL else None
-        if level is not None and not (isinstance(level, int) and 0 <= level <= PROCEDURAL_DETAIL[gen.name]):
+        level = gen.params.get("detail") if gen is not None and gen.name in limits else None
+        if level is not None and not (isinstance(level, int) and 0 <= level <= limits[gen.name]):
             raise SceneError(f"{label}: objects.{i} ({obj.name}): {gen.name} detail must be an integer in "
-                             f"0..{PROCEDURAL_DETAIL[gen.name]}, got {level!r}")
+                             f"0..{limits[gen.name]}, got {level!r}")
     return spec
 
 

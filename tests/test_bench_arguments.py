@@ -237,7 +237,8 @@ def test_read_results_refuses_a_broken_file(results_dir):
 def test_procedural_detail_limits_match_the_generators():
     from neuralrt.geometry import procedural
 
-    for name, limit in _common.PROCEDURAL_DETAIL.items():
+    assert _common.procedural_detail() is procedural.MAX_DETAIL
+    for name, limit in procedural.MAX_DETAIL.items():
         with pytest.raises(NeuralRTError, match=rf"0\.\.{limit}\b"):
             getattr(procedural, name)(detail=limit + 1)  # (checked before any geometry is made)
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .arguments import check_count, check_name, check_seed
+from .arguments import check_count, check_name, check_seed, seed_or_default
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, NeuralRTError
-from .io.files import check_output_file, check_output_folder, folders_removed_if_left_empty
-from .io.model_file import MODEL_SUFFIX
+from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
+from .io.model_file import MODEL_SUFFIX, check_model_path
 
 __all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
 
@@ -183,20 +183,20 @@ def render(
     check_device(device)
     check_count("spp", spp, maximum=_render_limit("spp"))  # a scene file's bounds
     check_count("max_depth", max_depth, minimum=1, maximum=_render_limit("max_depth"))
-    seed = 0 if seed is None else seed
-    check_seed("seed", seed)
+    seed = seed_or_default("seed", seed)
     check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError("--nif-train-spp needs --nif OBJECTS|auto")
-    if nif is not None and not (isinstance(nif, str) or (isinstance(nif, (list, tuple)) and all(isinstance(n, str) for n in nif))):
-        raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
+    if nif is not None:
+        from .render.nif_render import check_nif_names
+
+        check_nif_names(nif)
     output = check_path("output", output)
     if output.suffix.lower() != ".exr":
         raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
     from .render.film import output_files
 
-    for path in output_files(output):  # the image and every AOV beside it, before the scene loads
-        check_output_file(path, "render output")
+    check_output_files(output_files(output), "render output")  # the image and every AOV beside it, before the scene loads
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch)
     primary = loaded.primary
@@ -294,8 +294,7 @@ def train(
     output = check_path("output", output)
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)
-    if output.suffix.lower() not in MODEL_SUFFIXES:
-        raise NeuralRTError(f"{output}: a model file must end in .nrt (`neuralrt info` and scene files tell models by it)")
+    check_model_path(output)
     check_output_file(output, "model file")
     checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
     check_output_file(checkpoint, "checkpoint")  # (its name is longer)

@@ -8,7 +8,7 @@ import numbers
 
 from .errors import ConfigError
 
-__all__ = ["SEED_LIMIT", "check_count", "check_seed", "check_name"]
+__all__ = ["SEED_LIMIT", "check_count", "check_seed", "seed_or_default", "check_name"]
 
 
 def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
@@ -31,6 +31,14 @@ def check_seed(name: str, value) -> None:
     """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
     if value is not None:
         check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
+
+
+def seed_or_default(name: str, value, default: int = 0) -> int:
+    """``value`` (``default`` when None) checked as `check_seed` does, as a Python int (a numpy
+    integer's fixed-width arithmetic would overflow in seed mixing)."""
+    value = default if value is None else value
+    check_seed(name, value)
+    return int(value)
 
 
 def check_name(name: str, value) -> None:

@@ -19,6 +19,9 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 
 
+__all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
+
+
 def import_trimesh():
     """``trimesh``, imported the first time with Ctrl-C and SIGTERM held until it is done: its optional
     imports catch ``BaseException``, so an interrupt landing inside them was swallowed and the run
@@ -37,8 +40,6 @@ def import_trimesh():
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
     return trimesh
-
-__all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
 
 
 @dataclass
@@ -380,7 +381,8 @@ def load_mesh(path: str | Path) -> Mesh:
     names: dict[str, int] = {}
     offset = 0
     any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
-    any_color = any(getattr(p.visual, "kind", None) == "vertex" or _varying_face_colors(p.visual) is not None for p in parts)
+    face_colors_of = [_varying_face_colors(p.visual) for p in parts]  # (None for most parts: small)
+    any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) or any(c is not None for c in face_colors_of)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -393,7 +395,7 @@ def load_mesh(path: str | Path) -> Mesh:
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
         material, uv, col = _material_from_visual(part.visual, f"material{i}")
-        face_colors = _varying_face_colors(part.visual)
+        face_colors, face_colors_of[i] = face_colors_of[i], None
         key = material.name
         known = materials[names[key]] if key in names else None
         # One slot per name only where the parts agree on it: two "paint"s of different colours stay two.

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from ..errors import NeuralRTError
 
-__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_folder", "folders_removed_if_left_empty"]
+__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_files", "check_output_folder",
+           "folders_removed_if_left_empty"]
 
 
 def _sibling_name(path: Path) -> Path:
@@ -85,17 +86,17 @@ def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
     return None
 
 
+def _nearest_existing(folder: Path) -> Path:
+    """``folder`` or its nearest ancestor that exists (the current folder for a relative path none of whose folders exist)."""
+    return next((f for f in (folder, *folder.parents) if f.exists()), Path("."))
+
+
 def _writable_folder_problem(folder: Path, what: str) -> str | None:
     """None when ``folder`` exists and takes new files, or can be created; else the problem."""
-    for ancestor in (folder, *folder.parents):
-        if not ancestor.exists():
-            continue
-        if not ancestor.is_dir():
-            where = "" if ancestor == folder else f" (on the way to {folder})"
-            return f"{ancestor}: is a file, not a folder{where}"
-        break
-    else:  # (a relative path whose ancestors are all missing: the current folder)
-        ancestor = Path(".")
+    ancestor = _nearest_existing(folder)
+    if not ancestor.is_dir():
+        where = "" if ancestor == folder else f" (on the way to {folder})"
+        return f"{ancestor}: is a file, not a folder{where}"
     # Probing with a real file: os.access says yes to root everywhere (sysfs, ACLs, some network mounts).
     try:
         probe = _create_sibling(ancestor / "neuralrt-write-probe")
@@ -107,22 +108,33 @@ def _writable_folder_problem(folder: Path, what: str) -> str | None:
 
 def check_output_file(path: str | os.PathLike, what: str) -> None:
     """A one-line `NeuralRTError` unless a file can be written at ``path``: not a folder, its folder
-    existing (or creatable) and writable. Nothing is created."""
-    path = Path(path)
-    if path.is_dir():
-        raise NeuralRTError(f"{path}: is a folder, not a {what}")
-    target = _link_target(path)
-    problem = _writable_folder_problem(target.parent, what) or _name_length_problem(target, what)
-    if problem:
-        raise NeuralRTError(problem)
+    existing (or creatable) and writable, its name short enough. Nothing is created."""
+    check_output_files([path], what)
+
+
+def check_output_files(paths, what: str) -> None:
+    """`check_output_file` for several files (a render's image and AOVs, a model and its checkpoint),
+    each folder probed once."""
+    targets = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            raise NeuralRTError(f"{path}: is a folder, not a {what}")
+        targets.append(_link_target(path))
+    for folder in dict.fromkeys(target.parent for target in targets):
+        problem = _writable_folder_problem(folder, what)
+        if problem:
+            raise NeuralRTError(problem)
+    for target in targets:
+        problem = _name_length_problem(target, what)
+        if problem:
+            raise NeuralRTError(problem)
 
 
 def _name_length_problem(path: Path, what: str) -> str | None:
     """Too long a name for its filesystem, counting the temporary sibling `write_atomically` writes
     first (a name that fits alone would fail only at that write, after the work)."""
-    folder = next((f for f in (path.parent, *path.parent.parents) if f.exists()), Path("."))
     try:
-        limit = os.pathconf(folder, "PC_NAME_MAX")
+        limit = os.pathconf(_nearest_existing(path.parent), "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
     longest = len(os.fsencode(_sibling_name(path).name))

@@ -30,11 +30,11 @@ from torch import Tensor
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..errors import ModelFileError, validation_message
+from ..errors import ConfigError, ModelFileError, validation_message
 from .files import write_atomically
 
 __all__ = [
-    "MODEL_SUFFIX",
+    "MODEL_SUFFIX", "check_model_path",
     "FORMAT_VERSION", "METADATA_KEY", "ModelFile", "ModelHeader", "MaterialEntry", "read_model_file", "read_header",
     "read_model", "read_model_header", "write_model", "write_model_file", "arrays_digest",
 ]
@@ -101,6 +101,12 @@ def arrays_digest(arrays: dict[str, Tensor]) -> str:
         # View as bytes: works for every dtype, bf16 included (numpy has no bf16).
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
     return h.hexdigest()
+
+
+def check_model_path(path: Path) -> None:
+    """A one-line `ConfigError` unless ``path`` ends in ``.nrt``: `neuralrt info` and scene files tell models by it."""
+    if path.suffix.lower() != MODEL_SUFFIX:
+        raise ConfigError(f"{path}: a model file must end in {MODEL_SUFFIX} (`neuralrt info` and scene files tell models by it)")
 
 
 def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays: dict[str, Tensor]) -> Path:

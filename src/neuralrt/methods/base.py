@@ -35,9 +35,9 @@ from torch import Tensor, nn
 
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
-from ..errors import ConfigError, DeviceError, MeshMismatchError, ModelFileError, validation_message
+from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
 from ..io.files import check_output_file
-from ..io.model_file import MODEL_SUFFIX, ModelHeader, read_model, write_model
+from ..io.model_file import ModelHeader, check_model_path, read_model, write_model
 from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
 from ..rays import AABB, Hits, Rays, check_rays
 from .config import MethodConfig
@@ -307,8 +307,7 @@ class NeuralBLAS(nn.Module, ABC):
         scene files tell models by it) and its folder must take files: else a one-line `ConfigError`
         / `NeuralRTError` before anything is written."""
         path = check_path("path", path)
-        if path.suffix.lower() != MODEL_SUFFIX:
-            raise ConfigError(f"{path}: a model file must end in {MODEL_SUFFIX} (`neuralrt info` and scene files tell models by it)")
+        check_model_path(path)
         check_output_file(path, "model file")
         return write_model(path, self.header(), self._arrays())
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..arguments import check_count, check_seed
+from ..arguments import check_count, seed_or_default
 from ..errors import ConfigError
 from ..rays import resolve_device
 from .film import Film, RenderResult
@@ -130,10 +130,9 @@ def render(
     check_count("spp", spp)
     check_count("max_depth", settings.max_depth)
     check_count("max_paths", settings.max_paths)
-    seed = 0 if seed is None else seed
-    check_seed("seed", seed)
+    seed = seed_or_default("seed", seed)
     # As Python ints: numpy integers are accepted, and their fixed-width arithmetic would overflow.
-    seed, settings = int(seed), replace(settings, max_depth=int(settings.max_depth), max_paths=int(settings.max_paths))
+    settings = replace(settings, max_depth=int(settings.max_depth), max_paths=int(settings.max_paths))
     if settings.primary not in ("exact", "neural"):
         raise ConfigError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     if settings.primary == "exact" and scene.primary == "neural":

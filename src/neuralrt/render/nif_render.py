@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
-from ..arguments import check_count, check_seed
+from ..arguments import check_count, seed_or_default
 from ..errors import ConfigError, validation_message
 from ..methods.nif import NIFNetworks
 from ..methods.nif_config import NIFConfig
@@ -30,7 +30,7 @@ from .film import RenderResult
 from .integrator import render
 from .nif_shadows import NIFShadowAccel
 
-__all__ = ["render_nif", "select_nif_instances", "SECOND_PART_SEED"]
+__all__ = ["render_nif", "select_nif_instances", "check_nif_names", "SECOND_PART_SEED"]
 
 SECOND_PART_SEED = 104_729  # added to the seed of the samples after training (any offset gives new wavefront seeds)
 
@@ -46,6 +46,13 @@ def _instance_problem(scene, inst) -> str | None:
     if bool(emissive.any()):
         return "is emissive (a light): its shadow rays end on it"
     return None
+
+
+def check_nif_names(nif) -> None:
+    """A one-line `ConfigError` unless ``nif`` is ``"auto"`` or object names (a str or a list of str);
+    whether the scene has them is `select_nif_instances`' question."""
+    if not (isinstance(nif, str) or (isinstance(nif, (list, tuple)) and all(isinstance(n, str) for n in nif))):
+        raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
 
 
 def _nif_config(config) -> NIFConfig:
@@ -131,17 +138,16 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
 
     if not isinstance(scene, Scene):
         raise ConfigError(f"render_nif: scene must be a loaded Scene (neuralrt.scene.load_scene), not {type(scene).__name__}")
-    if not (isinstance(nif, str) or (isinstance(nif, (list, tuple)) and all(isinstance(n, str) for n in nif))):
-        raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
+    check_nif_names(nif)
     check_count("spp", spp)
     check_count("--nif-train-spp", train_spp)
-    check_seed("seed", seed)
+    seed = seed_or_default("seed", seed)
     if answer not in ("answer", "exact"):
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
     config = _nif_config(config)
     chosen = select_nif_instances(scene, nif, config)
     # As Python ints: numpy integers pass the checks, and their fixed-width arithmetic would overflow.
-    seed, spp = int(seed), int(spp if spp is not None else scene.settings.spp)
+    spp = int(spp if spp is not None else scene.settings.spp)
     train_spp = None if train_spp is None else int(train_spp)
     if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
         if spp < 2:

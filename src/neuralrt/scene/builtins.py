@@ -13,6 +13,7 @@ from typing import Callable
 from urllib.parse import parse_qs
 
 from ..errors import ConfigError, SceneError
+from ..geometry.procedural import MAX_DETAIL
 from .schema import (
     CameraSpec,
     ConductorMaterialSpec,
@@ -144,10 +145,11 @@ def instances(detail: int) -> SceneSpec:
 
 
 BUILTIN_SCENES: dict[str, BuiltinScene] = {
-    "cornell-statue": BuiltinScene(cornell_statue.__doc__, cornell_statue, 2, 5),  # statue: 0..5
-    "hairball": BuiltinScene(hairball.__doc__, hairball, 2, 8),  # hairball: 0..8
-    "foliage": BuiltinScene(foliage.__doc__, foliage, 2, 6),  # foliage: 0..6
-    "instances": BuiltinScene(instances.__doc__, instances, 2, 6),  # statue at detail - 1: 0..5
+    "cornell-statue": BuiltinScene(cornell_statue.__doc__, cornell_statue, 2, MAX_DETAIL["statue"]),
+    "hairball": BuiltinScene(hairball.__doc__, hairball, 2, MAX_DETAIL["hairball"]),
+    "foliage": BuiltinScene(foliage.__doc__, foliage, 2, MAX_DETAIL["foliage"]),
+    # Its statue is at detail - 1 (its sphere, subdivisions 2 + detail <= 9, allows more).
+    "instances": BuiltinScene(instances.__doc__, instances, 2, MAX_DETAIL["statue"] + 1),
 }
 
 

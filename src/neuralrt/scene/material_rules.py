@@ -12,17 +12,17 @@
 
 from __future__ import annotations
 
-from .schema import DiffuseMaterialSpec, EmissiveMaterialSpec, ObjectSpec, SceneSpec
+from .schema import DEFAULT_MATERIAL_NAME, DiffuseMaterialSpec, EmissiveMaterialSpec, ObjectSpec, SceneSpec
 
 __all__ = ["DEFAULT_MATERIAL", "scene_materials", "material_index", "scene_material_for", "material_map", "emits", "is_emissive"]
 
-DEFAULT_MATERIAL = DiffuseMaterialSpec(name="default", albedo=(0.8, 0.8, 0.8))  # for slots nothing else names
+DEFAULT_MATERIAL = DiffuseMaterialSpec(name=DEFAULT_MATERIAL_NAME, albedo=(0.8, 0.8, 0.8))  # for slots nothing else names
 
 
 def scene_materials(spec: SceneSpec) -> list:
     """The scene's material specs in table order (``default`` appended when absent)."""
     specs = list(spec.materials)
-    if all(m.name != "default" for m in specs):
+    if all(m.name != DEFAULT_MATERIAL_NAME for m in specs):
         specs.append(DEFAULT_MATERIAL)
     return specs
 
@@ -38,7 +38,7 @@ def scene_material_for(obj: ObjectSpec, slot: str, index: dict[str, int]) -> str
         return obj.material
     if slot in obj.materials:
         return obj.materials[slot]
-    return slot if slot in index else "default"
+    return slot if slot in index else DEFAULT_MATERIAL_NAME
 
 
 def material_map(obj: ObjectSpec, slot_names: list[str], index: dict[str, int]) -> list[int]:

@@ -65,6 +65,7 @@ __all__ = [
     "SceneSpec",
     "MAX_RESOLUTION",
     "MAX_RADIANCE",
+    "DEFAULT_MATERIAL_NAME",
     "check_resolution",
 ]
 
@@ -84,6 +85,9 @@ Finite = Annotated[float, NumberOnly, Field(allow_inf_nan=False)]
 NonNegFinite = Annotated[float, NumberOnly, Field(ge=0, allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 NonNegVec3 = tuple[NonNegFinite, NonNegFinite, NonNegFinite]
+# The material every scene has: added (diffuse 0.8, `material_rules.DEFAULT_MATERIAL`) unless the file
+# defines one of that name; slots nothing else names get it.
+DEFAULT_MATERIAL_NAME = "default"
 # Radiance and intensity are rendered in float32: a value near its 3.4e38 limit overflows once scaled by
 # a pdf or summed into a light-sampling table (a traceback, or silently black pixels). 1e20 leaves room.
 MAX_RADIANCE = 1e20
@@ -350,7 +354,7 @@ class SceneSpec(_Strict):
             if m.name in names:
                 errors.append((f"materials.{i}.name", f"duplicate material name {m.name!r} (also materials.{names[m.name]})"))
             names.setdefault(m.name, i)
-        known = set(names) | {"default"}  # the implicit diffuse material (`material_rules.DEFAULT_MATERIAL`) is always there
+        known = set(names) | {DEFAULT_MATERIAL_NAME}  # the implicit diffuse material is always there
         for i, obj in enumerate(self.objects):
             if obj.material is not None and obj.material not in known:
                 errors.append((f"objects.{i}.material", f"unknown material {obj.material!r}"))

@@ -140,8 +140,8 @@ class BoxRayDistribution:
 
     # Rounds of 65,536 rays that fill the pool at most: a mesh that covers little of its bounding
     # sphere (a needle, r = 1e-3 x 10: ~2e-4 of the rays hit) took minutes; capped, its whole `train
-    # --preset lq --steps 20` takes 5 s on 2 cores. Later batches' hits
-    # keep filling the rest (`_add_to_pool`), as for any pool larger than the first rounds found.
+    # --preset lq --steps 20` takes 5 s on 2 cores. Later batches' hits keep filling the rest
+    # (`_add_to_pool`), as for any pool larger than the first rounds found.
     FILL_ROUNDS = 64
 
     def _fill_pool(self) -> None:
