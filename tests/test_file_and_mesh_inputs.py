@@ -230,6 +230,56 @@ def test_per_face_colours_are_kept_exactly(tmp_path):
     assert np.allclose(np.linalg.norm(mesh.vertex_normals, axis=1), 1, atol=1e-5)  # smooth normals, per corner
 
 
+_TRIANGLE_OBJ = "v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nusemtl tex\nf 1/1 2/2 3/3\n"
+
+
+def test_a_missing_texture_or_material_file_is_a_warning(tmp_path):
+    """trimesh drops them with a debug line: the mesh rendered white with no word why."""
+    import logging
+
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd gone.png\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
+    (tmp_path / "n.obj").write_text("mtllib gone.mtl\n" + _TRIANGLE_OBJ)
+    logger = logging.getLogger("trimesh.util")
+    level, filters = logger.level, list(logger.filters)
+    with pytest.warns(UserWarning, match=r"t\.obj: a texture could not be read \(FileNotFoundError: gone\.png\)"):
+        assert load_mesh(tmp_path / "t.obj").materials[0].texture is None
+    with pytest.warns(UserWarning, match=r"n\.obj: material file gone\.mtl could not be read; its faces render white"):
+        load_mesh(tmp_path / "n.obj")
+    assert (logger.level, logger.filters) == (level, filters)  # trimesh's logger as it was
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from PIL import Image
+
+        Image.new("RGB", (2, 2), (255, 0, 0)).save(tmp_path / "gone.png")
+        assert load_mesh(tmp_path / "t.obj").materials[0].texture is not None  # no warning when it is there
+
+
+def test_gltf_colours_follow_the_gltf_spec(tmp_path):
+    """baseColorFactor is linear and white when absent; the texture is sRGB, multiplied by it (trimesh's
+    to_simple read the factor as sRGB, and an absent one as its 0.4 grey)."""
+    import trimesh
+    from PIL import Image
+    from trimesh.visual.material import PBRMaterial
+
+    half, plain, textured = (trimesh.creation.box() for _ in range(3))
+    plain.apply_translation([3, 0, 0])
+    textured.apply_translation([6, 0, 0])
+    half.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name="half", baseColorFactor=[0.5, 0.5, 0.5, 1.0]))
+    plain.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name="plain"))
+    texture = Image.new("RGB", (2, 2), (255, 255, 255))
+    textured.visual = trimesh.visual.TextureVisuals(
+        uv=np.full((len(textured.vertices), 2), 0.5),
+        material=PBRMaterial(name="tex", baseColorFactor=[0.25, 0.5, 1.0, 1.0], baseColorTexture=texture))
+    mesh = load_mesh(_glb(tmp_path / "pbr.glb", half, plain, textured))
+    by_name = {m.name: m for m in mesh.materials}
+    assert np.allclose(by_name["half"].base_color, 0.5, atol=2 / 255) and by_name["half"].texture is None
+    assert np.array_equal(by_name["plain"].base_color, [1, 1, 1])
+    assert np.allclose(by_name["tex"].texture[0, 0], [0.25, 0.5, 1.0], atol=2 / 255)
+
+
 def test_trimesh_is_imported_with_interrupts_held(tmp_path, monkeypatch):
     """trimesh's optional imports catch BaseException: an interrupt inside them was swallowed."""
     import sys

@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
+from .unread_assets import unread_assets
 
 
 __all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
@@ -297,9 +298,10 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
     if kind == "texture":
         mat = visual.material
         uv = None if visual.uv is None else np.asarray(visual.uv, np.float32)
-        if hasattr(mat, "to_simple"):  # PBR -> simple (diffuse + image)
-            mat = mat.to_simple()
         material.name = getattr(mat, "name", None) or fallback_name
+        if hasattr(mat, "baseColorFactor"):  # glTF PBR
+            _pbr_colour(material, mat, uv)
+            return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
         diffuse = getattr(mat, "diffuse", None)
@@ -316,6 +318,19 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
         if np.allclose(fc, fc[0]):
             material.base_color = srgb_to_linear(fc[0])
     return material, uv, colors
+
+
+def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None) -> None:
+    """A glTF material's colour as the glTF spec defines it: ``baseColorFactor`` is linear (trimesh
+    keeps it as 0-255) and white when absent; a ``baseColorTexture`` is sRGB and multiplied by it.
+    (trimesh's ``to_simple`` reads the factor as sRGB and an absent one as its 0.4 grey.)"""
+    factor = pbr.baseColorFactor
+    linear = np.ones(3, np.float32) if factor is None else np.asarray(factor, np.float32)[:3] / 255.0
+    image = pbr.baseColorTexture
+    if image is not None and uv is not None:
+        material.texture = _texture_pixels(image) * linear
+    else:
+        material.base_color = linear
 
 
 def _texture_pixels(image) -> np.ndarray:
@@ -362,9 +377,12 @@ def load_mesh(path: str | Path) -> Mesh:
     if problem:
         raise MeshError(problem)
     try:
-        loaded = trimesh.load(str(path), process=False)
+        with unread_assets() as unread:
+            loaded = trimesh.load(str(path), process=False)
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    for what in unread:
+        warnings.warn(f"{path}: {what}", stacklevel=2)
     if isinstance(loaded, trimesh.Scene):
         parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
     elif isinstance(loaded, trimesh.Trimesh):

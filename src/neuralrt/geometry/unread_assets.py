@@ -1,0 +1,74 @@
+"""The textures and material files trimesh could not read while loading a mesh.
+
+trimesh drops them silently (a debug log line), so a mesh whose ``map_Kd`` image or ``mtllib`` is
+missing rendered white with no word why. `unread_assets` collects those log lines for the calling
+thread, and only those: trimesh's other debug lines stay filtered as before.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+
+__all__ = ["unread_assets"]
+
+_LOGGER = "trimesh.util"  # the logger trimesh's OBJ and glTF readers write to
+_MATERIALS = "unable to load materials from:"
+_IMAGES = ("failed to load image", "unable to load image")
+
+_lock = threading.Lock()
+_collected: dict[int, list[str]] = {}  # thread ident -> what it could not read
+_level_before: list[int] = []  # the logger's own level, while a capture is installed
+
+
+class _Collect(logging.Filter):
+    def __init__(self, effective_level: int):
+        super().__init__()
+        self.effective_level = effective_level
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        into = _collected.get(record.thread)
+        if into is not None:
+            what = _described(record)
+            if what:
+                into.append(what)
+        return record.levelno >= self.effective_level  # what the logger passed on before
+
+
+_filter: list[_Collect] = []
+
+
+def _described(record: logging.LogRecord) -> str | None:
+    message = record.getMessage()
+    exc = record.exc_info[1] if record.exc_info else None
+    why = f" ({type(exc).__name__}: {exc})" if exc is not None else ""
+    if message.startswith(_MATERIALS):
+        return f"material file {message[len(_MATERIALS):].strip()} could not be read{why}; its faces render white"
+    if message.startswith(_IMAGES):
+        return f"a texture could not be read{why}; its material renders with its base colour"
+    return None
+
+
+@contextlib.contextmanager
+def unread_assets():
+    """Yield a list that fills with one line per texture or material file trimesh fails to read
+    in this thread inside the block."""
+    logger = logging.getLogger(_LOGGER)
+    ident = threading.get_ident()
+    found: list[str] = []
+    with _lock:
+        if not _collected:
+            _filter.append(_Collect(logger.getEffectiveLevel()))
+            _level_before.append(logger.level)
+            logger.addFilter(_filter[0])
+            logger.setLevel(logging.DEBUG)
+        _collected[ident] = found
+    try:
+        yield found
+    finally:
+        with _lock:
+            del _collected[ident]
+            if not _collected:
+                logger.removeFilter(_filter.pop())
+                logger.setLevel(_level_before.pop())
