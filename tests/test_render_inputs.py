@@ -94,6 +94,13 @@ def test_spp_and_eval_rays_are_bounded(tmp_path):
         api.render(scene_file(tmp_path), tmp_path / "x.exr", spp=1 << 40, progress=False)
     with pytest.raises(SceneError, match=r"render.spp: Input should be less than or equal to 1048576"):
         load_scene(scene_file(tmp_path, render={"spp": 1 << 21}))
+    from neuralrt.render.integrator import render
+
+    scene = load_scene(scene_file(tmp_path))
+    with pytest.raises(ConfigError, match=r"spp: must be at most 1048576"):  # the integrator's own call too
+        render(scene, spp=1 << 40, progress=False)
+    with pytest.raises(ConfigError, match=r"max_depth: must be at most 256"):
+        render(scene, spp=1, max_depth=257, progress=False)
     with pytest.raises(ConfigError, match=r"rays: must be at most 4194304"):
         api.evaluate(tmp_path / "m.nrt", tmp_path / "mesh.obj", rays=99999999999999)
 

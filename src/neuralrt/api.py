@@ -20,13 +20,6 @@ CHECKPOINT_SUFFIX = ".ckpt"  # training writes MODEL.nrt.ckpt beside MODEL.nrt
 SCENE_SUFFIXES = {".toml", ".json"}
 
 
-def _render_limit(key: str) -> int:
-    """The largest ``spp`` or ``max_depth`` a scene file takes (its schema's bound)."""
-    from .scene.schema import RenderSettings
-
-    return next(m.le for m in RenderSettings.model_fields[key].metadata if getattr(m, "le", None) is not None)
-
-
 def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> dict:
     """FLIP, PSNR and relMSE of ``test`` against ``reference``; writes the FLIP heat map PNG if asked."""
     from .eval.image_metrics import compare_files
@@ -179,10 +172,11 @@ def render(
     ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
     online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
     from .render.integrator import render as _render
+    from .scene.schema import MAX_DEPTH, MAX_SPP
 
     check_device(device)
-    check_count("spp", spp, maximum=_render_limit("spp"))  # a scene file's bounds
-    check_count("max_depth", max_depth, minimum=1, maximum=_render_limit("max_depth"))
+    check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
+    check_count("max_depth", max_depth, minimum=1, maximum=MAX_DEPTH)
     seed = seed_or_default("seed", seed)
     check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:

@@ -123,12 +123,14 @@ def render(
     """
     from dataclasses import replace
 
+    from ..scene.schema import MAX_DEPTH, MAX_SPP
+
     if settings is None:
         settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
-    check_count("spp", spp)
-    check_count("max_depth", settings.max_depth)
+    check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
+    check_count("max_depth", settings.max_depth, maximum=MAX_DEPTH)
     check_count("max_paths", settings.max_paths)
     seed = seed_or_default("seed", seed)
     # As Python ints: numpy integers are accepted, and their fixed-width arithmetic would overflow.

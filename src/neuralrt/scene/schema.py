@@ -316,11 +316,15 @@ class EnvironmentSpec(_Strict):
         return self
 
 
+MAX_SPP = 1 << 20  # a scene's, a render call's and the CLI's bound on samples per pixel
+MAX_DEPTH = 256  # ... and on bounces
+
+
 class RenderSettings(_Strict):
     """Render defaults stored with the scene (callers may override)."""
 
-    spp: Count = Field(16, gt=0, le=1 << 20, description="samples per pixel")
-    max_depth: Count = Field(5, ge=1, le=256, description="maximum number of bounces (1 = direct lighting)")
+    spp: Count = Field(16, gt=0, le=MAX_SPP, description="samples per pixel")
+    max_depth: Count = Field(5, ge=1, le=MAX_DEPTH, description="maximum number of bounces (1 = direct lighting)")
 
 
 class SceneSpec(_Strict):
