@@ -6,7 +6,6 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from pydantic import ValidationError
 
 import neuralrt
 from neuralrt.accel.mesh_blas import MeshBLAS
@@ -15,7 +14,10 @@ from neuralrt.errors import ConfigError, DeviceError, MeshError, ModelFileError
 from neuralrt.geometry.mesh import Mesh, check_float32_extent, load_mesh
 from neuralrt.geometry.procedural import sphere
 from neuralrt.methods import get_method
+from neuralrt.methods.config import TrainingConfig
 from neuralrt.methods.lsnif import LSNIFConfig
+from neuralrt.methods.nbvh_config import NBVHConfig
+from neuralrt.methods.nif_config import NIFConfig
 from neuralrt.training import api as training_api
 from neuralrt.training.ray_distribution import BoxRayDistribution
 from neuralrt.training.trainer import identity_differences
@@ -66,12 +68,21 @@ def test_bad_preset_overrides_name_the_section():
         LSNIFConfig.preset("lq", bogus={"a": 1})
 
 
-def test_plain_construction_still_raises_pydantic_errors():
-    with pytest.raises(ValidationError):
+def test_plain_construction_and_assignment_are_one_line_config_errors():
+    """As from a file or --set (they were pydantic's multi-line dumps); a ConfigError is a ValueError too."""
+    with pytest.raises(ConfigError, match=r"^lsnif config: training\.steps: Input should be greater than or equal to 1 \(got 0\)$"):
         LSNIFConfig(training={"steps": 0})
     config = LSNIFConfig.preset("lq")
-    with pytest.raises(ValidationError):  # validate_assignment: caught where it is assigned
+    with pytest.raises(ConfigError, match=r"^TrainingConfig: steps: Input should be greater"):  # caught where it is assigned
         config.training.steps = 0
+    assert config.training.steps == LSNIFConfig.preset("lq").training.steps
+    with pytest.raises(ConfigError, match=r"^nbvh config: cut\.lods: .*\(got 0\)$"):
+        NBVHConfig(cut={"lods": 0})
+    with pytest.raises(ConfigError, match=r"^nif config: bogus: Extra inputs are not permitted \(got 1\)$"):
+        NIFConfig(bogus=1)
+    with pytest.raises(ConfigError, match=r"^TrainingConfig: steps: Input should be a valid integer"):
+        TrainingConfig(steps="many")
+    assert "\n" not in str(pytest.raises(ValueError, NIFConfig, training={"seed": -1}).value)
 
 
 def test_default_preset_of_a_bad_device_is_one_line():

@@ -24,6 +24,28 @@ class ConfigSection(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # NaN: "finite number", not "less than 1"
 
+    # Built or changed in code (``NBVHConfig(cut={"lods": 0})``, ``config.training.steps = -1``), a bad
+    # value is one `ConfigError` line, as from a file or ``--set``, not pydantic's multi-line dump.
+    def __init__(self, /, **data):
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise ConfigError(f"{self._label()}: {validation_message(exc, type(self))}") from None
+
+    # Nested sections are then validated as plain models (one error path, ``training.steps``), not
+    # through this __init__ (pydantic's own mark, as its RootModel uses).
+    __init__.__pydantic_base_init__ = True
+
+    def __setattr__(self, name: str, value) -> None:
+        try:
+            super().__setattr__(name, value)
+        except ValidationError as exc:
+            raise ConfigError(f"{self._label()}: {validation_message(exc, type(self))}") from None
+
+    @classmethod
+    def _label(cls) -> str:
+        return cls.__name__
+
 
 class TrainingConfig(ConfigSection):
     """What the shared training loop and the training ray distribution read."""
@@ -112,7 +134,11 @@ class MethodConfig(ConfigSection):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise ConfigError(f"{cls._method_name()} config: {validation_message(exc, cls)}") from None
+            raise ConfigError(f"{cls._label()}: {validation_message(exc, cls)}") from None
+
+    @classmethod
+    def _label(cls) -> str:
+        return f"{cls._method_name()} config"
 
     @classmethod
     def _method_name(cls) -> str:

@@ -78,6 +78,10 @@ class NIFConfig(ConfigSection):
     auto_min_triangles: int = Field(100_000, ge=1, description="--nif auto: objects with more triangles than this "
                                     "(the paper's Bistro: 100K)")
 
+    @classmethod
+    def _label(cls) -> str:
+        return "nif config"  # (as the scene's and render_nif's messages name it)
+
     @model_validator(mode="after")
     def _distance_grid_only_inner(self) -> "NIFConfig":
         if self.outer.distance_grid is not None:
