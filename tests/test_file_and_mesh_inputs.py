@@ -93,6 +93,35 @@ def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path, monkeypatch, capsys):
     assert signal.getsignal(signal.SIGTERM) == previous
 
 
+def test_ctrl_c_while_the_command_imports_torch_is_one_line(monkeypatch, capsys):
+    """The console script imports the CLI inside `neuralrt.launch.main`: a Ctrl-C in torch's ~1 s
+    import was a traceback from inside torch."""
+    import builtins
+
+    from neuralrt import launch
+
+    real_import = builtins.__import__
+
+    def interrupted(name, *args, **kwargs):
+        if name == "cli":
+            raise KeyboardInterrupt
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    assert launch.main() == 130
+    assert capsys.readouterr().err == "neuralrt: interrupted\n"
+
+
+def test_importing_the_package_imports_no_torch():
+    """What the command's Ctrl-C cover relies on (and a cheap `import neuralrt`)."""
+    import subprocess
+    import sys
+
+    code = "import sys, neuralrt; print('torch' in sys.modules, neuralrt.Rays.__name__, 'torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "Rays", "True"]
+
+
 # -- converted scenes -----------------------------------------------------------------------------
 
 

@@ -22,16 +22,25 @@ if "OMP_WAIT_POLICY" not in os.environ:
     os.environ.setdefault("GOMP_SPINCOUNT", "30000")
     os.environ.setdefault("KMP_BLOCKTIME", "0")
 
-from .accel.blas import BLAS, MemoryReport
-from .accel.mesh_blas import MeshBLAS
 from .errors import NeuralRTError
-from .geometry.mesh import Mesh, load_mesh
-from .rays import AABB, Hits, Rays, Transform, face_forward, pinhole_rays
 
 __version__ = "0.1.0"
 
-# Heavier parts (numba kernels, the training loop) load on first use.
+# Everything else loads on first use: ``import neuralrt`` stays cheap (the `neuralrt` command
+# imports torch under its own Ctrl-C handling, `neuralrt.launch`), numba kernels and the training
+# loop only when asked for.
 _LAZY = {
+    "AABB": ("neuralrt.rays", "AABB"),
+    "BLAS": ("neuralrt.accel.blas", "BLAS"),
+    "Hits": ("neuralrt.rays", "Hits"),
+    "Mesh": ("neuralrt.geometry.mesh", "Mesh"),
+    "MeshBLAS": ("neuralrt.accel.mesh_blas", "MeshBLAS"),
+    "MemoryReport": ("neuralrt.accel.blas", "MemoryReport"),
+    "Rays": ("neuralrt.rays", "Rays"),
+    "Transform": ("neuralrt.rays", "Transform"),
+    "face_forward": ("neuralrt.rays", "face_forward"),
+    "load_mesh": ("neuralrt.geometry.mesh", "load_mesh"),
+    "pinhole_rays": ("neuralrt.rays", "pinhole_rays"),
     "load_model": ("neuralrt.methods", "load_model"),
     "train": ("neuralrt.training.api", "train"),
     "is_neural": ("neuralrt.methods", "is_neural"),
@@ -57,5 +66,8 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'neuralrt' has no attribute {name!r}")
 
 
-__all__ = ["AABB", "BLAS", "Hits", "Mesh", "MeshBLAS", "MemoryReport", "NeuralRTError", "Rays", "Transform",
-           "face_forward", "load_mesh", "pinhole_rays", *_LAZY]
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})
+
+
+__all__ = ["NeuralRTError", *_LAZY]
