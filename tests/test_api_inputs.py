@@ -65,12 +65,12 @@ def test_bad_values_are_named(tmp_path, ball, call, message):
 
 def test_convert_select_string_is_comma_separated_as_on_the_command_line(tmp_path):
     # (a plain string used to be read as a list of one-letter names)
-    with pytest.raises(NeuralRTError, match="--select: no object named 'nope' \\(objects: "):
+    with pytest.raises(NeuralRTError, match="select: no object named 'nope' \\(objects: "):
         api.convert("builtin:cornell-statue?detail=0", tmp_path / "o.toml", select="statue, nope", steps=1)
 
 
 def test_ray_executor_checks_the_device_name_and_cpus_up_front(tmp_path, capsys):
-    with pytest.raises(DeviceError, match="--device tpu: not a torch device"):
+    with pytest.raises(DeviceError, match="device=.tpu.: not a torch device"):
         api.convert("builtin:cornell-statue", tmp_path / "o.toml", executor="ray", device="tpu")
     assert main(["convert", "builtin:cornell-statue", "-o", str(tmp_path / "o.toml"), "--executor", "ray",
                  "--cpus-per-model", "inf"]) == 2
@@ -130,3 +130,32 @@ def test_bad_set_is_one_line_before_training(ball, tmp_path, capsys, item, messa
     assert len(err) == 1 and message in err[0], err
     with pytest.raises(ConfigError, match="settings: expected a dict"):
         api.convert("builtin:cornell-statue", tmp_path / "o.toml", settings=["voxel.resolution=16"])
+
+
+@pytest.mark.parametrize("api_call, argv, from_python, from_cli", [
+    (lambda d, b: api.render("builtin:cornell-statue", d / "x.exr", nif_train_spp=4),
+     lambda d, b: ["render", "builtin:cornell-statue", "-o", str(d / "x.exr"), "--nif-train-spp", "4"],
+     "nif_train_spp needs nif", "--nif-train-spp needs --nif OBJECTS|auto"),
+    (lambda d, b: api.render("builtin:cornell-statue", d / "x.exr", device="tpu"),
+     lambda d, b: ["render", "builtin:cornell-statue", "-o", str(d / "x.exr"), "--device", "tpu"],
+     "device='tpu': not a torch device", "--device tpu: not a torch device"),
+    (lambda d, b: api.evaluate(d / "m.nrt", b, images=False, image_dir=d / "img"),
+     lambda d, b: ["eval", str(d / "m.nrt"), str(b), "--no-images", "--images", str(d / "img")],
+     "image_dir and images=False contradict", None),  # (argparse's exclusive group on the command line)
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", executor="dask"),
+     lambda d, b: ["convert", "builtin:cornell-statue", "-o", str(d / "o.toml"), "--executor", "dask"],
+     "executor='dask': choose from", None),  # (argparse refuses it first on the command line)
+    (lambda d, b: api.convert("builtin:cornell-statue", d / "o.toml", address="localhost:1"),
+     lambda d, b: ["convert", "builtin:cornell-statue", "-o", str(d / "o.toml"), "--address", "localhost:1"],
+     "address: only with executor='ray'", "--address: only with --executor ray"),
+])
+def test_errors_name_arguments_as_the_caller_spelled_them(tmp_path, ball, capsys, api_call, argv, from_python, from_cli):
+    """From Python an argument is ``nif_train_spp``, from the command line ``--nif-train-spp`` (API
+    errors used to name CLI flags)."""
+    with pytest.raises(NeuralRTError) as info:
+        api_call(tmp_path, ball)
+    assert from_python in str(info.value) and "--" not in str(info.value), info.value
+    if from_cli is not None:
+        assert main(argv(tmp_path, ball)) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and from_cli in err[0], err

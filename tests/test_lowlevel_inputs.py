@@ -53,23 +53,23 @@ def _one_line(info) -> str:
 # -- devices ---------------------------------------------------------------------------------------
 def test_check_device_names_the_device_and_resolves_it():
     assert devices.check_device("cpu") == torch.device("cpu")
-    with pytest.raises(DeviceError, match=r"^--device tpu: not a torch device \(use cpu or cuda\)$"):
+    with pytest.raises(DeviceError, match=r"^device='tpu': not a torch device \(use cpu or cuda\)$"):
         devices.check_device("tpu")
-    with pytest.raises(DeviceError, match=r"--device meta: unsupported device type 'meta'"):
+    with pytest.raises(DeviceError, match=r"device='meta': unsupported device type 'meta'"):
         devices.check_device("meta")
     assert rays_module.resolve_device is devices.resolve_device  # one helper, re-exported where it was
 
 
 @cpu_only_torch
 def test_cuda_on_a_cpu_only_torch_is_a_device_error():
-    with pytest.raises(DeviceError, match=r"^--device cuda: (this torch .* without CUDA|no CUDA device)"):
+    with pytest.raises(DeviceError, match=r"^device='cuda': (this torch .* without CUDA|no CUDA device)"):
         devices.check_device("cuda")
 
 
 @pytest.mark.parametrize("device,message", [("tpu", "not a torch device"), ("meta", "unsupported device type 'meta'")]
                          + ([] if torch.cuda.is_available() else [("cuda", "CUDA")]))
 def test_entry_points_check_the_device_first(device, message, mesh, model_file, tmp_path, capsys):
-    pattern = rf"--device {device}: .*{message}"
+    pattern = rf"^device='{device}': .*{message}"  # (from Python: as the argument is spelled there)
     with pytest.raises(DeviceError, match=pattern):
         MeshBLAS(mesh, device=device)
     assert "Mitsuba" not in capsys.readouterr().err  # no backend was picked for it

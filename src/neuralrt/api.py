@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .arguments import check_count, check_name, check_seed, seed_or_default
+from .arguments import check_count, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, NeuralRTError
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
@@ -178,9 +178,9 @@ def render(
     check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
     check_count("max_depth", max_depth, minimum=1, maximum=MAX_DEPTH)
     seed = seed_or_default("seed", seed)
-    check_count("--nif-train-spp", nif_train_spp)  # NIF hook (issue 10)
+    check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
-        raise ConfigError("--nif-train-spp needs --nif OBJECTS|auto")
+        raise ConfigError(f"{given('nif_train_spp')} needs {given('nif', flag='--nif OBJECTS|auto')}")
     if nif is not None:
         from .render.nif_render import check_nif_names
 
@@ -356,7 +356,7 @@ def evaluate(
     image_dir = check_path("image_dir", image_dir, optional=True)
     if image_dir is not None:
         if not images:
-            raise ConfigError("--images DIR and --no-images contradict each other: give one")
+            raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
     blas = model if is_neural(model) else load_model(model, device=device)
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)

@@ -4,11 +4,41 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import numbers
 
 from .errors import ConfigError
 
-__all__ = ["SEED_LIMIT", "check_count", "check_seed", "seed_or_default", "check_name"]
+__all__ = ["SEED_LIMIT", "check_count", "check_seed", "seed_or_default", "check_name", "given", "spelled_as_flags"]
+
+_AS_FLAGS = contextvars.ContextVar("neuralrt_arguments_as_flags", default=False)
+_NO_VALUE = object()
+
+
+def given(argument: str, value=_NO_VALUE, *, flag: str | None = None) -> str:
+    """An argument as the user gave it, for an error message: ``--device cuda`` from the command line
+    (inside `spelled_as_flags`), ``device='cuda'`` from Python. ``flag`` is the command line's
+    spelling, whole, where it is not ``--`` plus the name with dashes and the value (``--no-images``
+    for ``images=False``)."""
+    if _AS_FLAGS.get():
+        if flag is not None:
+            return flag
+        flag = "--" + argument.replace("_", "-")
+        return flag if value is _NO_VALUE else f"{flag} {value}"
+    if value is _NO_VALUE:
+        return argument
+    return f"{argument}={value!r}" if isinstance(value, str) else f"{argument}={value}"
+
+
+@contextlib.contextmanager
+def spelled_as_flags():
+    """Within this block (the CLI's commands), `given` names arguments as command-line flags."""
+    token = _AS_FLAGS.set(True)
+    try:
+        yield
+    finally:
+        _AS_FLAGS.reset(token)
 
 
 def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:

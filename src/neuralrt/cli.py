@@ -15,6 +15,7 @@ import threading
 import warnings
 
 from . import __version__, api
+from .arguments import spelled_as_flags
 from .errors import NeuralRTError
 from .methods.config import parse_settings
 
@@ -301,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show_warning  # one line per warning, no source line
     on_term = _terminate_as_interrupt()
     try:
-        args.func(args)
+        with spelled_as_flags():  # errors name --flags, as the user typed them
+            args.func(args)
     except NeuralRTError as exc:
         print(f"neuralrt: error: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .arguments import given
 from .errors import ConfigError, DeviceError
 
 __all__ = ["DEVICE_TYPES", "check_device", "check_device_name", "resolve_device", "check_path"]
@@ -25,9 +26,9 @@ def check_device_name(device):
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
-        raise DeviceError(f"--device {device}: not a torch device (use cpu or cuda)") from None
+        raise DeviceError(f"{given('device', device)}: not a torch device (use cpu or cuda)") from None
     if dev.type not in DEVICE_TYPES:
-        raise DeviceError(f"--device {device}: unsupported device type {dev.type!r} (use cpu or cuda)")
+        raise DeviceError(f"{given('device', device)}: unsupported device type {dev.type!r} (use cpu or cuda)")
     return dev
 
 
@@ -39,10 +40,10 @@ def check_device(device):
     dev = check_device_name(device)
     if dev.type == "cuda":
         if not torch.backends.cuda.is_built():
-            raise DeviceError(f"--device {device}: this torch ({torch.__version__}) is built without CUDA; "
+            raise DeviceError(f"{given('device', device)}: this torch ({torch.__version__}) is built without CUDA; "
                               "install a CUDA build of torch to use a GPU")
         if not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count():
-            raise DeviceError(f"--device {device}: no CUDA device is available")
+            raise DeviceError(f"{given('device', device)}: no CUDA device is available")
     return resolve_device(dev)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
-from ..arguments import check_count, seed_or_default
+from ..arguments import check_count, given, seed_or_default
 from ..errors import ConfigError, validation_message
 from ..methods.nif import NIFNetworks
 from ..methods.nif_config import NIFConfig
@@ -83,22 +83,22 @@ def select_nif_instances(scene, nif: str | list[str], config: NIFConfig | None =
                   and inst.blas.mesh.num_triangles > config.auto_min_triangles]
         if not chosen:
             biggest = max((inst.blas.mesh.num_triangles for inst in instances if getattr(inst.blas, "mesh", None) is not None), default=0)
-            raise ConfigError(f"--nif auto: no object has more than {config.auto_min_triangles:,} triangles "
+            raise ConfigError(f"{given('nif', 'auto')}: no object has more than {config.auto_min_triangles:,} triangles "
                               f"(the largest has {biggest:,}); name the objects instead")
         return chosen
     names = [n.strip() for n in (nif.split(",") if isinstance(nif, str) else nif)]
     if not names or any(not n for n in names):
-        raise ConfigError(f"--nif {nif!r}: give object names separated by commas, or auto")
+        raise ConfigError(f"{given('nif', nif)}: give object names separated by commas, or auto")
     known = [inst.name for inst in instances]
     chosen = []
     for name in names:
         matches = [k for k, inst in enumerate(instances) if inst.name == name]
         if not matches:
-            raise ConfigError(f"--nif {name}: no object of that name (objects: {', '.join(dict.fromkeys(known))})")
+            raise ConfigError(f"{given('nif', name)}: no object of that name (objects: {', '.join(dict.fromkeys(known))})")
         for k in matches:
             problem = _instance_problem(scene, instances[k])
             if problem:
-                raise ConfigError(f"--nif {name}: the object {problem}")
+                raise ConfigError(f"{given('nif', name)}: the object {problem}")
         chosen.extend(matches)
     return sorted(set(chosen))
 
@@ -151,15 +151,15 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     train_spp = None if train_spp is None else int(train_spp)
     if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
         if spp < 2:
-            raise ConfigError(f"--spp {spp}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
+            raise ConfigError(f"{given('spp', spp)}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
         warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (training.train_spp "
-                      f"{config.training.train_spp} is not below spp; set --nif-train-spp to choose)", stacklevel=2)
+                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)", stacklevel=2)
         train_spp = spp // 2
     if train_spp is not None:
         config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": train_spp})})
     train_spp = config.training.train_spp
     if spp <= train_spp:
-        raise ConfigError(f"--nif-train-spp {train_spp} leaves no samples for NIF at --spp {spp} (it must be below spp)")
+        raise ConfigError(f"{given('nif_train_spp', train_spp)} leaves no samples for NIF at {given('spp', spp)} (it must be below spp)")
 
     accel = scene.accel
     blases = list({id(accel.instances[k].blas): accel.instances[k].blas for k in chosen}.values())

@@ -7,6 +7,7 @@ millions of triangles at detail 4-5. `list_builtins` names them all.
 
 from __future__ import annotations
 
+from ..arguments import given
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -181,7 +182,7 @@ def builtin_spec(query: str, detail: int | None = None) -> SceneSpec:
         if isinstance(detail, bool) or not isinstance(detail, int):
             raise ConfigError(f"detail: must be an integer, got {detail!r}")
         if "detail" in options and detail != level:
-            raise SceneError(f"builtin:{query}: detail given twice ({level} in the name, {detail} as --detail): give it once")
+            raise SceneError(f"builtin:{query}: detail given twice ({level} in the name, {detail} as {given('detail')}): give it once")
         level = detail
     if not 0 <= level <= builtin.max_detail:
         raise SceneError(f"builtin:{name}: detail must be in 0..{builtin.max_detail}, got {level}")

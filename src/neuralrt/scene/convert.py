@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..arguments import given
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
@@ -116,17 +117,17 @@ def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[st
     if select:
         unknown = sorted(set(select) - set(names))
         if unknown:
-            raise SceneError(f"--select: no object named {', '.join(map(repr, unknown))} (objects: {', '.join(names)})")
+            raise SceneError(f"{given('select')}: no object named {', '.join(map(repr, unknown))} (objects: {', '.join(names)})")
     chosen = []
     threshold = DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles
     for i, (obj, mesh) in enumerate(zip(spec.objects, meshes)):
         if mesh is None or obj.model is not None:
             if select and names[i] in select and obj.model is not None:
-                raise SceneError(f"--select: object {names[i]!r} already has a model ({obj.model})")
+                raise SceneError(f"{given('select')}: object {names[i]!r} already has a model ({obj.model})")
             continue  # already neural
         if is_emissive(spec, obj, [m.name for m in mesh.materials]):
             if select and names[i] in select:
-                raise SceneError(f"--select: object {names[i]!r} is an area light; lights stay triangles")
+                raise SceneError(f"{given('select')}: object {names[i]!r} is an area light; lights stay triangles")
             continue
         if select:
             if names[i] in select:

@@ -36,6 +36,7 @@ from urllib.parse import urlparse
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from ..arguments import given
 from ..errors import ConfigError, NeuralRTError, validation_message
 from ..geometry.mesh import Mesh
 from ..io.files import write_atomically
@@ -164,8 +165,7 @@ class LocalExecutor(Executor):
 # --- Ray ------------------------------------------------------------------------------------------
 
 
-_FLAGS = {"address": "--address", "cpus_per_model": "--cpus-per-model", "gpus_per_model": "--gpus-per-model",
-          "threads_per_model": "--threads-per-model", "max_retries": "--max-retries"}
+_RAY_OPTIONS = ("address", "cpus_per_model", "gpus_per_model", "threads_per_model", "max_retries")
 
 
 class RayOptions(BaseModel):
@@ -188,8 +188,8 @@ class RayOptions(BaseModel):
             return cls(**{k: v for k, v in values.items() if v is not None})
         except ValidationError as exc:
             msg = validation_message(exc)
-            for key, flag in _FLAGS.items():
-                msg = msg.replace(f"{key}:", f"{flag}:")
+            for key in _RAY_OPTIONS:
+                msg = msg.replace(f"{key}:", f"{given(key)}:")
             raise ConfigError(msg) from None
 
 
@@ -197,11 +197,12 @@ def _import_ray():
     try:
         import ray
     except ImportError:
-        raise ConfigError(f"--executor ray needs Ray, which is not installed: {INSTALL_HINT}") from None
+        raise ConfigError(f"{given('executor', 'ray')} needs Ray, which is not installed: {INSTALL_HINT}") from None
     return ray
 
 
-_NO_CLUSTER_HINT = "start one with `ray start --head` on the head node, or leave --address out for a local Ray instance"
+def _no_cluster_hint() -> str:
+    return f"start one with `ray start --head` on the head node, or leave {given('address')} out for a local Ray instance"
 # A client's HTTP/2 connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the
 # Ray Client server) answers with its own SETTINGS frame at once; anything else does not.
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
@@ -216,7 +217,7 @@ def _host_port(address: str) -> tuple[str, int]:
     except ValueError:
         host = port = None
     if not host or not port:
-        raise ConfigError(f"--address {address}: expected auto, HOST:PORT or ray://HOST:PORT")
+        raise ConfigError(f"{given('address', address)}: expected auto, HOST:PORT or ray://HOST:PORT")
     return host, port
 
 
@@ -233,9 +234,9 @@ def _probe(address: str, timeout: float = 3.0) -> None:
             conn.sendall(_HTTP2_PREFACE)
             head = conn.recv(9)
     except OSError as exc:
-        raise ConfigError(f"--address {address}: no Ray cluster reachable ({exc.strerror or exc}); {_NO_CLUSTER_HINT}") from None
+        raise ConfigError(f"{given('address', address)}: no Ray cluster reachable ({exc.strerror or exc}); {_no_cluster_hint()}") from None
     if len(head) < 9 or head[3] != _SETTINGS_FRAME:
-        raise ConfigError(f"--address {address}: something listens there, but not Ray (no gRPC answer); give the Ray "
+        raise ConfigError(f"{given('address', address)}: something listens there, but not Ray (no gRPC answer); give the Ray "
                           f"head's GCS port (`ray start --head --port`, 6379 by default) or ray://HOST:10001")
 
 
@@ -326,9 +327,9 @@ class RayExecutor(Executor):
         if gpus is None:
             gpus = 1.0 if self.device == "cuda" else 0.0
         if self.device == "cuda" and gpus == 0:
-            raise ConfigError("--gpus-per-model 0 with --device cuda: a task training on CUDA needs a GPU (e.g. 1, or 0.5 to share one)")
+            raise ConfigError(f"{given('gpus_per_model', 0)} with {given('device', 'cuda')}: a task training on CUDA needs a GPU (e.g. 1, or 0.5 to share one)")
         if self.device != "cuda" and gpus > 0:
-            raise ConfigError(f"--gpus-per-model {options.gpus_per_model:g} needs --device cuda (the tasks train on {self.device})")
+            raise ConfigError(f"{given('gpus_per_model', options.gpus_per_model)} needs {given('device', 'cuda')} (the tasks train on {self.device})")
         self.gpus = gpus
         self.threads = options.threads_per_model or max(1, int(options.cpus_per_model))
         self._ray = None
@@ -368,12 +369,12 @@ class RayExecutor(Executor):
                 if self.options.address is None:
                     raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
                 if self.options.address == "auto":
-                    raise ConfigError(f"--address auto: no running Ray cluster found on this machine ({str(exc).splitlines()[0]}); "
-                                      f"{_NO_CLUSTER_HINT}") from None
+                    raise ConfigError(f"{given('address', 'auto')}: no running Ray cluster found on this machine ({str(exc).splitlines()[0]}); "
+                                      f"{_no_cluster_hint()}") from None
                 # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
-                raise ConfigError(f"--address {self.options.address}: could not connect to Ray ({str(exc).splitlines()[0]}); "
+                raise ConfigError(f"{given('address', self.options.address)}: could not connect to Ray ({str(exc).splitlines()[0]}); "
                                   f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
-                                  f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node --address auto finds both") from None
+                                  f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node {given('address', 'auto')} finds both") from None
             self._started = True
         self._check_resources()
 
@@ -481,12 +482,12 @@ def make_executor(name: str, *, device: str = "cpu", progress: bool = True, thre
                   **ray_options) -> Executor:
     """``"local"`` or ``"ray"`` with its options (`RayOptions`); bad names or options are one-line errors."""
     if name not in EXECUTORS:
-        raise ConfigError(f"--executor {name!r}: choose from {', '.join(EXECUTORS)}")
+        raise ConfigError(f"{given('executor', name)}: choose from {', '.join(EXECUTORS)}")
     if name == "local":
-        given = [_FLAGS[k] for k, v in ray_options.items() if v is not None]
-        if given:
-            raise ConfigError(f"{', '.join(given)}: only with --executor ray")
+        ray_only = [given(k) for k, v in ray_options.items() if v is not None]
+        if ray_only:
+            raise ConfigError(f"{', '.join(ray_only)}: only with {given('executor', 'ray')}")
         if threads_per_model is not None and threads_per_model < 1:
-            raise ConfigError(f"--threads-per-model: must be >= 1, got {threads_per_model}")
+            raise ConfigError(f"{given('threads_per_model')}: must be >= 1, got {threads_per_model}")
         return LocalExecutor(device=device, progress=progress, threads=threads_per_model)
     return RayExecutor(RayOptions.parse(threads_per_model=threads_per_model, **ray_options), device=device, progress=progress)

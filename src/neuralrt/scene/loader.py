@@ -23,6 +23,7 @@ from pydantic import ValidationError
 
 from ..accel.blas import BLAS
 from ..accel.mesh_blas import MeshBLAS
+from ..arguments import given
 from ..accel.tlas import Instance, SceneAccel
 from ..devices import check_device, check_path
 from ..errors import NeuralRTError, SceneError, validation_errors
@@ -183,7 +184,7 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
     path = Path(path_or_builtin)
     label = str(path)  # as the user wrote it, like the file-level errors
     if detail is not None:
-        raise SceneError(f"{path}: --detail applies to built-in scenes (builtin:NAME), not to a scene file")
+        raise SceneError(f"{path}: {given('detail')} applies to built-in scenes (builtin:NAME), not to a scene file")
     problem = input_file_problem(path, "scene file")
     if problem:
         raise SceneError(problem)
