@@ -148,9 +148,14 @@ class Hits:
     t: Scalars
     """[N] float32: ray parameter of the hit (units of the direction's length); inf on miss."""
     normal: Vectors
-    """[N, 3] float32: unit shading normal (zeros on miss); not flipped towards the ray."""
+    """[N, 3] float32: unit shading normal (zeros on miss). An exact BLAS gives the mesh's own side
+    (the winding's; not flipped towards the ray); a neural BLAS gives one facing the ray, as it was
+    trained (one ray cannot tell a surface's outside: LSNIF returns its prediction, so an
+    undertrained model may return some facing away; N-BVH flips its output). `face_forward` gives
+    one convention from both."""
     geometric_normal: Vectors
-    """[N, 3] float32: unit face normal (zeros on miss); not flipped towards the ray."""
+    """[N, 3] float32: unit face normal (zeros on miss); sides as ``normal``'s (a neural BLAS's is
+    its ``normal``)."""
     uv: Annotated[Tensor, "[N, 2] float32"]
     """[N, 2] float32: texture coordinates (zeros where absent)."""
     albedo: Vectors

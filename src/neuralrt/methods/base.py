@@ -218,7 +218,7 @@ class NeuralBLAS(nn.Module, ABC):
     # -- inference -----------------------------------------------------------------------------------
     @torch.no_grad()
     def intersect(self, rays: Rays) -> Hits:
-        """Closest hit per ray in object space: hit, t, normal (facing the ray), albedo, material.
+        """Closest hit per ray in object space: hit, t, normal (facing the ray, as trained: `Hits.normal`), albedo, material.
 
         ``rays`` must be on the model's device; hits come back on it. Rays with NaN/Inf origins or
         directions, zero directions or an empty ``(t_min, t_max)`` miss."""

@@ -14,8 +14,8 @@ box keeps the ray parameter ``t`` unchanged (directions are not renormalised), s
 distances are object-space distances.
 
 Normals are learned in object space from targets turned to face the incoming ray (open meshes
-have either side) and returned as predicted: like every BLAS's, not flipped towards the ray, so an
-undertrained model may return some that face away (``eval``'s ``normal_backfacing_fraction``);
+have either side) and returned as predicted, not flipped afterwards, so an undertrained model may
+return some that face away (``eval``'s ``normal_backfacing_fraction``; `Hits.normal`);
 ``Hits.geometric_normal`` carries the same vector.
 """
 
