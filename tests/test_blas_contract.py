@@ -103,6 +103,13 @@ def test_interval_is_respected(blas, device):
     late = Rays(rays.origins, rays.directions, t_min=torch.where(h.hit, h.t + 1e-3, 0.0))
     h2 = blas.intersect(late)
     assert (h2.t[h2.hit] > late.t_min[h2.hit]).all()
+    # A negative t_min counts as 0: no BLAS answers hits behind the origin (exact ones did, neural ones
+    # missed or answered ahead), so the same rays give the same answers as from t = 0.
+    behind = Rays(rays.origins, rays.directions, t_min=-10.0)
+    assert torch.equal(behind.t_min, torch.zeros_like(behind.t_min))
+    assert torch.equal(blas.intersect(behind).hit, h.hit)
+    away = Rays(rays.origins, -rays.directions, t_min=-1e3)  # the object lies behind every origin
+    assert not blas.intersect(away).hit.any() and not blas.occluded(away).any()
 
 
 def test_degenerate_rays_miss_without_error(blas, device):

@@ -33,7 +33,7 @@ Indices = Annotated[Tensor, "[N] int64"]
 
 @dataclass
 class Rays:
-    """A batch of rays ``origins + t * directions`` for ``t`` in ``(t_min, t_max)``.
+    """A batch of rays ``origins + t * directions`` for ``t`` in ``[t_min, t_max]``.
 
     Fields (``N`` rays, all on one device, float32):
 
@@ -41,8 +41,10 @@ class Rays:
       scene, the object's own space for a BLAS).
     - ``directions`` [N, 3]: need not be unit length: ``t`` is measured in units of the
       direction's length, which keeps ``t`` valid when rays are mapped through an affine transform.
-    - ``t_min``, ``t_max`` [N]: the interval; default ``0`` and ``+inf``. A scalar or any tensor
-      that broadcasts to the batch shape is accepted.
+    - ``t_min``, ``t_max`` [N]: the interval, both ends included (as Embree's); default ``0`` and
+      ``+inf``. A scalar or any tensor that broadcasts to the batch shape is accepted. A negative
+      ``t_min`` is stored as 0: no BLAS answers hits behind the origin (a neural one cannot: it
+      learned rays that start there), so exact and neural answers agree.
 
     Batch shapes: origins and directions may be ``[..., 3]`` (e.g. ``[H, W, 3]``); they are
     flattened row-major to ``[N, 3]`` and ``batch_shape`` keeps the original leading shape, so
@@ -75,7 +77,10 @@ class Rays:
         if origins.ndim != 2:
             origins, directions = origins.reshape(n, 3), directions.reshape(n, 3)
         self.origins, self.directions = origins, directions
-        self.t_min = torch.zeros(n, device=dev) if self.t_min is None else self._interval("t_min", self.t_min, shape, n, dev)
+        if self.t_min is None:
+            self.t_min = torch.zeros(n, device=dev)
+        else:  # hits behind the origin: none (NaN stays NaN, a miss)
+            self.t_min = self._interval("t_min", self.t_min, shape, n, dev).clamp_min(0.0)
         self.t_max = torch.full((n,), float("inf"), device=dev) if self.t_max is None else self._interval("t_max", self.t_max, shape, n, dev)
 
     @staticmethod

@@ -40,8 +40,8 @@ class BLAS(Protocol):
     """What answers rays for one object, in object space.
 
     - ``bounds``: the object's AABB in object space.
-    - ``intersect(rays)``: closest hit within ``(t_min, t_max)`` for each ray.
-    - ``occluded(rays)``: [N] bool, whether anything is hit within ``(t_min, t_max)``.
+    - ``intersect(rays)``: closest hit within ``[t_min, t_max]`` for each ray.
+    - ``occluded(rays)``: [N] bool, whether anything is hit within ``[t_min, t_max]``.
     - ``memory_bytes()``: run-time memory, itemised.
     - ``secondary_offset``: how far (in object-space units, along the normal) a ray leaving a hit
       on this object must start to avoid hitting the same surface again.

@@ -76,7 +76,7 @@ class MeshBLAS(ABC):
     raises `ConfigError`, a device this process cannot use (``cuda`` on a CPU-only torch) `DeviceError`.
 
     Contract, whatever the backend: ``intersect(rays)`` returns `Hits` on ``rays.device`` (the
-    closest hit in ``(t_min, t_max)``: t in units of the direction's length, triangle index,
+    closest hit in ``[t_min, t_max]``: t in units of the direction's length, triangle index,
     shading normal interpolated from ``mesh.vertex_normals``, unit face normal, UV, albedo =
     material base colour x texture x vertex colour clipped to [0, 1], material id);
     ``occluded(rays)`` returns [N] bool. Rays with NaN/Inf origins or directions, zero directions
@@ -114,7 +114,7 @@ class MeshBLAS(ABC):
 
     @abstractmethod
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: any hit within (t_min, t_max) (the backend's)."""
+        """[N] bool: any hit within [t_min, t_max] (the backend's)."""
 
     @property
     def material_names(self) -> list[str]:
@@ -232,7 +232,7 @@ class EmbreeMeshBLAS(MeshBLAS):
                 self._material_albedo(), m.uvs is not None, m.vertex_colors is not None)  # fmt: skip
 
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: does any triangle lie within (t_min, t_max)?"""
+        """[N] bool: does any triangle lie within [t_min, t_max]?"""
         check_rays(rays, "occluded")
         n = len(rays)
         if n == 0:

@@ -152,7 +152,7 @@ class MitsubaMeshBLAS(MeshBLAS):
         return prim.torch(), t.torch() + start, u.torch(), v.torch()
 
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: does any triangle lie within (t_min, t_max)?"""
+        """[N] bool: does any triangle lie within [t_min, t_max]?"""
         import drjit as dr
 
         self._check_device(rays, "occluded")

@@ -134,7 +134,7 @@ class SceneAccel:
         return Hits.empty(n, rays.device) if best is None else best
 
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: does any instance block the ray within (t_min, t_max)?"""
+        """[N] bool: does any instance block the ray within [t_min, t_max]?"""
         self._check_device(rays)
         stages = self.stages
         if len(rays) == 0:

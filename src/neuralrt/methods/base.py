@@ -221,7 +221,7 @@ class NeuralBLAS(nn.Module, ABC):
         """Closest hit per ray in object space: hit, t, normal (facing the ray, as trained: `Hits.normal`), albedo, material.
 
         ``rays`` must be on the model's device; hits come back on it. Rays with NaN/Inf origins or
-        directions, zero directions or an empty ``(t_min, t_max)`` miss."""
+        directions, zero directions or an empty ``[t_min, t_max]`` miss."""
         check_rays(rays, "intersect")
         self._check_device(rays)
         n = len(rays)
@@ -251,7 +251,7 @@ class NeuralBLAS(nn.Module, ABC):
 
     @torch.no_grad()
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: the model predicts a hit within (t_min, t_max) (same decision as `intersect`)."""
+        """[N] bool: the model predicts a hit within [t_min, t_max] (same decision as `intersect`)."""
         check_rays(rays, "occluded")
         return self.intersect(rays).hit
 

@@ -369,7 +369,7 @@ class LSNIFModel(NeuralBLAS):
 
     @torch.no_grad()
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: the model predicts a hit within (t_min, t_max), the same decision as
+        """[N] bool: the model predicts a hit within [t_min, t_max], the same decision as
         `intersect`. On the CPU (``lsnif_fused_cpu.WRITE_HITS``) only that decision is decoded
         (`lsnif_fused_cpu.fused_occluded_cpu`: no normals, albedo or materials)."""
         from . import lsnif_fused_cpu

@@ -386,7 +386,7 @@ class NBVHModel(NeuralBLAS):
 
     @torch.no_grad()
     def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: a hit within (t_min, t_max); each ray stops at its first accepted hit."""
+        """[N] bool: a hit within [t_min, t_max]; each ray stops at its first accepted hit."""
         self._check_device(rays)
         chunk = self.rays_per_chunk(rays.device)
         parts = [self._answer(rays[slice(s, s + chunk)], any_hit=True).hit for s in range(0, len(rays), chunk)]
