@@ -134,3 +134,36 @@ def test_package_declares_its_type_hints():
     assert importlib.resources.files("neuralrt").joinpath("py.typed").is_file()
     pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
     assert "py.typed" in pyproject["tool"]["setuptools"]["package-data"]["neuralrt"]
+
+
+def test_rays_refuse_what_torch_would_silently_cast():
+    import numpy as np
+
+    from neuralrt.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^ray origins: expected real numbers, got a torch.bool tensor$"):
+        Rays(torch.zeros(2, 3, dtype=torch.bool), torch.ones(2, 3))  # (was read as 0/1)
+    with pytest.raises(ConfigError, match=r"^ray directions: expected real numbers, got a complex128 array$"):
+        Rays(np.zeros((2, 3)), np.ones((2, 3), complex))  # (the imaginary part was dropped)
+
+
+def test_hits_and_rays_check_their_arguments():
+    from neuralrt.errors import ConfigError, DeviceError
+    from neuralrt.rays import Hits
+
+    rays = Rays(torch.zeros(5, 3), torch.ones(5, 3))
+    with pytest.raises(ConfigError, match=r"^position: 5 rays for 2 hits"):
+        Hits.empty(2).position(rays)  # (broadcast silently)
+    with pytest.raises(ConfigError, match=r"^n: must be at least 0, got -1$"):
+        Hits.empty(-1)
+    with pytest.raises(DeviceError, match=r"^device='tpu': not a torch device"):
+        rays.to("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match=r"^device='cuda': "):  # (was torch's AssertionError)
+            rays.to("cuda")
+
+
+def test_rays_and_hits_compare_by_identity():
+    """``==`` raised (a tensor has no single truth value); fields compare with torch.equal."""
+    rays = Rays(torch.zeros(2, 3), torch.ones(2, 3))
+    assert rays == rays and rays != Rays(torch.zeros(2, 3), torch.ones(2, 3))

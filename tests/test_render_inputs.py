@@ -121,11 +121,33 @@ def test_api_render_takes_seed_none_as_the_default(tmp_path):
     ({"max_depth": 2.5}, "max_depth: must be an integer"),
     ({"seed": -1}, "seed: must be at least 0"),
     ({"primary": "x"}, "primary must be 'exact' or 'neural'"),
+    ({"resolution": (0, 5)}, r"resolution: 0x5 must be at least 1x1"),  # (was a ZeroDivisionError)
+    ({"resolution": (-4, 4)}, r"resolution: -4x4 must be at least 1x1"),
+    ({"resolution": (4.5, 4)}, r"resolution: expected two whole numbers"),  # (was taken as 4)
+    ({"resolution": "8x8"}, r"resolution: expected two whole numbers"),
+    ({"shading": "x"}, r"shading must be one of 'auto', 'torch', 'numba', got 'x'"),
+    ({"device": "tpu"}, r"device='tpu': not a torch device"),
 ])
 def test_integrator_render_checks_its_arguments(kwargs, message):
     scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]})
-    with pytest.raises(ConfigError, match=message):
+    with pytest.raises(ConfigError if "device" not in kwargs else NeuralRTError, match=message):
         render(scene, progress=False, **{"spp": 1, **kwargs})
+
+
+def test_integrator_render_takes_a_loaded_scene():
+    with pytest.raises(ConfigError, match=r"^scene: expected a loaded neuralrt Scene \(load_scene, load_dict\), got str$"):
+        render("builtin:cornell-statue", spp=1, progress=False)  # (was an AttributeError)
+
+
+def test_render_results_save_only_under_an_exr_name(tmp_path):
+    """A .png name was written twice (the EXR's data, then the PNG over it), a name without a suffix as EXR data."""
+    result = render(load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]}), spp=1, progress=False)
+    for name in ("img.png", "img"):
+        with pytest.raises(ConfigError, match=r"output must be an \.exr file"):
+            result.save(tmp_path / name)
+    assert not list(tmp_path.iterdir())
+    assert [p.name for p in result.save(tmp_path / "img.EXR")][:2] == ["img.EXR", "img.png"]
+    assert result != render(load_dict({"camera": {"resolution": [4, 4]}, "objects": [SPHERE]}), spp=1, progress=False)
 
 
 def test_detail_of_the_wrong_type_is_a_config_error(tmp_path):

@@ -185,10 +185,9 @@ def render(
         from .render.nif_render import check_nif_names
 
         check_nif_names(nif)
-    output = check_path("output", output)
-    if output.suffix.lower() != ".exr":
-        raise NeuralRTError(f"{output}: output must be an .exr file (a .png and AOVs are written beside it)")
-    from .render.film import output_files
+    from .render.film import check_render_output, output_files
+
+    output = check_render_output(output)
 
     check_output_files(output_files(output), "render output")  # the image and every AOV beside it, before the scene loads
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,

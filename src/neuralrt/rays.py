@@ -17,7 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .devices import DEVICE_TYPES, resolve_device  # (resolve_device: re-exported, its old home)
+from .devices import DEVICE_TYPES, check_device, resolve_device  # (resolve_device: re-exported, its old home)
+from .arguments import check_count
 from .errors import ConfigError, DeviceError
 
 __all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",
@@ -31,7 +32,7 @@ Mask = Annotated[Tensor, "[N] bool"]
 Indices = Annotated[Tensor, "[N] int64"]
 
 
-@dataclass
+@dataclass(eq=False)  # (identity: tensors have no single truth value; compare fields with torch.equal)
 class Rays:
     """A batch of rays ``origins + t * directions`` for ``t`` in ``[t_min, t_max]``.
 
@@ -105,6 +106,7 @@ class Rays:
         return Rays(self.origins[index], self.directions[index], self.t_min[index], self.t_max[index])
 
     def to(self, device) -> "Rays":
+        device = check_device(device)  # (cuda on a CPU-only torch: one line, not torch's AssertionError)
         return Rays(self.origins.to(device), self.directions.to(device), self.t_min.to(device), self.t_max.to(device),
                     batch_shape=self.batch_shape)
 
@@ -119,7 +121,12 @@ def _float_tensor(name: str, value, device=None) -> Tensor:
     if isinstance(value, Tensor):
         if value.device.type not in DEVICE_TYPES:
             raise DeviceError(f"ray {name} are on {value.device}: neuralrt computes on cpu or cuda")
+        if value.dtype == torch.bool or value.is_complex():  # (torch would cast them: 0/1, the real part)
+            raise ConfigError(f"ray {name}: expected real numbers, got a {value.dtype} tensor")
         return torch.as_tensor(value, dtype=torch.float32, device=device)  # (its errors, e.g. out of memory, are torch's)
+    kind = getattr(getattr(value, "dtype", None), "kind", None)  # a numpy array's
+    if kind in ("b", "c"):
+        raise ConfigError(f"ray {name}: expected real numbers, got a {value.dtype} array")
     try:
         return torch.as_tensor(value, dtype=torch.float32, device=device)
     except (TypeError, ValueError, RuntimeError):
@@ -137,7 +144,7 @@ def check_rays(rays, where: str) -> None:
         raise ConfigError(f"{where}: expected neuralrt.Rays, got {type(rays).__name__}")
 
 
-@dataclass
+@dataclass(eq=False)  # (as Rays)
 class Hits:
     """Closest-hit records, one row per ray, on the rays' device; in the space of the rays that
     were asked (object space from a BLAS, world space from a scene). Rows with ``hit == False``
@@ -176,6 +183,7 @@ class Hits:
     @staticmethod
     def empty(n: int, device=None) -> "Hits":
         """All-miss records for ``n`` rays."""
+        check_count("n", n, minimum=0)
         dev = torch.device(device) if device is not None else torch.device("cpu")
         return Hits(
             hit=torch.zeros(n, dtype=torch.bool, device=dev),
@@ -202,6 +210,8 @@ class Hits:
     def position(self, rays: Rays) -> Tensor:
         """[N, 3] hit points ``origins + t * directions`` of the ``rays`` these hits answer (same
         space as the rays); NaN rows where the ray missed."""
+        if len(rays) != len(self):
+            raise ConfigError(f"position: {len(rays)} rays for {len(self)} hits (give the rays these hits answer)")
         return torch.where(self.hit[:, None], rays.origins + torch.where(self.hit, self.t, 0.0)[:, None] * rays.directions, float("nan"))
 
     def __getitem__(self, index) -> "Hits":
@@ -222,6 +232,7 @@ class Hits:
         return self
 
     def to(self, device) -> "Hits":
+        device = check_device(device)
         return Hits(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 
 

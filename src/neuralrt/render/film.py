@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..errors import ConfigError
+
 __all__ = ["Film", "RenderResult", "output_files", "AOV_SUFFIXES"]
 
 
@@ -76,6 +78,17 @@ class Film:
 AOV_SUFFIXES = ("", "_albedo", "_normal", "_depth", "_coverage")  # the image, then each AOV, as `RenderResult.save` writes them
 
 
+def check_render_output(path) -> Path:
+    """``path`` as a `Path`; a one-line `ConfigError` unless it names an ``.exr`` file (any case: its
+    PNG and AOVs are named from its stem, and a ``.png`` name would be written twice, EXR then PNG)."""
+    from ..devices import check_path
+
+    path = check_path("output", path)
+    if path.suffix.lower() != ".exr":
+        raise ConfigError(f"{path}: output must be an .exr file (a .png and AOVs are written beside it)")
+    return path
+
+
 def output_files(path: str | Path) -> list[Path]:
     """The files `RenderResult.save` writes for ``path``, in order: ``path`` itself (the EXR, its name
     as given), its PNG, then ``<stem>_<aov>.exr`` and ``.png`` for each AOV (checked up front by
@@ -85,7 +98,7 @@ def output_files(path: str | Path) -> list[Path]:
     return [name for aov in AOV_SUFFIXES for name in (path if not aov else Path(f"{stem}{aov}.exr"), Path(f"{stem}{aov}.png"))]
 
 
-@dataclass
+@dataclass(eq=False)  # (identity: arrays have no single truth value)
 class RenderResult:
     """A finished render: linear HDR image and first-hit AOVs (pixel means), as numpy float32.
 
@@ -113,7 +126,7 @@ class RenderResult:
         leaves no empty folders behind). Returns the paths written."""
         from ..io.images import write_exr, write_png
 
-        path = Path(path)
+        path = check_render_output(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         names = iter(output_files(path))
         out: list[Path] = []

@@ -34,10 +34,9 @@ import torch
 from torch import Tensor
 
 from ..arguments import check_count, seed_or_default
-from ..errors import ConfigError
-from ..rays import resolve_device
+from ..errors import ConfigError, DeviceError
 from .film import Film, RenderResult
-from .shading_stages import PathState, WavefrontFilm, shading_stages_for
+from .shading_stages import SHADING_BACKENDS, PathState, WavefrontFilm, shading_stages_for
 
 __all__ = ["render", "IntegratorSettings", "PathTracer"]
 
@@ -123,8 +122,12 @@ def render(
     """
     from dataclasses import replace
 
-    from ..scene.schema import MAX_DEPTH, MAX_SPP
+    from ..devices import check_device
+    from ..scene.scene import Scene
+    from ..scene.schema import MAX_DEPTH, MAX_SPP, check_resolution
 
+    if not isinstance(scene, Scene):  # (a path or builtin:NAME is api.render's, or load it with load_scene)
+        raise ConfigError(f"scene: expected a loaded neuralrt Scene (load_scene, load_dict), got {type(scene).__name__}")
     if settings is None:
         settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
@@ -137,14 +140,16 @@ def render(
     settings = replace(settings, max_depth=int(settings.max_depth), max_paths=int(settings.max_paths))
     if settings.primary not in ("exact", "neural"):
         raise ConfigError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
+    if settings.shading not in SHADING_BACKENDS:
+        raise ConfigError(f"shading must be one of {', '.join(map(repr, SHADING_BACKENDS))}, got {settings.shading!r}")
     if settings.primary == "exact" and scene.primary == "neural":
         raise ValueError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
                          "load it with primary='exact' to render that way")
     spp = int(spp if spp is not None else scene.settings.spp)
-    camera = scene.camera.with_resolution(resolution) if resolution is not None else scene.camera
-    dev = resolve_device(device) if device is not None else scene.device
+    camera = scene.camera.with_resolution(check_resolution(resolution)) if resolution is not None else scene.camera
+    dev = check_device(device) if device is not None else scene.device
     if dev != scene.device:
-        raise ValueError(f"scene was built on {scene.device}; load it with device={dev} to render there")
+        raise DeviceError(f"scene was built on {scene.device}; load it with device={dev} to render there")
     tracer = PathTracer(_with_camera(scene, camera), settings)
     film = Film(camera.width, camera.height, dev)
     n_pixels = camera.num_pixels

@@ -86,6 +86,9 @@ class WavefrontFilm:
                              torch.zeros(n, device=device), torch.zeros(n, dtype=torch.bool, device=device))
 
 
+SHADING_BACKENDS = ("auto", "torch", "numba")
+
+
 def shading_stages_for(scene, settings, backend: str = "auto"):
     """The stages for ``scene``'s device: numba on the CPU, torch elsewhere; ``backend`` ("torch" or
     "numba") forces one (numba needs a CPU scene)."""
