@@ -159,3 +159,16 @@ def test_errors_name_arguments_as_the_caller_spelled_them(tmp_path, ball, capsys
         assert main(argv(tmp_path, ball)) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and from_cli in err[0], err
+
+
+def test_every_top_level_name_resolves_whatever_was_imported_before():
+    """``neuralrt.render`` was the render function until a neuralrt.render module was imported, then
+    the subpackage: the function is ``render_scene``."""
+    import neuralrt
+    import neuralrt.render.film  # noqa: F401  (binds the subpackage, as any render import does)
+    from neuralrt.render.integrator import render
+
+    assert neuralrt.render_scene is render
+    assert all(getattr(neuralrt, name) is not None for name in neuralrt.__all__)
+    assert {"NBVHConfig", "NBVHModel", "NIFConfig", "LSNIFConfig"} <= set(neuralrt.__all__)
+    assert "list_presets" in api.__all__

@@ -50,10 +50,14 @@ _LAZY = {
     "LSNIFModel": ("neuralrt.methods.lsnif", "LSNIFModel"),
     "LSNIFBLAS": ("neuralrt.methods.lsnif", "LSNIFBLAS"),
     "LSNIFConfig": ("neuralrt.methods.lsnif_config", "LSNIFConfig"),
+    "NBVHModel": ("neuralrt.methods.nbvh", "NBVHModel"),
+    "NBVHConfig": ("neuralrt.methods.nbvh_config", "NBVHConfig"),
+    "NIFConfig": ("neuralrt.methods.nif_config", "NIFConfig"),
     "load_scene": ("neuralrt.scene.loader", "load_scene"),
     "load_dict": ("neuralrt.scene.loader", "load_dict"),
     "scene_memory": ("neuralrt.scene.memory", "scene_memory"),
-    "render": ("neuralrt.render.integrator", "render"),
+    # (not "render": that name is the neuralrt.render subpackage, which importing any of its modules binds)
+    "render_scene": ("neuralrt.render.integrator", "render"),
 }
 
 

@@ -12,7 +12,7 @@ from .errors import ConfigError, NeuralRTError
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
-__all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "render", "train"]
+__all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "list_presets", "render", "train"]
 
 MODEL_SUFFIXES = {MODEL_SUFFIX}
 MAX_EVAL_RAYS = 1 << 22  # ~0.44 KB per held-out ray measured (bunny, 2^18 vs 2^20 rays): 2^22 take ~1.9 GB
