@@ -297,3 +297,16 @@ def test_cli_resume_mismatch_and_resume_past_the_steps(tmp_path, capsys):
     assert err == (f"neuralrt: warning: {out}.ckpt: the checkpoint is already at step 4, past steps=2: "
                    "the model is saved as of step 4")
     assert neuralrt.load_model(out).training_record["steps"] == 4
+
+
+def test_train_validates_the_config_it_is_given_again():
+    """An assignment can break a rule across sections, and ``model_copy(update=...)`` leaves a dict
+    where a section was (train then failed with an AttributeError deep inside)."""
+    mesh = sphere(1)
+    broken = LSNIFConfig.preset("lq")
+    broken.voxel.resolution = 33  # each section alone is valid
+    with pytest.raises(ConfigError, match=r"^lsnif config: hash grid resolutions \(64, 128\) must be positive multiples"):
+        neuralrt.train(mesh, broken, progress=False)
+    copied = LSNIFConfig.preset("lq").model_copy(update={"training": dict(SMALL)})
+    model = neuralrt.train(mesh, copied, progress=False)
+    assert model.config.training.steps == 4 and model.config.training.batch_size == 256

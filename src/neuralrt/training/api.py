@@ -90,13 +90,14 @@ def train(
 
 
 def _checked_config(config) -> MethodConfig | None:
-    """``config``, checked again: values set past validation (``model_construct``) fail here, in one line."""
+    """``config`` validated again, as a new config: values set past validation (``model_construct``,
+    an assignment that breaks a cross-section rule) fail here in one line, and a section that
+    ``model_copy(update=...)`` left a dict becomes a section."""
     if config is None:
         return None
     if not isinstance(config, MethodConfig):
         raise ConfigError(f"config: expected a method config such as LSNIFConfig.preset('lq') (or None), got {type(config).__name__}")
-    type(config).validated(config.model_dump(warnings=False))
-    return config
+    return type(config).validated(config.model_dump(warnings=False))
 
 
 def _checked_mesh(mesh) -> Mesh:
