@@ -252,3 +252,17 @@ def test_nif_seed_is_bounded_like_the_training_seed():
     NIFConfig(training={"seed": (1 << 63) - 1})
     with pytest.raises(ConfigError, match="training.seed"):
         NIFConfig(training={"seed": 1 << 63})
+
+
+def test_meshblas_threads_and_scene_queries_check_their_arguments():
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.geometry.procedural import sphere
+
+    for bad, message in ((0, "must be at least 1, got 0"), ("2", "must be an integer, got '2'"), (2.5, "must be an integer")):
+        with pytest.raises(ConfigError, match=f"^threads: {message}"):  # (clamped or cast silently)
+            MeshBLAS(sphere(1), threads=bad)
+    scene = load_dict({"objects": [{"generator": {"name": "sphere"}}]})
+    with pytest.raises(ConfigError, match=r"^intersect: expected neuralrt.Rays, got Tensor$"):  # (an AttributeError)
+        scene.accel.intersect(torch.zeros(3, 3))
+    with pytest.raises(ConfigError, match=r"^occluded: expected neuralrt.Rays, got Tensor$"):
+        scene.accel.occluded(torch.zeros(3, 3))

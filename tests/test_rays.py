@@ -167,3 +167,19 @@ def test_rays_and_hits_compare_by_identity():
     """``==`` raised (a tensor has no single truth value); fields compare with torch.equal."""
     rays = Rays(torch.zeros(2, 3), torch.ones(2, 3))
     assert rays == rays and rays != Rays(torch.zeros(2, 3), torch.ones(2, 3))
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"width": 4.5}, r"^pinhole_rays: width: must be an integer, got 4.5$"),  # (was torch's TypeError)
+    ({"origin": (0, 3)}, r"^pinhole_rays: origin must be three finite numbers \(x, y, z\), got \(0, 3\)$"),
+    ({"up": (0, float("nan"), 0)}, r"^pinhole_rays: up must be three finite numbers"),
+    ({"fov_y_degrees": "40"}, r"0 < fov < 180, got 4x3, fov '40'$"),
+    ({"device": "tpu"}, r"^device='tpu': not a torch device"),
+])
+def test_pinhole_rays_check_their_arguments(kwargs, message):
+    from neuralrt.errors import NeuralRTError
+    from neuralrt.rays import pinhole_rays
+
+    args = {"width": 4, "height": 3, "fov_y_degrees": 40.0, "origin": (0, 0, 3), "look_at": (0, 0, 0), **kwargs}
+    with pytest.raises(NeuralRTError, match=message):
+        pinhole_rays(**args)

@@ -502,13 +502,27 @@ def pinhole_rays(
     """
     from .render.camera import Camera
 
-    if width < 1 or height < 1 or not 0 < fov_y_degrees < 180:
-        raise ConfigError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees}")
-    camera = Camera.look_at(origin, look_at, up, fov_y_degrees, (width, height))
-    dev = torch.device(device)
+    check_count("pinhole_rays: width", width)
+    check_count("pinhole_rays: height", height)
+    if isinstance(fov_y_degrees, bool) or not isinstance(fov_y_degrees, (int, float, np.number)) or not 0 < fov_y_degrees < 180:
+        raise ConfigError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees!r}")
+    origin, look_at, up = (_point(name, v) for name, v in (("origin", origin), ("look_at", look_at), ("up", up)))
+    dev = check_device(device)
+    camera = Camera.look_at(origin, look_at, up, fov_y_degrees, (int(width), int(height)))
     pixels = torch.arange(width * height, device=dev)
     rays = camera.generate_rays(pixels, torch.full((width * height, 2), 0.5, device=dev))
     return replace(rays, batch_shape=(height, width))
+
+
+def _point(name: str, value) -> tuple[float, float, float]:
+    """``value`` as three finite floats; a one-line `ConfigError` naming ``name`` otherwise."""
+    try:
+        xyz = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        xyz = None
+    if xyz is None or xyz.shape != (3,) or not np.isfinite(xyz).all():
+        raise ConfigError(f"pinhole_rays: {name} must be three finite numbers (x, y, z), got {value!r}")
+    return tuple(float(v) for v in xyz)
 
 
 @functools.cache

@@ -19,6 +19,7 @@ from torch import Tensor
 from ..devices import check_device
 from ..errors import ConfigError
 from ..geometry.mesh import Mesh, check_float32_extent
+from ..arguments import check_count
 from ..host_threads import numba_threads
 from ..rays import AABB, Hits, Rays, check_rays
 from . import mesh_blas_kernels as kernels
@@ -90,6 +91,7 @@ class MeshBLAS(ABC):
     backend: str  # "embree", or the Mitsuba variant ("cuda_ad_rgb", "llvm_ad_rgb")
 
     def __new__(cls, mesh: Mesh, device=None, threads: int | None = None):
+        check_count("threads", threads)  # (0, -1, "2" and 2.5 were clamped or cast silently)
         checked = _checked_arguments(mesh, device)
         if cls is MeshBLAS:
             cls = _backend_for(checked)

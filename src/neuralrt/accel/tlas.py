@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DeviceError
-from ..rays import AABB, Hits, Rays, Transform, resolve_device
+from ..rays import AABB, Hits, Rays, Transform, check_rays, resolve_device
 from .blas import BLAS, MemoryReport
 from .tlas_stages import InstanceTable, intersect_group, occluded_group, stages_for
 
@@ -118,6 +118,7 @@ class SceneAccel:
     # -- queries ----------------------------------------------------------------------------------
     def intersect(self, rays: Rays, camera_rays: bool = False) -> Hits:
         """Closest world-space hit per ray over all instances."""
+        check_rays(rays, "intersect")
         self._check_device(rays)
         n, stages = len(rays), self.stages
         if n == 0:
@@ -135,6 +136,7 @@ class SceneAccel:
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any instance block the ray within [t_min, t_max]?"""
+        check_rays(rays, "occluded")
         self._check_device(rays)
         stages = self.stages
         if len(rays) == 0:
