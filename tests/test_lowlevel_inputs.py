@@ -266,3 +266,21 @@ def test_meshblas_threads_and_scene_queries_check_their_arguments():
         scene.accel.intersect(torch.zeros(3, 3))
     with pytest.raises(ConfigError, match=r"^occluded: expected neuralrt.Rays, got Tensor$"):
         scene.accel.occluded(torch.zeros(3, 3))
+
+
+def test_an_exact_blas_and_a_scene_copy_and_pickle():
+    """(copy, deepcopy and pickle raised a TypeError: __new__ needs the mesh)"""
+    import copy
+    import pickle
+
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.rays import Rays
+
+    blas = MeshBLAS(sphere(2), threads=1)
+    rays = Rays(torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 0.0, -1.0]]))
+    for other in (copy.copy(blas), copy.deepcopy(blas), pickle.loads(pickle.dumps(blas))):
+        assert type(other) is type(blas) and other.threads == 1 and other is not blas
+        assert torch.equal(other.intersect(rays).t, blas.intersect(rays).t)
+    scene = copy.deepcopy(load_dict({"objects": [{"generator": {"name": "sphere"}}]}))
+    assert bool(scene.accel.intersect(rays).hit[0])

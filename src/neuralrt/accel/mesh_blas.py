@@ -110,6 +110,11 @@ class MeshBLAS(ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.mesh.name!r}, {self.mesh.num_triangles} triangles, {self.backend})"
 
+    def __reduce__(self):
+        """copy, deepcopy and pickle rebuild the backend from the mesh (Embree's scene and Mitsuba's
+        are native objects that cannot be copied); `__new__` needs the mesh to pick the backend."""
+        return type(self), (self.mesh, self.device, getattr(self, "threads", None))
+
     @abstractmethod
     def intersect(self, rays: Rays) -> Hits:
         """Closest hit per ray (the backend's)."""
