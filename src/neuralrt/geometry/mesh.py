@@ -155,7 +155,7 @@ def validate_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
         raise MeshError(f"{name}: mesh is empty ({len(vertices)} vertices, {len(faces)} triangles)")
     if not np.isfinite(vertices).all():
         bad = int((~np.isfinite(vertices)).any(1).sum())
-        raise MeshError(f"{name}: {bad} vertices have NaN or Inf coordinates")
+        raise MeshError(f"{name}: {bad} vertices have NaN or Inf coordinates (in float32, where beyond 3.4e38 is Inf)")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise MeshError(
             f"{name}: face indices out of range [0, {len(vertices) - 1}] (found {faces.min()}..{faces.max()})"

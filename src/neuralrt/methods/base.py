@@ -33,6 +33,7 @@ import torch
 from pydantic import ValidationError
 from torch import Tensor, nn
 
+from ..arguments import given
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
 from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
@@ -79,14 +80,17 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
     prefix = f"{label}: " if label else ""
     expected = getattr(model, "mesh_hash", None)
     name = getattr(model, "mesh_name", None) or "?"
+    own_mesh = getattr(model, "mesh", None)  # an exact BLAS given as the model: its mesh says
+    if expected is None and own_mesh is not None and hasattr(own_mesh, "content_hash"):
+        expected, name = own_mesh.content_hash(), own_mesh.name
     if mesh_hash is None or expected is None:
-        what = "no mesh is given" if mesh_hash is None else "the model file records no mesh hash"
+        what = "no mesh is given" if mesh_hash is None else "the model records no mesh hash"
         warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning, stacklevel=2)
         return
     if mesh_hash != expected and not allow_mismatch:
         raise MeshMismatchError(
             f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...); "
-            "pass --allow-mesh-mismatch (API: allow_mesh_mismatch=True) to use it anyway"
+            f"pass {given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} to use it anyway"
         )
 
 
