@@ -254,3 +254,14 @@ def test_the_reference_page_states_each_enforced_range():
     for row in ("| `fov` | `40.0` | > 0, < 180 |", "| `ior` | `1.5` | > 1, <= 4 |", "| `max_depth` | `5` | >= 1, <= 256 |",
                 "| `resolution` | `[256, 256]` | each > 0, <= 16384 |", "| `emission` |"):
         assert row in page, row
+
+
+def test_save_scene_takes_a_spec_and_says_so():
+    """The obvious misuse, load_scene_spec's whole tuple, was an AttributeError from inside."""
+    from neuralrt.scene.loader import load_scene_spec
+    from neuralrt.scene.scene import save_scene
+
+    with pytest.raises(SceneError, match=r"^spec: expected a SceneSpec \(load_scene_spec\(path\)\[0\], or one built in Python\), got tuple$"):
+        save_scene(load_scene_spec("builtin:cornell-statue"), "x.toml")
+    with pytest.raises(ConfigError, match=r"^path: expected a path"):
+        save_scene(load_scene_spec("builtin:cornell-statue")[0], None)

@@ -84,8 +84,13 @@ def _relocated_paths(spec: SceneSpec, folder: Path) -> SceneSpec:
 
 def save_scene(spec: SceneSpec, path: str | Path) -> None:
     """Write ``spec`` as TOML (``.toml``) or JSON (``.json``) that `load_scene` reads back to the same
-    scene; absolute file paths are written relative to the new file's folder. Atomic."""
-    path = Path(path)
+    scene; absolute file paths are written relative to the new file's folder. Atomic. ``spec`` is a
+    `SceneSpec` (e.g. the first of `neuralrt.scene.loader.load_scene_spec`'s three values)."""
+    from ..devices import check_path
+
+    if not isinstance(spec, SceneSpec):
+        raise SceneError(f"spec: expected a SceneSpec (load_scene_spec(path)[0], or one built in Python), got {type(spec).__name__}")
+    path = check_path("path", path)
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".json"):
         raise SceneError(f"{path}: scene files must end in .toml or .json")

@@ -54,7 +54,8 @@ current). Scene files are TOML or JSON with these keys; an unknown key or a bad 
 naming the file and the key path (`scene.toml: objects.2.transform.scale: scale must be finite and
 non-zero`). Paths (meshes, models, textures, environment images) resolve relative to the scene file.
 Objects that use the same mesh file, or the same generator with the same parameters, share one
-accelerator (instancing). `neuralrt.scene.scene.save_scene(spec, path)` writes a spec back.
+accelerator (instancing). `neuralrt.scene.scene.save_scene(spec, path)` writes a spec back (`spec`:
+a `SceneSpec`, e.g. `neuralrt.scene.loader.load_scene_spec(path)[0]`).
 Every number must be finite (`nan` / `inf` are errors naming the key).
 
 From Python, `neuralrt.scene.loader.load_dict(d)` builds a scene from a dict with these same keys,
