@@ -367,7 +367,10 @@ def load_mesh(path: str | Path) -> Mesh:
     """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB).
 
     Multi-part files are merged into one mesh; each part's material becomes one entry of
-    ``materials`` and its faces get that ``face_material_ids``. Errors name the file.
+    ``materials`` and its faces get that ``face_material_ids``. Errors name the file; a texture
+    or material file the mesh names but that cannot be read is a warning naming it (the mesh
+    loads without it). glTF colours follow the glTF spec (``baseColorFactor`` linear, white when
+    absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB.
     """
     from ..devices import check_path
 
