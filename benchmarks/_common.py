@@ -3,10 +3,16 @@ argument checks every script runs before any long work.
 
 Bad input is one line on stderr, ``<script>: error: <problem>``, and exit status 2, before anything
 is trained, rendered or written (never a traceback, never a partial results file): scripts parse
-with `ArgumentParser` (argument errors as that one line), use the argparse types below
-(`positive_int`, `result_name`, ...), check meshes, presets and scenes up front (`check_mesh_spec`,
-`check_presets`, `check_scene`) and run their ``main`` through `run_main`, which turns any
-`neuralrt.errors.NeuralRTError` into the one line.
+with `ArgumentParser` (argument errors as that one line; ``description(__doc__)``, the docstring's
+first paragraph, as its description), use the argparse types below (`positive_int`, `int_in`,
+`detail_level`, `result_name`, ...), check meshes, presets, scenes, model files and output files up
+front (`check_mesh_spec`, `parse_short_procedural`, `check_presets`, `check_scene`,
+`check_model_file`, `check_output_file`) and run their ``main`` through `run_main`, which turns any
+`neuralrt.errors.NeuralRTError` into the one line. Results go through `write_results` (``--name``)
+or, for the scripts that take ``--out PATH``, `write_json`; both write atomically.
+
+Every script imports neuralrt before torch (neuralrt sets how OpenMP threads wait before torch loads
+libgomp); this module imports neither at the top, so ``--help`` stays quick.
 
 ``NEURALRT_BENCH_RESULTS`` (an environment variable) moves the results folder (tests use it).
 """
@@ -129,6 +135,13 @@ def read_results(name: str) -> dict:
 # --- arguments ----------------------------------------------------------------------------------
 
 
+def description(doc: str | None) -> str:
+    """A script's ``--help`` description: the whole first paragraph of its docstring ``doc`` (up to the
+    first blank line), on one line (argparse wraps it), not its first line cut off mid-sentence."""
+    paragraph = (doc or "").strip().split("\n\n")[0]
+    return " ".join(paragraph.split())
+
+
 def prog() -> str:
     """The script's name as argparse shows it (``bench_lsnif.py``)."""
     return os.path.basename(sys.argv[0]) or "benchmark"
@@ -149,9 +162,13 @@ def fail(message: str):
 
 def run_main(main, *args):
     """Run ``main(*args)`` and exit with what it returns; a `neuralrt.errors.NeuralRTError` (bad input
-    found by the up-front checks, or later) ends the script as one line and exit 2, not a traceback."""
+    found by the up-front checks, or later) ends the script as one line and exit 2, not a traceback.
+    neuralrt's messages name arguments as command-line flags (``--device cuda``), as the CLI's do."""
+    from neuralrt.arguments import spelled_as_flags
+
     try:
-        result = main(*args)
+        with spelled_as_flags():
+            result = main(*args)
     except Exception as exc:
         errors = sys.modules.get("neuralrt.errors")  # (none raised if neuralrt was never imported)
         if errors is None or not isinstance(exc, errors.NeuralRTError):
@@ -209,6 +226,41 @@ def seed_int(text: str) -> int:
     value = nonnegative_int(text)
     if value >= 1 << 63:
         raise argparse.ArgumentTypeError(f"must be below 2^63, got {value}")
+    return value
+
+
+def int_in(lo: int, hi: int):
+    """argparse type factory: an integer in ``lo..hi`` (a log2 of a ray count, a detail level, ...)."""
+
+    def check(text: str) -> int:
+        value = _integer(text)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in {lo}..{hi}, got {value}")
+        return value
+
+    check.__name__ = f"integer in {lo}..{hi}"
+    return check
+
+
+def detail_level(generator: str):
+    """argparse type factory: a detail level of the procedural mesh ``generator`` (0 to its finest,
+    `procedural_detail`; neuralrt is imported when an argument is parsed, not for ``--help``)."""
+
+    def check(text: str) -> int:
+        return int_in(0, procedural_detail()[generator])(text)
+
+    check.__name__ = f"{generator} detail"
+    return check
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite number >= 0 (an offset, a distance where 0 is allowed)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
     return value
 
 
@@ -285,6 +337,56 @@ def parse_mesh_spec(spec: str) -> tuple:
     return "file", path, loops
 
 
+def parse_short_procedural(spec: str, option: str, detail_required: bool = False) -> tuple[str, dict]:
+    """``(NAME, params)`` of a short procedural mesh spec as ``--meshes statue:2,hairball:6`` name them:
+    ``NAME:DETAIL`` (NAME a generator with a detail level, DETAIL in its range) or, unless
+    ``detail_required``, a generator's ``NAME`` alone (its default parameters); a ``procedural:``
+    prefix is allowed. Anything else is a one-line `neuralrt.errors.MeshError` naming ``option``;
+    nothing is built."""
+    from neuralrt.errors import MeshError
+    from neuralrt.geometry.procedural import GENERATORS
+
+    limits = procedural_detail()
+    text = spec[len("procedural:"):] if isinstance(spec, str) and spec.startswith("procedural:") else spec
+    name, colon, detail = text.partition(":") if isinstance(text, str) else ("", "", "")
+    forms = ", ".join(f"{n}:0..{d}" for n, d in limits.items())
+    if not colon:
+        if detail_required or name not in GENERATORS:
+            alone = "" if detail_required else f", or one of {', '.join(sorted(GENERATORS))} alone"
+            raise MeshError(f"{option} {spec!r}: not a procedural mesh: use NAME:DETAIL ({forms}){alone}")
+        return name, {}
+    if name not in limits:
+        raise MeshError(f"{option} {spec!r}: {name!r} has no detail level: use NAME:DETAIL with NAME one of {', '.join(limits)}")
+    try:
+        level = int(detail)
+    except ValueError:
+        level = None
+    if level is None or not 0 <= level <= limits[name]:
+        raise MeshError(f"{option} {spec!r}: DETAIL must be an integer in 0..{limits[name]} for {name}, got {detail!r}")
+    return name, {"detail": level}
+
+
+def make_short_procedural(spec: str, option: str = "mesh"):
+    """The `Mesh` of a short procedural spec (`parse_short_procedural`)."""
+    from neuralrt.geometry.procedural import make_procedural
+
+    name, params = parse_short_procedural(spec, option)
+    return make_procedural(name, **params)
+
+
+def subdivided_file(text: str) -> tuple[str, int]:
+    """argparse type of ``--subdivide FILE:LOOP_STEPS`` (a shared mesh file and its Loop subdivisions):
+    ``(FILE, LOOP_STEPS)``; whether FILE exists is the script's question (a missing one is skipped)."""
+    name, colon, steps = text.rpartition(":")
+    try:
+        count = int(steps) if colon and name else -1
+    except ValueError:
+        count = -1
+    if count < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FILE:LOOP_STEPS with LOOP_STEPS an integer >= 0, e.g. bunny00.off:2")
+    return name, count
+
+
 def check_mesh_spec(spec: str) -> str:
     """``spec`` when `parse_mesh_spec` accepts it (its one-line error otherwise)."""
     parse_mesh_spec(spec)
@@ -336,6 +438,33 @@ def check_scene(scene: str, detail: int | None = None):
             raise SceneError(f"{label}: objects.{i} ({obj.name}): {gen.name} detail must be an integer in "
                              f"0..{limits[gen.name]}, got {level!r}")
     return spec
+
+
+def check_model_file(path, method: str | None = None) -> dict:
+    """The header of the model file ``path`` (only the header is read); a missing, unreadable or
+    corrupted file, or (with ``method``) another method's model, is a one-line `ModelFileError`."""
+    from neuralrt.io.model_file import read_header
+
+    return read_header(path, method=method)
+
+
+def check_output_file(path, what: str) -> None:
+    """A one-line error unless a file can be written at ``path`` (its folder writable or creatable;
+    nothing is created)."""
+    from neuralrt.io.files import check_output_file as check
+
+    check(path, what)
+
+
+def write_json(path, payload: dict, default=float) -> Path:
+    """``payload`` as JSON at ``path`` (a ``--out`` file anywhere), atomically as `write_results`
+    (``default``: `json.dumps`'s, for values JSON has no type for)."""
+    from neuralrt.io.files import write_atomically
+
+    text = json.dumps(payload, indent=2, default=default) + "\n"  # (before the file: an unserialisable value writes nothing)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_atomically(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def check_output_folder(folder, what: str) -> None:

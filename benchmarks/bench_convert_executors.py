@@ -33,7 +33,8 @@ from pathlib import Path
 import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ArgumentParser, check_presets, positive_int, print_table, result_name, run_main, write_results  # noqa: E402
+from _common import (ArgumentParser, check_presets, description, positive_int, print_table, result_name,  # noqa: E402
+                     run_main, write_results)
 
 from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.io.model_file import read_header  # noqa: E402
@@ -171,7 +172,7 @@ def run_once(name: str, scene: Path, folder: Path, args) -> dict:
 
 
 def main() -> None:
-    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(description=description(__doc__))
     parser.add_argument("--steps", type=positive_int, default=300, help="training steps per model (preset's batch)")
     parser.add_argument("--preset", default="hq")
     parser.add_argument("--runs", default="local,ray,ray-2cpu", help=f"comma-separated, from {', '.join(RUNS)}")

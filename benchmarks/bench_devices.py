@@ -16,7 +16,8 @@ CUDA, as `MeshBLAS(mesh, device=...)` picks it):
    FLIP of the hybrid image against the exact one (and exact vs exact at another seed: the noise
    floor).
 
-Prints tables and writes benchmarks/results/devices_<device>.json (device, versions, date, figures).
+Prints tables and writes benchmarks/results/devices_<device>.json (device, versions, date,
+figures), or ``--out PATH``. Every argument is checked before the first training.
 
     python benchmarks/bench_devices.py --device cuda [--methods lsnif,nbvh] [--method-steps nbvh=1000]
     python benchmarks/bench_devices.py --device cpu --steps 300 --rays-log2 18 --res 96 --spp 4
@@ -24,25 +25,25 @@ Prints tables and writes benchmarks/results/devices_<device>.json (device, versi
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import neuralrt  # noqa: E402,F401  (sets the process-wide defaults first)
-from _common import RESULTS_DIR, machine_info, print_table  # noqa: E402
+from _common import (RESULTS_DIR, ArgumentParser, check_device, check_output_file, check_scene,  # noqa: E402
+                     description, int_in, machine_info, make_short_procedural, parse_short_procedural,
+                     per_method_counts, positive_int, print_table, run_main, write_json)
 from bench_exact_backends import median_seconds, sphere_rays, versions  # noqa: E402
 
 from neuralrt import api  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.eval.intersection_metrics import HELD_OUT_SEED, evaluate_model  # noqa: E402
-from neuralrt.geometry.procedural import make_procedural  # noqa: E402
+from neuralrt.errors import ConfigError  # noqa: E402
 from neuralrt.methods import get_method  # noqa: E402
 from neuralrt.training.api import train  # noqa: E402
 
@@ -52,9 +53,11 @@ INFER_COLUMNS = ["method", "mesh", "query", "neural_Mrays/s", "exact_Mrays/s", "
 RENDER_COLUMNS = ["scene", "res", "spp", "exact_s_per_spp", "hybrid_s_per_spp", "hybrid_x_exact", "flip", "noise_floor"]
 
 
+SECTIONS = ("train", "inference", "render")
+
+
 def _mesh(spec: str):
-    name, _, detail = spec.partition(":")
-    return make_procedural(name, **({"detail": int(detail)} if detail else {}))
+    return make_short_procedural(spec, "--meshes")
 
 
 def _first(metrics: dict, *keys):
@@ -128,23 +131,64 @@ def bench_render(scene: str, device: torch.device, steps: int | None, res: int, 
             "flip": flip, "noise_floor": floor, "train_s": report.get("train_seconds")}
 
 
+def _items(text: str) -> list[str]:
+    return [item for item in text.split(",") if item]
+
+
+def check_arguments(args) -> tuple:
+    """Every argument, before the first training: (device, methods, per-method steps, per-method meshes, skipped
+    sections). A bad one is a one-line error."""
+    device = check_device(args.device)
+    skip = set(_items(args.skip))
+    unknown = sorted(skip - set(SECTIONS))
+    if unknown:
+        raise ConfigError(f"--skip {args.skip}: unknown section(s) {', '.join(unknown)} (use {', '.join(SECTIONS)})")
+    methods = _items(args.methods)
+    if not methods:
+        raise ConfigError("--methods: no method given (e.g. lsnif or lsnif,nbvh)")
+    method_steps = per_method_counts(_items(args.method_steps), "--method-steps")
+    method_meshes = {}
+    for item in _items(args.method_meshes):
+        method, eq, specs = item.partition("=")
+        if not eq or not specs:
+            raise ConfigError(f"--method-meshes {item}: expected METHOD=NAME:DETAIL[+NAME:DETAIL...], e.g. nbvh=statue:2+hairball:6")
+        try:
+            get_method(method)
+        except ConfigError as exc:
+            raise ConfigError(f"--method-meshes {item}: {exc}") from None
+        method_meshes[method] = specs.split("+")
+    for method in methods:
+        spec = get_method(method)  # an unknown method: one line
+        spec.config(spec.default_preset(device.type), device=device.type, steps=method_steps.get(method, args.steps))
+        for mesh in method_meshes.get(method, _items(args.meshes)):
+            parse_short_procedural(mesh, "--method-meshes" if method in method_meshes else "--meshes")
+    for method in (*method_steps, *method_meshes):
+        if method not in methods:
+            raise ConfigError(f"--method-steps/--method-meshes name {method}, which is not in --methods {args.methods}")
+    if "render" not in skip:
+        check_scene(args.scene)
+    if args.out is not None:
+        check_output_file(args.out, "results file")
+    return device, methods, method_steps, method_meshes, skip
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=description(__doc__))
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--meshes", default="statue:2,hairball:6", help="procedural meshes (name:detail, comma-separated)")
     parser.add_argument("--methods", default="lsnif", help="registered methods to train and time (comma-separated)")
-    parser.add_argument("--steps", type=int, default=None, help="training steps (default: the preset's)")
+    parser.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
     parser.add_argument("--method-steps", default="", help="per-method steps, e.g. nbvh=1000 (overrides --steps)")
     parser.add_argument("--method-meshes", default="", help="per-method meshes, e.g. nbvh=statue:2+hairball:6 (overrides --meshes)")
-    parser.add_argument("--rays-log2", type=int, default=22)
-    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--rays-log2", type=int_in(0, 30), default=22)
+    parser.add_argument("--repeats", type=positive_int, default=10)
     parser.add_argument("--scene", default="builtin:hairball?detail=6")
-    parser.add_argument("--res", type=int, default=256)
-    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--res", type=positive_int, default=256)
+    parser.add_argument("--spp", type=positive_int, default=16)
     parser.add_argument("--skip", default="", help="sections to skip: train,inference,render")
-    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/results/devices_<device type>.json)")
     args = parser.parse_args()
-    device = torch.device(args.device)
+    device, methods, method_steps, method_meshes, skip = check_arguments(args)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else machine_info()["cpu"]
     out = args.out or RESULTS_DIR / f"devices_{device.type}.json"
     payload = {"benchmark": "devices", "device": name, "machine": machine_info(), "versions": versions(),
@@ -152,21 +196,15 @@ def main() -> None:
                "train": [], "inference": [], "render": []}
 
     def save() -> None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
-        tmp.replace(out)
+        write_json(out, payload)
 
-    skip = set(filter(None, args.skip.split(",")))
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        method_steps = {k: int(v) for k, v in (item.split("=") for item in filter(None, args.method_steps.split(",")))}
-        method_meshes = dict(item.split("=") for item in filter(None, args.method_meshes.split(",")))
-        for index, method in enumerate(args.methods.split(",")):
+        for index, method in enumerate(methods):
             if index == 1 and "render" not in skip:  # the render (LSNIF) before the other methods' rows
                 payload["render"].append(bench_render(args.scene, device, args.steps, args.res, args.spp, work))
                 save()
-            for spec in method_meshes.get(method, args.meshes.replace(",", "+")).split("+"):
+            for spec in method_meshes.get(method, _items(args.meshes)):
                 if "train" in skip and "inference" in skip:
                     break
                 row, mesh, model = bench_train(method, spec, device, method_steps.get(method, args.steps), work)
@@ -189,4 +227,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -5,7 +5,7 @@ for OptiX (to check the script, not as a GPU figure).
 
 Rays as issue 8 measured OptiX: 2^22 from a sphere around the object (1.5x its bounding radius)
 aimed at uniform points of its box. Prints a table; writes
-benchmarks/results/exact_backends_<device>.json (device, versions, date, figures).
+benchmarks/results/exact_backends_<device>.json (device, versions, date, figures), or ``--out PATH``.
 
     python benchmarks/bench_exact_backends.py [--rays-log2 22] [--meshes statue:2,hairball:6,statue:5]
         [--repeats 10] [--out PATH] [--profile PATH]
@@ -13,7 +13,6 @@ benchmarks/results/exact_backends_<device>.json (device, versions, date, figures
 
 from __future__ import annotations
 
-import argparse
 import re
 import statistics
 import sys
@@ -21,11 +20,13 @@ import time
 from importlib import metadata
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import RESULTS_DIR, print_table, write_results  # noqa: E402
+from _common import (RESULTS_DIR, ArgumentParser, check_output_file, description, fail, int_in,  # noqa: E402
+                     parse_short_procedural, positive_int, print_table, run_main, write_json, write_results)
 from bench_mesh_blas import random_rays  # noqa: E402
 
 from neuralrt.accel.mesh_blas import EmbreeMeshBLAS, MeshBLAS  # noqa: E402
@@ -100,9 +101,10 @@ def versions() -> dict:
 
 
 def measure(spec: str, n: int, repeats: int, device: torch.device, bandwidth: float | None, profile) -> dict:
-    name, detail = spec.split(":")
+    name, params = parse_short_procedural(spec, "--meshes", detail_required=True)
+    detail = params["detail"]
     start = time.perf_counter()
-    mesh = make_procedural(name, detail=int(detail))
+    mesh = make_procedural(name, **params)
     build_s = time.perf_counter() - start
     rays_cpu = sphere_rays(mesh, n)
     rays = rays_cpu.to(device)
@@ -169,17 +171,25 @@ def write_profile(file, blas, rays: Rays, device: torch.device, title: str) -> N
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--rays-log2", type=int, default=22)
-    parser.add_argument("--meshes", default="statue:2,hairball:6,statue:5")
-    parser.add_argument("--repeats", type=int, default=10)
+    parser = ArgumentParser(description=description(__doc__))
+    parser.add_argument("--rays-log2", type=int_in(0, 30), default=22)
+    parser.add_argument("--meshes", default="statue:2,hairball:6,statue:5", help="procedural NAME:DETAIL, comma-separated")
+    parser.add_argument("--repeats", type=positive_int, default=10)
     parser.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/results/exact_backends_<device>.json)")
     parser.add_argument("--profile", type=Path, default=None, help="write torch profiler tables of one intersect per mesh here")
     args = parser.parse_args()
+    # Every check before the first mesh is built.
+    meshes = args.meshes.split(",")
+    for spec in meshes:
+        parse_short_procedural(spec, "--meshes", detail_required=True)
+    if args.out is not None:
+        check_output_file(args.out, "results file")
+    if args.profile is not None:
+        check_output_file(args.profile, "profile file")
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device.type == "cpu" and not mitsuba_variant_available("cpu"):
-        sys.exit("bench_exact_backends: needs CUDA, or Mitsuba's llvm_ad_rgb variant on the CPU")
+        fail("needs CUDA, or Mitsuba's llvm_ad_rgb variant on the CPU")
     device_name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu (Mitsuba llvm_ad_rgb)"
     slug = re.search(r"[AHBL]\d{2,3}", device_name).group(0).lower() if device.type == "cuda" and re.search(
         r"[AHBL]\d{2,3}", device_name) else device.type
@@ -191,7 +201,7 @@ def main() -> None:
                        "Embree on the host's cores with CPU tensors; fallback = Embree with CUDA rays"}
     profile = open(args.profile, "w") if args.profile else None
     rows = []
-    for spec in args.meshes.split(","):
+    for spec in meshes:
         rows.append(measure(spec, 1 << args.rays_log2, args.repeats, device, bandwidth, profile))
         print_table(rows[-1:], COLUMNS)
         sys.stdout.flush()
@@ -206,16 +216,11 @@ def main() -> None:
 
 
 def _write(path: Path, rows: list[dict], extra: dict) -> Path:
-    """`write_results` to a path outside benchmarks/results (a device run's output folder)."""
-    import json
-
+    """`write_results` to a path outside benchmarks/results (a device run's output folder), atomically."""
     from _common import machine_info
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {"benchmark": path.stem, "machine": machine_info(), **extra, "rows": rows}
-    path.write_text(json.dumps(payload, indent=2, default=float) + "\n")
-    return path
+    return write_json(path, {"benchmark": path.stem, "machine": machine_info(), **extra, "rows": rows})
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

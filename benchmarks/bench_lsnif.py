@@ -23,8 +23,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import (ArgumentParser, SHARED_MESHES, check_mesh_spec, check_output_folder, check_presets,  # noqa: E402
-                     load_mesh_spec, nonnegative_int, positive_int, result_name, run_main, seed_int)
+from _common import (SHARED_MESHES, ArgumentParser, check_mesh_spec, check_output_folder, check_presets,  # noqa: E402
+                     description, load_mesh_spec, nonnegative_int, positive_int, result_name, run_main, seed_int)
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.eval.intersection_metrics import evaluate_model  # noqa: E402
@@ -156,7 +156,7 @@ def summary_row(r: dict) -> dict:
 def main() -> None:
     from _common import RESULTS_DIR, print_table, read_results, write_results
 
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["hq", "lq"])
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the config's)")

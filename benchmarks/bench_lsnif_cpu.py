@@ -37,8 +37,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (ArgumentParser, check_mesh_spec, check_presets, positive_int, print_table, result_name,  # noqa: E402
-                     run_main, write_results)
+from _common import (ArgumentParser, check_mesh_spec, check_presets, description, positive_int,  # noqa: E402
+                     print_table, result_name, run_main, write_results)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -203,7 +203,7 @@ def bench(spec: str, preset: str, n_rays: int, repeats: int) -> dict:
 
 
 def main() -> None:
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("meshes", nargs="+", help="as bench_lsnif.py: a file in ../shared/meshes, a path, or procedural:NAME:DETAIL")
     p.add_argument("--presets", nargs="+", default=["hq", "lq"])
     p.add_argument("--rays", type=positive_int, default=1 << 18)

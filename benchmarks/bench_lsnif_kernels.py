@@ -6,37 +6,40 @@ from the surface), in rays/s and as a ratio to `MeshBLAS.intersect` (Embree) on 
 the same process (the machine is shared, so ratios are steadier than absolute rates). Also the
 featurization statistics (rays crossing an occupied voxel, points per ray, truncation at H,
 surface rays whose origin is a point) and the sparse grid's stored entries vs a dense grid.
-Best of ``--repeats`` runs. Prints a table and writes benchmarks/results/lsnif_kernels.json.
+Best of ``--repeats`` runs. Prints a table and writes benchmarks/results/NAME.json (``--name``,
+default lsnif_kernels).
 
-    python benchmarks/bench_lsnif_kernels.py [MESH ...] [--rays 65536] [--repeats 5] [--threads 1 2]
+    python benchmarks/bench_lsnif_kernels.py [MESH ...] [--rays 65536] [--repeats 5] [--threads 1 2] [--name lsnif_kernels]
+
+A MESH is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or ``procedural:NAME:DETAIL``.
 
 On a CUDA GPU (Triton kernels, fused inference, training step): bench_lsnif_kernels_cuda.py.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import numba
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, description, int_in, load_mesh_spec,  # noqa: E402
+                     nonnegative_int, parse_mesh_spec, positive_int, print_table, result_name, run_main, write_results)
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
-from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
+from neuralrt.geometry.mesh import Mesh  # noqa: E402
 from neuralrt.geometry.voxelize import voxelize_triangles  # noqa: E402
 from neuralrt.methods.lsnif_features import ORIGIN_POINT, featurize_rays  # noqa: E402
 from neuralrt.neural.sparse_hash_grid import SparseHashGrid, count_stored_entries  # noqa: E402
 from neuralrt.rays import AABB  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution  # noqa: E402
 
-SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 COLUMNS = ["mesh", "triangles", "threads", "H", "voxelize_ms", "featurize_Mrays/s", "encode_fwd_Mrays/s",
            "encode_fwd_bwd_Mrays/s", "embree_Mrays/s", "featurize_vs_embree", "fwd_bwd_vs_embree",
            "active_frac", "mean_points", "truncated_frac", "hit_past_last_point_frac_of_hits",
@@ -119,28 +122,45 @@ def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int
     }
 
 
+def mesh_label(spec: str) -> str:
+    """A mesh file's stem (``bunny00``; ``bunny00@loop2``), a procedural spec as given."""
+    kind, name, detail = parse_mesh_spec(spec)
+    if kind == "procedural":
+        return spec
+    return Path(name).stem + (f"@loop{detail}" if detail else "")
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("meshes", nargs="*", help="mesh files (default: ../shared/meshes/bunny00.off)")
-    parser.add_argument("--rays", type=int, default=1 << 16)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, nargs="+", default=[0],
-                        help="numba/torch thread counts to run (default: all cores)")
-    parser.add_argument("--max-points", type=int, default=18)
+    parser = ArgumentParser(description=description(__doc__))
+    parser.add_argument("meshes", nargs="*", default=["bunny00.off"],
+                        help="mesh files (a path, or a file in ../shared/meshes; @loopK) or procedural:NAME:DETAIL "
+                             "(default: bunny00.off)")
+    parser.add_argument("--rays", type=positive_int, default=1 << 16)
+    parser.add_argument("--repeats", type=positive_int, default=5)
+    parser.add_argument("--threads", type=nonnegative_int, nargs="+", default=[0],
+                        help="numba/torch thread counts to run (0, the default: all cores)")
+    parser.add_argument("--max-points", type=int_in(1, 256), default=18, help="H, points kept per ray (1..256, as LSNIF's config)")
+    parser.add_argument("--name", type=result_name, default="lsnif_kernels", help="results file: benchmarks/results/NAME.json")
     args = parser.parse_args()
-    paths = [Path(p) for p in args.meshes] or [SHARED_MESHES / "bunny00.off"]
+    # Every check before the first mesh is loaded.
+    for spec in args.meshes:
+        check_mesh_spec(spec)
+    cores = numba.config.NUMBA_NUM_THREADS
+    too_many = [n for n in args.threads if n > cores]
+    if too_many:
+        parser.error(f"argument --threads: {too_many[0]} is more than numba's {cores} threads (NUMBA_NUM_THREADS)")
     rows = []
-    for path in paths:
-        mesh = load_mesh(path)
+    for spec in args.meshes:
+        mesh = load_mesh_spec(spec)
         for threads in args.threads:
-            threads = threads or numba.config.NUMBA_NUM_THREADS
+            threads = threads or cores
             numba.set_num_threads(threads)
             torch.set_num_threads(threads)
-            rows.append(bench_mesh(path.stem, mesh, args.rays, args.repeats, args.max_points))
+            rows.append(bench_mesh(mesh_label(spec), mesh, args.rays, args.repeats, args.max_points))
             print_table(rows[-1:], COLUMNS)
-    out = write_results("lsnif_kernels", rows)
+    out = write_results(args.name, rows)
     print(f"wrote {out}")
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

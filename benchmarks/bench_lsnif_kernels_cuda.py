@@ -15,7 +15,8 @@ on them), for the ``hq`` and ``lq`` presets:
   2,000 of them, the paper's scale.
 
 Times are medians of `triton.testing.do_bench` (CUDA events, warm-up). Writes
-benchmarks/results/lsnif_kernels_<device>.json (or ``--out``).
+benchmarks/results/lsnif_kernels_<device>.json (or ``--out PATH``). Needs a CUDA device (else one
+error line), except ``--dry-run``.
 
     python benchmarks/bench_lsnif_kernels_cuda.py [--rays-log2 22] [--out FILE]
 
@@ -33,7 +34,6 @@ CPU under ``TRITON_INTERPRET=1`` on a few rays (checks the script, not the speed
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -43,18 +43,15 @@ from pathlib import Path
 if "--dry-run" in sys.argv:  # before triton is imported
     os.environ["TRITON_INTERPRET"] = "1"
 
-import neuralrt  # noqa: F401  (first: sets the OpenMP wait policy)
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import numba
-import numpy as np
 import torch
-import triton
-from triton.testing import do_bench
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS_DIR, machine_info  # noqa: E402
+from _common import (RESULTS_DIR, ArgumentParser, check_output_file, description,  # noqa: E402
+                     detail_level, fail, int_in, machine_info, positive_float, positive_int, run_main, write_json)
 
 from neuralrt.geometry.procedural import hairball  # noqa: E402
-from neuralrt.methods import lsnif_fused  # noqa: E402
 from neuralrt.methods.lsnif import LSNIFModel  # noqa: E402
 from neuralrt.methods.lsnif_config import LSNIFConfig  # noqa: E402
 from neuralrt.methods.lsnif_features import featurize_rays, featurize_rays_numba  # noqa: E402
@@ -70,6 +67,8 @@ LAUNCH_CONFIGS = [("whole", 32, 4), ("whole", 64, 8), ("first_layer", 64, 8), ("
                   ("input_per_ray", 128, 4)]  # fmt: skip
 
 
+# Imported by `_load_triton` once the arguments are checked (Triton: a CPU-only machine may lack it).
+triton = do_bench = lsnif_fused = None
 
 DEVICE = "cuda"  # --dry-run: "cpu" under TRITON_INTERPRET=1, tiny sizes, wall-clock times (checks the script only)
 
@@ -85,7 +84,7 @@ def ceilings() -> dict:
     a = torch.empty(n, device=DEVICE).uniform_()
     b = torch.empty_like(a)
     t_copy = ms(lambda: b.copy_(a))
-    del a, b
+    a = b = None  # (the GiB freed before the GEMM's inputs)
     m = 8192 if DEVICE == "cuda" else 256
     x = torch.randn(m, m, device=DEVICE, dtype=torch.bfloat16)
     y = torch.randn(m, m, device=DEVICE, dtype=torch.bfloat16)
@@ -425,25 +424,59 @@ def _wall(fn) -> float:
     return time.perf_counter() - t
 
 
+def _load_triton() -> None:
+    """Triton, its benchmark timer and the fused LSNIF kernels, as module globals (a one-line error without Triton)."""
+    global triton, do_bench, lsnif_fused
+    try:
+        import triton as triton_module
+        from triton.testing import do_bench as bench
+
+        from neuralrt.methods import lsnif_fused as fused
+    except ImportError as exc:
+        fail(f"needs Triton ({exc})")
+    triton, do_bench, lsnif_fused = triton_module, bench, fused
+
+
+def launch(text: str) -> tuple[str, int, int]:
+    """argparse type of ``--profile STAGE,BLOCK,WARPS``."""
+    stages = list(dict.fromkeys(stage for stage, _, _ in LAUNCH_CONFIGS))
+    parts = text.split(",")
+    try:
+        if len(parts) != 3 or parts[0] not in stages:
+            raise ValueError
+        block, warps = positive_int(parts[1]), positive_int(parts[2])
+    except (ValueError, argparse.ArgumentTypeError):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected STAGE,BLOCK,WARPS with STAGE one of {', '.join(stages)} "
+                                         "and BLOCK, WARPS integers >= 1, e.g. input_per_ray,64,2") from None
+    return parts[0], block, warps
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rays-log2", type=int, default=22)
-    parser.add_argument("--detail", type=int, default=6, help="hairball detail (6: 2.4M triangles)")
-    parser.add_argument("--presets", nargs="+", default=["hq", "lq"])
-    parser.add_argument("--out", type=Path, default=None)
+    parser = ArgumentParser(description=description(__doc__))
+    parser.add_argument("--rays-log2", type=int_in(0, 30), default=22)
+    parser.add_argument("--detail", type=detail_level("hairball"), default=6, help="hairball detail (6: 2.4M triangles)")
+    parser.add_argument("--presets", nargs="+", default=["hq", "lq"], choices=list(TARGETS_RAYS_PER_S))
+    parser.add_argument("--out", type=Path, default=None, help="JSON path (default benchmarks/results/lsnif_kernels_<device>.json)")
     parser.add_argument("--dry-run", action="store_true", help="CPU, Triton interpreter, tiny sizes: checks the script")
     parser.add_argument("--quick", action="store_true",
                         help="kernels old vs new and intersect only (<= ~2 min on an H100, compiles included)")
-    parser.add_argument("--budget-s", type=float, default=95.0,
+    parser.add_argument("--budget-s", type=positive_float, default=95.0,
                         help="--quick: seconds of measurements after the model builds; later ones are skipped")
-    parser.add_argument("--profile", metavar="STAGE,BLOCK,WARPS", default=None,
+    parser.add_argument("--profile", metavar="STAGE,BLOCK,WARPS", type=launch, default=None,
                         help="only run the fused kernel 3 times on hq (for ncu: --launch-skip 2 --launch-count 1)")
     args = parser.parse_args()
+    # Every check before the first mesh is built.
+    if args.profile and args.dry_run:
+        parser.error("--profile times the kernel on a GPU: not with --dry-run")
+    if args.out is not None:
+        check_output_file(args.out, "results file")
     global DEVICE
     if args.dry_run:
         DEVICE = "cpu"
     elif not torch.cuda.is_available():
-        raise SystemExit("bench_lsnif_kernels_cuda: needs a CUDA device (or --dry-run)")
+        why = "no CUDA device is available" if torch.backends.cuda.is_built() else f"this torch ({torch.__version__}) is built without CUDA"
+        fail(f"needs a CUDA device ({why}); --dry-run checks the script on the CPU")
+    _load_triton()
     if args.dry_run:  # the interpreter runs a few rays of a small hairball
         args.rays_log2 = min(args.rays_log2, 5)
         args.detail = min(args.detail, 2)
@@ -453,7 +486,7 @@ def main() -> None:
     info = {"device": device_name, "torch": torch.__version__, "triton": triton.__version__,
             "cuda": torch.version.cuda, "machine": machine_info()}  # fmt: skip
     if args.profile:
-        stage, block, warps = args.profile.split(",")
+        stage, block, warps = args.profile
         config = LSNIFConfig.preset(args.presets[0])
         model = LSNIFModel.from_mesh(hairball(args.detail), config).to(DEVICE).eval()
         unit = model._unit_rays(sphere_rays(model, n))
@@ -485,9 +518,7 @@ def main() -> None:
         torch.cuda.empty_cache()
     slug = "".join(c if c.isalnum() else "_" for c in device_name.lower()).strip("_")
     out = args.out or RESULTS_DIR / f"lsnif_kernels_{slug}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"benchmark": "lsnif_kernels_cuda", **info, "ceilings": ceil, "rows": rows},
-                              indent=2, default=str) + "\n")  # fmt: skip
+    write_json(out, {"benchmark": "lsnif_kernels_cuda", **info, "ceilings": ceil, "rows": rows}, default=str)
     print(f"wrote {out}")
     for row in rows:
         keys = [k for k in row if k.endswith("_Mrays_per_s")]
@@ -500,13 +531,12 @@ def main_quick(args, n: int, device_name: str, info: dict) -> None:
     mesh = hairball(args.detail)
     info["mesh"] = {"name": mesh.name, "triangles": int(len(mesh.faces)), "build_s": time.perf_counter() - t0}
     out = args.out or RESULTS_DIR / "lsnif_kernels_quick.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     result = {"benchmark": "lsnif_kernels_cuda --quick", **info, "rows": rows}
 
     def save() -> None:
         result["total_s"] = time.perf_counter() - t_start
-        out.write_text(json.dumps(result, indent=2, default=str) + "\n")
+        write_json(out, result, default=str)
 
     budget = Budget(args.budget_s)
     for preset in args.presets:
@@ -526,4 +556,4 @@ def main_quick(args, n: int, device_name: str, info: dict) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -4,9 +4,10 @@ For a trained LSNIF model: shoot outside rays from the training distribution, ta
 hits (point and normal), spawn bounce rays there (cosine-weighted around the returned normal),
 offset by ``k x diagonal`` along that normal, and trace them with the model and with Embree from the
 same origins. A *self-hit* is a neural hit closer than ``--self-distance`` (relative to the
-diagonal) where Embree finds nothing that close. Results go to benchmarks/results/lsnif_offset.json.
+diagonal) where Embree finds nothing that close. Results go to benchmarks/results/NAME.json
+(``--name``, default lsnif_offset).
 
-    python benchmarks/bench_lsnif_offset.py MODEL.nrt MESH [--rays 65536]
+    python benchmarks/bench_lsnif_offset.py MODEL.nrt MESH [--rays 65536] [--name lsnif_offset]
 """
 
 from __future__ import annotations
@@ -24,21 +25,24 @@ from neuralrt.methods import load_model  # noqa: E402
 from neuralrt.rays import Rays  # noqa: E402
 from neuralrt.training.ray_distribution import BoxRayDistribution, cosine_weighted_directions  # noqa: E402
 
-from _common import ArgumentParser, check_mesh_spec, positive_int, run_main  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, check_model_file, description, nonnegative_float,  # noqa: E402
+                     positive_float, positive_int, result_name, run_main)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 
 def main() -> None:
     from _common import print_table, write_results
 
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("model")
     p.add_argument("mesh")
     p.add_argument("--rays", type=positive_int, default=1 << 16)
-    p.add_argument("--offsets", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 3e-3, 1e-2])
-    p.add_argument("--self-distance", type=float, default=0.02, help="self-hit: neural t*|d| below this x diagonal")
+    p.add_argument("--offsets", type=nonnegative_float, nargs="+", default=[0.0, 1e-4, 1e-3, 3e-3, 1e-2])
+    p.add_argument("--self-distance", type=positive_float, default=0.02, help="self-hit: neural t*|d| below this x diagonal")
+    p.add_argument("--name", type=result_name, default="lsnif_offset", help="results file: benchmarks/results/NAME.json")
     args = p.parse_args()
 
+    check_model_file(args.model)  # both before the model and the mesh are loaded
     check_mesh_spec(args.mesh)
     model = load_model(args.model)
     mesh = resolve_mesh(args.mesh)
@@ -65,8 +69,8 @@ def main() -> None:
             "agreement": float((neural.hit == truth.hit).float().mean()),
         })
     print_table(rows, list(rows[0]))
-    path = write_results("lsnif_offset", rows, extra={"model": args.model, "mesh": args.mesh,
-                                                      "default_offset_x_diagonal": model.config.inference.secondary_offset})
+    path = write_results(args.name, rows, extra={"model": args.model, "mesh": args.mesh,
+                                                 "default_offset_x_diagonal": model.config.inference.secondary_offset})
     print(f"wrote {path}")
 
 

@@ -1,31 +1,31 @@
 """Exact intersection throughput of `MeshBLAS` (closest hit and occlusion) on >= 1M-triangle meshes,
 and its ratio to calling embreex's `EmbreeScene.run` directly on the same rays in the same process
 (the cost of our wrapper: tensor <-> numpy conversion, ray validation, hit attribute interpolation).
-Prints a table and writes benchmarks/results/mesh_blas.json.
+Prints a table and writes benchmarks/results/NAME.json (``--name``, default mesh_blas).
 
-    python benchmarks/bench_mesh_blas.py [--rays 1000000] [--repeats 3] [--statue-detail 4]
+    python benchmarks/bench_mesh_blas.py [--rays 1000000] [--repeats 3] [--statue-detail 4] [--name mesh_blas]
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (SHARED_MESHES, ArgumentParser, description, detail_level, positive_int, print_table,  # noqa: E402
+                     result_name, run_main, subdivided_file, write_results)
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
 from neuralrt.geometry.procedural import statue  # noqa: E402
 from neuralrt.rays import Rays  # noqa: E402
 
-SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 COLUMNS = ["mesh", "triangles", "rays", "hit_frac", "intersect_Mrays/s", "embree_intersect_Mrays/s",
            "intersect_ratio", "occluded_Mrays/s", "embree_occluded_Mrays/s", "occluded_ratio"]
 
@@ -97,23 +97,27 @@ def measure(label: str, mesh: Mesh, n_rays: int, repeats: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rays", type=int, default=1_000_000)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--statue-detail", type=int, default=4, help="4 = 1,211,520 triangles")
-    parser.add_argument("--subdivide", default="bunny00.off:2", help="shared FILE:LOOP_STEPS (skipped when missing)")
-    parser.add_argument("--meshes", type=Path, default=SHARED_MESHES)
+    parser = ArgumentParser(description=description(__doc__))
+    parser.add_argument("--rays", type=positive_int, default=1_000_000)
+    parser.add_argument("--repeats", type=positive_int, default=3)
+    parser.add_argument("--statue-detail", type=detail_level("statue"), default=4, help="4 = 1,211,520 triangles")
+    parser.add_argument("--subdivide", type=subdivided_file, default="bunny00.off:2",
+                        help="shared FILE:LOOP_STEPS (skipped when missing)")
+    parser.add_argument("--meshes", type=Path, default=SHARED_MESHES, help="folder of the shared meshes")
+    parser.add_argument("--name", type=result_name, default="mesh_blas", help="results file: benchmarks/results/NAME.json")
     args = parser.parse_args()
+    name, steps = args.subdivide
+    path = args.meshes / name
+    if path.exists() and not path.is_file():
+        parser.error(f"argument --subdivide: {path}: not a mesh file")
 
     rows = [measure(f"statue(detail={args.statue_detail})", statue(args.statue_detail), args.rays, args.repeats)]
-    name, steps = args.subdivide.split(":")
-    path = args.meshes / name
     if path.is_file():
-        rows.append(measure(f"{Path(name).stem} loop x{steps}", load_mesh(path).subdivided(int(steps)), args.rays, args.repeats))
+        rows.append(measure(f"{Path(name).stem} loop x{steps}", load_mesh(path).subdivided(steps), args.rays, args.repeats))
     else:
         print(f"skip {path} (missing)")
     print_table(rows, COLUMNS)
-    out = write_results("mesh_blas", rows, {
+    out = write_results(args.name, rows, {
         "torch_threads": torch.get_num_threads(),
         "notes": "ratio = embreex EmbreeScene.run time / MeshBLAS time on the same rays and the same "
                  "triangles, best of repeats, same process (1.0 = no wrapper overhead).",
@@ -122,4 +126,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

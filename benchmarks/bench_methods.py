@@ -34,8 +34,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import (ArgumentParser, check_mesh_spec, check_output_folder, nonnegative_int, per_method_counts,  # noqa: E402
-                     positive_int, result_name, run_main, save_figure)
+from _common import (ArgumentParser, check_mesh_spec, check_output_folder, description, nonnegative_int,  # noqa: E402
+                     per_method_counts, positive_int, result_name, run_main, save_figure)
 from bench_lsnif import resolve_mesh  # noqa: E402
 from bench_nbvh import inference_speed  # noqa: E402
 
@@ -235,7 +235,7 @@ def plot(runs: dict, scenes_json: Path | None, path: Path) -> None:
 def main() -> None:
     from _common import RESULTS_DIR, print_table, read_results, write_results
 
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("meshes", nargs="*")
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS, help="METHOD:PRESET[:tN] (default: %(default)s)")
     p.add_argument("--steps", nargs="*", default=[], metavar="METHOD=N", help="training steps per method (default: the preset's)")

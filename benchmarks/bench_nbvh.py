@@ -28,8 +28,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import (ArgumentParser, check_device, check_mesh_spec, check_output_folder, fail, nonnegative_int,  # noqa: E402
-                     positive_int, result_name, run_main, seed_int)
+from _common import (ArgumentParser, check_device, check_mesh_spec, check_output_folder, description,  # noqa: E402
+                     fail, nonnegative_int, positive_int, result_name, run_main, seed_int)
 from bench_lsnif import best_rate, resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -126,12 +126,9 @@ def summary_row(r: dict) -> dict:
 
 def offsets(model: str, mesh: str) -> None:
     """bench_lsnif_offset.py's measurement (it takes any model file), written to nbvh_offset.json."""
-    import _common
     import bench_lsnif_offset
 
-    write = _common.write_results
-    _common.write_results = lambda name, rows, extra=None: write("nbvh_offset", rows, extra)
-    sys.argv = [sys.argv[0], model, mesh]
+    sys.argv = [sys.argv[0], model, mesh, "--name", "nbvh_offset"]
     bench_lsnif_offset.main()
 
 
@@ -184,7 +181,7 @@ def main() -> None:
     if sys.argv[1:2] in (["--offsets"], ["--lods"]):
         _check_model_and_mesh(sys.argv[1], sys.argv[2:])
         return (offsets if sys.argv[1] == "--offsets" else lods)(*sys.argv[2:4])
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("meshes", nargs="+")
     p.add_argument("--presets", nargs="+", default=["cpu"])
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")

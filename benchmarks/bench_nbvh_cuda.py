@@ -21,8 +21,11 @@
    (2^18 queries of 3 points), and the whole ``intersect`` / ``occluded`` of the model: Triton path
    (what CUDA runs now), the earlier torch path (torch traversal, torch grid, torch wavefront), and
    OptiX closest / any hit on the same rays (Mitsuba 3).
-4. JSON: benchmarks/results/nbvh_cuda_<device>.json (or ``--out``), with machine, versions, load;
+4. JSON: benchmarks/results/nbvh_cuda_<device>.json (or ``--out PATH``), with machine, versions, load;
    written after every section.
+
+Every argument is checked before any work. Without a GPU, only ``--compile-only`` and the runs under
+``TRITON_INTERPRET=1`` below work (anything else is one error line).
 
     python benchmarks/bench_nbvh_cuda.py [--mesh statue:2] [--steps 10000] [--train-budget-s 240] [--rays-log2 22]
     python benchmarks/bench_nbvh_cuda.py --compile-only      # no GPU needed: compile for sm_90, ptxas registers/spills
@@ -37,11 +40,10 @@
 
 from __future__ import annotations
 
-import argparse
 import collections
 import contextlib
+import importlib.util
 import inspect
-import json
 import os
 import re
 import statistics
@@ -51,12 +53,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import neuralrt  # noqa: E402,F401  (sets the process-wide defaults first)
-from _common import RESULTS_DIR, machine_info, print_table  # noqa: E402
+from _common import (RESULTS_DIR, ArgumentParser, check_device, check_model_file, check_output_file,  # noqa: E402
+                     check_presets, description, fail, int_in, machine_info, make_short_procedural,
+                     parse_short_procedural, positive_float, positive_int, print_table, run_main, write_json)
 
 STAGE_COLUMNS = ["stage", "items", "triton_ms", "torch_ms", "speedup", "same", "floor_ms", "triton_x_floor"]
 WHOLE_COLUMNS = ["query", "rays", "triton_Mrays/s", "torch_Mrays/s", "optix_Mrays/s", "triton_x_optix", "mlp_rows_per_ray",
@@ -65,10 +69,7 @@ MLP_FLOPS_PER_ROW = 2 * (96 * 64 + 3 * 64 * 64 + 64 * 8)  # N-BVH's 4 x 64 MLP (
 
 
 def _mesh(spec: str):
-    from neuralrt.geometry.procedural import make_procedural
-
-    name, _, detail = spec.partition(":")
-    return make_procedural(name, **({"detail": int(detail)} if detail else {}))
+    return make_short_procedural(spec, "--mesh")
 
 
 def median_ms(fn, device: torch.device, repeats: int, warmup: int = 2) -> float:
@@ -378,8 +379,6 @@ def count_step(args) -> dict:
     from neuralrt.neural.hash_grid import HashGrid
     from neuralrt.neural.hash_grid_triton import hash_grid_triton
 
-    if os.environ.get("TRITON_INTERPRET") != "1":
-        raise SystemExit("neuralrt: error: --count-step runs the CUDA path on CPU tensors: set TRITON_INTERPRET=1")
     mesh = _mesh(args.mesh)
     config = get_method("nbvh").config(args.preset, device="cpu", batch_size=args.count_batch)
     config = config.model_copy(update={"encoding": config.encoding.model_copy(update={"levels": 3})})  # the interpreter's time
@@ -483,8 +482,6 @@ SIGNATURES = {
 
 def compile_only(arch: int) -> list[dict]:
     """Compile every kernel for sm_``arch`` (no GPU needed) and read ptxas's registers and spills."""
-    if os.environ.get("TRITON_INTERPRET") == "1":
-        raise SystemExit("neuralrt: error: --compile-only needs TRITON_INTERPRET unset")
     import importlib
 
     import triton
@@ -562,33 +559,59 @@ def train_with_budget(mesh, args, device) -> tuple:
     return model, info
 
 
+def check_arguments(args) -> torch.device:
+    """Every argument, for the mode asked for, before any work (a bad one is one line): the device."""
+    interpreted = os.environ.get("TRITON_INTERPRET") == "1"
+    if args.out is not None:
+        check_output_file(args.out, "results file")
+    if args.compile_only:
+        if interpreted:
+            fail("--compile-only compiles for the GPU: unset TRITON_INTERPRET")
+        if importlib.util.find_spec("triton") is None:
+            fail("--compile-only needs Triton (not installed)")
+        return torch.device("cpu")
+    parse_short_procedural(args.mesh, "--mesh")
+    if args.count_step:
+        if not interpreted:
+            fail("--count-step runs the CUDA path on CPU tensors: set TRITON_INTERPRET=1")
+        check_presets("nbvh", [args.preset], device="cpu", batch_size=args.count_batch)
+        return torch.device("cpu")
+    device = check_device(args.device)
+    check_presets("nbvh", [args.preset], device=device.type)
+    if args.model is not None:
+        check_model_file(args.model, method="nbvh")
+    if device.type != "cuda" and not interpreted:
+        fail(f"--device {args.device}: the CUDA code path runs on the CPU only under the Triton interpreter "
+             "(TRITON_INTERPRET=1, a smoke run); without a GPU, --compile-only")
+    return device
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=description(__doc__))
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--mesh", default="statue:2", help="procedural mesh (name:detail)")
     parser.add_argument("--preset", default="paper")
-    parser.add_argument("--steps", type=int, default=10_000, help="training steps to run of the preset's schedule")
-    parser.add_argument("--train-budget-s", type=float, default=240.0, help="stop training after this many seconds")
-    parser.add_argument("--step-repeats", type=int, default=20, help="training steps timed piece by piece")
+    parser.add_argument("--steps", type=positive_int, default=10_000, help="training steps to run of the preset's schedule")
+    parser.add_argument("--train-budget-s", type=positive_float, default=240.0, help="stop training after this many seconds")
+    parser.add_argument("--step-repeats", type=positive_int, default=20, help="training steps timed piece by piece")
     parser.add_argument("--count-step", action="store_true", help="count ops, launches and syncs of one step (CPU, interpreter)")
-    parser.add_argument("--count-batch", type=int, default=1024, help="with --count-step: rays per step")
+    parser.add_argument("--count-batch", type=positive_int, default=1024, help="with --count-step: rays per step")
     parser.add_argument("--model", type=Path, default=None, help="a trained .nrt of --mesh instead of training")
-    parser.add_argument("--rays-log2", type=int, default=22)
-    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--rays-log2", type=int_in(0, 30), default=22)
+    parser.add_argument("--repeats", type=positive_int, default=20)
     parser.add_argument("--compile-only", action="store_true")
-    parser.add_argument("--arch", type=int, default=90, help="with --compile-only: the sm_ version")
-    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--arch", type=int_in(50, 130), default=90, help="with --compile-only: the sm_ version (90: H100)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON path (default benchmarks/results/nbvh_cuda_<device type>.json, nbvh_cuda_compile_sm<ARCH>.json "
+                             "with --compile-only, /tmp/nbvh_count_step.json with --count-step)")
     args = parser.parse_args()
+    device = check_arguments(args)
     payload = {"benchmark": "nbvh_cuda", "machine": machine_info(), "load_before": os.getloadavg(),
                "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
-    device = torch.device(args.device)
     out = args.out or RESULTS_DIR / (f"nbvh_cuda_compile_sm{args.arch}.json" if args.compile_only else f"nbvh_cuda_{device.type}.json")
 
     def save() -> None:  # after every section: a run cut short by its time limit keeps what it measured
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
-        tmp.replace(out)
+        write_json(out, payload)
 
     if args.count_step:
         payload["count"] = count_step(args)
@@ -645,4 +668,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

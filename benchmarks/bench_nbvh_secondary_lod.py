@@ -3,41 +3,49 @@
 Two instances of one trained model side by side (every ray neural, ``primary="neural"``), rendered
 with secondary_lod None (LoD 0 for every ray), 1, 2, 3: seconds per render (best of ``--repeats``),
 MLP rows queried, and the mean |difference| from the LoD-0 image beside the noise floor (the LoD-0
-image at another seed; the LoD images share seed 0, so their difference is mostly the cut's, not noise). Writes benchmarks/results/nbvh_secondary_lod.json.
+image at another seed; the LoD images share seed 0, so their difference is mostly the cut's, not noise).
 
-    python benchmarks/bench_nbvh_secondary_lod.py MODEL.nrt ../shared/meshes/bunny00.off
+Writes benchmarks/results/NAME.json (``--name``, default nbvh_secondary_lod). MESH is the model's
+mesh: a file name in ../shared/meshes (or a path), optionally ``@loopK``, or ``procedural:NAME:DETAIL``.
+
+    python benchmarks/bench_nbvh_secondary_lod.py MODEL.nrt bunny00.off [--res 96] [--spp 4] [--repeats 3]
 """
 
 from __future__ import annotations
 
-import neuralrt  # noqa: F401  (before torch: see README "Tests")
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 
-import argparse
-import json
 import os
-import platform
+import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-import neuralrt.methods.nbvh as nbvh
-from neuralrt.methods import load_model
-from neuralrt.render.integrator import render
-from neuralrt.scene.loader import load_dict
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-RESULTS = Path(__file__).resolve().parent / "results" / "nbvh_secondary_lod.json"
+from _common import (ArgumentParser, check_mesh_spec, check_model_file, description, load_mesh_spec,  # noqa: E402
+                     positive_int, result_name, run_main, write_results)
+
+import neuralrt.methods.nbvh as nbvh  # noqa: E402
+from neuralrt.methods import load_model  # noqa: E402
+from neuralrt.render.integrator import render  # noqa: E402
+from neuralrt.scene.loader import load_dict  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
-    ap.add_argument("mesh")
-    ap.add_argument("--res", type=int, default=96)
-    ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap = ArgumentParser(description=description(__doc__))
+    ap.add_argument("model", help="a trained N-BVH model file (.nrt)")
+    ap.add_argument("mesh", help="its mesh")
+    ap.add_argument("--res", type=positive_int, default=96)
+    ap.add_argument("--spp", type=positive_int, default=4)
+    ap.add_argument("--repeats", type=positive_int, default=3)
+    ap.add_argument("--name", type=result_name, default="nbvh_secondary_lod", help="results file: benchmarks/results/NAME.json")
     args = ap.parse_args()
+    check_model_file(args.model, method="nbvh")  # both before any model or mesh is loaded
+    check_mesh_spec(args.mesh)
+    mesh = load_mesh_spec(args.mesh)
 
     rows = [0]
     query = nbvh.NBVHModel._query
@@ -57,7 +65,7 @@ def main() -> None:
         spec = {"camera": {"position": (c + np.array([0.0, 0.19, 1.4]) * diag).tolist(), "look_at": c.tolist(),
                            "resolution": [args.res, args.res], "fov": 40},
                 "materials": [{"name": "white", "type": "diffuse", "albedo": [0.7, 0.7, 0.7]}],
-                "objects": [{"mesh": args.mesh, "model": model, "material": "white", "transform": {"translate": [x * diag, 0.0, 0.0]}}
+                "objects": [{"mesh": mesh, "model": model, "material": "white", "transform": {"translate": [x * diag, 0.0, 0.0]}}
                             for x in (-0.28, 0.28)],
                 "environment": {"color": [1, 1, 1]}}
         with warnings.catch_warnings():
@@ -81,12 +89,11 @@ def main() -> None:
                                    "mlp_rows": queried, "mean_abs_diff_vs_lod0": float(np.abs(image - reference).mean()),
                                    "coverage": float(np.asarray(result.coverage).mean())}
         print(secondary, results[str(secondary)], flush=True)
-    out = {"model": os.path.basename(args.model), "resolution": args.res, "spp": args.spp, "max_depth": 4,
-           "noise_floor_mean_abs_diff": floor, "load_average": os.getloadavg(), "machine": platform.processor() or platform.machine(),
-           "cpus": os.cpu_count(), "results": results}
-    RESULTS.write_text(json.dumps(out, indent=1) + "\n")
-    print("noise floor", floor, "->", RESULTS)
+    extra = {"model": os.path.basename(args.model), "mesh": args.mesh, "resolution": args.res, "spp": args.spp, "max_depth": 4,
+             "noise_floor_mean_abs_diff": floor, "load_average": os.getloadavg(), "results": results}
+    path = write_results(args.name, [{"secondary_lod": key, **value} for key, value in results.items()], extra)
+    print("noise floor", floor, "->", path)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -46,8 +46,8 @@ import neuralrt  # noqa: F401  (before torch: sets how OpenMP threads wait)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (ArgumentParser, check_device, check_scene, nonnegative_int, parse_mesh_spec, positive_int, print_table,  # noqa: E402
-                     result_name, run_main, write_results)
+from _common import (ArgumentParser, check_device, check_scene, description, nonnegative_int,  # noqa: E402
+                     parse_mesh_spec, positive_int, print_table, result_name, run_main, write_results)
 
 from neuralrt.errors import ConfigError, MeshError, validation_message  # noqa: E402
 from neuralrt.eval.image_metrics import compare_images  # noqa: E402
@@ -226,7 +226,7 @@ def bench_scene(item: str, args) -> dict:
 
 
 def main() -> None:
-    ap = ArgumentParser(description=__doc__.split("\n")[0])
+    ap = ArgumentParser(description=description(__doc__))
     ap.add_argument("--resolution", type=positive_int, default=128)
     ap.add_argument("--spp", type=positive_int, default=64)
     ap.add_argument("--train-spp", type=positive_int, default=32)

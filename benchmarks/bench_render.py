@@ -48,8 +48,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (ArgumentParser, check_scene, nonnegative_int, positive_int, print_table, result_name,  # noqa: E402
-                     run_main, write_results)
+from _common import (ArgumentParser, check_scene, description, nonnegative_int, positive_int, print_table,  # noqa: E402
+                     result_name, run_main, write_results)
 
 from neuralrt.accel.tlas_stages import NumbaTLASStages  # noqa: E402
 from neuralrt.errors import ConfigError  # noqa: E402
@@ -184,7 +184,7 @@ def bench_scene(name: str, resolution: int, spp: int, detail: int | None, repeat
 
 
 def main(argv=None) -> None:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=description(__doc__))
     parser.add_argument("--resolution", type=positive_int, default=256)
     parser.add_argument("--spp", type=positive_int, default=4)
     parser.add_argument("--detail", type=nonnegative_int, default=None, help="procedural detail (default: each scene's)")

@@ -38,11 +38,13 @@ import sys
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first, as in every benchmark: it sets how OpenMP threads wait before torch loads OpenMP)
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _common import (ArgumentParser, check_mesh_spec, check_presets, fail, positive_int, prog, result_name,  # noqa: E402
-                     run_main)
+from _common import (ArgumentParser, check_mesh_spec, check_presets, description, fail, positive_int,  # noqa: E402
+                     prog, result_name, run_main)
 
 SCATTERS = ("auto", "row_ranges", "buckets", "saved_rows", "thread_tables")  # SparseHashGrid.backward_scatter
 
@@ -132,8 +134,7 @@ def _with_switch(model, switch: str, call):
 
 def _child(args) -> dict:
     """One thread count: pin, then import and measure (runs in its own process)."""
-    import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
-    import numba
+    import numba  # (neuralrt, imported at the top, set how OpenMP threads wait before torch loads OpenMP)
     import torch
 
     from bench_lsnif import resolve_mesh
@@ -252,7 +253,7 @@ def _serial_parts(one: dict, two: dict) -> list[dict]:
 
 
 def main() -> None:
-    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ArgumentParser(description=description(__doc__))
     ap.add_argument("--threads", type=positive_int, nargs="+", default=[1, 2, 4, 8, 16])
     ap.add_argument("--train-mesh", default="procedural:statue:2")
     ap.add_argument("--infer-mesh", default="procedural:hairball:6")

@@ -28,10 +28,13 @@ import sys
 import time
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import (RESULTS_DIR, ArgumentParser, check_output_folder, check_scene, nonnegative_int,  # noqa: E402
-                     positive_int, print_table, read_results, result_name, run_main, save_figure, seed_int, write_results)
+from _common import (RESULTS_DIR, ArgumentParser, check_output_folder, check_scene, description,  # noqa: E402
+                     nonnegative_int, positive_int, print_table, read_results, result_name, run_main, save_figure,
+                     seed_int, write_results)
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 DEFAULT_SCENES = ["builtin:cornell-statue", "builtin:hairball", "builtin:foliage", "builtin:instances", "shared"]
@@ -292,7 +295,7 @@ def check_arguments(args) -> None:
 
 
 def main() -> None:
-    p = ArgumentParser(description=__doc__.splitlines()[0])
+    p = ArgumentParser(description=description(__doc__))
     p.add_argument("--scenes", nargs="*", default=DEFAULT_SCENES)
     p.add_argument("--res", type=positive_int, default=256)
     p.add_argument("--spp", type=positive_int, default=64)

@@ -27,7 +27,8 @@ from numba import types
 from numba.extending import intrinsic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ArgumentParser, positive_int, print_table, result_name, run_main, write_results  # noqa: E402
+from _common import (ArgumentParser, description, positive_int, print_table, result_name, run_main,  # noqa: E402
+                     write_results)
 
 from neuralrt.simd import HAS_AVX512, _llvm_function, element_pointer, prefix_mask  # noqa: E402
 from neuralrt.simd16 import (  # noqa: E402
@@ -112,7 +113,7 @@ def _gather_scatter_loop(table, indices, masks, scatter):
 
 
 def main() -> None:
-    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ArgumentParser(description=description(__doc__))
     ap.add_argument("--ops", type=positive_int, default=1 << 20)
     ap.add_argument("--repeats", type=positive_int, default=5)
     ap.add_argument("--name", type=result_name, default="simd_stores")

@@ -2,31 +2,32 @@
 embreex's `EmbreeScene.run` called directly (one call; and split into chunks on a thread pool),
 `MeshBLAS`, and the scene TLAS (`SceneAccel`) over one instance with an identity transform,
 one with a rotation/scale/translation, and 16 instances of the mesh in a grid. Closest hit and
-occlusion. Prints a table and writes benchmarks/results/tlas.json.
+occlusion. Prints a table and writes benchmarks/results/NAME.json (``--name``, default tlas).
 
 Ratios are against direct embreex in the same process (1.0 = no overhead). The identity and
 transformed instances see the same object-space rays as `MeshBLAS` (the world rays are mapped by
 the instance transform), so their ratios to the `MeshBLAS` row are the TLAS's own cost. The grid
 traces other rays (through the whole grid), so its row is a throughput, not an overhead.
 
-    python benchmarks/bench_tlas.py [--rays 1000000] [--repeats 5] [--statue-detail 4]
+    python benchmarks/bench_tlas.py [--rays 1000000] [--repeats 5] [--statue-detail 4] [--name tlas]
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
 import numba
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import print_table, write_results  # noqa: E402
+from _common import (ArgumentParser, description, detail_level, positive_int, print_table, result_name,  # noqa: E402
+                     run_main, write_results)
 
 from neuralrt import host_threads  # noqa: E402
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -90,10 +91,11 @@ def measure(cases: dict, repeats: int) -> dict[str, tuple[float, float]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rays", type=int, default=1_000_000)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--statue-detail", type=int, default=4, help="4 = 1,211,520 triangles")
+    parser = ArgumentParser(description=description(__doc__))
+    parser.add_argument("--rays", type=positive_int, default=1_000_000)
+    parser.add_argument("--repeats", type=positive_int, default=5)
+    parser.add_argument("--statue-detail", type=detail_level("statue"), default=4, help="4 = 1,211,520 triangles")
+    parser.add_argument("--name", type=result_name, default="tlas", help="results file: benchmarks/results/NAME.json")
     args = parser.parse_args()
 
     mesh = statue(args.statue_detail)
@@ -150,7 +152,7 @@ def main() -> None:
                 })  # fmt: skip
     print(f"{mesh.name}: {mesh.num_triangles:,} triangles, {args.rays:,} rays, {threads} threads")
     print_table(rows, COLUMNS)
-    out = write_results("tlas", rows, {
+    out = write_results(args.name, rows, {
         "mesh": mesh.name,
         "triangles": mesh.num_triangles,
         "threads": threads,
@@ -167,4 +169,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main)

@@ -70,8 +70,8 @@ import numba
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (ArgumentParser, check_mesh_spec, check_presets, machine_info, positive_int, print_table,  # noqa: E402
-                     result_name, run_main, write_results)
+from _common import (ArgumentParser, check_mesh_spec, check_presets, description, machine_info,  # noqa: E402
+                     positive_int, print_table, result_name, run_main, write_results)
 from _stage_timer import StageTimer  # noqa: E402
 from bench_lsnif import resolve_mesh  # noqa: E402
 
@@ -203,7 +203,7 @@ def _profile(mesh, truth, config, steps: int, variant: str) -> dict:
 
 
 def main() -> None:
-    ap = ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ArgumentParser(description=description(__doc__))
     ap.add_argument("--mesh", default="/work/shared/meshes/bunny00.off")
     ap.add_argument("--preset", default="hq")
     ap.add_argument("--steps", type=positive_int, default=60)

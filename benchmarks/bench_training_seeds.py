@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (ArgumentParser, check_mesh_spec, check_presets, positive_int, print_table, result_name,  # noqa: E402
-                     run_main, write_results)
+from _common import (ArgumentParser, check_mesh_spec, check_presets, description, positive_int,  # noqa: E402
+                     print_table, result_name, run_main, write_results)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -71,7 +71,7 @@ def _score(model, blas: MeshBLAS) -> dict:
 
 
 def main() -> None:
-    ap = ArgumentParser(description=__doc__.split("\n")[0])
+    ap = ArgumentParser(description=description(__doc__))
     ap.add_argument("--mesh", default="sphere", help="sphere (tests/test_lsnif.py's ball) or a mesh spec as bench_lsnif.py's")
     ap.add_argument("--preset", default="hq")
     ap.add_argument("--steps", type=positive_int, default=150)

@@ -30,7 +30,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ArgumentParser, check_mesh_spec, check_presets, run_main  # noqa: E402
+from _common import (ArgumentParser, check_mesh_spec, check_model_file, check_presets, description,  # noqa: E402
+                     positive_float, positive_int, run_main)
 from bench_lsnif import resolve_mesh  # noqa: E402
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
@@ -102,20 +103,20 @@ def build_model(mesh, method: str, preset: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(description=description(__doc__))
     parser.add_argument("mesh", nargs="?", default="procedural:hairball:6", help="a mesh file or procedural:NAME:DETAIL")
     parser.add_argument("--method", choices=["lsnif", "nbvh"], default="lsnif")
     parser.add_argument("--preset", default=None, help="the method's preset (default: lq for LSNIF, cpu for N-BVH)")
-    parser.add_argument("--rays", type=int, default=1 << 17)
-    parser.add_argument("--seconds", type=float, default=30.0, help="how long to call the query after the map is written")
+    parser.add_argument("--rays", type=positive_int, default=1 << 17)
+    parser.add_argument("--seconds", type=positive_float, default=30.0, help="how long to call the query after the map is written")
     parser.add_argument("--query", choices=["intersect", "occluded"], default="intersect")
     parser.add_argument("--model", default=None, help="a trained model file of this mesh (.nrt) instead of an untrained model")
     args = parser.parse_args(argv)
-    if args.rays < 1 or args.seconds <= 0:
-        parser.error("--rays and --seconds must be positive")
     preset = args.preset or ("lq" if args.method == "lsnif" else "cpu")
-    check_mesh_spec(args.mesh)  # both before the mesh is built
+    check_mesh_spec(args.mesh)  # all before the mesh is built
     check_presets(args.method, [preset])
+    if args.model:
+        check_model_file(args.model)
     mesh = resolve_mesh(args.mesh)
     model = load_model(args.model) if args.model else build_model(mesh, args.method, preset)
     rays = BoxRayDistribution(MeshBLAS(mesh), model.box, seed=4242, pool_size=1 << 16).sample(args.rays).rays

@@ -4,11 +4,16 @@ checks the results name and writes atomically.
 
 A few cases per script run the script as a real subprocess (its own imports, its own exit status);
 the other cases run the script's code in this process (``runpy``, the same ``__main__`` path) to
-stay fast. Every mesh is procedural: nothing here needs ../shared/meshes.
+stay fast, with the scripts' work (building or loading a mesh or a model, a BVH, training) made to
+fail the test if it starts. Every mesh is procedural: nothing here needs ../shared/meshes. The
+CUDA-only scripts' "needs a GPU" cases run where there is none. Also: every script's ``--help``
+shows its docstring's whole first paragraph, and every script imports neuralrt before torch.
 """
 
 from __future__ import annotations
 
+import ast
+import importlib
 import json
 import os
 import runpy
@@ -20,6 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
+import torch
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 REAL_RESULTS = BENCH / "results"
@@ -28,6 +34,10 @@ sys.path.insert(0, str(BENCH))
 import _common  # noqa: E402
 
 from neuralrt.errors import ConfigError, NeuralRTError  # noqa: E402
+
+NO_CUDA = not torch.cuda.is_available()
+SCRIPTS = sorted(p.name for p in BENCH.glob("*.py") if not p.name.startswith("_"))
+A_FOLDER = str(BENCH)  # (an --out that is a folder)
 
 
 def _snapshot(folder: Path) -> dict:
@@ -63,6 +73,14 @@ SUBPROCESS_CASES = [
     ("bench_scaling.py", ["--threads", "-1"], "argument --threads: must be at least 1"),
     ("bench_convert_executors.py", ["--repeats", "0"], "argument --repeats: must be at least 1"),
     ("bench_simd_stores.py", ["--name", "../../x"], "argument --name: '../../x'"),
+    # the tester's reproductions (each was a traceback and exit 1, two of them after the meshes were built)
+    ("bench_mesh_blas.py", ["--rays", "-5"], "argument --rays: must be at least 1, got -5"),
+    ("bench_memory.py", ["--large", "statue:99"], "--large 'statue:99': DETAIL must be an integer in 0..5"),
+    ("bench_nbvh_secondary_lod.py", ["nosuch.nrt", "procedural:statue:0"], "nosuch.nrt: model file not found"),
+    ("bench_devices.py", ["--methods", "nif", "--device", "cpu"], "unknown method 'nif'"),
+    # the CUDA-only scripts on a machine without a GPU
+    *([("bench_lsnif_kernels_cuda.py", [], "needs a CUDA device"),
+       ("bench_nbvh_cuda.py", ["--device", "cuda"], "--device cuda: ")] if NO_CUDA else []),
 ]
 
 
@@ -72,6 +90,7 @@ def subprocess_results(tmp_path_factory):
     moved to an empty temporary one: (exit status, stderr) per case, and that folder."""
     results = tmp_path_factory.mktemp("results")
     env = dict(os.environ, NEURALRT_BENCH_RESULTS=str(results))
+    env.pop("TRITON_INTERPRET", None)
 
     def run(case):
         script, args, _ = case
@@ -158,7 +177,114 @@ IN_PROCESS_CASES = [
     ("bench_convert_executors.py", ["--runs", ","], "--runs ','"),
     ("bench_convert_executors.py", ["--runs", "local,bogus"], "unknown run(s) bogus"),
     ("bench_convert_executors.py", ["--name", "a/b"], "argument --name"),
+    # bench_mesh_blas (the tester's defects 1, 4: counts, detail, --subdivide and --name checked first)
+    ("bench_mesh_blas.py", ["--rays", "0"], "argument --rays: must be at least 1"),
+    ("bench_mesh_blas.py", ["--repeats", "x"], "argument --repeats: expected an integer, got 'x'"),
+    ("bench_mesh_blas.py", ["--statue-detail", "9"], "argument --statue-detail: must be an integer in 0..5, got 9"),
+    ("bench_mesh_blas.py", ["--subdivide", "bunny00.off"], "argument --subdivide: 'bunny00.off': expected FILE:LOOP_STEPS"),
+    ("bench_mesh_blas.py", ["--name", "a/b"], "argument --name: 'a/b'"),
+    # bench_tlas
+    ("bench_tlas.py", ["--rays", "-1"], "argument --rays: must be at least 1"),
+    ("bench_tlas.py", ["--statue-detail", "-1"], "argument --statue-detail: must be an integer in 0..5"),
+    ("bench_tlas.py", ["--name", ""], "argument --name: '': must not be empty"),
+    # bench_memory
+    ("bench_memory.py", ["--large", "statue"], "--large 'statue': not a procedural mesh: use NAME:DETAIL"),
+    ("bench_memory.py", ["--large", "sphere:2"], "--large 'sphere:2': 'sphere' has no detail level"),
+    ("bench_memory.py", ["--subdivide", "bunny00.off:-1"], "argument --subdivide: 'bunny00.off:-1'"),
+    ("bench_memory.py", ["--meshes", str(BENCH / "_common.py")], "argument --meshes"),
+    ("bench_memory.py", ["--no-large", "--name", "../x"], "argument --name: '../x'"),
+    # bench_lsnif_kernels
+    ("bench_lsnif_kernels.py", ["nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_lsnif_kernels.py", ["procedural:statue:0", "procedural:statue:9"], "DETAIL must be an integer in 0..5"),
+    ("bench_lsnif_kernels.py", ["procedural:statue:0", "--threads", "100000"], "argument --threads: 100000 is more than numba's"),
+    ("bench_lsnif_kernels.py", ["procedural:statue:0", "--max-points", "0"], "argument --max-points: must be an integer in 1..256"),
+    ("bench_lsnif_kernels.py", ["procedural:statue:0", "--name", "a/b"], "argument --name: 'a/b'"),
+    # bench_lsnif_offset
+    ("bench_lsnif_offset.py", ["nosuch.nrt", "procedural:statue:0"], "nosuch.nrt: model file not found"),
+    ("bench_lsnif_offset.py", ["m.nrt", "procedural:statue:0", "--offsets", "0", "-1"], "argument --offsets: must be a number >= 0"),
+    ("bench_lsnif_offset.py", ["m.nrt", "procedural:statue:0", "--self-distance", "0"], "argument --self-distance"),
+    ("bench_lsnif_offset.py", ["m.nrt", "procedural:statue:0", "--name", "a/b"], "argument --name: 'a/b'"),
+    ("bench_nbvh.py", ["--offsets", "nosuch.nrt", "procedural:statue:0"], "nosuch.nrt: model file not found"),
+    # bench_nbvh_secondary_lod
+    ("bench_nbvh_secondary_lod.py", ["m.nrt", "procedural:statue:0", "--res", "0"], "argument --res: must be at least 1"),
+    ("bench_nbvh_secondary_lod.py", ["m.nrt", "procedural:statue:0", "--name", ".x"], "argument --name: '.x'"),
+    ("bench_nbvh_secondary_lod.py", ["m.nrt"], "the following arguments are required: mesh"),
+    # bench_devices (--device cpu: the same checks with or without a GPU)
+    ("bench_devices.py", ["--device", "bogus"], "not a torch device"),
+    ("bench_devices.py", ["--device", "cpu", "--methods", "lsnif,nif"], "unknown method 'nif'"),
+    ("bench_devices.py", ["--device", "cpu", "--meshes", "statue:2,statue:9"], "--meshes 'statue:9': DETAIL must be an integer in 0..5"),
+    ("bench_devices.py", ["--device", "cpu", "--meshes", "blob"], "--meshes 'blob': not a procedural mesh"),
+    ("bench_devices.py", ["--device", "cpu", "--steps", "0"], "argument --steps: must be at least 1"),
+    ("bench_devices.py", ["--device", "cpu", "--rays-log2", "40"], "argument --rays-log2: must be an integer in 0..30"),
+    ("bench_devices.py", ["--device", "cpu", "--method-steps", "lsnif=0"], "--method-steps lsnif=0: N must be at least 1"),
+    ("bench_devices.py", ["--device", "cpu", "--method-steps", "nbvh=5"], "nbvh, which is not in --methods lsnif"),
+    ("bench_devices.py", ["--device", "cpu", "--methods", "lsnif,nbvh", "--method-meshes", "nbvh"], "--method-meshes nbvh: expected METHOD="),
+    ("bench_devices.py", ["--device", "cpu", "--methods", "lsnif,nbvh", "--method-meshes", "nbvh=statue:1+hairball:9"],
+     "--method-meshes 'hairball:9': DETAIL must be an integer in 0..8"),
+    ("bench_devices.py", ["--device", "cpu", "--skip", "train,bogus"], "--skip train,bogus: unknown section(s) bogus"),
+    ("bench_devices.py", ["--device", "cpu", "--scene", "builtin:bogus"], "builtin:bogus: unknown built-in scene"),
+    ("bench_devices.py", ["--device", "cpu", "--out", A_FOLDER], "is a folder, not a results file"),
+    # bench_exact_backends
+    ("bench_exact_backends.py", ["--meshes", "statue:2,hairball"], "--meshes 'hairball': not a procedural mesh: use NAME:DETAIL"),
+    ("bench_exact_backends.py", ["--rays-log2", "-1"], "argument --rays-log2: must be an integer in 0..30"),
+    ("bench_exact_backends.py", ["--repeats", "0"], "argument --repeats: must be at least 1"),
+    ("bench_exact_backends.py", ["--out", A_FOLDER], "is a folder, not a results file"),
+    # bench_lsnif_kernels_cuda (checked before the GPU is looked for)
+    ("bench_lsnif_kernels_cuda.py", ["--presets", "hq", "gpu"], "argument --presets: invalid choice: 'gpu'"),
+    ("bench_lsnif_kernels_cuda.py", ["--detail", "9"], "argument --detail: must be an integer in 0..8"),
+    ("bench_lsnif_kernels_cuda.py", ["--profile", "input,0,2"], "argument --profile: 'input,0,2': expected STAGE,BLOCK,WARPS"),
+    ("bench_lsnif_kernels_cuda.py", ["--budget-s", "0"], "argument --budget-s: must be a positive number"),
+    ("bench_lsnif_kernels_cuda.py", ["--out", A_FOLDER], "is a folder, not a results file"),
+    # bench_nbvh_cuda
+    ("bench_nbvh_cuda.py", ["--mesh", "statue:9"], "--mesh 'statue:9': DETAIL must be an integer in 0..5"),
+    ("bench_nbvh_cuda.py", ["--device", "cpu", "--preset", "bogus"], "unknown nbvh preset 'bogus'"),
+    ("bench_nbvh_cuda.py", ["--device", "cpu", "--model", "nosuch.nrt"], "nosuch.nrt: model file not found"),
+    ("bench_nbvh_cuda.py", ["--steps", "0"], "argument --steps: must be at least 1"),
+    ("bench_nbvh_cuda.py", ["--rays-log2", "99"], "argument --rays-log2: must be an integer in 0..30"),
+    ("bench_nbvh_cuda.py", ["--count-step"], "--count-step runs the CUDA path on CPU tensors: set TRITON_INTERPRET=1"),
+    ("bench_nbvh_cuda.py", ["--count-step", "--count-batch", "0"], "argument --count-batch: must be at least 1"),
+    ("bench_nbvh_cuda.py", ["--compile-only", "--arch", "9"], "argument --arch: must be an integer in 50..130"),
+    ("bench_nbvh_cuda.py", ["--compile-only", "--out", A_FOLDER], "is a folder, not a results file"),
+    # profile_cpu_jit
+    ("profile_cpu_jit.py", ["--rays", "0"], "argument --rays: must be at least 1"),
+    ("profile_cpu_jit.py", ["--seconds", "0"], "argument --seconds: must be a positive number"),
+    ("profile_cpu_jit.py", ["procedural:statue:0", "--model", "nosuch.nrt"], "nosuch.nrt: model file not found"),
+    # the CUDA-only scripts without a GPU: one line, before any work
+    *([("bench_lsnif_kernels_cuda.py", ["--quick"], "needs a CUDA device"),
+       ("bench_nbvh_cuda.py", [], "--device cpu: the CUDA code path runs on the CPU only under the Triton interpreter"),
+       ("bench_devices.py", ["--device", "cuda"], "--device cuda: ")] if NO_CUDA else []),
 ]
+
+# What the scripts' work starts with: a test fails if one is called before the arguments are checked.
+WORK = {
+    "neuralrt.geometry.procedural": ("make_procedural", "statue", "hairball", "foliage", "sphere"),
+    "neuralrt.geometry.mesh": ("load_mesh",),
+    "neuralrt.geometry.bvh": ("build_bvh",),
+    "neuralrt.methods": ("load_model",),
+    "neuralrt.training.api": ("train",),
+}
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """The scripts' work fails the test if it starts; helper modules (bench_lsnif, ...) first imported
+    meanwhile (bound to the stand-ins) are forgotten afterwards. TRITON_INTERPRET is unset."""
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    before = set(sys.modules)
+
+    def started(*args, **kwargs):
+        raise AssertionError("the script's work started before every argument was checked")
+
+    for module, names in WORK.items():
+        for name in names:
+            monkeypatch.setattr(importlib.import_module(module), name, started)
+    from neuralrt.accel.mesh_blas import MeshBLAS
+
+    monkeypatch.setattr(MeshBLAS, "__new__", staticmethod(started))  # (the class stays: subclasses are defined on import)
+    yield
+    for name in set(sys.modules) - before:
+        if name.startswith("bench_"):
+            del sys.modules[name]
 
 
 @pytest.fixture
@@ -170,12 +296,78 @@ def results_dir(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("script,args,expect", IN_PROCESS_CASES, ids=[f"{s}:{' '.join(a)}" for s, a, _ in IN_PROCESS_CASES])
-def test_script_checks_before_work(script, args, expect, results_dir, monkeypatch, capsys):
+def test_script_checks_before_work(script, args, expect, results_dir, no_work, monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", [str(BENCH / script), *args])
     with pytest.raises(SystemExit) as exit_info:
         runpy.run_path(str(BENCH / script), run_name="__main__")
     _assert_one_error_line(script, exit_info.value.code, capsys.readouterr().err, expect)
     assert not results_dir.exists() or not any(results_dir.iterdir())
+
+
+@pytest.mark.parametrize("script,args", [
+    ("bench_nbvh_secondary_lod.py", ["bad.nrt", "procedural:statue:0"]),
+    ("bench_lsnif_offset.py", ["bad.nrt", "procedural:statue:0"]),
+    ("bench_nbvh_cuda.py", ["--device", "cpu", "--model", "bad.nrt"]),
+    ("profile_cpu_jit.py", ["procedural:statue:0", "--model", "bad.nrt"]),
+])
+def test_a_broken_model_file_is_one_line_before_work(script, args, results_dir, no_work, monkeypatch, capsys):
+    Path("bad.nrt").write_bytes(b"not a model file at all")  # (the current folder: results_dir's parent)
+    monkeypatch.setattr(sys, "argv", [str(BENCH / script), *args])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(BENCH / script), run_name="__main__")
+    _assert_one_error_line(script, exit_info.value.code, capsys.readouterr().err, "bad.nrt: ")
+    assert not results_dir.exists()
+
+
+def _first_paragraph(script: str) -> str:
+    return ast.get_docstring(ast.parse((BENCH / script).read_text()), clean=False)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_help_shows_the_whole_first_paragraph(script, monkeypatch, capsys):
+    """Not the docstring's first line, cut off mid-sentence."""
+    monkeypatch.setenv("COLUMNS", "10000")  # (argparse wraps at the terminal's width)
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    monkeypatch.setattr(sys, "argv", [str(BENCH / script), "--help"])
+    with pytest.raises(SystemExit) as exit_info:
+        runpy.run_path(str(BENCH / script), run_name="__main__")
+    assert exit_info.value.code == 0
+    wanted = _common.description(_first_paragraph(script))
+    assert wanted and wanted.endswith((".", "?", ")")), wanted
+    assert wanted in " ".join(capsys.readouterr().out.split())
+
+
+def test_description_is_the_first_paragraph_on_one_line():
+    assert _common.description("""One sentence over
+    two lines.
+
+    Second paragraph.""") == "One sentence over two lines."
+    assert _common.description(None) == ""
+
+
+_LOADS_OPENMP = ("torch", "numba", "triton", "drjit", "mitsuba", "bench_")
+
+
+def _top_level_imports(tree: ast.Module):
+    """Module-level imports in order (also those under a top-level ``if``/``try``): the module names."""
+    for node in tree.body:
+        nodes = ast.walk(node) if isinstance(node, (ast.If, ast.Try)) else [node]
+        for inner in nodes:
+            if isinstance(inner, ast.Import):
+                yield from (alias.name for alias in inner.names)
+            elif isinstance(inner, ast.ImportFrom) and inner.level == 0:
+                yield inner.module
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_scripts_import_neuralrt_before_torch(script):
+    """neuralrt sets how OpenMP threads wait (GOMP_SPINCOUNT) before torch loads libgomp (README,
+    "Benchmarks"): every script imports it before torch, numba, triton or another benchmark module."""
+    imports = list(_top_level_imports(ast.parse((BENCH / script).read_text())))
+    assert "neuralrt" in imports, f"{script} does not import neuralrt"
+    first = imports.index("neuralrt")
+    early = [name for name in imports[:first] if name.split(".")[0].startswith(_LOADS_OPENMP)]
+    assert not early, f"{script} imports {early} before neuralrt"
 
 
 # --- _common -------------------------------------------------------------------------------------
