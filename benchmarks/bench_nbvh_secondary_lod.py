@@ -29,6 +29,7 @@ from _common import (ArgumentParser, check_mesh_spec, check_model_file, descript
                      positive_int, result_name, run_main, write_results)
 
 import neuralrt.methods.nbvh as nbvh  # noqa: E402
+import neuralrt.methods.nbvh_wavefront_cpu as nbvh_wavefront_cpu  # noqa: E402
 from neuralrt.methods import load_model  # noqa: E402
 from neuralrt.render.integrator import render  # noqa: E402
 from neuralrt.scene.loader import load_dict  # noqa: E402
@@ -47,14 +48,20 @@ def main() -> None:
     check_mesh_spec(args.mesh)
     mesh = load_mesh_spec(args.mesh)
 
+    # MLP rows = leaf queries: the torch loop's `_query` calls (CUDA and the reference path), and on
+    # the CPU each wavefront step's active rays (`_step_decode` decodes one row per active ray).
     rows = [0]
-    query = nbvh.NBVHModel._query
+    query, decode = nbvh.NBVHModel._query, nbvh_wavefront_cpu._step_decode
 
-    def counted(self, origins, *a, **k):  # MLP rows = leaf queries
+    def counted(self, origins, *a, **k):
         rows[0] += len(origins)
         return query(self, origins, *a, **k)
 
-    nbvh.NBVHModel._query = counted
+    def counted_decode(active, *a):
+        rows[0] += len(active)
+        return decode(active, *a)
+
+    nbvh.NBVHModel._query, nbvh_wavefront_cpu._step_decode = counted, counted_decode
     results, reference, floor = {}, None, None
     for secondary in (None, 1, 2, 3):
         model = load_model(args.model)
