@@ -117,8 +117,7 @@ def test_cornell_box_materials_and_inward_normals():
     m = P.cornell_box()
     _assert_valid(m)
     assert [x.name for x in m.materials] == ["white", "red", "green", "light"]
-    colors = {x.name: tuple(np.round(x.base_color, 3)) for x in m.materials}
-    assert colors == {"white": (0.73,) * 3, "red": (0.65, 0.05, 0.05), "green": (0.12, 0.45, 0.15), "light": (1.0,) * 3}
+    assert all(np.array_equal(x.base_color, [1, 1, 1]) for x in m.materials)  # the scene's materials colour the slots
     normals, centres = m.face_normals(), m.triangles().mean(1)
     walls = m.face_material_ids != 3
     assert ((normals[walls] * centres[walls]).sum(1) < 0).all()  # every wall faces the box centre

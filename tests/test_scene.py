@@ -244,3 +244,14 @@ def test_nan_transform_is_one_line_from_the_cli(scene_dir, capsys, command):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"neuralrt: error: {scene_dir / 'scene.toml'}: objects.1.transform.translate.1:") and "\n" not in err
     assert not (scene_dir / "out").exists()
+
+
+def test_cornell_box_walls_have_their_scene_colours_once():
+    """The generator's slots carry no colour: the walls had each colour twice (0.73^2 = 0.53 white)."""
+    from neuralrt.render.integrator import render as render_scene
+
+    scene = load_scene("builtin:cornell-statue?detail=0", resolution=(32, 32))
+    albedo = render_scene(scene, spp=1, progress=False, max_depth=1).albedo
+    assert np.allclose(albedo[16, 2], [0.63, 0.065, 0.05], atol=1e-6)  # left wall: "red"
+    assert np.allclose(albedo[16, 29], [0.14, 0.45, 0.091], atol=1e-6)  # right wall: "green"
+    assert np.allclose(albedo[2, 16], [0.73, 0.73, 0.73], atol=1e-6)  # ceiling ("white"), beside the light

@@ -167,3 +167,22 @@ def test_scene_memory_says_what_neural_objects_cost_and_replace():
     neural = scene_memory(load_dict({"materials": MATERIALS, "objects": objects}, primary="neural"))
     assert (neural.camera_bytes, neural.replaced_bytes, neural.primary) == (0, None, "neural")
     assert neural.total == exact_floor + 1000 + neural.instances_bytes
+
+
+def test_a_texture_where_no_uvs_are_is_a_warning(tmp_path):
+    """A neural object's hits carry no UVs, nor do a UV-less mesh's: the texture showed one texel, silently."""
+    import warnings
+
+    from PIL import Image
+
+    Image.fromarray(np.full((4, 4, 3), 200, np.uint8)).save(tmp_path / "t.png")
+    textured = [{"name": "tex", "type": "diffuse", "albedo": str(tmp_path / "t.png")}]
+    mesh = _two_part_mesh()  # (no UVs)
+    with pytest.warns(UserWarning, match=r"objects.0: material 'tex' has a texture, but the mesh has no UVs"):
+        load_dict({"materials": textured, "objects": [{"mesh": mesh, "material": "tex"}]})
+    with pytest.warns(UserWarning, match=r"objects.0: material 'tex' has a texture, but a neural model's hits carry no UVs"):
+        load_dict({"materials": textured, "objects": [{"mesh": mesh, "model": StandInModel(mesh, ["shell", "core"]),
+                                                       "material": "tex"}]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a plane has UVs: no warning
+        load_dict({"materials": textured, "objects": [{"generator": {"name": "plane"}, "material": "tex"}]})

@@ -70,8 +70,13 @@ def _scene_info(spec: str) -> dict:
     scene = load_scene(spec, allow_mesh_mismatch=True)  # info inspects: a mismatch matters when rendering
     accel = scene.accel
     blases = accel.unique_blases
-    triangles = sum(b.mesh.num_triangles for b in blases if not is_neural(b))
-    instanced = sum(inst.blas.mesh.num_triangles for inst in accel.instances if not is_neural(inst.blas))
+    # Triangles traced for every ray (exact objects), apart from the meshes neural objects keep for
+    # camera rays only (hybrid scenes): counted in both figures before, only in the unique one.
+    exact = {id(i.blas): i.blas for i in accel.instances if not is_neural(i.blas)}
+    camera = {id(i.camera_blas): i.camera_blas for i in accel.instances
+              if i.camera_blas is not None and not is_neural(i.camera_blas) and id(i.camera_blas) not in exact}
+    triangles = sum(b.mesh.num_triangles for b in exact.values())
+    instanced = sum(i.blas.mesh.num_triangles for i in accel.instances if not is_neural(i.blas))
     memory = accel.memory_bytes()
     return {
         "kind": "scene",
@@ -81,6 +86,7 @@ def _scene_info(spec: str) -> dict:
         "neural_instances": sum(is_neural(inst.blas) for inst in accel.instances),
         "triangles_unique": triangles,
         "triangles_instanced": instanced,
+        "triangles_camera_only": sum(b.mesh.num_triangles for b in camera.values()),
         "materials": len(scene.materials),
         "lights": scene.lights.kinds,
         "resolution": [scene.camera.width, scene.camera.height],

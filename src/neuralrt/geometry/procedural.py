@@ -167,10 +167,14 @@ def sphere(subdivisions: int = 4, radius: float = 1.0) -> Mesh:
 
 
 # Linear base colours of the classic Cornell box (as used across path-tracing test scenes).
+# Slot names only: the slots carry no colour of their own (white), so the scene's materials of
+# these names colour them (builtin:cornell-statue), and mapping a slot to another material
+# (`materials = { red = "white" }`) changes its colour. A mesh colour would multiply the scene
+# material's albedo: the walls had each colour twice (white 0.73^2 = 0.53).
 CORNELL_MATERIALS = (
-    ("white", (0.73, 0.73, 0.73)),
-    ("red", (0.65, 0.05, 0.05)),
-    ("green", (0.12, 0.45, 0.15)),
+    ("white", (1.0, 1.0, 1.0)),
+    ("red", (1.0, 1.0, 1.0)),
+    ("green", (1.0, 1.0, 1.0)),
     ("light", (1.0, 1.0, 1.0)),
 )
 
@@ -180,7 +184,8 @@ def cornell_box() -> Mesh:
 
     Floor y = -1, ceiling y = +1, back wall z = -1 (white); left wall x = -1 (red); right wall
     x = +1 (green); a light quad at y = 0.998 with |x|, |z| <= 0.25 facing down. Wall normals point
-    into the box. Materials (by `face_material_ids`): "white", "red", "green", "light".
+    into the box. Material slots (by `face_material_ids`): "white", "red", "green", "light", all
+    white: a scene's materials of those names give the colours.
     """
     mats = {name: i for i, (name, _) in enumerate(CORNELL_MATERIALS)}
     # (centre, inward normal, half-extent, material)

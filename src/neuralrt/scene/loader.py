@@ -340,7 +340,9 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
         if unknown:  # a typo would silently leave the slot at its default
             warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
                           f"(the object's slots: {', '.join(slots)})", stacklevel=2)
-        instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(material_map(obj, slots, index)),
+        slot_materials = material_map(obj, slots, index)
+        _warn_untextured(spec, obj, slot_materials, shape, label, key)
+        instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(slot_materials),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
 
@@ -356,6 +358,22 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
                  instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev,
                  primary=primary)
+
+
+def _warn_untextured(spec: SceneSpec, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str) -> None:
+    """Warn when a texture ``albedo`` lands where no UVs are: a neural object's hits carry none (nor
+    do a mesh without UVs' hits): the texture would show one texel, silently."""
+    specs = scene_materials(spec)
+    textured = sorted({specs[m].name for m in slot_materials if isinstance(specs[m].albedo, str)})
+    if not textured:
+        return
+    names = ", ".join(map(repr, textured))
+    if obj.model is not None:
+        warnings.warn(f"{label}: {key}: material {names} has a texture, but a neural model's hits carry no UVs: "
+                      "they show one texel (camera rays answered by the kept mesh show the texture)", stacklevel=3)
+    elif shape is not None and shape.mesh.uvs is None:
+        warnings.warn(f"{label}: {key}: material {names} has a texture, but the mesh has no UVs: it shows one texel",
+                      stacklevel=3)
 
 
 def _material_names(blas, label: str, key: str) -> list[str]:

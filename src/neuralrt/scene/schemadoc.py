@@ -66,6 +66,10 @@ same name, else `default`. `load_scene(..., primary="neural")` / `render --prima
 builds no mesh BVH for objects with a model (camera rays go to the model too).
 
 Conventions: right-handed, +y up; the camera looks down its -z axis. Colours are linear RGB.
+A surface's colour is its scene material's `albedo` times the mesh's own colour at the hit (MTL
+`Kd` and `map_Kd`, glTF base colour, vertex colours; white where the mesh has none, as the
+generators' meshes): give one or the other. A neural object's own colour is what its model
+learned; it carries no UVs, so a texture `albedo` on it shows one texel (a warning says so).
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
