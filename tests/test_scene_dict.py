@@ -186,3 +186,13 @@ def test_a_texture_where_no_uvs_are_is_a_warning(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a plane has UVs: no warning
         load_dict({"materials": textured, "objects": [{"generator": {"name": "plane"}, "material": "tex"}]})
+
+
+def test_a_spec_holding_in_memory_objects_is_not_saved(tmp_path):
+    """save_scene wrote mesh = "../<in-memory mesh 'pair'>", a file that then failed to load."""
+    from neuralrt.scene.scene import save_scene
+
+    scene = load_dict({"objects": [{"mesh": _two_part_mesh()}]})
+    with pytest.raises(SceneError, match=r"objects.0.mesh: an in-memory mesh or model \(load_dict\) has no file to name"):
+        save_scene(scene.spec, tmp_path / "s.toml")
+    assert not list(tmp_path.iterdir())

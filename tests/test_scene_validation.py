@@ -174,7 +174,7 @@ def test_non_finite_numbers_say_finite_and_name_the_key(tmp_path, capsys, sectio
     with pytest.raises(SceneError) as info:
         load_scene_spec(path)
     assert str(info.value).startswith(f"{path}: {key}: Input should be a finite number (got ")
-    assert "more problems" not in str(info.value)  # the other union members' complaints are dropped
+    assert "more problem" not in str(info.value)  # the other union members' complaints are dropped
     assert cli_error(capsys, ["info", path]) == str(info.value)
 
 
@@ -265,3 +265,20 @@ def test_save_scene_takes_a_spec_and_says_so():
         save_scene(load_scene_spec("builtin:cornell-statue"), "x.toml")
     with pytest.raises(ConfigError, match=r"^path: expected a path"):
         save_scene(load_scene_spec("builtin:cornell-statue")[0], None)
+
+
+@pytest.mark.parametrize("section,message", [
+    ({"objects": [{"generator": {"name": "sphere"}, "transform": {"scale": "2"}}]},
+     r"^scene: objects.0.transform.scale: expected a number, got '2'$"),  # (read as 2.0)
+    ({"objects": [{"generator": {"name": "sphere"}, "transform": {"scale": ["1", True, 2]}}]},
+     r"^scene: objects.0.transform.scale.0: expected a number, got '1' \(and 1 more problem\)$"),
+    ({"objects": [{"generator": {"name": "sphere"}}], "lights": [{"position": [1e39, 0, 0], "intensity": [1, 1, 1]}]},
+     r"^scene: lights.0.position.0: Input should be less than or equal to 1e\+18 \(got 1e\+39\)$"),  # (contributed 0)
+    ({"camera": {"fov": "40"}, "objects": [{"generator": {"name": "sphere"}}]},
+     r"^scene: camera.fov: expected a number, got '40'$"),  # (the input was named twice)
+])
+def test_scene_numbers_found_by_the_authoring_trial(section, message):
+    from neuralrt.scene.loader import load_dict
+
+    with pytest.raises(SceneError, match=message):
+        load_dict(section)

@@ -59,7 +59,8 @@ def validation_errors(exc, model=None) -> list[tuple[str, str]]:
     rows = []  # (key, message, union position or None, is a type mismatch)
     for err in exc.errors(include_url=False):
         key, union_at = _user_loc(err.get("loc", ()), model)
-        got = "" if isinstance(err.get("input"), dict) or "input" not in err else f" (got {_short_repr(err['input'])})"
+        got = "" if isinstance(err.get("input"), dict) or "input" not in err or ", got " in err.get("msg", "") \
+            else f" (got {_short_repr(err['input'])})"  # (a message of ours may name the input itself)
         rows.append((key, _bound_as_written(_one_line(err.get("msg", "invalid")), err.get("ctx")) + got, union_at, _is_type_mismatch(err)))
     fitting = {at for _, _, at, mismatch in rows if at is not None and not mismatch}
     rows = [r for r in rows if not (r[3] and r[2] in fitting)]

@@ -50,6 +50,7 @@ from .scene import Scene, instance_ray_offsets
 __all__ = ["load_scene", "load_dict", "load_scene_spec", "build_scene", "scene_material_for", "shape_for", "BUILTIN_PREFIX"]
 
 BUILTIN_PREFIX = "builtin:"
+IN_MEMORY = "<in-memory "  # how a `load_dict` spec names a Mesh or model object given in place of a file
 
 
 def load_scene(
@@ -122,7 +123,7 @@ def _take_in_memory(obj, i: int, given: _InMemory, label: str):
     mesh, model = obj.get("mesh"), obj.get("model")
     if isinstance(mesh, Mesh):
         given.meshes[i] = mesh
-        obj["mesh"] = f"<in-memory mesh {mesh.name!r}>"
+        obj["mesh"] = f"{IN_MEMORY}mesh {mesh.name!r}>"
     elif isinstance(mesh, os.PathLike):
         obj["mesh"] = os.fspath(mesh)
     elif mesh is not None and not isinstance(mesh, str):  # (pydantic would print an array's repr over lines)
@@ -135,7 +136,7 @@ def _take_in_memory(obj, i: int, given: _InMemory, label: str):
             raise SceneError(f"{label}: objects.{i}.model: expected a model file path or a BLAS, got "
                              f"{type(model).__name__} ({problem})")
         given.models[i] = model
-        obj["model"] = f"<in-memory model {type(model).__name__}>"
+        obj["model"] = f"{IN_MEMORY}model {type(model).__name__}>"
     return obj
 
 
@@ -215,13 +216,13 @@ def validate_spec(data, label: str) -> SceneSpec:
     except ValidationError as exc:
         errors = validation_errors(exc, SceneSpec)  # keys as written: no pydantic union labels
         key, msg = errors[0]
-        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        more = _more(len(errors) - 1)
         msg = " ".join(msg.split())  # one line, whatever the input's repr (an array spans several)
         raise SceneError(f"{label}: {key or '(top level)'}: {msg}{more}") from None
     problems = spec.reference_errors() + _empty_path_errors(spec)
     if problems:
         key, msg = problems[0]
-        more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
+        more = _more(len(problems) - 1)
         raise SceneError(f"{label}: {key}: {msg}{more}")
     return spec
 
@@ -374,6 +375,11 @@ def _warn_untextured(spec: SceneSpec, obj: ObjectSpec, slot_materials: list[int]
     elif shape is not None and shape.mesh.uvs is None:
         warnings.warn(f"{label}: {key}: material {names} has a texture, but the mesh has no UVs: it shows one texel",
                       stacklevel=3)
+
+
+def _more(count: int) -> str:
+    """" (and N more problems)" after the first problem of several."""
+    return "" if count < 1 else f" (and {count} more problem{'s' if count > 1 else ''})"
 
 
 def _material_names(blas, label: str, key: str) -> list[str]:

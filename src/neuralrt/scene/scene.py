@@ -91,6 +91,13 @@ def save_scene(spec: SceneSpec, path: str | Path) -> None:
     if not isinstance(spec, SceneSpec):
         raise SceneError(f"spec: expected a SceneSpec (load_scene_spec(path)[0], or one built in Python), got {type(spec).__name__}")
     path = check_path("path", path)
+    from .loader import IN_MEMORY
+
+    held = [f"objects.{i}.{key}" for i, obj in enumerate(spec.objects) for key in ("mesh", "model")
+            if Path(getattr(obj, key) or "").name.startswith(IN_MEMORY)]  # (made absolute like a path)
+    if held:  # (a file naming "<in-memory mesh 'x'>" would not load)
+        raise SceneError(f"{path}: {', '.join(held)}: an in-memory mesh or model (load_dict) has no file to name; "
+                         "save it first (Mesh: trimesh export; model: .save) and name that file")
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".json"):
         raise SceneError(f"{path}: scene files must end in .toml or .json")

@@ -93,6 +93,10 @@ DEFAULT_MATERIAL_NAME = "default"
 MAX_RADIANCE = 1e20
 Radiance = Annotated[float, NumberOnly, Field(ge=0, le=MAX_RADIANCE, allow_inf_nan=False)]
 RadianceVec3 = tuple[Radiance, Radiance, Radiance]
+# A point light's squared distance to a shading point is computed in float32 (3.4e38): 1e18 per
+# coordinate keeps it finite (a light at 1e39 contributed nothing, silently).
+MAX_LIGHT_COORDINATE = 1e18
+LightCoordinate = Annotated[float, NumberOnly, Field(ge=-MAX_LIGHT_COORDINATE, le=MAX_LIGHT_COORDINATE, allow_inf_nan=False)]
 
 
 class _Strict(BaseModel):
@@ -156,7 +160,7 @@ class TransformSpec(_Strict):
 
     translate: Vec3 = Field((0.0, 0.0, 0.0), description="offset, world units (applied last)")
     rotate: Vec3 = Field((0.0, 0.0, 0.0), description="Euler angles in degrees about the world x, then y, then z axis")
-    scale: float | tuple[float, float, float] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); "
+    scale: Real | tuple[Real, Real, Real] = Field(1.0, description="uniform factor or per-axis [x, y, z] (applied first); "
                                                       f"magnitudes {MIN_SCALE:g} to {MAX_SCALE:g}, per-axis factors at most {MAX_CONDITION:.2g}-fold apart")
     matrix: list[list[Finite]] | None = Field(None, description="4x4 row-major object-to-world matrix: bottom row [0, 0, 0, 1], invertible; "
                                               "replaces translate/rotate/scale")
@@ -294,7 +298,8 @@ class PointLightSpec(_Strict):
     """Isotropic point light of radiant intensity ``intensity`` (W/sr)."""
 
     type: Literal["point"] = Field("point", description="light kind")
-    position: Vec3 = Field(description="world position")
+    position: tuple[LightCoordinate, LightCoordinate, LightCoordinate] = Field(
+        description=f"world position (each coordinate within +-{MAX_LIGHT_COORDINATE:g})")
     intensity: RadianceVec3 = Field(description="radiant intensity, W/sr (linear RGB)")
 
 
