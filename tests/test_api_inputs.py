@@ -172,3 +172,17 @@ def test_every_top_level_name_resolves_whatever_was_imported_before():
     assert all(getattr(neuralrt, name) is not None for name in neuralrt.__all__)
     assert {"NBVHConfig", "NBVHModel", "NIFConfig", "LSNIFConfig"} <= set(neuralrt.__all__)
     assert "list_presets" in api.__all__
+
+
+def test_info_counts_camera_only_meshes_apart(tmp_path):
+    """A hybrid scene keeps a neural object's mesh for camera rays: it counted in triangles_unique
+    but not in triangles_instanced (unique > instanced)."""
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    LSNIFModel.from_mesh(sphere(2), LSNIFConfig.preset("lq")).save(tmp_path / "m.nrt")
+    (tmp_path / "scene.toml").write_text(
+        '[[objects]]\nmodel = "m.nrt"\ngenerator = { name = "sphere", params = { subdivisions = 2 } }\n'
+        '[[objects]]\ngenerator = { name = "plane" }\n[[objects]]\ngenerator = { name = "plane" }\n')
+    info = api.info(tmp_path / "scene.toml")
+    assert (info["triangles_unique"], info["triangles_instanced"], info["triangles_camera_only"]) == (2, 4, 320)
