@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 import trimesh
 
 from neuralrt.cli import main
@@ -211,3 +212,23 @@ model = "{model}"
     err = capsys.readouterr().err.strip()
     assert "objects.0" in err and "trained on another mesh" in err and "\n" not in err
     assert main([*argv, "--allow-mesh-mismatch"]) == 0
+
+
+def test_metrics_of_an_empty_set_are_null_and_a_training_seed_warns(tmp_path):
+    """A rate over no rays was 0.0 ("none wrong"); eval at the model's training seed called its rays held out."""
+    import math
+
+    from neuralrt import api
+    from neuralrt.eval.intersection_metrics import ray_metrics
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+    from neuralrt.rays import Hits, Rays
+
+    rays = Rays(torch.zeros(4, 3), torch.ones(4, 3))
+    m = ray_metrics(Hits.empty(4), Hits.empty(4), rays, diagonal=1.0)  # no true hit, no predicted hit
+    assert m["accuracy"] == 1.0 and m["false_positive_rate"] == 0.0
+    assert all(math.isnan(m[k]) for k in ("false_negative_rate", "normal_backfacing_fraction", "t_error_median"))
+    mesh = sphere(1)
+    LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq")).save(tmp_path / "m.nrt")
+    with pytest.warns(UserWarning, match=r"seed=0 is the model's training seed: these rays may repeat its training rays"):
+        api.evaluate(tmp_path / "m.nrt", mesh, rays=64, seed=0, images=False)

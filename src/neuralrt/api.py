@@ -364,6 +364,12 @@ def evaluate(
             raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
     blas = model if is_neural(model) else load_model(model, device=device)
+    training_seed = getattr(getattr(getattr(blas, "config", None), "training", None), "seed", None)
+    if seed is not None and seed == training_seed:
+        import warnings
+
+        warnings.warn(f"{given('seed', seed)} is the model's training seed: these rays may repeat its training rays "
+                      f"(not held out; the default seed, {HELD_OUT_SEED}, is far from training seeds)", stacklevel=2)
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")

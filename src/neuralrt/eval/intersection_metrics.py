@@ -60,13 +60,14 @@ def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
         "rays": n,
         "true_hit_fraction": pos / n if n else float("nan"),
         "accuracy": float((ph == th).float().mean()) if n else float("nan"),
-        "false_positive_rate": float((ph & ~th).sum()) / neg if neg else 0.0,
-        "false_negative_rate": float((~ph & th).sum()) / pos if pos else 0.0,
+        # NaN (JSON null) where the denominator is empty, as for every metric here: 0.0 read as "none wrong"
+        "false_positive_rate": float((ph & ~th).sum()) / neg if neg else float("nan"),
+        "false_negative_rate": float((~ph & th).sum()) / pos if pos else float("nan"),
         "t_error_median": t_med,
         "t_error_p90": t_p90,
         "normal_error_deg_median": a_med,
         "normal_error_deg_p90": a_p90,
-        "normal_backfacing_fraction": float(((n_pred * d[both]).sum(-1) > 0).float().mean()) if both.any() else 0.0,
+        "normal_backfacing_fraction": float(((n_pred * d[both]).sum(-1) > 0).float().mean()) if both.any() else float("nan"),
         "material_accuracy": float(mat_ok.float().mean()) if both.any() else float("nan"),
         "albedo_error_mean": float((pred.albedo.cpu() - truth.albedo.cpu())[both].abs().mean()) if both.any() else float("nan"),
     }
