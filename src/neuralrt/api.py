@@ -178,6 +178,7 @@ def render(
     ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
     online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
     from .render.integrator import render as _render
+    from .render.integrator import warm_up
     from .scene.schema import MAX_DEPTH, MAX_SPP
 
     check_device(device)
@@ -201,6 +202,8 @@ def render(
     primary = loaded.primary
     nif_report = None
     try:
+        # (untimed: the process's one-time kernel loading is not the render's time per sample)
+        warmup_seconds = warm_up(loaded, primary=primary, max_depth=max_depth)
         if nif is not None:  # NIF hook (issue 10): objects and spp are checked before any sample is rendered
             from .render.nif_render import render_nif
 
@@ -225,6 +228,7 @@ def render(
         "resolution": [w, h],
         "spp": result.spp,
         "seconds": result.seconds,
+        "warmup_seconds": warmup_seconds,
         "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),
         **({"nif": nif_report} if nif_report is not None else {}),
     }

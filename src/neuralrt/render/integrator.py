@@ -93,6 +93,18 @@ class PathTracer:
         return film.radiance, film.albedo, film.normal, film.depth, film.hit
 
 
+WARM_UP_RESOLUTION = (8, 8)  # enough pixels to reach every bounce kind of a scene; ~10 ms once warm
+
+
+def warm_up(scene, primary: str | None = None, max_depth: int | None = None) -> float:
+    """Render a few pixels of ``scene`` at 1 spp, untimed, and return the seconds it took: the first
+    render in a process loads the compiled kernels it uses (~0.3 s on the 2-core CPU, whatever the
+    image size), so a timed render that follows measures its sample passes only."""
+    start = time.perf_counter()
+    render(scene, spp=1, resolution=WARM_UP_RESOLUTION, progress=False, primary=primary, max_depth=max_depth)
+    return time.perf_counter() - start
+
+
 def render(
     scene,
     spp: int | None = None,
