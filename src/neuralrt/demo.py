@@ -99,7 +99,7 @@ def _markdown(report: dict) -> str:
         ("FLIP hybrid vs exact", f"{q['flip']:.4f}"),
         ("FLIP noise floor (exact vs exact, other seed)", f"{q['flip_noise_floor']:.4f}"),
         ("PSNR hybrid vs exact", f"{q['psnr']:.2f} dB (floor {q['psnr_noise_floor']:.2f} dB)"),
-        ("training time", f"{t['train_s']:.1f} s"),
+        ("training time (wall: setup and steps; the model's record counts steps only)", f"{t['train_s']:.1f} s"),
         ("exact render", f"{t['exact_render_s']:.1f} s"),
         ("hybrid render", f"{t['hybrid_render_s']:.1f} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x exact)"),
     ]

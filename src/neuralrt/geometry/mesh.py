@@ -370,7 +370,9 @@ def load_mesh(path: str | Path) -> Mesh:
     ``materials`` and its faces get that ``face_material_ids``. Errors name the file; a texture
     or material file the mesh names but that cannot be read is a warning naming it (the mesh
     loads without it). glTF colours follow the glTF spec (``baseColorFactor`` linear, white when
-    absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB.
+    absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB. Vertices are
+    kept as the file has them (``process=False``): an STL, which stores each triangle's corners
+    apart, stays a triangle soup (3 vertices per triangle in ``mesh_bytes``, flat shading).
     """
     from ..devices import check_path
 

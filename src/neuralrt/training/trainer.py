@@ -38,12 +38,12 @@ class TrainingRecord:
 
     steps: int = 0
     batch_size: int = 0
-    seconds: float = 0.0  # wall time spent in steps (summed over resumed sessions)
+    seconds: float = 0.0  # wall time spent in steps (summed over resumed sessions; setup before the first step not counted)
     rays: int = 0  # rays drawn in total
     network_rays: int = 0  # of those, rays that reached the network
     rays_per_second: float = 0.0
-    final_loss: float = float("nan")  # mean over the last `window` steps
-    final_losses: dict = field(default_factory=dict)
+    final_loss: float = float("nan")  # mean over the last `window` steps, of the weighted sum the optimizer minimizes
+    final_losses: dict = field(default_factory=dict)  # each term's mean, unweighted (N-BVH: `loss.*_weight` scale them)
     hit_accuracy: float = float("nan")  # running hit/miss accuracy over the last `window` steps
     compute_precision: str = ""  # arithmetic of the hidden layers in training: "bf16" or "fp32"
     device: str = ""  # where it trained, e.g. "cpu", "cuda"
