@@ -253,12 +253,16 @@ def detail_level(generator: str):
     return check
 
 
-def nonnegative_float(text: str) -> float:
-    """argparse type: a finite number >= 0 (an offset, a distance where 0 is allowed)."""
+def _number(text: str) -> float:
     try:
-        value = float(text)
+        return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite number >= 0 (an offset, a distance where 0 is allowed)."""
+    value = _number(text)
     if not 0 <= value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
     return value
@@ -266,10 +270,7 @@ def nonnegative_float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    value = _number(text)
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
     return value
