@@ -17,6 +17,7 @@ from neuralrt.scene.schema import (
     DiffuseMaterialSpec,
     EmissiveMaterialSpec,
     EnvironmentSpec,
+    GeneratorSpec,
     ObjectSpec,
     PlasticMaterialSpec,
     PointLightSpec,
@@ -41,7 +42,8 @@ def _every_feature_scene(tmp_path):
                    ConductorMaterialSpec(name="metal", albedo=(0.9, 0.6, 0.3), roughness=0.2),
                    PlasticMaterialSpec(name="plastic", albedo=(0.2, 0.4, 0.8), roughness=0.1),
                    EmissiveMaterialSpec(name="light", emission=(6, 6, 6))],
-        objects=[ObjectSpec(mesh=_quad_file(tmp_path / "floor.ply", half=3.0, y=-0.5), material="floor"),
+        objects=[ObjectSpec(generator=GeneratorSpec(name="plane", params={"size": 6.0}), material="floor",  # (UVs: the texture shows)
+                            transform=TransformSpec(translate=(0, -0.5, 0))),
                  ObjectSpec(mesh=_sphere_file(tmp_path / "s.ply", 2), material="metal", transform=TransformSpec(translate=(-0.6, 0, 0), scale=0.45)),
                  ObjectSpec(mesh=str(tmp_path / "box.ply"), material="plastic", transform=TransformSpec(translate=(0.6, -0.1, 0), rotate=(0, 30, 0))),
                  ObjectSpec(mesh=_quad_file(tmp_path / "light.ply", half=0.3, y=1.6, down=True), material="light")],
