@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .devices import DEVICE_TYPES, check_device, resolve_device  # (resolve_device: re-exported, its old home)
 from .arguments import check_count
+from .devices import DEVICE_TYPES, check_device, resolve_device  # (resolve_device: re-exported, its old home)
 from .errors import ConfigError, DeviceError
 
 __all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",

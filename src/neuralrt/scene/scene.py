@@ -87,12 +87,11 @@ def save_scene(spec: SceneSpec, path: str | Path) -> None:
     scene; absolute file paths are written relative to the new file's folder. Atomic. ``spec`` is a
     `SceneSpec` (e.g. the first of `neuralrt.scene.loader.load_scene_spec`'s three values)."""
     from ..devices import check_path
+    from .loader import IN_MEMORY
 
     if not isinstance(spec, SceneSpec):
         raise SceneError(f"spec: expected a SceneSpec (load_scene_spec(path)[0], or one built in Python), got {type(spec).__name__}")
     path = check_path("path", path)
-    from .loader import IN_MEMORY
-
     held = [f"objects.{i}.{key}" for i, obj in enumerate(spec.objects) for key in ("mesh", "model")
             if Path(getattr(obj, key) or "").name.startswith(IN_MEMORY)]  # (made absolute like a path)
     if held:  # (a file naming "<in-memory mesh 'x'>" would not load)
