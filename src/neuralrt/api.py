@@ -368,8 +368,7 @@ def evaluate(
             raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
     blas = model if is_neural(model) else load_model(model, device=device)
-    training_seed = getattr(getattr(getattr(blas, "config", None), "training", None), "seed", None)
-    if seed is not None and seed == training_seed:
+    if seed is not None and seed == blas.config.training.seed:  # (a NeuralBLAS: every method's config has it)
         import warnings
 
         warnings.warn(f"{given('seed', seed)} is the model's training seed: these rays may repeat its training rays "

@@ -19,13 +19,14 @@ _IMAGES = ("failed to load image", "unable to load image")
 
 _lock = threading.Lock()
 _collected: dict[int, list[str]] = {}  # thread ident -> what it could not read
-_level_before: list[int] = []  # the logger's own level, while a capture is installed
 
 
 class _Collect(logging.Filter):
-    def __init__(self, effective_level: int):
+    """Installed on the logger while any thread collects; remembers the logger's levels to restore."""
+
+    def __init__(self, logger: logging.Logger):
         super().__init__()
-        self.effective_level = effective_level
+        self.effective_level, self.own_level = logger.getEffectiveLevel(), logger.level
 
     def filter(self, record: logging.LogRecord) -> bool:
         into = _collected.get(record.thread)
@@ -36,7 +37,7 @@ class _Collect(logging.Filter):
         return record.levelno >= self.effective_level  # what the logger passed on before
 
 
-_filter: list[_Collect] = []
+_installed: _Collect | None = None
 
 
 def _described(record: logging.LogRecord) -> str | None:
@@ -54,14 +55,14 @@ def _described(record: logging.LogRecord) -> str | None:
 def unread_assets():
     """Yield a list that fills with one line per texture or material file trimesh fails to read
     in this thread inside the block."""
+    global _installed
     logger = logging.getLogger(_LOGGER)
     ident = threading.get_ident()
     found: list[str] = []
     with _lock:
-        if not _collected:
-            _filter.append(_Collect(logger.getEffectiveLevel()))
-            _level_before.append(logger.level)
-            logger.addFilter(_filter[0])
+        if _installed is None:
+            _installed = _Collect(logger)
+            logger.addFilter(_installed)
             logger.setLevel(logging.DEBUG)
         _collected[ident] = found
     try:
@@ -70,5 +71,6 @@ def unread_assets():
         with _lock:
             del _collected[ident]
             if not _collected:
-                logger.removeFilter(_filter.pop())
-                logger.setLevel(_level_before.pop())
+                logger.removeFilter(_installed)
+                logger.setLevel(_installed.own_level)
+                _installed = None

@@ -301,7 +301,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     spec = absolutize_paths(spec, Path(base_dir))
     dev = device  # (checked by the public callers: `check_device`)
     index = material_index(spec)
-    materials = _material_table(scene_materials(spec), label, dev)
+    material_specs = scene_materials(spec)
+    materials = _material_table(material_specs, label, dev)
 
     shapes: dict[tuple, _Shape] = {}
     models: dict[str, BLAS] = {}
@@ -342,7 +343,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
             warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
                           f"(the object's slots: {', '.join(slots)})", stacklevel=2)
         slot_materials = material_map(obj, slots, index)
-        _warn_untextured(spec, obj, slot_materials, shape, label, key)
+        _warn_untextured(material_specs, obj, slot_materials, shape, label, key)
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(slot_materials),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
@@ -361,10 +362,9 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                  primary=primary)
 
 
-def _warn_untextured(spec: SceneSpec, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str) -> None:
+def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str) -> None:
     """Warn when a texture ``albedo`` lands where no UVs are: a neural object's hits carry none (nor
-    do a mesh without UVs' hits): the texture would show one texel, silently."""
-    specs = scene_materials(spec)
+    do a mesh without UVs' hits): the texture would show one texel, silently. ``specs``: `scene_materials`."""
     textured = sorted({specs[m].name for m in slot_materials if isinstance(specs[m].albedo, str)})
     if not textured:
         return
