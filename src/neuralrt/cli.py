@@ -157,7 +157,8 @@ def _cmd_demo(args) -> None:
     report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene, method=args.method,
                       preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps, detail=args.detail)
     m, t = report["memory"], report["time"]
-    print(f"FLIP {report['flip']:.4f} (noise floor {report['flip_noise_floor']:.4f}), "
+    print(f"FLIP {report['flip']:.4f} (same seed; at another seed {report['flip_other_seed']:.4f}, "
+          f"noise floor {report['flip_noise_floor']:.4f}), "
           f"PSNR {report['psnr']:.2f} dB; neural {m['neural_bytes'] / 2**20:.2f} MiB vs BVH A "
           f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; train {t['train_s']:.0f} s, exact {t['exact_render_s']:.1f} s, "
           f"hybrid {t['hybrid_render_s']:.1f} s")

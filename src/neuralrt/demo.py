@@ -1,8 +1,10 @@
 """`neuralrt demo`: convert a built-in scene, render it exact and hybrid, compare, and write a report.
 
 The report folder holds both renders (EXR + PNG), the FLIP heat map, a side-by-side PNG, and a
-table (``report.md`` and ``report.json``) of memory (BVH A, BVH B, neural), FLIP and PSNR (with the
-noise floor: exact vs exact at another seed, same spp), render times and training time.
+table (``report.md`` and ``report.json``) of memory (BVH A, BVH B, neural), FLIP and PSNR, render times and
+training time. FLIP comes twice: hybrid vs exact at the same seed (shared random numbers: the
+difference is mostly the model's) and hybrid vs exact at another seed, the figure to hold against
+the noise floor (exact vs exact at that other seed, same spp).
 """
 
 from __future__ import annotations
@@ -96,9 +98,11 @@ def _markdown(report: dict) -> str:
         ("kept for camera rays (meshes + Embree BVHs)", f"{m['camera_bytes'] / 2**20:.2f} MiB (primary rays {report['settings']['primary']})"),
         ("run-time memory, exact scene / hybrid scene",
          f"{m['exact_scene_bytes'] / 2**20:.2f} / {m['hybrid_scene_bytes'] / 2**20:.2f} MiB"),
-        ("FLIP hybrid vs exact", f"{q['flip']:.4f}"),
-        ("FLIP noise floor (exact vs exact, other seed)", f"{q['flip_noise_floor']:.4f}"),
-        ("PSNR hybrid vs exact", f"{q['psnr']:.2f} dB (floor {q['psnr_noise_floor']:.2f} dB)"),
+        ("FLIP hybrid vs exact (same seed: shared noise)", f"{q['flip']:.4f}"),
+        ("FLIP hybrid vs exact at another seed / noise floor (exact vs that seed)",
+         f"{q['flip_other_seed']:.4f} / {q['flip_noise_floor']:.4f}"),
+        ("PSNR hybrid vs exact: same seed; another seed / floor",
+         f"{q['psnr']:.2f} dB; {q['psnr_other_seed']:.2f} / {q['psnr_noise_floor']:.2f} dB"),
         ("training time (wall: setup and steps; the model's record counts steps only)", f"{t['train_s']:.1f} s"),
         ("exact render", f"{t['exact_render_s']:.1f} s"),
         ("hybrid render", f"{t['hybrid_render_s']:.1f} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x exact)"),
@@ -169,6 +173,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     say("[3/4] comparing ...")
     quality = compare_images(exact.image, hybrid.image)
     floor = compare_images(exact.image, exact_other_seed.image)
+    # Against the same independent render as the floor: noise no longer shared, so the two compare.
+    other_seed = compare_images(exact_other_seed.image, hybrid.image)
     exact.save(out / "exact.exr")
     hybrid.save(out / "hybrid.exr")
     write_srgb_png(out / "flip.png", quality.flip_map)
@@ -193,6 +199,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         "flip": quality.flip,
         "psnr": quality.psnr,
         "relmse": quality.relmse,
+        "flip_other_seed": other_seed.flip,
+        "psnr_other_seed": other_seed.psnr,
         "flip_noise_floor": floor.flip,
         "psnr_noise_floor": floor.psnr,
         "memory": {
