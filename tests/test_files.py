@@ -3,6 +3,7 @@ named as one; every writer (images, scene files, model files) goes through the s
 
 import os
 import stat
+import time
 
 import numpy as np
 import pytest
@@ -55,6 +56,24 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["out.txt"]
     write_atomically(target, lambda tmp: open(tmp, "w").write("new"))
     assert target.read_text() == "new"
+
+
+def test_a_killed_writers_old_temporary_is_swept_by_the_next_write(tmp_path):
+    # What a SIGKILL between creating the temporary sibling and the rename leaves behind.
+    stale, fresh = tmp_path / ".model.0123abcd.tmp.nrt", tmp_path / ".model.89abcdef.tmp.nrt"
+    other_file, not_ours = tmp_path / ".scene.0123abcd.tmp.toml", tmp_path / ".model.backup.nrt"
+    for leftover in (stale, fresh, other_file, not_ours):
+        leftover.write_bytes(b"half")
+    an_hour_and_a_bit_ago = time.time() - 3700
+    for old in (stale, other_file, not_ours):
+        os.utime(old, (an_hour_and_a_bit_ago, an_hour_and_a_bit_ago))
+    write_atomically(tmp_path / "model.nrt", lambda tmp: open(tmp, "w").write("new"))
+    # Only the old temporary of the file written goes: a recent one may be a concurrent writer's,
+    # another file's is swept when that file is written, and a name off the pattern is the user's.
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["model.nrt", fresh.name, other_file.name, not_ours.name])
+    write_atomically(tmp_path / "scene.toml", lambda tmp: open(tmp, "w").write("s"))
+    assert not other_file.exists()
 
 
 def test_a_directory_as_an_input_file_is_named_as_one(tmp_path):

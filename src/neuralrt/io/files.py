@@ -4,16 +4,21 @@
 written there (without creating anything). `write_atomically` is the one way neuralrt writes an
 output file (images, model files, scene files, checkpoints): the data goes to a temporary
 sibling, then one ``os.replace`` puts it in place, so a crash leaves the old file or the new one,
-never half of one. The temporary file is created with mode ``0o666`` filtered by the umask, like
-any file a program opens for writing (``tempfile.mkstemp`` would make every output ``0600``).
+never half of one (a temporary file that a killed process left behind is removed by a later
+write of the same file, once it is an hour old). The temporary file is created with mode
+``0o666`` filtered by the umask, like any file a program opens for writing
+(``tempfile.mkstemp`` would make every output ``0600``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
+import re
 import secrets
 import stat
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,8 +33,29 @@ def _sibling_name(path: Path) -> Path:
     return path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
 
 
+# A temporary sibling this old was left by a writer killed mid-write (SIGKILL, power cut): live ones
+# exist for the seconds a file takes to write, so sweeping these never races a concurrent writer.
+STALE_SIBLING_SECONDS = 3600
+
+
+def _sweep_stale_siblings(path: Path) -> None:
+    """Remove ``path``'s temporary siblings (`_sibling_name`'s pattern) older than `STALE_SIBLING_SECONDS`."""
+    pattern = re.compile(re.escape(f".{path.stem}.") + "[0-9a-f]{8}" + re.escape(f".tmp{path.suffix}"))
+    cutoff = time.time() - STALE_SIBLING_SECONDS
+    try:
+        candidates = list(path.parent.glob(glob.escape(f".{path.stem}.") + "*"))
+    except OSError:
+        return
+    for candidate in candidates:
+        with contextlib.suppress(OSError):  # gone already, or not ours to remove: never fail a write over it
+            if pattern.fullmatch(candidate.name) and candidate.lstat().st_mtime < cutoff and candidate.is_file():
+                candidate.unlink()
+
+
 def _create_sibling(path: Path) -> Path:
-    """A new empty file beside ``path`` (mode 0o666 & ~umask) with an unused hidden name."""
+    """A new empty file beside ``path`` (mode 0o666 & ~umask) with an unused hidden name; stale
+    siblings an interrupted earlier write left are removed first."""
+    _sweep_stale_siblings(path)
     while True:
         tmp = _sibling_name(path)
         try:
