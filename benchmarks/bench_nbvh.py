@@ -7,8 +7,8 @@ Usage (results merge into benchmarks/results/NAME.json)::
     python benchmarks/bench_nbvh.py bunny00.off --presets cpu --steps 1500 --inference-rays 262144
     python benchmarks/bench_nbvh.py bunny00.off --set query.chord_points=stratified --set loss.normal=3
     python benchmarks/bench_nbvh.py bunny00.off --presets paper --device cuda --name nbvh_h100
-    python benchmarks/bench_nbvh.py --offsets MODEL.nrt bunny00.off   # secondary-ray offsets -> nbvh_offset.json
-    python benchmarks/bench_nbvh.py --lods MODEL.nrt bunny00.off      # quality and rays/s per LoD -> nbvh_lod.json
+    python benchmarks/bench_nbvh.py --offsets MODEL.nrt bunny00.off   # secondary-ray offsets -> nbvh_offset.json (or --name)
+    python benchmarks/bench_nbvh.py --lods MODEL.nrt bunny00.off      # quality and rays/s per LoD -> nbvh_lod.json (or --name)
 
 A mesh is a file name in ../shared/meshes (or a path), optionally ``@loopK``, or
 ``procedural:NAME:DETAIL`` (as in bench_lsnif.py). Timings on a shared machine are noisy: the
@@ -124,15 +124,15 @@ def summary_row(r: dict) -> dict:
     }
 
 
-def offsets(model: str, mesh: str) -> None:
-    """bench_lsnif_offset.py's measurement (it takes any model file), written to nbvh_offset.json."""
+def offsets(model: str, mesh: str, name: str) -> None:
+    """bench_lsnif_offset.py's measurement (it takes any model file), written to NAME.json."""
     import bench_lsnif_offset
 
-    sys.argv = [sys.argv[0], model, mesh, "--name", "nbvh_offset"]
+    sys.argv = [sys.argv[0], model, mesh, "--name", name]
     bench_lsnif_offset.main()
 
 
-def lods(model_path: str, mesh_spec: str) -> None:
+def lods(model_path: str, mesh_spec: str, name: str) -> None:
     """Held-out outside/surface quality and rays/s of one model answering with each registered LoD."""
     from _common import print_table, write_results
 
@@ -150,7 +150,7 @@ def lods(model_path: str, mesh_spec: str) -> None:
                      "n_err_deg_med": m["outside"]["normal_error_deg_median"], "acc_surf": m["surface"]["accuracy"],
                      "rays_per_s": best_rate(lambda: model.intersect(rays), len(rays), 2)})
     print_table(rows, list(rows[0]))
-    print(f"wrote {write_results('nbvh_lod', rows, extra={'model': model_path, 'mesh': mesh_spec})}")
+    print(f"wrote {write_results(name, rows, extra={'model': model_path, 'mesh': mesh_spec})}")
 
 
 def _has_leaf_ancestor(model, lod: int) -> torch.Tensor:
@@ -163,26 +163,26 @@ def _has_leaf_ancestor(model, lod: int) -> torch.Tensor:
     return below
 
 
-def _check_model_and_mesh(option: str, rest: list[str]) -> None:
-    """``--offsets`` / ``--lods`` take exactly MODEL.nrt and a mesh spec: both checked before any work."""
+def _check_model_and_mesh(model: str, mesh: str) -> None:
+    """``--offsets`` / ``--lods`` take MODEL.nrt and a mesh spec: both checked before any work."""
     from neuralrt.io.files import input_file_problem
 
-    if len(rest) != 2:
-        fail(f"{option} takes MODEL.nrt MESH, got {len(rest)} argument(s): {' '.join(rest) or 'none'}")
-    problem = input_file_problem(rest[0], "model file")
+    problem = input_file_problem(model, "model file")
     if problem:
         fail(problem)
-    check_mesh_spec(rest[1])
+    check_mesh_spec(mesh)
 
 
 def main() -> None:
     from _common import RESULTS_DIR, print_table, read_results, write_results
 
-    if sys.argv[1:2] in (["--offsets"], ["--lods"]):
-        _check_model_and_mesh(sys.argv[1], sys.argv[2:])
-        return (offsets if sys.argv[1] == "--offsets" else lods)(*sys.argv[2:4])
     p = ArgumentParser(description=description(__doc__))
-    p.add_argument("meshes", nargs="+")
+    p.add_argument("meshes", nargs="*", help="meshes to train and measure (not with --offsets / --lods)")
+    one_model = p.add_mutually_exclusive_group()
+    one_model.add_argument("--offsets", nargs=2, metavar=("MODEL", "MESH"),
+                           help="secondary-ray offsets of a trained model (default --name nbvh_offset)")
+    one_model.add_argument("--lods", nargs=2, metavar=("MODEL", "MESH"),
+                           help="quality and rays/s of a trained model per LoD (default --name nbvh_lod)")
     p.add_argument("--presets", nargs="+", default=["cpu"])
     p.add_argument("--steps", type=positive_int, default=None, help="training steps (default: the preset's)")
     p.add_argument("--batch", type=positive_int, default=None, help="samples per step (default: the preset's)")
@@ -194,9 +194,22 @@ def main() -> None:
     p.add_argument("--inference-rays", type=nonnegative_int, default=1 << 18, help="0 skips the speed test")
     p.add_argument("--repeats", type=positive_int, default=3)
     p.add_argument("--models-dir", default=None, help="also save the trained models here")
-    p.add_argument("--name", type=result_name, default="nbvh", help="results file: benchmarks/results/NAME.json (runs merge into it)")
+    p.add_argument("--name", type=result_name, default=None,
+                   help="results file: benchmarks/results/NAME.json (default nbvh; training runs merge into it)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args()
+    one_model = args.offsets or args.lods
+    if one_model:
+        if args.meshes:
+            p.error(f"{'--offsets' if args.offsets else '--lods'} measures one trained model: no MESHES beside it "
+                    f"(got {' '.join(args.meshes)})")
+        _check_model_and_mesh(*one_model)
+        if args.offsets:
+            return offsets(*args.offsets, args.name or "nbvh_offset")
+        return lods(*args.lods, args.name or "nbvh_lod")
+    if not args.meshes:
+        p.error("give the MESHES to train and measure, or --offsets / --lods MODEL MESH")
+    args.name = args.name or "nbvh"
 
     # Every check before the first training (a bad second preset or mesh must not cost the first's run).
     for spec in args.meshes:

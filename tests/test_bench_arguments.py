@@ -133,7 +133,10 @@ IN_PROCESS_CASES = [
     ("bench_nbvh.py", ["procedural:statue:0", "--set", "training.steps=-1"], "training.steps"),
     ("bench_nbvh.py", ["procedural:statue:0", "--set", "nosuch.key=1"], "unknown config section 'nosuch'"),
     ("bench_nbvh.py", ["procedural:statue:0", "--name", "a/b"], "argument --name"),
-    ("bench_nbvh.py", ["--lods", "nonexistent.nrt"], "--lods takes MODEL.nrt MESH"),
+    ("bench_nbvh.py", ["--lods", "nonexistent.nrt"], "argument --lods: expected 2 arguments"),
+    ("bench_nbvh.py", [], "give the MESHES to train and measure"),
+    ("bench_nbvh.py", ["procedural:statue:0", "--lods", "m.nrt", "procedural:statue:0"], "no MESHES beside it"),
+    ("bench_nbvh.py", ["--lods", "nosuch.nrt", "procedural:statue:0", "--name", "a/b"], "argument --name"),
     # bench_lsnif_cpu
     ("bench_lsnif_cpu.py", ["procedural:statue:0", "nonexistent.off"], "nonexistent.off: mesh file not found"),
     ("bench_lsnif_cpu.py", ["procedural:statue:0", "--presets", "hq", "bogus"], "unknown lsnif preset 'bogus'"),

@@ -112,6 +112,26 @@ def test_interval_is_respected(blas, device):
     assert not blas.intersect(away).hit.any() and not blas.occluded(away).any()
 
 
+@pytest.mark.parametrize("scale", [1e-12, 3.0, 1e12])
+def test_direction_length_only_rescales_t(blas, device, scale):
+    # Directions need not be unit: t counts direction lengths, and instance transforms scale them by
+    # up to 1e12 either way (neuralrt.rays.MIN_SCALE / MAX_SCALE). LSNIF clipped its box interval at
+    # an absolute 1e-12 in t and so misread rays 1e12 long. Scaling is not exact in float32 (3.0), so
+    # a network may answer a ray at a decision edge the other way: a few in a thousand at most.
+    rays = _rays(blas, 2048, 4, device)
+    h = blas.intersect(rays)
+    scaled = Rays(rays.origins, rays.directions * scale)
+    hs = blas.intersect(scaled)
+    allowed = 2 if is_neural(blas) else 0
+    assert int((hs.hit != h.hit).sum()) <= allowed
+    assert int((blas.occluded(scaled) != blas.occluded(rays)).sum()) <= allowed
+    both = h.hit & hs.hit
+    distance_error = (hs.t[both] * scale - h.t[both]).abs() * rays.directions[both].norm(dim=1)
+    assert float(distance_error.max()) < (1e-3 if is_neural(blas) else 1e-5) * blas.bounds.diagonal
+    normals_apart = (hs.normal[both] - h.normal[both]).abs().max(dim=1).values > 0.05
+    assert int(normals_apart.sum()) <= allowed
+
+
 def test_degenerate_rays_miss_without_error(blas, device):
     nan, inf = float("nan"), float("inf")
     c = blas.bounds.center.float().tolist()

@@ -431,10 +431,17 @@ def featurize_rays_reference(
 # The rays that reach the network.
 
 
+# Floor of a ray's box interval (t_exit - t_enter) before dividing by it: only a zero one needs it.
+# t counts direction lengths, which are arbitrary (instance transforms scale them by up to 1e12), so
+# an absolute floor such as 1e-12 clipped real intervals of long directions: float32's smallest
+# normal number, in every implementation (numba, SIMD, Triton, the loss).
+MIN_SPAN = float(np.finfo(np.float32).tiny)
+
+
 def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Tensor) -> Tensor:
     """[M, H] each point's ray parameter as a fraction of the ray's box interval (0 for padding)."""
     t = ((fp.points - origins[:, None]) * directions[:, None]).sum(-1) / (directions * directions).sum(-1, keepdim=True)
-    span = (fp.t_exit - fp.t_enter).clamp(min=1e-12)
+    span = (fp.t_exit - fp.t_enter).clamp(min=MIN_SPAN)
     local = ((t - fp.t_enter[:, None]) / span[:, None]).clamp(0, 1)
     return torch.where(fp.face_axis >= 0, local, torch.zeros_like(local))
 
@@ -443,7 +450,7 @@ def point_local_distances(fp: RayFeaturePoints, origins: Tensor, directions: Ten
 def local_distance(px, py, pz, ox, oy, oz, dx, dy, dz, te, tx):
     """`point_local_distances` of one point (float32 scalars) in torch's float32 operations."""
     dd = dx * dx + dy * dy + dz * dz
-    span = max(tx - te, np.float32(1e-12))
+    span = max(tx - te, np.float32(MIN_SPAN))
     t = ((px - ox) * dx + (py - oy) * dy + (pz - oz) * dz) / dd
     return min(max((t - te) / span, np.float32(0.0)), np.float32(1.0))
 

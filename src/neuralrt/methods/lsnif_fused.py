@@ -78,7 +78,7 @@ def _fused_lsnif_kernel(
     )  # fmt: skip
     t_enter32 = t_enter.to(tl.float32)
     t_exit32 = t_exit.to(tl.float32)
-    span = tl.maximum(t_exit32 - t_enter32, 1e-12)
+    span = tl.maximum(t_exit32 - t_enter32, 1.1754943508222875e-38)  # lsnif_features.MIN_SPAN
     dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
     k = tl.arange(0, LP * FP)
     n = tl.arange(0, HIDDEN)
@@ -191,7 +191,7 @@ def _fused_input_per_ray_kernel(
     )  # fmt: skip
     t_enter32 = t_enter.to(tl.float32)
     t_exit32 = t_exit.to(tl.float32)
-    span = tl.maximum(t_exit32 - t_enter32, 1e-12)
+    span = tl.maximum(t_exit32 - t_enter32, 1.1754943508222875e-38)  # lsnif_features.MIN_SPAN
     dd = dx32 * dx32 + dy32 * dy32 + dz32 * dz32
     INPUTS: tl.constexpr = MAX_POINTS * L * F + (MAX_POINTS if POINT_DISTANCES else 0)
     row = out_ptr + r64 * INPUTS

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 from ..neural.bf16_dot import as_fp32, bf16_bits, fma16, load16, load_bf16x16, store16, store_bf16x16, zeros16
 from ..rays import Hits, face_forward
 from .lsnif_config import LossConfig
+from .lsnif_features import MIN_SPAN
 
 __all__ = ["TrainingLoss", "training_loss", "training_loss_torch", "training_loss_numba"]
 
@@ -80,7 +81,7 @@ def training_loss_torch(hidden: Tensor, output_layer: nn.Linear, active: Tensor,
         ray_rows = active[hit_rows]  # the same rays as rows of the batch
         o = out[hit_rows]
         te, tx = t_enter[hit_rows], t_exit[hit_rows]
-        t_local = (truth.t[ray_rows] - t_offset[hit_rows] - te) / torch.clamp(tx - te, min=1e-12)
+        t_local = (truth.t[ray_rows] - t_offset[hit_rows] - te) / torch.clamp(tx - te, min=MIN_SPAN)
         dist_loss = (torch.sigmoid(o[:, _DIST]) - t_local.clamp(0, 1)).abs().mean()
         n_true = face_forward(truth.normal[ray_rows], directions[ray_rows])
         normal_loss = (1 - F.cosine_similarity(o[:, _NORMAL], n_true, dim=-1, eps=1e-8)).mean()
@@ -288,7 +289,7 @@ def _head_loss_kernel(hidden, weight, out, sig, softplus, active, t_offset, t_en
             target = 0
             if y:
                 te, tx = t_enter[i], t_exit[i]
-                t_local = min(max((t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(1e-12)), zero), one)
+                t_local = min(max((t_true[r] - t_offset[i] - te) / max(tx - te, np.float32(MIN_SPAN)), zero), one)
                 nx, ny, nz = normal[r, 0], normal[r, 1], normal[r, 2]
                 if nx * directions[r, 0] + ny * directions[r, 1] + nz * directions[r, 2] > 0:
                     nx, ny, nz = -nx, -ny, -nz

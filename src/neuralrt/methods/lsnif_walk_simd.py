@@ -49,7 +49,7 @@ from ..simd16 import (
     bits16, compress16_f32, compress16_i32, compress_store_i32, expand16_f32, expand16_i32, gather16_i32, load16, popcount16,
     scatter16_i32, scatter16_i64, select16, splat_f32, splat_i32, splat_m16, store16, to_f32, vmax16, vmin16,
 )  # fmt: skip
-from .lsnif_features import ORIGIN_POINT, local_distance, walk_ray
+from .lsnif_features import MIN_SPAN, ORIGIN_POINT, local_distance, walk_ray
 
 __all__ = ["walk_group", "walk_scratch", "float32_walk_applies", "occupancy_bits"]
 
@@ -246,7 +246,7 @@ def _walk_lanes(queue, queue_i, n_queued, occ_bits, res, max_points, origin_poin
     columns = queue.shape[0] // _FLOAT_ROWS
     inf = splat_f32(np.inf)
     zero, zero_i, one_i, two_i = splat_f32(0.0), splat_i32(0), splat_i32(1), splat_i32(2)
-    one, margin, tiny, min_span = splat_f32(1.0), splat_f32(_MARGIN), splat_f32(_TINY), splat_f32(1e-12)
+    one, margin, tiny, min_span = splat_f32(1.0), splat_f32(_MARGIN), splat_f32(_TINY), splat_f32(MIN_SPAN)
     origin_code = splat_i32(ORIGIN_POINT)
     res_v = splat_i32(res)
     five_i, low_bits = splat_i32(5), splat_i32(31)  # a cell's word and bit in occ_bits
