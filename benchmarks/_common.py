@@ -303,18 +303,9 @@ def parse_mesh_spec(spec: str) -> tuple:
     if not isinstance(spec, str) or not spec:
         raise MeshError(f"empty mesh spec (use {mesh_specs()})")
     if spec.startswith("procedural:"):
-        parts = spec.split(":")
-        name = parts[1] if len(parts) > 1 else ""
-        limit = procedural_detail().get(name)
-        if len(parts) != 3 or limit is None:
-            raise MeshError(f"{spec}: not a procedural mesh spec: use procedural:NAME:DETAIL with NAME one of "
-                            f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in procedural_detail().items())}")
-        try:
-            detail = int(parts[2])
-        except ValueError:
-            detail = None
-        if detail is None or not 0 <= detail <= limit:
-            raise MeshError(f"{spec}: DETAIL must be an integer in 0..{limit} for {name}, got {parts[2]!r}")
+        from neuralrt.geometry.procedural import parse_procedural_spec
+
+        name, detail = parse_procedural_spec(spec)
         return "procedural", name, detail
     name, at, loop = spec.partition("@loop")
     loops = 0

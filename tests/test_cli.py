@@ -51,6 +51,22 @@ def test_info_mesh_and_scene_json(tmp_path, capsys):
     assert scene["memory_by_role"]["total_bytes"] == scene["memory_bytes"] and scene["memory_by_role"]["neural_bytes"] == 0
 
 
+def test_built_in_meshes_need_no_mesh_file(tmp_path, capsys):
+    # procedural:NAME:DETAIL names a generated mesh wherever a mesh file goes (pip users have no meshes)
+    from neuralrt.geometry.procedural import statue
+
+    assert main(["info", "procedural:statue:0", "--json"]) == 0
+    assert _json(capsys)["triangles"] == statue(0).num_triangles == 8392
+    model = tmp_path / "statue.nrt"
+    assert main(["train", "procedural:statue:0", "-o", str(model), "--preset", "lq", "--steps", "2", "--batch", "256",
+                 "--quiet", "--json"]) == 0
+    assert _json(capsys)["training"]["steps"] == 2
+    assert main(["eval", str(model), "procedural:statue:0", "--rays", "256", "--no-images", "--json"]) == 0
+    assert _json(capsys)["mesh_matches_model"] is True  # the generator is deterministic: the same hash
+    assert main(["eval", str(model), "procedural:statue:1", "--rays", "256", "--no-images"]) == 2
+    assert "trained on another mesh" in capsys.readouterr().err
+
+
 @pytest.fixture(scope="module")
 def plates(tmp_path_factory):
     """Four stacked plates: a non-convex mesh where about a quarter of the surface rays hit it again."""
@@ -143,6 +159,8 @@ def test_list_presets(capsys):
         (["train", "mesh.obj", "-o", "m.nrt", "--device", "tpu"], "--device tpu"),
         (["render", "builtin:cornell-statue", "-o", "x.exr", "--spp", "0"], "spp: must be at least 1, got 0"),
         (["train", "-o", "m.nrt"], "train needs MESH"),
+        (["train", "procedural:statue:9", "-o", "m.nrt"], "DETAIL must be an integer in 0..5 for statue, got '9'"),
+        (["info", "procedural:bunny:1"], "not a procedural mesh spec: use procedural:NAME:DETAIL"),
     ],
 )
 def test_bad_input_is_one_line(argv, needle, capsys, tmp_path, monkeypatch):

@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_compare)
 
     p = sub.add_parser("info", help="triangles, bounds and BVH A/B bytes of a mesh; summary of a scene or model")
-    p.add_argument("path", help="mesh file, scene file / builtin:NAME, or model file (.nrt)")
+    p.add_argument("path", help="mesh file or procedural:NAME:DETAIL, scene file / builtin:NAME, or model file (.nrt)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_info)
 
@@ -231,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("train", help="train a neural model (LSNIF, ...) of a mesh")
-    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB)")
+    p.add_argument("mesh", nargs="?", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB) or a built-in mesh, procedural:NAME:DETAIL (statue:0..5, hairball:0..8, foliage:0..6)")
     p.add_argument("-o", "--output", help="model file to write (.nrt)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt")
     p.add_argument("--list-presets", action="store_true", help="list every method's presets and exit")
@@ -241,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="held-out accuracy of a model against its mesh (+ orbit images with FLIP)")
     p.add_argument("model", help="model file (.nrt)")
-    p.add_argument("mesh", help="the mesh the model was trained on")
+    p.add_argument("mesh", help="the mesh the model was trained on (a file or procedural:NAME:DETAIL)")
     p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays, half outside, half surface (default: 131072, at most 4194304)")
     p.add_argument("--seed", type=int, help="seed of the held-out rays (default: 1000003)")
     images = p.add_mutually_exclusive_group()

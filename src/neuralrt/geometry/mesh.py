@@ -364,7 +364,9 @@ def _is_placeholder(mat) -> bool:
 
 
 def load_mesh(path: str | Path) -> Mesh:
-    """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB).
+    """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB), or
+    build the built-in one that ``procedural:NAME:DETAIL`` names (e.g. ``procedural:statue:2``;
+    `neuralrt.geometry.procedural`), so every command that takes a mesh runs without mesh files.
 
     Multi-part files are merged into one mesh; each part's material becomes one entry of
     ``materials`` and its faces get that ``face_material_ids``. Errors name the file; a texture
@@ -377,6 +379,10 @@ def load_mesh(path: str | Path) -> Mesh:
     from ..devices import check_path
 
     path = check_path("path", path)  # (None, a number, a trimesh object: one-line ConfigError)
+    if str(path).startswith("procedural:"):
+        from .procedural import procedural_mesh
+
+        return procedural_mesh(str(path))
     trimesh = import_trimesh()
     problem = input_file_problem(path, "mesh file")
     if problem:

@@ -38,6 +38,8 @@ __all__ = [
     "foliage",
     "hairball",
     "make_procedural",
+    "parse_procedural_spec",
+    "procedural_mesh",
     "plane",
     "sphere",
     "statue",
@@ -552,6 +554,35 @@ GENERATORS: dict[str, Callable[..., Mesh]] = {
     "sphere": sphere,
     "cornell_box": cornell_box,
 }
+
+
+PROCEDURAL_PREFIX = "procedural:"
+
+
+def parse_procedural_spec(spec: str) -> tuple[str, int]:
+    """``(NAME, DETAIL)`` of a ``procedural:NAME:DETAIL`` mesh spec (NAME a generator with a detail
+    level, `MAX_DETAIL`); anything else starting with ``procedural:`` is a one-line `MeshError`."""
+    from ..errors import MeshError
+
+    parts = spec.split(":")
+    name = parts[1] if len(parts) > 1 else ""
+    limit = MAX_DETAIL.get(name)
+    if len(parts) != 3 or limit is None:
+        raise MeshError(f"{spec}: not a procedural mesh spec: use procedural:NAME:DETAIL with NAME one of "
+                        f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in MAX_DETAIL.items())}")
+    try:
+        detail = int(parts[2])
+    except ValueError:
+        detail = None
+    if detail is None or not 0 <= detail <= limit:
+        raise MeshError(f"{spec}: DETAIL must be an integer in 0..{limit} for {name}, got {parts[2]!r}")
+    return name, detail
+
+
+def procedural_mesh(spec: str) -> Mesh:
+    """The mesh a ``procedural:NAME:DETAIL`` spec names (`parse_procedural_spec`)."""
+    name, detail = parse_procedural_spec(spec)
+    return GENERATORS[name](detail=detail)
 
 
 def make_procedural(name: str, **params) -> Mesh:
