@@ -53,7 +53,7 @@ class ToyModel(NeuralBLAS):
         return model
 
     def _t(self, rays: Rays) -> torch.Tensor:
-        """Ray/sphere: the nearest root in (t_min, t_max), inf where none."""
+        """Ray/sphere: the nearest root in [t_min, t_max], inf where none."""
         oc = rays.origins - self.center
         a = (rays.directions**2).sum(1)
         b = (oc * rays.directions).sum(1)
@@ -61,7 +61,7 @@ class ToyModel(NeuralBLAS):
         disc = b * b - a * c
         root = torch.sqrt(torch.clamp(disc, min=0))
         t = torch.where((-b - root) / a > rays.t_min, (-b - root) / a, (-b + root) / a)
-        ok = (disc >= 0) & (t > rays.t_min) & (t < rays.t_max) & torch.isfinite(t)
+        ok = (disc >= 0) & (t >= rays.t_min) & (t <= rays.t_max) & torch.isfinite(t)  # both ends included
         return torch.where(ok, t, torch.full_like(t, float("inf")))
 
     def training_step(self, rays, truth):
@@ -168,3 +168,66 @@ def test_a_registered_method_passes_the_blas_contract(toy, ball):
     assert torch.equal(blas.occluded(rays), h.hit)
     contract.test_interval_is_respected(blas, torch.device("cpu"))
     contract.test_degenerate_rays_miss_without_error(blas, torch.device("cpu"))
+
+
+def _run(args, tmp_path, plugins):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NEURALRT_PLUGINS": plugins,
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "neuralrt", *args], env=env, capture_output=True, text=True, timeout=120)
+
+
+def test_a_plugin_module_is_loaded_before_the_cli_parses_its_arguments(tmp_path):
+    # Out of tree: the method's module registers it when imported; NEURALRT_PLUGINS names it.
+    (tmp_path / "toy_plugin.py").write_text(
+        "from test_new_method import ToyConfig\n"
+        "from neuralrt.methods import MethodSpec, register_method\n"
+        "register_method(MethodSpec('toy', ToyConfig, 'test_new_method:ToyModel', 'a learned sphere', {'*': 'default'}))\n")
+    listed = _run(["train", "--list-presets"], tmp_path, "toy_plugin")
+    assert listed.returncode == 0 and "toy      default" in listed.stdout, listed.stderr
+    # A plugin that fails to import is one warning line; the built-in methods still work.
+    broken = _run(["train", "--list-presets"], tmp_path, "toy_plugin, no_such_plugin")
+    assert broken.returncode == 0 and "toy      default" in broken.stdout and "lsnif" in broken.stdout
+    assert broken.stderr.strip() == ("neuralrt: warning: method plugin 'no_such_plugin' (NEURALRT_PLUGINS) not loaded: "
+                                     "ModuleNotFoundError: No module named 'no_such_plugin'")
+
+
+def test_a_model_file_of_an_unregistered_method_says_how_to_register_it(toy, ball, tmp_path, monkeypatch):
+    from neuralrt.errors import ModelFileError
+    from neuralrt.geometry.mesh import load_mesh
+    from neuralrt.training.api import train
+
+    path = train(load_mesh(ball), toy.config(steps=2, batch_size=256), progress=False).save(tmp_path / "toy.nrt")
+    monkeypatch.delitem(registry._METHODS, "toy")
+    with pytest.raises(ModelFileError, match="method 'toy' is not registered in this neuralrt .*NEURALRT_PLUGINS"):
+        load_model(path)  # (the file names no code to import: it is data)
+
+
+def test_registration_checks_the_spec_up_front(toy):
+    from pydantic import Field as F
+
+    from neuralrt.errors import ConfigError
+
+    class NoPresets(MethodConfig):
+        method: Literal["bare"] = F("bare")
+
+    with pytest.raises(ValueError, match="PRESETS names no preset"):
+        registry.register_method(MethodSpec("bare", NoPresets, f"{__name__}:ToyModel", "no presets"))
+    with pytest.raises(ValueError, match="config_class must be a MethodConfig subclass"):
+        registry.register_method(MethodSpec("toy", dict, f"{__name__}:ToyModel", "not a config"))
+    with pytest.raises(ValueError, match="default_presets name no preset of ToyConfig: fast"):
+        registry.register_method(MethodSpec("toy", ToyConfig, f"{__name__}:ToyModel", "toy", {"*": "fast"}))
+    # The same method registered again (its module re-imported) replaces the entry; another is refused.
+    again = MethodSpec("toy", ToyConfig, f"{__name__}:ToyModel", "a learned sphere, reloaded", {"*": "default"})
+    assert registry.register_method(again) is registry.get_method("toy")
+    with pytest.raises(ValueError, match="already registered"):
+        registry.register_method(MethodSpec("toy", ToyConfig, "elsewhere:ToyModel", "another toy", {"*": "default"}))
+    # A model class that cannot be imported, or does not declare the method, is one line at first use.
+    for target, needle in ((f"{__name__}:NoSuchModel", "cannot import its model class"),
+                           ("neuralrt.methods.lsnif:LSNIFModel", "must declare METHOD = 'toy'")):
+        registry._METHODS["toy"] = MethodSpec("toy", ToyConfig, target, "broken", {"*": "default"})
+        with pytest.raises(ConfigError, match=needle):
+            registry.get_method("toy").model_class

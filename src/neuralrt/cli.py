@@ -297,12 +297,12 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
     show = warnings.showwarning
-    warnings.showwarning = _show_warning  # one line per warning, no source line
+    warnings.showwarning = _show_warning  # one line per warning, no source line (a method plugin's too)
     on_term = _terminate_as_interrupt()
+    args = None
     try:
+        args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
         with spelled_as_flags():  # errors name --flags, as the user typed them
             args.func(args)
     except NeuralRTError as exc:

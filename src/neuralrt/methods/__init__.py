@@ -1,7 +1,8 @@
 """Neural intersection methods, registered by name. `load_model` opens any `.nrt` model file as a `BLAS`.
 
 Adding a method: write ``methods/NAME.py`` (a `MethodConfig` subclass with presets and a
-`NeuralBLAS` subclass) and register it below with one `register_method` call.
+`NeuralBLAS` subclass) and register it below with one `register_method` call; or keep it in a
+module of your own, loaded as a plugin (`registry.load_plugins`; docs/methods.md).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from .base import MeshMismatchWarning, NeuralBLAS, check_mesh_match, is_neural
 from .config import MethodConfig
 from .lsnif_config import LSNIFConfig
 from .nbvh_config import NBVHConfig
-from .registry import DEFAULT_METHOD, MethodSpec, config_from_dict, get_method, method_names, register_method
+from .registry import DEFAULT_METHOD, HOW_TO_REGISTER, MethodSpec, config_from_dict, get_method, method_names, register_method
 
 __all__ = [
     "load_model", "NeuralBLAS", "MethodConfig", "MethodSpec", "register_method", "get_method", "method_names",
@@ -55,6 +56,13 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> N
     (``cuda`` on a CPU-only torch) `DeviceError`."""
     path, device = check_path("path", path), check_device(device)  # before the file is read
     method = read_header(path)["method"]
+    from ..training.trainer import CHECKPOINT_METHOD
+
+    if method == CHECKPOINT_METHOD:
+        raise ModelFileError(f"{path}: a training checkpoint, not a model file: continue its run to the model with "
+                             "`neuralrt train MESH -o MODEL --resume`")
     if method not in method_names():
-        raise ModelFileError(f"{path}: method '{method}' is not a loadable model (this neuralrt reads: {', '.join(method_names())})")
+        raise ModelFileError(f"{path}: method '{method}' is not registered in this neuralrt (registered: "
+                             f"{', '.join(method_names())}); {HOW_TO_REGISTER}")
     return get_method(method).model_class.load(path, device=device)
+

@@ -1,15 +1,30 @@
 """The method registry: every neural intersection method, by name.
 
-One `register_method` call (in `neuralrt.methods`) makes a method known to everything that deals
-with methods by name: ``neuralrt train/convert/eval --method NAME --preset NAME``, `load_model`,
-the scene converter, the config reference page and the benchmarks. A method provides its config
-class (a `MethodConfig` with ``PRESETS``) and its model class (a `NeuralBLAS`), imported only when
-first used, so listing methods and presets never loads numba kernels.
+One `register_method` call makes a method known to everything that deals with methods by name:
+``neuralrt train/convert/demo --method NAME --preset NAME``, `load_model` (and so ``eval``,
+``info``, ``render`` of its model files and scenes), the scene converter, the config reference
+and the benchmarks. A method provides its config class (a `MethodConfig` with ``PRESETS``) and its
+model class (a `NeuralBLAS`), imported only when first used, so listing methods and presets never
+loads numba kernels.
+
+The built-in methods register in `neuralrt.methods`. A method of your own (a plugin module that
+calls `register_method` when imported) is loaded the first time methods are listed or looked up
+by name (so before the CLI parses its arguments), from either of (docs/methods.md, "A method of
+your own"):
+
+- the entry point group ``neuralrt.methods`` of an installed package
+  (``[project.entry-points."neuralrt.methods"] NAME = "your_module"``);
+- ``NEURALRT_PLUGINS``: module names separated by commas, importable from ``sys.path``.
+
+A model file never names code to import: a file of an unregistered method is an error that says
+how to register it.
 """
 
 from __future__ import annotations
 
 import importlib
+import os
+import warnings
 from dataclasses import dataclass, field
 
 from pydantic import ValidationError
@@ -18,9 +33,14 @@ from ..devices import check_device_name
 from ..errors import ConfigError, validation_message
 from .config import MethodConfig
 
-__all__ = ["MethodSpec", "register_method", "get_method", "method_names", "config_from_dict", "DEFAULT_METHOD"]
+__all__ = ["MethodSpec", "register_method", "get_method", "method_names", "config_from_dict", "DEFAULT_METHOD",
+           "load_plugins", "PLUGIN_GROUP", "PLUGIN_VARIABLE", "HOW_TO_REGISTER"]
 
 DEFAULT_METHOD = "lsnif"
+PLUGIN_GROUP = "neuralrt.methods"  # entry point group of installed plugin packages
+PLUGIN_VARIABLE = "NEURALRT_PLUGINS"  # comma-separated plugin modules
+HOW_TO_REGISTER = (f"a plugin registers it: install its package (entry point group {PLUGIN_GROUP!r}) or name its "
+                   f"module in {PLUGIN_VARIABLE}")
 
 
 @dataclass(frozen=True)
@@ -48,8 +68,23 @@ class MethodSpec:
 
     @property
     def model_class(self):
-        module, name = self.model.split(":")
-        return getattr(importlib.import_module(module), name)
+        """The `NeuralBLAS` subclass ``model`` names, imported; one that cannot be imported, or that
+        does not declare this method's name and config, is a one-line `ConfigError`."""
+        from .base import NeuralBLAS
+
+        module, _, name = self.model.partition(":")
+        try:
+            cls = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError) as exc:
+            raise ConfigError(f"method {self.name!r}: cannot import its model class {self.model!r} "
+                              f"({type(exc).__name__}: {exc})") from None
+        if not (isinstance(cls, type) and issubclass(cls, NeuralBLAS)):
+            raise ConfigError(f"method {self.name!r}: {self.model} is not a NeuralBLAS subclass")
+        if getattr(cls, "METHOD", None) != self.name or getattr(cls, "CONFIG", None) is not self.config_class:
+            raise ConfigError(f"method {self.name!r}: {self.model} must declare METHOD = {self.name!r} and "
+                              f"CONFIG = {self.config_class.__name__} (has {getattr(cls, 'METHOD', None)!r}, "
+                              f"{getattr(getattr(cls, 'CONFIG', None), '__name__', None)})")
+        return cls
 
     def default_preset(self, device: str = "cpu") -> str:
         kind = check_device_name(device).type  # a bad name is one line, not torch's RuntimeError
@@ -68,24 +103,74 @@ _METHODS: dict[str, MethodSpec] = {}
 
 
 def register_method(spec: MethodSpec) -> MethodSpec:
-    """Make ``spec`` known by its name; a second, different method under the same name is an error."""
+    """Make ``spec`` known by its name. A second, different method under the same name is an error;
+    the same one registered again (its module imported again, e.g. reloaded in a notebook) replaces
+    the first. A spec whose config class is not a `MethodConfig` with presets and its name is a
+    `ValueError` here, not a failure at first use."""
+    config_class = spec.config_class
+    if not (isinstance(config_class, type) and issubclass(config_class, MethodConfig)):
+        raise ValueError(f"method {spec.name!r}: config_class must be a MethodConfig subclass, got {config_class!r}")
+    if config_class.model_fields["method"].default != spec.name:
+        raise ValueError(f"{config_class.__name__}.method must default to {spec.name!r}")
+    if not config_class.PRESETS:
+        raise ValueError(f"method {spec.name!r}: {config_class.__name__}.PRESETS names no preset (at least one)")
+    unknown = sorted(p for p in spec.default_presets.values() if p not in config_class.PRESETS)
+    if unknown:
+        raise ValueError(f"method {spec.name!r}: default_presets name no preset of {config_class.__name__}: {', '.join(unknown)}")
+    if ":" not in spec.model:
+        raise ValueError(f"method {spec.name!r}: model must be 'module:Class', got {spec.model!r}")
     known = _METHODS.get(spec.name)
-    if known is not None and known != spec:
+    if known is not None and _identity(known) != _identity(spec):
         raise ValueError(f"method {spec.name!r} is already registered ({known.model})")
-    if spec.config_class.model_fields["method"].default != spec.name:
-        raise ValueError(f"{spec.config_class.__name__}.method must default to {spec.name!r}")
     _METHODS[spec.name] = spec
     return spec
 
 
+def _identity(spec: MethodSpec) -> tuple:
+    """What makes two registrations the same method: names, not class objects (a reload makes new ones)."""
+    return spec.name, spec.model, spec.config_class.__module__, spec.config_class.__qualname__
+
+
+def load_plugins() -> list[str]:
+    """Import the plugin modules of the ``neuralrt.methods`` entry points and of ``NEURALRT_PLUGINS``
+    (each registers its methods when imported); return their names. A plugin that fails to import
+    is a warning naming it and the error: the built-in methods stay usable."""
+    from importlib.metadata import entry_points
+
+    modules = [(ep.value.partition(":")[0].strip(), f"entry point {ep.name!r}") for ep in entry_points(group=PLUGIN_GROUP)]
+    modules += [(m.strip(), PLUGIN_VARIABLE) for m in os.environ.get(PLUGIN_VARIABLE, "").split(",") if m.strip()]
+    loaded = []
+    for module, source in modules:
+        try:
+            importlib.import_module(module)
+        except Exception as exc:  # a plugin's own bug must not stop the built-in methods
+            warnings.warn(f"method plugin {module!r} ({source}) not loaded: {type(exc).__name__}: {exc}", stacklevel=2)
+        else:
+            loaded.append(module)
+    return loaded
+
+
+_plugins_loaded = False
+
+
+def _with_plugins() -> dict[str, MethodSpec]:
+    """The registry, after the plugins are loaded (once: on the first lookup, not on import, so a
+    plugin can import neuralrt freely and a command shows its warnings in its own format)."""
+    global _plugins_loaded
+    if not _plugins_loaded:
+        _plugins_loaded = True
+        load_plugins()
+    return _METHODS
+
+
 def method_names() -> list[str]:
-    """Registered method names, in registration order."""
-    return list(_METHODS)
+    """Registered method names, in registration order (the built-ins, then plugins')."""
+    return list(_with_plugins())
 
 
 def get_method(name: str) -> MethodSpec:
     """The registered method ``name``; an unknown name is a `ConfigError` listing the known ones."""
-    if name not in _METHODS:
+    if name not in _with_plugins():
         raise ConfigError(f"unknown method {name!r} (registered: {', '.join(_METHODS) or 'none'})")
     return _METHODS[name]
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..errors import ModelFileError, TrainingError
+from ..errors import ConfigError, ModelFileError, TrainingError
 from ..io.model_file import read_model_file, write_model_file
 from .prefetch import BatchSource
 
@@ -188,8 +188,11 @@ def train_model(
     """
     from tqdm.auto import tqdm
 
+    parameters = list(model.parameters())
+    if not any(p.requires_grad for p in parameters):
+        raise ConfigError(f"{type(model).__name__}: no trainable parameters, nothing to train")
     # The fused (single-kernel) Adam step is ~3x faster than the default over the 786k-entry hash tables.
-    opt = torch.optim.Adam(model.parameters(), lr=learning_rate, betas=tuple(adam_betas), eps=adam_eps, fused=True)
+    opt = torch.optim.Adam(parameters, lr=learning_rate, betas=tuple(adam_betas), eps=adam_eps, fused=True)
     gamma = lr_decay_final ** (1.0 / max(steps, 1))
     identity = identity or {}
     ckpt = Path(checkpoint) if checkpoint is not None else None
