@@ -99,6 +99,9 @@ def test_interval_is_respected(blas, device):
     # Ending every ray before its hit: nothing is hit, no shadow ray is blocked.
     short = Rays(rays.origins, rays.directions, t_max=torch.where(h.hit, 0.5 * h.t, 1.0))
     assert not blas.intersect(short).hit.any() and not blas.occluded(short).any()
+    # Both ends included: ending every ray at its own hit keeps the hit (neural BLASes compared strictly).
+    at_hit = Rays(rays.origins, rays.directions, t_max=torch.where(h.hit, h.t, 1.0))
+    assert torch.equal(blas.intersect(at_hit).hit, h.hit) and torch.equal(blas.occluded(at_hit), h.hit)
     # Starting past the first hit: any hit lies beyond t_min.
     late = Rays(rays.origins, rays.directions, t_min=torch.where(h.hit, h.t + 1e-3, 0.0))
     h2 = blas.intersect(late)

@@ -52,6 +52,25 @@ class Instance:
         return self.camera_blas if (camera_rays and self.camera_blas is not None) else self.blas
 
 
+# Growth of a broad-phase box, relative to its largest coordinate (~128 float32 ulps), so that the
+# slab test, run on the rounded world box, never culls a hit the BLAS finds in object space: a
+# flat box (a floor) failed `t_enter <= t_max` by rounding for t_max equal to the hit's t, and so
+# did a rotated instance hit at a grazing angle to its box until 2^-18 (measured; 2^-16 kept).
+BROAD_PHASE_GROWTH = 2.0**-16
+
+
+def _broad_phase_box(instance: Instance) -> AABB:
+    """The world box the broad phase tests ``instance`` against: where its BLASes may report hits
+    (a neural BLAS's ``box``, which holds its bounds: LSNIF answers inside its padded voxel box, a
+    little beyond the mesh), transformed, grown by `BROAD_PHASE_GROWTH`."""
+    boxes = [getattr(b, "box", b.bounds) for b in (instance.blas, instance.camera_blas) if b is not None]
+    lo = torch.stack([b.lo.cpu() for b in boxes]).float().min(0).values
+    hi = torch.stack([b.hi.cpu() for b in boxes]).float().max(0).values
+    world = AABB(lo, hi).transformed(instance.transform)
+    grow = BROAD_PHASE_GROWTH * float(torch.cat([world.lo.abs(), world.hi.abs()]).max())
+    return AABB(world.lo - grow, world.hi + grow)
+
+
 @dataclass
 class _Group:
     """Instances that share one BLAS: intersected together in one call."""
@@ -78,9 +97,11 @@ class SceneAccel:
         self.device = resolve_device(device)
         dev = self.device
         n_inst = len(self.instances)
-        box_lo = torch.stack([i.world_bounds.lo for i in self.instances]).float().to(dev)  # [I, 3]
-        box_hi = torch.stack([i.world_bounds.hi for i in self.instances]).float().to(dev)
-        self.bounds = AABB(box_lo.min(0).values, box_hi.max(0).values)
+        self.bounds = AABB(torch.stack([i.world_bounds.lo for i in self.instances]).float().min(0).values.to(dev),
+                           torch.stack([i.world_bounds.hi for i in self.instances]).float().max(0).values.to(dev))
+        boxes = [_broad_phase_box(i) for i in self.instances]
+        box_lo = torch.stack([b.lo for b in boxes]).float().to(dev)  # [I, 3]
+        box_hi = torch.stack([b.hi for b in boxes]).float().to(dev)
         max_k = max(i.material_map.numel() for i in self.instances)
         material_maps = torch.full((n_inst, max_k), -1, dtype=torch.int64, device=dev)
         for k, inst in enumerate(self.instances):

@@ -278,7 +278,7 @@ class LSNIFModel(NeuralBLAS):
         if len(act) == 0:
             return
         t = t_offset + t_enter + torch.sigmoid(out[:, _DIST]) * (t_exit - t_enter)
-        hit = (out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)) & (t < rays.t_max[act]) & (t > rays.t_min[act])
+        hit = (out[:, _OCC] > _logit(self.config.inference.occlusion_threshold)) & (t <= rays.t_max[act]) & (t >= rays.t_min[act])
         normal = F.normalize(out[:, _NORMAL], dim=-1)
         hits.hit[act] = hit
         hits.t[act] = torch.where(hit, t, torch.full_like(t, float("inf")))

@@ -490,8 +490,8 @@ def _output_hits_kernel(
     t_exit = tl.load(t_exit_ptr + rows, mask=active, other=0.0)
     t = tl.load(t_offset_ptr + rows, mask=active, other=0.0) + t_enter + tl.sigmoid(_column(out, cols, 1)) * (t_exit - t_enter)
     ray = tl.load(index_ptr + rows, mask=active, other=0)
-    hit = (_column(out, cols, 0) > occlusion_logit) & (t < tl.load(t_max_ptr + ray, mask=active, other=0.0))
-    hit = hit & (t > tl.load(t_min_ptr + ray, mask=active, other=0.0)) & active
+    hit = (_column(out, cols, 0) > occlusion_logit) & (t <= tl.load(t_max_ptr + ray, mask=active, other=0.0))
+    hit = hit & (t >= tl.load(t_min_ptr + ray, mask=active, other=0.0)) & active
     nx, ny, nz = _column(out, cols, 2), _column(out, cols, 3), _column(out, cols, 4)
     # F.normalize (eps 1e-12), correctly rounded as torch's (Triton's plain sqrt and / are approximate on GPUs)
     norm = tl.maximum(tl.sqrt_rn(nx * nx + ny * ny + nz * nz), 1e-12)

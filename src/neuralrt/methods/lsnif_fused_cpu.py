@@ -860,7 +860,7 @@ def _decode_row(out, o, r, t_enter, t_exit, t_offset, t_min, t_max, occlusion_lo
     argument inside an inlined function in a prange loop.)"""
     te = t_enter[r]
     t = (t_offset[r] + te) + sigmoid(out[o + 1]) * (t_exit[r] - te)
-    h = out[o] > occlusion_logit and t < t_max[r] and t > t_min[r]
+    h = out[o] > occlusion_logit and t <= t_max[r] and t >= t_min[r]  # [t_min, t_max], both ends included
     hit[r] = h
     if occlusion_only:
         return

@@ -305,7 +305,9 @@ class NBVHModel(NeuralBLAS):
         norm = torch.linalg.norm(d, dim=-1)
         o = (rays.origins[idx] + t_off[:, None] * d - self.unit_lo) / self.unit_scale
         to_ray_t = self.unit_scale / norm
-        t_max = (rays.t_max[idx] - t_off) / to_ray_t
+        # One float32 step wider in unit t, so that t_max equal to a hit's own t keeps it after the
+        # round trip ray t -> unit t -> ray t (the interval includes its end); answers are clamped to t_max.
+        t_max = torch.nextafter((rays.t_max[idx] - t_off) / to_ray_t, torch.tensor(float("inf"), device=t_off.device))
         return idx, o.contiguous(), (d / norm[:, None]).contiguous(), t_max.contiguous(), to_ray_t, t_off
 
     def _closest(self, o: Tensor, d: Tensor, t_max: Tensor, any_hit: bool) -> tuple[Tensor, Tensor]:
@@ -344,7 +346,7 @@ class NBVHModel(NeuralBLAS):
             out = self._query(o[active], d[active], a, b, self._fractions(len(active), dev), dtype)
             depth = torch.sigmoid(out[:, _DEPTH]) * (length + _DEPTH_PAD)
             t = torch.where(inside, t1 - depth, t0 + depth)
-            ok = (out[:, _VIS] > threshold) & (t > 0) & (t < t_max[active])
+            ok = (out[:, _VIS] > threshold) & (t > 0) & (t <= t_max[active])
             ok &= ~inside | (t > _REVERSED_MIN * length + 1e-5)
             better = ok & (t < best_t[active])
             rows = active[better]
@@ -372,7 +374,7 @@ class NBVHModel(NeuralBLAS):
         t, out = self._closest(o, d, t_max, any_hit)
         hit = torch.isfinite(t)
         hits.hit[idx] = hit
-        hits.t[idx] = torch.where(hit, t_off + t * to_ray_t, torch.full_like(t, float("inf")))
+        hits.t[idx] = torch.where(hit, torch.minimum(t_off + t * to_ray_t, rays.t_max[idx]), torch.full_like(t, float("inf")))
         normal = F.normalize(face_forward(out[:, _NORMAL], d), dim=-1) * hit[:, None]
         hits.normal[idx] = normal
         hits.geometric_normal[idx] = normal

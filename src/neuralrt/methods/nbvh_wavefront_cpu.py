@@ -141,7 +141,7 @@ def _step_decode(active, ptr, start, t0s, t1s, t_max, out, threshold, depth_pad,
         length = t1 - t0
         depth = sigmoid(out[k, 1]) * (length + depth_pad)
         t = t1 - depth if inside else t0 + depth
-        accept = out[k, 0] > threshold and t > 0 and t < t_max[ray]
+        accept = out[k, 0] > threshold and t > 0 and t <= t_max[ray]
         accept = accept and (not inside or t > reversed_min * length + np.float32(1e-5))  # skip the surface a ray starts on
         best = best_t[ray]
         if accept and t < best:
@@ -261,12 +261,12 @@ def _unit_rays_kernel(idx, origins, directions, t_min, t_max, unit_lo, unit_scal
             d[k, a] = da / norm
         scale = (one / norm) * unit_scale
         to_ray_t[k], t_off[k] = scale, off
-        t_max_unit[k] = (t_max[i] - off) / scale
+        t_max_unit[k] = np.nextafter((t_max[i] - off) / scale, np.float32(np.inf))  # (`NBVHModel._unit_rays`)
 
 
 @numba.njit(parallel=True, cache=True)
-def _answer_kernel(idx, t, out, d, t_off, to_ray_t, n_logits, hit, t_hit, normal, geometric_normal, uv, albedo, material, primitive_id,
-                   instance_id):  # fmt: skip
+def _answer_kernel(idx, t, out, d, t_off, to_ray_t, t_max, n_logits, hit, t_hit, normal, geometric_normal, uv, albedo, material,
+                   primitive_id, instance_id):  # fmt: skip
     """Every row of the records (`Hits`' fields) written: a miss, then for ray ``idx[k]`` with a
     hit (``t[k]`` finite, unit t; ``out[k]`` its raw outputs) the answer, decoded as
     `NBVHModel._answer_torch` decodes it (normal turned to face ``d[k]``, then normalised; albedo
@@ -278,7 +278,7 @@ def _answer_kernel(idx, t, out, d, t_off, to_ray_t, n_logits, hit, t_hit, normal
             continue
         r = idx[k]
         hit[r] = True
-        t_hit[r] = t_off[k] + t[k] * to_ray_t[k]
+        t_hit[r] = min(t_off[k] + t[k] * to_ray_t[k], t_max[r])  # (`NBVHModel._answer_torch`)
         nx, ny, nz = out[k, 2], out[k, 3], out[k, 4]
         if (nx * d[k, 0] + ny * d[k, 1]) + nz * d[k, 2] > 0:  # `face_forward`
             nx, ny, nz = -nx, -ny, -nz
@@ -312,5 +312,5 @@ def answers_cpu(model, rays: Rays, any_hit: bool) -> Hits:
     t, out = closest_hits_cpu(model, torch.from_numpy(o), torch.from_numpy(d), torch.from_numpy(t_max_unit), any_hit)
     records = (hits.hit, hits.t, hits.normal, hits.geometric_normal, hits.uv, hits.albedo, hits.material_id, hits.primitive_id,
                hits.instance_id)  # (`write_miss`' order)
-    _answer_kernel(idx, t.numpy(), out.numpy(), d, t_off, to_ray_t, model.material_logits, *(c.numpy() for c in records))
+    _answer_kernel(idx, t.numpy(), out.numpy(), d, t_off, to_ray_t, t_max, model.material_logits, *(c.numpy() for c in records))
     return hits

@@ -90,7 +90,7 @@ def _step_decode_kernel(active_ptr, ptr_ptr, start_ptr, t0_ptr, t1_ptr, t_max_pt
     depth = tl.sigmoid(tl.load(out_ptr + k * OUTPUTS + 1, mask=ok, other=0.0)) * (length + depth_pad)
     t = tl.where(inside, t1 - depth, t0 + depth)
     best = tl.load(best_t_ptr + ray, mask=ok, other=0.0)
-    accept = ok & (vis > threshold) & (t > 0.0) & (t < tl.load(t_max_ptr + ray, mask=ok, other=0.0))
+    accept = ok & (vis > threshold) & (t > 0.0) & (t <= tl.load(t_max_ptr + ray, mask=ok, other=0.0))
     accept = accept & (~inside | (t > reversed_min * length + 1e-5))  # skip the surface a ray starts on
     better = accept & (t < best)
     tl.store(best_t_ptr + ray, t, mask=better)
