@@ -65,4 +65,3 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> N
         raise ModelFileError(f"{path}: method '{method}' is not registered in this neuralrt (registered: "
                              f"{', '.join(method_names())}); {HOW_TO_REGISTER}")
     return get_method(method).model_class.load(path, device=device)
-
