@@ -556,9 +556,6 @@ GENERATORS: dict[str, Callable[..., Mesh]] = {
 }
 
 
-PROCEDURAL_PREFIX = "procedural:"
-
-
 def parse_procedural_spec(spec: str) -> tuple[str, int]:
     """``(NAME, DETAIL)`` of a ``procedural:NAME:DETAIL`` mesh spec (NAME a generator with a detail
     level, `MAX_DETAIL`); anything else starting with ``procedural:`` is a one-line `MeshError`."""
