@@ -234,3 +234,41 @@ def test_checkpoints_are_at_absolute_paths_for_a_relative_output(tmp_path, monke
                                          '"generator": {"name": "sphere", "params": {"subdivisions": 2}}}]}')
     convert_module.convert_scene("scene.json", "out/scene.json", preset="lq", steps=2, batch=256, min_triangles=0, progress=False)
     assert len(jobs) == 1 and jobs[0].checkpoint == tmp_path / "out" / "models" / f"{jobs[0].key}.ckpt"
+
+
+def test_group_keeps_each_meshs_own_colours(tmp_path):
+    # Two meshes coloured by their MTL Kd, one scene material: the merged mesh keeps a slot per colour
+    # (it dropped them: the group trained on, and camera rays saw, the default white).
+    import trimesh
+
+    from neuralrt.io.images import srgb_to_linear
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    for name, kd in (("red", (0.9, 0.1, 0.1)), ("blue", (0.1, 0.2, 0.9))):
+        (tmp_path / f"{name}.mtl").write_text(f"newmtl paint\nKd {kd[0]} {kd[1]} {kd[2]}\n")
+        lines = [f"mtllib {name}.mtl"] + [f"v {x} {y} {z}" for x, y, z in ball.vertices] + ["usemtl paint"]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in ball.faces]
+        (tmp_path / f"{name}.obj").write_text("\n".join(lines) + "\n")
+    spec = SceneSpec(
+        camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(16, 16)),
+        materials=[DiffuseMaterialSpec(name="white", albedo=(1.0, 1.0, 1.0))],
+        objects=[ObjectSpec(name="red", mesh="red.obj", material="white", transform=TransformSpec(translate=(-1.2, 0, 0))),
+                 ObjectSpec(name="blue", mesh="blue.obj", material="white", transform=TransformSpec(translate=(1.2, 0, 0)))],
+        environment=EnvironmentSpec(color=(1.0, 1.0, 1.0)),
+    )
+    save_scene(spec, tmp_path / "scene.toml")
+    convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
+                  steps=20, batch=1024, seed=0, progress=False)
+    scene = load_scene(tmp_path / "out" / "scene.toml")
+    group = scene.accel.instances[0]
+    merged = group.camera_blas.mesh
+    colours = {m.name: m.base_color for m in merged.materials}
+    assert sorted(colours) == ["white", "white~2"]
+    white = [m.name for m in scene.spec.materials].index("white")
+    assert group.material_map.tolist() == [white, white]
+    expected = sorted(srgb_to_linear(np.array(kd, np.float32)).round(2).tolist() for kd in ((0.9, 0.1, 0.1), (0.1, 0.2, 0.9)))
+    assert sorted(np.round(c, 2).tolist() for c in colours.values()) == expected
+    # Camera rays (exact, through the merged mesh) see each ball's own colour.
+    rays = Rays(torch.tensor([[-1.2, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]))
+    albedo = group.camera_blas.intersect(rays).albedo
+    assert albedo[0, 0] > 0.6 > albedo[0, 2] and albedo[1, 2] > 0.6 > albedo[1, 0]

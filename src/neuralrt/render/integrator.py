@@ -19,7 +19,8 @@ Secondary rays start at the hit point moved along the face-forwarded geometric n
 instance's `Scene.instance_offsets` (its BLAS ``secondary_offset`` scaled to world); shadow rays
 stop short of their light point by a relative ``1e-3`` of its distance. The integrator only calls
 ``scene.accel.intersect`` / ``occluded``: it never knows which kind of BLAS answered.
-Randomness comes from one stream per wavefront seeded from (``seed``, wavefront index): a torch
+Randomness comes from one stream per wavefront seeded from a hash of (``seed``, wavefront index,
+`rng.wavefront_seed`): a torch
 generator's, drawn by torch or, with the numba stages, the same numbers by a numba pass
 (`rng`), so a given seed and settings give the same image; each bounce draws one row of 8 uniforms per
 sample of the wavefront, so a path's random numbers do not depend on the other paths.
@@ -36,6 +37,7 @@ from torch import Tensor
 from ..arguments import check_count, seed_or_default
 from ..errors import ConfigError, DeviceError
 from .film import Film, RenderResult
+from .rng import wavefront_seed
 from .shading_stages import SHADING_BACKENDS, PathState, WavefrontFilm, shading_stages_for
 
 __all__ = ["render", "IntegratorSettings", "PathTracer"]
@@ -178,7 +180,7 @@ def render(
             k = min(per_pass, spp - done)
             samples = torch.arange(n_pixels, device=dev).repeat(k)  # pixel index of each path
             for lo in range(0, samples.numel(), chunk):
-                g = tracer.stages.uniforms(seed * 1_000_003 + wavefront)
+                g = tracer.stages.uniforms(wavefront_seed(seed, wavefront))
                 wavefront += 1
                 pixel = samples[lo:lo + chunk]
                 film.add(pixel, *tracer.trace(pixel, g))

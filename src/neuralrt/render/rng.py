@@ -20,11 +20,31 @@ from torch import Tensor
 
 from .sampling import make_generator
 
-__all__ = ["TorchUniforms", "NumbaUniforms"]
+__all__ = ["TorchUniforms", "NumbaUniforms", "wavefront_seed"]
 
 _N = 624  # MT19937 state words
 _M = 397
 _U32 = np.uint32
+
+
+_MASK64 = (1 << 64) - 1
+
+
+def _splitmix64(z: int) -> int:
+    """SplitMix64's finaliser: a bijection of 64-bit words that spreads every input bit."""
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9 & _MASK64
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EB & _MASK64
+    return z ^ (z >> 31)
+
+
+def wavefront_seed(seed: int, wavefront: int) -> int:
+    """The seed of a render's ``wavefront``-th stream: a hash of (``seed``, ``wavefront``) folded
+    to the 32 bits the generator keeps. Every bit of ``seed`` counts (seed 2**40 is not seed 0),
+    and no arithmetic relation maps one render's streams onto another's (``seed * 1_000_003 +
+    wavefront`` gave seed 2021759595's first wavefront seed 0's second); two streams coincide only
+    by chance, 2**-32 a pair."""
+    z = _splitmix64((_splitmix64(seed & _MASK64) + 0x9E3779B97F4A7C15 * (wavefront + 1)) & _MASK64)
+    return (z ^ (z >> 32)) & 0xFFFF_FFFF
 
 
 class TorchUniforms:

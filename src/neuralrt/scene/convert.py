@@ -7,7 +7,8 @@ moved, re-lit and re-materialised without retraining. Models are cached in a mod
 
 ``group=True`` is the paper's granularity option: all selected objects are merged (in world space)
 into one mesh and one model; the merged mesh is written beside the models so camera rays can still
-be answered exactly.
+be answered exactly. It keeps each mesh slot's colour (the model learns it as it would per
+object); textures and vertex colours are not carried over (a warning says whose).
 """
 
 from __future__ import annotations
@@ -137,11 +138,23 @@ def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[st
     return chosen
 
 
-def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> Mesh:
-    """Selected objects baked into one world-space mesh whose materials are scene material names."""
+def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> tuple[Mesh, dict[str, str]]:
+    """Selected objects baked into one world-space mesh, and the slot -> scene material map its
+    object needs. A slot per (scene material, slot colour): the first of a scene material is named
+    after it, others ``NAME~2``, ... (mapped back to NAME), so meshes keep their own colours."""
+    import warnings
+
     index = material_index(spec)
-    names: list[str] = []
+    slots: dict[tuple, str] = {}  # (scene material, colour bytes) -> slot name
+    colours: list[np.ndarray] = []
+    mapping: dict[str, str] = {}
     verts, faces, normals, mat_ids = [], [], [], []
+    # (An OBJ with materials keeps no vertex colours in trimesh, and the merged mesh goes through one.)
+    textured = [spec.objects[i].name for i in objects
+                if meshes[i].vertex_colors is not None or any(m.texture is not None for m in meshes[i].materials)]
+    if textured:
+        warnings.warn(f"group: the textures and vertex colours of {', '.join(textured)} are not carried into the merged "
+                      "mesh (its slot colours are); convert without --group to keep them", stacklevel=3)
     offset = 0
     for i in objects:
         obj, mesh = spec.objects[i], meshes[i]
@@ -149,20 +162,28 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
         verts.append(xf.apply_points(torch.from_numpy(mesh.vertices)).numpy())
         normals.append(xf.apply_normals(torch.from_numpy(mesh.vertex_normals)).numpy())
         faces.append(mesh.faces + offset)
-        slot_to_scene = []
+        slot_to_merged = []
         for slot in mesh.materials:
             target = scene_material_for(obj, slot.name, index)
-            if target not in names:
-                names.append(target)
-            slot_to_scene.append(names.index(target))
-        mat_ids.append(np.asarray(slot_to_scene, np.int32)[mesh.face_material_ids])
+            colour = np.asarray(slot.base_color, np.float32).reshape(-1)[:3]
+            key = (target, colour.tobytes())
+            if key not in slots:
+                taken = sum(1 for t, _ in slots if t == target)
+                slots[key] = target if taken == 0 else f"{target}~{taken + 1}"
+                colours.append(colour)
+                if taken:
+                    mapping[slots[key]] = target
+            slot_to_merged.append(list(slots).index(key))
+        mat_ids.append(np.asarray(slot_to_merged, np.int32)[mesh.face_material_ids])
         offset += len(mesh.vertices)
-    return Mesh(np.concatenate(verts), np.concatenate(faces), vertex_normals=np.concatenate(normals),
-                face_material_ids=np.concatenate(mat_ids), materials=[MeshMaterial(n) for n in names], name="group")
+    materials = [MeshMaterial(name, base_color=colour) for name, colour in zip(slots.values(), colours)]
+    merged = Mesh(np.concatenate(verts), np.concatenate(faces), vertex_normals=np.concatenate(normals),
+                  face_material_ids=np.concatenate(mat_ids), materials=materials, name="group")
+    return merged, mapping
 
 
 def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
-    """``mesh`` written as OBJ and read back (a second round trip changes nothing)."""
+    """``mesh`` written as OBJ and read back."""
     from ..geometry.mesh import load_mesh
 
     import shutil
@@ -181,8 +202,11 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
 
 
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
-    """Write positions, normals and per-face material groups as OBJ (+ MTL), each atomically
+    """Write positions, normals and per-face material groups as OBJ (+ MTL, each slot's colour as
+    ``Kd``, sRGB as OBJ readers and `load_mesh` take it), each atomically
     (`neuralrt.io.files.write_atomically`)."""
+    from ..io.images import linear_to_srgb
+
     path = Path(path)
     mtl = path.with_suffix(".mtl")
     lines = [f"mtllib {mtl.name}"]
@@ -194,7 +218,8 @@ def write_mesh_obj(mesh: Mesh, path: Path) -> None:
             continue
         lines.append(f"usemtl {material.name}")
         lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in sel]
-    mtl_text = "".join(f"newmtl {m.name}\nKd 1 1 1\n\n" for m in mesh.materials)
+    kd = [linear_to_srgb(np.clip(np.asarray(m.base_color, np.float32).reshape(-1)[:3], 0, 1)) for m in mesh.materials]
+    mtl_text = "".join(f"newmtl {m.name}\nKd {r:.6g} {g:.6g} {b:.6g}\n\n" for m, (r, g, b) in zip(mesh.materials, kd))
     write_atomically(mtl, lambda tmp: Path(tmp).write_text(mtl_text))
     write_atomically(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
 
@@ -281,7 +306,10 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
     if group:
         # Train on the merged mesh as the converted scene will read it back from its OBJ (the
         # round trip rounds normals), so the model's mesh hash matches what the loader checks.
-        merged = _obj_round_trip(_merged_world_mesh(spec, chosen, meshes), models_dir)
+        # The scene's OBJ is written from the same merged mesh, so it reads back as this one (a
+        # second round trip would not: trimesh lists an OBJ's materials in reverse order).
+        group_source, group_slots = _merged_world_mesh(spec, chosen, meshes)
+        merged = _obj_round_trip(group_source, models_dir)
         jobs[merged.content_hash()] = (merged, chosen)
     else:
         hashes: dict[int, str] = {}
@@ -318,9 +346,9 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
                                             done is None, done.seconds if done else 0.0, done.where if done else ""))
         if group:
             mesh_path = models_dir / f"{stem}.obj"
-            write_mesh_obj(mesh, mesh_path)
+            write_mesh_obj(group_source, mesh_path)
             grouped = ObjectSpec(name="group:" + "+".join(names[i] for i in users), mesh=str(mesh_path.resolve()),
-                                 model=str(model_path.resolve()), transform=TransformSpec())
+                                 model=str(model_path.resolve()), transform=TransformSpec(), materials=group_slots)
             out_spec.objects = [o for i, o in enumerate(out_spec.objects) if i not in set(users)] + [grouped]
         else:
             for i in users:
