@@ -255,7 +255,9 @@ def test_deterministic_for_a_seed_and_aovs(tmp_path):
     # inside it) from z = 3.9: depth in [3.4, 3.46], normal ~+z.
     centre = a.depth[7:9, 7:9]
     assert ((centre > 3.399) & (centre < 3.46)).all()
-    assert (a.normal[7:9, 7:9, 2] > 0.95).all()  # pixel centres are ~0.1 radius off the axis
+    # Samples in these pixels lie up to ~0.2 radius off the axis (12 deg) on facets up to ~10 deg
+    # from the sphere's normal: z above cos(22 deg) = 0.93 (0.95 held for one random stream only).
+    assert (a.normal[7:9, 7:9, 2] > 0.92).all()
     np.testing.assert_allclose(a.albedo[7:9, 7:9], np.broadcast_to([0.6, 0.3, 0.2], (2, 2, 3)), atol=1e-6)
     assert render(scene, spp=1, resolution=(8, 4), progress=False).image.shape == (4, 8, 3)
     written = a.save(tmp_path / "out.exr")
