@@ -231,3 +231,21 @@ def test_registration_checks_the_spec_up_front(toy):
         registry._METHODS["toy"] = MethodSpec("toy", ToyConfig, target, "broken", {"*": "default"})
         with pytest.raises(ConfigError, match=needle):
             registry.get_method("toy").model_class
+
+
+def test_a_model_without_trainable_parameters_is_one_line(toy, ball, monkeypatch):
+    from neuralrt.errors import ConfigError
+    from neuralrt.geometry.mesh import load_mesh
+    from neuralrt.training.api import train
+
+    built = ToyModel.from_mesh.__func__
+
+    def frozen(cls, mesh, config=None):
+        model = built(cls, mesh, config)
+        for p in model.parameters():
+            p.requires_grad_(False)
+        return model
+
+    monkeypatch.setattr(ToyModel, "from_mesh", classmethod(frozen))
+    with pytest.raises(ConfigError, match="ToyModel: no trainable parameters, nothing to train"):  # (was Adam's traceback)
+        train(load_mesh(ball), toy.config(steps=2, batch_size=256), progress=False)
