@@ -100,6 +100,7 @@ class MitsubaMeshBLAS(MeshBLAS):
         self._tables = MeshAttributeTables(mesh, self.device)
         self._placeholder = torch.tensor([[1.0], [0.0], [0.0]], device=self.device)  # direction of invalid rays
         self._zero, self._minus_one = torch.tensor(0.0, device=self.device), torch.tensor(-1.0, device=self.device)
+        self._infinity = torch.tensor(float("inf"), device=self.device)
 
     # -- queries ---------------------------------------------------------------------------------
     def _check_device(self, rays: Rays, where: str) -> None:
@@ -107,10 +108,13 @@ class MitsubaMeshBLAS(MeshBLAS):
         if rays.device.type != self.device.type:
             raise DeviceError(f"rays are on {rays.device} but this exact BLAS is on {self.device}: move them with rays.to()")
 
-    def _trace_inputs(self, rays: Rays) -> tuple[Tensor, Tensor]:
-        """[7, N] contiguous float32 columns (origin moved to t_min, direction, t_far) and the
-        start [N] (t_min, 0 where it is -inf). Invalid rays get origin 0, direction +x and
-        t_far = -1, and are not traced (the rules of `mesh_blas_kernels.embree_ray`)."""
+    def _trace_inputs(self, rays: Rays) -> tuple[Tensor, Tensor, Tensor]:
+        """[7, N] contiguous float32 columns (origin moved to t_min, direction, t_far), the start
+        [N] (t_min, 0 where it is -inf) and the length [N] (t_far's interval). Invalid rays get
+        origin 0, direction +x and t_far = -1, and are not traced (the rules of
+        `mesh_blas_kernels.embree_ray`). Mitsuba's ``maxt`` excludes its end and the interval
+        includes it (as Embree's): t_far is one float32 step past the length, and closest hits
+        beyond the length are dropped (`closest_hits`)."""
         o, d, t_min, t_max = rays.origins, rays.directions, rays.t_min, rays.t_max
         valid = valid_ray_mask(rays)
         start = torch.where(torch.isfinite(t_min), t_min, 0.0)
@@ -119,8 +123,8 @@ class MitsubaMeshBLAS(MeshBLAS):
         columns = torch.empty(7, len(rays), device=self.device)
         torch.where(valid, o.T + start * d.T, self._zero, out=columns[:3])
         torch.where(valid, d.T, self._placeholder, out=columns[3:6])
-        torch.where(valid, length, self._minus_one, out=columns[6])
-        return columns, start
+        torch.where(valid, torch.nextafter(length, self._infinity), self._minus_one, out=columns[6])
+        return columns, start, length
 
     def _ray(self, columns: Tensor):
         """A Dr.Jit ray sharing the memory of ``columns`` (which must outlive the query), and the
@@ -143,13 +147,15 @@ class MitsubaMeshBLAS(MeshBLAS):
         (t, u, v undefined on misses), on the rays' device. `intersect` adds the attributes."""
         import drjit as dr
 
-        columns, start = self._trace_inputs(rays)
+        columns, start, length = self._trace_inputs(rays)
         ray, active = self._ray(columns)
         found = self._scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         prim = dr.select(active & found.is_valid(), self._types.Int32(found.prim_index), -1)
         t, u, v = found.t, found.prim_uv.x, found.prim_uv.y
         dr.eval(prim, t, u, v)  # one kernel: trace and write the four columns
-        return prim.torch(), t.torch() + start, u.torch(), v.torch()
+        t_local = t.torch()
+        prim = torch.where(t_local <= length, prim.torch(), -1)  # (in the one step t_far adds: past t_max)
+        return prim, t_local + start, u.torch(), v.torch()
 
     def occluded(self, rays: Rays) -> Tensor:
         """[N] bool: does any triangle lie within [t_min, t_max]?"""
@@ -158,7 +164,7 @@ class MitsubaMeshBLAS(MeshBLAS):
         self._check_device(rays, "occluded")
         if len(rays) == 0:
             return torch.zeros(0, dtype=torch.bool, device=rays.device)
-        columns, _ = self._trace_inputs(rays)
+        columns, _, _ = self._trace_inputs(rays)
         ray, active = self._ray(columns)
         blocked = dr.select(active & self._scene.ray_test(ray, active=active), self._types.Int32(1), 0)
         dr.eval(blocked)
