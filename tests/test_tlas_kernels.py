@@ -293,3 +293,25 @@ def test_fused_path_with_other_blases_matches_group_by_group(layout, blases, col
         assert 100 < int(blocked.sum()) < len(rays) - 100
         assert torch.equal(fused_scene.occluded(shadow), blocked)
         assert torch.equal(fused_scene.occluded(rays), ref_scene.occluded(rays))
+
+
+def test_torch_stages_write_each_ray_once_and_take_empty_batches(blases, monkeypatch):
+    # A CUDA scatter with repeated indices keeps any one of the writes (per field): tied instances
+    # must be resolved before it, as the CPU's last write is.
+    from neuralrt.rays import Hits
+
+    torus, _ = blases
+    scatter = Hits.scatter_
+
+    def unique_rows(self, index, other):
+        assert index.numel() == index.unique().numel(), "a ray written twice"
+        return scatter(self, index, other)
+
+    monkeypatch.setattr(Hits, "scatter_", unique_rows)
+    accel = SceneAccel([Instance(torus, Transform(), torch.tensor([0])), Instance(torus, Transform(), torch.tensor([1]))],
+                       stages=TorchTLASStages)
+    h = accel.intersect(_rays(4000, seed=2))
+    assert h.hit.sum() > 100 and (h.instance_id[h.hit] == 1).all()
+    empty = Rays(torch.zeros(0, 3), torch.zeros(0, 3))
+    ray_idx, inst_idx, _ = accel.stages.candidate_pairs(empty, torch.tensor([0, 1]), torch.zeros(0), None)
+    assert ray_idx.numel() == 0 and inst_idx.numel() == 0

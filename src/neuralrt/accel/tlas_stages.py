@@ -119,7 +119,8 @@ class TorchTLASStages:
             valid = valid_ray_mask(rays)
         n, g = len(rays), instance_ids.numel()
         lo, hi = self.t.box_lo[instance_ids], self.t.box_hi[instance_ids]
-        ray_idx, inst_idx = [], []
+        empty = torch.zeros(0, dtype=torch.int64, device=rays.device)
+        ray_idx, inst_idx = [empty], [empty]  # (no rays: no pairs, as the numba stage answers)
         chunk = max(1, _BROAD_PHASE_CHUNK // max(g, 1))
         for start in range(0, n, chunk):
             sl = slice(start, min(n, start + chunk))
@@ -157,6 +158,12 @@ class TorchTLASStages:
         best_t = best.t.clone().scatter_reduce_(0, ray_idx, local.t, reduce="amin")
         winner = local.t == best_t[ray_idx]
         ray_idx, inst_idx, local = ray_idx[winner], inst_idx[winner], local[winner]
+        # One row per ray before the scatter: with repeated indices a CUDA scatter keeps any of the
+        # writes (even different ones per field); the last pair per ray is what the CPU keeps.
+        order = torch.arange(len(ray_idx), device=ray_idx.device)
+        last = torch.full_like(best.material_id, -1).scatter_reduce_(0, ray_idx, order, reduce="amax")
+        kept = order == last[ray_idx]
+        ray_idx, inst_idx, local = ray_idx[kept], inst_idx[kept], local[kept]
         self._to_world_(local, inst_idx)
         return best.scatter_(ray_idx, local)
 
