@@ -203,10 +203,20 @@ def test_model_answers_the_same_through_the_triton_kernels(ball_model, monkeypat
     rays = _sphere_rays(48, 11)
     cpu = cpu_model.intersect(rays)
     assert 0.2 < cpu.hit.float().mean() < 0.9
-    monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)  # what CUDA rays take anyway
-    monkeypatch.setattr(nbvh_module.NBVHModel, "_closest", closest_hits_triton)
+    calls = []
+
+    def counted(*args):
+        calls.append(1)
+        return closest_hits_triton(*args)
+
+    # What CUDA rays take anyway: the torch answer around the Triton leaf lists and wavefront (CPU
+    # rays would go through the numba `answers_cpu`, which calls neither).
+    monkeypatch.setattr(nbvh_module, "list_leaves", list_leaves_triton)
+    monkeypatch.setattr(nbvh_module.NBVHModel, "_closest", counted)
+    monkeypatch.setattr(nbvh_module.NBVHModel, "_answer", nbvh_module.NBVHModel._answer_torch)
     model = copy.deepcopy(cpu_model).to(DEVICE)
     tri = model.intersect(rays.to(DEVICE))
+    assert calls  # the Triton wavefront answered
     both = _assert_same_hits(torch.where(tri.hit, tri.t, torch.inf), torch.where(cpu.hit, cpu.t, torch.inf))
     torch.testing.assert_close(tri.normal.cpu()[both], cpu.normal[both], rtol=1e-4, atol=1e-5)
 
