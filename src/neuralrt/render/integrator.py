@@ -22,7 +22,8 @@ stop short of their light point by a relative ``1e-3`` of its distance. The inte
 Randomness comes from one stream per wavefront seeded from a hash of (``seed``, wavefront index,
 `rng.wavefront_seed`): a torch
 generator's, drawn by torch or, with the numba stages, the same numbers by a numba pass
-(`rng`), so a given seed and settings give the same image; each bounce draws one row of 8 uniforms per
+(`rng`), so a given seed and settings give the same image on one device (CUDA's generator is
+Philox, the CPU's MT19937: the noise differs between them); each bounce draws one row of 8 uniforms per
 sample of the wavefront, so a path's random numbers do not depend on the other paths.
 """
 
