@@ -79,7 +79,7 @@ def make_queries(pairs: NIFPairs, box_lo: Tensor, box_hi: Tensor) -> NIFQueries:
     o, d = pairs.origins, pairs.directions
     t0, t1 = ray_box_intervals(o, d, lo, hi)
     inside = ((o >= lo) & (o <= hi)).all(-1)
-    meets = (t0 <= t1) & (t1 > pairs.t_min) & (t0 < pairs.t_max)
+    meets = (t0 <= t1) & (t1 >= pairs.t_min) & (t0 <= pairs.t_max)  # [t_min, t_max], both ends included
     centre = 0.5 * (lo + hi)
     direction = spherical_coords(d)
     outer = torch.nonzero(meets & ~inside).reshape(-1)

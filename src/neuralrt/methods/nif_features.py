@@ -66,7 +66,7 @@ def _features(obj, o, d, t_min, t_max, box_lo, box_hi, op_tab, r_op, od_tab, r_o
               outer_pair, outer_x, inner_pair, inner_x):
     n_out = 0
     n_in = 0
-    inf = np.inf
+    inf = np.float32(np.inf)  # float32 throughout, as `nif.make_queries` (a float64 literal would widen the slab test)
     for p in range(obj.shape[0]):
         k = obj[p]
         t_near, t_far = -inf, inf
@@ -82,7 +82,7 @@ def _features(obj, o, d, t_min, t_max, box_lo, box_hi, op_tab, r_op, od_tab, r_o
             t_near = max(t_near, min(t0, t1))
             t_far = min(t_far, max(t0, t1))
             inside = inside and oa >= lo and oa <= hi
-        if not (t_near <= t_far and t_far > t_min[p] and t_near < t_max[p]):
+        if not (t_near <= t_far and t_far >= t_min[p] and t_near <= t_max[p]):  # [t_min, t_max], both ends included
             continue
         cx, cy, cz = 0.5 * (box_lo[k, 0] + box_hi[k, 0]), 0.5 * (box_lo[k, 1] + box_hi[k, 1]), 0.5 * (box_lo[k, 2] + box_hi[k, 2])
         du, dv = _sph(d[p, 0], d[p, 1], d[p, 2])
