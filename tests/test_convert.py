@@ -272,3 +272,29 @@ def test_group_keeps_each_meshs_own_colours(tmp_path):
     rays = Rays(torch.tensor([[-1.2, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]))
     albedo = group.camera_blas.intersect(rays).albedo
     assert albedo[0, 0] > 0.6 > albedo[0, 2] and albedo[1, 2] > 0.6 > albedo[1, 0]
+
+
+def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path):
+    # A copy of a mesh file under another name, or another checkpoint interval (the same model bit
+    # for bit), reuses the cached model; both retrained before.
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    for name in ("a", "b"):
+        ball.export(tmp_path / f"{name}.obj")
+        spec = SceneSpec(camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(8, 8)),
+                         materials=[DiffuseMaterialSpec(name="white", albedo=(0.7, 0.7, 0.7))],
+                         objects=[ObjectSpec(name=name, mesh=f"{name}.obj", material="white")])
+        save_scene(spec, tmp_path / f"{name}.toml")
+    common = dict(models_dir=tmp_path / "models", min_triangles=100, preset="lq", steps=10, batch=1024, seed=0, progress=False)
+    first = convert_scene(tmp_path / "a.toml", tmp_path / "out" / "a.toml", **common)
+    assert not first.models[0].reused
+    copy = convert_scene(tmp_path / "b.toml", tmp_path / "out" / "b.toml", **common)
+    assert copy.models[0].reused and copy.models[0].model_path == first.models[0].model_path
+    interval = convert_scene(tmp_path / "a.toml", tmp_path / "out" / "c.toml", settings={"training": {"checkpoint_every": 3}},
+                             **common)
+    assert interval.models[0].reused
+    retrained = convert_scene(tmp_path / "a.toml", tmp_path / "out" / "d.toml", settings={"training": {"learning_rate": 0.02}},
+                              **common)
+    assert not retrained.models[0].reused
+    assert load_scene(tmp_path / "out" / "b.toml").accel.instances[0].blas is not None

@@ -35,7 +35,8 @@ from .material_rules import is_emissive, material_index, scene_material_for
 from .schema import ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
-__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "model_file_stem", "cached_model_is_valid", "selected_objects", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
+__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "model_file_stem", "cached_model_is_valid", "cached_model_stem",
+           "selected_objects", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
 
 # Objects smaller than this stay triangles unless selected by name: a model costs ~1.5 MB, a
 # 10k-triangle mesh with its BVH about as much, so smaller meshes gain nothing.
@@ -79,18 +80,27 @@ class ConversionReport:
         }
 
 
+def _model_config(config: MethodConfig) -> dict:
+    """The config keys that make the model: all but the checkpoint interval (it only says how often
+    a run saves; the model is the same bit for bit)."""
+    data = config.model_dump(mode="json")
+    data["training"].pop("checkpoint_every", None)
+    return data
+
+
 def _config_hash(config: MethodConfig) -> str:
-    return hashlib.sha256(json.dumps(config.model_dump(mode="json"), sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(_model_config(config), sort_keys=True).encode()).hexdigest()
 
 
 def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
-    """The file exists, is a readable model of this config's method, of this mesh, with this exact config."""
+    """The file exists, is a readable model of this config's method, of this mesh, with this config
+    (`_model_config`: the checkpoint interval aside)."""
     if not path.is_file():
         return False
     try:
         header = read_model_header(path, method=config.method)
         stored = config_from_dict(header.config)
-        if header.mesh_sha256 != mesh_hash or stored != config:
+        if header.mesh_sha256 != mesh_hash or _model_config(stored) != _model_config(config):
             return False
         read_model_file(path, method=config.method)  # the arrays' checksum too: a corrupted file is retrained, not reused
     except (ModelFileError, ConfigError):
@@ -105,6 +115,20 @@ def _safe_name(name: str) -> str:
 def model_file_stem(mesh_name: str, mesh_hash: str, config: MethodConfig) -> str:
     """The models folder's cache name of (mesh, config), without suffix: ``name-meshhash-confighash``."""
     return f"{_safe_name(mesh_name)}-{mesh_hash[:10]}-{_config_hash(config)[:8]}"
+
+
+def cached_model_stem(models_dir: Path, mesh_name: str, mesh_hash: str, config: MethodConfig) -> str | None:
+    """The stem of a valid cached model of (mesh, config) in ``models_dir``: the one named after
+    ``mesh_name``, else one written for the same mesh under another name (a copied file, another
+    scene's object); None when there is none."""
+    stem = model_file_stem(mesh_name, mesh_hash, config)
+    if cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
+        return stem
+    suffix = f"-{mesh_hash[:10]}-{_config_hash(config)[:8]}.nrt"
+    for path in sorted(models_dir.glob(f"*{suffix}")):
+        if cached_model_is_valid(path, mesh_hash, config):
+            return path.stem
+    return None
 
 
 def _object_names(spec: SceneSpec) -> list[str]:
@@ -322,12 +346,14 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
     method = get_method(config.method)
     to_train: list[TrainingJob] = []
     for k, (mesh_hash, (mesh, users)) in enumerate(jobs.items()):
-        stem = stems[mesh_hash]
-        if cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
-            (models_dir / f"{stem}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
+        cached = cached_model_stem(models_dir, mesh.name, mesh_hash, config)
+        if cached is not None:
+            (models_dir / f"{stems[mesh_hash]}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
+            stems[mesh_hash] = stem = cached
             if progress:
                 print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
             continue
+        stem = stems[mesh_hash]
         # Absolute: a Ray worker runs in its own folder, where a relative path would put (and look for) another file.
         to_train.append(TrainingJob(stem, mesh, config, method, models_dir.absolute() / f"{stem}.ckpt",
                                     f"{config.method} {preset} model of {mesh.name!r} ({mesh.num_triangles:,} triangles, "
