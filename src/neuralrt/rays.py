@@ -45,7 +45,11 @@ class Rays:
     - ``t_min``, ``t_max`` [N]: the interval, both ends included (as Embree's); default ``0`` and
       ``+inf``. A scalar or any tensor that broadcasts to the batch shape is accepted. A negative
       ``t_min`` is stored as 0: no BLAS answers hits behind the origin (a neural one cannot: it
-      learned rays that start there), so exact and neural answers agree.
+      learned rays that start there), so exact and neural answers agree. Every BLAS traces from
+      the origin moved to ``t_min`` (Embree's and OptiX's rays start at 0 there, a network's
+      inputs are built from it), in float32: a surface at exactly ``t_min`` is found or skipped by
+      that rounding (about half of them), and ``t_min == t_max`` is an empty interval, a miss.
+      ``t_max`` holds exactly: a hit at ``t == t_max`` is kept.
 
     Batch shapes: origins and directions may be ``[..., 3]`` (e.g. ``[H, W, 3]``); they are
     flattened row-major to ``[N, 3]`` and ``batch_shape`` keeps the original leading shape, so
