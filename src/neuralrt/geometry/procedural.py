@@ -579,7 +579,7 @@ def parse_procedural_spec(spec: str) -> tuple[str, int]:
 def procedural_mesh(spec: str) -> Mesh:
     """The mesh a ``procedural:NAME:DETAIL`` spec names (`parse_procedural_spec`)."""
     name, detail = parse_procedural_spec(spec)
-    return GENERATORS[name](detail=detail)
+    return make_procedural(name, detail=detail)
 
 
 def make_procedural(name: str, **params) -> Mesh:

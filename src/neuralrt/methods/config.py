@@ -128,6 +128,14 @@ class MethodConfig(ConfigSection):
         data["training"].update({k: v for k, v in changes.items() if v is not None})
         return type(self).validated(data)
 
+    def model_defining(self) -> dict:
+        """The JSON form of the keys that make the trained model: all but ``training.checkpoint_every``
+        (how often a run saves; the model is the same bit for bit). The converter's cache and a
+        checkpoint's identity compare these."""
+        data = self.model_dump(mode="json")
+        data["training"].pop("checkpoint_every")
+        return data
+
     @classmethod
     def validated(cls, data: dict) -> "MethodConfig":
         """``data`` as a config; pydantic's multi-line errors become one `ConfigError` line (``lsnif config: training.steps: ...``)."""

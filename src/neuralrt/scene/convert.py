@@ -80,27 +80,19 @@ class ConversionReport:
         }
 
 
-def _model_config(config: MethodConfig) -> dict:
-    """The config keys that make the model: all but the checkpoint interval (it only says how often
-    a run saves; the model is the same bit for bit)."""
-    data = config.model_dump(mode="json")
-    data["training"].pop("checkpoint_every", None)
-    return data
-
-
 def _config_hash(config: MethodConfig) -> str:
-    return hashlib.sha256(json.dumps(_model_config(config), sort_keys=True).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(config.model_defining(), sort_keys=True).encode()).hexdigest()
 
 
 def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
     """The file exists, is a readable model of this config's method, of this mesh, with this config
-    (`_model_config`: the checkpoint interval aside)."""
+    (`MethodConfig.model_defining`: the checkpoint interval aside)."""
     if not path.is_file():
         return False
     try:
         header = read_model_header(path, method=config.method)
         stored = config_from_dict(header.config)
-        if header.mesh_sha256 != mesh_hash or _model_config(stored) != _model_config(config):
+        if header.mesh_sha256 != mesh_hash or stored.model_defining() != config.model_defining():
             return False
         read_model_file(path, method=config.method)  # the arrays' checksum too: a corrupted file is retrained, not reused
     except (ModelFileError, ConfigError):
@@ -169,8 +161,8 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
     import warnings
 
     index = material_index(spec)
-    slots: dict[tuple, str] = {}  # (scene material, colour bytes) -> slot name
-    colours: list[np.ndarray] = []
+    slot_of: dict[tuple, int] = {}  # (scene material, colour bytes) -> merged slot
+    materials: list[MeshMaterial] = []
     mapping: dict[str, str] = {}
     verts, faces, normals, mat_ids = [], [], [], []
     # (An OBJ with materials keeps no vertex colours in trimesh, and the merged mesh goes through one.)
@@ -191,16 +183,16 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
             target = scene_material_for(obj, slot.name, index)
             colour = np.asarray(slot.base_color, np.float32).reshape(-1)[:3]
             key = (target, colour.tobytes())
-            if key not in slots:
-                taken = sum(1 for t, _ in slots if t == target)
-                slots[key] = target if taken == 0 else f"{target}~{taken + 1}"
-                colours.append(colour)
+            if key not in slot_of:
+                taken = sum(1 for t, _ in slot_of if t == target)
+                name = target if taken == 0 else f"{target}~{taken + 1}"
                 if taken:
-                    mapping[slots[key]] = target
-            slot_to_merged.append(list(slots).index(key))
+                    mapping[name] = target
+                slot_of[key] = len(materials)
+                materials.append(MeshMaterial(name, base_color=colour))
+            slot_to_merged.append(slot_of[key])
         mat_ids.append(np.asarray(slot_to_merged, np.int32)[mesh.face_material_ids])
         offset += len(mesh.vertices)
-    materials = [MeshMaterial(name, base_color=colour) for name, colour in zip(slots.values(), colours)]
     merged = Mesh(np.concatenate(verts), np.concatenate(faces), vertex_normals=np.concatenate(normals),
                   face_material_ids=np.concatenate(mat_ids), materials=materials, name="group")
     return merged, mapping

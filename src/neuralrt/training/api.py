@@ -21,9 +21,8 @@ __all__ = ["train", "run_identity"]
 def run_identity(model: NeuralBLAS, config: MethodConfig) -> dict:
     """What a checkpoint must match to be resumed: the mesh and the config, except the step count
     (a run may be resumed to train longer) and the checkpoint interval."""
-    run_config = config.model_dump(mode="json")
+    run_config = config.model_defining()
     run_config["training"].pop("steps")
-    run_config["training"].pop("checkpoint_every")
     return {"mesh_sha256": model.mesh_hash, "config": run_config}
 
 
