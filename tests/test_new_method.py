@@ -153,21 +153,15 @@ mesh = "{ball}"
     assert (tmp_path / "img.png").is_file()
 
 
-def test_a_registered_method_passes_the_blas_contract(toy, ball):
+def test_a_registered_method_passes_the_blas_contract(toy, ball, tmp_path):
     from neuralrt.geometry.mesh import load_mesh
+    from neuralrt.testing import CONTRACT_CHECKS, check_contract
     from neuralrt.training.api import train
-
-    import test_blas_contract as contract
 
     mesh = load_mesh(ball)
     blas = train(mesh, toy.config(steps=100, batch_size=1024), progress=False)
-    contract.test_is_a_blas(blas)
-    rays = contract._rays(blas, 2048, 1, "cpu")
-    h = blas.intersect(rays)
-    contract._check_hits(h, len(rays), "cpu")
-    assert torch.equal(blas.occluded(rays), h.hit)
-    contract.test_interval_is_respected(blas, torch.device("cpu"))
-    contract.test_degenerate_rays_miss_without_error(blas, torch.device("cpu"))
+    cpu_checks = [name for name in CONTRACT_CHECKS if name != "rays_on_another_device"]
+    assert check_contract(blas, mesh, tmp_dir=tmp_path) == cpu_checks
 
 
 def _run(args, tmp_path, plugins):
