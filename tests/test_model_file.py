@@ -1,5 +1,6 @@
 """The .nrt container: round trip, atomic writes, and one-line errors for bad files."""
 
+import hashlib
 import json
 import struct
 
@@ -7,7 +8,8 @@ import pytest
 import torch
 
 from neuralrt.errors import ModelFileError
-from neuralrt.io.model_file import FORMAT_VERSION, read_header, read_model_file, write_model_file
+from neuralrt.io.model_file import (FORMAT_VERSION, HEADER_DIGEST_KEY, METADATA_KEY, read_header, read_model_file,
+                                    write_model_file)
 
 
 def _arrays():
@@ -84,15 +86,7 @@ def test_not_a_model_file(tmp_path):
 
 
 def test_newer_version_rejected(model_path):
-    data = model_path.read_bytes()
-    n = struct.unpack("<Q", data[:8])[0]
-    header = json.loads(data[8 : 8 + n])
-    inner = json.loads(header["__metadata__"]["neuralrt"])
-    inner["format_version"] = FORMAT_VERSION + 1
-    header["__metadata__"]["neuralrt"] = json.dumps(inner)
-    raw = json.dumps(header).encode()
-    raw += b" " * ((8 - len(raw) % 8) % 8)
-    model_path.write_bytes(struct.pack("<Q", len(raw)) + raw + data[8 + n :])
+    _rewrite_header(model_path, lambda h: h.update(format_version=FORMAT_VERSION + 1))
     msg = _error(model_path)
     assert "newer" in msg and str(FORMAT_VERSION + 1) in msg
 
@@ -102,17 +96,41 @@ def test_wrong_method_rejected(model_path):
     assert "'lsnif' model" in msg and "'nbvh'" in msg
 
 
-def _rewrite_header(path, change) -> None:
-    """Edit the neuralrt header of a model file in place (keeps the arrays and their digest)."""
+def _rewrite_header(path, change, sign: bool = True) -> None:
+    """Edit the neuralrt header of a model file in place (keeps the arrays and their digest); with
+    ``sign``, as a deliberate edit (the header's digest recomputed), else as corruption would."""
     data = path.read_bytes()
     n = struct.unpack("<Q", data[:8])[0]
     header = json.loads(data[8 : 8 + n])
-    inner = json.loads(header["__metadata__"]["neuralrt"])
+    inner = json.loads(header["__metadata__"][METADATA_KEY])
     change(inner)
-    header["__metadata__"]["neuralrt"] = json.dumps(inner)
+    text = json.dumps(inner)
+    header["__metadata__"][METADATA_KEY] = text
+    if sign and inner.get("format_version", 0) >= 3:
+        header["__metadata__"][HEADER_DIGEST_KEY] = hashlib.sha256(text.encode()).hexdigest()
+    elif sign:
+        header["__metadata__"].pop(HEADER_DIGEST_KEY, None)
     raw = json.dumps(header).encode()
     raw += b" " * ((8 - len(raw) % 8) % 8)
     path.write_bytes(struct.pack("<Q", len(raw)) + raw + data[8 + n :])
+
+
+def test_a_changed_header_value_is_caught(model_path):
+    # One digit of the bounds changed (as a flipped bit would): the JSON still parses and validates.
+    _rewrite_header(model_path, lambda h: h["bounds"][1].__setitem__(0, h["bounds"][1][0] + 0.25), sign=False)
+    assert "corrupted header (checksum mismatch)" in _error(model_path)
+
+
+def test_a_header_claiming_an_older_version_is_still_checked(model_path):
+    # format_version 3 -> 2 is one bit: a file with a digest is checked whatever version it claims.
+    _rewrite_header(model_path, lambda h: h.update(format_version=2), sign=False)
+    assert "checksum mismatch" in _error(model_path)
+
+
+def test_a_current_file_without_its_header_digest_is_corrupted(model_path):
+    data = model_path.read_bytes()
+    model_path.write_bytes(data.replace(HEADER_DIGEST_KEY.encode(), b"neuralrt_sha25X"))
+    assert f"missing '{HEADER_DIGEST_KEY}'" in _error(model_path)
 
 
 @pytest.fixture(scope="module")
@@ -153,6 +171,17 @@ def test_version_1_files_still_load(lsnif_file, tmp_path):
     o = torch.randn(64, 3, generator=torch.Generator().manual_seed(0)) * 3
     assert loaded.config == current.config and loaded.mesh_hash == model.mesh_hash
     assert torch.equal(loaded.intersect(Rays(o, -o)).t, current.intersect(Rays(o, -o)).t)
+
+
+def test_version_2_files_load_without_a_header_digest(lsnif_file, tmp_path):
+    from neuralrt.methods import load_model
+
+    model, path = lsnif_file
+    old = tmp_path / "v2.nrt"
+    old.write_bytes(path.read_bytes())
+    _rewrite_header(old, lambda h: h.update(format_version=2))  # what format 2 wrote: no neuralrt_sha256
+    assert HEADER_DIGEST_KEY.encode() not in old.read_bytes()
+    assert load_model(old).config == model.config
 
 
 def test_invalid_model_header_is_one_line(lsnif_file, tmp_path):
