@@ -274,6 +274,49 @@ def test_group_keeps_each_meshs_own_colours(tmp_path):
     assert albedo[0, 0] > 0.6 > albedo[0, 2] and albedo[1, 2] > 0.6 > albedo[1, 0]
 
 
+def test_group_keeps_textures(tmp_path):
+    # A textured ball (red where x < 0, blue where x > 0, by u) grouped with a plain grey one: the
+    # merged mesh keeps the texture (written as a PNG beside its OBJ), so camera rays still see it
+    # (the group dropped textures with a warning).
+    import warnings
+
+    import trimesh
+    from PIL import Image
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    u = (ball.vertices[:, 0] + 1) / 2
+    texture = np.zeros((4, 8, 3), np.uint8)
+    texture[:, :4] = (230, 20, 20)
+    texture[:, 4:] = (20, 40, 230)
+    Image.fromarray(texture).save(tmp_path / "stripes.png")
+    (tmp_path / "ball.mtl").write_text("newmtl paint\nKd 1 1 1\nmap_Kd stripes.png\n")
+    lines = ["mtllib ball.mtl"] + [f"v {x} {y} {z}" for x, y, z in ball.vertices] + [f"vt {a} 0.5" for a in u]
+    lines += ["usemtl paint"] + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in ball.faces]
+    (tmp_path / "ball.obj").write_text("\n".join(lines) + "\n")
+    ball.export(tmp_path / "plain.obj")
+    spec = SceneSpec(
+        camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(16, 16)),
+        materials=[DiffuseMaterialSpec(name="white", albedo=(1.0, 1.0, 1.0))],
+        objects=[ObjectSpec(name="striped", mesh="ball.obj", material="white", transform=TransformSpec(translate=(-1.2, 0, 0))),
+                 ObjectSpec(name="plain", mesh="plain.obj", material="white", transform=TransformSpec(translate=(1.2, 0, 0)))],
+        environment=EnvironmentSpec(color=(1.0, 1.0, 1.0)),
+    )
+    save_scene(spec, tmp_path / "scene.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "textures not carried" warning any more
+        convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
+                      steps=20, batch=1024, seed=0, progress=False)
+    scene = load_scene(tmp_path / "out" / "scene.toml")
+    merged = scene.accel.instances[0].camera_blas.mesh
+    assert sum(m.texture is not None for m in merged.materials) == 1 and merged.uvs is not None
+    assert list((tmp_path / "out" / "models").glob("*-texture*.png"))
+    rays = Rays(torch.tensor([[-1.6, 0.0, 4.0], [-0.8, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 3))
+    albedo = scene.accel.instances[0].camera_blas.intersect(rays).albedo
+    assert albedo[0, 0] > 0.6 > albedo[0, 2]  # the striped ball's red half
+    assert albedo[1, 2] > 0.6 > albedo[1, 0]  # its blue half
+    assert torch.allclose(albedo[2], torch.ones(3))  # the plain one: the default white
+
+
 def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path):
     # A copy of a mesh file under another name, or another checkpoint interval (the same model bit
     # for bit), reuses the cached model; both retrained before.

@@ -7,8 +7,9 @@ moved, re-lit and re-materialised without retraining. Models are cached in a mod
 
 ``group=True`` is the paper's granularity option: all selected objects are merged (in world space)
 into one mesh and one model; the merged mesh is written beside the models so camera rays can still
-be answered exactly. It keeps each mesh slot's colour (the model learns it as it would per
-object); textures and vertex colours are not carried over (a warning says whose).
+be answered exactly. It keeps each mesh slot's colour and texture (the model learns them as it
+would per object; textures are written as PNGs beside the merged OBJ); vertex colours are not
+carried over (a warning says whose).
 """
 
 from __future__ import annotations
@@ -156,21 +157,23 @@ def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[st
 
 def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> tuple[Mesh, dict[str, str]]:
     """Selected objects baked into one world-space mesh, and the slot -> scene material map its
-    object needs. A slot per (scene material, slot colour): the first of a scene material is named
-    after it, others ``NAME~2``, ... (mapped back to NAME), so meshes keep their own colours."""
+    object needs. A slot per (scene material, slot colour, texture): the first of a scene material
+    is named after it, others ``NAME~2``, ... (mapped back to NAME), so meshes keep their own
+    colours and textures (a textured slot's colour is multiplied into its texture: an OBJ's
+    ``map_Kd`` replaces ``Kd``)."""
     import warnings
 
     index = material_index(spec)
-    slot_of: dict[tuple, int] = {}  # (scene material, colour bytes) -> merged slot
+    slot_of: dict[tuple, int] = {}  # (scene material, colour bytes, texture's id) -> merged slot
     materials: list[MeshMaterial] = []
     mapping: dict[str, str] = {}
-    verts, faces, normals, mat_ids = [], [], [], []
+    verts, faces, normals, uvs, mat_ids = [], [], [], [], []
     # (An OBJ with materials keeps no vertex colours in trimesh, and the merged mesh goes through one.)
-    textured = [spec.objects[i].name for i in objects
-                if meshes[i].vertex_colors is not None or any(m.texture is not None for m in meshes[i].materials)]
-    if textured:
-        warnings.warn(f"group: the textures and vertex colours of {', '.join(textured)} are not carried into the merged "
-                      "mesh (its slot colours are); convert without --group to keep them", stacklevel=3)
+    coloured = [spec.objects[i].name for i in objects if meshes[i].vertex_colors is not None]
+    if coloured:
+        warnings.warn(f"group: the vertex colours of {', '.join(coloured)} are not carried into the merged mesh (its "
+                      "slot colours and textures are); convert without --group to keep them", stacklevel=3)
+    any_uv = any(meshes[i].uvs is not None for i in objects)
     offset = 0
     for i in objects:
         obj, mesh = spec.objects[i], meshes[i]
@@ -178,23 +181,28 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
         verts.append(xf.apply_points(torch.from_numpy(mesh.vertices)).numpy())
         normals.append(xf.apply_normals(torch.from_numpy(mesh.vertex_normals)).numpy())
         faces.append(mesh.faces + offset)
+        if any_uv:
+            uvs.append(mesh.uvs if mesh.uvs is not None else np.zeros((len(mesh.vertices), 2), np.float32))
         slot_to_merged = []
         for slot in mesh.materials:
             target = scene_material_for(obj, slot.name, index)
             colour = np.asarray(slot.base_color, np.float32).reshape(-1)[:3]
-            key = (target, colour.tobytes())
+            textured = slot.texture is not None and mesh.uvs is not None
+            key = (target, colour.tobytes(), id(slot.texture) if textured else None)
             if key not in slot_of:
-                taken = sum(1 for t, _ in slot_of if t == target)
+                taken = sum(1 for t, _, _ in slot_of if t == target)
                 name = target if taken == 0 else f"{target}~{taken + 1}"
                 if taken:
                     mapping[name] = target
                 slot_of[key] = len(materials)
-                materials.append(MeshMaterial(name, base_color=colour))
+                materials.append(MeshMaterial(name, base_color=np.ones(3, np.float32), texture=slot.texture * colour)
+                                 if textured else MeshMaterial(name, base_color=colour))
             slot_to_merged.append(slot_of[key])
         mat_ids.append(np.asarray(slot_to_merged, np.int32)[mesh.face_material_ids])
         offset += len(mesh.vertices)
     merged = Mesh(np.concatenate(verts), np.concatenate(faces), vertex_normals=np.concatenate(normals),
-                  face_material_ids=np.concatenate(mat_ids), materials=materials, name="group")
+                  uvs=np.concatenate(uvs) if any_uv else None, face_material_ids=np.concatenate(mat_ids),
+                  materials=materials, name="group")
     return merged, mapping
 
 
@@ -218,24 +226,35 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
 
 
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
-    """Write positions, normals and per-face material groups as OBJ (+ MTL, each slot's colour as
-    ``Kd``, sRGB as OBJ readers and `load_mesh` take it), each atomically
-    (`neuralrt.io.files.write_atomically`)."""
-    from ..io.images import linear_to_srgb
+    """Write positions, normals, UVs and per-face material groups as OBJ (+ MTL: each slot's colour
+    as ``Kd``, sRGB as OBJ readers and `load_mesh` take it; a textured slot's texture as an 8-bit
+    sRGB PNG beside it, ``map_Kd``), each file atomically (`neuralrt.io.files.write_atomically`)."""
+    from ..io.images import linear_to_srgb, write_png
 
     path = Path(path)
     mtl = path.with_suffix(".mtl")
     lines = [f"mtllib {mtl.name}"]
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in mesh.vertices]
     lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in mesh.vertex_normals]
+    corner = "{0}//{0}"
+    if mesh.uvs is not None:
+        lines += [f"vt {u:.9g} {v:.9g}" for u, v in mesh.uvs]
+        corner = "{0}/{0}/{0}"
     for k, material in enumerate(mesh.materials):
         sel = mesh.faces[mesh.face_material_ids == k] + 1
         if len(sel) == 0:
             continue
         lines.append(f"usemtl {material.name}")
-        lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in sel]
-    kd = [linear_to_srgb(np.clip(np.asarray(m.base_color, np.float32).reshape(-1)[:3], 0, 1)) for m in mesh.materials]
-    mtl_text = "".join(f"newmtl {m.name}\nKd {r:.6g} {g:.6g} {b:.6g}\n\n" for m, (r, g, b) in zip(mesh.materials, kd))
+        lines += [" ".join(["f", *(corner.format(i) for i in face)]) for face in sel.tolist()]
+    mtl_text = ""
+    for k, m in enumerate(mesh.materials):
+        r, g, b = linear_to_srgb(np.clip(np.asarray(m.base_color, np.float32).reshape(-1)[:3], 0, 1))
+        mtl_text += f"newmtl {m.name}\nKd {r:.6g} {g:.6g} {b:.6g}\n"
+        if m.texture is not None and mesh.uvs is not None:
+            texture = path.with_name(f"{path.stem}-texture{k}.png")
+            write_png(texture, m.texture)
+            mtl_text += f"map_Kd {texture.name}\n"
+        mtl_text += "\n"
     write_atomically(mtl, lambda tmp: Path(tmp).write_text(mtl_text))
     write_atomically(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
 
