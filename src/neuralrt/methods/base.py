@@ -52,6 +52,24 @@ class MeshMismatchWarning(UserWarning):
     """A model is used without its source mesh at hand, so nothing checks that they belong together."""
 
 
+def _stored_arrays_problem(found: dict[str, Tensor], expected: dict[str, Tensor]) -> str | None:
+    """What is wrong with a model file's arrays (None if nothing), judged against what the model
+    they built would store (`_arrays`): other names, dtypes or shapes (a table stored as int32
+    was read as numbers), or values that are not finite (NaN weights answer NaN distances)."""
+    if set(found) != set(expected):
+        extra, missing = sorted(set(found) - set(expected)), sorted(set(expected) - set(found))
+        return "; ".join(([f"arrays it does not use: {', '.join(extra[:3])}"] if extra else [])
+                         + ([f"arrays missing: {', '.join(missing[:3])}"] if missing else []))
+    for name in sorted(found):
+        a, b = found[name], expected[name]
+        if a.dtype != b.dtype or a.shape != b.shape:
+            return f"array '{name}' is {str(a.dtype).removeprefix('torch.')} {list(a.shape)}, expected " \
+                   f"{str(b.dtype).removeprefix('torch.')} {list(b.shape)}"
+        if a.is_floating_point() and not torch.isfinite(a).all():
+            return f"array '{name}' holds NaN or infinite values"
+    return None
+
+
 def is_neural(blas) -> bool:
     """Whether ``blas`` answers rays with a trained model (the one place that decides it)."""
     return isinstance(blas, NeuralBLAS)
@@ -328,11 +346,14 @@ class NeuralBLAS(nn.Module, ABC):
         try:
             bounds = AABB(torch.tensor(header.bounds[0], dtype=torch.float32), torch.tensor(header.bounds[1], dtype=torch.float32))
             model = cls._from_arrays(config, bounds, [m.model_dump() for m in header.materials], arrays)
+            problem = _stored_arrays_problem(arrays, model._arrays())
         except ModelFileError:
             raise
         except Exception as exc:  # invalid config value, missing array, wrong array shape
             msg = str(exc).replace("\n", " ")
             raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({type(exc).__name__}: {msg[:300]})") from None
+        if problem:
+            raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({problem})")
         model.training_record = dict(header.training)
         model.mesh_hash, model.mesh_name = header.mesh_sha256, header.mesh_name
         return model.to(device).eval()

@@ -55,6 +55,30 @@ _EQUIDISTANT = (0.0, 0.5, 1.0)
 _STRATA_CENTRES = (1 / 6, 1 / 2, 5 / 6)
 
 
+MAX_LODS = 7  # levels of detail a model can register (`CutConfig.lods` <= 7, as in the paper)
+
+
+def _tree_problem(lo: Tensor, hi: Tensor, children: Tensor, lod: Tensor) -> str | None:
+    """What makes these arrays no tree the traversal can walk (None if they are one): a leaf is
+    (-1, -1), an inner node's children are two adjacent nodes after it (so no walk loops), boxes
+    are finite and ordered, LoDs are registered levels or `NO_LOD`."""
+    m = len(children)
+    first, second = children[:, 0].long(), children[:, 1].long()
+    inner = first >= 0
+    if m == 0:
+        return "node arrays are empty"
+    if ((first < -1) | ((~inner) & (second != -1))).any():
+        return "leaf rows must be (-1, -1)"
+    nodes = torch.arange(m)
+    if (inner & ((first <= nodes) | (second != first + 1) | (second >= m))).any():
+        return f"child indices must be two adjacent nodes after their parent, below {m}"
+    if not (torch.isfinite(lo).all() and torch.isfinite(hi).all() and (lo <= hi).all()):
+        return "node boxes must be finite with lo <= hi"
+    if (((lod < 0) | (lod >= MAX_LODS)) & (lod != NO_LOD)).any():
+        return f"LoDs must lie in [0, {MAX_LODS}) or be {NO_LOD}"
+    return None
+
+
 class NBVHModel(NeuralBLAS):
     """A trained (or training) N-BVH of one object; implements the `BLAS` protocol.
 
@@ -83,13 +107,16 @@ class NBVHModel(NeuralBLAS):
         self.register_buffer("node_lod", torch.as_tensor(np.asarray(lod), dtype=torch.int8))
         if self.node_lo.shape != (m, 3) or self.node_hi.shape != (m, 3) or self.node_children.shape != (m, 2) or self.node_lod.shape != (m,):
             raise ValueError(f"inconsistent tree arrays for {m} nodes")
+        tree_problem = _tree_problem(self.node_lo, self.node_hi, self.node_children, self.node_lod)
+        if tree_problem:  # the kernels index by these without bounds checks: a bad index reads outside the arrays
+            raise ValueError(f"the tree's {tree_problem}")
         # Training state (checkpointed; not in the model file).
         self.register_buffer("live", torch.zeros(m, dtype=torch.bool))
         self.register_buffer("loss_sum", torch.zeros(m, dtype=torch.float64))
         self.register_buffer("samples", torch.zeros(m, dtype=torch.float64))
         self.register_buffer("alive_steps", torch.zeros(m, dtype=torch.float64))
         self.register_buffer("h_max", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("registered", torch.tensor([bool((self.node_lod == lvl).any()) for lvl in range(7)]))
+        self.register_buffer("registered", torch.tensor([bool((self.node_lod == lvl).any()) for lvl in range(MAX_LODS)]))
         enc = config.encoding
         self.encoder = HashGrid(enc.levels, enc.base_resolution, enc.features_per_level, enc.log2_table_size, enc.init_scale,
                                 seed=config.training.seed)
@@ -161,7 +188,7 @@ class NBVHModel(NeuralBLAS):
 
     def training_levels(self) -> Tensor:
         """Cuts training draws from, uniformly: the registered LoDs, and the live cut (-1) until LoD 0 exists."""
-        levels = [lvl for lvl in range(7) if bool(self.registered[lvl])]
+        levels = [lvl for lvl in range(MAX_LODS) if bool(self.registered[lvl])]
         if not bool(self.registered[0]):
             levels.append(-1)
         return torch.tensor(levels, dtype=torch.int8, device=self.device)
@@ -180,7 +207,7 @@ class NBVHModel(NeuralBLAS):
 
     # -- levels of detail in a scene -----------------------------------------------------------------
     def registered_lods(self) -> list[int]:
-        return [lvl for lvl in range(7) if bool(self.registered[lvl])]
+        return [lvl for lvl in range(MAX_LODS) if bool(self.registered[lvl])]
 
     def at_lod(self, lod: int) -> "NBVHModel":
         """A view of this model answering rays with the cut of LoD ``lod``: it shares every parameter
