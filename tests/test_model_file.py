@@ -232,3 +232,47 @@ def test_data_beyond_the_arrays_is_corruption_not_truncation(model_path):
     model_path.write_bytes(model_path.read_bytes() + b"\0" * 24)
     with pytest.raises(ModelFileError, match=r"corrupted model file \(24 bytes after the arrays its header lists\)"):
         read_model_file(model_path)
+
+
+def _rewrite_arrays(path, out, change) -> None:
+    """A copy of model file ``path`` at ``out`` with its arrays edited by ``change`` (checksums recomputed:
+    a file that is well formed, but wrong)."""
+    f = read_model_file(path)
+    header = {k: v for k, v in f.header.items() if k not in ("format_version", "method", "arrays_sha256")}
+    arrays = dict(f.arrays)
+    change(arrays)
+    write_model_file(out, f.method, header, arrays)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda a: a.__setitem__("encoder.table", a["encoder.table"].int()), r"array 'encoder\.table' is int32 .*, expected float16"),
+    (lambda a: a["network.output.bias"].fill_(float("nan")), r"array 'network\.output\.bias' holds NaN or infinite values"),
+    (lambda a: a.__setitem__("evil", torch.zeros(8)), r"arrays it does not use: evil"),
+])
+def test_well_formed_but_wrong_arrays_are_refused(lsnif_file, tmp_path, change, message):
+    # They loaded, and answered garbage (an int32 table read as numbers) or NaN.
+    from neuralrt.methods import load_model
+
+    _, path = lsnif_file
+    _rewrite_arrays(path, tmp_path / "bad.nrt", change)
+    with pytest.raises(ModelFileError, match=r"invalid LSNIF model \(" + message):
+        load_model(tmp_path / "bad.nrt")
+
+
+@pytest.mark.parametrize("children, message", [
+    ([[1_000_000_000, 1_000_000_001]], "child indices must be two adjacent nodes after their parent"),
+    ([[0, 1]], "child indices must be two adjacent nodes after their parent"),  # a loop to itself
+    ([[-5, -1]], r"leaf rows must be \(-1, -1\)"),
+])
+def test_an_nbvh_tree_the_traversal_cannot_walk_is_refused(tmp_path, children, message):
+    # The kernels index by the child indices unchecked: 10^9 loaded, then crashed the process (SIGSEGV).
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods import load_model
+    from neuralrt.methods.nbvh import NBVHModel
+    from neuralrt.methods.nbvh_config import NBVHConfig
+
+    path = NBVHModel.from_mesh(sphere(1), NBVHConfig.preset("cpu")).save(tmp_path / "ok.nrt")
+    assert load_model(path).num_nodes >= 1
+    _rewrite_arrays(path, tmp_path / "bad.nrt", lambda a: a.__setitem__("cut.children", torch.tensor(children, dtype=torch.int32)))
+    with pytest.raises(ModelFileError, match=r"invalid N-BVH model \(ValueError: the tree's " + message):
+        load_model(tmp_path / "bad.nrt")
