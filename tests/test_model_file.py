@@ -96,15 +96,16 @@ def test_wrong_method_rejected(model_path):
     assert "'lsnif' model" in msg and "'nbvh'" in msg
 
 
-def _rewrite_header(path, change, sign: bool = True) -> None:
+def _rewrite_header(path, change, sign: bool = True, text: str | None = None) -> None:
     """Edit the neuralrt header of a model file in place (keeps the arrays and their digest); with
-    ``sign``, as a deliberate edit (the header's digest recomputed), else as corruption would."""
+    ``sign``, as a deliberate edit (the header's digest recomputed), else as corruption would;
+    with ``text``, that JSON text in its place."""
     data = path.read_bytes()
     n = struct.unpack("<Q", data[:8])[0]
     header = json.loads(data[8 : 8 + n])
     inner = json.loads(header["__metadata__"][METADATA_KEY])
     change(inner)
-    text = json.dumps(inner)
+    text = json.dumps(inner) if text is None else text
     header["__metadata__"][METADATA_KEY] = text
     if sign and inner.get("format_version", 0) >= 3:
         header["__metadata__"][HEADER_DIGEST_KEY] = hashlib.sha256(text.encode()).hexdigest()
@@ -276,3 +277,27 @@ def test_an_nbvh_tree_the_traversal_cannot_walk_is_refused(tmp_path, children, m
     _rewrite_arrays(path, tmp_path / "bad.nrt", lambda a: a.__setitem__("cut.children", torch.tensor(children, dtype=torch.int32)))
     with pytest.raises(ModelFileError, match=r"invalid N-BVH model \(ValueError: the tree's " + message):
         load_model(tmp_path / "bad.nrt")
+
+
+@pytest.mark.parametrize("text, message", [
+    ('{"format_version": 3, "method": "lsnif", "arrays_sha256": "", "deep": ' + "[" * 100_000 + "]" * 100_000 + "}",
+     r"corrupted header \(JSON nested too deeply\)"),  # was a RecursionError traceback
+    ('{"format_version": 3, "method": "lsnif", "arrays_sha256": "", "mesh_name": "\\ud800"}',
+     r"corrupted header \(a string that is not valid Unicode text\)"),  # `info` failed printing it
+    ('{"format_version": true, "method": "lsnif", "arrays_sha256": ""}', r"corrupted header \(format_version True\)"),
+])
+def test_headers_that_parse_oddly_are_one_line_errors(model_path, text, message):
+    _rewrite_header(model_path, lambda h: None, text=text)
+    with pytest.raises(ModelFileError, match=message):
+        read_header(model_path)
+
+
+def test_bounds_beyond_float32_are_refused(lsnif_file, tmp_path):
+    from neuralrt.methods import load_model
+
+    _, path = lsnif_file
+    bad = tmp_path / "bad.nrt"
+    bad.write_bytes(path.read_bytes())
+    _rewrite_header(bad, lambda h: h.update(bounds=[[-1e300, 0, 0], [1e300, 1, 1]]))  # inf in float32: no hits at all
+    with pytest.raises(ModelFileError, match="lie beyond float32's range"):
+        load_model(bad)

@@ -52,6 +52,7 @@ _DERIVED_V1_KEYS = ("box", "memory_bytes")
 
 
 _Finite = Annotated[float, Field(allow_inf_nan=False)]
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 class MaterialEntry(BaseModel):
@@ -78,6 +79,8 @@ class ModelHeader(BaseModel):
     @model_validator(mode="after")
     def _bounds_ordered(self) -> "ModelHeader":
         lo, hi = self.bounds
+        if any(abs(v) > _FLOAT32_MAX for v in (*lo, *hi)):  # a mesh's float32 vertices cannot lie there
+            raise ValueError(f"bounds: {[list(lo), list(hi)]} lie beyond float32's range (3.4e38)")
         if any(a > b for a, b in zip(lo, hi)):
             raise ValueError(f"bounds: lo {list(lo)} is above hi {list(hi)} on some axis")
         return self
@@ -145,7 +148,7 @@ def _check_data_size(path: Path, header_len: int, size: int) -> None:
         f.seek(8)
         try:
             entries = json.loads(f.read(header_len))
-        except (json.JSONDecodeError, UnicodeDecodeError):
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
             return  # (safetensors names the problem)
     if not isinstance(entries, dict):
         return
@@ -196,15 +199,21 @@ def _parse_header(path: Path, handle) -> dict:
         raise ModelFileError(f"{path}: corrupted header (checksum mismatch)")
     try:
         header = json.loads(text)
+        # A lone surrogate (JSON "\ud800") is no text: printing or writing it fails later.
+        json.dumps(header, ensure_ascii=False).encode("utf-8")
     except json.JSONDecodeError as exc:
         raise ModelFileError(f"{path}: corrupted header (invalid JSON: {exc.msg} at char {exc.pos})") from None
+    except RecursionError:
+        raise ModelFileError(f"{path}: corrupted header (JSON nested too deeply)") from None
+    except UnicodeEncodeError:
+        raise ModelFileError(f"{path}: corrupted header (a string that is not valid Unicode text)") from None
     if not isinstance(header, dict):
         raise ModelFileError(f"{path}: corrupted header (not a JSON object)")
     for key in ("format_version", "method", "arrays_sha256"):
         if key not in header:
             raise ModelFileError(f"{path}: corrupted header (missing '{key}')")
     version = header["format_version"]
-    if not isinstance(version, int) or version < 1:
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
         raise ModelFileError(f"{path}: corrupted header (format_version {version!r})")
     if version > FORMAT_VERSION:
         raise ModelFileError(
