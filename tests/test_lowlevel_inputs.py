@@ -119,6 +119,22 @@ def test_an_empty_path_in_a_scene_names_its_key(edit, key, tmp_path):
         load_dict(scene, base_dir=tmp_path)
 
 
+def test_a_nul_character_in_a_scene_path_names_its_key(tmp_path):
+    import json
+
+    scene = _scene([{"mesh": "ball\u0000.obj", "material": "w"}])  # was "ValueError: embedded null byte"
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    with pytest.raises(SceneError, match=r": objects\.0\.mesh: a path cannot hold a NUL character$"):
+        load_scene(tmp_path / "scene.json")
+
+
+@pytest.mark.parametrize("suffix, text", [(".json", "[" * 100_000 + "]" * 100_000), (".toml", "a = " + "[" * 100_000 + "]" * 100_000)])
+def test_a_scene_nested_too_deeply_is_one_line(tmp_path, suffix, text):
+    (tmp_path / f"scene{suffix}").write_text(text)  # was a RecursionError traceback
+    with pytest.raises(SceneError, match=rf"not valid {suffix[1:].upper()}: nested too deeply$"):
+        load_scene(tmp_path / f"scene{suffix}")
+
+
 # -- Rays --------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("make,message", [
     (lambda: Rays(torch.zeros(2, 3), torch.zeros(3, 3)), r"ray directions \(3, 3\) do not match origins \(2, 3\)"),

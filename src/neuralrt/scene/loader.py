@@ -203,6 +203,8 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
             raise SceneError(f"{path}: unknown scene file type {suffix!r} (use .toml or .json)")
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: {exc}") from None
+    except RecursionError:
+        raise SceneError(f"{label}: not valid {suffix[1:].upper()}: nested too deeply") from None
     spec = validate_spec(data, label)
     return absolutize_paths(spec, path.resolve().parent), path.resolve().parent, label
 
@@ -219,7 +221,7 @@ def validate_spec(data, label: str) -> SceneSpec:
         more = _more(len(errors) - 1)
         msg = " ".join(msg.split())  # one line, whatever the input's repr (an array spans several)
         raise SceneError(f"{label}: {key or '(top level)'}: {msg}{more}") from None
-    problems = spec.reference_errors() + _empty_path_errors(spec)
+    problems = spec.reference_errors() + _path_errors(spec)
     if problems:
         key, msg = problems[0]
         more = _more(len(problems) - 1)
@@ -227,15 +229,17 @@ def validate_spec(data, label: str) -> SceneSpec:
     return spec
 
 
-def _empty_path_errors(spec: SceneSpec) -> list[tuple[str, str]]:
-    """(key, "empty path") for each file path given as "" (resolved, it would name the scene's folder:
-    a confusing "is a directory" later). The paths of `SceneSpec.with_paths`, with their keys."""
+def _path_errors(spec: SceneSpec) -> list[tuple[str, str]]:
+    """(key, problem) for each file path given as "" (resolved, it would name the scene's folder:
+    a confusing "is a directory" later) or holding a NUL character (no file system takes one). The
+    paths of `SceneSpec.with_paths`, with their keys."""
     paths = [(f"materials.{i}.albedo", m.albedo) for i, m in enumerate(spec.materials) if isinstance(m.albedo, str)]
     for i, obj in enumerate(spec.objects):
         paths += [(f"objects.{i}.mesh", obj.mesh), (f"objects.{i}.model", obj.model)]
     if spec.environment is not None:
         paths.append(("environment.image", spec.environment.image))
-    return [(key, "empty path") for key, path in paths if path is not None and not path.strip()]
+    return [(key, "empty path" if not path.strip() else "a path cannot hold a NUL character")
+            for key, path in paths if path is not None and (not path.strip() or "\0" in path)]
 
 
 def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
