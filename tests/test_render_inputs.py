@@ -216,3 +216,17 @@ def test_render_time_leaves_the_one_time_warm_up_out(tmp_path):
     before = render(scene, spp=2, seed=3, progress=False).image
     assert warm_up(scene) > 0
     assert np.array_equal(render(scene, spp=2, seed=3, progress=False).image, before)  # it changes nothing
+
+
+def test_a_render_larger_than_the_memory_left_is_refused_before_it_starts(tmp_path, monkeypatch, capsys):
+    # The schema allows 16384x16384; at 96 bytes a pixel of float64 sums that took ~26 GiB, and failed
+    # in torch's allocator (a traceback) after the scene was built.
+    import neuralrt.devices
+
+    monkeypatch.setattr(neuralrt.devices, "available_bytes", lambda device: 1000)
+    with pytest.raises(ConfigError, match=r"^a 6x4 render needs 0\.0 GiB of memory, 0\.0 GiB is available on cpu: render at a lower resolution$"):
+        render(load_scene(scene_file(tmp_path)), spp=1, progress=False)
+    assert main(["render", scene_file(tmp_path), "-o", str(tmp_path / "x.exr"), "--spp", "1", "--quiet"]) == 2
+    assert "render needs" in capsys.readouterr().err and not (tmp_path / "x.exr").exists()
+    monkeypatch.setattr(neuralrt.devices, "available_bytes", lambda device: None)  # unknown: no check
+    assert render(load_scene(scene_file(tmp_path)), spp=1, progress=False).image.shape == (4, 6, 3)

@@ -13,7 +13,7 @@ from pathlib import Path
 from .arguments import given
 from .errors import ConfigError, DeviceError
 
-__all__ = ["DEVICE_TYPES", "check_device", "check_device_name", "resolve_device", "check_path"]
+__all__ = ["DEVICE_TYPES", "check_device", "check_device_name", "resolve_device", "check_path", "check_memory"]
 
 DEVICE_TYPES = ("cpu", "cuda")  # the torch device types neuralrt computes on
 
@@ -57,6 +57,33 @@ def resolve_device(device):
     if dev.type == "cuda" and dev.index is None:
         return torch.device("cuda", torch.cuda.current_device())
     return dev
+
+
+def available_bytes(device) -> int | None:
+    """Memory the process could still take on ``device`` (CPU: the kernel's MemAvailable; CUDA: free
+    device memory), or None where it cannot tell."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(what: str, needed: int, device, advice: str) -> None:
+    """A one-line `ConfigError` before any work where ``what`` needs ``needed`` bytes on ``device`` and
+    less is available (instead of an allocator's traceback, possibly after minutes)."""
+    have = available_bytes(device)
+    if have is not None and needed > have:
+        raise ConfigError(f"{what} needs {needed / 2**30:.1f} GiB of memory, {have / 2**30:.1f} GiB is available on "
+                          f"{device}: {advice}")
 
 
 def check_path(name: str, value, optional: bool = False) -> Path | None:

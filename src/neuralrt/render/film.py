@@ -20,6 +20,8 @@ class Film:
     `add` runs as one numba pass on the CPU (`shading_kernels.film_add`) and as torch ops
     elsewhere, chosen at construction; both give the same sums."""
 
+    BYTES_PER_PIXEL = 12 * 8  # the float64 sums below
+
     def __init__(self, width: int, height: int, device="cpu"):
         self.width, self.height = width, height
         n = width * height

@@ -137,7 +137,7 @@ def render(
     """
     from dataclasses import replace
 
-    from ..devices import check_device
+    from ..devices import check_device, check_memory
     from ..scene.scene import Scene
     from ..scene.schema import MAX_DEPTH, MAX_SPP, check_resolution
 
@@ -165,11 +165,14 @@ def render(
     dev = check_device(device) if device is not None else scene.device
     if dev != scene.device:
         raise DeviceError(f"scene was built on {scene.device}; load it with device={dev} to render there")
-    tracer = PathTracer(_with_camera(scene, camera), settings)
-    film = Film(camera.width, camera.height, dev)
     n_pixels = camera.num_pixels
     per_pass = max(1, min(spp, settings.max_paths // n_pixels))  # samples per pixel in one wavefront
     chunk = min(n_pixels * per_pass, max(settings.max_paths, camera.width))
+    # The film's sums, a pass's pixel indices (int64) and the finished images (float32: 11 channels).
+    check_memory(f"a {camera.width}x{camera.height} render", n_pixels * (Film.BYTES_PER_PIXEL + 8 * per_pass + 11 * 4), dev,
+                 "render at a lower resolution")
+    tracer = PathTracer(_with_camera(scene, camera), settings)
+    film = Film(camera.width, camera.height, dev)
 
     from tqdm.auto import tqdm
 

@@ -13,17 +13,17 @@ from ..errors import ConfigError
 from ..geometry.mesh import Mesh, check_float32_extent, load_mesh
 from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
 from ..neural.precision import precision_name
-from .trainer import TrainingRecord, train_model
+from .trainer import TrainingRecord, check_checkpoint, train_model
 
 __all__ = ["train", "run_identity"]
 
 
-def run_identity(model: NeuralBLAS, config: MethodConfig) -> dict:
-    """What a checkpoint must match to be resumed: the mesh and the config, except the step count
-    (a run may be resumed to train longer) and the checkpoint interval."""
+def run_identity(mesh_hash: str, config: MethodConfig) -> dict:
+    """What a checkpoint must match to be resumed: the mesh (its content hash) and the config,
+    except the step count (a run may be resumed to train longer) and the checkpoint interval."""
     run_config = config.model_defining()
     run_config["training"].pop("steps")
-    return {"mesh_sha256": model.mesh_hash, "config": run_config}
+    return {"mesh_sha256": mesh_hash, "config": run_config}
 
 
 def _then(first: Callable, second: Callable | None) -> Callable:
@@ -75,13 +75,16 @@ def train(
     spec = get_method(config.method if config is not None else DEFAULT_METHOD)
     config = config or spec.config(device=device.type)
     tc = config.training
+    identity = run_identity(mesh.content_hash(), config)
+    if resume and checkpoint.exists():  # a truncated or foreign checkpoint is told before the set-up (seconds)
+        check_checkpoint(checkpoint, identity)
     model = spec.model_class.from_mesh(mesh, config).to(device)
     rays = model.training_rays(MeshBLAS(mesh, device=device), device)  # default: BoxRayDistribution
     start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
     record = train_model(
         model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
         adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
-        checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=run_identity(model, config),
+        checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=identity,
         progress=progress, description=f"{spec.name} {mesh.name}", on_step=_then(model.after_training_step, on_step), record=start,
     )
     model.training_record = record.as_dict()

@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from ..errors import ConfigError, ModelFileError, TrainingError
-from ..io.model_file import read_model_file, write_model_file
+from ..io.model_file import read_header, read_model_file, write_model_file
 from .prefetch import BatchSource
 
 __all__ = ["TrainingRecord", "train_model", "identity_differences", "CHECKPOINT_METHOD"]
@@ -103,17 +103,33 @@ def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, recor
     write_model_file(path, CHECKPOINT_METHOD, header, arrays)
 
 
+def check_checkpoint(path: Path, identity: dict, header: dict | None = None) -> None:
+    """A one-line `ModelFileError` unless ``path`` is a checkpoint (well formed: its header read,
+    not its arrays) of the run ``identity`` names."""
+    header = header if header is not None else read_header(path, method=CHECKPOINT_METHOD)
+    if header.get("identity") != identity:
+        raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(header.get('identity'), identity)}); "
+                             "delete it or drop --resume")
+    step = header.get("step")
+    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+        raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop --resume")
+
+
 def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) -> tuple[int, TrainingRecord]:
     f = read_model_file(path, method=CHECKPOINT_METHOD)
-    if f.header.get("identity") != identity:
-        raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(f.header.get('identity'), identity)}); "
-                             "delete it or drop --resume")
-    state = {k[len("model."):]: v for k, v in f.arrays.items() if k.startswith("model.")}
-    dev = next(model.parameters()).device
-    model.load_state_dict({k: v.to(dev) for k, v in state.items()})
-    _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
-    sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
-    return int(f.header["step"]), TrainingRecord(**f.header["record"])
+    check_checkpoint(path, identity, f.header)
+    try:
+        state = {k[len("model."):]: v for k, v in f.arrays.items() if k.startswith("model.")}
+        dev = next(model.parameters()).device
+        model.load_state_dict({k: v.to(dev) for k, v in state.items()})
+        _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
+        sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
+        record = TrainingRecord(**f.header["record"])
+    except Exception as exc:  # well formed, checksums right, yet not this run's state (edited, or another version's)
+        msg = " ".join(str(exc).split())
+        raise ModelFileError(f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {msg[:200]}); "
+                             "delete it or drop --resume") from None
+    return f.header["step"], record
 
 
 _ABSENT = object()  # a key one identity has and the other lacks
