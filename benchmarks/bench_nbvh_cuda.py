@@ -290,7 +290,7 @@ def training_step_in_pieces(model, sampler, opt, step: int, batch: int, mark) ->
 def _optimizer(model):
     tc = model.config.training
     return torch.optim.Adam(model.parameters(), lr=tc.learning_rate, betas=tuple(tc.adam_betas), eps=tc.adam_eps,
-                            fused=next(model.parameters()).device.type in ("cuda", "cpu"))  # fmt: skip
+                            weight_decay=tc.adam_l2, fused=next(model.parameters()).device.type in ("cuda", "cpu"))  # fmt: skip
 
 
 def bench_step(model, mesh, device, repeats: int) -> dict:
@@ -547,7 +547,7 @@ def train_with_budget(mesh, args, device) -> tuple:
     record = None
     with contextlib.suppress(_Budget):
         record = train_model(model, sampler, steps=min(args.steps, tc.steps), batch_size=tc.batch_size, learning_rate=tc.learning_rate,
-                             adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final, progress=False,
+                             adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, adam_l2=tc.adam_l2, lr_decay_final=tc.lr_decay_final, progress=False,
                              on_step=on_step)  # fmt: skip
     if device.type == "cuda":
         torch.cuda.synchronize(device)

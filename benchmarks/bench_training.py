@@ -189,7 +189,7 @@ def _train(mesh, truth, config, steps: int, overlap: bool | None, variant: str =
     tc = config.training
     t0 = time.perf_counter()
     record = train_model(model, rays, steps=steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
-                         adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
+                         adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, adam_l2=tc.adam_l2, lr_decay_final=tc.lr_decay_final,
                          progress=False, on_step=model.after_training_step, overlap_sampling=overlap)
     DRAWN_AHEAD.append(record.batches_drawn_ahead)
     return time.perf_counter() - t0, record.rays

@@ -49,6 +49,26 @@ def _short_run(mesh, steps, on_model=None, **kw):
     return model.state_dict()
 
 
+def test_adam_l2_is_added_to_every_gradient():
+    # N-BVH's authors train with Adam's l2 = 1e-8 (tiny-cuda-nn's l2_reg: l2 x parameter added to the
+    # gradient): table entries no ray touched move only with it.
+    mesh = sphere(2)
+    start = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq")).encoder.table.detach().clone()
+    seen = []
+    plain = _short_run(mesh, 2, on_step=lambda step, opt: seen.append(opt.param_groups[0]["weight_decay"]))
+    with_l2 = _short_run(mesh, 2, adam_l2=0.5)
+    untouched = plain["encoder.table"] == start
+    assert seen == [0.0, 0.0] and untouched.float().mean() > 0.5
+    assert not (with_l2["encoder.table"][untouched] == start[untouched]).any()
+
+
+def test_nbvh_trains_with_the_authors_adam():
+    from neuralrt.methods.nbvh_config import NBVHConfig
+
+    tc = NBVHConfig.preset("cpu").training
+    assert (tc.adam_betas, tc.adam_eps, tc.adam_l2) == ((0.9, 0.999), 1e-8, 1e-8) and LSNIFConfig().training.adam_l2 == 0.0
+
+
 def _assert_same_parameters(a, b):
     assert a.keys() == b.keys()
     for k in a:

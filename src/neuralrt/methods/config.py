@@ -59,6 +59,8 @@ class TrainingConfig(ConfigSection):
     learning_rate: float = Field(0.01, gt=0.0, description="Adam learning rate (paper: 0.01)")
     adam_betas: tuple[float, float] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (instant-ngp's: tiny, so rarely-hit table entries still move)")
+    adam_l2: float = Field(0.0, ge=0.0, le=1.0, description="L2 regularisation: this times each parameter added to its gradient "
+                           "(tiny-cuda-nn's Adam l2_reg; LSNIF's paper names none)")
     lr_decay_final: float = Field(
         0.1, gt=0.0, le=1.0,
         description="learning rate at the last step, relative to the first, exponential decay (1 = constant, as in the paper; "

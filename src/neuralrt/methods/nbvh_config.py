@@ -1,8 +1,9 @@
 """N-BVH configuration (Weier et al. 2024; numbers from ../shared/METHODS-SPEC.md section A).
 
 Typed sections, validated on construction, round-tripping through the model file's JSON header.
-Where the paper and the authors' code differ, the paper's choice is the default and the code's is
-an option (chord points, loss weights); see docs/nbvh.md.
+Where the paper and the authors' code differ, one is the default and the other an option: the
+code's chord points ({0, 1/2, 1}; the paper's stratified ones as an option), the paper's loss
+weights (the code's 1:1:3:3 as an option); see docs/nbvh.md, "Choices".
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ class NBVHTrainingConfig(TrainingConfig):
     batch_size: int = Field(1 << 13, ge=16, description="leaf samples per step (paper: 2^18)")
     adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (the code's)")
     adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")
+    adam_l2: float = Field(1e-8, ge=0.0, le=1.0, description="L2 regularisation added to the gradients (the code's Adam l2_reg)")
     lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant, as in the paper)")
     surface_fraction: float = Field(0.0, ge=0.0, le=1.0, description="unused by N-BVH (its rays start in the scaled box): only 0")
     surface_pool_size: int = Field(1 << 16, ge=1, le=1 << 24, description="unused by N-BVH (its rays start in the scaled box): only the default")

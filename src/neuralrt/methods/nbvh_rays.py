@@ -8,7 +8,7 @@ its entry (or, for an origin inside the leaf, from the chord's start behind the 
 exit; its truth is the first exact hit along the chord, so it does not depend on the origin.
 
 Samples are kept with probability p = max(h / h_max, 0.005) (h: the leaf's heuristic, h_max: the
-largest h so far; a leaf never sampled has p = 1) by drawing more rays than needed and keeping
+largest h among the leaves trained in the previous step; a leaf never sampled has p = 1) by drawing more rays than needed and keeping
 the accepted ones: no slot ever holds a stale sample.
 
 One algorithm, two implementations, chosen once by the device: on CUDA one Triton kernel

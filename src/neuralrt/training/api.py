@@ -83,7 +83,7 @@ def train(
     start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
     record = train_model(
         model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
-        adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, lr_decay_final=tc.lr_decay_final,
+        adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, adam_l2=tc.adam_l2, lr_decay_final=tc.lr_decay_final,
         checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=identity,
         progress=progress, description=f"{spec.name} {mesh.name}", on_step=_then(model.after_training_step, on_step), record=start,
     )
