@@ -69,6 +69,16 @@ def test_nbvh_trains_with_the_authors_adam():
     assert (tc.adam_betas, tc.adam_eps, tc.adam_l2) == ((0.9, 0.999), 1e-8, 1e-8) and LSNIFConfig().training.adam_l2 == 0.0
 
 
+def test_a_key_added_at_its_old_behaviour_keeps_caches_and_checkpoints():
+    # training.adam_l2 came after models were cached and checkpoints written: at 0 (how LSNIF always
+    # trained) it is left out of the form they are matched by, so neither retrains nor is orphaned.
+    from neuralrt.methods.nbvh_config import NBVHConfig
+
+    assert "adam_l2" not in LSNIFConfig.preset("hq").model_defining()["training"]
+    assert LSNIFConfig.preset("hq").with_training(adam_l2=1e-3).model_defining()["training"]["adam_l2"] == 1e-3
+    assert NBVHConfig.preset("cpu").model_defining()["training"]["adam_l2"] == 1e-8  # trains differently now
+
+
 def _assert_same_parameters(a, b):
     assert a.keys() == b.keys()
     for k in a:

@@ -107,6 +107,10 @@ class MethodConfig(ConfigSection):
     method: str = Field(description="the intersection method this config belongs to")
 
     PRESETS: ClassVar[dict[str, Callable[[], "MethodConfig"]]] = {}
+    # Keys added after models and checkpoints existed, with the value that trains as before them:
+    # left out of `model_defining` while they hold it, so a new key does not retrain every cached
+    # model or orphan every checkpoint (section -> key -> value).
+    ADDED_KEYS: ClassVar[dict[str, dict[str, object]]] = {"training": {"adam_l2": 0.0}}
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "MethodConfig":
@@ -132,10 +136,14 @@ class MethodConfig(ConfigSection):
 
     def model_defining(self) -> dict:
         """The JSON form of the keys that make the trained model: all but ``training.checkpoint_every``
-        (how often a run saves; the model is the same bit for bit). The converter's cache and a
-        checkpoint's identity compare these."""
+        (how often a run saves; the model is the same bit for bit) and `ADDED_KEYS` at their old
+        behaviour's value. The converter's cache and a checkpoint's identity compare these."""
         data = self.model_dump(mode="json")
         data["training"].pop("checkpoint_every")
+        for section, keys in self.ADDED_KEYS.items():
+            for key, neutral in keys.items():
+                if key in data.get(section, {}) and data[section][key] == neutral:
+                    del data[section][key]
         return data
 
     @classmethod
