@@ -351,3 +351,55 @@ def test_batch_source_trial_keeps_the_batches_in_order():
     source.close()
     assert got == list(range(1, steps + 6)) and isinstance(source.draws_ahead, bool)
     assert prefetch.BatchSource(Counting(), 8, overlap=False).draws_ahead is False
+
+
+@pytest.fixture(scope="module")
+def checkpointed(tmp_path_factory):
+    """(mesh, config, checkpoint path) of a 2-step LSNIF run that saved a checkpoint."""
+    from neuralrt.training.api import train
+
+    mesh, folder = sphere(2), tmp_path_factory.mktemp("ckpt")
+    config = LSNIFConfig.preset("lq").with_training(steps=2, batch_size=256)
+    train(mesh, config, progress=False, checkpoint=folder / "m.ckpt")
+    return mesh, config, folder / "m.ckpt"
+
+
+def _edited_checkpoint(path, out, change):
+    from neuralrt.io.model_file import read_model_file, write_model_file
+
+    f = read_model_file(path)
+    header = {k: v for k, v in f.header.items() if k not in ("format_version", "method", "arrays_sha256")}
+    change(header)
+    write_model_file(out, f.method, header, f.arrays)  # well formed, checksums right
+    return out
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda h: h.pop("optimizer"), r"cannot resume from this checkpoint \(KeyError: 'optimizer'\); delete it or drop --resume"),
+    (lambda h: h.update(step=-1), r"corrupted checkpoint \(step -1\); delete it or drop --resume"),
+    (lambda h: h["record"].update(unknown=1), r"cannot resume from this checkpoint \(TypeError: .*unknown"),
+])
+def test_a_checkpoint_that_cannot_be_resumed_is_one_line(checkpointed, tmp_path, change, message):
+    # Each was a traceback (KeyError, TypeError, ...) from deep in the restore.
+    from neuralrt.errors import ModelFileError
+    from neuralrt.training.api import train
+
+    mesh, config, path = checkpointed
+    bad = _edited_checkpoint(path, tmp_path / "bad.ckpt", change)
+    with pytest.raises(ModelFileError, match=message):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
+
+
+def test_a_truncated_checkpoint_is_told_before_the_set_up(checkpointed, tmp_path, monkeypatch):
+    from neuralrt.errors import ModelFileError
+    from neuralrt.training.api import train
+
+    mesh, config, path = checkpointed
+    (tmp_path / "cut.ckpt").write_bytes(path.read_bytes()[:-100])
+
+    def no_set_up(*args, **kwargs):
+        raise AssertionError("the model was built before the checkpoint was checked")
+
+    monkeypatch.setattr(LSNIFModel, "from_mesh", no_set_up)
+    with pytest.raises(ModelFileError, match="truncated"):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=tmp_path / "cut.ckpt", resume=True)
