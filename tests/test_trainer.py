@@ -378,6 +378,7 @@ def _edited_checkpoint(path, out, change):
     (lambda h: h.pop("optimizer"), r"cannot resume from this checkpoint \(KeyError: 'optimizer'\); delete it or drop --resume"),
     (lambda h: h.update(step=-1), r"corrupted checkpoint \(step -1\); delete it or drop --resume"),
     (lambda h: h["record"].update(unknown=1), r"cannot resume from this checkpoint \(TypeError: .*unknown"),
+    (lambda h: h["optimizer"]["param_groups"][0]["params"].reverse(), r"cannot resume from this checkpoint \(ValueError: Adam's exp_avg has shape"),
 ])
 def test_a_checkpoint_that_cannot_be_resumed_is_one_line(checkpointed, tmp_path, change, message):
     # Each was a traceback (KeyError, TypeError, ...) from deep in the restore.

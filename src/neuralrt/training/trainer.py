@@ -91,6 +91,11 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
         prefix = f"adam.{pid}."
         state[pid] = {k[len(prefix):]: v.to(device) if v.ndim else v for k, v in arrays.items() if k.startswith(prefix)}
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    # torch takes moments of any shape, and the step after would fail inside Adam's kernel.
+    for p in (p for group in opt.param_groups for p in group["params"]):
+        for name, value in opt.state.get(p, {}).items():
+            if value.ndim and value.shape != p.shape:
+                raise ValueError(f"Adam's {name} has shape {list(value.shape)}, its parameter {list(p.shape)}")
 
 
 def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict) -> None:
