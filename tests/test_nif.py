@@ -29,6 +29,8 @@ def test_networks_have_the_papers_shapes_and_memory():
     assert mem["real_bytes_per_object"]["outer_grids"] == 2 * 256 * 256 * 3 * 4  # float32, N features
     assert mem["real_bytes_per_object"]["inner_grids"] == (2 * 128 * 128 * 5 + 128 * 3) * 4
     assert mem["mlp_bytes"]["outer_mlp"] == (6 * 64 + 64 + 64 * 64 + 64 + 64 + 1) * 4
+    # The paper's "18 kB and 21 kB" (METHODS-SPEC B7): float32 weights without biases.
+    assert mem["paper_mlp_bytes"] == {"outer_mlp": 18_176, "inner_mlp": 21_120}
     # Grids per object, MLPs shared: a second object adds grids only.
     two = NIFNetworks(NIFConfig(), [_box(), _box(0, 2)]).memory_report()
     assert two["real_bytes"] - mem["real_bytes"] == sum(mem["real_bytes_per_object"].values())

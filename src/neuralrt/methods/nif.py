@@ -180,8 +180,9 @@ class NIFNetworks(nn.Module):
     # -- memory --------------------------------------------------------------------------------
     def memory_report(self) -> dict:
         """Bytes in both conventions: the paper's (4 R^2 bytes per object for each network kind's
-        grids, N ignored, Sec. 5) and the real run-time bytes (every grid with its N features at
-        the precision held, float32; MLP weights and biases), per object and in total."""
+        grids, N ignored, Sec. 5; MLPs as float32 weights without biases, the paper's 18 kB and
+        21 kB) and the real run-time bytes (every grid with its N features at the precision held,
+        float32; MLP weights and biases), per object and in total."""
         held = self.outer_position.table.element_size()
         r_out, r_in = self.outer_position.resolution, self.inner_position.resolution
         paper_per_object = 4 * r_out * r_out + 4 * r_in * r_in
@@ -192,12 +193,14 @@ class NIFNetworks(nn.Module):
         }
         mlp = {"outer_mlp": sum(p.numel() for p in self.outer_mlp.parameters()) * held,
                "inner_mlp": sum(p.numel() for p in self.inner_mlp.parameters()) * held}
+        weights = lambda mlp: sum(layer.weight.numel() for layer in [*mlp.hidden, mlp.output]) * 4  # noqa: E731
         n = self.num_objects
         return {
             "objects": n,
             "bytes_per_value": held,
             "paper_bytes_per_object": paper_per_object,
             "paper_bytes": paper_per_object * n,
+            "paper_mlp_bytes": {"outer_mlp": weights(self.outer_mlp), "inner_mlp": weights(self.inner_mlp)},
             "real_bytes_per_object": real_per_object,
             "mlp_bytes": mlp,
             "real_bytes": sum(real_per_object.values()) * n + sum(mlp.values()),
