@@ -6,13 +6,7 @@ Every array here is ``[H, W, 3]`` float32 *linear* RGB, row 0 at the top. Writes
 
 from __future__ import annotations
 
-import contextlib
-import io
-import os
 import re
-import sys
-import tempfile
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -160,71 +154,24 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
-# Messages OpenEXR prints when it fails to decode pixels; it may carry on and return what it got.
-_EXR_FAILURE = re.compile(r"EXR_ERR_\w+|Exception raised reading pixel data")
-_LIBRARY_OUTPUT_LOCK = threading.Lock()
-
-
-def _flush_c_stdio() -> None:
-    """Flush C ``stdio`` buffers: native text printed through them (fully buffered on a pipe)
-    must land in the capture file, not on the real stdout after it is restored."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError, TypeError):  # no C library handle (Windows): nothing buffered to flush
-        pass
-
-
-@contextlib.contextmanager
-def _library_output_captured():
-    """Catch what a library prints, at both levels, instead of letting it reach the terminal.
-
-    OpenEXR's C core writes decode errors straight to file descriptor 2, below Python, and its
-    Python binding prints warnings through ``sys.stdout``; both are caught. Yields a list that
-    holds the captured text once the block ends. A lock serialises this: two threads must not
-    swap the same descriptors and streams.
-    """
-    captured: list[str] = []
-    text = io.StringIO()
-    with _LIBRARY_OUTPUT_LOCK, tempfile.TemporaryFile() as sink:
-        for stream in (sys.stdout, sys.stderr):  # Python's own pending text goes out first, not into the sink
-            with contextlib.suppress(Exception):
-                stream.flush()
-        saved = []
-        try:
-            for fd in (1, 2):
-                with contextlib.suppress(OSError):  # a closed descriptor has nothing to protect
-                    saved.append((fd, os.dup(fd)))
-                    os.dup2(sink.fileno(), fd)
-            with contextlib.redirect_stdout(text), contextlib.redirect_stderr(text):
-                yield captured
-        finally:
-            _flush_c_stdio()
-            for fd, copy in saved:
-                os.dup2(copy, fd)
-                os.close(copy)
-            sink.seek(0)
-            captured.append(sink.read().decode("utf-8", "replace") + text.getvalue())
 
 
 def _read_exr(path: Path) -> np.ndarray:
+    from .exr_chunks import exr_chunk_problem
+
     with open(path, "rb") as f:
         if f.read(4) != _EXR_MAGIC:
             raise ImageError(f"{path}: not an OpenEXR file (no EXR magic number)")
-    error = None
-    with _library_output_captured() as library_output:
-        try:
-            rgb = _read_exr_pixels(path)
-        except ImageError:
-            raise
-        except Exception as exc:
-            error = exc
-    # A decode failure must be an error even if the library only warned and returned pixels.
-    failure = _EXR_FAILURE.search(library_output[0])
-    if error is not None or failure:
-        detail = failure.group(0) if failure and failure.group(0).startswith("EXR_ERR") else str(error or "decode failed")
-        raise ImageError(f"{path}: truncated or corrupt EXR file ({detail})")
+    # Checked before decoding: OpenEXR only prints about a broken chunk, and may return partial pixels.
+    problem = exr_chunk_problem(path)
+    if problem:
+        raise ImageError(f"{path}: truncated or corrupt EXR file ({problem})")
+    try:
+        rgb = _read_exr_pixels(path)
+    except ImageError:
+        raise
+    except Exception as exc:
+        raise ImageError(f"{path}: truncated or corrupt EXR file ({exc})") from None
     return _as_rgb(rgb, path)
 
 
