@@ -286,6 +286,66 @@ def test_a_missing_texture_or_material_file_is_a_warning(tmp_path):
         assert load_mesh(tmp_path / "t.obj").materials[0].texture is not None  # no warning when it is there
 
 
+def test_a_material_file_or_texture_that_is_a_fifo_is_a_warning_not_a_hang(tmp_path):
+    # Opening the FIFO blocked every command for ever (mtllib, or map_Kd).
+    import os
+    import threading
+
+    os.mkfifo(tmp_path / "pipe")
+    (tmp_path / "m.obj").write_text("mtllib pipe\n" + _TRIANGLE_OBJ)
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd pipe\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
+    caught = []
+
+    def load_both():
+        import warnings
+
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            caught.extend([load_mesh(tmp_path / "m.obj"), load_mesh(tmp_path / "t.obj")])
+        caught.extend(str(w.message) for w in seen)
+
+    loader = threading.Thread(target=load_both, daemon=True)
+    loader.start()
+    loader.join(60)
+    assert not loader.is_alive(), "load_mesh blocked on a FIFO"
+    assert any("m.obj: material file pipe could not be read" in m for m in caught[2:])
+    assert any("t.obj: a texture could not be read (OSError: pipe is not a regular file)" in m for m in caught[2:])
+
+
+def test_a_texture_that_cannot_be_decoded_is_a_warning_naming_it(tmp_path):
+    # trimesh decodes textures lazily, in neuralrt's code: a PNG whose data ends early was a bare
+    # OSError traceback (and one too large for memory an allocator's traceback).
+    from PIL import Image
+
+    Image.new("RGB", (64, 64), (200, 10, 10)).save(tmp_path / "cut.png")
+    data = (tmp_path / "cut.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd cut.png\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
+    with pytest.warns(UserWarning, match=r"t\.obj: the 64x64 texture of material 'tex' could not be decoded \(OSError: .*\); "
+                                          r"its material renders with its base colour"):
+        assert load_mesh(tmp_path / "t.obj").materials[0].texture is None
+
+
+def test_ctrl_c_while_trimesh_reads_a_material_file_stops_the_load(tmp_path, monkeypatch):
+    # trimesh catches BaseException around the MTL and logs it: a SIGTERM became a warning.
+    from neuralrt.geometry import mesh as mesh_module
+
+    real = mesh_module.regular_files_resolver
+
+    def interrupted(path):
+        resolver = real(path)
+        resolver.get = lambda name: (_ for _ in ()).throw(KeyboardInterrupt())
+        return resolver
+
+    monkeypatch.setattr(mesh_module, "regular_files_resolver", interrupted)
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
+    with pytest.raises(KeyboardInterrupt):
+        load_mesh(tmp_path / "t.obj")
+
+
 def test_gltf_colours_follow_the_gltf_spec(tmp_path):
     """baseColorFactor is linear and white when absent; the texture is sRGB, multiplied by it (trimesh's
     to_simple read the factor as sRGB, and an absent one as its 0.4 grey)."""

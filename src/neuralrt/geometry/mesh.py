@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
-from .unread_assets import unread_assets
+from .unread_assets import regular_files_resolver, unread_assets
 
 
 __all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
@@ -290,8 +290,9 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 # --- loading --------------------------------------------------------------------------------
 
 
-def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
-    """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual."""
+def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+    """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
+    mesh file, for warnings about a texture that cannot be decoded)."""
     uv = colors = None
     material = MeshMaterial(name=fallback_name)
     kind = getattr(visual, "kind", None)
@@ -300,7 +301,7 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
         uv = None if visual.uv is None else np.asarray(visual.uv, np.float32)
         material.name = getattr(mat, "name", None) or fallback_name
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
-            _pbr_colour(material, mat, uv)
+            _pbr_colour(material, mat, uv, where)
             return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
@@ -308,8 +309,9 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
         if diffuse is not None:
             material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
         image = getattr(mat, "image", None)
-        if image is not None and uv is not None:
-            material.texture = _texture_pixels(image)
+        texture = _texture_pixels(image, material.name, where) if image is not None and uv is not None else None
+        if texture is not None:
+            material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
     elif kind == "vertex":
         colors = srgb_to_linear(np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0)
@@ -320,26 +322,47 @@ def _material_from_visual(visual, fallback_name: str) -> tuple[MeshMaterial, np.
     return material, uv, colors
 
 
-def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None) -> None:
+def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str) -> None:
     """A glTF material's colour as the glTF spec defines it: ``baseColorFactor`` is linear (trimesh
     keeps it as 0-255) and white when absent; a ``baseColorTexture`` is sRGB and multiplied by it.
     (trimesh's ``to_simple`` reads the factor as sRGB and an absent one as its 0.4 grey.)"""
     factor = pbr.baseColorFactor
     linear = np.ones(3, np.float32) if factor is None else np.asarray(factor, np.float32)[:3] / 255.0
     image = pbr.baseColorTexture
-    if image is not None and uv is not None:
-        material.texture = _texture_pixels(image) * linear
+    texture = _texture_pixels(image, material.name, where) if image is not None and uv is not None else None
+    if texture is not None:
+        material.texture = texture * linear
     else:
         material.base_color = linear
 
 
-def _texture_pixels(image) -> np.ndarray:
+# Bytes a texture pixel takes while decoded: the float32 result and two float32 temporaries.
+_TEXTURE_BYTES_PER_PIXEL = 3 * 4 * 3
+
+
+def _texture_pixels(image, material: str, where: str) -> np.ndarray | None:
     """[H, W, 3] linear RGB of a PIL image; 16-bit grey (PIL mode I;16 or I) scaled from 65535, where
-    ``convert("RGB")`` would clip every value above 255 to white."""
-    if image.mode.startswith("I"):
-        grey = np.clip(np.asarray(image, np.float32) / 65535.0, 0.0, 1.0)
-        return srgb_to_linear(np.repeat(grey[..., None], 3, axis=-1))
-    return srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
+    ``convert("RGB")`` would clip every value above 255 to white. trimesh decodes textures lazily,
+    here: one it cannot, or one larger than the memory left, is a warning and None (the material
+    keeps its base colour), not a traceback."""
+    from ..devices import available_bytes
+
+    width, height = image.size
+    needed, have = width * height * _TEXTURE_BYTES_PER_PIXEL, available_bytes("cpu")
+    why = None
+    if have is not None and needed > have:
+        why = f"decoding it needs {needed / 2**30:.1f} GiB, {have / 2**30:.1f} GiB is available"
+    else:
+        try:
+            if image.mode.startswith("I"):
+                grey = np.clip(np.asarray(image, np.float32) / 65535.0, 0.0, 1.0)
+                return srgb_to_linear(np.repeat(grey[..., None], 3, axis=-1))
+            return srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
+        except (OSError, ValueError, MemoryError) as exc:  # PIL: truncated data; numpy: allocation
+            why = f"{type(exc).__name__}: {exc}"
+    warnings.warn(f"{where}: the {width}x{height} texture of material {material!r} could not be decoded ({why}); "
+                  "its material renders with its base colour", stacklevel=3)
+    return None
 
 
 def _varying_face_colors(visual) -> np.ndarray | None:
@@ -389,7 +412,7 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(problem)
     try:
         with unread_assets() as unread:
-            loaded = trimesh.load(str(path), process=False)
+            loaded = trimesh.load(str(path), process=False, resolver=regular_files_resolver(str(path)))
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
@@ -423,7 +446,7 @@ def load_mesh(path: str | Path) -> Mesh:
                 raise
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
-        material, uv, col = _material_from_visual(part.visual, f"material{i}")
+        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path))
         face_colors, face_colors_of[i] = face_colors_of[i], None
         key = material.name
         known = materials[names[key]] if key in names else None

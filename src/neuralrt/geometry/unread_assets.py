@@ -1,17 +1,20 @@
-"""The textures and material files trimesh could not read while loading a mesh.
+"""The textures and material files a mesh names, as trimesh reads them beside it.
 
-trimesh drops them silently (a debug log line), so a mesh whose ``map_Kd`` image or ``mtllib`` is
-missing rendered white with no word why. `unread_assets` collects those log lines for the calling
-thread, and only those: trimesh's other debug lines stay filtered as before.
+trimesh drops the ones it cannot read silently (a debug log line), so a mesh whose ``map_Kd``
+image or ``mtllib`` is missing rendered white with no word why. `unread_assets` collects those log
+lines for the calling thread, and only those: trimesh's other debug lines stay filtered as before.
+`regular_files_resolver` is what trimesh reads them through: regular files only, since opening a
+FIFO a mesh names blocked every command for ever.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import threading
 
-__all__ = ["unread_assets"]
+__all__ = ["unread_assets", "regular_files_resolver"]
 
 _LOGGER = "trimesh.util"  # the logger trimesh's OBJ and glTF readers write to
 _MATERIALS = "unable to load materials from:"
@@ -30,6 +33,11 @@ class _Collect(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         into = _collected.get(record.thread)
+        exc = record.exc_info[1] if record.exc_info else None
+        if into is not None and isinstance(exc, KeyboardInterrupt):
+            # trimesh's OBJ reader catches BaseException around the MTL: a Ctrl-C or SIGTERM
+            # (neuralrt.launch raises it as a KeyboardInterrupt) must still stop the command.
+            raise exc
         if into is not None:
             what = _described(record)
             if what:
@@ -74,3 +82,22 @@ def unread_assets():
                 logger.removeFilter(_installed)
                 logger.setLevel(_installed.own_level)
                 _installed = None
+
+
+def regular_files_resolver(mesh_path: str):
+    """trimesh's resolver for the files beside ``mesh_path``, refusing any that is not a regular
+    file (a FIFO, a device, a folder) with an OSError, which trimesh logs as unread."""
+    from trimesh.resolvers import FilePathResolver
+
+    class RegularFiles(FilePathResolver):
+        def get(self, name: str):
+            for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
+                try:
+                    path = self.absolute(candidate)
+                except ValueError:
+                    continue
+                if path.exists() and not path.is_file():
+                    raise OSError(f"{name} is not a regular file")
+            return super().get(name)
+
+    return RegularFiles(mesh_path)
