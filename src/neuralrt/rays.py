@@ -20,6 +20,7 @@ from torch import Tensor
 from .arguments import check_count
 from .devices import DEVICE_TYPES, check_device, resolve_device  # (resolve_device: re-exported, its old home)
 from .errors import ConfigError, DeviceError
+from .fork_guard import check_not_forked
 
 __all__ = ["Rays", "Hits", "AABB", "Transform", "ray_box_intervals", "valid_ray_mask", "face_forward", "pinhole_rays",
            "resolve_device", "check_rays"]
@@ -143,9 +144,11 @@ def _broadcasts_to(shape: tuple[int, ...], target: tuple[int, ...]) -> bool:
 
 
 def check_rays(rays, where: str) -> None:
-    """One-line `ConfigError` unless ``rays`` is a `Rays` (a BLAS's entry points call it: one isinstance)."""
+    """One-line `ConfigError` unless ``rays`` is a `Rays` (a BLAS's entry points call it: one
+    isinstance); a `DeviceError` in a process forked after OpenMP work (`neuralrt.fork_guard`)."""
     if not isinstance(rays, Rays):
         raise ConfigError(f"{where}: expected neuralrt.Rays, got {type(rays).__name__}")
+    check_not_forked(where)
 
 
 @dataclass(eq=False)  # (as Rays)

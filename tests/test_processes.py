@@ -1,0 +1,40 @@
+"""neuralrt in other processes and threads: a child forked after OpenMP work is refused in one line
+(it hung, or numba killed it); spawned children answer as the parent does."""
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_SCRIPT = textwrap.dedent("""
+    import multiprocessing as mp, sys, torch
+    import neuralrt
+    from neuralrt import MeshBLAS, Rays, load_mesh
+
+    def work(n):
+        blas = MeshBLAS(load_mesh("procedural:statue:0"))
+        o = torch.randn(n, 3, generator=torch.Generator().manual_seed(n)) * 3
+        try:
+            return int(blas.intersect(Rays(o, -o)).hit.sum())
+        except neuralrt.NeuralRTError as exc:
+            return str(exc)
+
+    if __name__ == "__main__":
+        parent = work(20000)  # OpenMP's threads run here first
+        with mp.get_context(sys.argv[1]).Pool(1) as pool:
+            print(parent, pool.apply_async(work, (20000,)).get(timeout=120), flush=True)
+""")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork with GNU OpenMP: Linux")
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_a_child_process_answers_or_says_why_it_cannot(tmp_path, start):
+    (tmp_path / "pool.py").write_text(_SCRIPT)
+    done = subprocess.run([sys.executable, str(tmp_path / "pool.py"), start], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    parent, child = done.stdout.strip().split(" ", 1)
+    if start == "fork":
+        assert child.startswith("intersect: this process was forked") and "get_context('spawn')" in child
+    else:
+        assert child == parent
