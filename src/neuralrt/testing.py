@@ -3,7 +3,7 @@
 Each `CONTRACT_CHECKS` entry is a check of one promise every BLAS keeps (`neuralrt.accel.blas`):
 the shapes and types of `Hits`, ``occluded == intersect().hit``, the ``[t_min, t_max]`` interval
 with both ends included, direction length only rescaling ``t``, degenerate rays missing, bounds
-and memory reports, a model file's round trip. A check raises ``AssertionError`` naming what
+and memory reports, the same answers from several threads at once, a model file's round trip. A check raises ``AssertionError`` naming what
 broke. They are written for `contract_mesh` (a torus off the origin: rays from the surface hit it
 again, rays through the hole miss) and a model trained on it by `train_for_contract`::
 
@@ -205,6 +205,22 @@ def _round_trip(blas, mesh, device, tmp_dir) -> None:
         assert torch.equal(getattr(a, name), getattr(b, name)), f"Hits.{name} changed through save and load"
 
 
+def _concurrent_queries(blas, mesh, device, tmp_dir) -> None:
+    # A BLAS is shared by the threads of a program that embeds it (a renderer's workers): the same
+    # rays must get the same answers whoever else is asking.
+    from concurrent.futures import ThreadPoolExecutor
+
+    batches = [contract_rays(blas, n, 10 + n, device) for n in (1, 777, 2048, 4096)]
+    alone = [(blas.intersect(r), blas.occluded(r)) for r in batches]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda r: (blas.intersect(r), blas.occluded(r)), batches * 2))
+    for k, (hits, blocked) in enumerate(together):
+        want_hits, want_blocked = alone[k % len(batches)]
+        for name in ("hit", "t", "normal", "albedo", "material_id"):
+            assert torch.equal(getattr(hits, name), getattr(want_hits, name)), f"Hits.{name} differs when queried from 4 threads"
+        assert torch.equal(blocked, want_blocked), "occluded differs when queried from 4 threads"
+
+
 def _other_device_rays(blas, mesh, device, tmp_dir) -> None:
     from .errors import DeviceError
 
@@ -223,6 +239,7 @@ CONTRACT_CHECKS: dict[str, ContractCheck] = {
     "direction_length_only_rescales_t": ContractCheck(_direction_length),
     "degenerate_rays_miss": ContractCheck(_degenerate_rays),
     "bounds_memory_and_offset": ContractCheck(_bounds_memory_offset),
+    "concurrent_queries": ContractCheck(_concurrent_queries),
     "save_load_round_trip": ContractCheck(_round_trip, lambda blas, device: is_neural(blas)),
     "rays_on_another_device": ContractCheck(_other_device_rays, lambda blas, device: is_neural(blas) and device.type == "cuda"),
 }
