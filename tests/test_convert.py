@@ -236,6 +236,18 @@ def test_checkpoints_are_at_absolute_paths_for_a_relative_output(tmp_path, monke
     assert len(jobs) == 1 and jobs[0].checkpoint == tmp_path / "out" / "models" / f"{jobs[0].key}.ckpt"
 
 
+def _two_balls_scene(folder, left: str, right: str) -> None:
+    """``folder/scene.toml``: the meshes ``left.obj`` at x = -1.2 and ``right.obj`` at x = 1.2, one white material."""
+    spec = SceneSpec(
+        camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(16, 16)),
+        materials=[DiffuseMaterialSpec(name="white", albedo=(1.0, 1.0, 1.0))],
+        objects=[ObjectSpec(name=left, mesh=f"{left}.obj", material="white", transform=TransformSpec(translate=(-1.2, 0, 0))),
+                 ObjectSpec(name=right, mesh=f"{right}.obj", material="white", transform=TransformSpec(translate=(1.2, 0, 0)))],
+        environment=EnvironmentSpec(color=(1.0, 1.0, 1.0)),
+    )
+    save_scene(spec, folder / "scene.toml")
+
+
 def test_group_keeps_each_meshs_own_colours(tmp_path):
     # Two meshes coloured by their MTL Kd, one scene material: the merged mesh keeps a slot per colour
     # (it dropped them: the group trained on, and camera rays saw, the default white).
@@ -249,14 +261,7 @@ def test_group_keeps_each_meshs_own_colours(tmp_path):
         lines = [f"mtllib {name}.mtl"] + [f"v {x} {y} {z}" for x, y, z in ball.vertices] + ["usemtl paint"]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in ball.faces]
         (tmp_path / f"{name}.obj").write_text("\n".join(lines) + "\n")
-    spec = SceneSpec(
-        camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(16, 16)),
-        materials=[DiffuseMaterialSpec(name="white", albedo=(1.0, 1.0, 1.0))],
-        objects=[ObjectSpec(name="red", mesh="red.obj", material="white", transform=TransformSpec(translate=(-1.2, 0, 0))),
-                 ObjectSpec(name="blue", mesh="blue.obj", material="white", transform=TransformSpec(translate=(1.2, 0, 0)))],
-        environment=EnvironmentSpec(color=(1.0, 1.0, 1.0)),
-    )
-    save_scene(spec, tmp_path / "scene.toml")
+    _two_balls_scene(tmp_path, "red", "blue")
     convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
                   steps=20, batch=1024, seed=0, progress=False)
     scene = load_scene(tmp_path / "out" / "scene.toml")
@@ -294,14 +299,7 @@ def test_group_keeps_textures(tmp_path):
     lines += ["usemtl paint"] + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in ball.faces]
     (tmp_path / "ball.obj").write_text("\n".join(lines) + "\n")
     ball.export(tmp_path / "plain.obj")
-    spec = SceneSpec(
-        camera=CameraSpec(position=(0, 0, 4.0), look_at=(0, 0, 0), resolution=(16, 16)),
-        materials=[DiffuseMaterialSpec(name="white", albedo=(1.0, 1.0, 1.0))],
-        objects=[ObjectSpec(name="striped", mesh="ball.obj", material="white", transform=TransformSpec(translate=(-1.2, 0, 0))),
-                 ObjectSpec(name="plain", mesh="plain.obj", material="white", transform=TransformSpec(translate=(1.2, 0, 0)))],
-        environment=EnvironmentSpec(color=(1.0, 1.0, 1.0)),
-    )
-    save_scene(spec, tmp_path / "scene.toml")
+    _two_balls_scene(tmp_path, "ball", "plain")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "textures not carried" warning any more
         convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
