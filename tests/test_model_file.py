@@ -1,6 +1,5 @@
 """The .nrt container: round trip, atomic writes, and one-line errors for bad files."""
 
-import hashlib
 import json
 import struct
 
@@ -8,8 +7,7 @@ import pytest
 import torch
 
 from neuralrt.errors import ModelFileError
-from neuralrt.io.model_file import (FORMAT_VERSION, HEADER_DIGEST_KEY, METADATA_KEY, read_header, read_model_file,
-                                    write_model_file)
+from neuralrt.io.model_file import FORMAT_VERSION, METADATA_KEY, header_digest, read_header, read_model_file, write_model_file
 
 
 def _arrays():
@@ -105,15 +103,23 @@ def _rewrite_header(path, change, sign: bool = True, text: str | None = None) ->
     header = json.loads(data[8 : 8 + n])
     inner = json.loads(header["__metadata__"][METADATA_KEY])
     change(inner)
-    text = json.dumps(inner) if text is None else text
-    header["__metadata__"][METADATA_KEY] = text
     if sign and inner.get("format_version", 0) >= 3:
-        header["__metadata__"][HEADER_DIGEST_KEY] = hashlib.sha256(text.encode()).hexdigest()
+        inner["header_sha256"] = header_digest(inner)
     elif sign:
-        header["__metadata__"].pop(HEADER_DIGEST_KEY, None)
+        inner.pop("header_sha256", None)
+    header["__metadata__"][METADATA_KEY] = json.dumps(inner) if text is None else text
     raw = json.dumps(header).encode()
     raw += b" " * ((8 - len(raw) % 8) % 8)
     path.write_bytes(struct.pack("<Q", len(raw)) + raw + data[8 + n :])
+
+
+def test_the_same_model_writes_the_same_bytes(tmp_path):
+    # The header's digest was a second metadata key, and safetensors writes its keys in no fixed order.
+    written = set()
+    for k in range(8):
+        path = write_model_file(tmp_path / f"{k}.nrt", "lsnif", {"config": {"a": 1}, "bounds": [[0, 0, 0], [1, 2, 3]]}, _arrays())
+        written.add(path.read_bytes())
+    assert len(written) == 1
 
 
 def test_a_changed_header_value_is_caught(model_path):
@@ -130,8 +136,8 @@ def test_a_header_claiming_an_older_version_is_still_checked(model_path):
 
 def test_a_current_file_without_its_header_digest_is_corrupted(model_path):
     data = model_path.read_bytes()
-    model_path.write_bytes(data.replace(HEADER_DIGEST_KEY.encode(), b"neuralrt_sha25X"))
-    assert f"missing '{HEADER_DIGEST_KEY}'" in _error(model_path)
+    model_path.write_bytes(data.replace(b"header_sha256", b"header_sha25X"))
+    assert "missing 'header_sha256'" in _error(model_path)
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +154,7 @@ def test_model_header_is_typed_and_stores_nothing_derivable(lsnif_file):
 
     model, path = lsnif_file
     raw = read_header(path)
-    assert set(raw) == {"format_version", "method", "arrays_sha256", "config", "bounds", "materials", "training",
+    assert set(raw) == {"format_version", "method", "arrays_sha256", "header_sha256", "config", "bounds", "materials", "training",
                         "mesh_sha256", "mesh_name"}
     header = read_model_header(path)
     assert header.method == "lsnif" and header.config["method"] == "lsnif" and header.mesh_sha256 == model.mesh_hash
@@ -180,8 +186,8 @@ def test_version_2_files_load_without_a_header_digest(lsnif_file, tmp_path):
     model, path = lsnif_file
     old = tmp_path / "v2.nrt"
     old.write_bytes(path.read_bytes())
-    _rewrite_header(old, lambda h: h.update(format_version=2))  # what format 2 wrote: no neuralrt_sha256
-    assert HEADER_DIGEST_KEY.encode() not in old.read_bytes()
+    _rewrite_header(old, lambda h: h.update(format_version=2))  # what format 2 wrote: no header_sha256
+    assert b"header_sha256" not in old.read_bytes()
     assert load_model(old).config == model.config
 
 

@@ -1,15 +1,16 @@
 """The `.nrt` model file: named arrays in safetensors plus a JSON header, written atomically.
 
-Layout: a plain safetensors file whose ``__metadata__`` holds ``"neuralrt"``, a JSON object with
-at least ``format_version``, ``method`` and ``arrays_sha256`` (a SHA-256 over every array's name,
-dtype, shape and bytes, so flipped bits in the data are caught; safetensors itself only checks
-that its header parses), and ``"neuralrt_sha256"``, the SHA-256 of that JSON text as stored (so a
-flipped bit in the header's numbers, e.g. the bounds or a threshold, is caught too). Model files of every method share one typed header, `ModelHeader`
+Layout: a plain safetensors file whose ``__metadata__`` holds one key, ``"neuralrt"``, a JSON
+object with at least ``format_version``, ``method``, ``arrays_sha256`` (a SHA-256 over every
+array's name, dtype, shape and bytes, so flipped bits in the data are caught; safetensors itself
+only checks that its header parses) and ``header_sha256`` (a SHA-256 over the rest of the object,
+as sorted-key JSON, so a flipped bit in the header's numbers, e.g. the bounds or a threshold, is
+caught too; one key, as safetensors writes several in no fixed order). Model files of every method share one typed header, `ModelHeader`
 (method, config, bounds, materials, training record, source-mesh hash and name); nothing that can
 be derived (box, memory) is stored. Training checkpoints use the same container with their own
 keys. Reading never executes code: safetensors parses a JSON header and raw bytes.
 
-Format versions: 3 (current) adds ``neuralrt_sha256``; 2 has the `ModelHeader` keys and a
+Format versions: 3 (current) adds ``header_sha256``; 2 has the `ModelHeader` keys and a
 ``method`` key inside ``config``; 1 also stored ``box`` and ``memory_bytes``, which are ignored
 when a version-1 file is read. Files of versions 1 and 2 load without a header digest.
 
@@ -37,16 +38,15 @@ from .files import write_atomically
 
 __all__ = [
     "MODEL_SUFFIX", "check_model_path",
-    "FORMAT_VERSION", "METADATA_KEY", "HEADER_DIGEST_KEY", "ModelFile", "ModelHeader", "MaterialEntry", "read_model_file", "read_header",
-    "read_model", "read_model_header", "write_model", "write_model_file", "arrays_digest",
+    "FORMAT_VERSION", "METADATA_KEY", "ModelFile", "ModelHeader", "MaterialEntry", "read_model_file", "read_header",
+    "read_model", "read_model_header", "write_model", "write_model_file", "arrays_digest", "header_digest",
 ]
 
 FORMAT_VERSION = 3
 MODEL_SUFFIX = ".nrt"  # how `neuralrt info`, scene files and the CLI tell model files
 METADATA_KEY = "neuralrt"
-HEADER_DIGEST_KEY = "neuralrt_sha256"  # beside METADATA_KEY: the digest of its text
 # Keys of the container itself, added by `write_model_file` (not part of a `ModelHeader`).
-_CONTAINER_KEYS = ("format_version", "arrays_sha256")
+_CONTAINER_KEYS = ("format_version", "arrays_sha256", "header_sha256")
 # Keys version 1 stored although they can be derived.
 _DERIVED_V1_KEYS = ("box", "memory_bytes")
 
@@ -109,6 +109,13 @@ def arrays_digest(arrays: dict[str, Tensor]) -> str:
     return h.hexdigest()
 
 
+def header_digest(header: dict) -> str:
+    """SHA-256 over ``header`` without its own ``header_sha256``, as sorted-key JSON (a JSON value
+    reads back to the same text, so the digest survives the file)."""
+    body = {k: v for k, v in header.items() if k != "header_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
 def check_model_path(path: Path) -> None:
     """A one-line `ConfigError` unless ``path`` ends in ``.nrt``: `neuralrt info` and scene files tell models by it."""
     if path.suffix.lower() != MODEL_SUFFIX:
@@ -124,8 +131,8 @@ def write_model_file(path: str | os.PathLike, method: str, header: dict, arrays:
     path = Path(path)
     arrays = {k: v.detach().cpu().contiguous() for k, v in arrays.items()}
     full_header = {**header, "format_version": FORMAT_VERSION, "method": method, "arrays_sha256": arrays_digest(arrays)}
-    text = json.dumps(full_header, sort_keys=True)
-    metadata = {METADATA_KEY: text, HEADER_DIGEST_KEY: hashlib.sha256(text.encode()).hexdigest()}
+    full_header["header_sha256"] = header_digest(full_header)
+    metadata = {METADATA_KEY: json.dumps(full_header, sort_keys=True)}
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomically(path, lambda tmp: _save(arrays, tmp, metadata), fsync=True)
     return path
@@ -192,13 +199,8 @@ def _parse_header(path: Path, handle) -> dict:
     meta = handle.metadata() or {}
     if METADATA_KEY not in meta:
         raise ModelFileError(f"{path}: not a neuralrt model file (safetensors without a '{METADATA_KEY}' header)")
-    text = meta[METADATA_KEY]
-    # Checked whatever the version says: a flipped digit must not pass as an older version.
-    digest = meta.get(HEADER_DIGEST_KEY)
-    if digest is not None and digest != hashlib.sha256(text.encode()).hexdigest():
-        raise ModelFileError(f"{path}: corrupted header (checksum mismatch)")
     try:
-        header = json.loads(text)
+        header = json.loads(meta[METADATA_KEY])
         # A lone surrogate (JSON "\ud800") is no text: printing or writing it fails later.
         json.dumps(header, ensure_ascii=False).encode("utf-8")
     except json.JSONDecodeError as exc:
@@ -209,6 +211,9 @@ def _parse_header(path: Path, handle) -> dict:
         raise ModelFileError(f"{path}: corrupted header (a string that is not valid Unicode text)") from None
     if not isinstance(header, dict):
         raise ModelFileError(f"{path}: corrupted header (not a JSON object)")
+    # Checked whatever the version says: a flipped digit must not pass as an older version.
+    if "header_sha256" in header and header["header_sha256"] != header_digest(header):
+        raise ModelFileError(f"{path}: corrupted header (checksum mismatch)")
     for key in ("format_version", "method", "arrays_sha256"):
         if key not in header:
             raise ModelFileError(f"{path}: corrupted header (missing '{key}')")
@@ -220,8 +225,8 @@ def _parse_header(path: Path, handle) -> dict:
             f"{path}: written by a newer neuralrt (format version {version}; this version reads up to "
             f"{FORMAT_VERSION}): upgrade neuralrt"
         )
-    if digest is None and version >= 3:
-        raise ModelFileError(f"{path}: corrupted header (missing '{HEADER_DIGEST_KEY}')")
+    if "header_sha256" not in header and version >= 3:
+        raise ModelFileError(f"{path}: corrupted header (missing 'header_sha256')")
     return header
 
 
