@@ -404,3 +404,43 @@ def test_a_truncated_checkpoint_is_told_before_the_set_up(checkpointed, tmp_path
     monkeypatch.setattr(LSNIFModel, "from_mesh", no_set_up)
     with pytest.raises(ModelFileError, match="truncated"):
         train(mesh, config.with_training(steps=4), progress=False, checkpoint=tmp_path / "cut.ckpt", resume=True)
+
+
+def _edited_checkpoint_arrays(path, out, change):
+    from neuralrt.io.model_file import read_model_file, write_model_file
+
+    f = read_model_file(path)
+    arrays = dict(f.arrays)
+    change(arrays)
+    write_model_file(out, f.method, {k: v for k, v in f.header.items() if k not in ("format_version", "method")}, arrays)
+    return out
+
+
+def test_a_checkpoint_whose_model_state_is_nan_is_refused(checkpointed, tmp_path):
+    # It resumed and wrote a model that no one could load.
+    from neuralrt.errors import ModelFileError
+    from neuralrt.training.api import train
+
+    mesh, config, path = checkpointed
+    bad = _edited_checkpoint_arrays(path, tmp_path / "nan.ckpt", lambda a: a["model.network.output.bias"].fill_(float("nan")))
+    with pytest.raises(ModelFileError, match=r"network\.output\.bias holds NaN or infinite values"):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
+
+
+def test_an_nbvh_checkpoint_whose_tree_cannot_be_walked_is_refused(tmp_path):
+    # Its tree is indexed unchecked as a model file's is: an out-of-range child was an IndexError traceback.
+    from neuralrt.errors import ModelFileError
+    from neuralrt.methods.nbvh_config import NBVHConfig
+    from neuralrt.training.api import train
+
+    mesh = sphere(2)
+    config = NBVHConfig.preset("cpu").with_training(steps=2, batch_size=256)
+    train(mesh, config, progress=False, checkpoint=tmp_path / "n.ckpt")
+
+    def far_child(arrays):
+        children = arrays["model.node_children"]
+        children[children[:, 0] >= 0] = torch.tensor([10**8, 10**8 + 1], dtype=children.dtype)
+
+    bad = _edited_checkpoint_arrays(tmp_path / "n.ckpt", tmp_path / "bad.ckpt", far_child)
+    with pytest.raises(ModelFileError, match=r"cannot resume from this checkpoint \(ValueError: the tree's child indices"):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)

@@ -3,10 +3,13 @@
 torch and numba's parallel regions share GNU OpenMP (see ``neuralrt/__init__.py``), which cannot
 run in a child forked after its threads started: the child hangs in its first parallel region,
 or numba's OpenMP layer kills it ("fork() called from a process already using GNU OpenMP").
-multiprocessing forks by default on Linux, so a Pool over ray batches hung with no word why. A
-BLAS's entry points (`neuralrt.rays.check_rays`) note that parallel work ran and, in such a
-child, raise one line instead; the child's torch runs on one thread (no pool to wake), so its own
-torch work still runs. numba's other threading layers survive a fork: with them nothing is refused.
+multiprocessing forks by default on Linux, so a Pool over ray batches hung with no word why. At
+a fork, a parent whose numba parallel regions have run on the OpenMP layer (a model loaded, a
+query) marks the child; there the entry points that would run them (a BLAS's `check_rays`,
+`load_model`, `MeshBLAS`, `train`, `render`) raise one line instead, and the child's torch runs
+on one thread (no pool to wake), so its own torch work still runs. numba's other threading layers
+survive a fork: with them nothing is refused. A parent that ran only torch's parallel work is not
+noticed (its child may hang inside torch).
 """
 
 from __future__ import annotations
@@ -18,27 +21,24 @@ from .errors import DeviceError
 
 __all__ = ["check_not_forked"]
 
-_ran_parallel_work = False  # this process has queried a BLAS
 _unsafe_to_fork = False  # decided in the parent just before a fork
 _forked_after_openmp = False  # this process is such a fork's child
 
 
 def check_not_forked(where: str) -> None:
-    """A one-line `DeviceError` in a child forked after OpenMP work; else notes that work runs."""
-    global _ran_parallel_work
+    """A one-line `DeviceError` in a child forked after OpenMP work."""
     if _forked_after_openmp:
         raise DeviceError(
             f"{where}: this process was forked (multiprocessing's default start method on Linux) from one whose OpenMP "
-            "threads had already run neuralrt queries, and OpenMP cannot run in such a child (it would hang): start "
+            "threads had already run neuralrt's work, and OpenMP cannot run in such a child (it would hang): start "
             "workers with multiprocessing.get_context('spawn') or 'forkserver' (or set NUMBA_THREADING_LAYER=workqueue)")
-    _ran_parallel_work = True
 
 
 def _before_fork() -> None:
     global _unsafe_to_fork
     numba = sys.modules.get("numba")
     _unsafe_to_fork = False
-    if _ran_parallel_work and numba is not None:
+    if numba is not None:
         try:
             _unsafe_to_fork = numba.threading_layer() == "omp"
         except ValueError:  # no parallel region has run: no layer chosen yet

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..devices import check_device
 from ..errors import ConfigError
+from ..fork_guard import check_not_forked
 from ..geometry.mesh import Mesh, check_float32_extent
 from ..arguments import check_count
 from ..host_threads import numba_threads
@@ -92,6 +93,7 @@ class MeshBLAS(ABC):
 
     def __new__(cls, mesh: Mesh, device=None, threads: int | None = None):
         check_count("threads", threads)  # (0, -1, "2" and 2.5 were clamped or cast silently)
+        check_not_forked("MeshBLAS")
         checked = _checked_arguments(mesh, device)
         if cls is MeshBLAS:
             cls = _backend_for(checked)

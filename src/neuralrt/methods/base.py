@@ -37,6 +37,7 @@ from ..arguments import given
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
 from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
+from ..fork_guard import check_not_forked
 from ..io.files import check_output_file
 from ..io.model_file import ModelHeader, check_model_path, read_model, write_model
 from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
@@ -338,6 +339,7 @@ class NeuralBLAS(nn.Module, ABC):
         """Load a model file; bad, truncated, corrupted, newer or other-method files raise `ModelFileError`,
         a ``path`` that is no path `ConfigError`, a device this process cannot use `DeviceError`."""
         path, device = check_path("path", path), check_device(device)  # before the file is read
+        check_not_forked("load_model")  # (loading runs parallel regions: a forked child would hang there)
         header, arrays = read_model(path, method=cls.METHOD)
         try:
             config = cls.CONFIG.model_validate(header.config)

@@ -128,6 +128,14 @@ class NBVHModel(NeuralBLAS):
         self._h: Tensor | None = None
         self._lod_views: dict[int, NBVHModel] = {}
 
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As `nn.Module`'s, then the tree checked as a model file's is (a checkpoint's tree is indexed unchecked too)."""
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        problem = _tree_problem(self.node_lo, self.node_hi, self.node_children, self.node_lod)
+        if problem:
+            raise ValueError(f"the tree's {problem}")
+        return result
+
     def _apply(self, fn, recurse=True):
         # .to() / .cuda() move the buffers; h, cached from them, is recomputed where they now are.
         self._h = None

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from ..arguments import check_count, seed_or_default
 from ..errors import ConfigError, DeviceError
+from ..fork_guard import check_not_forked
 from .film import Film, RenderResult
 from .rng import wavefront_seed
 from .shading_stages import SHADING_BACKENDS, PathState, WavefrontFilm, shading_stages_for
@@ -141,6 +142,7 @@ def render(
     from ..scene.scene import Scene
     from ..scene.schema import MAX_DEPTH, MAX_SPP, check_resolution
 
+    check_not_forked("render")
     if not isinstance(scene, Scene):  # (a path or builtin:NAME is api.render's, or load it with load_scene)
         raise ConfigError(f"scene: expected a loaded neuralrt Scene (load_scene, load_dict), got {type(scene).__name__}")
     if settings is None:

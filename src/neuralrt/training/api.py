@@ -10,6 +10,7 @@ import torch
 from ..accel.mesh_blas import MeshBLAS
 from ..devices import check_device, check_path
 from ..errors import ConfigError
+from ..fork_guard import check_not_forked
 from ..geometry.mesh import Mesh, check_float32_extent, load_mesh
 from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
 from ..neural.precision import precision_name
@@ -63,6 +64,7 @@ def train(
     are one-line `NeuralRTError`s, raised before any work.
     """
     device = check_device(device)
+    check_not_forked("train")
     config = _checked_config(config)
     checkpoint = check_path("checkpoint", checkpoint, optional=True)
     if not isinstance(resume, bool):

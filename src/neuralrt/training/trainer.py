@@ -127,6 +127,9 @@ def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) 
         state = {k[len("model."):]: v for k, v in f.arrays.items() if k.startswith("model.")}
         dev = next(model.parameters()).device
         model.load_state_dict({k: v.to(dev) for k, v in state.items()})
+        bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+        if bad:  # (the run would write a model no one can load)
+            raise ValueError(f"the model's {bad[0]} holds NaN or infinite values")
         _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
         sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
         record = TrainingRecord(**f.header["record"])
