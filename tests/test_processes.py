@@ -13,9 +13,9 @@ _SCRIPT = textwrap.dedent("""
     from neuralrt import MeshBLAS, Rays, load_mesh
 
     def work(n):
-        blas = MeshBLAS(load_mesh("procedural:statue:0"))
-        o = torch.randn(n, 3, generator=torch.Generator().manual_seed(n)) * 3
         try:
+            blas = MeshBLAS(load_mesh("procedural:statue:0"))
+            o = torch.randn(n, 3, generator=torch.Generator().manual_seed(n)) * 3
             return int(blas.intersect(Rays(o, -o)).hit.sum())
         except neuralrt.NeuralRTError as exc:
             return str(exc)
@@ -35,6 +35,6 @@ def test_a_child_process_answers_or_says_why_it_cannot(tmp_path, start):
     assert done.returncode == 0, done.stderr[-2000:]
     parent, child = done.stdout.strip().split(" ", 1)
     if start == "fork":
-        assert child.startswith("intersect: this process was forked") and "get_context('spawn')" in child
+        assert child.startswith("MeshBLAS: this process was forked") and "get_context('spawn')" in child
     else:
         assert child == parent
