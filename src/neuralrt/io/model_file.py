@@ -5,9 +5,9 @@ object with at least ``format_version``, ``method``, ``arrays_sha256`` (a SHA-25
 array's name, dtype, shape and bytes, so flipped bits in the data are caught; safetensors itself
 only checks that its header parses) and ``header_sha256`` (a SHA-256 over the rest of the object,
 as sorted-key JSON, so a flipped bit in the header's numbers, e.g. the bounds or a threshold, is
-caught too; one key, as safetensors writes several in no fixed order). Model files of every method share one typed header, `ModelHeader`
-(method, config, bounds, materials, training record, source-mesh hash and name); nothing that can
-be derived (box, memory) is stored. Training checkpoints use the same container with their own
+caught too; inside the one key, as safetensors writes several in no fixed order). Model files of
+every method share one typed header, `ModelHeader` (method, config, bounds, materials, training
+record, source-mesh hash and name); nothing that can be derived (box, memory) is stored. Training checkpoints use the same container with their own
 keys. Reading never executes code: safetensors parses a JSON header and raw bytes.
 
 Format versions: 3 (current) adds ``header_sha256``; 2 has the `ModelHeader` keys and a
