@@ -69,7 +69,7 @@ def _tree_problem(lo: Tensor, hi: Tensor, children: Tensor, lod: Tensor) -> str 
         return "node arrays are empty"
     if ((first < -1) | ((~inner) & (second != -1))).any():
         return "leaf rows must be (-1, -1)"
-    nodes = torch.arange(m)
+    nodes = torch.arange(m, device=children.device)  # (a checkpoint's tree is on the training device)
     if (inner & ((first <= nodes) | (second != first + 1) | (second >= m))).any():
         return f"child indices must be two adjacent nodes after their parent, below {m}"
     if not (torch.isfinite(lo).all() and torch.isfinite(hi).all() and (lo <= hi).all()):
@@ -107,9 +107,7 @@ class NBVHModel(NeuralBLAS):
         self.register_buffer("node_lod", torch.as_tensor(np.asarray(lod), dtype=torch.int8))
         if self.node_lo.shape != (m, 3) or self.node_hi.shape != (m, 3) or self.node_children.shape != (m, 2) or self.node_lod.shape != (m,):
             raise ValueError(f"inconsistent tree arrays for {m} nodes")
-        tree_problem = _tree_problem(self.node_lo, self.node_hi, self.node_children, self.node_lod)
-        if tree_problem:  # the kernels index by these without bounds checks: a bad index reads outside the arrays
-            raise ValueError(f"the tree's {tree_problem}")
+        self._check_tree()
         # Training state (checkpointed; not in the model file).
         self.register_buffer("live", torch.zeros(m, dtype=torch.bool))
         self.register_buffer("loss_sum", torch.zeros(m, dtype=torch.float64))
@@ -128,12 +126,17 @@ class NBVHModel(NeuralBLAS):
         self._h: Tensor | None = None
         self._lod_views: dict[int, NBVHModel] = {}
 
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """As `nn.Module`'s, then the tree checked as a model file's is (a checkpoint's tree is indexed unchecked too)."""
-        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+    def _check_tree(self) -> None:
+        """A ValueError unless the node arrays are a tree the traversal can walk: the kernels index
+        by them without bounds checks, so a bad index reads outside the arrays."""
         problem = _tree_problem(self.node_lo, self.node_hi, self.node_children, self.node_lod)
         if problem:
             raise ValueError(f"the tree's {problem}")
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As `nn.Module`'s, then the tree checked as a model file's is (a checkpoint's tree too)."""
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._check_tree()
         return result
 
     def _apply(self, fn, recurse=True):
