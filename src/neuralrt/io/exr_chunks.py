@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import struct
 import zlib
-from pathlib import Path
 
 __all__ = ["exr_chunk_problem"]
 
@@ -27,10 +26,9 @@ _ZIP_COMPRESSIONS = (2, 3)  # ZIPS, ZIP: zlib streams
 _SAMPLE_BYTES = {0: 4, 1: 2, 2: 4}  # UINT, HALF, FLOAT
 
 
-def exr_chunk_problem(path: Path) -> str | None:
-    """What is wrong with ``path``'s chunk table (a phrase), or None if nothing (or not checked)."""
-    with open(path, "rb") as f:
-        data = f.read()
+def exr_chunk_problem(data: bytes) -> str | None:
+    """What is wrong with the chunk table of the EXR file ``data`` (a phrase), or None if nothing
+    (or not checked)."""
     try:
         return _problem(data)
     except (struct.error, IndexError, ValueError):

@@ -159,11 +159,12 @@ _EXR_MAGIC = b"\x76\x2f\x31\x01"
 def _read_exr(path: Path) -> np.ndarray:
     from .exr_chunks import exr_chunk_problem
 
-    with open(path, "rb") as f:
-        if f.read(4) != _EXR_MAGIC:
-            raise ImageError(f"{path}: not an OpenEXR file (no EXR magic number)")
+    data = path.read_bytes()
+    if data[:4] != _EXR_MAGIC:
+        raise ImageError(f"{path}: not an OpenEXR file (no EXR magic number)")
     # Checked before decoding: OpenEXR only prints about a broken chunk, and may return partial pixels.
-    problem = exr_chunk_problem(path)
+    problem = exr_chunk_problem(data)
+    del data  # (not held while OpenEXR reads the file itself)
     if problem:
         raise ImageError(f"{path}: truncated or corrupt EXR file ({problem})")
     try:
