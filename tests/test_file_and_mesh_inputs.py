@@ -328,6 +328,19 @@ def test_a_texture_that_cannot_be_decoded_is_a_warning_naming_it(tmp_path):
         assert load_mesh(tmp_path / "t.obj").materials[0].texture is None
 
 
+def test_a_texture_larger_than_the_memory_left_is_a_warning_not_an_allocation(tmp_path, monkeypatch):
+    import neuralrt.devices
+    from PIL import Image
+
+    Image.new("RGB", (8, 8), (200, 10, 10)).save(tmp_path / "t.png")
+    (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd t.png\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
+    monkeypatch.setattr(neuralrt.devices, "available_bytes", lambda device: 1000)  # 8x8 pixels need 2,304 bytes
+    with pytest.warns(UserWarning, match=r"the 8x8 texture of material 'tex' could not be decoded \(decoding it needs 0\.0 GiB "
+                                          r"of memory, 0\.0 GiB is available on cpu\)"):
+        assert load_mesh(tmp_path / "t.obj").materials[0].texture is None
+
+
 def test_ctrl_c_while_trimesh_reads_a_material_file_stops_the_load(tmp_path, monkeypatch):
     # trimesh catches BaseException around the MTL and logs it: a SIGTERM became a warning.
     from neuralrt.geometry import mesh as mesh_module

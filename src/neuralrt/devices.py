@@ -77,13 +77,21 @@ def available_bytes(device) -> int | None:
     return None
 
 
+def memory_shortfall(needed: int, device) -> str | None:
+    """``"needs X GiB of memory, Y GiB is available on DEVICE"`` where ``needed`` bytes exceed what
+    ``device`` has left, else None (also where that cannot be told)."""
+    have = available_bytes(device)
+    if have is not None and needed > have:
+        return f"needs {needed / 2**30:.1f} GiB of memory, {have / 2**30:.1f} GiB is available on {device}"
+    return None
+
+
 def check_memory(what: str, needed: int, device, advice: str) -> None:
     """A one-line `ConfigError` before any work where ``what`` needs ``needed`` bytes on ``device`` and
     less is available (instead of an allocator's traceback, possibly after minutes)."""
-    have = available_bytes(device)
-    if have is not None and needed > have:
-        raise ConfigError(f"{what} needs {needed / 2**30:.1f} GiB of memory, {have / 2**30:.1f} GiB is available on "
-                          f"{device}: {advice}")
+    shortfall = memory_shortfall(needed, device)
+    if shortfall:
+        raise ConfigError(f"{what} {shortfall}: {advice}")
 
 
 def check_path(name: str, value, optional: bool = False) -> Path | None:

@@ -345,14 +345,12 @@ def _texture_pixels(image, material: str, where: str) -> np.ndarray | None:
     ``convert("RGB")`` would clip every value above 255 to white. trimesh decodes textures lazily,
     here: one it cannot, or one larger than the memory left, is a warning and None (the material
     keeps its base colour), not a traceback."""
-    from ..devices import available_bytes
+    from ..devices import memory_shortfall
 
     width, height = image.size
-    needed, have = width * height * _TEXTURE_BYTES_PER_PIXEL, available_bytes("cpu")
-    why = None
-    if have is not None and needed > have:
-        why = f"decoding it needs {needed / 2**30:.1f} GiB, {have / 2**30:.1f} GiB is available"
-    else:
+    shortfall = memory_shortfall(width * height * _TEXTURE_BYTES_PER_PIXEL, "cpu")
+    why = f"decoding it {shortfall}" if shortfall else None
+    if why is None:
         try:
             if image.mode.startswith("I"):
                 grey = np.clip(np.asarray(image, np.float32) / 65535.0, 0.0, 1.0)
