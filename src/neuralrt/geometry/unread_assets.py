@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import threading
 
 __all__ = ["unread_assets", "regular_files_resolver"]
@@ -90,14 +89,10 @@ def regular_files_resolver(mesh_path: str):
     from trimesh.resolvers import FilePathResolver
 
     class RegularFiles(FilePathResolver):
-        def get(self, name: str):
-            for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
-                try:
-                    path = self.absolute(candidate)
-                except ValueError:
-                    continue
-                if path.exists() and not path.is_file():
-                    raise OSError(f"{name} is not a regular file")
-            return super().get(name)
+        def absolute(self, name: str):  # where `get` resolves each spelling of a name before opening it
+            path = super().absolute(name)
+            if path.exists() and not path.is_file():
+                raise OSError(f"{name.strip()} is not a regular file")
+            return path
 
     return RegularFiles(mesh_path)
