@@ -5,16 +5,17 @@ bounded fields, and pydantic's union labels kept out of key paths."""
 import json
 import math
 
+import numpy as np
 import pytest
 from pydantic import ValidationError, field_validator
 
 from neuralrt import api
 from neuralrt.cli import main
 from neuralrt.errors import ConfigError, NeuralRTError, SceneError, validation_errors, validation_message
-from neuralrt.rays import Transform
+from neuralrt.rays import Transform, affine_problem
 from neuralrt.scene import schema
 from neuralrt.scene.loader import load_dict, load_scene, load_scene_spec
-from neuralrt.scene.schema import DiffuseMaterialSpec, SceneSpec
+from neuralrt.scene.schema import DiffuseMaterialSpec, ObjectSpec, SceneSpec
 
 SPHERE = {"generator": {"name": "sphere", "params": {"subdivisions": 1}}}
 ROW_ZERO = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]
@@ -93,6 +94,37 @@ def test_valid_transforms_stay_affine_and_invertible():
     assert all(math.isclose(identity[i][j], float(i == j), abs_tol=1e-9) for i in range(4) for j in range(4))
     # Bottom-row noise from an exporter is accepted and made exact.
     assert Transform([[2, 0, 0, 1], [0, 2, 0, 0], [0, 0, 2, 0], [1e-12, 0, 0, 1]]).tolist()[3] == [0, 0, 0, 1]
+
+
+def test_scene_transform_is_scale_then_rotations_then_translation():
+    # The scene file's one-step composition equals the chain of single transforms it stands for.
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        offset, degrees, factors = rng.normal(size=3) * 5, rng.uniform(-360, 360, 3), rng.uniform(0.1, 3, 3)
+        chain = (Transform.translate(offset) @ Transform.rotate([0, 0, 1], degrees[2]) @ Transform.rotate([0, 1, 0], degrees[1])
+                 @ Transform.rotate([1, 0, 0], degrees[0]) @ Transform.scale(factors))
+        one = Transform.translate_rotate_scale(offset, degrees, factors)
+        np.testing.assert_allclose(one.tolist(), chain.tolist(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(one.inverse().tolist(), chain.inverse().tolist(), rtol=0, atol=1e-9)
+
+
+def test_float32_overflow_edge_of_a_matrix_entry():
+    # float32 rounds below max + half an ulp to its max, and from there up to Inf.
+    f32_max = float(np.finfo(np.float32).max)
+    half_ulp = 2.0**103
+    for value, finite in [(f32_max, True), (f32_max + half_ulp * 0.99, True), (f32_max + half_ulp, False)]:
+        with np.errstate(over="ignore"):
+            assert bool(np.isfinite(np.float32(value))) == finite  # what the check stands for
+        matrix = [[1, 0, 0, value], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+        assert (affine_problem(matrix) is None) == finite, value
+
+
+def test_with_paths_leaves_the_original_spec_alone(tmp_path):
+    spec, _, _ = load_scene_spec(scene_file(tmp_path))
+    spec = spec.model_copy(update={"objects": spec.objects + [ObjectSpec(mesh="m.obj")]})
+    mapped = spec.with_paths(lambda p: "/elsewhere/" + p)
+    assert mapped.objects[-1].mesh == "/elsewhere/m.obj" and spec.objects[-1].mesh == "m.obj"
+    assert mapped.objects[0] is spec.objects[0]  # no path: shared, not copied
 
 
 def test_camera_position_beyond_float32(tmp_path):

@@ -331,21 +331,31 @@ MIN_SCALE, MAX_SCALE = 1e-12, 1e12
 MAX_CONDITION = 1.0 / float(np.finfo(np.float32).eps)
 
 
+def _float64_matrix(matrix) -> np.ndarray | None:
+    """``matrix`` as a float64 array, or None when it is not numbers (ragged rows, strings)."""
+    if isinstance(matrix, Tensor):
+        matrix = matrix.detach().cpu().numpy()
+    try:
+        a = np.asarray(matrix)
+    except (TypeError, ValueError):  # ragged rows
+        return None
+    return a.astype(np.float64) if a.dtype.kind in "biuf" else None
+
+
 def affine_problem(matrix) -> str | None:
     """What makes ``matrix`` (4x4, row-major) unusable as an object-to-world transform, or None:
     NaN/Inf entries, a bottom row other than ``[0, 0, 0, 1]``, or a singular or ill-conditioned
     3x3 part (see MIN_SCALE, MAX_SCALE, MAX_CONDITION)."""
-    try:
-        m = torch.as_tensor(matrix, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):  # ragged rows, non-numbers
+    m = _float64_matrix(matrix)
+    if m is None:
         return "matrix must be 4x4 numbers"
     if m.shape != (4, 4):
         return f"matrix must be 4x4, got {tuple(m.shape)}"
-    if not torch.isfinite(m).all():
+    if not np.isfinite(m).all():
         return "not a finite affine transform (NaN or Inf entries)"
-    if not torch.allclose(m[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64), rtol=0, atol=1e-9):
-        return f"not an affine transform: the bottom row must be [0, 0, 0, 1], got {[round(v, 6) for v in m[3].tolist()]}"
-    sv = torch.linalg.svdvals(m[:3, :3])
+    if np.abs(m[3] - _BOTTOM_ROW).max() > 1e-9:
+        return f"not an affine transform: the bottom row must be [0, 0, 0, 1], got {[round(float(v), 6) for v in m[3]]}"
+    sv = np.linalg.svd(m[:3, :3], compute_uv=False)
     lo, hi = float(sv[-1]), float(sv[0])
     if lo == 0:
         return "matrix is singular (a scale factor is 0: it flattens the object)"
@@ -353,15 +363,40 @@ def affine_problem(matrix) -> str | None:
         return f"matrix is singular for float32 (scale factors {lo:.3g} .. {hi:.3g}: a ratio over {MAX_CONDITION:.3g})"
     if lo < MIN_SCALE or hi > MAX_SCALE:
         return f"scale factors {lo:.3g} .. {hi:.3g} are outside [{MIN_SCALE:g}, {MAX_SCALE:g}] (float32 would overflow)"
-    if not torch.isfinite(m.float()).all():
+    if not _finite_in_float32(m):
         return "not a finite affine transform (entries overflow float32)"
     return None
 
 
-def _affine_inverse(m: Tensor) -> Tensor:
+_BOTTOM_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+# float32 rounds to its max below max + half an ulp (2**128 - 2**103, exact in float64); from there
+# up, to Inf (the midpoint ties to the even 2**128).
+_FLOAT32_ROUNDS_TO_INF = 2.0**128 - 2.0**103
+
+
+def _finite_in_float32(m: np.ndarray) -> bool:
+    return bool(np.abs(m).max() < _FLOAT32_ROUNDS_TO_INF)
+
+
+def rotation_matrix(axis, degrees: float) -> np.ndarray:
+    """3x3 float64 rotation by ``degrees`` about ``axis`` (right-handed)."""
+    a = _float64_matrix(axis)
+    x, y, z = a / np.linalg.norm(a)
+    th = np.deg2rad(float(degrees))
+    c, s = np.cos(th), np.sin(th)
+    return np.array([
+        [c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
+        [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
+        [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
+    ])
+
+
+def _affine_inverse(m: np.ndarray) -> np.ndarray:
     """Inverse of an affine matrix; its bottom row stays exactly [0, 0, 0, 1]."""
-    inv = torch.eye(4, dtype=torch.float64)
-    inv[:3, :3] = torch.linalg.inv(m[:3, :3])
+    inv = np.eye(4)
+    inv[:3, :3] = np.linalg.inv(m[:3, :3])
     inv[:3, 3] = -inv[:3, :3] @ m[:3, 3]
     return inv
 
@@ -375,18 +410,20 @@ class Transform:
     `neuralrt.errors.ConfigError` (a ValueError).
     """
 
-    def __init__(self, matrix: Tensor | None = None, inverse: Tensor | None = None):
+    # The float64 matrices are numpy: a scene of many objects composes and checks a few 4x4
+    # matrices each, where torch's per-call overhead cost ~2 ms an object.
+    def __init__(self, matrix=None, inverse=None):
         problem = None if matrix is None else affine_problem(matrix)
         if problem:
             raise ConfigError(f"transform: {problem}")
-        m = torch.eye(4, dtype=torch.float64) if matrix is None else torch.as_tensor(matrix, dtype=torch.float64).clone()
-        m[3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)  # exact, so products and inverses stay affine
+        m = np.eye(4) if matrix is None else _float64_matrix(matrix).copy()
+        m[3] = _BOTTOM_ROW  # exact, so products and inverses stay affine
         self._m64 = m
-        self._inv64 = _affine_inverse(m) if inverse is None else torch.as_tensor(inverse, dtype=torch.float64)
-        if not torch.isfinite(self._inv64.float()).all():
+        self._inv64 = _affine_inverse(m) if inverse is None else _float64_matrix(inverse).copy()
+        if not _finite_in_float32(self._inv64):
             raise ConfigError("transform: not a finite affine transform (its inverse overflows float32)")
-        self.matrix = self._m64.float()
-        self.inverse_matrix = self._inv64.float()
+        self.matrix = torch.from_numpy(self._m64.astype(np.float32))
+        self.inverse_matrix = torch.from_numpy(self._inv64.astype(np.float32))
 
     # -- construction ---------------------------------------------------------------------
     @staticmethod
@@ -395,48 +432,46 @@ class Transform:
 
     @staticmethod
     def translate(offset) -> "Transform":
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3, 3] = torch.as_tensor(offset, dtype=torch.float64)
+        m = np.eye(4)
+        m[:3, 3] = _float64_matrix(offset)
         return Transform(m)
 
     @staticmethod
     def scale(factors) -> "Transform":
-        f = torch.as_tensor(factors, dtype=torch.float64).expand(3)
-        return Transform(torch.diag(torch.cat([f, torch.ones(1, dtype=torch.float64)])))
+        f = np.broadcast_to(_float64_matrix(factors), 3)
+        return Transform(np.diag(np.append(f, 1.0)))
 
     @staticmethod
     def rotate(axis, degrees: float) -> "Transform":
         """Rotation by ``degrees`` about ``axis`` (right-handed)."""
-        a = torch.as_tensor(axis, dtype=torch.float64)
-        a = a / torch.linalg.norm(a)
-        th = torch.deg2rad(torch.tensor(float(degrees), dtype=torch.float64))
-        c, s = torch.cos(th), torch.sin(th)
-        x, y, z = a
-        r = torch.stack(
-            [
-                torch.stack([c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s]),
-                torch.stack([y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s]),
-                torch.stack([z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)]),
-            ]
-        )
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3, :3] = r
+        m = np.eye(4)
+        m[:3, :3] = rotation_matrix(axis, degrees)
+        return Transform(m)
+
+    @staticmethod
+    def translate_rotate_scale(offset, degrees_xyz, factors) -> "Transform":
+        """Scale, then rotate about x, y and z (``degrees_xyz``, in that order), then translate: the
+        scene file's transform, checked once (not once per factor)."""
+        m = np.eye(4)
+        rx, ry, rz = (rotation_matrix(axis, d) for axis, d in zip(np.eye(3), degrees_xyz))
+        m[:3, :3] = rz @ ry @ rx * np.broadcast_to(_float64_matrix(factors), 3)
+        m[:3, 3] = _float64_matrix(offset)
         return Transform(m)
 
     @staticmethod
     def look_at(eye, target, up) -> "Transform":
         """Camera-to-world: camera looks down -z, +y up, +x right (OpenGL convention)."""
-        eye, target, up = (torch.as_tensor(v, dtype=torch.float64) for v in (eye, target, up))
+        eye, target, up = (_float64_matrix(v) for v in (eye, target, up))
         fwd = target - eye
-        if torch.linalg.norm(fwd) == 0:
+        if np.linalg.norm(fwd) == 0:
             raise ConfigError("look_at: position and target coincide")
-        fwd = fwd / torch.linalg.norm(fwd)
-        right = torch.linalg.cross(fwd, up)
-        if torch.linalg.norm(right) < 1e-12:
+        fwd = fwd / np.linalg.norm(fwd)
+        right = np.cross(fwd, up)
+        if np.linalg.norm(right) < 1e-12:
             raise ConfigError("look_at: up vector is parallel to the view direction")
-        right = right / torch.linalg.norm(right)
-        true_up = torch.linalg.cross(right, fwd)
-        m = torch.eye(4, dtype=torch.float64)
+        right = right / np.linalg.norm(right)
+        true_up = np.cross(right, fwd)
+        m = np.eye(4)
         m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, -fwd, eye
         return Transform(m)
 
@@ -472,7 +507,7 @@ class Transform:
 
     @property
     def is_identity(self) -> bool:
-        return bool(torch.equal(self._m64, torch.eye(4, dtype=torch.float64)))
+        return bool(np.array_equal(self._m64, np.eye(4)))
 
     def tolist(self) -> list[list[float]]:
         return self._m64.tolist()

@@ -9,6 +9,8 @@ Objects that use the same mesh (same resolved file, or same generator and parame
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
 import math
 import numbers
@@ -420,22 +422,26 @@ def _generator_arguments(name: str, params: dict) -> str:
     """A generator's arguments as one key: defaults filled in and whole floats written as ints, so that
     ``{}``, ``{subdivisions = 4}`` and ``{subdivisions = 4.0}`` share one mesh (bad arguments: as given,
     for `_generate` to report)."""
-    import inspect
-
-    from ..geometry import procedural
-
     def plain(value):
         if isinstance(value, float) and value.is_integer():
             return int(value)
         return [plain(v) for v in value] if isinstance(value, (list, tuple)) else value
 
     try:
-        bound = inspect.signature(procedural.GENERATORS[name]).bind(**params)
+        bound = _generator_signature(name).bind(**params)
         bound.apply_defaults()
         params = bound.arguments
     except (KeyError, TypeError):
         pass
     return json.dumps({k: plain(v) for k, v in params.items()}, sort_keys=True, default=str)
+
+
+@functools.cache
+def _generator_signature(name: str) -> inspect.Signature:
+    # once per generator: inspect.signature took ~0.1 ms, once per object of a large scene
+    from ..geometry import procedural
+
+    return inspect.signature(procedural.GENERATORS[name])
 
 
 def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:

@@ -200,9 +200,7 @@ class TransformSpec(_Strict):
     def to_transform(self) -> Transform:
         if self.matrix is not None:
             return Transform(self.matrix)
-        t = Transform.translate(self.translate)
-        r = Transform.rotate((0, 0, 1), self.rotate[2]) @ Transform.rotate((0, 1, 0), self.rotate[1]) @ Transform.rotate((1, 0, 0), self.rotate[0])
-        return t @ r @ Transform.scale(self.scale)
+        return Transform.translate_rotate_scale(self.translate, self.rotate, self.scale)
 
 
 Albedo = Union[NonNegVec3, str]  # linear RGB, or a texture image path
@@ -343,17 +341,22 @@ class SceneSpec(_Strict):
     render: RenderSettings = Field(default_factory=RenderSettings, description="render defaults")
 
     def with_paths(self, fn) -> "SceneSpec":
-        """A copy with every file path (textures, meshes, models, environment image) mapped by ``fn``."""
-        spec = self.model_copy(deep=True)
-        for m in spec.materials:
-            if isinstance(m.albedo, str):
-                m.albedo = fn(m.albedo)
-        for obj in spec.objects:
-            obj.mesh = None if obj.mesh is None else fn(obj.mesh)
-            obj.model = None if obj.model is None else fn(obj.model)
-        if spec.environment is not None and spec.environment.image is not None:
-            spec.environment.image = fn(spec.environment.image)
-        return spec
+        """A copy with every file path (textures, meshes, models, environment image) mapped by ``fn``.
+
+        Parts without a path are shared with ``self``, not copied: a deep copy cost ~0.1 ms an
+        object, most of a 20,000-object scene's load. Treat specs as values (the loader never
+        changes one in place)."""
+        def mapped(path):
+            return None if path is None else fn(path)
+
+        materials = [m.model_copy(update={"albedo": fn(m.albedo)}) if isinstance(m.albedo, str) else m
+                     for m in self.materials]
+        objects = [obj.model_copy(update={"mesh": mapped(obj.mesh), "model": mapped(obj.model)})
+                   if obj.mesh is not None or obj.model is not None else obj for obj in self.objects]
+        environment = self.environment
+        if environment is not None and environment.image is not None:
+            environment = environment.model_copy(update={"image": fn(environment.image)})
+        return self.model_copy(update={"materials": materials, "objects": objects, "environment": environment})
 
     def reference_errors(self) -> list[tuple[str, str]]:
         """(key path, problem) for duplicate material names and references to unknown materials."""
