@@ -396,3 +396,39 @@ def test_trimesh_is_imported_with_interrupts_held(tmp_path, monkeypatch):
     assert fake.__file__ == str(tmp_path / "trimesh.py")
     assert {signal.SIGINT, signal.SIGTERM} <= fake.held  # held while it imported
     assert not {signal.SIGINT, signal.SIGTERM} & signal.pthread_sigmask(signal.SIG_BLOCK, [])  # and released after
+
+
+def _cut(path, fraction=0.6):
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * fraction)])
+
+
+@pytest.mark.parametrize("name,export", [
+    ("m.ply", {"encoding": "ascii"}),  # the ASCII reader loads what precedes the cut, with no word
+    ("m.stl", {}),  # binary STL: loaded nothing ("no triangles", not why)
+])
+def test_a_mesh_file_cut_short_is_one_line_naming_the_counts(tmp_path, capsys, name, export):
+    import trimesh
+
+    path = tmp_path / name
+    trimesh.creation.icosphere(2).export(str(path), **export)
+    assert load_mesh(path).num_triangles == 320  # whole, it loads
+    _cut(path)
+    with pytest.raises(MeshError, match=r"file is truncated or malformed: its header declares \d+ vertices and 320 faces"):
+        load_mesh(path)
+    assert cli.main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"neuralrt: error: {path}: file is truncated")
+
+
+def test_a_header_that_claims_more_faces_than_the_file_holds(tmp_path):
+    off = tmp_path / "m.off"
+    off.write_text("OFF\n# a comment\n3 1000000000000 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(MeshError, match="declares 3 vertices and 1000000000000 faces, 3 and 1 were read"):
+        load_mesh(off)
+    # a polygon is read as several triangles: more faces than declared is a whole file
+    quad = tmp_path / "q.ply"
+    quad.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    assert load_mesh(quad).num_triangles == 2

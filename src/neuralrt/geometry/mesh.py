@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
+from .declared_counts import truncation_problem
 from .unread_assets import regular_files_resolver, unread_assets
 
 
@@ -421,6 +422,9 @@ def load_mesh(path: str | Path) -> Mesh:
         parts = [loaded]
     else:
         parts = []
+    cut_short = truncation_problem(path, sum(len(p.vertices) for p in parts), sum(len(p.faces) for p in parts))
+    if cut_short:
+        raise MeshError(f"{path}: {cut_short}")
     parts = [p for p in parts if len(p.faces)]
     if not parts:
         raise MeshError(f"{path}: file contains no triangles")
