@@ -17,13 +17,15 @@ import os
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, field
 from pathlib import Path
 
 import torch
+from pydantic import ConfigDict, NonNegativeFloat, NonNegativeInt, PositiveInt, ValidationError
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 from torch import nn
 
-from ..errors import ConfigError, ModelFileError, TrainingError
+from ..errors import ConfigError, ModelFileError, TrainingError, validation_message
 from ..io.model_file import read_header, read_model_file, write_model_file
 from .prefetch import BatchSource
 
@@ -32,24 +34,25 @@ __all__ = ["TrainingRecord", "train_model", "identity_differences", "CHECKPOINT_
 CHECKPOINT_METHOD = "checkpoint"
 
 
-@dataclass
+@pydantic_dataclass(config=ConfigDict(strict=True, extra="forbid"))
 class TrainingRecord:
-    """What a training run did; stored in the model file's header."""
+    """What a training run did; stored in the model file's header. Types are checked (strictly: no
+    "12" for 12) when one is made, so a checkpoint's edited record is refused, not copied on."""
 
-    steps: int = 0
-    batch_size: int = 0
-    seconds: float = 0.0  # wall time spent in steps (summed over resumed sessions; setup before the first step not counted)
-    rays: int = 0  # rays drawn in total
-    network_rays: int = 0  # of those, rays that reached the network
-    rays_per_second: float = 0.0
+    steps: NonNegativeInt = 0
+    batch_size: NonNegativeInt = 0
+    seconds: NonNegativeFloat = 0.0  # wall time spent in steps (summed over resumed sessions; setup before the first step not counted)
+    rays: NonNegativeInt = 0  # rays drawn in total
+    network_rays: NonNegativeInt = 0  # of those, rays that reached the network
+    rays_per_second: NonNegativeFloat = 0.0
     final_loss: float = float("nan")  # mean over the last `window` steps, of the weighted sum the optimizer minimizes
     final_losses: dict = field(default_factory=dict)  # each term's mean, unweighted (N-BVH: `loss.*_weight` scale them)
     hit_accuracy: float = float("nan")  # running hit/miss accuracy over the last `window` steps
     compute_precision: str = ""  # arithmetic of the hidden layers in training: "bf16" or "fp32"
     device: str = ""  # where it trained, e.g. "cpu", "cuda"
-    resumed_from: int | None = None
+    resumed_from: NonNegativeInt | None = None
     batches_drawn_ahead: bool | None = None  # as `BatchSource.draws_ahead` at the end (None: trial unfinished)
-    window: int = 50
+    window: PositiveInt = 50
     extra: dict = field(default_factory=dict)  # method-specific: "<count>_fraction" over the last `window` steps
 
     def as_dict(self) -> dict:
@@ -132,12 +135,21 @@ def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) 
             raise ValueError(f"the model's {bad[0]} holds NaN or infinite values")
         _load_optimizer(opt, f.header["optimizer"], {k: v for k, v in f.arrays.items() if k.startswith("adam.")}, dev)
         sampler.load_state_dict(f.header["sampler"], {k[len("sampler."):]: v for k, v in f.arrays.items() if k.startswith("sampler.")})
-        record = TrainingRecord(**f.header["record"])
+        record = _record(f.header["record"])
     except Exception as exc:  # well formed, checksums right, yet not this run's state (edited, or another version's)
         msg = " ".join(str(exc).split())
         raise ModelFileError(f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {msg[:200]}); "
                              "delete it or drop --resume") from None
     return f.header["step"], record
+
+
+def _record(stored) -> TrainingRecord:
+    if not isinstance(stored, dict):
+        raise ValueError(f"its record is a {type(stored).__name__}, not a table")
+    try:
+        return TrainingRecord(**stored)
+    except ValidationError as exc:  # (one line, keys named; pydantic's own text spans lines)
+        raise ValueError(f"its record: {validation_message(exc)}") from None
 
 
 _ABSENT = object()  # a key one identity has and the other lacks
