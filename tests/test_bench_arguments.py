@@ -167,6 +167,11 @@ IN_PROCESS_CASES = [
     ("bench_scenes.py", ["--variants", "lsnif:bogus"], "unknown lsnif preset 'bogus'"),
     ("bench_scenes.py", ["--variants", "lsnif:hq", "--decimate", "lsnif:lq"], "--decimate lsnif:lq: not one of --variants"),
     ("bench_scenes.py", ["--name", "x/y"], "argument --name"),
+    # bench_reference
+    ("bench_reference.py", ["--seeds", "1"], "argument --seeds: must be an integer in 2..1000, got 1"),
+    ("bench_reference.py", ["--scenes", "cornell,,sky"], "an empty item"),
+    ("bench_reference.py", ["--scenes", "cornell,nosuch.toml"], "nosuch.toml: scene file not found"),
+    ("bench_reference.py", ["--resolution", "0"], "argument --resolution"),
     # bench_render
     ("bench_render.py", ["--scenes", "bogus"], "builtin:bogus: unknown built-in scene"),
     ("bench_render.py", ["--scenes", "hairball,,foliage"], "an empty item"),
