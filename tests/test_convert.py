@@ -339,3 +339,16 @@ def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path
                               **common)
     assert not retrained.models[0].reused
     assert load_scene(tmp_path / "out" / "b.toml").accel.instances[0].blas is not None
+
+
+def test_group_says_whose_normal_maps_it_drops():
+    from neuralrt.geometry.mesh import Mesh, MeshMaterial
+    from neuralrt.scene.convert import _merged_world_mesh
+
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    bumpy = Mesh(*quad, uvs=uvs, materials=[MeshMaterial("m", normal_map=np.full((2, 2, 3), 0.5, np.float32))])
+    spec = SceneSpec(objects=[ObjectSpec(name="bumpy", mesh="a.glb"), ObjectSpec(name="plain", mesh="b.obj")])
+    with pytest.warns(UserWarning, match="group: the normal maps of bumpy are not carried into the merged mesh"):
+        merged, _ = _merged_world_mesh(spec, [0, 1], [bumpy, Mesh(*quad)])
+    assert all(m.normal_map is None for m in merged.materials)

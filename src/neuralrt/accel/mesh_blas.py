@@ -20,12 +20,14 @@ from ..devices import check_device
 from ..errors import ConfigError
 from ..fork_guard import check_not_forked
 from ..geometry.mesh import Mesh, check_float32_extent
+from ..geometry.tangents import vertex_tangents
 from ..arguments import check_count
 from ..host_threads import numba_threads
 from ..rays import AABB, Hits, Rays, check_rays
 from . import mesh_blas_kernels as kernels
 from .blas import MemoryReport
 from .embree_api import TriangleScene
+from .normal_mapping import interpolate_numpy, mapped_normals_numpy
 
 __all__ = ["MeshBLAS", "EmbreeMeshBLAS"]
 
@@ -202,12 +204,14 @@ class EmbreeMeshBLAS(MeshBLAS):
                                    *self.surface_tables(), not textured, *out.records())  # fmt: skip
         if textured:
             self._apply_textures_(out.albedo, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
+            self._apply_normal_maps_(out.normal, out.hit, out.mat, out.uv, out.prim, out.bary_u, out.bary_v)
         return out.hits(rays.device)
 
     # -- raw queries (the scene TLAS's fused path: attributes only for the closest hit over all instances)
     @property
     def textured(self) -> bool:
-        return any(material.texture is not None for material in self.mesh.materials)
+        """Does a hit need per-material work after the kernel (a texture, or a normal map)?"""
+        return any(material.texture is not None or material.normal_map is not None for material in self.mesh.materials)
 
     @property
     def scene_handle(self) -> int:
@@ -271,6 +275,26 @@ class EmbreeMeshBLAS(MeshBLAS):
             vc = m.vertex_colors
             colour *= bw * vc[faces[:, 0]] + bu * vc[faces[:, 1]] + bv * vc[faces[:, 2]]
         albedo[idx] = np.clip(colour, 0.0, 1.0)
+
+    def _apply_normal_maps_(self, normal, hit, mat, uv, prim, bary_u, bary_v) -> None:
+        """Materials with a normal map: turn the shading normals in ``normal`` at their hits, in place."""
+        m = self.mesh
+        idx = np.nonzero(hit)[0]
+        for k, material in enumerate(m.materials):
+            if material.normal_map is None or m.uvs is None:
+                continue
+            sel = idx[mat[idx] == k]
+            if len(sel):
+                tangent = interpolate_numpy(self.tangents(), m.faces[prim[sel]], bary_u[sel], bary_v[sel])
+                texel = sample_texture_bilinear(material.normal_map, uv[sel])
+                normal[sel] = mapped_normals_numpy(normal[sel], tangent, texel)
+
+    def tangents(self) -> np.ndarray:
+        """[V, 4] vertex tangent frames (`geometry.tangents.vertex_tangents`), built on first use."""
+        if getattr(self, "_tangents", None) is None:
+            m = self.mesh
+            self._tangents = vertex_tangents(m.vertices, m.faces, m.vertex_normals, m.uvs)
+        return self._tangents
 
 
 def sample_texture_bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Hit attributes in torch, on the device of the hits: what `EmbreeMeshBLAS`'s numba pass computes
-(`mesh_blas_kernels.surface_at` plus its texture step), for backends that report only
+(`mesh_blas_kernels.surface_at` plus its texture and normal-map steps), for backends that report only
 triangle index, distance and barycentrics (`MitsubaMeshBLAS`). Same rules, same order of float32
 operations where it matters; results agree with the numba pass to rounding.
 """
@@ -11,7 +11,9 @@ import torch
 from torch import Tensor
 
 from ..geometry.mesh import Mesh
+from ..geometry.tangents import vertex_tangents
 from ..rays import Hits
+from .normal_mapping import mapped_normals_torch
 from ..render.materials import sample_texture  # the renderer's lookup: exact hits shade as the renderer samples
 
 __all__ = ["MeshAttributeTables", "closest_hit_records"]
@@ -39,6 +41,7 @@ class MeshAttributeTables:
         self.uvs = upload(mesh.uvs)  # [V, 2] or None
         self.vertex_colors = upload(mesh.vertex_colors)  # [V, 3] or None
         self._textures: dict[int, tuple[np.ndarray, Tensor]] = {}  # id(array) -> (array, tensor)
+        self._tangents: Tensor | None = None  # [V, 4], built when a material first has a normal map
 
     def material_albedo(self) -> Tensor:
         """[M, 3] base colour per material, on the device."""
@@ -52,6 +55,13 @@ class MeshAttributeTables:
             entry = (array, torch.from_numpy(np.ascontiguousarray(array, np.float32)).to(self.device))
             self._textures[id(array)] = entry
         return entry[1]
+
+    def tangents(self) -> Tensor:
+        """[V, 4] vertex tangent frames on the device (`geometry.tangents.vertex_tangents`)."""
+        if self._tangents is None:
+            m = self.mesh
+            self._tangents = torch.from_numpy(vertex_tangents(m.vertices, m.faces, m.vertex_normals, m.uvs)).to(self.device)
+        return self._tangents
 
     def nbytes(self) -> int:
         tensors = (self.faces, self.face_normals, self.vertex_normals, self.face_material_ids, self.uvs, self.vertex_colors)
@@ -93,6 +103,11 @@ def closest_hit_records(tables: MeshAttributeTables, prim: Tensor, t: Tensor, ba
     if tables.vertex_colors is not None:
         albedo = albedo * interpolate(tables.vertex_colors)
     albedo = albedo.clamp(0.0, 1.0)
+    if tables.uvs is not None:
+        for k, entry in enumerate(tables.mesh.materials):
+            if entry.normal_map is not None:
+                mapped = mapped_normals_torch(shading, interpolate(tables.tangents()), sample_texture(tables.texture(entry.normal_map), uv))
+                shading = torch.where((material == k)[:, None], mapped, shading)
 
     zero, minus_one = torch.zeros((), device=prim.device), torch.full((), -1, dtype=torch.int64, device=prim.device)
     return Hits(

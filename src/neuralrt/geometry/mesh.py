@@ -46,11 +46,13 @@ def import_trimesh():
 
 @dataclass
 class MeshMaterial:
-    """A material as the mesh file describes it: a name, a linear base colour, an optional texture."""
+    """A material as the mesh file describes it: a name, a linear base colour, an optional texture
+    and an optional tangent-space normal map (both need the mesh's UVs)."""
 
     name: str = "default"
     base_color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))  # linear RGB
     texture: np.ndarray | None = None  # [H, W, 3] linear float32, row 0 = top (v = 1)
+    normal_map: np.ndarray | None = None  # [H, W, 3] float32 texels in [0, 1] as stored (not sRGB), row 0 = top
 
 
 @dataclass
@@ -87,6 +89,9 @@ class Mesh:
         self.vertex_normals = _per_vertex(self.vertex_normals, 3, "vertex_normals", self)
         self.uvs = _per_vertex(self.uvs, 2, "uvs", self)
         self.vertex_colors = _per_vertex(self.vertex_colors, 3, "vertex_colors", self)
+        for material in self.materials:  # (sampled by row and column at hits: a wrong shape reads past it)
+            material.texture = _image(material.texture, f"material {material.name!r} texture", self)
+            material.normal_map = _image(material.normal_map, f"material {material.name!r} normal_map", self)
 
     @property
     def num_triangles(self) -> int:
@@ -127,6 +132,8 @@ class Mesh:
             h.update(m.name.encode() + np.asarray(m.base_color, np.float32).tobytes())
             if m.texture is not None:
                 h.update(np.ascontiguousarray(m.texture).tobytes())
+            if m.normal_map is not None:  # (after a marker: a mesh without one hashes as before)
+                h.update(b"normal_map" + np.ascontiguousarray(m.normal_map).tobytes())
         return h.hexdigest()
 
     def nbytes(self) -> int:
@@ -190,6 +197,18 @@ def _per_vertex(values, width: int, what: str, mesh: "Mesh") -> np.ndarray | Non
     if array.shape != (len(mesh.vertices), width):
         raise MeshError(f"{mesh.name}: {what} must have shape [{len(mesh.vertices)}, {width}] (one per vertex), got {list(array.shape)}")
     return array
+
+
+def _image(values, what: str, mesh: "Mesh") -> np.ndarray | None:
+    """``values`` as a float32 [H, W, 3] image, or None; another shape or NaN/Inf is a `MeshError`."""
+    if values is None:
+        return None
+    image = np.asarray(values, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 1 or image.shape[1] < 1:
+        raise MeshError(f"{mesh.name}: {what} must be [H, W, 3], got shape {list(image.shape)}")
+    if not np.isfinite(image).all():
+        raise MeshError(f"{mesh.name}: {what} holds NaN or infinite values")
+    return image
 
 
 def _as_float32(vertices) -> np.ndarray:
@@ -303,6 +322,9 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
         material.name = getattr(mat, "name", None) or fallback_name
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
             _pbr_colour(material, mat, uv, where)
+            normals = getattr(mat, "normalTexture", None)
+            if normals is not None and uv is not None:
+                material.normal_map = _texture_pixels(normals, material.name, where, data=True)
             return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
@@ -341,11 +363,12 @@ def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str) 
 _TEXTURE_BYTES_PER_PIXEL = 3 * 4 * 3
 
 
-def _texture_pixels(image, material: str, where: str) -> np.ndarray | None:
+def _texture_pixels(image, material: str, where: str, data: bool = False) -> np.ndarray | None:
     """[H, W, 3] linear RGB of a PIL image; 16-bit grey (PIL mode I;16 or I) scaled from 65535, where
-    ``convert("RGB")`` would clip every value above 255 to white. trimesh decodes textures lazily,
-    here: one it cannot, or one larger than the memory left, is a warning and None (the material
-    keeps its base colour), not a traceback."""
+    ``convert("RGB")`` would clip every value above 255 to white. ``data``: values as stored in
+    [0, 1], not decoded from sRGB (a normal map). trimesh decodes textures lazily, here: one it
+    cannot, or one larger than the memory left, is a warning and None (the material keeps its base
+    colour, or its interpolated normals), not a traceback."""
     from ..devices import memory_shortfall
 
     width, height = image.size
@@ -353,14 +376,16 @@ def _texture_pixels(image, material: str, where: str) -> np.ndarray | None:
     why = f"decoding it {shortfall}" if shortfall else None
     if why is None:
         try:
+            decode = (lambda x: x) if data else srgb_to_linear
             if image.mode.startswith("I"):
                 grey = np.clip(np.asarray(image, np.float32) / 65535.0, 0.0, 1.0)
-                return srgb_to_linear(np.repeat(grey[..., None], 3, axis=-1))
-            return srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0)
+                return decode(np.repeat(grey[..., None], 3, axis=-1))
+            return decode(np.asarray(image.convert("RGB"), np.float32) / 255.0)
         except (OSError, ValueError, MemoryError) as exc:  # PIL: truncated data; numpy: allocation
             why = f"{type(exc).__name__}: {exc}"
-    warnings.warn(f"{where}: the {width}x{height} texture of material {material!r} could not be decoded ({why}); "
-                  "its material renders with its base colour", stacklevel=3)
+    what, fallback = ("normal map", "its interpolated normals") if data else ("texture", "its base colour")
+    warnings.warn(f"{where}: the {width}x{height} {what} of material {material!r} could not be decoded ({why}); "
+                  f"its material renders with {fallback}", stacklevel=3)
     return None
 
 
@@ -454,6 +479,7 @@ def load_mesh(path: str | Path) -> Mesh:
         known = materials[names[key]] if key in names else None
         # One slot per name only where the parts agree on it: two "paint"s of different colours stay two.
         if known is None or known.texture is not None or material.texture is not None \
+                or known.normal_map is not None or material.normal_map is not None \
                 or not np.array_equal(known.base_color, material.base_color):
             names[key] = len(materials)
             materials.append(material)

@@ -8,7 +8,7 @@ moved, re-lit and re-materialised without retraining. Models are cached in a mod
 ``group=True`` is the paper's granularity option: all selected objects are merged (in world space)
 into one mesh and one model; the merged mesh is written beside the models so camera rays can still
 be answered exactly. It keeps each mesh slot's colour and texture (the model learns them as it
-would per object; textures are written as PNGs beside the merged OBJ); vertex colours are not
+would per object; textures are written as PNGs beside the merged OBJ); vertex colours and normal maps are not
 carried over (a warning says whose).
 """
 
@@ -173,6 +173,10 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
     if coloured:
         warnings.warn(f"group: the vertex colours of {', '.join(coloured)} are not carried into the merged mesh (its "
                       "slot colours and textures are); convert without --group to keep them", stacklevel=3)
+    bumpy = [spec.objects[i].name for i in objects if any(m.normal_map is not None for m in meshes[i].materials)]
+    if bumpy:  # (trimesh's OBJ reader reads no normal-map key)
+        warnings.warn(f"group: the normal maps of {', '.join(bumpy)} are not carried into the merged mesh (an OBJ); "
+                      "convert without --group to keep them", stacklevel=3)
     any_uv = any(meshes[i].uvs is not None for i in objects)
     offset = 0
     for i in objects:

@@ -1,0 +1,156 @@
+"""Tangent-space normal maps: analytic tilts on a UV-mapped quad (u and v directions, mirrored UVs),
+the CPU (numpy) and torch implementations against each other, glTF loading (texels kept as stored,
+not sRGB-decoded), the mesh hash, the render
+(Lambert with the mapped normal) and bad normal maps."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.accel.mesh_blas_attributes import MeshAttributeTables, closest_hit_records
+from neuralrt.accel.normal_mapping import mapped_normals_numpy, mapped_normals_torch
+from neuralrt.errors import MeshError
+from neuralrt.geometry.mesh import Mesh, MeshMaterial, load_mesh
+from neuralrt.geometry.procedural import sphere
+from neuralrt.geometry.tangents import vertex_tangents
+from neuralrt.rays import Rays
+
+QUAD_VERTICES = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)  # faces +z
+QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]])
+QUAD_UVS = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)  # u along +x, v along +y
+
+
+def _texel(m) -> np.ndarray:
+    return (np.asarray(m, np.float32) + 1.0) / 2.0
+
+
+def _quad(texel, uvs=QUAD_UVS) -> Mesh:
+    return Mesh(QUAD_VERTICES, QUAD_FACES, uvs=uvs, materials=[MeshMaterial("bumpy", normal_map=np.tile(texel, (4, 4, 1)))])
+
+
+def _normals_at_centre(mesh: Mesh) -> np.ndarray:
+    rays = Rays(torch.tensor([[0.1, 0.2, 3.0], [-0.4, -0.3, 3.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 2))
+    hits = MeshBLAS(mesh).intersect(rays)
+    assert bool(hits.hit.all())
+    return hits.normal.numpy()
+
+
+S, C = math.sin(math.radians(30)), math.cos(math.radians(30))
+
+
+@pytest.mark.parametrize("encoded, uvs, expected", [
+    ((0, 0, 1), QUAD_UVS, (0, 0, 1)),  # a flat map changes nothing
+    ((S, 0, C), QUAD_UVS, (S, 0, C)),  # red tilts towards increasing u (+x)
+    ((0, S, C), QUAD_UVS, (0, S, C)),  # green towards increasing v (+y): "green up"
+    ((S, 0, C), QUAD_UVS * [-1, 1], (-S, 0, C)),  # u mirrored: increasing u is -x
+    ((0, S, C), QUAD_UVS * [1, -1], (0, -S, C)),  # v mirrored: the handedness w flips the bitangent
+])
+def test_a_constant_normal_map_tilts_normals_by_its_texel(encoded, uvs, expected):
+    got = _normals_at_centre(_quad(_texel(encoded), uvs.astype(np.float32)))
+    np.testing.assert_allclose(got, np.tile(expected, (2, 1)), atol=2e-3)  # (8-bit-free float texels; bilinear of a constant)
+
+
+def test_numpy_and_torch_implementations_agree():
+    rng = np.random.default_rng(4)
+    normal = rng.normal(size=(500, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    tangent = np.concatenate([rng.normal(size=(500, 3)), np.sign(rng.normal(size=(500, 1)))], axis=1).astype(np.float32)
+    texel = rng.uniform(0, 1, size=(500, 3)).astype(np.float32)
+    tangent[:5, :3] = normal[:5] * 2.0  # degenerate frames: the normal is kept
+    a = mapped_normals_numpy(normal, tangent, texel)
+    b = mapped_normals_torch(*(torch.from_numpy(x) for x in (normal, tangent, texel))).numpy()
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    np.testing.assert_allclose(a[:5], normal[:5])
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-6)
+
+
+def _textured_sphere() -> Mesh:
+    base = sphere(2)
+    d = base.vertices / np.linalg.norm(base.vertices, axis=1, keepdims=True)
+    uvs = np.stack([0.5 + np.arctan2(d[:, 2], d[:, 0]) / (2 * np.pi), 0.5 + np.arcsin(np.clip(d[:, 1], -1, 1)) / np.pi], 1)
+    ramp = np.linspace(0.2, 0.8, 16, dtype=np.float32)
+    normal_map = np.stack(np.broadcast_arrays(ramp[None, :], ramp[:, None], np.float32(0.9)), -1).astype(np.float32)
+    return Mesh(base.vertices, base.faces, uvs=uvs.astype(np.float32), materials=[MeshMaterial("bumpy", normal_map=normal_map)])
+
+
+def test_the_cpu_hit_path_and_the_torch_attributes_path_agree_on_a_sphere():
+    mesh = _textured_sphere()
+    rng = np.random.default_rng(5)
+    faces = rng.integers(0, len(mesh.faces), 300)
+    bu, bv = rng.uniform(0.05, 0.45, 300).astype(np.float32), rng.uniform(0.05, 0.45, 300).astype(np.float32)
+    corners = mesh.vertices[mesh.faces[faces]]
+    points = (1 - bu - bv)[:, None] * corners[:, 0] + bu[:, None] * corners[:, 1] + bv[:, None] * corners[:, 2]
+    normals = mesh.face_normals()[faces]
+    rays = Rays(torch.from_numpy(points + 2 * normals), torch.from_numpy(-normals))
+    cpu = MeshBLAS(mesh).intersect(rays)
+    assert bool(cpu.hit.all()) and torch.equal(cpu.primitive_id, torch.from_numpy(faces))
+    tables = MeshAttributeTables(mesh, torch.device("cpu"))
+    other = closest_hit_records(tables, torch.from_numpy(faces), cpu.t, torch.from_numpy(bu), torch.from_numpy(bv))
+    np.testing.assert_allclose(cpu.normal.numpy(), other.normal.numpy(), atol=2e-4)  # (Embree's barycentrics vs ours)
+    plain = MeshBLAS(Mesh(mesh.vertices, mesh.faces, uvs=mesh.uvs)).intersect(rays)
+    assert float((cpu.normal - plain.normal).norm(dim=1).median()) > 0.1  # the map does turn them
+
+
+def test_tangents_follow_u_and_record_mirroring():
+    flipped = vertex_tangents(QUAD_VERTICES, QUAD_FACES, np.tile([0, 0, 1.0], (4, 1)), QUAD_UVS * [1, -1])
+    np.testing.assert_allclose(flipped, np.tile([1, 0, 0, -1], (4, 1)), atol=1e-6)
+    no_uvs = vertex_tangents(QUAD_VERTICES, QUAD_FACES, np.tile([0, 0, 1.0], (4, 1)), np.zeros((4, 2)))
+    np.testing.assert_allclose(np.linalg.norm(no_uvs[:, :3], axis=1), 1.0, atol=1e-6)  # a frame anyway
+    np.testing.assert_allclose(no_uvs[:, 2], 0.0, atol=1e-6)
+
+
+def test_gltf_normal_texture_is_loaded_as_stored(tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    from PIL import Image
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    image = Image.fromarray(np.tile(np.array([200, 128, 230], np.uint8), (4, 4, 1)))
+    material = PBRMaterial(name="bumpy", baseColorFactor=[255, 255, 255, 255], normalTexture=image)
+    mesh = trimesh.Trimesh(QUAD_VERTICES, QUAD_FACES, visual=TextureVisuals(uv=QUAD_UVS, material=material), process=False)
+    mesh.export(str(tmp_path / "quad.glb"))
+    loaded = load_mesh(tmp_path / "quad.glb")
+    np.testing.assert_allclose(loaded.materials[0].normal_map[0, 0], np.array([200, 128, 230]) / 255.0, rtol=1e-6)
+    expected = np.array([200, 128, 230]) / 255.0 * 2 - 1
+    np.testing.assert_allclose(_normals_at_centre(loaded)[0], expected / np.linalg.norm(expected), atol=1e-5)
+
+
+def test_a_normal_map_changes_the_mesh_hash():
+    # (so a model trained without it is not taken for one of the mapped mesh: training's targets
+    # are MeshBLAS.intersect's normals, mapped)
+    flat = Mesh(QUAD_VERTICES, QUAD_FACES, uvs=QUAD_UVS)
+    tilted = _quad(_texel((S, 0, C)))
+    assert flat.content_hash() != tilted.content_hash()
+    assert Mesh(QUAD_VERTICES, QUAD_FACES, uvs=QUAD_UVS, materials=[MeshMaterial("bumpy")]).content_hash() \
+        != tilted.content_hash()
+
+
+def test_a_normal_mapped_plane_renders_with_the_mapped_normal():
+    """A point light straight above: radiance = albedo / pi * I * cos(mapped normal, light) / d^2."""
+    from neuralrt.render.integrator import render
+    from neuralrt.scene.loader import load_dict
+
+    def centre_pixel(mesh):
+        scene = load_dict({
+            "camera": {"position": [0, 0, 3], "look_at": [0, 0, 0], "fov": 10, "resolution": [3, 3]},
+            "materials": [{"name": "bumpy", "albedo": [0.5, 0.5, 0.5]}],
+            "objects": [{"mesh": mesh}], "lights": [{"position": [0, 0, 2], "intensity": [4, 4, 4]}],
+        })
+        return float(np.asarray(render(scene, spp=16, max_depth=1, progress=False).image)[1, 1, 0])
+
+    flat = centre_pixel(_quad(_texel((0, 0, 1))))
+    tilted = centre_pixel(_quad(_texel((S, 0, C))))
+    assert flat == pytest.approx(0.5 / math.pi * 4 / 4, rel=0.02)
+    assert tilted == pytest.approx(flat * C, rel=0.02)
+
+
+@pytest.mark.parametrize("normal_map, message", [
+    (np.zeros((4, 4)), r"material 'bumpy' normal_map must be \[H, W, 3\], got shape \[4, 4\]"),
+    (np.full((2, 2, 3), np.nan), "material 'bumpy' normal_map holds NaN or infinite values"),
+])
+def test_a_bad_normal_map_is_a_mesh_error(normal_map, message):
+    with pytest.raises(MeshError, match=message):
+        Mesh(QUAD_VERTICES, QUAD_FACES, uvs=QUAD_UVS, materials=[MeshMaterial("bumpy", normal_map=normal_map)])
