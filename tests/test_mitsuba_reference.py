@@ -95,6 +95,17 @@ def _nothing():
     return contextlib.nullcontext()
 
 
+def test_a_normal_mapped_mesh_is_refused():
+    from neuralrt.geometry.mesh import Mesh, MeshMaterial
+
+    quad = Mesh(np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]]),
+                uvs=np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32),
+                materials=[MeshMaterial("bumpy", normal_map=np.full((2, 2, 3), 0.5, np.float32))])
+    scene = load_dict({"objects": [{"mesh": quad}], "environment": {"color": [1, 1, 1]}})
+    with pytest.raises(SceneError, match="normal maps are not exported"):
+        reference_render(scene, spp=1)
+
+
 def test_agreement_needs_two_seeds_a_side():
     with pytest.raises(ValueError, match="at least 2 images"):
         agreement([np.zeros((4, 4, 3))], [np.zeros((4, 4, 3))] * 2)

@@ -8,8 +8,9 @@ lights on emissive faces (front side only), point lights and a constant environm
 
 Only what both renderers define the same way is exported: diffuse and emissive materials with
 constant colours. Conductor and plastic (ours: Schlick F0 and a GGX coat over a diffuse base;
-Mitsuba's roughconductor and roughplastic are other models), textures, vertex colours, neural
-objects and environment images are refused with one line naming what (`SceneError`).
+Mitsuba's roughconductor and roughplastic are other models), textures, normal maps, vertex
+colours, neural objects and environment images are refused with one line naming what
+(`SceneError`).
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ def _shapes(mi, scene) -> dict:
             slot_material = mesh.materials[slot]
             if slot_material.texture is not None or table.textures[material] is not None:
                 raise SceneError(f"instance {k} ({inst.name}): textures are not exported to Mitsuba")
+            if slot_material.normal_map is not None:
+                raise SceneError(f"instance {k} ({inst.name}): normal maps are not exported to Mitsuba")
             kind = MaterialKind(int(table.kind[material]))
             if kind not in (MaterialKind.DIFFUSE, MaterialKind.EMISSIVE):
                 raise SceneError(f"material {table.names[material]!r}: {kind.name.lower()} is not the same model in "
