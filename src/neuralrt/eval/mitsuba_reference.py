@@ -4,7 +4,17 @@
 variant: the same camera (vertical field of view, box-filtered pixels), triangles in world space
 with their vertex normals, one mesh per (object, scene material), two-sided diffuse BSDFs, area
 lights on emissive faces (front side only), point lights and a constant environment. Mitsuba's
-``max_depth`` counts the camera segment, ours the bounces, so it gets ours + 1.
+``max_depth`` counts the camera segment, ours the bounces, so it gets ours + 1. Emitters go
+without vertex normals (ours emit and are sampled by the triangle's normal, Mitsuba's by the
+interpolated one), wound so that their face normal is ours under mirroring transforms; so an
+emitter's own reflection is flat-shaded there.
+
+Where the two renderers' conventions differ, scenes should not go (measured by a trial: the
+differences are large and local, not noise): a light inside a closed mesh of few triangles with
+smooth normals (Mitsuba takes light samples above the shading hemisphere though below the
+surface, and lets them through: ours gives 0), and surfaces seen from behind their shading normal
+while in front of the triangle (ours shades with the triangle's normal there, Mitsuba's two-sided
+BSDF with the reversed shading normal: darker).
 
 Only what both renderers define the same way is exported: diffuse and emissive materials with
 constant colours. Conductor and plastic (ours: Schlick F0 and a GGX coat over a diffuse base;
@@ -78,6 +88,7 @@ def _shapes(mi, scene) -> dict:
         if mesh.vertex_colors is not None:
             raise SceneError(f"instance {k} ({inst.name}): vertex colours are not exported to Mitsuba")
         vertices = inst.transform.apply_points(torch.from_numpy(mesh.vertices)).numpy()
+        mirrored = np.linalg.det(np.asarray(inst.transform.tolist())[:3, :3]) < 0
         normals = inst.transform.apply_normals(torch.from_numpy(mesh.vertex_normals)).numpy()
         for slot, material in enumerate(inst.material_map.tolist()):
             faces = mesh.faces[mesh.face_material_ids == slot]
@@ -95,18 +106,26 @@ def _shapes(mi, scene) -> dict:
             albedo = table.albedo[material].cpu().numpy() * np.asarray(slot_material.base_color, np.float32).reshape(-1)[:3]
             props = mi.Properties()
             props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": _rgb(albedo)}})
-            if kind == MaterialKind.EMISSIVE:
+            emitter = kind == MaterialKind.EMISSIVE
+            if emitter:
                 props["emitter"] = mi.load_dict({"type": "area", "radiance": _rgb(table.emission[material].cpu().numpy())})
-            out[f"instance{k}_slot{slot}"] = _mesh(mi, f"instance{k}_slot{slot}", vertices, normals, faces, props)
+            # An emitter goes without vertex normals: Mitsuba's area light faces (and weights its
+            # samples by) the interpolated normal, ours the triangle's. Its triangles' winding must
+            # then give our face normal, which a mirroring transform reverses.
+            if emitter and mirrored:
+                faces = faces[:, ::-1]
+            out[f"instance{k}_slot{slot}"] = _mesh(mi, f"instance{k}_slot{slot}", vertices, None if emitter else normals,
+                                                   faces, props)
     return out
 
 
-def _mesh(mi, name: str, vertices: np.ndarray, normals: np.ndarray, faces: np.ndarray, props):
+def _mesh(mi, name: str, vertices: np.ndarray, normals: np.ndarray | None, faces: np.ndarray, props):
     used, local = np.unique(faces, return_inverse=True)  # only this slot's vertices
-    mesh = mi.Mesh(name, len(used), len(faces), props=props, has_vertex_normals=True)
+    mesh = mi.Mesh(name, len(used), len(faces), props=props, has_vertex_normals=normals is not None)
     params = mi.traverse(mesh)
     params["vertex_positions"] = np.ascontiguousarray(vertices[used], np.float32).ravel()
-    params["vertex_normals"] = np.ascontiguousarray(normals[used], np.float32).ravel()
+    if normals is not None:
+        params["vertex_normals"] = np.ascontiguousarray(normals[used], np.float32).ravel()
     params["faces"] = local.astype(np.uint32).ravel()
     params.update()
     return mesh
