@@ -1,6 +1,6 @@
 """Our path tracer against Mitsuba 3's on the same scenes (`neuralrt.eval.mitsuba_reference`): a
-Cornell box with a diffuse ball (area light, 5 bounces), and a ball on a floor under a point light
-and a constant sky (direct lighting). Each renderer renders 8 seeds; block means must agree to
+Cornell box with a diffuse ball (area light, 5 bounces), a ball on a floor under a point light
+and a constant sky, and a coarse mirrored emissive ball over a floor (direct lighting). Each renderer renders 8 seeds; block means must agree to
 their seed spread (`agreement`'s block chi-square near 1; a bounce more or fewer gives 5-21
 here, measured when the test was written). Both shading implementations are
 checked. Skipped without Mitsuba (the ``[gpu]`` extra)."""

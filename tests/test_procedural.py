@@ -20,6 +20,10 @@ def _assert_valid(mesh: Mesh) -> None:
     assert (mesh.face_areas() > 0).mean() > 0.999
     assert len(mesh.face_material_ids) == mesh.num_triangles
     assert mesh.face_material_ids.max() < len(mesh.materials)
+    # Triangles are wound about their vertex normals (an emitter emits, and an exported mesh
+    # faces, by its winding): foliage's leaves were wound against theirs.
+    corners = mesh.vertex_normals[mesh.faces].mean(axis=1)
+    assert ((mesh.face_normals() * corners).sum(axis=1) < 0).mean() < 0.005
 
 
 def _signed_volume(mesh: Mesh) -> float:

@@ -514,7 +514,7 @@ def foliage(detail: int = 2, seed: int = 0) -> Mesh:
     tip = centre + 0.5 * length * along
     left = centre - 0.5 * width * across + bend * normal
     right = centre + 0.5 * width * across + bend * normal
-    leaf_v = np.stack([base, right, tip, left], 1).reshape(-1, 3)
+    leaf_v = np.stack([base, left, tip, right], 1).reshape(-1, 3)  # wound counter-clockwise about `normal`
     leaf_n = np.repeat(normal, 4, axis=0)
     k = np.arange(n_leaves)[:, None] * 4 + len(wood_v)
     leaf_f = np.concatenate([np.stack([k, k + 1, k + 2], -1), np.stack([k, k + 2, k + 3], -1)], 1).reshape(-1, 3)
