@@ -71,9 +71,9 @@ A surface's colour is its scene material's `albedo` times the mesh's own colour 
 generators' meshes): give one or the other. A neural object's own colour is what its model
 learned; it carries no UVs, so a texture `albedo` on it shows one texel (a warning says so).
 Shading normals are the mesh's vertex normals, turned by a glTF material's `normalTexture`
-(tangent space, green up, tangents built from the UVs as `neuralrt.geometry.tangents` says; its
-`scale` is not read, and OBJ bump maps are not read); a model of such a mesh learns the turned
-normals.
+(tangent space, green up; tangents built from the UVs as `neuralrt.geometry.tangents` says, since
+trimesh reads neither a file's `TANGENT` attribute nor the map's `scale`; OBJ bump maps are not
+read); a model of such a mesh learns the turned normals.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
