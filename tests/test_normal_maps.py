@@ -4,6 +4,7 @@ not sRGB-decoded), the mesh hash, the render
 (Lambert with the mapped normal) and bad normal maps."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -102,20 +103,79 @@ def test_tangents_follow_u_and_record_mirroring():
     np.testing.assert_allclose(no_uvs[:, 2], 0.0, atol=1e-6)
 
 
-def test_gltf_normal_texture_is_loaded_as_stored(tmp_path):
-    trimesh = pytest.importorskip("trimesh")
-    from PIL import Image
+def _glb(path, normal_image=None, base_image=None, uvs=QUAD_UVS):
+    import trimesh
     from trimesh.visual import TextureVisuals
     from trimesh.visual.material import PBRMaterial
 
-    image = Image.fromarray(np.tile(np.array([200, 128, 230], np.uint8), (4, 4, 1)))
-    material = PBRMaterial(name="bumpy", baseColorFactor=[255, 255, 255, 255], normalTexture=image)
-    mesh = trimesh.Trimesh(QUAD_VERTICES, QUAD_FACES, visual=TextureVisuals(uv=QUAD_UVS, material=material), process=False)
-    mesh.export(str(tmp_path / "quad.glb"))
-    loaded = load_mesh(tmp_path / "quad.glb")
+    material = PBRMaterial(name="bumpy", baseColorFactor=[255, 255, 255, 255], normalTexture=normal_image,
+                           baseColorTexture=base_image)
+    visual = TextureVisuals(uv=uvs, material=material)
+    trimesh.Trimesh(QUAD_VERTICES, QUAD_FACES, visual=visual, process=False).export(str(path))
+    return path
+
+
+def _image(rgb, size=4, mode="RGB"):
+    from PIL import Image
+
+    return Image.fromarray(np.tile(np.array(rgb, np.uint8), (size, size, 1))).convert(mode)
+
+
+def test_gltf_normal_texture_is_loaded_as_stored(tmp_path):
+    loaded = load_mesh(_glb(tmp_path / "quad.glb", _image([200, 128, 230])))
     np.testing.assert_allclose(loaded.materials[0].normal_map[0, 0], np.array([200, 128, 230]) / 255.0, rtol=1e-6)
     expected = np.array([200, 128, 230]) / 255.0 * 2 - 1
     np.testing.assert_allclose(_normals_at_centre(loaded)[0], expected / np.linalg.norm(expected), atol=1e-5)
+
+
+@pytest.mark.parametrize("image, why", [
+    (_image([90, 90, 90], mode="L"), "it is a grey (L) image"),  # a height map, most likely
+    (_image([128, 128, 0]), "its texels point into the surface on average (mean blue 0.000, below 0.5)"),
+])
+def test_what_cannot_be_a_tangent_space_normal_map_is_left_out_with_a_warning(tmp_path, image, why):
+    with pytest.warns(UserWarning, match=rf"quad.glb: the normal map of material 'bumpy' is left out: {re.escape(why)}"):
+        loaded = load_mesh(_glb(tmp_path / "quad.glb", image))
+    assert loaded.materials[0].normal_map is None
+
+
+def test_an_image_without_uvs_is_left_out_with_a_warning(tmp_path):
+    with pytest.warns(UserWarning, match="the normal map of material 'bumpy' is left out: the mesh has no UVs"):
+        loaded = load_mesh(_glb(tmp_path / "quad.glb", _image([128, 128, 255]), uvs=None))
+    assert loaded.materials[0].normal_map is None
+
+
+@pytest.mark.parametrize("slot", ["normalTexture", "baseColorTexture"])
+def test_a_damaged_image_inside_a_glb_is_a_warning_naming_it(tmp_path, slot):
+    # It was an OSError with no file name, from trimesh's copy of the material (outside any check).
+    rng = np.random.default_rng(0)
+    from PIL import Image
+
+    noise = Image.fromarray(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    path = _glb(tmp_path / "quad.glb", **{"normal_image" if slot == "normalTexture" else "base_image": noise})
+    data = bytearray(path.read_bytes())
+    start = data.find(b"IDAT")
+    data[start + 40:start + 400] = bytes(360)
+    path.write_bytes(bytes(data))
+    what = "normal map" if slot == "normalTexture" else "texture"
+    with pytest.warns(UserWarning, match=rf"quad.glb: the 64x64 {what} of material 'bumpy' could not be decoded \(OSError"):
+        loaded = load_mesh(path)
+    assert loaded.materials[0].normal_map is None and loaded.materials[0].texture is None
+
+
+@pytest.mark.parametrize("texel", [(128, 128, 0), (0, 0, 0), (128, 128, 128), (127, 127, 127)])
+def test_texels_that_encode_no_direction_keep_the_interpolated_normal(texel):
+    # 8 bits cannot store 0.5: a grey texel decoded to (0.004, 0.004, 0.004) turned normals by 55 degrees.
+    normal, tangent = np.array([[0, 0, 1.0]], np.float32), np.array([[1, 0, 0, 1.0]], np.float32)
+    encoded = np.array([texel], np.float32) / 255
+    np.testing.assert_array_equal(mapped_normals_numpy(normal, tangent, encoded), normal)
+    np.testing.assert_array_equal(mapped_normals_torch(*(torch.from_numpy(x) for x in (normal, tangent, encoded))).numpy(), normal)
+
+
+def test_info_names_the_textured_and_normal_mapped_materials(tmp_path):
+    from neuralrt import api
+
+    facts = api.info(_glb(tmp_path / "quad.glb", _image([200, 128, 230])))
+    assert facts["uvs"] and facts["normal_mapped_materials"] == ["bumpy"] and facts["textured_materials"] == []
 
 
 def test_a_normal_map_changes_the_mesh_hash():

@@ -58,6 +58,9 @@ def _mesh_info(path: Path) -> dict:
         "vertices": int(len(mesh.vertices)),
         "bounds": [lo.tolist(), hi.tolist()],
         "materials": [m.name for m in mesh.materials],
+        "uvs": mesh.uvs is not None,
+        "textured_materials": [m.name for m in mesh.materials if m.texture is not None],
+        "normal_mapped_materials": [m.name for m in mesh.materials if m.normal_map is not None],
         **mem.as_dict(),
     }
 

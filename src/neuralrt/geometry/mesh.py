@@ -323,8 +323,8 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
             _pbr_colour(material, mat, uv, where)
             normals = getattr(mat, "normalTexture", None)
-            if normals is not None and uv is not None:
-                material.normal_map = _texture_pixels(normals, material.name, where, data=True)
+            if normals is not None and _has_uvs(uv, "normal map", material.name, where):
+                material.normal_map = _normal_map(normals, material.name, where)
             return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
@@ -332,7 +332,8 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
         if diffuse is not None:
             material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
         image = getattr(mat, "image", None)
-        texture = _texture_pixels(image, material.name, where) if image is not None and uv is not None else None
+        texture = _texture_pixels(image, material.name, where) \
+            if image is not None and _has_uvs(uv, "texture", material.name, where) else None
         if texture is not None:
             material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
@@ -352,11 +353,40 @@ def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str) 
     factor = pbr.baseColorFactor
     linear = np.ones(3, np.float32) if factor is None else np.asarray(factor, np.float32)[:3] / 255.0
     image = pbr.baseColorTexture
-    texture = _texture_pixels(image, material.name, where) if image is not None and uv is not None else None
+    texture = _texture_pixels(image, material.name, where) \
+        if image is not None and _has_uvs(uv, "texture", material.name, where) else None
     if texture is not None:
         material.texture = texture * linear
     else:
         material.base_color = linear
+
+
+def _has_uvs(uv: np.ndarray | None, what: str, material: str, where: str) -> bool:
+    """Whether an image can be mapped (the part has UVs); else a warning that it is left out."""
+    if uv is None:
+        warnings.warn(f"{where}: the {what} of material {material!r} is left out: the mesh has no UVs", stacklevel=4)
+    return uv is not None
+
+
+_GREY_MODES = ("1", "L", "LA", "La", "I", "I;16", "F")  # PIL modes of one channel (with alpha)
+
+
+def _normal_map(image, material: str, where: str) -> np.ndarray | None:
+    """A glTF ``normalTexture`` as stored texels, or None with a warning where it cannot be a
+    tangent-space normal map: a grey image (a height map, most likely), or texels that point into
+    the surface on average (blue below 0.5)."""
+    why = None
+    if image.mode in _GREY_MODES:
+        why = f"it is a grey ({image.mode}) image: a tangent-space normal map has three channels (a height map?)"
+        texels = None
+    else:
+        texels = _texture_pixels(image, material, where, data=True)
+        if texels is not None and float(texels[..., 2].mean()) <= 0.5:
+            why = f"its texels point into the surface on average (mean blue {float(texels[..., 2].mean()):.3f}, below 0.5)"
+    if why is None:
+        return texels
+    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=4)
+    return None
 
 
 # Bytes a texture pixel takes while decoded: the float32 result and two float32 temporaries.
@@ -383,10 +413,14 @@ def _texture_pixels(image, material: str, where: str, data: bool = False) -> np.
             return decode(np.asarray(image.convert("RGB"), np.float32) / 255.0)
         except (OSError, ValueError, MemoryError) as exc:  # PIL: truncated data; numpy: allocation
             why = f"{type(exc).__name__}: {exc}"
-    what, fallback = ("normal map", "its interpolated normals") if data else ("texture", "its base colour")
-    warnings.warn(f"{where}: the {width}x{height} {what} of material {material!r} could not be decoded ({why}); "
-                  f"its material renders with {fallback}", stacklevel=3)
+    _warn_undecodable("normal map" if data else "texture", image.size, material, where, why, stacklevel=4)
     return None
+
+
+def _warn_undecodable(what: str, size: tuple[int, int], material: str, where: str, why: str, stacklevel: int) -> None:
+    fallback = "its interpolated normals" if what == "normal map" else "its base colour"
+    warnings.warn(f"{where}: the {size[0]}x{size[1]} {what} of material {material!r} could not be decoded ({why}); "
+                  f"its material renders with {fallback}", stacklevel=stacklevel)
 
 
 def _varying_face_colors(visual) -> np.ndarray | None:
@@ -441,6 +475,7 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
+    _drop_undecodable_images(loaded, trimesh, str(path))
     if isinstance(loaded, trimesh.Scene):
         parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
     elif isinstance(loaded, trimesh.Trimesh):
@@ -516,6 +551,32 @@ def load_mesh(path: str | Path) -> Mesh:
         materials=materials,
         name=path.stem,
     )
+
+
+# Where trimesh's materials hold images (OBJ/MTL, glTF PBR), and what neuralrt makes of each (None: unused).
+_IMAGE_ROLES = {"image": "texture", "baseColorTexture": "texture", "normalTexture": "normal map",
+                "emissiveTexture": None, "occlusionTexture": None, "metallicRoughnessTexture": None}
+
+
+def _drop_undecodable_images(loaded, trimesh, where: str) -> None:
+    """Decode each image the file's materials hold, leaving out one that cannot be (with the
+    warning `_texture_pixels` gives, where neuralrt uses that image): PIL decodes lazily, and
+    `Scene.dump` copies every material, which decoded a damaged PNG inside a .glb outside any check
+    (an OSError that named no file)."""
+    geometries = loaded.geometry.values() if isinstance(loaded, trimesh.Scene) else [loaded]
+    for geometry in geometries:
+        material = getattr(getattr(geometry, "visual", None), "material", None)
+        for attribute, role in _IMAGE_ROLES.items():
+            image = getattr(material, attribute, None)
+            if image is None or not hasattr(image, "load"):
+                continue
+            try:
+                image.load()
+            except (OSError, ValueError, MemoryError, SyntaxError) as exc:  # PIL: truncated or damaged data
+                if role is not None:
+                    _warn_undecodable(role, image.size, getattr(material, "name", None) or "unnamed", where,
+                                      f"{type(exc).__name__}: {exc}", stacklevel=4)
+                setattr(material, attribute, None)
 
 
 def _joined(arrays: list[np.ndarray]) -> np.ndarray:

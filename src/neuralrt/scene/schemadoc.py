@@ -72,8 +72,11 @@ generators' meshes): give one or the other. A neural object's own colour is what
 learned; it carries no UVs, so a texture `albedo` on it shows one texel (a warning says so).
 Shading normals are the mesh's vertex normals, turned by a glTF material's `normalTexture`
 (tangent space, green up; tangents built from the UVs as `neuralrt.geometry.tangents` says, since
-trimesh reads neither a file's `TANGENT` attribute nor the map's `scale`; OBJ bump maps are not
-read); a model of such a mesh learns the turned normals.
+trimesh reads neither a file's `TANGENT` attribute nor the map's `scale` or `texCoord`: the first
+UV set maps it; OBJ bump maps are not read). A texel that points into the surface or is far from
+unit length (a neutral grey) keeps the interpolated normal; a grey image, or a map pointing into
+the surface on average, is left out with a warning, as is an image on a mesh without UVs. A model
+of such a mesh learns the turned normals; `neuralrt info MESH` lists the normal-mapped materials.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
