@@ -21,7 +21,11 @@ _SCRIPT = textwrap.dedent("""
             return str(exc)
 
     if __name__ == "__main__":
-        parent = work(20000)  # OpenMP's threads run here first
+        if sys.argv[2] == "neuralrt":
+            parent = work(20000)  # OpenMP's threads run here first
+        else:  # torch's alone (the child hung in torch's, then numba's, first parallel region)
+            a = torch.randn(1000, 1000)
+            parent = int((a @ a).sum() != 0)
         with mp.get_context(sys.argv[1]).Pool(1) as pool:
             print(parent, pool.apply_async(work, (20000,)).get(timeout=120), flush=True)
 """)
@@ -29,12 +33,29 @@ _SCRIPT = textwrap.dedent("""
 
 @pytest.mark.skipif(sys.platform != "linux", reason="fork with GNU OpenMP: Linux")
 @pytest.mark.parametrize("start", ["fork", "spawn"])
-def test_a_child_process_answers_or_says_why_it_cannot(tmp_path, start):
+@pytest.mark.parametrize("parent_work", ["neuralrt", "torch"])
+def test_a_child_process_answers_or_says_why_it_cannot(tmp_path, start, parent_work):
     (tmp_path / "pool.py").write_text(_SCRIPT)
-    done = subprocess.run([sys.executable, str(tmp_path / "pool.py"), start], capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, str(tmp_path / "pool.py"), start, parent_work], capture_output=True, text=True,
+                          timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     parent, child = done.stdout.strip().split(" ", 1)
     if start == "fork":
         assert child.startswith("MeshBLAS: this process was forked") and "get_context('spawn')" in child
-    else:
+    elif parent_work == "neuralrt":
         assert child == parent
+    else:
+        assert int(child) > 0
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="fork with GNU OpenMP: Linux")
+def test_a_fork_after_torch_work_answers_on_a_fork_safe_numba_layer(tmp_path):
+    # What the refusal suggests: with NUMBA_THREADING_LAYER=workqueue the child answers (its
+    # torch on one thread: torch's own first parallel region hung there too).
+    import os
+
+    (tmp_path / "pool.py").write_text(_SCRIPT)
+    done = subprocess.run([sys.executable, str(tmp_path / "pool.py"), "fork", "torch"], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[1]) > 0

@@ -8,8 +8,11 @@ a fork, a parent whose numba parallel regions have run on the OpenMP layer (a mo
 query) marks the child; there the entry points that would run them (a BLAS's `check_rays`,
 `load_model`, `MeshBLAS`, `train`, `render`) raise one line instead, and the child's torch runs
 on one thread (no pool to wake), so its own torch work still runs. numba's other threading layers
-survive a fork: with them nothing is refused. A parent that ran only torch's parallel work is not
-noticed (its child may hang inside torch).
+survive a fork: with them nothing is refused. A parent that ran only torch's parallel work
+(torch on more than one thread, and more than one thread in the process: its OpenMP pool may
+exist) marks the child too, unless numba is set to a layer that survives a fork
+(``NUMBA_THREADING_LAYER=workqueue`` or ``tbb``): the child's first numba region hung inside
+GNU OpenMP, and its torch ops did too before they were put on one thread.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ from .errors import DeviceError
 
 __all__ = ["check_not_forked"]
 
-_unsafe_to_fork = False  # decided in the parent just before a fork
+_unsafe_to_fork = False  # decided in the parent just before a fork: the child must refuse
+_openmp_threads_ran = False  # ... the child's torch must run on one thread
 _forked_after_openmp = False  # this process is such a fork's child
 
 
@@ -30,26 +34,56 @@ def check_not_forked(where: str) -> None:
     if _forked_after_openmp:
         raise DeviceError(
             f"{where}: this process was forked (multiprocessing's default start method on Linux) from one whose OpenMP "
-            "threads had already run neuralrt's work, and OpenMP cannot run in such a child (it would hang): start "
+            "threads had already run (neuralrt's or torch's work), and OpenMP cannot run in such a child (it would hang): start "
             "workers with multiprocessing.get_context('spawn') or 'forkserver' (or set NUMBA_THREADING_LAYER=workqueue)")
 
 
+_FORK_SAFE_LAYERS = ("workqueue", "tbb")  # numba threading layers with no GNU OpenMP state to inherit
+
+
 def _before_fork() -> None:
-    global _unsafe_to_fork
+    global _unsafe_to_fork, _openmp_threads_ran
+    numba_omp = _numba_layer_chosen() == "omp"
+    torch_pool = _torch_pool_may_exist()
+    _openmp_threads_ran = numba_omp or torch_pool
+    _unsafe_to_fork = numba_omp or (torch_pool and _numba_layer_chosen() is None
+                                    and _configured_numba_layer() not in _FORK_SAFE_LAYERS)
+
+
+def _numba_layer_chosen() -> str | None:
+    """The threading layer numba's parallel regions run on, or None before the first one."""
     numba = sys.modules.get("numba")
-    _unsafe_to_fork = False
-    if numba is not None:
-        try:
-            _unsafe_to_fork = numba.threading_layer() == "omp"
-        except ValueError:  # no parallel region has run: no layer chosen yet
-            pass
+    if numba is None:
+        return None
+    try:
+        return numba.threading_layer()
+    except ValueError:  # no parallel region has run: no layer chosen yet
+        return None
+
+
+def _torch_pool_may_exist() -> bool:
+    """Whether torch's OpenMP threads may have started: torch runs on more than one thread and the
+    process has more than one (cheap to tell; torch does not say whether its pool started)."""
+    torch = sys.modules.get("torch")
+    if torch is None or torch.get_num_threads() < 2:
+        return False
+    try:
+        return len(os.listdir("/proc/self/task")) > 1
+    except OSError:  # no /proc: assume the pool exists
+        return True
+
+
+def _configured_numba_layer() -> str:
+    numba = sys.modules.get("numba")
+    layer = numba.config.THREADING_LAYER if numba is not None else os.environ.get("NUMBA_THREADING_LAYER", "default")
+    return str(layer).lower()
 
 
 def _after_fork_in_child() -> None:
     global _forked_after_openmp
     _forked_after_openmp = _forked_after_openmp or _unsafe_to_fork
     torch = sys.modules.get("torch")
-    if _forked_after_openmp and torch is not None:
+    if (_forked_after_openmp or _openmp_threads_ran) and torch is not None:
         torch.set_num_threads(1)  # a one-thread region wakes no pool: the child's own torch work runs, inline
 
 
