@@ -403,18 +403,20 @@ def _cut(path, fraction=0.6):
     path.write_bytes(data[:int(len(data) * fraction)])
 
 
-@pytest.mark.parametrize("name,export", [
-    ("m.ply", {"encoding": "ascii"}),  # the ASCII reader loads what precedes the cut, with no word
-    ("m.stl", {}),  # binary STL: loaded nothing ("no triangles", not why)
+@pytest.mark.parametrize("name,export,declared", [
+    ("m.ply", {"encoding": "ascii"}, r"its header declares 162 vertices and 320 faces, 162 and \d+ were read"),
+    # (the ASCII reader loaded what precedes the cut, with no word)
+    ("m.stl", {}, r"its header declares 320 triangles \(16084 bytes\), the file has 9650 bytes"),
+    # (binary STL: loaded nothing, "no triangles", not why)
 ])
-def test_a_mesh_file_cut_short_is_one_line_naming_the_counts(tmp_path, capsys, name, export):
+def test_a_mesh_file_cut_short_is_one_line_naming_the_counts(tmp_path, capsys, name, export, declared):
     import trimesh
 
     path = tmp_path / name
     trimesh.creation.icosphere(2).export(str(path), **export)
     assert load_mesh(path).num_triangles == 320  # whole, it loads
     _cut(path)
-    with pytest.raises(MeshError, match=r"file is truncated or malformed: its header declares \d+ vertices and 320 faces"):
+    with pytest.raises(MeshError, match="file is truncated or malformed: " + declared):
         load_mesh(path)
     assert cli.main(["info", str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -432,3 +434,14 @@ def test_a_header_that_claims_more_faces_than_the_file_holds(tmp_path):
                     "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
                     "0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
     assert load_mesh(quad).num_triangles == 2
+
+
+def test_a_whole_file_with_faces_that_are_not_triangles_is_not_called_truncated(tmp_path):
+    # The reader leaves out a face of two corners; the file holds every record it declares.
+    ply = tmp_path / "m.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                   "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n")
+    off = tmp_path / "m.off"
+    off.write_text("OFF\n# a comment\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n")
+    assert load_mesh(ply).num_triangles == 1 and load_mesh(off).num_triangles == 1

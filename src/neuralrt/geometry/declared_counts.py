@@ -2,78 +2,107 @@
 
 trimesh reads what is there: an ASCII PLY or an OFF cut short (an interrupted download or copy)
 loads as the triangles before the cut, with no word, and a binary STL cut short loads as nothing.
-The headers of these formats say how many vertices and faces follow; `declared_counts` reads them
-(a few KiB of the file), and `truncation_problem` compares them with what was read.
+The headers of these formats say how many vertices and faces follow. `truncation_problem`
+compares them with what was read, and where fewer were read, whether the file holds fewer
+records than declared: a reader also leaves out records that are not triangles (a PLY face of
+two corners), and a whole file that has some is not a truncated one.
 """
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
-__all__ = ["declared_counts", "truncation_problem"]
+__all__ = ["truncation_problem"]
 
 _HEADER_BYTES = 1 << 16  # PLY and OFF headers are a few lines; a longer one is not checked
-_STL_HEADER = 80  # binary STL: an 80-byte header, then the uint32 triangle count
+_STL_HEADER, _STL_TRIANGLE = 80, 50  # binary STL: an 80-byte header, a uint32 count, 50 bytes a triangle
 
 
-def declared_counts(path: str | Path) -> tuple[int, int] | None:
-    """(vertices, faces) that the header of the PLY, OFF or binary STL at ``path`` declares, or
-    None (another format, or a header not read as one). An STL's vertices are 3 a triangle."""
+def truncation_problem(path: str | Path, vertices_read: int, faces_read: int) -> str | None:
+    """Why the PLY, OFF or binary STL file at ``path`` looks cut short, or None: fewer vertices or
+    faces read than its header declares, and fewer records in the file than that (a polygon is
+    read as one triangle or more, so more faces than declared is fine)."""
     path = Path(path)
     try:
         with path.open("rb") as f:
             head = f.read(_HEADER_BYTES)
+        size = path.stat().st_size
     except OSError:
         return None
     suffix = path.suffix.lower()
-    if suffix == ".ply":
-        return _ply(head)
-    if suffix == ".off":
-        return _off(head)
     if suffix == ".stl":
-        return _binary_stl(head)
-    return None
-
-
-def truncation_problem(path: str | Path, vertices_read: int, faces_read: int) -> str | None:
-    """Why the file at ``path`` looks cut short, or None: fewer vertices or faces read than its header
-    declares. (A polygon face is read as one triangle or more, so more faces than declared is fine.)"""
-    declared = declared_counts(path)
+        return _binary_stl(head, size)
+    declared = _ply(head) if suffix == ".ply" else _off(head) if suffix == ".off" else None
     if declared is None:
         return None
-    vertices, faces = declared
+    vertices, faces, ascii_data_at = declared
     if vertices_read >= vertices and faces_read >= faces:
         return None
+    if ascii_data_at is not None and _records_at_least(path, ascii_data_at, vertices + faces):
+        return None  # all there: the reader left some records out as not triangles
     return (f"file is truncated or malformed: its header declares {vertices} vertices and {faces} faces, "
             f"{vertices_read} and {faces_read} were read")
 
 
-def _ply(head: bytes) -> tuple[int, int] | None:
+def _ply(head: bytes) -> tuple[int, int, int | None] | None:
+    """(vertices, faces, where ASCII records start or None for a binary PLY)."""
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
         return None
-    counts = {}
+    counts, ascii_data = {}, False
     for line in head[:end].decode("ascii", "replace").splitlines():
         words = line.split()
         if len(words) == 3 and words[0] == "element" and words[2].isdigit():
             counts[words[1]] = int(words[2])
+        elif len(words) >= 2 and words[0] == "format":
+            ascii_data = words[1] == "ascii"
     if "vertex" not in counts:
         return None
-    return counts["vertex"], counts.get("face", 0)
+    data_at = head.find(b"\n", end) + 1
+    return counts["vertex"], counts.get("face", 0), data_at if ascii_data and data_at > 0 else None
 
 
-_OFF_COUNTS = re.compile(rb"^\s*[A-Z]*OFF\s+(\d+)\s+(\d+)")
+def _off(head: bytes) -> tuple[int, int, int] | None:
+    """(vertices, faces, where the records start): the counts follow the ``OFF`` keyword (``COFF``,
+    ``NOFF``, ...), on its line or a later one, past comments."""
+    numbers: list[int] = []
+    at, keyword = 0, False
+    for line in head.splitlines(keepends=True):
+        at += len(line)
+        words = line.split(b"#", 1)[0].split()
+        if not keyword:
+            if not words:
+                continue
+            if not words[0].endswith(b"OFF"):
+                return None
+            keyword, words = True, words[1:]
+        numbers += [int(w) for w in words if w.isdigit()]
+        if len(numbers) >= 2:
+            return numbers[0], numbers[1], at
+    return None
 
 
-def _off(head: bytes) -> tuple[int, int] | None:
-    text = re.sub(rb"#[^\n]*", b"", head)  # comments, as trimesh strips them
-    match = _OFF_COUNTS.match(text)
-    return (int(match[1]), int(match[2])) if match else None
+def _records_at_least(path: Path, start: int, wanted: int) -> bool:
+    """Whether the file holds ``wanted`` non-empty, non-comment lines from byte ``start`` (read until
+    it does)."""
+    found = 0
+    with path.open("rb") as f:
+        f.seek(start)
+        for line in f:
+            stripped = line.strip()
+            if stripped and not stripped.startswith(b"#"):
+                found += 1
+                if found >= wanted:
+                    return True
+    return False
 
 
-def _binary_stl(head: bytes) -> tuple[int, int] | None:
+def _binary_stl(head: bytes, size: int) -> str | None:
     if len(head) < _STL_HEADER + 4 or head.lstrip()[:5].lower() == b"solid" and b"facet" in head:
         return None  # ASCII STL (which has no count), or too short to hold one
     triangles = int.from_bytes(head[_STL_HEADER:_STL_HEADER + 4], "little")
-    return 3 * triangles, triangles  # a triangle soup: each triangle its own 3 vertices
+    needed = _STL_HEADER + 4 + _STL_TRIANGLE * triangles
+    if size >= needed:
+        return None
+    return (f"file is truncated or malformed: its header declares {triangles} triangles "
+            f"({needed} bytes), the file has {size} bytes")
