@@ -124,7 +124,21 @@ def test_with_paths_leaves_the_original_spec_alone(tmp_path):
     spec = spec.model_copy(update={"objects": spec.objects + [ObjectSpec(mesh="m.obj")]})
     mapped = spec.with_paths(lambda p: "/elsewhere/" + p)
     assert mapped.objects[-1].mesh == "/elsewhere/m.obj" and spec.objects[-1].mesh == "m.obj"
-    assert mapped.objects[0] is spec.objects[0]  # no path: shared, not copied
+    mapped.objects[0].transform.translate = (1.0, 2.0, 3.0)  # a copy shares nothing
+    assert spec.objects[0].transform.translate == (0.0, 0.0, 0.0)
+
+
+def test_scenes_built_from_one_spec_share_nothing_with_it(tmp_path):
+    # A trial found two scenes of one spec, and the spec, editing each other's settings (session 52).
+    from neuralrt.scene.loader import build_scene
+
+    spec, folder, _ = load_scene_spec(scene_file(tmp_path))
+    a, b = build_scene(spec, folder), build_scene(spec, folder)
+    a.settings.spp = 64
+    a.spec.camera.resolution = (4, 4)
+    spec.render.max_depth = 1
+    assert b.settings.spp == spec.render.spp != 64 and spec.camera.resolution != (4, 4)
+    assert a.settings.max_depth == b.settings.max_depth != 1
 
 
 def test_camera_position_beyond_float32(tmp_path):

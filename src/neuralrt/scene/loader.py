@@ -75,10 +75,10 @@ def load_scene(
     """
     device = check_device(device)
     size = None if resolution is None else check_resolution(resolution)
-    spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)
+    spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)  # (its own spec, paths absolute)
     if size is not None:
         spec.camera.resolution = size
-    return build_scene(spec, base_dir, device=device, label=label, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch)
+    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
 
 
 def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene",
@@ -114,7 +114,9 @@ def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", prim
         raise SceneError(f"{label}: objects: expected a list of objects, got {type(objects).__name__}")
     if isinstance(objects, (list, tuple)):
         data["objects"] = [_take_in_memory(obj, i, given, label) for i, obj in enumerate(objects)]
-    return _build(validate_spec(data, label), base_dir, device, label, primary, given, allow_mesh_mismatch)
+    spec = validate_spec(data, label)
+    _absolute_in_place(spec, Path(base_dir))  # (a fresh spec: no copy needed)
+    return _build(spec, base_dir, device, label, primary, given, allow_mesh_mismatch)
 
 
 def _take_in_memory(obj, i: int, given: _InMemory, label: str):
@@ -208,7 +210,8 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
     except RecursionError:
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: nested too deeply") from None
     spec = validate_spec(data, label)
-    return absolutize_paths(spec, path.resolve().parent), path.resolve().parent, label
+    _absolute_in_place(spec, path.resolve().parent)  # (a fresh spec: no copy needed)
+    return spec, path.resolve().parent, label
 
 
 def validate_spec(data, label: str) -> SceneSpec:
@@ -245,9 +248,16 @@ def _path_errors(spec: SceneSpec) -> list[tuple[str, str]]:
 
 
 def absolutize_paths(spec: SceneSpec, base_dir: Path) -> SceneSpec:
-    """A copy of ``spec`` whose relative file paths are resolved against ``base_dir``."""
+    """A copy of ``spec`` (sharing nothing with it) whose relative file paths are resolved against ``base_dir``."""
+    return spec.with_paths(_absolute(base_dir))
 
-    return spec.with_paths(lambda p: str((base_dir / os.path.expanduser(p)).resolve()))
+
+def _absolute_in_place(spec: SceneSpec, base_dir: Path) -> None:
+    spec.map_paths_in_place(_absolute(base_dir))
+
+
+def _absolute(base_dir: Path):
+    return lambda p: str((base_dir / os.path.expanduser(p)).resolve())
 
 
 # --- building --------------------------------------------------------------------------------------
@@ -297,14 +307,19 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     (`neuralrt.methods.check_mesh_match`).
     """
     base_dir, device = check_path("base_dir", base_dir), check_device(device)
-    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
+    if not isinstance(spec, SceneSpec):
+        raise SceneError(f"{label}: spec: expected a SceneSpec (load_scene_spec(path)[0], or one built in Python), "
+                         f"got {type(spec).__name__}")
+    # A copy: the scene keeps its spec (and render settings), which the caller may edit or build again.
+    return _build(absolutize_paths(spec, Path(base_dir)), base_dir, device, label, primary, _InMemory({}, {}),
+                  allow_mesh_mismatch)
 
 
 def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory,
            allow_mesh_mismatch: bool = False) -> Scene:
+    """The scene of ``spec``, which it keeps: one no one else holds, its paths absolute."""
     if primary not in PRIMARY_CHOICES:
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
-    spec = absolutize_paths(spec, Path(base_dir))
     dev = device  # (checked by the public callers: `check_device`)
     index = material_index(spec)
     material_specs = scene_materials(spec)
