@@ -436,6 +436,24 @@ def test_a_header_that_claims_more_faces_than_the_file_holds(tmp_path):
     assert load_mesh(quad).num_triangles == 2
 
 
+def test_a_ply_cut_inside_its_last_record_is_truncated(tmp_path):
+    ply = tmp_path / "m.ply"
+    ply.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                   "0 0 0\n1 0 0\n1 1 0\n0 1 0\n3 0 1 2\n3 0 2")  # the last face lost its last corner
+    with pytest.raises(MeshError, match="declares 4 vertices and 2 faces, 4 and 1 were read"):
+        load_mesh(ply)
+
+
+@pytest.mark.parametrize("prefix, keyword", [(b"", b"SOLID"), (b"\xef\xbb\xbf", b"solid")])
+def test_an_ascii_stl_is_not_read_as_a_binary_count(tmp_path, prefix, keyword):
+    # Upper-case keywords and a byte order mark made its first bytes a huge "triangle count" (the re-trial).
+    facet = b"facet normal 0 0 1\n outer loop\n  vertex 0 0 0\n  vertex 1 0 0\n  vertex 0 1 0\n endloop\nendfacet\n"
+    path = tmp_path / "m.stl"
+    path.write_bytes(prefix + keyword + b" part\n" + facet.upper() + b"ENDSOLID part\n")
+    assert load_mesh(path).num_triangles == 1
+
+
 def test_a_whole_file_with_faces_that_are_not_triangles_is_not_called_truncated(tmp_path):
     # The reader leaves out a face of two corners; the file holds every record it declares.
     ply = tmp_path / "m.ply"

@@ -30,8 +30,8 @@ def truncation_problem(path: str | Path, vertices_read: int, faces_read: int) ->
     except OSError:
         return None
     suffix = path.suffix.lower()
-    if suffix == ".stl":
-        return _binary_stl(head, size)
+    if suffix == ".stl":  # (a triangle read: not a binary STL cut short, or an ASCII one)
+        return _binary_stl(head, size) if faces_read == 0 else None
     declared = _ply(head) if suffix == ".ply" else _off(head) if suffix == ".off" else None
     if declared is None:
         return None
@@ -84,7 +84,8 @@ def _off(head: bytes) -> tuple[int, int, int] | None:
 
 def _records_at_least(path: Path, start: int, wanted: int) -> bool:
     """Whether the file holds ``wanted`` non-empty, non-comment lines from byte ``start`` (read until
-    it does)."""
+    it does); a last line without its line end counts only if the file ends there anyway after the
+    records (a cut inside the last record leaves one without it, and so does an editor's last line)."""
     found = 0
     with path.open("rb") as f:
         f.seek(start)
@@ -93,12 +94,20 @@ def _records_at_least(path: Path, start: int, wanted: int) -> bool:
             if stripped and not stripped.startswith(b"#"):
                 found += 1
                 if found >= wanted:
-                    return True
+                    return line.endswith(b"\n") or found > wanted or _whole_last_record(line)
     return False
 
 
+def _whole_last_record(line: bytes) -> bool:
+    # Without a line end, the last record may be cut: whole only if it has as many numbers as the
+    # record before would say. Cheap stand-in: a face record's first number is its corner count.
+    words = line.split()
+    return len(words) >= 2 and words[0].isdigit() and len(words) >= 1 + int(words[0])
+
+
 def _binary_stl(head: bytes, size: int) -> str | None:
-    if len(head) < _STL_HEADER + 4 or head.lstrip()[:5].lower() == b"solid" and b"facet" in head:
+    text = head.removeprefix(b"\xef\xbb\xbf").lstrip().lower()  # (a UTF-8 byte order mark, any case)
+    if len(head) < _STL_HEADER + 4 or text.startswith(b"solid") and b"facet" in text:
         return None  # ASCII STL (which has no count), or too short to hold one
     triangles = int.from_bytes(head[_STL_HEADER:_STL_HEADER + 4], "little")
     needed = _STL_HEADER + 4 + _STL_TRIANGLE * triangles
