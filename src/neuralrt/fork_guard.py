@@ -8,9 +8,9 @@ a fork, a parent whose numba parallel regions have run on the OpenMP layer (a mo
 query) marks the child; there the entry points that would run them (a BLAS's `check_rays`,
 `load_model`, `MeshBLAS`, `train`, `render`) raise one line instead, and the child's torch runs
 on one thread (no pool to wake), so its own torch work still runs. numba's other threading layers
-survive a fork: with them nothing is refused. A parent that ran only torch's parallel work
-(torch on more than one thread, and more than one thread in the process: its OpenMP pool may
-exist) marks the child too, unless numba is set to a layer that survives a fork
+survive a fork: with them nothing is refused. A parent that ran only torch's parallel work (GNU
+OpenMP's worker threads exist: `_torch_pool_may_exist`) marks the child too, unless numba is set
+to a layer that survives a fork
 (``NUMBA_THREADING_LAYER=workqueue`` or ``tbb``): the child's first numba region hung inside
 GNU OpenMP, and its torch ops did too before they were put on one thread.
 """
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 
 from .errors import DeviceError
 
@@ -62,15 +63,41 @@ def _numba_layer_chosen() -> str | None:
 
 
 def _torch_pool_may_exist() -> bool:
-    """Whether torch's OpenMP threads may have started: torch runs on more than one thread and the
-    process has more than one (cheap to tell; torch does not say whether its pool started)."""
-    torch = sys.modules.get("torch")
-    if torch is None or torch.get_num_threads() < 2:
+    """Whether GNU OpenMP's worker threads exist (torch started them in a parallel region; torch
+    does not say). A worker waits inside libgomp: its system call's instruction pointer lies in
+    libgomp's code (/proc/self/task/*/syscall against /proc/self/maps); one still spinning after its
+    region runs. Importing torch starts a thread too, waiting elsewhere: not counted. Where /proc
+    cannot tell, no (as before this check)."""
+    if "torch" not in sys.modules:
         return False
     try:
-        return len(os.listdir("/proc/self/task")) > 1
-    except OSError:  # no /proc: assume the pool exists
-        return True
+        code = _libgomp_code_ranges()
+        if not code:
+            return False
+        me = str(threading.get_native_id())
+        for tid in os.listdir("/proc/self/task"):
+            if tid == me:
+                continue
+            with open(f"/proc/self/task/{tid}/syscall") as f:
+                words = f.read().split()
+            if words and words[0] == "running":
+                return True  # (a worker spinning for its next region, or another busy thread: assume the former)
+            if len(words) > 2 and any(lo <= int(words[-1], 16) < hi for lo, hi in code):
+                return True
+        return False
+    except (OSError, ValueError):
+        return False
+
+
+def _libgomp_code_ranges() -> list[tuple[int, int]]:
+    ranges = []
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            fields = line.split()
+            if len(fields) >= 6 and "libgomp" in fields[5] and "x" in fields[1]:
+                lo, hi = fields[0].split("-")
+                ranges.append((int(lo, 16), int(hi, 16)))
+    return ranges
 
 
 def _configured_numba_layer() -> str:
