@@ -108,6 +108,21 @@ def test_scene_transform_is_scale_then_rotations_then_translation():
         np.testing.assert_allclose(one.inverse().tolist(), chain.inverse().tolist(), rtol=0, atol=1e-9)
 
 
+def test_transform_takes_what_it_took_and_names_what_it_cannot():
+    import torch
+
+    identity = np.eye(4).tolist()
+    for matrix in (torch.eye(4, dtype=torch.bfloat16), [[torch.tensor(float(v), requires_grad=True) for v in row] for row in identity],
+                   [[1, 0, 0, 2**70], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]):
+        Transform(matrix)  # (each failed inside numpy after the move from torch; the re-trial)
+    for call, message in [(lambda: Transform.translate("abc"), "offset must be 3 numbers, got 'abc'"),
+                          (lambda: Transform.translate(None), "offset must be 3 numbers, got None"),
+                          (lambda: Transform.scale([1, 2]), r"scale factors must be 3 numbers, got \[1, 2\]"),
+                          (lambda: Transform.rotate([0, 0, 0], 30), "rotation axis must be a finite non-zero vector")]:
+        with pytest.raises(ConfigError, match="^transform: " + message):
+            call()
+
+
 def test_float32_overflow_edge_of_a_matrix_entry():
     # float32 rounds below max + half an ulp to its max, and from there up to Inf.
     f32_max = float(np.finfo(np.float32).max)

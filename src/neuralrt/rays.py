@@ -334,12 +334,25 @@ MAX_CONDITION = 1.0 / float(np.finfo(np.float32).eps)
 def _float64_matrix(matrix) -> np.ndarray | None:
     """``matrix`` as a float64 array, or None when it is not numbers (ragged rows, strings)."""
     if isinstance(matrix, Tensor):
-        matrix = matrix.detach().cpu().numpy()
+        return matrix.detach().to("cpu", torch.float64).numpy()
     try:
         a = np.asarray(matrix)
-    except (TypeError, ValueError):  # ragged rows
+    except (TypeError, ValueError, RuntimeError):  # ragged rows; tensors numpy cannot read (requires_grad)
+        a = None
+    if a is not None and a.dtype.kind in "biuf":
+        return a.astype(np.float64)
+    try:  # what numpy holds as objects, torch may read as numbers: ints beyond int64, a list of tensors
+        return torch.as_tensor(matrix, dtype=torch.float64).numpy()
+    except (TypeError, ValueError, RuntimeError, OverflowError):
         return None
-    return a.astype(np.float64) if a.dtype.kind in "biuf" else None
+
+
+def _vector(name: str, values, size: int = 3) -> np.ndarray:
+    """``values`` as ``size`` float64 numbers (one number for all, where ``size`` allows), else a ConfigError."""
+    v = _float64_matrix(values)
+    if v is None or v.shape not in ((size,), ()):
+        raise ConfigError(f"transform: {name} must be {size} numbers, got {values!r}")
+    return np.broadcast_to(v, (size,)).copy()
 
 
 def affine_problem(matrix) -> str | None:
@@ -382,8 +395,11 @@ def _finite_in_float32(m: np.ndarray) -> bool:
 
 def rotation_matrix(axis, degrees: float) -> np.ndarray:
     """3x3 float64 rotation by ``degrees`` about ``axis`` (right-handed)."""
-    a = _float64_matrix(axis)
-    x, y, z = a / np.linalg.norm(a)
+    a = _vector("rotation axis", axis)
+    length = np.linalg.norm(a)
+    if not np.isfinite(length) or length == 0:
+        raise ConfigError(f"transform: rotation axis must be a finite non-zero vector, got {axis!r}")
+    x, y, z = a / length
     th = np.deg2rad(float(degrees))
     c, s = np.cos(th), np.sin(th)
     return np.array([
@@ -433,13 +449,12 @@ class Transform:
     @staticmethod
     def translate(offset) -> "Transform":
         m = np.eye(4)
-        m[:3, 3] = _float64_matrix(offset)
+        m[:3, 3] = _vector("offset", offset)
         return Transform(m)
 
     @staticmethod
     def scale(factors) -> "Transform":
-        f = np.broadcast_to(_float64_matrix(factors), 3)
-        return Transform(np.diag(np.append(f, 1.0)))
+        return Transform(np.diag(np.append(_vector("scale factors", factors), 1.0)))
 
     @staticmethod
     def rotate(axis, degrees: float) -> "Transform":
@@ -453,15 +468,15 @@ class Transform:
         """Scale, then rotate about x, y and z (``degrees_xyz``, in that order), then translate: the
         scene file's transform, checked once (not once per factor)."""
         m = np.eye(4)
-        rx, ry, rz = (rotation_matrix(axis, d) for axis, d in zip(np.eye(3), degrees_xyz))
-        m[:3, :3] = rz @ ry @ rx * np.broadcast_to(_float64_matrix(factors), 3)
-        m[:3, 3] = _float64_matrix(offset)
+        rx, ry, rz = (rotation_matrix(axis, d) for axis, d in zip(np.eye(3), _vector("degrees", degrees_xyz)))
+        m[:3, :3] = rz @ ry @ rx * _vector("scale factors", factors)
+        m[:3, 3] = _vector("offset", offset)
         return Transform(m)
 
     @staticmethod
     def look_at(eye, target, up) -> "Transform":
         """Camera-to-world: camera looks down -z, +y up, +x right (OpenGL convention)."""
-        eye, target, up = (_float64_matrix(v) for v in (eye, target, up))
+        eye, target, up = (_vector(name, v) for name, v in (("position", eye), ("target", target), ("up", up)))
         fwd = target - eye
         if np.linalg.norm(fwd) == 0:
             raise ConfigError("look_at: position and target coincide")
