@@ -108,6 +108,7 @@ def test_scene_transform_is_scale_then_rotations_then_translation():
         np.testing.assert_allclose(one.inverse().tolist(), chain.inverse().tolist(), rtol=0, atol=1e-9)
 
 
+@pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad")  # (torch's, reading the list)
 def test_transform_takes_what_it_took_and_names_what_it_cannot():
     import torch
 
