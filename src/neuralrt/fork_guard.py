@@ -10,9 +10,9 @@ query) marks the child; there the entry points that would run them (a BLAS's `ch
 on one thread (no pool to wake), so its own torch work still runs. numba's other threading layers
 survive a fork: with them nothing is refused. A parent that ran only torch's parallel work (GNU
 OpenMP's worker threads exist: `_torch_pool_may_exist`) marks the child too, unless numba is set
-to a layer that survives a fork
-(``NUMBA_THREADING_LAYER=workqueue`` or ``tbb``): the child's first numba region hung inside
-GNU OpenMP, and its torch ops did too before they were put on one thread.
+to a layer that survives a fork (``NUMBA_THREADING_LAYER=workqueue`` or ``tbb``): the child's
+first numba region hung inside GNU OpenMP, and its torch ops did too before they were put on one
+thread.
 """
 
 from __future__ import annotations
@@ -65,9 +65,10 @@ def _numba_layer_chosen() -> str | None:
 def _torch_pool_may_exist() -> bool:
     """Whether GNU OpenMP's worker threads exist (torch started them in a parallel region; torch
     does not say). A worker waits inside libgomp: its system call's instruction pointer lies in
-    libgomp's code (/proc/self/task/*/syscall against /proc/self/maps); one still spinning after its
-    region runs. Importing torch starts a thread too, waiting elsewhere: not counted. Where /proc
-    cannot tell, no (as before this check)."""
+    libgomp's code (/proc/self/task/*/syscall against /proc/self/maps); one that still spins after
+    its region shows as running, as any busy thread does (counted: a refusal beats a hang).
+    Importing torch starts a thread too, waiting elsewhere: not counted. Where /proc cannot tell,
+    no (as before this check)."""
     if "torch" not in sys.modules:
         return False
     try:
