@@ -44,11 +44,10 @@ _FORK_SAFE_LAYERS = ("workqueue", "tbb")  # numba threading layers with no GNU O
 
 def _before_fork() -> None:
     global _unsafe_to_fork, _openmp_threads_ran
-    numba_omp = _numba_layer_chosen() == "omp"
+    layer = _numba_layer_chosen()
     torch_pool = _torch_pool_may_exist()
-    _openmp_threads_ran = numba_omp or torch_pool
-    _unsafe_to_fork = numba_omp or (torch_pool and _numba_layer_chosen() is None
-                                    and _configured_numba_layer() not in _FORK_SAFE_LAYERS)
+    _openmp_threads_ran = layer == "omp" or torch_pool
+    _unsafe_to_fork = layer == "omp" or (torch_pool and layer is None and _configured_numba_layer() not in _FORK_SAFE_LAYERS)
 
 
 def _numba_layer_chosen() -> str | None:

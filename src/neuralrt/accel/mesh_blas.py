@@ -189,6 +189,7 @@ class EmbreeMeshBLAS(MeshBLAS):
         self._scene = TriangleScene(mesh.vertices, mesh.faces)
         self._face_normals = mesh.face_normals()
         self.threads = threads  # threads of a query; None: numba.get_num_threads()
+        self._tangents: np.ndarray | None = None  # [V, 4], built when a material first has a normal map
 
     # -- queries ---------------------------------------------------------------------------------
     def intersect(self, rays: Rays) -> Hits:
@@ -269,11 +270,7 @@ class EmbreeMeshBLAS(MeshBLAS):
             if sel.any():
                 colour[sel] *= sample_texture_bilinear(material.texture, hit_uv[sel])
         if m.vertex_colors is not None:
-            faces = m.faces[prim[idx]]
-            bu, bv = bary_u[idx, None], bary_v[idx, None]
-            bw = 1.0 - bu - bv
-            vc = m.vertex_colors
-            colour *= bw * vc[faces[:, 0]] + bu * vc[faces[:, 1]] + bv * vc[faces[:, 2]]
+            colour *= interpolate_numpy(m.vertex_colors, m.faces[prim[idx]], bary_u[idx], bary_v[idx])
         albedo[idx] = np.clip(colour, 0.0, 1.0)
 
     def _apply_normal_maps_(self, normal, hit, mat, uv, prim, bary_u, bary_v) -> None:
@@ -291,7 +288,7 @@ class EmbreeMeshBLAS(MeshBLAS):
 
     def tangents(self) -> np.ndarray:
         """[V, 4] vertex tangent frames (`geometry.tangents.vertex_tangents`), built on first use."""
-        if getattr(self, "_tangents", None) is None:
+        if self._tangents is None:
             m = self.mesh
             self._tangents = vertex_tangents(m.vertices, m.faces, m.vertex_normals, m.uvs)
         return self._tangents

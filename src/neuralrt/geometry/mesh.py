@@ -381,8 +381,9 @@ def _normal_map(image, material: str, where: str) -> np.ndarray | None:
         texels = None
     else:
         texels = _texture_pixels(image, material, where, data=True)
-        if texels is not None and float(texels[..., 2].mean()) <= 0.5:
-            why = f"its texels point into the surface on average (mean blue {float(texels[..., 2].mean()):.3f}, below 0.5)"
+        blue = None if texels is None else float(texels[..., 2].mean())
+        if blue is not None and blue <= 0.5:
+            why = f"its texels point into the surface on average (mean blue {blue:.3f}, below 0.5)"
     if why is None:
         return texels
     warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=4)

@@ -209,9 +209,9 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: {exc}") from None
     except RecursionError:
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: nested too deeply") from None
-    spec = validate_spec(data, label)
-    _absolute_in_place(spec, path.resolve().parent)  # (a fresh spec: no copy needed)
-    return spec, path.resolve().parent, label
+    spec, folder = validate_spec(data, label), path.resolve().parent
+    _absolute_in_place(spec, folder)  # (a fresh spec: no copy needed)
+    return spec, folder, label
 
 
 def validate_spec(data, label: str) -> SceneSpec:
