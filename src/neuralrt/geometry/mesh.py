@@ -476,8 +476,8 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
-    _drop_undecodable_images(loaded, trimesh, str(path))
     if isinstance(loaded, trimesh.Scene):
+        _drop_undecodable_images(loaded, str(path))
         parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
     elif isinstance(loaded, trimesh.Trimesh):
         parts = [loaded]
@@ -559,13 +559,13 @@ _IMAGE_ROLES = {"image": "texture", "baseColorTexture": "texture", "normalTextur
                 "emissiveTexture": None, "occlusionTexture": None, "metallicRoughnessTexture": None}
 
 
-def _drop_undecodable_images(loaded, trimesh, where: str) -> None:
-    """Decode each image the file's materials hold, leaving out one that cannot be (with the
+def _drop_undecodable_images(scene, where: str) -> None:
+    """Decode each image a trimesh Scene's materials hold, leaving out one that cannot be (with the
     warning `_texture_pixels` gives, where neuralrt uses that image): PIL decodes lazily, and
     `Scene.dump` copies every material, which decoded a damaged PNG inside a .glb outside any check
-    (an OSError that named no file)."""
-    geometries = loaded.geometry.values() if isinstance(loaded, trimesh.Scene) else [loaded]
-    for geometry in geometries:
+    (an OSError that named no file). (A lone Trimesh is not dumped: `_texture_pixels` decodes the
+    images it uses, after its memory check.)"""
+    for geometry in scene.geometry.values():
         material = getattr(getattr(geometry, "visual", None), "material", None)
         for attribute, role in _IMAGE_ROLES.items():
             image = getattr(material, attribute, None)
