@@ -341,14 +341,33 @@ def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path
     assert load_scene(tmp_path / "out" / "b.toml").accel.instances[0].blas is not None
 
 
-def test_group_says_whose_normal_maps_it_drops():
-    from neuralrt.geometry.mesh import Mesh, MeshMaterial
-    from neuralrt.scene.convert import _merged_world_mesh
+def test_group_keeps_normal_maps_through_its_obj(tmp_path):
+    # The merged mesh's normal map is written beside its OBJ as a PNG of the stored values (MTL
+    # ``norm``) and read back as stored (it was left out with a warning); a plain mesh beside it
+    # keeps none, and a mesh moved and turned keeps its mapped normals, turned.
+    import warnings
+
+    from neuralrt.geometry.mesh import Mesh, MeshMaterial, load_mesh
+    from neuralrt.scene.convert import _merged_world_mesh, write_mesh_obj
 
     quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]])
     uvs = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
-    bumpy = Mesh(*quad, uvs=uvs, materials=[MeshMaterial("m", normal_map=np.full((2, 2, 3), 0.5, np.float32))])
-    spec = SceneSpec(objects=[ObjectSpec(name="bumpy", mesh="a.glb"), ObjectSpec(name="plain", mesh="b.obj")])
-    with pytest.warns(UserWarning, match="group: the normal maps of bumpy are not carried into the merged mesh"):
+    stored = np.tile(np.array([200, 128, 230], np.float32) / 255, (2, 2, 1))
+    bumpy = Mesh(*quad, uvs=uvs, materials=[MeshMaterial("m", normal_map=stored)])
+    spec = SceneSpec(objects=[ObjectSpec(name="bumpy", mesh="a.glb", transform={"translate": [0, 0, 5], "rotate": [0, 90, 0]}),
+                              ObjectSpec(name="plain", mesh="b.obj")])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         merged, _ = _merged_world_mesh(spec, [0, 1], [bumpy, Mesh(*quad)])
-    assert all(m.normal_map is None for m in merged.materials)
+    write_mesh_obj(merged, tmp_path / "group.obj")
+    again = load_mesh(tmp_path / "group.obj")
+    maps = [m.normal_map for m in again.materials]
+    assert sum(m is not None for m in maps) == 1
+    np.testing.assert_array_equal(next(m for m in maps if m is not None), stored)
+    # The bumpy quad turned 90 degrees about y faces +x: its mapped normal is the stored one, turned.
+    rays = Rays(torch.tensor([[3.0, 0.1, 5.2], [0.1, 0.2, 3.0]]), torch.tensor([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
+    hits = MeshBLAS(again).intersect(rays)
+    m = stored[0, 0] * 2 - 1
+    m = m / np.linalg.norm(m)
+    np.testing.assert_allclose(hits.normal[0].numpy(), [m[2], m[1], -m[0]], atol=1e-5)
+    np.testing.assert_allclose(hits.normal[1].numpy(), [0, 0, 1], atol=1e-6)  # the plain quad: its own normal

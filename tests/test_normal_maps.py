@@ -214,3 +214,63 @@ def test_a_normal_mapped_plane_renders_with_the_mapped_normal():
 def test_a_bad_normal_map_is_a_mesh_error(normal_map, message):
     with pytest.raises(MeshError, match=message):
         Mesh(QUAD_VERTICES, QUAD_FACES, uvs=QUAD_UVS, materials=[MeshMaterial("bumpy", normal_map=normal_map)])
+
+
+# --- OBJ: the MTL's norm / map_Bump / bump statements --------------------------------------
+
+
+def _obj(folder, statement, images=(("n.png", (200, 128, 230)),)):
+    """A UV-mapped quad OBJ whose material has ``statement`` in its MTL, and the images it names."""
+    for name, rgb in images:
+        _image(rgb if isinstance(rgb, tuple) else (rgb,) * 3, mode="RGB" if isinstance(rgb, tuple) else "L").save(folder / name)
+    (folder / "quad.mtl").write_text(f"newmtl bumpy\nKd 1 1 1\n{statement}\n")
+    lines = ["mtllib quad.mtl"] + [f"v {x} {y} {z}" for x, y, z in QUAD_VERTICES] + [f"vt {u} {v}" for u, v in QUAD_UVS]
+    lines += ["usemtl bumpy"] + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in QUAD_FACES]
+    (folder / "quad.obj").write_text("\n".join(lines) + "\n")
+    return folder / "quad.obj"
+
+
+@pytest.mark.parametrize("statement", ["norm n.png", "map_Bump n.png", "bump -bm 1 n.png", "map_bump -clamp on -bm 1.0 n.png",
+                                       "norm n.png\nmap_Bump other.png"])  # norm first
+def test_an_obj_materials_normal_map_is_loaded_as_stored(tmp_path, statement):
+    # Blender and most exporters write a normal map as map_Bump (their importers read it as one).
+    loaded = load_mesh(_obj(tmp_path, statement, images=(("n.png", (200, 128, 230)), ("other.png", (0, 128, 255)))))
+    np.testing.assert_allclose(loaded.materials[0].normal_map[0, 0], np.array([200, 128, 230]) / 255.0, rtol=1e-6)
+    expected = np.array([200, 128, 230]) / 255.0 * 2 - 1
+    np.testing.assert_allclose(_normals_at_centre(loaded)[0], expected / np.linalg.norm(expected), atol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, -1.0])
+def test_bm_scales_the_maps_x_and_y_as_gltf_scale_does(tmp_path, scale):
+    loaded = load_mesh(_obj(tmp_path, f"map_Bump -bm {scale} n.png"))
+    m = np.array([200, 128, 230]) / 255.0 * 2 - 1
+    expected = m * [scale, scale, 1]
+    np.testing.assert_allclose(_normals_at_centre(loaded)[0], expected / np.linalg.norm(expected), atol=1e-5)
+
+
+@pytest.mark.parametrize("statement, images, why", [
+    ("bump h.png", (("h.png", 90),), "it is a grey (L) image"),
+    ("map_Bump h.png", (("h.png", (90, 90, 90)),), "its red, green and blue are equal everywhere"),
+    ("map_Bump -imfchan l n.png", (), "reads one channel (-imfchan l): a height map"),
+    ("map_Bump -s 2 2 n.png", (), "moves or scales the map's UVs (-s 2 2)"),
+    ("map_Bump -o 0.5 n.png", (), "moves or scales the map's UVs (-o 0.5)"),
+    ("map_Bump -warp 1 n.png", (), "has an option -warp that is not an MTL map option"),
+    ("map_Bump -bm", (), "has too few values after -bm, or no file name"),
+    ("norm missing.png", (), "its file 'missing.png' (norm) could not be read (FileNotFoundError"),
+    ("norm quad.mtl", (), "its file 'quad.mtl' (norm) could not be read (UnidentifiedImageError"),
+])
+def test_what_an_obj_material_names_but_cannot_be_used_is_left_out_with_a_warning(tmp_path, statement, images, why):
+    path = _obj(tmp_path, statement, images=images or (("n.png", (200, 128, 230)),))
+    with pytest.warns(UserWarning, match=rf"quad.obj: the normal map of material 'bumpy' is left out: .*{re.escape(why)}"):
+        loaded = load_mesh(path)
+    assert loaded.materials[0].normal_map is None
+
+
+def test_the_bm_scale_keeps_texels_that_encode_no_direction():
+    from neuralrt.geometry.obj_maps import scaled_normal_texels
+
+    texels = np.array([[[0.5, 0.5, 0.0], [128 / 255] * 3, _texel((S, 0, C))]], np.float32)
+    scaled = scaled_normal_texels(texels, 3.0)
+    np.testing.assert_array_equal(scaled[0, :2], texels[0, :2])
+    m = scaled[0, 2] * 2 - 1
+    np.testing.assert_allclose(m, np.array([3 * S, 0, C]) / math.hypot(3 * S, C), atol=1e-6)

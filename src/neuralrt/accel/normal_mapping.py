@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["mapped_normals_numpy", "mapped_normals_torch", "interpolate_numpy"]
+__all__ = ["mapped_normals_numpy", "mapped_normals_torch", "interpolate_numpy", "usable_texel"]
 
 _EPS = 1e-12  # squared length below which a vector counts as vanished
 _MIN_TEXEL_LENGTH2 = 0.25  # an encoded unit vector's squared length is 1 up to 8-bit rounding
@@ -28,9 +28,9 @@ def interpolate_numpy(attribute: np.ndarray, corners: np.ndarray, bary_u: np.nda
     return (1.0 - bu - bv) * attribute[corners[:, 0]] + bu * attribute[corners[:, 1]] + bv * attribute[corners[:, 2]]
 
 
-def _usable_texel(m, length2):
-    """[n, 1] bool: the decoded texel ``m`` points out of the surface and is about unit length."""
-    return (m[:, 2:3] > 0) & (length2 >= _MIN_TEXEL_LENGTH2)
+def usable_texel(m, length2):
+    """[..., 1] bool: the decoded texel ``m`` points out of the surface and is about unit length."""
+    return (m[..., 2:3] > 0) & (length2 >= _MIN_TEXEL_LENGTH2)
 
 
 def mapped_normals_numpy(normal: np.ndarray, tangent: np.ndarray, texel: np.ndarray) -> np.ndarray:
@@ -44,7 +44,7 @@ def mapped_normals_numpy(normal: np.ndarray, tangent: np.ndarray, texel: np.ndar
     b = np.where(tangent[:, 3:] < 0, np.float32(-1.0), np.float32(1.0)) * np.cross(normal, t)
     out = m[:, 0:1] * t + m[:, 1:2] * b + m[:, 2:3] * normal
     out_len2 = np.sum(out * out, axis=1, keepdims=True)
-    usable = (t_len2 > _EPS) & (out_len2 > _EPS) & _usable_texel(m, np.sum(m * m, axis=1, keepdims=True))
+    usable = (t_len2 > _EPS) & (out_len2 > _EPS) & usable_texel(m, np.sum(m * m, axis=1, keepdims=True))
     return np.where(usable, out / np.sqrt(np.maximum(out_len2, np.float32(_EPS))), normal).astype(np.float32)
 
 
@@ -57,5 +57,5 @@ def mapped_normals_torch(normal: Tensor, tangent: Tensor, texel: Tensor) -> Tens
     b = torch.where(tangent[:, 3:] < 0, -1.0, 1.0) * torch.linalg.cross(normal, t, dim=1)
     out = m[:, 0:1] * t + m[:, 1:2] * b + m[:, 2:3] * normal
     out_len2 = (out * out).sum(1, keepdim=True)
-    usable = (t_len2 > _EPS) & (out_len2 > _EPS) & _usable_texel(m, (m * m).sum(1, keepdim=True))
+    usable = (t_len2 > _EPS) & (out_len2 > _EPS) & usable_texel(m, (m * m).sum(1, keepdim=True))
     return torch.where(usable, out / out_len2.clamp(min=_EPS).sqrt(), normal)

@@ -7,6 +7,7 @@ models are trained against them.
 from __future__ import annotations
 
 import hashlib
+import io
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -337,6 +338,7 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
         if texture is not None:
             material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
+        material.normal_map = _mtl_normal_map(getattr(mat, "kwargs", None) or {}, uv, material.name, where)
     elif kind == "vertex":
         colors = srgb_to_linear(np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0)
     elif kind == "face":
@@ -371,30 +373,64 @@ def _has_uvs(uv: np.ndarray | None, what: str, material: str, where: str) -> boo
 _GREY_MODES = ("1", "L", "LA", "La", "I", "I;16", "F")  # PIL modes of one channel (with alpha)
 
 
-def _normal_map(image, material: str, where: str) -> np.ndarray | None:
-    """A glTF ``normalTexture`` as stored texels, or None with a warning where it cannot be a
-    tangent-space normal map: a grey image (a height map, most likely), or texels that point into
-    the surface on average (blue below 0.5)."""
+def _normal_map(image, material: str, where: str, stacklevel: int = 4) -> np.ndarray | None:
+    """A normal map's image (glTF ``normalTexture``, MTL ``norm``/``map_Bump``) as stored texels,
+    or None with a warning where it cannot be a tangent-space normal map: a grey image (a height
+    map, most likely; also one stored as RGB), or texels that point into the surface on average
+    (blue below 0.5)."""
     why = None
     if image.mode in _GREY_MODES:
         why = f"it is a grey ({image.mode}) image: a tangent-space normal map has three channels (a height map?)"
         texels = None
     else:
-        texels = _texture_pixels(image, material, where, data=True)
+        texels = _texture_pixels(image, material, where, data=True, stacklevel=stacklevel + 1)
         blue = None if texels is None else float(texels[..., 2].mean())
-        if blue is not None and blue <= 0.5:
+        if texels is not None and _is_grey(texels):
+            why = "its red, green and blue are equal everywhere: a grey image (a height map?)"
+        elif blue is not None and blue <= 0.5:
             why = f"its texels point into the surface on average (mean blue {blue:.3f}, below 0.5)"
     if why is None:
         return texels
-    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=4)
+    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=stacklevel)
     return None
+
+
+def _is_grey(texels: np.ndarray) -> bool:
+    """Whether every texel's three channels are equal (to 8-bit rounding)."""
+    return bool(np.abs(texels[..., 0] - texels[..., 1]).max() <= 0.5 / 255
+                and np.abs(texels[..., 1] - texels[..., 2]).max() <= 0.5 / 255)
+
+
+def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, where: str) -> np.ndarray | None:
+    """The normal map an OBJ material's MTL statements name (`neuralrt.geometry.obj_maps`), read
+    beside the mesh file, or None (with a warning naming the statement where one cannot be used)."""
+    from PIL import Image
+
+    from .obj_maps import normal_map_statement, scaled_normal_texels
+
+    try:
+        statement = normal_map_statement(statements)
+    except ValueError as exc:
+        warnings.warn(f"{where}: the normal map of material {material!r} is left out: {exc}", stacklevel=4)
+        return None
+    if statement is None or not _has_uvs(uv, "normal map", material, where):
+        return None
+    try:
+        image = Image.open(io.BytesIO(regular_files_resolver(where).get(statement.file_name)))
+    except Exception as exc:  # missing or not a regular file (OSError), not an image, a decompression bomb
+        warnings.warn(f"{where}: the normal map of material {material!r} is left out: its file "
+                      f"{statement.file_name!r} ({statement.keyword}) could not be read "
+                      f"({type(exc).__name__}: {exc})", stacklevel=4)
+        return None
+    texels = _normal_map(image, material, where, stacklevel=5)
+    return None if texels is None else scaled_normal_texels(texels, statement.scale)
 
 
 # Bytes a texture pixel takes while decoded: the float32 result and two float32 temporaries.
 _TEXTURE_BYTES_PER_PIXEL = 3 * 4 * 3
 
 
-def _texture_pixels(image, material: str, where: str, data: bool = False) -> np.ndarray | None:
+def _texture_pixels(image, material: str, where: str, data: bool = False, stacklevel: int = 4) -> np.ndarray | None:
     """[H, W, 3] linear RGB of a PIL image; 16-bit grey (PIL mode I;16 or I) scaled from 65535, where
     ``convert("RGB")`` would clip every value above 255 to white. ``data``: values as stored in
     [0, 1], not decoded from sRGB (a normal map). trimesh decodes textures lazily, here: one it
@@ -414,7 +450,7 @@ def _texture_pixels(image, material: str, where: str, data: bool = False) -> np.
             return decode(np.asarray(image.convert("RGB"), np.float32) / 255.0)
         except (OSError, ValueError, MemoryError) as exc:  # PIL: truncated data; numpy: allocation
             why = f"{type(exc).__name__}: {exc}"
-    _warn_undecodable("normal map" if data else "texture", image.size, material, where, why, stacklevel=4)
+    _warn_undecodable("normal map" if data else "texture", image.size, material, where, why, stacklevel=stacklevel)
     return None
 
 
@@ -454,7 +490,9 @@ def load_mesh(path: str | Path) -> Mesh:
     ``materials`` and its faces get that ``face_material_ids``. Errors name the file; a texture
     or material file the mesh names but that cannot be read is a warning naming it (the mesh
     loads without it). glTF colours follow the glTF spec (``baseColorFactor`` linear, white when
-    absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB. Vertices are
+    absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB. A glTF
+    ``normalTexture``, or an MTL's ``norm``/``map_Bump``/``bump`` (`neuralrt.geometry.obj_maps`),
+    is the material's tangent-space normal map, kept as stored (not sRGB-decoded). Vertices are
     kept as the file has them (``process=False``): an STL, which stores each triangle's corners
     apart, stays a triangle soup (3 vertices per triangle in ``mesh_bytes``, flat shading).
     """

@@ -99,6 +99,16 @@ def write_png(path: str | Path, linear_rgb: np.ndarray, exposure: float = 0.0, t
     _atomic_write(path, lambda tmp: Image.fromarray(encoded, "RGB").save(tmp, format="PNG"))
 
 
+def write_data_png(path: str | Path, values: np.ndarray) -> None:
+    """Write RGB values in [0, 1] that are data, not colour (a normal map), as an 8-bit PNG: no
+    sRGB curve, as a normal map is stored."""
+    from PIL import Image
+
+    path = Path(path)
+    encoded = np.round(np.clip(_as_rgb(values, path), 0.0, 1.0) * 255.0).astype(np.uint8)
+    _atomic_write(path, lambda tmp: Image.fromarray(encoded, "RGB").save(tmp, format="PNG"))
+
+
 def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
     """Write linear RGB as an uncompressed Radiance RGBE (.hdr) file."""
     path = Path(path)

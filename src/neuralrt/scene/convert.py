@@ -8,7 +8,7 @@ moved, re-lit and re-materialised without retraining. Models are cached in a mod
 ``group=True`` is the paper's granularity option: all selected objects are merged (in world space)
 into one mesh and one model; the merged mesh is written beside the models so camera rays can still
 be answered exactly. It keeps each mesh slot's colour and texture (the model learns them as it
-would per object; textures are written as PNGs beside the merged OBJ); vertex colours and normal maps are not
+would per object; textures and normal maps are written as PNGs beside the merged OBJ); vertex colours are not
 carried over (a warning says whose).
 """
 
@@ -157,10 +157,11 @@ def selected_objects(spec: SceneSpec, meshes: list[Mesh | None], select: list[st
 
 def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) -> tuple[Mesh, dict[str, str]]:
     """Selected objects baked into one world-space mesh, and the slot -> scene material map its
-    object needs. A slot per (scene material, slot colour, texture): the first of a scene material
-    is named after it, others ``NAME~2``, ... (mapped back to NAME), so meshes keep their own
-    colours and textures (a textured slot's colour is multiplied into its texture: an OBJ's
-    ``map_Kd`` replaces ``Kd``)."""
+    object needs. A slot per (scene material, slot colour, texture, normal map): the first of a
+    scene material is named after it, others ``NAME~2``, ... (mapped back to NAME), so meshes keep
+    their own colours, textures and normal maps (a textured slot's colour is multiplied into its
+    texture: an OBJ's ``map_Kd`` replaces ``Kd``). A normal map stays valid in world space: its
+    tangent frame follows the transformed positions and UVs."""
     import warnings
 
     index = material_index(spec)
@@ -173,10 +174,6 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
     if coloured:
         warnings.warn(f"group: the vertex colours of {', '.join(coloured)} are not carried into the merged mesh (its "
                       "slot colours and textures are); convert without --group to keep them", stacklevel=3)
-    bumpy = [spec.objects[i].name for i in objects if any(m.normal_map is not None for m in meshes[i].materials)]
-    if bumpy:  # (trimesh's OBJ reader reads no normal-map key)
-        warnings.warn(f"group: the normal maps of {', '.join(bumpy)} are not carried into the merged mesh (an OBJ); "
-                      "convert without --group to keep them", stacklevel=3)
     any_uv = any(meshes[i].uvs is not None for i in objects)
     offset = 0
     for i in objects:
@@ -192,15 +189,17 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
             target = scene_material_for(obj, slot.name, index)
             colour = np.asarray(slot.base_color, np.float32).reshape(-1)[:3]
             textured = slot.texture is not None and mesh.uvs is not None
-            key = (target, colour.tobytes(), id(slot.texture) if textured else None)
+            normal_map = slot.normal_map if mesh.uvs is not None else None
+            key = (target, colour.tobytes(), id(slot.texture) if textured else None, id(normal_map))
             if key not in slot_of:
-                taken = sum(1 for t, _, _ in slot_of if t == target)
+                taken = sum(1 for t, *_ in slot_of if t == target)
                 name = target if taken == 0 else f"{target}~{taken + 1}"
                 if taken:
                     mapping[name] = target
                 slot_of[key] = len(materials)
-                materials.append(MeshMaterial(name, base_color=np.ones(3, np.float32), texture=slot.texture * colour)
-                                 if textured else MeshMaterial(name, base_color=colour))
+                materials.append(MeshMaterial(name, base_color=np.ones(3, np.float32), texture=slot.texture * colour,
+                                              normal_map=normal_map)
+                                 if textured else MeshMaterial(name, base_color=colour, normal_map=normal_map))
             slot_to_merged.append(slot_of[key])
         mat_ids.append(np.asarray(slot_to_merged, np.int32)[mesh.face_material_ids])
         offset += len(mesh.vertices)
@@ -232,8 +231,9 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
     """Write positions, normals, UVs and per-face material groups as OBJ (+ MTL: each slot's colour
     as ``Kd``, sRGB as OBJ readers and `load_mesh` take it; a textured slot's texture as an 8-bit
-    sRGB PNG beside it, ``map_Kd``), each file atomically (`neuralrt.io.files.write_atomically`)."""
-    from ..io.images import linear_to_srgb, write_png
+    sRGB PNG beside it, ``map_Kd``; a normal map as an 8-bit PNG of its stored values, ``norm``),
+    each file atomically (`neuralrt.io.files.write_atomically`)."""
+    from ..io.images import linear_to_srgb, write_data_png, write_png
 
     path = Path(path)
     mtl = path.with_suffix(".mtl")
@@ -258,6 +258,10 @@ def write_mesh_obj(mesh: Mesh, path: Path) -> None:
             texture = path.with_name(f"{path.stem}-texture{k}.png")
             write_png(texture, m.texture)
             mtl_text += f"map_Kd {texture.name}\n"
+        if m.normal_map is not None and mesh.uvs is not None:
+            normal_map = path.with_name(f"{path.stem}-normal{k}.png")
+            write_data_png(normal_map, m.normal_map)
+            mtl_text += f"norm {normal_map.name}\n"
         mtl_text += "\n"
     write_atomically(mtl, lambda tmp: Path(tmp).write_text(mtl_text))
     write_atomically(path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))

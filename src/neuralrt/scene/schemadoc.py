@@ -70,11 +70,14 @@ A surface's colour is its scene material's `albedo` times the mesh's own colour 
 `Kd` and `map_Kd`, glTF base colour, vertex colours; white where the mesh has none, as the
 generators' meshes): give one or the other. A neural object's own colour is what its model
 learned; it carries no UVs, so a texture `albedo` on it shows one texel (a warning says so).
-Shading normals are the mesh's vertex normals, turned by a glTF material's `normalTexture`
-(tangent space, green up; tangents built from the UVs as `neuralrt.geometry.tangents` says, since
-trimesh reads neither a file's `TANGENT` attribute nor the map's `scale` or `texCoord`: the first
-UV set maps it; OBJ bump maps are not read). A texel that points into the surface or is far from
-unit length (a neutral grey) keeps the interpolated normal; a grey image, or a map pointing into
+Shading normals are the mesh's vertex normals, turned by a tangent-space normal map (green up):
+a glTF material's `normalTexture`, or the one an OBJ's MTL names (`norm`, else `map_Bump` or
+`bump`, which Blender and most exporters write for a normal map; `-bm` scales it as glTF's `scale`
+would; a statement with `-o`, `-s`, `-t` or `-imfchan` is left out with a warning). Tangents are
+built from the UVs as `neuralrt.geometry.tangents` says, since trimesh reads neither a file's
+`TANGENT` attribute nor the glTF map's `scale` or `texCoord` (the first UV set maps it). A texel
+that points into the surface or is far from unit length (a neutral grey) keeps the interpolated
+normal; a grey image (most likely a height map: bump mapping is not done), or a map pointing into
 the surface on average, is left out with a warning, as is an image on a mesh without UVs. A model
 of such a mesh learns the turned normals; `neuralrt info MESH` lists the normal-mapped materials.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
