@@ -274,3 +274,83 @@ def test_the_bm_scale_keeps_texels_that_encode_no_direction():
     np.testing.assert_array_equal(scaled[0, :2], texels[0, :2])
     m = scaled[0, 2] * 2 - 1
     np.testing.assert_allclose(m, np.array([3 * S, 0, C]) / math.hypot(3 * S, C), atol=1e-6)
+
+
+# --- glTF: what trimesh reads but drops (normalTexture.scale, KHR_texture_transform, texCoord) ---
+
+
+def _edited_glb(path, edit):
+    """The .glb at ``path`` with ``edit(header)`` applied to its JSON chunk."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    header = json.loads(data[20:20 + length])
+    edit(header)
+    chunk = json.dumps(header).encode()
+    chunk += b" " * (-len(chunk) % 4)
+    rest = data[20 + length:]
+    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + rest
+    path.write_bytes(data[:8] + struct.pack("<I", 12 + len(body)) + body)
+    return path
+
+
+def _transform(offset=(0.0, 0.0), rotation=0.0, scale=(1.0, 1.0)):
+    return {"extensions": {"KHR_texture_transform": {"offset": list(offset), "rotation": rotation, "scale": list(scale)}}}
+
+
+def test_gltf_normal_texture_scale_is_applied(tmp_path):
+    path = _glb(tmp_path / "quad.glb", _image([200, 128, 230]))
+    _edited_glb(path, lambda h: h["materials"][0]["normalTexture"].update(scale=0.5))
+    m = np.array([200, 128, 230]) / 255.0 * 2 - 1
+    expected = m * [0.5, 0.5, 1]
+    np.testing.assert_allclose(_normals_at_centre(load_mesh(path))[0], expected / np.linalg.norm(expected), atol=1e-5)
+
+
+def test_gltf_texture_transform_places_the_base_colour_texture_as_the_extension_defines(tmp_path):
+    # An 8x8 texture whose red and green grow with each texel's column and row: the albedo at a hit
+    # says where the image was sampled. Expected: scale, then rotate (u' = u cos r + v sin r,
+    # v' = v cos r - u sin r: the spec's example of offset [0, 1], rotation pi/2, scale 0.5 reads
+    # the lower-left quadrant), then offset, in glTF's UVs (v down); bilinear between texel centres.
+    from PIL import Image
+
+    from neuralrt.io.images import srgb_to_linear
+
+    cols, rows = np.meshgrid(np.arange(8), np.arange(8))
+    ramp = np.stack([cols * 255 / 7, rows * 255 / 7, np.zeros_like(cols)], axis=-1).round().astype(np.uint8)
+    path = _glb(tmp_path / "quad.glb", base_image=Image.fromarray(ramp))
+    offset, rotation, scale = (0.2, 0.3), 0.3, (0.5, 0.4)
+    _edited_glb(path, lambda h: h["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"].update(
+        _transform(offset, rotation, scale)))
+    points = np.array([[0.0, 0.0], [0.3, -0.4], [-0.5, 0.6], [0.7, 0.7]])
+    rays = Rays(torch.tensor(np.c_[points, np.full(4, 3.0)], dtype=torch.float32), torch.tensor([[0.0, 0.0, -1.0]] * 4))
+    albedo = MeshBLAS(load_mesh(path)).intersect(rays).albedo.numpy()
+    u, v = (points[:, 0] + 1) / 2, 1 - (points[:, 1] + 1) / 2  # glTF's UVs of the quad: v down
+    su, sv = u * scale[0], v * scale[1]
+    c, s = math.cos(rotation), math.sin(rotation)
+    x, y = (su * c + sv * s + offset[0]) * 8 - 0.5, (sv * c - su * s + offset[1]) * 8 - 0.5  # in texels
+    assert (x > 0).all() and (x < 7).all() and (y > 0).all() and (y < 7).all()  # (no wrapping)
+    linear = srgb_to_linear(ramp[..., :2] / 255.0)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    expected = ((1 - fy) * ((1 - fx) * linear[y0, x0] + fx * linear[y0, x0 + 1])
+                + fy * ((1 - fx) * linear[y0 + 1, x0] + fx * linear[y0 + 1, x0 + 1]))
+    np.testing.assert_allclose(albedo[:, :2], expected, atol=2e-4)
+
+
+@pytest.mark.parametrize("edit, note", [
+    (lambda h: h["materials"][0]["normalTexture"].update(texCoord=1), "the normalTexture of material 'bumpy' maps UV set 1"),
+    (lambda h: h["materials"][0].pop("name") and h["materials"][0]["normalTexture"].update(scale=2.0),
+     "how the maps of unnamed material 0 are placed (normal map scale, KHR_texture_transform) is not applied"),
+    (lambda h: h["materials"][0]["normalTexture"].update(_transform(offset=(0.5, 0))),
+     "the KHR_texture_transforms of material 'bumpy' are not applied: its baseColorTexture and normalTexture are placed "
+     "differently"),
+    (lambda h: h["materials"][0]["normalTexture"].update(_transform(scale=(1.0,))),
+     "the KHR_texture_transform of the normalTexture of material 'bumpy' is not applied (offset and scale must be two"),
+])
+def test_what_a_gltf_places_but_cannot_be_applied_is_a_warning(tmp_path, edit, note):
+    path = _edited_glb(_glb(tmp_path / "quad.glb", _image([200, 128, 230]), base_image=_image([200, 20, 20])), edit)
+    with pytest.warns(UserWarning, match=re.escape(f"quad.glb: {note}")):
+        loaded = load_mesh(path)
+    np.testing.assert_array_equal(loaded.uvs, QUAD_UVS)  # as they were

@@ -12,9 +12,12 @@ grey, which 8 bits cannot store as exactly 0.5, would otherwise tilt it by 55 de
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
-from torch import Tensor
+
+if TYPE_CHECKING:  # (torch is imported where used: mesh loading reads `usable_texel` without it)
+    from torch import Tensor
 
 __all__ = ["mapped_normals_numpy", "mapped_normals_torch", "interpolate_numpy", "usable_texel"]
 
@@ -50,6 +53,8 @@ def mapped_normals_numpy(normal: np.ndarray, tangent: np.ndarray, texel: np.ndar
 
 def mapped_normals_torch(normal: Tensor, tangent: Tensor, texel: Tensor) -> Tensor:
     """`mapped_normals_numpy` on torch tensors (any device)."""
+    import torch
+
     m = texel * 2.0 - 1.0
     t = tangent[:, :3] - normal * (normal * tangent[:, :3]).sum(1, keepdim=True)
     t_len2 = (t * t).sum(1, keepdim=True)

@@ -19,6 +19,8 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import truncation_problem
+from .gltf_maps import gltf_map_placements
+from .obj_maps import scaled_normal_texels
 from .unread_assets import regular_files_resolver, unread_assets
 
 
@@ -406,7 +408,7 @@ def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, wher
     beside the mesh file, or None (with a warning naming the statement where one cannot be used)."""
     from PIL import Image
 
-    from .obj_maps import normal_map_statement, scaled_normal_texels
+    from .obj_maps import normal_map_statement
 
     try:
         statement = normal_map_statement(statements)
@@ -492,7 +494,9 @@ def load_mesh(path: str | Path) -> Mesh:
     loads without it). glTF colours follow the glTF spec (``baseColorFactor`` linear, white when
     absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB. A glTF
     ``normalTexture``, or an MTL's ``norm``/``map_Bump``/``bump`` (`neuralrt.geometry.obj_maps`),
-    is the material's tangent-space normal map, kept as stored (not sRGB-decoded). Vertices are
+    is the material's tangent-space normal map, kept as stored (not sRGB-decoded); glTF's normal
+    map ``scale`` and ``KHR_texture_transform``, which trimesh drops, are applied
+    (`neuralrt.geometry.gltf_maps`). Vertices are
     kept as the file has them (``process=False``): an STL, which stores each triangle's corners
     apart, stays a triangle soup (3 vertices per triangle in ``mesh_bytes``, flat shading).
     """
@@ -514,6 +518,9 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
+    placements, notes = gltf_map_placements(path) if path.suffix.lower() in (".gltf", ".glb") else ({}, [])
+    for note in notes:
+        warnings.warn(f"{path}: {note}", stacklevel=2)
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
         parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
@@ -548,6 +555,11 @@ def load_mesh(path: str | Path) -> Mesh:
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
         material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path))
+        placement = placements.get(getattr(getattr(part.visual, "material", None), "name", None))
+        if placement is not None:  # (glTF: what trimesh reads but drops)
+            uv = None if uv is None else placement.transformed_uvs(uv)
+            if material.normal_map is not None:
+                material.normal_map = scaled_normal_texels(material.normal_map, placement.normal_scale)
         face_colors, face_colors_of[i] = face_colors_of[i], None
         key = material.name
         known = materials[names[key]] if key in names else None

@@ -73,9 +73,11 @@ learned; it carries no UVs, so a texture `albedo` on it shows one texel (a warni
 Shading normals are the mesh's vertex normals, turned by a tangent-space normal map (green up):
 a glTF material's `normalTexture`, or the one an OBJ's MTL names (`norm`, else `map_Bump` or
 `bump`, which Blender and most exporters write for a normal map; `-bm` scales it as glTF's `scale`
-would; a statement with `-o`, `-s`, `-t` or `-imfchan` is left out with a warning). Tangents are
-built from the UVs as `neuralrt.geometry.tangents` says, since trimesh reads neither a file's
-`TANGENT` attribute nor the glTF map's `scale` or `texCoord` (the first UV set maps it). A texel
+does; a statement with `-o`, `-s`, `-t` or `-imfchan` is left out with a warning). Tangents are
+built from the UVs as `neuralrt.geometry.tangents` says, since trimesh reads no `TANGENT`
+attribute. glTF's normal-map `scale` and `KHR_texture_transform` (offset, rotation, scale of a
+base-colour or normal map's UVs), which trimesh drops, are read from the file and applied, per
+material name; a `texCoord` other than 0 is a warning (the first UV set maps every image). A texel
 that points into the surface or is far from unit length (a neutral grey) keeps the interpolated
 normal; a grey image (most likely a height map: bump mapping is not done), or a map pointing into
 the surface on average, is left out with a warning, as is an image on a mesh without UVs. A model
