@@ -382,6 +382,57 @@ def test_gltf_colours_follow_the_gltf_spec(tmp_path):
     assert np.allclose(by_name["tex"].texture[0, 0], [0.25, 0.5, 1.0], atol=2 / 255)
 
 
+def test_gltf_vertex_colours_are_linear_and_kept_beside_a_material(tmp_path):
+    """COLOR_0 is linear (glTF spec) and multiplies the base colour: it was decoded as sRGB (128 ->
+    0.216), and dropped where the primitive has a material (trimesh keeps it in the visual's
+    vertex_attributes, which Scene.dump's copies lose)."""
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    grey = np.array([[128, 128, 128, 255]] * 8, np.uint8)
+    bare, painted = trimesh.creation.box(), trimesh.creation.box()
+    bare.visual = trimesh.visual.ColorVisuals(bare, vertex_colors=grey)
+    painted.apply_translation([3, 0, 0])
+    painted.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name="half", baseColorFactor=[0.5, 0.5, 0.5, 1.0]))
+    painted.visual.vertex_attributes["color"] = grey
+    for mesh in (bare, painted):
+        loaded = load_mesh(_glb(tmp_path / "coloured.glb", mesh))
+        np.testing.assert_allclose(loaded.vertex_colors, 128 / 255, atol=1e-6)
+    from neuralrt.rays import Rays
+
+    rays = Rays(torch.tensor([[3.0, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]]))
+    assert MeshBLAS(loaded).intersect(rays).albedo[0, 0].item() == pytest.approx(0.5 * 128 / 255, abs=2 / 255)
+
+
+@pytest.mark.parametrize("kind", ["glb", "obj"])
+def test_the_files_normals_are_kept_in_every_part(tmp_path, kind):
+    """A glTF (always a trimesh Scene) or an OBJ of two materials (a Scene of two parts): the file's
+    tilted normals were replaced by computed ones (Scene.dump's copies drop trimesh's cache); a
+    glTF node's rotation turns them."""
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    tilted, turned = (0.6, 0.0, 0.8), (0.0, 0.6, 0.8)  # turned: tilted, rotated 90 degrees about z
+    corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    if kind == "glb":
+        scene = trimesh.Scene()
+        for k in range(2):
+            quad = trimesh.Trimesh(corners + [3 * k, 0, 0], [[0, 1, 2], [0, 2, 3]], vertex_normals=np.tile(tilted, (4, 1)),
+                                   process=False)
+            quad.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(name=f"m{k}"))
+            scene.add_geometry(quad, transform=trimesh.transformations.rotation_matrix(np.pi / 2 * k, [0, 0, 1]))
+        scene.export(tmp_path / "quads.glb")
+        loaded, expected = load_mesh(tmp_path / "quads.glb"), {tilted, turned}
+    else:
+        (tmp_path / "quads.mtl").write_text("newmtl m0\nKd 1 1 1\nnewmtl m1\nKd 1 0 0\n")
+        lines = ["mtllib quads.mtl"] + [f"v {x} {y} {z}" for x, y, z in corners] + ["vn 0.6 0 0.8"]
+        lines += ["usemtl m0", "f 1//1 2//1 3//1", "usemtl m1", "f 1//1 3//1 4//1"]
+        (tmp_path / "quads.obj").write_text("\n".join(lines) + "\n")
+        loaded, expected = load_mesh(tmp_path / "quads.obj"), {tilted}
+    assert len(loaded.materials) == 2
+    assert {tuple(round(float(x), 5) for x in n) for n in loaded.vertex_normals} == expected
+
+
 def test_trimesh_is_imported_with_interrupts_held(tmp_path, monkeypatch):
     """trimesh's optional imports catch BaseException: an interrupt inside them was swallowed."""
     import sys

@@ -313,9 +313,12 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 # --- loading --------------------------------------------------------------------------------
 
 
-def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=None,
+                          linear_colors: bool = False) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
     """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
-    mesh file, for warnings about a texture that cannot be decoded)."""
+    mesh file, for warnings about a texture that cannot be decoded). ``gltf_colors``: a glTF
+    primitive's COLOR_0 as trimesh reads it beside a material; ``linear_colors``: vertex colours are
+    linear (glTF's), not sRGB (PLY's, OBJ's)."""
     uv = colors = None
     material = MeshMaterial(name=fallback_name)
     kind = getattr(visual, "kind", None)
@@ -324,6 +327,7 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
         uv = None if visual.uv is None else np.asarray(visual.uv, np.float32)
         material.name = getattr(mat, "name", None) or fallback_name
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
+            colors = None if gltf_colors is None else _accessor_colors(gltf_colors, where)
             _pbr_colour(material, mat, uv, where)
             normals = getattr(mat, "normalTexture", None)
             if normals is not None and _has_uvs(uv, "normal map", material.name, where):
@@ -342,12 +346,45 @@ def _material_from_visual(visual, fallback_name: str, where: str) -> tuple[MeshM
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
         material.normal_map = _mtl_normal_map(getattr(mat, "kwargs", None) or {}, uv, material.name, where)
     elif kind == "vertex":
-        colors = srgb_to_linear(np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0)
+        colors = np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0
+        colors = colors if linear_colors else srgb_to_linear(colors)
     elif kind == "face":
         fc = np.asarray(visual.face_colors, np.float32)[:, :3] / 255.0
         if np.allclose(fc, fc[0]):
             material.base_color = srgb_to_linear(fc[0])
     return material, uv, colors
+
+
+def _accessor_colors(values, where: str) -> np.ndarray | None:
+    """[V, 3] linear colours of a glTF COLOR_0 accessor as trimesh leaves it beside a material:
+    RGB or RGBA, float or normalised unsigned bytes or shorts (trimesh does not scale those)."""
+    values = np.asarray(values)
+    if values.ndim != 2 or values.shape[1] not in (3, 4):
+        warnings.warn(f"{where}: vertex colours of shape {list(values.shape)} are left out", stacklevel=5)
+        return None
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(values.dtype, 1.0)
+    return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
+
+
+def _scene_parts(scene) -> tuple[list, list]:
+    """A trimesh Scene's triangle meshes moved to their instances' places, as ``Scene.dump`` does,
+    keeping what its copies drop: the file's vertex normals (trimesh's cache, which
+    ``apply_transform`` turns with the part) and a glTF COLOR_0 beside a material (the visual's
+    ``vertex_attributes``; None where there is none), one per part."""
+    from trimesh import Trimesh
+
+    parts, colors = [], []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geometry = scene.geometry[name]
+        if not isinstance(geometry, Trimesh):
+            continue
+        part = geometry.copy(include_cache=True)
+        part.apply_transform(transform)
+        parts.append(part)
+        attributes = getattr(geometry.visual, "vertex_attributes", None)
+        colors.append(attributes.get("color") if getattr(geometry.visual, "kind", None) == "texture" and attributes else None)
+    return parts, colors
 
 
 def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str) -> None:
@@ -521,16 +558,20 @@ def load_mesh(path: str | Path) -> Mesh:
     placements, notes = gltf_map_placements(path) if path.suffix.lower() in (".gltf", ".glb") else ({}, [])
     for note in notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
+    gltf_colors: list = []
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
-        parts = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        parts, gltf_colors = _scene_parts(loaded)
     elif isinstance(loaded, trimesh.Trimesh):
         parts = [loaded]
     else:
         parts = []
+    gltf_colors = [c if c is not None and len(c) == len(p.vertices) else None
+                   for p, c in zip(parts, gltf_colors)] or [None] * len(parts)
     cut_short = truncation_problem(path, sum(len(p.vertices) for p in parts), sum(len(p.faces) for p in parts))
     if cut_short:
         raise MeshError(f"{path}: {cut_short}")
+    gltf_colors = [c for p, c in zip(parts, gltf_colors) if len(p.faces)]
     parts = [p for p in parts if len(p.faces)]
     if not parts:
         raise MeshError(f"{path}: file contains no triangles")
@@ -542,7 +583,9 @@ def load_mesh(path: str | Path) -> Mesh:
     offset = 0
     any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
     face_colors_of = [_varying_face_colors(p.visual) for p in parts]  # (None for most parts: small)
-    any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) or any(c is not None for c in face_colors_of)
+    any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) \
+        or any(c is not None for c in face_colors_of) or any(c is not None for c in gltf_colors)
+    linear_colors = path.suffix.lower() in (".gltf", ".glb")  # (glTF's COLOR_0 is linear; PLY's and OBJ's sRGB)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -554,7 +597,8 @@ def load_mesh(path: str | Path) -> Mesh:
                 raise
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
-        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path))
+        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], linear_colors)
+        gltf_colors[i] = None
         placement = placements.get(getattr(getattr(part.visual, "material", None), "name", None))
         if placement is not None:  # (glTF: what trimesh reads but drops)
             uv = None if uv is None else placement.transformed_uvs(uv)
