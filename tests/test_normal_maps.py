@@ -18,6 +18,7 @@ from neuralrt.geometry.mesh import Mesh, MeshMaterial, load_mesh
 from neuralrt.geometry.procedural import sphere
 from neuralrt.geometry.tangents import vertex_tangents
 from neuralrt.rays import Rays
+from gltf_files import edited_glb
 
 QUAD_VERTICES = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)  # faces +z
 QUAD_FACES = np.array([[0, 1, 2], [0, 2, 3]])
@@ -279,30 +280,13 @@ def test_the_bm_scale_keeps_texels_that_encode_no_direction():
 # --- glTF: what trimesh reads but drops (normalTexture.scale, KHR_texture_transform, texCoord) ---
 
 
-def _edited_glb(path, edit):
-    """The .glb at ``path`` with ``edit(header)`` applied to its JSON chunk."""
-    import json
-    import struct
-
-    data = path.read_bytes()
-    length = struct.unpack_from("<I", data, 12)[0]
-    header = json.loads(data[20:20 + length])
-    edit(header)
-    chunk = json.dumps(header).encode()
-    chunk += b" " * (-len(chunk) % 4)
-    rest = data[20 + length:]
-    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + rest
-    path.write_bytes(data[:8] + struct.pack("<I", 12 + len(body)) + body)
-    return path
-
-
 def _transform(offset=(0.0, 0.0), rotation=0.0, scale=(1.0, 1.0)):
     return {"extensions": {"KHR_texture_transform": {"offset": list(offset), "rotation": rotation, "scale": list(scale)}}}
 
 
 def test_gltf_normal_texture_scale_is_applied(tmp_path):
     path = _glb(tmp_path / "quad.glb", _image([200, 128, 230]))
-    _edited_glb(path, lambda h: h["materials"][0]["normalTexture"].update(scale=0.5))
+    edited_glb(path, lambda h: h["materials"][0]["normalTexture"].update(scale=0.5))
     m = np.array([200, 128, 230]) / 255.0 * 2 - 1
     expected = m * [0.5, 0.5, 1]
     np.testing.assert_allclose(_normals_at_centre(load_mesh(path))[0], expected / np.linalg.norm(expected), atol=1e-5)
@@ -321,7 +305,7 @@ def test_gltf_texture_transform_places_the_base_colour_texture_as_the_extension_
     ramp = np.stack([cols * 255 / 7, rows * 255 / 7, np.zeros_like(cols)], axis=-1).round().astype(np.uint8)
     path = _glb(tmp_path / "quad.glb", base_image=Image.fromarray(ramp))
     offset, rotation, scale = (0.2, 0.3), 0.3, (0.5, 0.4)
-    _edited_glb(path, lambda h: h["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"].update(
+    edited_glb(path, lambda h: h["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"].update(
         _transform(offset, rotation, scale)))
     points = np.array([[0.0, 0.0], [0.3, -0.4], [-0.5, 0.6], [0.7, 0.7]])
     rays = Rays(torch.tensor(np.c_[points, np.full(4, 3.0)], dtype=torch.float32), torch.tensor([[0.0, 0.0, -1.0]] * 4))
@@ -350,7 +334,7 @@ def test_gltf_texture_transform_places_the_base_colour_texture_as_the_extension_
      "the KHR_texture_transform of the normalTexture of material 'bumpy' is not applied (offset and scale must be two"),
 ])
 def test_what_a_gltf_places_but_cannot_be_applied_is_a_warning(tmp_path, edit, note):
-    path = _edited_glb(_glb(tmp_path / "quad.glb", _image([200, 128, 230]), base_image=_image([200, 20, 20])), edit)
+    path = edited_glb(_glb(tmp_path / "quad.glb", _image([200, 128, 230]), base_image=_image([200, 20, 20])), edit)
     with pytest.warns(UserWarning, match=re.escape(f"quad.glb: {note}")):
         loaded = load_mesh(path)
     np.testing.assert_array_equal(loaded.uvs, QUAD_UVS)  # as they were

@@ -19,7 +19,7 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import truncation_problem
-from .gltf_maps import gltf_map_placements
+from .gltf_json import gltf_file_notes, gltf_header, gltf_map_placements
 from .obj_maps import scaled_normal_texels
 from .unread_assets import regular_files_resolver, unread_assets
 
@@ -344,7 +344,11 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
         if texture is not None:
             material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
-        material.normal_map = _mtl_normal_map(getattr(mat, "kwargs", None) or {}, uv, material.name, where)
+        statements = getattr(mat, "kwargs", None) or {}
+        material.normal_map = _mtl_normal_map(statements, uv, material.name, where)
+        if _positive(statements.get("ke")):
+            warnings.warn(f"{where}: the emission of material {material.name!r} (Ke) is not read: give the slot an "
+                          f"emissive scene material to make it a light", stacklevel=3)
     elif kind == "vertex":
         colors = np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0
         colors = colors if linear_colors else srgb_to_linear(colors)
@@ -353,6 +357,17 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
         if np.allclose(fc, fc[0]):
             material.base_color = srgb_to_linear(fc[0])
     return material, uv, colors
+
+
+def _positive(tokens) -> bool:
+    """Whether an MTL statement's values (trimesh keeps them as strings) hold a number above 0."""
+    for token in tokens if isinstance(tokens, (list, tuple)) else ():
+        try:
+            if float(token) > 0:
+                return True
+        except ValueError:
+            pass
+    return False
 
 
 def _accessor_colors(values, where: str) -> np.ndarray | None:
@@ -533,7 +548,7 @@ def load_mesh(path: str | Path) -> Mesh:
     ``normalTexture``, or an MTL's ``norm``/``map_Bump``/``bump`` (`neuralrt.geometry.obj_maps`),
     is the material's tangent-space normal map, kept as stored (not sRGB-decoded); glTF's normal
     map ``scale`` and ``KHR_texture_transform``, which trimesh drops, are applied
-    (`neuralrt.geometry.gltf_maps`). Vertices are
+    (`neuralrt.geometry.gltf_json`). Vertices are
     kept as the file has them (``process=False``): an STL, which stores each triangle's corners
     apart, stays a triangle soup (3 vertices per triangle in ``mesh_bytes``, flat shading).
     """
@@ -548,6 +563,10 @@ def load_mesh(path: str | Path) -> Mesh:
     problem = input_file_problem(path, "mesh file")
     if problem:
         raise MeshError(problem)
+    header = gltf_header(path) if path.suffix.lower() in (".gltf", ".glb") else None
+    unreadable, notes = gltf_file_notes(header) if header else (None, [])
+    if unreadable:
+        raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     try:
         with unread_assets() as unread:
             loaded = trimesh.load(str(path), process=False, resolver=regular_files_resolver(str(path)))
@@ -555,8 +574,8 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
-    placements, notes = gltf_map_placements(path) if path.suffix.lower() in (".gltf", ".glb") else ({}, [])
-    for note in notes:
+    placements, placement_notes = gltf_map_placements(header) if header else ({}, [])
+    for note in notes + placement_notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
     gltf_colors: list = []
     if isinstance(loaded, trimesh.Scene):

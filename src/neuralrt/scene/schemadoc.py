@@ -82,6 +82,14 @@ that points into the surface or is far from unit length (a neutral grey) keeps t
 normal; a grey image (most likely a height map: bump mapping is not done), or a map pointing into
 the surface on average, is left out with a warning, as is an image on a mesh without UVs. A model
 of such a mesh learns the turned normals; `neuralrt info MESH` lists the normal-mapped materials.
+Mesh files are whatever trimesh reads (OBJ + MTL, glTF / GLB, PLY, OFF, STL), merged into one
+mesh in the file's world space (glTF node transforms applied). A file's own normals are kept, in
+every part (else smooth angle-weighted ones are computed). MTL `Kd` / `map_Kd` and PLY or OBJ
+vertex colours are sRGB; glTF's `baseColorFactor` and `COLOR_0` are linear, its texture sRGB.
+What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
+`emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
+weights, triangle fans and normalised integer UVs. A glTF that needs Draco or meshopt compression,
+or whose primitives use sparse accessors, is an error.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 

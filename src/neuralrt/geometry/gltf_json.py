@@ -1,6 +1,10 @@
-"""How a glTF file places its materials' images, which trimesh reads but does not pass on.
+"""What a glTF file's JSON says that trimesh does not pass on.
 
-trimesh loads a material's ``baseColorTexture`` and ``normalTexture`` but drops the normal map's
+`gltf_file_notes`: what trimesh cannot read at all, said before it misleads (a required
+compression extension decoded as nothing gave "mesh is degenerate"; sparse accessors, triangle
+fans, normalised integer UVs, skins, morph weights and emission were dropped without a word).
+
+`gltf_map_placements`: how materials place their images. trimesh loads a material's ``baseColorTexture`` and ``normalTexture`` but drops the normal map's
 ``scale``, the ``KHR_texture_transform`` that moves, turns or tiles an image on the UVs, and the
 ``texCoord`` that picks a UV set. `gltf_map_placements` reads them from the file's JSON so that
 `load_mesh` applies the first two, and says what it cannot apply: a second UV set (trimesh reads
@@ -19,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapPlacement", "gltf_map_placements"]
+__all__ = ["MapPlacement", "gltf_file_notes", "gltf_header", "gltf_map_placements"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -44,18 +48,82 @@ class MapPlacement:
         return (uv.astype(np.float64) @ m[:2, :2].T + m[:2, 2]).astype(np.float32)
 
 
-def gltf_map_placements(path: str | Path) -> tuple[dict[str, MapPlacement], list[str]]:
+# Required extensions without which trimesh reads no geometry, or only part of it.
+_UNREADABLE_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed geometry",
+                          "EXT_meshopt_compression": "meshoptimizer-compressed buffers",
+                          "EXT_mesh_gpu_instancing": "instances placed by the extension"}
+_TRIANGLE_FAN, _COMPONENT_BYTES = 6, {5121: "unsigned bytes", 5123: "unsigned shorts"}
+
+
+def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
+    """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out)."""
+    required = [e for e in header.get("extensionsRequired") or [] if e in _UNREADABLE_EXTENSIONS]
+    if required:
+        return (f"it needs the glTF extension {required[0]} ({_UNREADABLE_EXTENSIONS[required[0]]}), which trimesh "
+                f"does not read"), []
+    accessors = _list(header.get("accessors"))
+    notes: list[str] = []
+    fans = morphs = 0
+    for m, mesh in enumerate(_list(header.get("meshes"))):
+        primitives = _list(mesh.get("primitives")) if isinstance(mesh, dict) else []
+        for primitive in primitives:
+            if not isinstance(primitive, dict):
+                continue
+            fans += primitive.get("mode") == _TRIANGLE_FAN
+            attributes = primitive.get("attributes") if isinstance(primitive.get("attributes"), dict) else {}
+            used = {**{name: attributes.get(name) for name in ("POSITION", "NORMAL", "TEXCOORD_0", "COLOR_0")},
+                    "indices": primitive.get("indices")}
+            for role, index in used.items():
+                accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else None
+                if isinstance(accessor, dict) and "sparse" in accessor:
+                    return (f"the {role} of mesh {m} is a sparse accessor (values stored as changes to a base), "
+                            f"which trimesh does not read"), notes
+                if role == "TEXCOORD_0" and isinstance(accessor, dict) and accessor.get("normalized") \
+                        and accessor.get("componentType") in _COMPONENT_BYTES:
+                    notes.append(f"the UVs of mesh {m} are normalised {_COMPONENT_BYTES[accessor['componentType']]}, "
+                                 f"which trimesh reads unscaled: its textures and normal maps are placed wrong")
+        weights = mesh.get("weights") if isinstance(mesh, dict) else None
+        morphs += isinstance(weights, list) and any(isinstance(w, (int, float)) and w != 0 for w in weights)
+    if fans:
+        notes.append(f"{fans} primitive(s) drawn as triangle fans are left out (trimesh reads triangles and strips)")
+    if morphs:
+        notes.append(f"the morph target weights of {morphs} mesh(es) are not applied: each is read in its base shape")
+    if _list(header.get("skins")):
+        notes.append("skins are not applied: skinned meshes are read in their bind pose, placed by their nodes")
+    if "EXT_mesh_gpu_instancing" in (header.get("extensionsUsed") or []):
+        notes.append("instances of EXT_mesh_gpu_instancing are not read: each such node's mesh is read once")
+    glowing = [_label(material, i) for i, material in enumerate(_list(header.get("materials")))
+               if isinstance(material, dict) and _emits(material)]
+    if glowing:
+        notes.append(f"the emission of {', '.join(glowing)} is not read: give the slot an emissive scene material to "
+                     f"make it a light")
+    return None, notes
+
+
+def _emits(material: dict) -> bool:
+    factor = material.get("emissiveFactor")
+    return isinstance(factor, list) and any(isinstance(x, (int, float)) and x > 0 for x in factor)
+
+
+def _label(material: dict, index: int) -> str:
+    name = material.get("name")
+    return f"material {name!r}" if isinstance(name, str) else f"unnamed material {index}"
+
+
+def _list(value) -> list:
+    return value if isinstance(value, list) else []
+
+
+def gltf_map_placements(header: dict) -> tuple[dict[str, MapPlacement], list[str]]:
     """(placement per material name, where one differs from the default; one line per thing in the
-    file that is not applied). A file whose JSON cannot be read here (trimesh loaded it, so this
-    is unlikely) gives nothing."""
-    materials = _materials(Path(path))
+    file that is not applied), from the file's JSON (`gltf_header`)."""
+    materials = _list(header.get("materials"))
     found: dict[str, list[MapPlacement]] = {}
     notes: list[str] = []
     for index, material in enumerate(materials):
         if not isinstance(material, dict):
             continue
-        name = material.get("name")
-        label = f"material {name!r}" if isinstance(name, str) else f"unnamed material {index}"
+        name, label = material.get("name"), _label(material, index)
         placement = _placement(material, label, notes)
         if isinstance(name, str):
             found.setdefault(name, []).append(placement)
@@ -128,17 +196,19 @@ def _uv_transform(extension: dict) -> np.ndarray | None:
     return _FLIP_V @ translation @ turn @ stretch @ _FLIP_V
 
 
-def _materials(path: Path) -> list:
+def gltf_header(path: str | Path) -> dict:
+    """The JSON of a .gltf or .glb file; {} where it cannot be read here (trimesh reads the file
+    too, and says what is wrong with it)."""
+    path = Path(path)
     try:
         data = path.read_bytes()
         if data[:4] == b"glTF":  # binary: a 12-byte header, then the JSON chunk (length, type, bytes)
             length, kind = struct.unpack_from("<II", data, 12)
             if kind != 0x4E4F534A:  # "JSON"
-                return []
+                return {}
             header = json.loads(data[20:20 + length])
         else:
             header = json.loads(data)
     except (OSError, ValueError, struct.error, UnicodeDecodeError, RecursionError):
-        return []
-    materials = header.get("materials") if isinstance(header, dict) else None
-    return materials if isinstance(materials, list) else []
+        return {}
+    return header if isinstance(header, dict) else {}

@@ -1,0 +1,93 @@
+"""What a glTF file says that trimesh does not read: an error before it misleads (required
+compression extensions, sparse accessors), a warning for what is left out (fans, normalised
+integer UVs, skins, morph weights, emission), and the MTL's emission likewise."""
+
+import re
+
+import numpy as np
+import pytest
+
+from gltf_files import edited_glb
+from neuralrt.errors import MeshError
+from neuralrt.geometry.mesh import load_mesh
+
+
+def _quads(path, materials=("a", "b")):
+    """Two quads, one material each, as a .glb."""
+    import trimesh
+    from trimesh.visual.material import PBRMaterial
+
+    scene = trimesh.Scene()
+    for k, name in enumerate(materials):
+        quad = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+        quad.apply_translation([3 * k, 0, 0])
+        quad.visual = trimesh.visual.TextureVisuals(uv=np.zeros((4, 2)), material=PBRMaterial(name=name))
+        scene.add_geometry(quad)
+    scene.export(path)
+    return path
+
+
+def _sparse_position(header):
+    position = header["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+    header["accessors"][position]["sparse"] = {"count": 1, "indices": {"bufferView": 0, "componentType": 5125},
+                                               "values": {"bufferView": 0}}
+
+
+@pytest.mark.parametrize("edit, error", [
+    (lambda h: h.update(extensionsUsed=["KHR_draco_mesh_compression"], extensionsRequired=["KHR_draco_mesh_compression"]),
+     "it needs the glTF extension KHR_draco_mesh_compression (Draco-compressed geometry), which trimesh does not read"),
+    (lambda h: h.update(extensionsRequired=["KHR_texture_transform", "EXT_meshopt_compression"]),
+     "it needs the glTF extension EXT_meshopt_compression"),
+    (_sparse_position, "the POSITION of mesh 0 is a sparse accessor"),
+])
+def test_what_trimesh_cannot_read_is_an_error_naming_it(tmp_path, edit, error):
+    # (a Draco file gave "mesh is degenerate (all 2 triangles have zero area)"; sparse values were ignored)
+    path = edited_glb(_quads(tmp_path / "quads.glb"), edit)
+    with pytest.raises(MeshError, match=re.escape(f"quads.glb: cannot read mesh: {error}")):
+        load_mesh(path)
+
+
+def _fan(header):
+    header["meshes"][0]["primitives"][0]["mode"] = 6
+
+
+def _normalised_uvs(header):
+    uv = header["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]
+    header["accessors"][uv].update(componentType=5123, normalized=True)
+
+
+@pytest.mark.parametrize("edit, note", [
+    (_fan, "1 primitive(s) drawn as triangle fans are left out"),
+    (_normalised_uvs, "are normalised unsigned shorts, which trimesh reads unscaled"),  # (mesh 0's, mesh 1's)
+    (lambda h: h.update(skins=[{"joints": [0]}]), "skins are not applied"),
+    (lambda h: h["meshes"][0].update(weights=[0.0, 1.0]), "the morph target weights of 1 mesh(es) are not applied"),
+    (lambda h: h["materials"][1].update(emissiveFactor=[1.0, 0.5, 0.0]),
+     "the emission of material 'b' is not read: give the slot an emissive scene material to make it a light"),
+    (lambda h: h.update(extensionsUsed=["EXT_mesh_gpu_instancing"]), "instances of EXT_mesh_gpu_instancing are not read"),
+])
+def test_what_trimesh_leaves_out_is_a_warning_naming_it(tmp_path, edit, note):
+    path = edited_glb(_quads(tmp_path / "quads.glb"), edit)
+    with pytest.warns(UserWarning, match=rf"quads.glb: .*{re.escape(note)}"):
+        try:
+            load_mesh(path)
+        except MeshError:
+            pass  # (the edit may leave the file unreadable past the note: the note came first)
+
+
+def test_a_plain_gltf_loads_without_a_word(tmp_path):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_mesh(_quads(tmp_path / "quads.glb")).num_triangles == 4
+
+
+def test_an_mtl_emission_is_a_warning(tmp_path):
+    (tmp_path / "lamp.mtl").write_text("newmtl lamp\nKd 1 1 1\nKe 4 4 4\nnewmtl dark\nKd 1 1 1\nKe 0 0 0\n")
+    (tmp_path / "lamp.obj").write_text("mtllib lamp.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\n"
+                                       "usemtl lamp\nf 1/1 2/1 3/1\nusemtl dark\nf 2/1 4/1 3/1\n")
+    with pytest.warns(UserWarning) as caught:
+        load_mesh(tmp_path / "lamp.obj")
+    assert [str(w.message) for w in caught if "emission" in str(w.message)] == [
+        f"{tmp_path / 'lamp.obj'}: the emission of material 'lamp' (Ke) is not read: give the slot an emissive scene "
+        f"material to make it a light"]
