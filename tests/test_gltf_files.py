@@ -91,3 +91,26 @@ def test_an_mtl_emission_is_a_warning(tmp_path):
     assert [str(w.message) for w in caught if "emission" in str(w.message)] == [
         f"{tmp_path / 'lamp.obj'}: the emission of material 'lamp' (Ke) is not read: give the slot an emissive scene "
         f"material to make it a light"]
+
+
+def test_percent_encoded_uris_name_the_files_they_encode(tmp_path):
+    # Blender writes "my%20data.bin" for "my data.bin" (URIs are percent-encoded): a buffer so
+    # named was an error "FileNotFoundError: my%20data.bin" (an image, left out).
+    import json
+
+    import trimesh
+    from PIL import Image
+    from trimesh.visual.material import PBRMaterial
+
+    quad = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    quad.visual = trimesh.visual.TextureVisuals(uv=np.full((4, 2), 0.5), material=PBRMaterial(
+        name="paint", baseColorTexture=Image.new("RGB", (2, 2), (255, 0, 0))))
+    files = trimesh.Scene(quad).export(file_type="gltf")
+    header = json.loads(files.pop("model.gltf"))
+    for k, buffer in enumerate(header["buffers"]):  # (trimesh writes the image into a buffer)
+        spaced = f"my data {k}.bin"
+        (tmp_path / spaced).write_bytes(files[buffer["uri"]])
+        buffer["uri"] = spaced.replace(" ", "%20")
+    (tmp_path / "quad.gltf").write_text(json.dumps(header))
+    mesh = load_mesh(tmp_path / "quad.gltf")
+    np.testing.assert_allclose(mesh.materials[0].texture[0, 0], [1, 0, 0])

@@ -268,7 +268,7 @@ def test_what_an_obj_material_names_but_cannot_be_used_is_left_out_with_a_warnin
 
 
 def test_the_bm_scale_keeps_texels_that_encode_no_direction():
-    from neuralrt.geometry.obj_maps import scaled_normal_texels
+    from neuralrt.geometry.obj_files import scaled_normal_texels
 
     texels = np.array([[[0.5, 0.5, 0.0], [128 / 255] * 3, _texel((S, 0, C))]], np.float32)
     scaled = scaled_normal_texels(texels, 3.0)

@@ -20,7 +20,7 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import truncation_problem
 from .gltf_json import gltf_file_notes, gltf_header, gltf_map_placements
-from .obj_maps import scaled_normal_texels
+from .obj_files import clean_obj_text, scaled_normal_texels
 from .unread_assets import regular_files_resolver, unread_assets
 
 
@@ -335,8 +335,11 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
             return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
+        exact = (getattr(mat, "kwargs", None) or {}).get("kd")  # the MTL's Kd as written (diffuse: 8 bits)
         diffuse = getattr(mat, "diffuse", None)
-        if diffuse is not None:
+        if isinstance(exact, (list, tuple)) and len(exact) >= 3:
+            material.base_color = srgb_to_linear(np.clip(np.asarray(exact[:3], np.float32), 0.0, 1.0))
+        elif diffuse is not None:
             material.base_color = srgb_to_linear(np.asarray(diffuse, np.float32)[:3] / 255.0)
         image = getattr(mat, "image", None)
         texture = _texture_pixels(image, material.name, where) \
@@ -456,11 +459,11 @@ def _is_grey(texels: np.ndarray) -> bool:
 
 
 def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, where: str) -> np.ndarray | None:
-    """The normal map an OBJ material's MTL statements name (`neuralrt.geometry.obj_maps`), read
+    """The normal map an OBJ material's MTL statements name (`neuralrt.geometry.obj_files`), read
     beside the mesh file, or None (with a warning naming the statement where one cannot be used)."""
     from PIL import Image
 
-    from .obj_maps import normal_map_statement
+    from .obj_files import normal_map_statement
 
     try:
         statement = normal_map_statement(statements)
@@ -545,7 +548,7 @@ def load_mesh(path: str | Path) -> Mesh:
     or material file the mesh names but that cannot be read is a warning naming it (the mesh
     loads without it). glTF colours follow the glTF spec (``baseColorFactor`` linear, white when
     absent, times the sRGB ``baseColorTexture``); OBJ/MTL ``Kd`` and textures are sRGB. A glTF
-    ``normalTexture``, or an MTL's ``norm``/``map_Bump``/``bump`` (`neuralrt.geometry.obj_maps`),
+    ``normalTexture``, or an MTL's ``norm``/``map_Bump``/``bump`` (`neuralrt.geometry.obj_files`),
     is the material's tangent-space normal map, kept as stored (not sRGB-decoded); glTF's normal
     map ``scale`` and ``KHR_texture_transform``, which trimesh drops, are applied
     (`neuralrt.geometry.gltf_json`). Vertices are
@@ -569,7 +572,10 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     try:
         with unread_assets() as unread:
-            loaded = trimesh.load(str(path), process=False, resolver=regular_files_resolver(str(path)))
+            cleaned = clean_obj_text(path.read_bytes()) if path.suffix.lower() == ".obj" else None
+            source = dict(file_obj=str(path)) if cleaned is None else dict(file_obj=io.BytesIO(cleaned), file_type="obj")
+            cleaned = None
+            loaded = trimesh.load(**source, process=False, resolver=regular_files_resolver(str(path)))
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:

@@ -4,7 +4,10 @@ trimesh drops the ones it cannot read silently (a debug log line), so a mesh who
 image or ``mtllib`` is missing rendered white with no word why. `unread_assets` collects those log
 lines for the calling thread, and only those: trimesh's other debug lines stay filtered as before.
 `regular_files_resolver` is what trimesh reads them through: regular files only, since opening a
-FIFO a mesh names blocked every command for ever.
+FIFO a mesh names blocked every command for ever; a name not found as written is looked for as
+the file most likely meant (percent-decoded, as glTF URIs are written; with Windows backslashes;
+in another letter case; several MTL files on one ``mtllib`` line); and an MTL is cleaned of what
+trimesh misreads (`neuralrt.geometry.obj_files.clean_mtl_text`).
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from pathlib import Path
 
 __all__ = ["unread_assets", "regular_files_resolver"]
 
@@ -86,7 +90,11 @@ def unread_assets():
 def regular_files_resolver(mesh_path: str):
     """trimesh's resolver for the files beside ``mesh_path``, refusing any that is not a regular
     file (a FIFO, a device, a folder) with an OSError, which trimesh logs as unread."""
+    import warnings
+
     from trimesh.resolvers import FilePathResolver
+
+    from .obj_files import clean_mtl_text
 
     class RegularFiles(FilePathResolver):
         def absolute(self, name: str):  # where `get` resolves each spelling of a name before opening it
@@ -95,4 +103,51 @@ def regular_files_resolver(mesh_path: str):
                 raise OSError(f"{name.strip()} is not a regular file")
             return path
 
+        def get(self, name: str):
+            data = self._found(name)
+            if name.strip().lower().endswith(".mtl"):
+                data = clean_mtl_text(data, lambda material, why: warnings.warn(
+                    f"{mesh_path}: the texture of material {material!r} is left out: {why}", stacklevel=2))
+            return data
+
+        def _found(self, name: str) -> bytes:
+            try:
+                return super().get(name)
+            except FileNotFoundError:
+                for other in _other_spellings(name, Path(self.parent)):
+                    try:
+                        return super().get(other)
+                    except (FileNotFoundError, ValueError):
+                        continue
+                parts = name.split()
+                if len(parts) > 1 and all(p.lower().endswith(".mtl") for p in parts):  # mtllib a.mtl b.mtl
+                    return b"\n".join(self._found(p) for p in parts)
+                raise
+
     return RegularFiles(mesh_path)
+
+
+def _other_spellings(name: str, folder: Path) -> list[str]:
+    """Names the file ``name`` most likely means where it is not found as written: percent-decoded
+    (a glTF URI), with ``/`` for ``\\`` (a Windows path, whose last part `get` also tries
+    alone), and each of those in the letter case the folder holds it in."""
+    from urllib.parse import unquote
+
+    name = name.strip()
+    spellings = [unquote(name)] if "%" in name else []
+    spellings += [s.replace("\\", "/") for s in [name, *spellings] if "\\" in s]
+    for spelling in [name, *spellings]:
+        for candidate in (spelling, spelling.replace("\\", "/").rsplit("/", 1)[-1]):
+            cased = _in_folder_case(folder / candidate)
+            if cased is not None:
+                spellings.append(str(cased.relative_to(folder)))
+    return spellings
+
+
+def _in_folder_case(path: Path) -> Path | None:
+    """``path`` with its last part spelt as the folder spells it, where only the case differs."""
+    try:
+        matches = [p for p in path.parent.iterdir() if p.name.lower() == path.name.lower() and p.name != path.name]
+    except OSError:
+        return None
+    return matches[0] if len(matches) == 1 else None

@@ -86,6 +86,10 @@ Mesh files are whatever trimesh reads (OBJ + MTL, glTF / GLB, PLY, OFF, STL), me
 mesh in the file's world space (glTF node transforms applied). A file's own normals are kept, in
 every part (else smooth angle-weighted ones are computed). MTL `Kd` / `map_Kd` and PLY or OBJ
 vertex colours are sRGB; glTF's `baseColorFactor` and `COLOR_0` are linear, its texture sRGB.
+OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
+comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
+one `mtllib` line), and a texture or buffer not found as named is looked for percent-decoded (glTF
+URIs), with `/` for `\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
 weights, triangle fans and normalised integer UVs. A glTF that needs Draco or meshopt compression,

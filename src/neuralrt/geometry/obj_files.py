@@ -1,0 +1,183 @@
+"""OBJ and MTL text, where trimesh misreads it or passes it on unread.
+
+Read before trimesh parses it (`clean_obj_text`, `clean_mtl_text`): a UTF-8 byte-order mark, a
+comment after a statement's values (``Kd 0.5 0.5 0.5 # grey`` became trimesh's placeholder grey,
+without a word), relative (negative) face indices (trimesh counted them from the end of the file:
+objects vanished), one value for a colour (``Kd 0.5``, as the MTL spec allows: the whole file was
+dropped), and options before a ``map_Kd`` image (``-s 1 1 1 tex.png`` was looked up as one file
+name). Each is rewritten to what trimesh reads as the file means; a map whose options move or
+scale its UVs is left out with a reason.
+
+Passed on unread (`normal_map_statement`): the normal map. MTL has no one statement for
+tangent-space normal maps: ``norm`` names one, and ``map_Bump`` (or ``bump``), meant for a height
+map, is what Blender and most exporters write for a normal map (and what their importers read as
+one). So the first of ``norm``, ``map_Bump``, ``bump`` that a material has is its normal map, and
+an image that is grey is left out as a height map by the loader, as a glTF ``normalTexture`` that
+is grey. ``-bm`` scales it as glTF's ``normalTexture.scale`` does (x and y of each texel, then
+normalised); a statement that moves or scales the map's UVs (``-o``, ``-s``, ``-t``) or picks one
+channel of it (``-imfchan``: a height map) is left out with a reason, rather than shading with a
+map placed wrong.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..accel.normal_mapping import usable_texel
+
+__all__ = ["NormalMapStatement", "clean_mtl_text", "clean_obj_text", "normal_map_statement", "scaled_normal_texels"]
+
+_STATEMENTS = ("norm", "map_bump", "bump")  # in order of preference (trimesh lower-cases the keys)
+# Options of an MTL map statement and how many values each takes (min, max).
+_OPTIONS = {"-bm": (1, 1), "-clamp": (1, 1), "-blendu": (1, 1), "-blendv": (1, 1), "-cc": (1, 1),
+            "-texres": (1, 1), "-boost": (1, 1), "-mm": (2, 2), "-imfchan": (1, 1), "-type": (1, 1),
+            "-o": (1, 3), "-s": (1, 3), "-t": (1, 3)}
+_DEFAULTS = {"-o": 0.0, "-s": 1.0, "-t": 0.0}  # UV offset, scale, turbulence: the map as the UVs place it
+
+
+@dataclass(frozen=True)
+class NormalMapStatement:
+    """A material's normal-map statement: its keyword as trimesh keeps it, the image's file name as
+    written (relative to the OBJ's folder) and the ``-bm`` scale."""
+
+    keyword: str
+    file_name: str
+    scale: float
+
+
+def normal_map_statement(statements: dict) -> NormalMapStatement | None:
+    """The normal map among a trimesh ``SimpleMaterial``'s unread statements (its ``kwargs``:
+    lower-cased keyword -> list of tokens), or None where it has none. A ValueError says why a
+    statement cannot be used as written."""
+    for keyword in _STATEMENTS:
+        tokens = statements.get(keyword)
+        if isinstance(tokens, (list, tuple)) and tokens:
+            return _parsed(keyword, [str(t) for t in tokens])
+    return None
+
+
+def _parsed(keyword: str, tokens: list[str]) -> NormalMapStatement:
+    scale, i = 1.0, 0
+    while i < len(tokens) and tokens[i].startswith("-") and not _is_number(tokens[i]):
+        option = tokens[i].lower()
+        if option not in _OPTIONS:
+            raise ValueError(f"its statement {keyword} has an option {tokens[i]} that is not an MTL map option")
+        least, most = _OPTIONS[option]
+        values = tokens[i + 1:i + 1 + most]
+        if option in _DEFAULTS or option in ("-bm", "-mm", "-boost"):
+            count = 0
+            while count < len(values) and _is_number(values[count]):
+                count += 1
+            values = values[:count]
+        if len(values) < least or i + 1 + len(values) >= len(tokens):
+            raise ValueError(f"its statement {keyword} {' '.join(tokens)} has too few values after {tokens[i]}, "
+                             f"or no file name")
+        if option == "-bm":
+            scale = float(values[0])
+        elif option == "-imfchan":
+            raise ValueError(f"its statement {keyword} reads one channel (-imfchan {values[0]}): a height map, "
+                             f"which is not applied")
+        elif option in _DEFAULTS and any(float(v) != _DEFAULTS[option] for v in values):
+            raise ValueError(f"its statement {keyword} moves or scales the map's UVs ({tokens[i]} {' '.join(values)}), "
+                             f"which is not applied")
+        i += 1 + len(values)
+    return NormalMapStatement(keyword, " ".join(tokens[i:]), scale)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        return np.isfinite(float(token))
+    except ValueError:
+        return False
+
+
+def scaled_normal_texels(texels: np.ndarray, scale: float) -> np.ndarray:
+    """Texels of a normal map whose directions have x and y scaled by ``scale``, then normalised
+    (glTF's ``normalTexture.scale``; MTL's ``-bm``), encoded again in [0, 1]. Texels that encode no
+    direction (pointing into the surface, or much shorter than a unit vector) are kept as stored:
+    the renderer keeps the interpolated normal there either way."""
+    if scale == 1.0:
+        return texels
+    m = texels * np.float32(2.0) - np.float32(1.0)
+    usable = usable_texel(m, np.sum(m * m, axis=-1, keepdims=True))
+    m[..., :2] *= np.float32(scale)
+    m /= np.sqrt(np.maximum(np.sum(m * m, axis=-1, keepdims=True), np.float32(1e-12)))
+    return np.where(usable, (m + np.float32(1.0)) * np.float32(0.5), texels).astype(np.float32)
+
+
+# --- text trimesh misreads -------------------------------------------------------------------
+
+_BOM = b"\xef\xbb\xbf"
+# A face whose first index is relative (files that use them use them throughout). A literal
+# prefix, so that the search runs at memchr speed (a pattern that starts at every line ran at
+# ~60 MB/s).
+_OBJ_RELATIVE = re.compile(rb"\nf[ \t]+-[0-9]")
+_COLOURS = ("kd", "ka", "ks", "ke", "tf")
+
+
+def clean_obj_text(data: bytes) -> bytes | None:
+    """The OBJ ``data`` rewritten where trimesh would misread it (a BOM, comments after values,
+    relative face indices made absolute), or None where nothing needs it (the common case: the
+    file is then read as it is)."""
+    relative = _OBJ_RELATIVE.search(data) is not None or re.match(rb"f[ \t]+-[0-9]", data) is not None
+    if not (data.startswith(_BOM) or relative or _has_comment_after_values(data)):
+        return None
+    text = data.removeprefix(_BOM).decode("utf-8", errors="replace")
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    lines = []
+    for line in text.splitlines():
+        body = line.split("#", 1)[0].rstrip() if "#" in line and not line.lstrip().startswith("#") else line
+        keyword = body.split(None, 1)[0] if body.strip() else ""
+        if keyword in counts:
+            counts[keyword] += 1
+        elif keyword == "f" and relative:
+            body = "f " + " ".join(_absolute_corner(c, counts) for c in body.split()[1:])
+        lines.append(body)
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _has_comment_after_values(data: bytes) -> bool:
+    """Whether a line has a ``#`` after something else (a check per ``#``: comment lines are few)."""
+    at = data.find(b"#")
+    while at >= 0:
+        if data[data.rfind(b"\n", 0, at) + 1:at].strip():
+            return True
+        at = data.find(b"#", at + 1)
+    return False
+
+
+def _absolute_corner(corner: str, counts: dict) -> str:
+    """One face corner ``v[/vt][/vn]`` with relative indices (-1: the last one read) made absolute."""
+    parts = corner.split("/")
+    for k, kind in enumerate(("v", "vt", "vn")[:len(parts)]):
+        if parts[k].startswith("-") and parts[k][1:].isdigit():
+            parts[k] = str(counts[kind] + 1 + int(parts[k]))
+    return "/".join(parts)
+
+
+def clean_mtl_text(data: bytes, warn) -> bytes:
+    """The MTL ``data`` as trimesh reads it as meant: no BOM, no comments after values, one-value
+    colours as three, ``map_Kd`` options dropped (``warn(material, why)`` where they move its UVs:
+    the texture is left out)."""
+    text = data.removeprefix(_BOM).decode("utf-8", errors="replace")
+    lines, material = [], None
+    for line in text.splitlines():
+        if "#" in line and not line.lstrip().startswith("#"):
+            line = line.split("#", 1)[0].rstrip()
+        tokens = line.split()
+        keyword = tokens[0].lower() if tokens else ""
+        if keyword == "newmtl":
+            material = " ".join(tokens[1:])
+        elif keyword in _COLOURS and len(tokens) == 2 and _is_number(tokens[1]):
+            line = f"{tokens[0]} {tokens[1]} {tokens[1]} {tokens[1]}"
+        elif keyword == "map_kd" and len(tokens) > 2 and tokens[1].startswith("-"):
+            try:
+                line = f"{tokens[0]} {_parsed('map_Kd', tokens[1:]).file_name}"
+            except ValueError as exc:
+                warn(material, str(exc))
+                continue
+        lines.append(line)
+    return ("\n".join(lines) + "\n").encode()

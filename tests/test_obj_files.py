@@ -1,0 +1,89 @@
+"""OBJ and MTL text that trimesh misread, read as the file means (`neuralrt.geometry.obj_files`):
+relative face indices, comments after values, byte-order marks, one-value colours, several
+MTL files, map options, and texture names spelt as another system spells them."""
+
+import re
+
+import numpy as np
+import pytest
+
+from neuralrt.geometry.mesh import load_mesh
+from neuralrt.geometry.obj_files import clean_obj_text
+from neuralrt.io.images import srgb_to_linear
+
+BOM = "\ufeff"
+
+
+def _write(folder, obj, mtl=None, mtl_name="m.mtl"):
+    if mtl is not None:
+        (folder / mtl_name).write_text(mtl, encoding="utf-8")
+    (folder / "m.obj").write_text(obj, encoding="utf-8")
+    return folder / "m.obj"
+
+
+def test_relative_indices_count_back_from_the_last_vertex_read(tmp_path):
+    # (trimesh counted them from the end of the file: object A vanished, B was there twice)
+    obj = "o A\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf -3/-1 -2/-1 -1/-1\no B\nv 10 0 0\nv 11 0 0\nv 10 1 0\nf -3 -2 -1\n"
+    mesh = load_mesh(_write(tmp_path, obj))
+    np.testing.assert_array_equal(np.sort(mesh.triangles()[:, :, 0].ravel()), [0, 0, 1, 10, 10, 11])
+
+
+@pytest.mark.parametrize("obj", [
+    f"{BOM}v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",  # a BOM before the first statement (an IndexError)
+    "v 0 0 0 # origin\nv 1 0 0\nv 0 1 0\nf 1 2 3   # the one face\n",  # comments after values (a ValueError)
+])
+def test_a_bom_or_comments_after_values_read_as_without(tmp_path, obj):
+    mesh = load_mesh(_write(tmp_path, obj))
+    np.testing.assert_array_equal(mesh.triangles()[0], [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+
+
+_QUAD = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+
+
+@pytest.mark.parametrize("mtl", [
+    "newmtl grey\nKd 0.5 0.5 0.5 # mid grey\n",  # (was trimesh's placeholder grey 0.133, no warning)
+    f"{BOM}newmtl grey\nKd 0.5 0.5 0.5\n",  # (was white, the material renamed material0, no warning)
+    "newmtl grey\nKd 0.5\n",  # one value for all three, as the MTL spec allows (the file was dropped)
+])
+def test_mtl_colours_read_as_the_file_means(tmp_path, mtl):
+    mesh = load_mesh(_write(tmp_path, "mtllib m.mtl\n" + _QUAD + "usemtl grey\nf 1/1 2/2 3/3\n", mtl))
+    assert [m.name for m in mesh.materials] == ["grey"]
+    np.testing.assert_allclose(mesh.materials[0].base_color, srgb_to_linear(np.full(3, 0.5, np.float32)), rtol=1e-6)
+
+
+def test_several_mtl_files_on_one_mtllib_line_are_all_read(tmp_path):
+    (tmp_path / "a.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "b.mtl").write_text("newmtl blue\nKd 0 0 1\n")
+    mesh = load_mesh(_write(tmp_path, "mtllib a.mtl b.mtl\n" + _QUAD + "usemtl red\nf 1 2 3\nusemtl blue\nf 1 3 4\n"))
+    colours = {m.name: m.base_color.tolist() for m in mesh.materials}
+    assert colours == {"red": [1, 0, 0], "blue": [0, 0, 1]}
+
+
+def _textured(folder, statement, image_path="tex.png"):
+    from PIL import Image
+
+    (folder / image_path).parent.mkdir(parents=True, exist_ok=True)
+    Image.new("RGB", (2, 2), (255, 0, 0)).save(folder / image_path)
+    return _write(folder, "mtllib m.mtl\n" + _QUAD + "usemtl paint\nf 1/1 2/2 3/3\n", f"newmtl paint\nKd 1 1 1\n{statement}\n")
+
+
+@pytest.mark.parametrize("statement, image_path", [
+    ("map_Kd -s 1 1 1 -o 0 0 0 -bm 1 tex.png", "tex.png"),  # default options, as exporters write them
+    ("map_Kd textures\\red.png", "textures/red.png"),  # a Windows path
+    ("map_Kd TEX.PNG", "tex.png"),  # another letter case (a file system that ignores case)
+    ("map_Kd C:\\Users\\artist\\tex.png", "tex.png"),  # a Windows absolute path: the file beside the mesh
+])
+def test_a_texture_is_found_as_the_file_means_it(tmp_path, statement, image_path):
+    mesh = load_mesh(_textured(tmp_path, statement, image_path))
+    np.testing.assert_allclose(mesh.materials[0].texture[0, 0], [1, 0, 0])
+
+
+def test_a_texture_whose_options_move_its_uvs_is_left_out_with_a_warning(tmp_path):
+    with pytest.warns(UserWarning, match=re.escape("m.obj: the texture of material 'paint' is left out: its statement "
+                                                   "map_Kd moves or scales the map's UVs (-s 2 2)")):
+        mesh = load_mesh(_textured(tmp_path, "map_Kd -s 2 2 tex.png"))
+    assert mesh.materials[0].texture is None
+
+
+def test_ordinary_obj_text_is_read_as_it_is():
+    assert clean_obj_text(b"# exported\nv -1 -2 -3\nv 1 0 0\nv 0 1 0\nvn 0 0 -1\nf 1//1 2//1 3//1\n") is None
