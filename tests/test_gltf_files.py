@@ -114,3 +114,20 @@ def test_percent_encoded_uris_name_the_files_they_encode(tmp_path):
     (tmp_path / "quad.gltf").write_text(json.dumps(header))
     mesh = load_mesh(tmp_path / "quad.gltf")
     np.testing.assert_allclose(mesh.materials[0].texture[0, 0], [1, 0, 0])
+
+
+def test_a_primitive_without_normals_is_shaded_flat(tmp_path):
+    # The glTF spec: "When normals are not specified, client implementations MUST calculate flat
+    # normals" (they were smooth: a box rendered as a blob).
+    import trimesh
+
+    def without_normals(header):
+        for mesh in header["meshes"]:
+            for primitive in mesh["primitives"]:
+                primitive["attributes"].pop("NORMAL", None)
+
+    trimesh.creation.box().export(tmp_path / "box.glb")
+    mesh = load_mesh(edited_glb(tmp_path / "box.glb", without_normals))
+    assert mesh.num_triangles == 12 and len(mesh.vertices) == 36
+    np.testing.assert_allclose(mesh.vertex_normals, np.repeat(mesh.face_normals(), 3, axis=0), atol=1e-6)
+    assert set(map(tuple, np.abs(mesh.vertex_normals).round(6))) == {(1, 0, 0), (0, 1, 0), (0, 0, 1)}

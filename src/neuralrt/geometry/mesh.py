@@ -262,6 +262,14 @@ def _cross_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
+def _unit_face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[F, 3] float32 unit normals of the faces (counter-clockwise); zero where a face has no area."""
+    a, b, c = (vertices[faces[:, k]].astype(np.float64) for k in range(3))
+    n = np.cross(b - a, c - a)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
+
+
 def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals; vertices of only degenerate faces get +z."""
     vn = np.zeros((len(vertices), 3))
@@ -610,7 +618,7 @@ def load_mesh(path: str | Path) -> Mesh:
     face_colors_of = [_varying_face_colors(p.visual) for p in parts]  # (None for most parts: small)
     any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) \
         or any(c is not None for c in face_colors_of) or any(c is not None for c in gltf_colors)
-    linear_colors = path.suffix.lower() in (".gltf", ".glb")  # (glTF's COLOR_0 is linear; PLY's and OBJ's sRGB)
+    gltf = path.suffix.lower() in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -622,7 +630,7 @@ def load_mesh(path: str | Path) -> Mesh:
                 raise
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
-        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], linear_colors)
+        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], gltf)
         gltf_colors[i] = None
         placement = placements.get(getattr(getattr(part.visual, "material", None), "name", None))
         if placement is not None:  # (glTF: what trimesh reads but drops)
@@ -645,6 +653,12 @@ def load_mesh(path: str | Path) -> Mesh:
         del part  # frees trimesh's int64 faces before the normals pass
         if file_normals:
             vn = vn if vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f)
+        elif gltf:  # the glTF spec: flat normals where a primitive has none (each face its own three vertices)
+            corners = f.reshape(-1)
+            uv = uv[corners] if uv is not None and len(uv) == len(v) else None
+            col = col[corners] if col is not None and len(col) == len(v) else None
+            v, vn = v[corners], np.repeat(_unit_face_normals(v, f), 3, axis=0)
+            f = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
         else:  # what trimesh would compute, from its float64 vertices, without its caches
             vn = angle_weighted_vertex_normals(vertices64, f)
         del vertices64

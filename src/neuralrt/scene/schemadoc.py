@@ -89,7 +89,7 @@ vertex colours are sRGB; glTF's `baseColorFactor` and `COLOR_0` are linear, its 
 OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
 comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
 one `mtllib` line), and a texture or buffer not found as named is looked for percent-decoded (glTF
-URIs), with `/` for `\`, by its last part beside the mesh, and in another letter case.
+URIs), with `/` for `\\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
 weights, triangle fans and normalised integer UVs. A glTF that needs Draco or meshopt compression,
