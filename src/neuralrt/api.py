@@ -174,7 +174,8 @@ def render(
 ) -> dict:
     """Path-trace ``scene`` to ``output`` (EXR; PNG and AOVs beside it).
 
-    ``scene`` is a scene file, ``builtin:NAME``, a dict shaped like a scene file (objects may hold
+    ``scene`` is a scene file, ``builtin:NAME``, one mesh (a mesh file, ``procedural:NAME:DETAIL``)
+    or model file (``.nrt``) to render alone (`neuralrt.scene.studio`), a dict shaped like a scene file (objects may hold
     `Mesh` and loaded model objects; see `neuralrt.scene.load_dict`) or an already built `Scene`
     (then ``resolution``, ``detail`` and ``primary`` are the scene's own: passing them is an error).
     A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``.

@@ -211,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("render", help="path-trace a scene to EXR + PNG (+ albedo/normal/depth AOVs)")
-    p.add_argument("scene", nargs="?", help="scene file (.toml/.json) or builtin:NAME[?detail=N]")
+    p.add_argument("scene", nargs="?", help="scene file (.toml/.json), builtin:NAME[?detail=N], or one mesh (a file, "
+                                            "procedural:NAME:DETAIL) or model (.nrt) to render alone, framed and lit")
     p.add_argument("-o", "--output", help="output .exr (the .png and AOVs are written beside it)")
     p.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     p.add_argument("--res", type=_resolution, metavar="WxH", help="resolution (default: the scene's)")

@@ -32,7 +32,7 @@ from ..errors import NeuralRTError, SceneError, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import AABB
-from ..methods.base import check_mesh_match, ray_views
+from ..methods.base import MeshMismatchWarning, check_mesh_match, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -48,6 +48,7 @@ from .schema import (
 )
 from .material_rules import is_emissive, material_index, material_map, scene_material_for, scene_materials
 from .scene import Scene, instance_ray_offsets
+from .studio import is_lone_object
 
 __all__ = ["load_scene", "load_dict", "load_scene_spec", "build_scene", "scene_material_for", "shape_for", "BUILTIN_PREFIX"]
 
@@ -65,8 +66,10 @@ def load_scene(
 ) -> Scene:
     """Load and build a scene.
 
-    ``path_or_builtin``: a ``.toml`` / ``.json`` scene file, or ``builtin:<name>`` with an optional
-    ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`). ``resolution`` (width, height)
+    ``path_or_builtin``: a ``.toml`` / ``.json`` scene file, ``builtin:<name>`` with an optional
+    ``?detail=N`` (see `neuralrt.scene.builtins.list_builtins`), or one mesh (a mesh file,
+    ``procedural:NAME:DETAIL``) or model file (``.nrt``) alone, framed and lit
+    (`neuralrt.scene.studio`). ``resolution`` (width, height)
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
     ``primary``: who answers camera rays of objects with a model; ``allow_mesh_mismatch``: accept
     a model trained on another mesh than its object's (see `build_scene`). A bad ``resolution``
@@ -75,10 +78,32 @@ def load_scene(
     """
     device = check_device(device)
     size = None if resolution is None else check_resolution(resolution)
+    if isinstance(path_or_builtin, (str, os.PathLike)) and is_lone_object(os.fspath(path_or_builtin)):
+        return _lone_object_scene(os.fspath(path_or_builtin), device, size, detail, primary, allow_mesh_mismatch)
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)  # (its own spec, paths absolute)
     if size is not None:
         spec.camera.resolution = size
     return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
+
+
+def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh_mismatch: bool) -> Scene:
+    """`neuralrt.scene.studio`: one mesh or model file, framed and lit; the file is read once."""
+    from .studio import MODEL_SUFFIX, studio_dict
+
+    if detail is not None:
+        raise SceneError(f"{name}: {given('detail')} applies to built-in scenes (builtin:NAME); a procedural mesh "
+                         f"names its detail (procedural:NAME:DETAIL)")
+    if name.lower().endswith(MODEL_SUFFIX):
+        value, key = _load_model(name, name, "objects.0", device), "model"
+        lo, hi = value.bounds.lo.cpu().numpy(), value.bounds.hi.cpu().numpy()
+    else:
+        value, key = load_mesh(name), "mesh"
+        lo, hi = value.bounds
+    with warnings.catch_warnings():
+        # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
+        warnings.filterwarnings("ignore", category=MeshMismatchWarning)
+        return load_dict(studio_dict(key, value, lo, hi, size), device=device, primary=primary, label=name,
+                         allow_mesh_mismatch=allow_mesh_mismatch)
 
 
 def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene",
@@ -190,6 +215,9 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
     label = str(path)  # as the user wrote it, like the file-level errors
     if detail is not None:
         raise SceneError(f"{path}: {given('detail')} applies to built-in scenes (builtin:NAME), not to a scene file")
+    if is_lone_object(str(path)):
+        raise SceneError(f"{path}: not a scene file (.toml or .json): `neuralrt render` takes a mesh or model file "
+                         f"alone; `neuralrt train` makes a model of a mesh")
     problem = input_file_problem(path, "scene file")
     if problem:
         raise SceneError(problem)
