@@ -398,6 +398,7 @@ def test_gltf_vertex_colours_are_linear_and_kept_beside_a_material(tmp_path):
     for mesh in (bare, painted):
         loaded = load_mesh(_glb(tmp_path / "coloured.glb", mesh))
         np.testing.assert_allclose(loaded.vertex_colors, 128 / 255, atol=1e-6)
+        assert api.info(tmp_path / "coloured.glb")["vertex_colors"] is True
     from neuralrt.rays import Rays
 
     rays = Rays(torch.tensor([[3.0, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]]))

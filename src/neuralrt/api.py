@@ -59,6 +59,7 @@ def _mesh_info(path: Path) -> dict:
         "bounds": [lo.tolist(), hi.tolist()],
         "materials": [m.name for m in mesh.materials],
         "uvs": mesh.uvs is not None,
+        "vertex_colors": mesh.vertex_colors is not None,
         "textured_materials": [m.name for m in mesh.materials if m.texture is not None],
         "normal_mapped_materials": [m.name for m in mesh.materials if m.normal_map is not None],
         **mem.as_dict(),
