@@ -56,6 +56,13 @@ def _normalised_uvs(header):
     header["accessors"][uv].update(componentType=5123, normalized=True)
 
 
+def _ushort_colours_without_material(header):
+    primitive = header["meshes"][0]["primitives"][0]
+    primitive.pop("material", None)
+    primitive["attributes"]["COLOR_0"] = primitive["attributes"]["POSITION"]  # (only its declared type matters here)
+    header["accessors"][primitive["attributes"]["POSITION"]]["componentType"] = 5123
+
+
 @pytest.mark.parametrize("edit, note", [
     (_fan, "1 primitive(s) drawn as triangle fans are left out"),
     (_normalised_uvs, "are normalised unsigned shorts, which trimesh reads unscaled"),  # (mesh 0's, mesh 1's)
@@ -64,6 +71,7 @@ def _normalised_uvs(header):
     (lambda h: h["materials"][1].update(emissiveFactor=[1.0, 0.5, 0.0]),
      "the emission of material 'b' is not read: give the slot an emissive scene material to make it a light"),
     (lambda h: h.update(extensionsUsed=["EXT_mesh_gpu_instancing"]), "instances of EXT_mesh_gpu_instancing are not read"),
+    (_ushort_colours_without_material, "the vertex colours of mesh 0 are unsigned shorts on a primitive without a material"),
 ])
 def test_what_trimesh_leaves_out_is_a_warning_naming_it(tmp_path, edit, note):
     path = edited_glb(_quads(tmp_path / "quads.glb"), edit)

@@ -87,3 +87,50 @@ def test_a_texture_whose_options_move_its_uvs_is_left_out_with_a_warning(tmp_pat
 
 def test_ordinary_obj_text_is_read_as_it_is():
     assert clean_obj_text(b"# exported\nv -1 -2 -3\nv 1 0 0\nv 0 1 0\nvn 0 0 -1\nf 1//1 2//1 3//1\n") is None
+
+
+def test_a_hash_inside_a_name_is_part_of_the_name(tmp_path):
+    # Only a "#" after a space or tab starts a comment: "lib#a.mtl", "paint#1" and "tex#1.png"
+    # were cut at it (the material file and texture not found); "####" header lines are comments.
+    from PIL import Image
+
+    Image.new("RGB", (2, 2), (255, 0, 0)).save(tmp_path / "tex#1.png")
+    (tmp_path / "lib#a.mtl").write_text("newmtl paint#1\nKd 0 0 1 # blue\nnewmtl tex#1\nKd 1 1 1\nmap_Kd tex#1.png\n")
+    obj = "#### exported\nmtllib lib#a.mtl\n" + _QUAD + "usemtl paint#1\nf 1/1 2/2 3/3\nusemtl tex#1\nf 1/1 3/3 4/4\n"
+    mesh = load_mesh(_write(tmp_path, obj))
+    by_name = {m.name: m for m in mesh.materials}
+    assert set(by_name) == {"paint#1", "tex#1"}
+    np.testing.assert_allclose(by_name["paint#1"].base_color, [0, 0, 1])
+    np.testing.assert_allclose(by_name["tex#1"].texture[0, 0], [1, 0, 0])
+    assert clean_obj_text(b"####\n# header\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n") is None  # (read as it is: fast)
+
+
+def test_a_bom_in_any_of_several_mtl_files_is_no_statement(tmp_path):
+    # (the second file's BOM glued "newmtl blue" to its mark: red took blue's colour, blue was white)
+    (tmp_path / "a.mtl").write_text("newmtl red\nKd 1 0 0\n", encoding="utf-8")
+    (tmp_path / "b.mtl").write_text(f"{BOM}newmtl blue\nKd 0 0 1\n", encoding="utf-8")
+    mesh = load_mesh(_write(tmp_path, "mtllib a.mtl b.mtl\n" + _QUAD + "usemtl red\nf 1 2 3\nusemtl blue\nf 1 3 4\n"))
+    assert {m.name: m.base_color.tolist() for m in mesh.materials} == {"red": [1, 0, 0], "blue": [0, 0, 1]}
+
+
+def test_relative_indices_on_a_continued_line_count_from_where_the_face_is(tmp_path):
+    obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 \\\n-1\nv 5 5 5\nv 6 5 5\nv 5 6 5\nf -3 -2 -1\n"
+    np.testing.assert_array_equal(load_mesh(_write(tmp_path, obj)).faces, [[0, 1, 2], [3, 4, 5]])
+
+
+@pytest.mark.parametrize("statement, why", [
+    ("norm -bm nan n.png", "has -bm nan: not a finite number"),
+    ("map_Bump -imfchan r n.png", "reads one channel (-imfchan r)"),
+])
+def test_odd_map_options_are_named(tmp_path, statement, why):
+    from PIL import Image
+
+    Image.new("RGB", (2, 2), (128, 128, 255)).save(tmp_path / "n.png")
+    path = _write(tmp_path, "mtllib m.mtl\n" + _QUAD + "usemtl paint\nf 1/1 2/2 3/3\n", f"newmtl paint\n{statement}\n")
+    with pytest.warns(UserWarning, match=re.escape(why)):
+        load_mesh(path)
+
+
+def test_imfchan_on_a_colour_map_is_ignored(tmp_path):
+    mesh = load_mesh(_textured(tmp_path, "map_Kd -imfchan r tex.png"))
+    np.testing.assert_allclose(mesh.materials[0].texture[0, 0], [1, 0, 0])

@@ -17,7 +17,8 @@ def _coverage(scene, size=24):
     return np.asarray(result.coverage).reshape(size, size), np.asarray(result.image)
 
 
-@pytest.mark.parametrize("offset, scale", [((0, 0, 0), 1.0), ((40.0, -20.0, 3.0), 0.05), ((0, 0, 0), 300.0)])
+@pytest.mark.parametrize("offset, scale", [((0, 0, 0), 1.0), ((40.0, -20.0, 3.0), 0.05), ((0, 0, 0), 300.0),
+                                           ((0, 0, 0), 1e-7)])  # (a floor of 1e-6 on the radius showed a dot)
 def test_a_mesh_alone_is_framed_whole_and_lit(tmp_path, offset, scale):
     # Wherever the file puts the object, and at any size: it fills the middle of the frame, touches
     # no border, and is lit (brighter than the sky behind it on its lit side).
@@ -59,6 +60,8 @@ def test_a_model_alone_renders_what_it_learned_without_a_word(tmp_path):
 
 
 @pytest.mark.parametrize("argv, needle", [
+    (["render", "missing.nrt"], "missing.nrt: model file not found"),
+    (["render", "model.nrt.ckpt"], "model.nrt.ckpt: a training checkpoint, not a scene"),
     (["render", "procedural:statue:0", "--detail", "2"], "--detail applies to built-in scenes (builtin:NAME); a "
                                                          "procedural mesh names its detail (procedural:NAME:DETAIL)"),
     (["render", "missing.obj"], "missing.obj"),
@@ -68,6 +71,7 @@ def test_bad_lone_objects_are_one_line(tmp_path, capsys, argv, needle):
     assert main(argv + ["-o", str(tmp_path / "x.exr")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("neuralrt: error: ") and needle in err and err.count("\n") == 1
+    assert "objects.0" not in err  # (a lone model's errors named an internal key, and the file twice)
     assert not (tmp_path / "x.exr").exists()
 
 

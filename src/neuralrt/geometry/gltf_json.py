@@ -78,6 +78,10 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
                 if isinstance(accessor, dict) and "sparse" in accessor:
                     return (f"the {role} of mesh {m} is a sparse accessor (values stored as changes to a base), "
                             f"which trimesh does not read"), notes
+                if role == "COLOR_0" and isinstance(accessor, dict) and accessor.get("componentType") == 5123 \
+                        and "material" not in primitive:
+                    notes.append(f"the vertex colours of mesh {m} are unsigned shorts on a primitive without a "
+                                 f"material, which trimesh reads wrong")
                 if role == "TEXCOORD_0" and isinstance(accessor, dict) and accessor.get("normalized") \
                         and accessor.get("componentType") in _COMPONENT_BYTES:
                     notes.append(f"the UVs of mesh {m} are normalised {_COMPONENT_BYTES[accessor['componentType']]}, "

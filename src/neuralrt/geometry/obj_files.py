@@ -71,13 +71,15 @@ def _parsed(keyword: str, tokens: list[str]) -> NormalMapStatement:
             count = 0
             while count < len(values) and _is_number(values[count]):
                 count += 1
+            if count < least and len(values) > count and not values[count].startswith("-"):
+                raise ValueError(f"its statement {keyword} has {tokens[i]} {values[count]}: not a finite number")
             values = values[:count]
         if len(values) < least or i + 1 + len(values) >= len(tokens):
             raise ValueError(f"its statement {keyword} {' '.join(tokens)} has too few values after {tokens[i]}, "
                              f"or no file name")
         if option == "-bm":
             scale = float(values[0])
-        elif option == "-imfchan":
+        elif option == "-imfchan" and keyword != "map_Kd":  # (on a colour map it picks a channel: ignored)
             raise ValueError(f"its statement {keyword} reads one channel (-imfchan {values[0]}): a height map, "
                              f"which is not applied")
         elif option in _DEFAULTS and any(float(v) != _DEFAULTS[option] for v in values):
@@ -125,11 +127,12 @@ def clean_obj_text(data: bytes) -> bytes | None:
     relative = _OBJ_RELATIVE.search(data) is not None or re.match(rb"f[ \t]+-[0-9]", data) is not None
     if not (data.startswith(_BOM) or relative or _has_comment_after_values(data)):
         return None
-    text = data.removeprefix(_BOM).decode("utf-8", errors="replace")
+    # As trimesh reads it: one statement per line once "\"-newline continuations are joined.
+    text = _text(data).replace("\r\n", "\n").replace("\\\n", "")
     counts = {"v": 0, "vt": 0, "vn": 0}
     lines = []
     for line in text.splitlines():
-        body = line.split("#", 1)[0].rstrip() if "#" in line and not line.lstrip().startswith("#") else line
+        body = _without_comment(line)
         keyword = body.split(None, 1)[0] if body.strip() else ""
         if keyword in counts:
             counts[keyword] += 1
@@ -140,13 +143,37 @@ def clean_obj_text(data: bytes) -> bytes | None:
 
 
 def _has_comment_after_values(data: bytes) -> bool:
-    """Whether a line has a ``#`` after something else (a check per ``#``: comment lines are few)."""
+    """Whether a statement has a comment after its values: a ``#`` after a space or tab, with
+    something before it on a line that is no comment (a ``#`` inside a name, ``tex#1.png``, is
+    part of the name). One check per ``#``, skipping the rest of a comment line: comments are few."""
     at = data.find(b"#")
     while at >= 0:
-        if data[data.rfind(b"\n", 0, at) + 1:at].strip():
+        start = data.rfind(b"\n", 0, at) + 1
+        before = data[start:at]
+        if before.lstrip().startswith(b"#"):  # a comment line (e.g. "####"): on to the next line
+            end = data.find(b"\n", at)
+            at = -1 if end < 0 else data.find(b"#", end)
+            continue
+        if before.strip() and before[-1:] in (b" ", b"\t"):
             return True
         at = data.find(b"#", at + 1)
     return False
+
+
+_COMMENT = re.compile(r"[ \t]#")
+
+
+def _without_comment(line: str) -> str:
+    """``line`` without a comment after its values (after a space or tab: see above)."""
+    if line.lstrip().startswith("#"):
+        return line
+    found = _COMMENT.search(line)
+    return line if found is None else line[:found.start()].rstrip()
+
+
+def _text(data: bytes) -> str:
+    """UTF-8 text without byte-order marks (anywhere: several files may have been joined)."""
+    return data.decode("utf-8", errors="replace").replace("\ufeff", "")
 
 
 def _absolute_corner(corner: str, counts: dict) -> str:
@@ -162,11 +189,9 @@ def clean_mtl_text(data: bytes, warn) -> bytes:
     """The MTL ``data`` as trimesh reads it as meant: no BOM, no comments after values, one-value
     colours as three, ``map_Kd`` options dropped (``warn(material, why)`` where they move its UVs:
     the texture is left out)."""
-    text = data.removeprefix(_BOM).decode("utf-8", errors="replace")
     lines, material = [], None
-    for line in text.splitlines():
-        if "#" in line and not line.lstrip().startswith("#"):
-            line = line.split("#", 1)[0].rstrip()
+    for line in _text(data).splitlines():
+        line = _without_comment(line)
         tokens = line.split()
         keyword = tokens[0].lower() if tokens else ""
         if keyword == "newmtl":

@@ -108,8 +108,9 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
         return
     if mesh_hash != expected and not allow_mismatch:
         raise MeshMismatchError(
-            f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...); "
-            f"pass {given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} to use it anyway"
+            f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...; "
+            f"or the file reads differently since, as a newer neuralrt may read it); retrain, or pass "
+            f"{given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} to use it anyway"
         )
 
 

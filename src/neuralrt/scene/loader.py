@@ -94,7 +94,9 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         raise SceneError(f"{name}: {given('detail')} applies to built-in scenes (builtin:NAME); a procedural mesh "
                          f"names its detail (procedural:NAME:DETAIL)")
     if name.lower().endswith(MODEL_SUFFIX):
-        value, key = _load_model(name, name, "objects.0", device), "model"
+        from ..methods import load_model
+
+        value, key = load_model(name, device=device), "model"  # (its errors name the file: one line as they are)
         lo, hi = value.bounds.lo.cpu().numpy(), value.bounds.hi.cpu().numpy()
     else:
         value, key = load_mesh(name), "mesh"
@@ -215,6 +217,9 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
     label = str(path)  # as the user wrote it, like the file-level errors
     if detail is not None:
         raise SceneError(f"{path}: {given('detail')} applies to built-in scenes (builtin:NAME), not to a scene file")
+    if path.name.lower().endswith(".ckpt"):
+        raise SceneError(f"{path}: a training checkpoint, not a scene: `neuralrt train ... --resume` continues it; "
+                         f"render the finished model (.nrt)")
     if is_lone_object(str(path)):
         raise SceneError(f"{path}: not a scene file (.toml or .json): `neuralrt render` takes a mesh or model file "
                          f"alone; `neuralrt train` makes a model of a mesh")

@@ -10,6 +10,7 @@ answered by the model, so the image shows what it learned.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -27,10 +28,16 @@ _KEY_IRRADIANCE = 1.5  # at the object's centre, from the key light (the sky giv
 
 
 def is_lone_object(name: str) -> bool:
-    """Whether a scene argument names one mesh (a mesh file, ``procedural:NAME:DETAIL``) or one
-    model file rather than a scene."""
-    lowered = name.lower()
-    return lowered.startswith(PROCEDURAL_PREFIX) or lowered.endswith(MESH_SUFFIXES + (MODEL_SUFFIX,))
+    """Whether a scene argument names one mesh (a mesh file trimesh reads, ``procedural:NAME:DETAIL``)
+    or one model file rather than a scene."""
+    suffix = Path(name).suffix.lower()
+    if name.startswith(PROCEDURAL_PREFIX) or suffix in MESH_SUFFIXES + (MODEL_SUFFIX,):
+        return True
+    if suffix in ("", ".toml", ".json"):
+        return False
+    from ..geometry.mesh import import_trimesh
+
+    return suffix[1:] in import_trimesh().available_formats()  # (.dae, .3mf, ... where their readers are installed)
 
 
 def studio_dict(key: str, value, lo, hi, resolution: tuple[int, int] | None = None) -> dict:
@@ -38,7 +45,7 @@ def studio_dict(key: str, value, lo, hi, resolution: tuple[int, int] | None = No
     object's ``key`` (``"mesh"`` or ``"model"``), framed from its bounds ``lo``, ``hi``."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     centre = (lo + hi) / 2
-    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6 * max(float(np.abs(centre).max()), 1.0), 1e-12)
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-30)  # (a mesh is never a point: loading refuses one)
     distance = radius / math.sin(math.radians(_FOV / 2)) * 1.05
     view, key_dir = _VIEW / np.linalg.norm(_VIEW), _KEY / np.linalg.norm(_KEY)
     light_distance = 4.0 * radius
