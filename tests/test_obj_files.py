@@ -134,3 +134,19 @@ def test_odd_map_options_are_named(tmp_path, statement, why):
 def test_imfchan_on_a_colour_map_is_ignored(tmp_path):
     mesh = load_mesh(_textured(tmp_path, "map_Kd -imfchan r tex.png"))
     np.testing.assert_allclose(mesh.materials[0].texture[0, 0], [1, 0, 0])
+
+
+def test_a_usemtl_naming_no_material_is_a_warning(tmp_path):
+    # (its faces rendered white without a word; a material file that cannot be read was warned already)
+    path = _write(tmp_path, "mtllib m.mtl\n" + _QUAD + "usemtl Typo\nf 1 2 3\nusemtl grey\nf 1 3 4\n",
+                  "newmtl grey\nKd 0.5 0.5 0.5\n")
+    with pytest.warns(UserWarning, match=re.escape("m.obj: usemtl 'Typo' names no material of its material file(s)")):
+        load_mesh(path)
+    import warnings
+
+    (tmp_path / "m.mtl").unlink()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_mesh(path)
+    assert [str(w.message).split(": ", 1)[1] for w in caught] == [
+        "material file m.mtl could not be read; its faces render white"]

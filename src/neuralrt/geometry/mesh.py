@@ -20,7 +20,7 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import truncation_problem
 from .gltf_json import gltf_file_notes, gltf_header, gltf_map_placements
-from .obj_files import clean_obj_text, scaled_normal_texels
+from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names
 from .unread_assets import regular_files_resolver, unread_assets
 
 
@@ -580,9 +580,11 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     try:
         with unread_assets() as unread:
-            cleaned = clean_obj_text(path.read_bytes()) if path.suffix.lower() == ".obj" else None
+            data = path.read_bytes() if path.suffix.lower() == ".obj" else None
+            cleaned = None if data is None else clean_obj_text(data)
+            used_materials = set() if data is None else used_material_names(data)
             source = dict(file_obj=str(path)) if cleaned is None else dict(file_obj=io.BytesIO(cleaned), file_type="obj")
-            cleaned = None
+            data = cleaned = None
             loaded = trimesh.load(**source, process=False, resolver=regular_files_resolver(str(path)))
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
@@ -675,6 +677,10 @@ def load_mesh(path: str | Path) -> Mesh:
         offset += len(v)
     if not verts:
         raise MeshError(f"{path}: no valid triangle part in file")
+    unknown = sorted(used_materials - {m.name for m in materials})
+    if unknown and not unread:  # (a material file that could not be read is said already)
+        warnings.warn(f"{path}: usemtl {', '.join(map(repr, unknown))} names no material of its material file(s): "
+                      f"those faces render white", stacklevel=2)
     return Mesh(
         vertices=_joined(verts),
         faces=_joined(faces),

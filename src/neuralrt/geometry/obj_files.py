@@ -28,7 +28,8 @@ import numpy as np
 
 from ..accel.normal_mapping import usable_texel
 
-__all__ = ["NormalMapStatement", "clean_mtl_text", "clean_obj_text", "normal_map_statement", "scaled_normal_texels"]
+__all__ = ["NormalMapStatement", "clean_mtl_text", "clean_obj_text", "normal_map_statement", "scaled_normal_texels",
+           "used_material_names"]
 
 _STATEMENTS = ("norm", "map_bump", "bump")  # in order of preference (trimesh lower-cases the keys)
 # Options of an MTL map statement and how many values each takes (min, max).
@@ -140,6 +141,15 @@ def clean_obj_text(data: bytes) -> bytes | None:
             body = "f " + " ".join(_absolute_corner(c, counts) for c in body.split()[1:])
         lines.append(body)
     return ("\n".join(lines) + "\n").encode()
+
+
+_USEMTL = re.compile(rb"\n[ \t]*usemtl[ \t]+([^\r\n]*)")  # (a literal prefix: memchr speed, as above)
+
+
+def used_material_names(data: bytes) -> set[str]:
+    """The material names an OBJ's ``usemtl`` statements give, as trimesh reads them."""
+    found = _USEMTL.findall(b"\n" + data.removeprefix(_BOM))
+    return {_without_comment(name.decode("utf-8", errors="replace")).strip() for name in found} - {""}
 
 
 def _has_comment_after_values(data: bytes) -> bool:

@@ -92,7 +92,8 @@ one `mtllib` line), and a texture or buffer not found as named is looked for per
 URIs), with `/` for `\\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
-weights, triangle fans and normalised integer UVs. A glTF that needs Draco or meshopt compression,
+weights, triangle fans and normalised integer UVs; so is an OBJ `usemtl` naming no material (its
+faces render white). A glTF that needs Draco or meshopt compression,
 or whose primitives use sparse accessors, is an error.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
