@@ -139,3 +139,14 @@ def test_a_primitive_without_normals_is_shaded_flat(tmp_path):
     assert mesh.num_triangles == 12 and len(mesh.vertices) == 36
     np.testing.assert_allclose(mesh.vertex_normals, np.repeat(mesh.face_normals(), 3, axis=0), atol=1e-6)
     assert set(map(tuple, np.abs(mesh.vertex_normals).round(6))) == {(1, 0, 0), (0, 1, 0), (0, 0, 1)}
+
+
+def test_the_base_colour_factor_is_read_as_written(tmp_path):
+    # (trimesh keeps it in 8 bits: a linear 0.0015 became 0, 0.003 became 0.0039)
+    def dark(header):
+        header["materials"][0].setdefault("pbrMetallicRoughness", {})["baseColorFactor"] = [0.0015, 0.003, 0.5, 1.0]
+
+    mesh = load_mesh(edited_glb(_quads(tmp_path / "quads.glb"), dark))
+    by_name = {m.name: m for m in mesh.materials}
+    np.testing.assert_allclose(by_name["a"].base_color, [0.0015, 0.003, 0.5], rtol=1e-6)
+    np.testing.assert_array_equal(by_name["b"].base_color, [1, 1, 1])

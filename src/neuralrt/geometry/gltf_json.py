@@ -4,13 +4,15 @@
 compression extension decoded as nothing gave "mesh is degenerate"; sparse accessors, triangle
 fans, normalised integer UVs, skins, morph weights and emission were dropped without a word).
 
-`gltf_map_placements`: how materials place their images. trimesh loads a material's ``baseColorTexture`` and ``normalTexture`` but drops the normal map's
-``scale``, the ``KHR_texture_transform`` that moves, turns or tiles an image on the UVs, and the
-``texCoord`` that picks a UV set. `gltf_map_placements` reads them from the file's JSON so that
-`load_mesh` applies the first two, and says what it cannot apply: a second UV set (trimesh reads
-only the first), two images of one material placed differently (they share one UV set here), and
-a material that trimesh's parts cannot be told apart from another (they keep its name, not its
-index, so an unnamed or twice-named material's placement is not applied).
+`gltf_material_extras`: what trimesh drops of a material. It loads a material's
+``baseColorTexture`` and ``normalTexture`` but drops the normal map's ``scale``, the
+``KHR_texture_transform`` that moves, turns or tiles an image on the UVs, and the ``texCoord``
+that picks a UV set, and keeps ``baseColorFactor`` in 8 bits (a linear 0.0015 became 0). This
+reads them from the file's JSON so that `load_mesh` applies the scale, the transform and the exact
+factor, and says what it cannot apply: a second UV set (trimesh reads only the first), two images
+of one material placed differently (they share one UV set here), and a material that trimesh's
+parts cannot be told apart from another (they keep its name, not its index, so an unnamed or
+twice-named material's extras are not applied).
 """
 
 from __future__ import annotations
@@ -23,23 +25,25 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapPlacement", "gltf_file_notes", "gltf_header", "gltf_map_placements"]
+__all__ = ["MaterialExtras", "gltf_file_notes", "gltf_header", "gltf_material_extras"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
 
 
 @dataclass(frozen=True)
-class MapPlacement:
-    """What to do to a material's maps: its normal map's ``scale`` and a 3x3 affine transform of
-    its UVs (trimesh's convention, v up; None: as they are)."""
+class MaterialExtras:
+    """What trimesh drops of a glTF material: its normal map's ``scale``, a 3x3 affine transform
+    of its UVs (trimesh's convention, v up; None: as they are) and its ``baseColorFactor``'s RGB
+    as written (linear; None where absent)."""
 
     normal_scale: float = 1.0
     uv_transform: np.ndarray | None = None
+    base_color: tuple[float, float, float] | None = None
 
     @property
-    def is_default(self) -> bool:
-        return self.normal_scale == 1.0 and self.uv_transform is None
+    def moves_maps(self) -> bool:
+        return self.normal_scale != 1.0 or self.uv_transform is not None
 
     def transformed_uvs(self, uv: np.ndarray) -> np.ndarray:
         if self.uv_transform is None:
@@ -118,11 +122,11 @@ def _list(value) -> list:
     return value if isinstance(value, list) else []
 
 
-def gltf_map_placements(header: dict) -> tuple[dict[str, MapPlacement], list[str]]:
-    """(placement per material name, where one differs from the default; one line per thing in the
-    file that is not applied), from the file's JSON (`gltf_header`)."""
+def gltf_material_extras(header: dict) -> tuple[dict[str, MaterialExtras], list[str]]:
+    """(extras per material name; one line per thing in the file that is not applied), from the
+    file's JSON (`gltf_header`)."""
     materials = _list(header.get("materials"))
-    found: dict[str, list[MapPlacement]] = {}
+    found: dict[str, list[MaterialExtras]] = {}
     notes: list[str] = []
     for index, material in enumerate(materials):
         if not isinstance(material, dict):
@@ -131,27 +135,28 @@ def gltf_map_placements(header: dict) -> tuple[dict[str, MapPlacement], list[str
         placement = _placement(material, label, notes)
         if isinstance(name, str):
             found.setdefault(name, []).append(placement)
-        elif not placement.is_default:
+        elif placement.moves_maps:  # (an unnamed material's factor stays as trimesh reads it: 8 bits)
             notes.append(f"how the maps of {label} are placed (normal map scale, KHR_texture_transform) is not "
                          f"applied: trimesh keeps materials by name")
-    placements = {}
+    extras = {}
     for name, each in found.items():
-        if all(_same(p, each[0]) for p in each):
-            if not each[0].is_default:
-                placements[name] = each[0]
-        else:
+        first, placed_alike = each[0], all(_placed_alike(p, each[0]) for p in each)
+        if not placed_alike:
             notes.append(f"how the maps of material {name!r} are placed is not applied: {len(each)} materials share "
                          f"that name and place their maps differently")
-    return placements, notes
+        colour = first.base_color if all(p.base_color == first.base_color for p in each) else None
+        extras[name] = MaterialExtras(first.normal_scale, first.uv_transform, colour) if placed_alike \
+            else MaterialExtras(base_color=colour)
+    return extras, notes
 
 
-def _same(a: MapPlacement, b: MapPlacement) -> bool:
+def _placed_alike(a: MaterialExtras, b: MaterialExtras) -> bool:
     if a.normal_scale != b.normal_scale or (a.uv_transform is None) != (b.uv_transform is None):
         return False
     return a.uv_transform is None or bool(np.array_equal(a.uv_transform, b.uv_transform))
 
 
-def _placement(material: dict, label: str, notes: list[str]) -> MapPlacement:
+def _placement(material: dict, label: str, notes: list[str]) -> MaterialExtras:
     slots = {"normalTexture": material.get("normalTexture"),
              "baseColorTexture": (material.get("pbrMetallicRoughness") or {}).get("baseColorTexture")}
     transforms = {}
@@ -180,7 +185,12 @@ def _placement(material: dict, label: str, notes: list[str]) -> MapPlacement:
     if not isinstance(scale, (int, float)) or isinstance(scale, bool) or not math.isfinite(scale):
         notes.append(f"the normalTexture scale of {label} ({scale!r}) is not a finite number: not applied")
         scale = 1.0
-    return MapPlacement(float(scale), uv_transform)
+    factor = (material.get("pbrMetallicRoughness") or {}).get("baseColorFactor")
+    base_color = None
+    if isinstance(factor, list) and len(factor) >= 3 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in factor[:3]):
+        base_color = tuple(min(max(float(x), 0.0), 1.0) for x in factor[:3])
+    return MaterialExtras(float(scale), uv_transform, base_color)
 
 
 def _uv_transform(extension: dict) -> np.ndarray | None:

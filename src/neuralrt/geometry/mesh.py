@@ -19,7 +19,7 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import truncation_problem
-from .gltf_json import gltf_file_notes, gltf_header, gltf_map_placements
+from .gltf_json import gltf_file_notes, gltf_header, gltf_material_extras
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names
 from .unread_assets import regular_files_resolver, unread_assets
 
@@ -321,12 +321,13 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 # --- loading --------------------------------------------------------------------------------
 
 
-def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=None,
-                          linear_colors: bool = False) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=None, linear_colors: bool = False,
+                          base_color=None) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
     """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
     mesh file, for warnings about a texture that cannot be decoded). ``gltf_colors``: a glTF
     primitive's COLOR_0 as trimesh reads it beside a material; ``linear_colors``: vertex colours are
-    linear (glTF's), not sRGB (PLY's, OBJ's)."""
+    linear (glTF's), not sRGB (PLY's, OBJ's); ``base_color``: a glTF material's base colour factor
+    as the file writes it (trimesh keeps 8 bits)."""
     uv = colors = None
     material = MeshMaterial(name=fallback_name)
     kind = getattr(visual, "kind", None)
@@ -336,7 +337,7 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
         material.name = getattr(mat, "name", None) or fallback_name
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
             colors = None if gltf_colors is None else _accessor_colors(gltf_colors, where)
-            _pbr_colour(material, mat, uv, where)
+            _pbr_colour(material, mat, uv, where, base_color)
             normals = getattr(mat, "normalTexture", None)
             if normals is not None and _has_uvs(uv, "normal map", material.name, where):
                 material.normal_map = _normal_map(normals, material.name, where)
@@ -413,12 +414,14 @@ def _scene_parts(scene) -> tuple[list, list]:
     return parts, colors
 
 
-def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str) -> None:
+def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str, exact=None) -> None:
     """A glTF material's colour as the glTF spec defines it: ``baseColorFactor`` is linear (trimesh
     keeps it as 0-255) and white when absent; a ``baseColorTexture`` is sRGB and multiplied by it.
     (trimesh's ``to_simple`` reads the factor as sRGB and an absent one as its 0.4 grey.)"""
     factor = pbr.baseColorFactor
     linear = np.ones(3, np.float32) if factor is None else np.asarray(factor, np.float32)[:3] / 255.0
+    if exact is not None:  # (the file's own, where `gltf_material_extras` could tell the material by name)
+        linear = np.asarray(exact, np.float32)
     image = pbr.baseColorTexture
     texture = _texture_pixels(image, material.name, where) \
         if image is not None and _has_uvs(uv, "texture", material.name, where) else None
@@ -590,8 +593,8 @@ def load_mesh(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
-    placements, placement_notes = gltf_map_placements(header) if header else ({}, [])
-    for note in notes + placement_notes:
+    extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
+    for note in notes + extras_notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
     gltf_colors: list = []
     if isinstance(loaded, trimesh.Scene):
@@ -632,13 +635,14 @@ def load_mesh(path: str | Path) -> Mesh:
                 raise
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
-        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], gltf)
+        extras = extras_of.get(getattr(getattr(part.visual, "material", None), "name", None))  # (glTF: what trimesh drops)
+        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], gltf,
+                                                  None if extras is None else extras.base_color)
         gltf_colors[i] = None
-        placement = placements.get(getattr(getattr(part.visual, "material", None), "name", None))
-        if placement is not None:  # (glTF: what trimesh reads but drops)
-            uv = None if uv is None else placement.transformed_uvs(uv)
+        if extras is not None:
+            uv = None if uv is None else extras.transformed_uvs(uv)
             if material.normal_map is not None:
-                material.normal_map = scaled_normal_texels(material.normal_map, placement.normal_scale)
+                material.normal_map = scaled_normal_texels(material.normal_map, extras.normal_scale)
         face_colors, face_colors_of[i] = face_colors_of[i], None
         key = material.name
         known = materials[names[key]] if key in names else None

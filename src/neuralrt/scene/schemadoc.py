@@ -85,7 +85,8 @@ of such a mesh learns the turned normals; `neuralrt info MESH` lists the normal-
 Mesh files are whatever trimesh reads (OBJ + MTL, glTF / GLB, PLY, OFF, STL), merged into one
 mesh in the file's world space (glTF node transforms applied). A file's own normals are kept, in
 every part (else smooth angle-weighted ones are computed; flat ones for glTF, as its spec says). MTL `Kd` / `map_Kd` and PLY or OBJ
-vertex colours are sRGB; glTF's `baseColorFactor` and `COLOR_0` are linear, its texture sRGB.
+vertex colours are sRGB; glTF's `baseColorFactor` (as written, where trimesh keeps 8 bits) and
+`COLOR_0` are linear, its texture sRGB.
 OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
 comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
 one `mtllib` line), and a texture or buffer not found as named is looked for percent-decoded (glTF
