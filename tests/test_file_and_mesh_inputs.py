@@ -3,6 +3,7 @@ symlinked outputs, names too long for the filesystem, corrupted cached models, U
 materials, attribute arrays of the wrong shape, meshes float32 cannot trace, a needle's surface pool."""
 
 import os
+import re
 import signal
 import time
 
@@ -515,3 +516,35 @@ def test_a_whole_file_with_faces_that_are_not_triangles_is_not_called_truncated(
     off = tmp_path / "m.off"
     off.write_text("OFF\n# a comment\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n2 0 1\n")
     assert load_mesh(ply).num_triangles == 1 and load_mesh(off).num_triangles == 1
+
+
+_OFF_QUAD = "0 0 0{}\n1 0 0{}\n1 1 0{}\n0 1 0{}\n"
+
+
+@pytest.mark.parametrize("vertex, faces, expected", [
+    (" 128 128 128 255", "3 0 1 2\n3 0 2 3\n", "vertex"),  # COFF: RGBA after each position, 0-255
+    ("", "3 0 1 2 255 0 0\n3 0 2 3 0 0 255\n", "face"),  # a colour after each face's corners
+    ("", "3 0 1 2 1.0 0.0 0.0 1.0\n3 0 2 3 0.0 0.0 1.0 1.0\n", "face"),  # the same as 0-1 floats
+])
+def test_off_colours_are_read(tmp_path, vertex, faces, expected):
+    # (trimesh's OFF reader reads positions and faces only: a coloured OFF rendered white)
+    from neuralrt.io.images import srgb_to_linear
+
+    (tmp_path / "c.off").write_text(("COFF" if vertex else "OFF") + "\n4 2 0\n" + _OFF_QUAD.format(*[vertex] * 4) + faces)
+    mesh = load_mesh(tmp_path / "c.off")
+    if expected == "vertex":
+        np.testing.assert_allclose(mesh.vertex_colors, srgb_to_linear(np.full((4, 3), 128 / 255, np.float32)), rtol=1e-6)
+    else:  # per face, exactly: each face its own three vertices
+        np.testing.assert_allclose(mesh.vertex_colors[mesh.faces[:, 0]], [[1, 0, 0], [0, 0, 1]], atol=1e-6)
+
+
+def test_colours_a_reader_cannot_place_or_read_are_warnings(tmp_path):
+    (tmp_path / "p.off").write_text("OFF\n4 1 0\n" + _OFF_QUAD.format(*[""] * 4) + "4 0 1 2 3 255 0 0\n")
+    with pytest.warns(UserWarning, match="p.off: its face colours are not read: some faces are polygons"):
+        assert load_mesh(tmp_path / "p.off").vertex_colors is None
+    header = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar diffuse_red\nproperty uchar diffuse_green\nproperty uchar diffuse_blue\n"
+              "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    (tmp_path / "d.ply").write_text(header + "0 0 0 255 0 0\n1 0 0 255 0 0\n0 1 0 255 0 0\n3 0 1 2\n")
+    with pytest.warns(UserWarning, match=re.escape("d.ply: its vertex colours (diffuse_red, ...) are not read")):
+        load_mesh(tmp_path / "d.ply")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["truncation_problem"]
+__all__ = ["off_header", "ply_vertex_properties", "truncation_problem"]
 
 _HEADER_BYTES = 1 << 16  # PLY and OFF headers are a few lines; a longer one is not checked
 _STL_HEADER, _STL_TRIANGLE = 80, 50  # binary STL: an 80-byte header, a uint32 count, 50 bytes a triangle
@@ -32,7 +32,7 @@ def truncation_problem(path: str | Path, vertices_read: int, faces_read: int) ->
     suffix = path.suffix.lower()
     if suffix == ".stl":  # (a triangle read: not a binary STL cut short, or an ASCII one)
         return _binary_stl(head, size) if faces_read == 0 else None
-    declared = _ply(head) if suffix == ".ply" else _off(head) if suffix == ".off" else None
+    declared = _ply(head) if suffix == ".ply" else off_header(head) if suffix == ".off" else None
     if declared is None:
         return None
     vertices, faces, ascii_data_at = declared
@@ -62,7 +62,27 @@ def _ply(head: bytes) -> tuple[int, int, int | None] | None:
     return counts["vertex"], counts.get("face", 0), data_at if ascii_data and data_at > 0 else None
 
 
-def _off(head: bytes) -> tuple[int, int, int] | None:
+def ply_vertex_properties(path: str | Path) -> list[str]:
+    """The names of the vertex properties a PLY header declares (``[]`` where it declares none)."""
+    try:
+        with Path(path).open("rb") as f:
+            head = f.read(_HEADER_BYTES)
+    except OSError:
+        return []
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return []
+    names, element = [], None
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "element":
+            element = words[1]
+        elif len(words) >= 3 and words[0] == "property" and element == "vertex":
+            names.append(words[-1])
+    return names
+
+
+def off_header(head: bytes) -> tuple[int, int, int] | None:
     """(vertices, faces, where the records start): the counts follow the ``OFF`` keyword (``COFF``,
     ``NOFF``, ...), on its line or a later one, past comments."""
     numbers: list[int] = []

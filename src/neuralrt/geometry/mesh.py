@@ -18,9 +18,10 @@ import numpy as np
 from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
-from .declared_counts import truncation_problem
+from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import gltf_file_notes, gltf_header, gltf_material_extras
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names
+from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
 
 
@@ -596,6 +597,8 @@ def load_mesh(path: str | Path) -> Mesh:
     extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
     for note in notes + extras_notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
+    if isinstance(loaded, trimesh.Trimesh) and path.suffix.lower() in (".off", ".ply"):
+        _read_what_trimesh_drops(loaded, path)
     gltf_colors: list = []
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
@@ -695,6 +698,35 @@ def load_mesh(path: str | Path) -> Mesh:
         materials=materials,
         name=path.stem,
     )
+
+
+# PLY vertex properties trimesh does not read, and what they hold (it reads red/green/blue, u/v, s/t, texture_u/v).
+_UNREAD_PLY = {"diffuse_red": "colours", "texture_s": "UVs"}
+
+
+def _read_what_trimesh_drops(mesh, path: Path) -> None:
+    """An OFF's colours into ``mesh``'s visual (`neuralrt.geometry.off_colours`); for a PLY whose
+    colours or UVs are in properties trimesh does not read, a warning naming them."""
+    from trimesh.visual import ColorVisuals
+
+    if path.suffix.lower() == ".off":
+        vertex_colours, face_colours, why = off_colours(path)
+        if vertex_colours is not None and len(vertex_colours) != len(mesh.vertices):
+            vertex_colours, why = None, why or "its colours are not read: trimesh read another number of vertices"
+        if face_colours is not None and len(mesh.faces) != len(face_colours):
+            face_colours, why = None, why or "its face colours are not read: trimesh read another number of faces"
+        if why:
+            warnings.warn(f"{path}: {why}", stacklevel=3)
+        if face_colours is not None:
+            mesh.visual = ColorVisuals(mesh, face_colors=face_colours)
+        elif vertex_colours is not None:
+            mesh.visual = ColorVisuals(mesh, vertex_colors=vertex_colours)
+        return
+    kind = getattr(mesh.visual, "kind", None)
+    for name in sorted(set(ply_vertex_properties(path)) & set(_UNREAD_PLY)):
+        if (_UNREAD_PLY[name] == "colours" and kind != "vertex") or (_UNREAD_PLY[name] == "UVs" and kind != "texture"):
+            warnings.warn(f"{path}: its vertex {_UNREAD_PLY[name]} ({name}, ...) are not read: trimesh reads "
+                          f"{'red, green, blue' if name == 'diffuse_red' else 'u, v or s, t'}", stacklevel=3)
 
 
 # Where trimesh's materials hold images (OBJ/MTL, glTF PBR), and what neuralrt makes of each (None: unused).

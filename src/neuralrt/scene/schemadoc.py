@@ -86,7 +86,8 @@ Mesh files are whatever trimesh reads (OBJ + MTL, glTF / GLB, PLY, OFF, STL), me
 mesh in the file's world space (glTF node transforms applied). A file's own normals are kept, in
 every part (else smooth angle-weighted ones are computed; flat ones for glTF, as its spec says). MTL `Kd` / `map_Kd` and PLY or OBJ
 vertex colours are sRGB; glTF's `baseColorFactor` (as written, where trimesh keeps 8 bits) and
-`COLOR_0` are linear, its texture sRGB.
+`COLOR_0` are linear, its texture sRGB. OFF colours (`COFF` vertex colours, colours after a
+triangle's corners; 0-255 or 0-1) are read as sRGB, which trimesh's OFF reader leaves out.
 OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
 comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
 one `mtllib` line), and a texture or buffer not found as named is looked for percent-decoded (glTF
@@ -94,7 +95,8 @@ URIs), with `/` for `\\`, by its last part beside the mesh, and in another lette
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
 weights, triangle fans and normalised integer UVs; so is an OBJ `usemtl` naming no material (its
-faces render white). A glTF that needs Draco or meshopt compression,
+faces render white), and PLY colours or UVs in properties trimesh does not read (`diffuse_red`,
+`texture_s`). A glTF that needs Draco or meshopt compression,
 or whose primitives use sparse accessors, is an error.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
