@@ -85,8 +85,11 @@ def test_a_directory_as_an_input_file_is_named_as_one(tmp_path):
         load_mesh(folder)
     with pytest.raises(ImageError, match="is a directory, not an? image file"):
         read_image(folder)
-    with pytest.raises(SceneError, match="is a directory, not a scene file"):
-        load_scene(folder)
+    with pytest.raises(MeshError, match="inputs.obj: is a directory, not a mesh file"):
+        load_scene(folder)  # (a mesh given where a scene goes renders alone: `neuralrt.scene.studio`)
+    (tmp_path / "scene.toml").mkdir()
+    with pytest.raises(SceneError, match="scene.toml: is a directory, not a scene file"):
+        load_scene(tmp_path / "scene.toml")
     with pytest.raises(ModelFileError, match="not a file"):
         read_header(folder)
 
