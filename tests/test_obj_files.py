@@ -150,3 +150,16 @@ def test_a_usemtl_naming_no_material_is_a_warning(tmp_path):
         load_mesh(path)
     assert [str(w.message).split(": ", 1)[1] for w in caught] == [
         "material file m.mtl could not be read; its faces render white"]
+
+
+@pytest.mark.parametrize("order, normal_z", [("1 2 3 4 5 6", 1.0), ("6 5 4 3 2 1", -1.0), ("-6 -5 -4 -3 -2 -1", 1.0)])
+def test_a_concave_polygon_is_split_inside_it_and_keeps_its_side(tmp_path, order, normal_z):
+    # An L of area 3 whose first corner is next to its reflex corner: trimesh's fan covered the
+    # notch (area 4). Ear clipping keeps to the polygon, wound as the file winds it.
+    obj = "v 2 1 0\nv 1 1 0\nv 1 2 0\nv 0 2 0\nv 0 0 0\nv 2 0 0\n" + f"f {order}\n"
+    mesh = load_mesh(_write(tmp_path, obj))
+    assert mesh.num_triangles == 4
+    assert mesh.face_areas().sum() == pytest.approx(3.0)
+    np.testing.assert_allclose(mesh.face_normals()[:, 2], normal_z)
+    centroids = mesh.triangles().mean(axis=1)
+    assert not ((centroids[:, 0] > 1) & (centroids[:, 1] > 1)).any()  # nothing in the notch

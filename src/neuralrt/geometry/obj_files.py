@@ -21,9 +21,11 @@ map placed wrong.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..accel.normal_mapping import usable_texel
@@ -123,24 +125,93 @@ _COLOURS = ("kd", "ka", "ks", "ke", "tf")
 
 def clean_obj_text(data: bytes) -> bytes | None:
     """The OBJ ``data`` rewritten where trimesh would misread it (a BOM, comments after values,
-    relative face indices made absolute), or None where nothing needs it (the common case: the
-    file is then read as it is)."""
+    relative face indices made absolute, polygons of five corners or more split into triangles
+    by ear clipping), or None where nothing needs it (the common case: the file is then read as
+    it is)."""
     relative = _OBJ_RELATIVE.search(data) is not None or re.match(rb"f[ \t]+-[0-9]", data) is not None
-    if not (data.startswith(_BOM) or relative or _has_comment_after_values(data)):
+    polygons = _has_polygons(np.frombuffer(data, np.uint8))
+    if not (data.startswith(_BOM) or relative or polygons or _has_comment_after_values(data)):
         return None
     # As trimesh reads it: one statement per line once "\"-newline continuations are joined.
     text = _text(data).replace("\r\n", "\n").replace("\\\n", "")
     counts = {"v": 0, "vt": 0, "vn": 0}
+    positions: list[tuple[float, float, float]] = []
     lines = []
     for line in text.splitlines():
         body = _without_comment(line)
         keyword = body.split(None, 1)[0] if body.strip() else ""
         if keyword in counts:
             counts[keyword] += 1
-        elif keyword == "f" and relative:
-            body = "f " + " ".join(_absolute_corner(c, counts) for c in body.split()[1:])
+            if keyword == "v" and polygons:
+                positions.append(_position(body))
+        elif keyword == "f" and (relative or polygons):
+            corners = [_absolute_corner(c, counts) for c in body.split()[1:]] if relative else body.split()[1:]
+            body = "\n".join("f " + " ".join(t) for t in _triangles(corners, positions)) if polygons and len(corners) > 4 \
+                else "f " + " ".join(corners)
         lines.append(body)
     return ("\n".join(lines) + "\n").encode()
+
+
+@numba.njit(cache=True, nogil=True)
+def _has_polygons(data: np.ndarray) -> bool:
+    """Whether a face statement has five corners or more (trimesh fans polygons: a concave one
+    covered its notch). Quads are left to trimesh: most files are quads, a concave quad is rare.
+    One pass over the bytes (a regular expression ran at ~90 MB/s)."""
+    n, at = len(data), 0
+    while at < n:
+        while at < n and (data[at] == 32 or data[at] == 9):  # (indentation)
+            at += 1
+        if at + 1 < n and data[at] == 102 and (data[at + 1] == 32 or data[at + 1] == 9):  # "f "
+            tokens, inside = 0, False
+            at += 1
+            while at < n and data[at] != 10 and data[at] != 35:  # (to the line's end or a comment)
+                blank = data[at] == 32 or data[at] == 9 or data[at] == 13 or data[at] == 92  # (a "\" continues)
+                if not blank and not inside:
+                    tokens += 1
+                inside = not blank
+                at += 1
+            if tokens >= 5:
+                return True
+        while at < n and data[at] != 10:
+            at += 1
+        at += 1
+    return False
+
+
+def _position(statement: str) -> tuple[float, float, float]:
+    try:
+        x, y, z = (float(w) for w in statement.split()[1:4])
+        return x, y, z
+    except ValueError:
+        return math.nan, math.nan, math.nan  # (trimesh says what is wrong with the statement)
+
+
+def _triangles(corners: list[str], positions: list) -> list[list[str]]:
+    """A polygon's corners as triangles by ear clipping (mapbox-earcut) in the plane its Newell
+    normal faces, wound as the polygon is; where that cannot be done (a corner that names no
+    vertex read so far, a polygon with no area), the polygon as it is, for trimesh's fan."""
+    import mapbox_earcut
+
+    try:
+        points = np.array([positions[int(c.split("/", 1)[0]) - 1] for c in corners], np.float64)
+    except (ValueError, IndexError):
+        return [corners]
+    following = np.roll(points, -1, axis=0)
+    normal = np.array([np.sum((points[:, j] - following[:, j]) * (points[:, k] + following[:, k]))
+                       for j, k in ((1, 2), (2, 0), (0, 1))])  # Newell's method
+    if not np.isfinite(normal).all() or not normal.any():
+        return [corners]
+    drop = int(np.argmax(np.abs(normal)))
+    plane = np.delete(points, drop, axis=1)
+    found = mapbox_earcut.triangulate_float64(plane, np.array([len(corners)], np.uint32)).reshape(-1, 3)
+    if len(found) != len(corners) - 2:
+        return [corners]
+    triangles = []
+    for a, b, c in found.tolist():
+        if np.dot(np.cross(points[b] - points[a], points[c] - points[a]), normal) < 0:
+            b, c = c, b  # (earcut winds as it likes: keep the polygon's side)
+        triangles.append([corners[a], corners[b], corners[c]])
+    return triangles
 
 
 _USEMTL = re.compile(rb"\n[ \t]*usemtl[ \t]+([^\r\n]*)")  # (a literal prefix: memchr speed, as above)

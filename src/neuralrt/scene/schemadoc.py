@@ -90,7 +90,8 @@ vertex colours are sRGB; glTF's `baseColorFactor` (as written, where trimesh kee
 triangle's corners; 0-255 or 0-1) are read as sRGB, which trimesh's OFF reader leaves out.
 OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
 comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
-one `mtllib` line), and a texture or buffer not found as named is looked for percent-decoded (glTF
+one `mtllib` line; faces of five corners or more split by ear clipping, where trimesh's fan
+covered a concave one's notches), and a texture or buffer not found as named is looked for percent-decoded (glTF
 URIs), with `/` for `\\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
