@@ -61,13 +61,15 @@ _TRIANGLE_FAN, _COMPONENT_BYTES = 6, {5121: "unsigned bytes", 5123: "unsigned sh
 
 def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
     """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out)."""
-    required = [e for e in header.get("extensionsRequired") or [] if e in _UNREADABLE_EXTENSIONS]
+    required = [e for e in _list(header.get("extensionsRequired")) if e in _UNREADABLE_EXTENSIONS]
     if required:
         return (f"it needs the glTF extension {required[0]} ({_UNREADABLE_EXTENSIONS[required[0]]}), which trimesh "
                 f"does not read"), []
     accessors = _list(header.get("accessors"))
     notes: list[str] = []
     fans = morphs = 0
+    integer_uvs: dict[int, str] = {}  # mesh -> how its UVs are stored
+    short_colours: list[int] = []
     for m, mesh in enumerate(_list(header.get("meshes"))):
         primitives = _list(mesh.get("primitives")) if isinstance(mesh, dict) else []
         for primitive in primitives:
@@ -84,21 +86,25 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
                             f"which trimesh does not read"), notes
                 if role == "COLOR_0" and isinstance(accessor, dict) and accessor.get("componentType") == 5123 \
                         and "material" not in primitive:
-                    notes.append(f"the vertex colours of mesh {m} are unsigned shorts on a primitive without a "
-                                 f"material, which trimesh reads wrong")
+                    short_colours.append(m)
                 if role == "TEXCOORD_0" and isinstance(accessor, dict) and accessor.get("normalized") \
                         and accessor.get("componentType") in _COMPONENT_BYTES:
-                    notes.append(f"the UVs of mesh {m} are normalised {_COMPONENT_BYTES[accessor['componentType']]}, "
-                                 f"which trimesh reads unscaled: its textures and normal maps are placed wrong")
+                    integer_uvs[m] = _COMPONENT_BYTES[accessor["componentType"]]
         weights = mesh.get("weights") if isinstance(mesh, dict) else None
         morphs += isinstance(weights, list) and any(isinstance(w, (int, float)) and w != 0 for w in weights)
+    if integer_uvs:
+        notes.append(f"the UVs of {_meshes(integer_uvs)} are normalised {' or '.join(sorted(set(integer_uvs.values())))}, "
+                     f"which trimesh reads unscaled: their textures and normal maps are placed wrong")
+    if short_colours:
+        notes.append(f"the vertex colours of {_meshes(short_colours)} are unsigned shorts on a primitive without a "
+                     f"material, which trimesh reads wrong")
     if fans:
         notes.append(f"{fans} primitive(s) drawn as triangle fans are left out (trimesh reads triangles and strips)")
     if morphs:
         notes.append(f"the morph target weights of {morphs} mesh(es) are not applied: each is read in its base shape")
     if _list(header.get("skins")):
         notes.append("skins are not applied: skinned meshes are read in their bind pose, placed by their nodes")
-    if "EXT_mesh_gpu_instancing" in (header.get("extensionsUsed") or []):
+    if "EXT_mesh_gpu_instancing" in _list(header.get("extensionsUsed")):
         notes.append("instances of EXT_mesh_gpu_instancing are not read: each such node's mesh is read once")
     glowing = [_label(material, i) for i, material in enumerate(_list(header.get("materials")))
                if isinstance(material, dict) and _emits(material)]
@@ -106,6 +112,15 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
         notes.append(f"the emission of {', '.join(glowing)} is not read: give the slot an emissive scene material to "
                      f"make it a light")
     return None, notes
+
+
+def _meshes(indices) -> str:
+    """"mesh 3" or "meshes 0, 1, 2, ... (12)": a note per file, not per primitive."""
+    found = sorted(set(indices))
+    if len(found) == 1:
+        return f"mesh {found[0]}"
+    shown = ", ".join(map(str, found[:3]))
+    return f"meshes {shown}" + (f", ... ({len(found)})" if len(found) > 3 else "")
 
 
 def _emits(material: dict) -> bool:
