@@ -186,3 +186,18 @@ def test_info_counts_camera_only_meshes_apart(tmp_path):
         '[[objects]]\ngenerator = { name = "plane" }\n[[objects]]\ngenerator = { name = "plane" }\n')
     info = api.info(tmp_path / "scene.toml")
     assert (info["triangles_unique"], info["triangles_instanced"], info["triangles_camera_only"]) == (2, 4, 320)
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["render", "builtin:cornell-statue", "-o", "{d}/i.exr", "--spp", "0"], "--spp: must be at least 1, got 0"),
+    (["render", "builtin:cornell-statue", "-o", "{d}/i.exr", "--max-depth", "0"], "--max-depth: must be at least 1"),
+    (["train", "procedural:statue:0", "-o", "{d}/m.nrt", "--steps", "0"], "--steps: must be at least 1, got 0"),
+    (["train", "procedural:statue:0", "-o", "{d}/m.nrt", "--batch", "0"], "--batch: must be at least 1, got 0"),
+    (["eval", "{d}/m.nrt", "procedural:statue:0", "--rays", "0"], "--rays: must be at least 2, got 0"),
+    (["convert", "builtin:instances", "-o", "{d}/o.toml", "--min-triangles", "-1"], "--min-triangles: must be at least 0"),
+])
+def test_counts_out_of_range_name_the_flag(tmp_path, capsys, argv, line):
+    # (they said "spp: ...", "rays: ...": the Python names, where every other CLI error names the flag)
+    assert main([a.format(d=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"neuralrt: error: {line}") and err.count("\n") == 1

@@ -183,6 +183,14 @@ def test_a_texture_where_no_uvs_are_is_a_warning(tmp_path):
     with pytest.warns(UserWarning, match=r"objects.0: material 'tex' has a texture, but a neural model's hits carry no UVs"):
         load_dict({"materials": textured, "objects": [{"mesh": mesh, "model": StandInModel(mesh, ["shell", "core"]),
                                                        "material": "tex"}]})
+    # Where a kept mesh with UVs answers camera rays, they show the texture; with primary="neural" nothing does.
+    quad = Mesh(np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]]),
+                uvs=np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32), name="quad")
+    for primary, clause in (("exact", True), ("neural", False)):
+        with pytest.warns(UserWarning, match="they show one texel") as caught:
+            load_dict({"materials": textured, "objects": [{"mesh": quad, "model": StandInModel(quad, ["default"]),
+                                                           "material": "tex"}]}, primary=primary)
+        assert any("answered by the kept mesh show the texture" in str(w.message) for w in caught) == clause
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a plane has UVs: no warning
         load_dict({"materials": textured, "objects": [{"generator": {"name": "plane"}, "material": "tex"}]})

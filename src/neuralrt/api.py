@@ -187,9 +187,9 @@ def render(
     from .scene.schema import MAX_DEPTH, MAX_SPP
 
     check_device(device)
-    check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
-    check_count("max_depth", max_depth, minimum=1, maximum=MAX_DEPTH)
-    seed = seed_or_default("seed", seed)
+    check_count(given("spp"), spp, maximum=MAX_SPP)  # a scene file's bounds (named as the caller spells it)
+    check_count(given("max_depth"), max_depth, minimum=1, maximum=MAX_DEPTH)
+    seed = seed_or_default(given("seed"), seed)
     check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError(f"{given('nif_train_spp')} needs {given('nif', flag='--nif OBJECTS|auto')}")
@@ -293,9 +293,9 @@ def train(
     check_device(device)
     check_name("method", method)
     check_name("preset", preset)
-    check_count("steps", steps)
-    check_count("batch", batch)  # its bounds are the config's (training.batch_size)
-    check_seed("seed", seed)
+    check_count(given("steps"), steps)
+    check_count(given("batch"), batch)  # its bounds are the config's (training.batch_size)
+    check_seed(given("seed"), seed)
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
     config = spec.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
@@ -359,8 +359,8 @@ def evaluate(
     from .methods import check_mesh_match, is_neural, load_model
 
     check_device(device)
-    check_count("rays", rays, minimum=2, maximum=MAX_EVAL_RAYS)
-    check_seed("seed", seed)
+    check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
+    check_seed(given("seed"), seed)
     if not is_neural(model):
         if isinstance(model, Mesh):
             raise ConfigError("model: got a Mesh; evaluate(model, mesh) takes the model first")
@@ -406,8 +406,8 @@ def convert(scene: str | Path, output: str | Path, **options) -> dict:
     options["models_dir"] = check_path("models_dir", options.get("models_dir"), optional=True)
     for name in ("method", "preset", "executor", "address"):
         check_name(name, options.get(name))
-    check_seed("seed", options.get("seed"))
-    check_count("min_triangles", options.get("min_triangles"), minimum=0)
+    check_seed(given("seed"), options.get("seed"))
+    check_count(given("min_triangles"), options.get("min_triangles"), minimum=0)
     select = options.get("select")
     if isinstance(select, str):  # as on the command line: comma-separated names
         options["select"] = [n.strip() for n in select.split(",") if n.strip()]

@@ -397,7 +397,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
             warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
                           f"(the object's slots: {', '.join(slots)})", stacklevel=2)
         slot_materials = material_map(obj, slots, index)
-        _warn_untextured(material_specs, obj, slot_materials, shape, label, key)
+        _warn_untextured(material_specs, obj, slot_materials, shape, label, key, primary)
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(slot_materials),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
@@ -416,7 +416,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                  primary=primary)
 
 
-def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str) -> None:
+def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str,
+                     primary: str) -> None:
     """Warn when a texture ``albedo`` lands where no UVs are: a neural object's hits carry none (nor
     do a mesh without UVs' hits): the texture would show one texel, silently. ``specs``: `scene_materials`."""
     textured = sorted({specs[m].name for m in slot_materials if isinstance(specs[m].albedo, str)})
@@ -424,8 +425,10 @@ def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], sh
         return
     names = ", ".join(map(repr, textured))
     if obj.model is not None:
+        kept = shape is not None and primary == "exact" and shape.mesh.uvs is not None  # (who answers camera rays)
         warnings.warn(f"{label}: {key}: material {names} has a texture, but a neural model's hits carry no UVs: "
-                      "they show one texel (camera rays answered by the kept mesh show the texture)", stacklevel=3)
+                      f"they show one texel{' (camera rays answered by the kept mesh show the texture)' if kept else ''}",
+                      stacklevel=3)
     elif shape is not None and shape.mesh.uvs is None:
         warnings.warn(f"{label}: {key}: material {names} has a texture, but the mesh has no UVs: it shows one texel",
                       stacklevel=3)
