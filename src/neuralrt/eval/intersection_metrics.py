@@ -4,8 +4,10 @@
 uses) and reports, separately for rays from outside and rays from the surface: hit/miss accuracy,
 false positive and negative rates, |t error| relative to the box diagonal, normal angle error and
 material accuracy; then it renders primary normal and depth images of the object from orbit
-cameras, neural vs exact, and compares them with FLIP. The keys are the `neuralrt eval --json`
-interface that scripts rely on.
+cameras, neural vs exact, and compares them with FLIP, and from those and six axis views (along
++-x, +-y, +-z, where a scene's camera most often looks, and where an undertrained model's holes
+at the surface's extreme points show) the silhouettes' intersection over union. The keys are the
+`neuralrt eval --json` interface that scripts rely on.
 
 Conventions: the exact shading normal is turned to face the ray (the model is trained that way);
 the predicted normal is compared as returned, and ``normal_backfacing_fraction`` counts predicted
@@ -28,7 +30,7 @@ from ..methods.base import is_neural
 from ..rays import AABB, Hits, Rays, face_forward
 from ..training.ray_distribution import BoxRayDistribution
 
-__all__ = ["evaluate_model", "ray_metrics", "orbit_cameras", "render_normal_depth", "HELD_OUT_SEED"]
+__all__ = ["evaluate_model", "ray_metrics", "orbit_cameras", "axis_cameras", "render_normal_depth", "HELD_OUT_SEED"]
 
 # Training seeds are small integers; held-out rays use a seed far from them.
 HELD_OUT_SEED = 1_000_003
@@ -89,6 +91,29 @@ def orbit_cameras(bounds: AABB, count: int = 4, resolution: int = 256, elevation
     return cams
 
 
+_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+
+
+def axis_cameras(bounds: AABB, resolution: int = 256, fov_y_degrees: float = 40.0) -> dict:
+    """Cameras looking at the object from +-x, +-y and +-z (name -> camera), framing its bounding sphere."""
+    from ..render.camera import Camera
+
+    center = bounds.center.double()
+    dist = 0.5 * bounds.diagonal / math.sin(math.radians(fov_y_degrees) * 0.5) * 1.05
+    cams = {}
+    for name, axis in _AXES.items():
+        up = (0.0, 0.0, -float(axis[1])) if axis[1] else (0.0, 1.0, 0.0)  # (looking along y: z is up)
+        eye = center + dist * torch.tensor(axis, dtype=torch.float64)
+        cams[name] = Camera.look_at(eye.tolist(), center.tolist(), up, fov_y_degrees, (resolution, resolution))
+    return cams
+
+
+def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
+    """Intersection over union of the pixels each image's rays hit (1 where neither hits any)."""
+    both, either = int((exact_hits.hit & test_hits.hit).sum()), int((exact_hits.hit | test_hits.hit).sum())
+    return both / either if either else 1.0
+
+
 def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, Hits]:
     """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
     idx = torch.arange(camera.num_pixels)
@@ -108,9 +133,10 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
     from ..io.images import srgb_to_linear, write_png
 
     cams = orbit_cameras(bounds, cameras, resolution)
+    axes = axis_cameras(bounds, resolution)
     # Depth range from the exact hits (one range for all views, so images are comparable).
     ranges = []
-    for cam in cams:
+    for cam in [*cams, *axes.values()]:
         rays = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
         h = exact.intersect(rays.to(exact.device)).to("cpu")
         if h.hit.any():
@@ -118,16 +144,21 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
     near = min((r[0] for r in ranges), default=0.0)
     far = max((r[1] for r in ranges), default=1.0)
     flips = {"normal": [], "depth": []}
-    for k, cam in enumerate(cams):
-        ref_n, ref_d, _ = render_normal_depth(exact, cam, (near, far))
-        test_n, test_d, _ = render_normal_depth(blas, cam, (near, far))
+    ious = {}
+    for view, cam in [*((str(k), c) for k, c in enumerate(cams)), *axes.items()]:
+        ref_n, ref_d, ref_hits = render_normal_depth(exact, cam, (near, far))
+        test_n, test_d, test_hits = render_normal_depth(blas, cam, (near, far))
+        ious[view] = _silhouette_iou(ref_hits, test_hits)
         for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
-            # The arrays are display values: pass them as linear values whose sRGB encoding they are.
-            flips[name].append(compare_images(srgb_to_linear(ref), srgb_to_linear(test)).flip)
+            if view in axes and out_dir is None:
+                continue  # (the axis views count in the IoU; FLIP stays the orbit views', comparable across runs)
+            if view not in axes:
+                # The arrays are display values: pass them as linear values whose sRGB encoding they are.
+                flips[name].append(compare_images(srgb_to_linear(ref), srgb_to_linear(test)).flip)
             if out_dir is not None:
                 out_dir.mkdir(parents=True, exist_ok=True)
-                write_png(out_dir / f"{name}_{k}_exact.png", srgb_to_linear(ref))
-                write_png(out_dir / f"{name}_{k}_neural.png", srgb_to_linear(test))
+                write_png(out_dir / f"{name}_{view}_exact.png", srgb_to_linear(ref))
+                write_png(out_dir / f"{name}_{view}_neural.png", srgb_to_linear(test))
     return {
         "cameras": len(cams),
         "resolution": resolution,
@@ -135,6 +166,9 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         "depth_flip": float(np.mean(flips["depth"])),
         "normal_flip_per_view": flips["normal"],
         "depth_flip_per_view": flips["depth"],
+        "silhouette_iou": float(np.mean(list(ious.values()))),
+        "silhouette_iou_min": float(min(ious.values())),
+        "silhouette_iou_per_view": ious,
     }
 
 
