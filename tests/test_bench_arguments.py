@@ -173,6 +173,10 @@ IN_PROCESS_CASES = [
     ("bench_reference.py", ["--scenes", "cornell,,sky"], "an empty item"),
     ("bench_reference.py", ["--scenes", "cornell,nosuch.toml"], "nosuch.toml: scene file not found"),
     ("bench_reference.py", ["--resolution", "0"], "argument --resolution"),
+    # bench_mesh_load (before any file is written)
+    ("bench_mesh_load.py", ["--formats", "obj,dae"], "--formats: unknown format 'dae'"),
+    ("bench_mesh_load.py", ["--subdivisions", "10"], "argument --subdivisions: must be an integer in 1..9, got 10"),
+    ("bench_mesh_load.py", ["--name", "a/b"], "argument --name: 'a/b'"),
     # bench_render
     ("bench_render.py", ["--scenes", "bogus"], "builtin:bogus: unknown built-in scene"),
     ("bench_render.py", ["--scenes", "hairball,,foliage"], "an empty item"),
