@@ -91,8 +91,8 @@ def test_eval_images_and_no_images_contradict(tmp_path, capsys):
         api.evaluate("m.nrt", "mesh.obj", images=False, image_dir=tmp_path)
 
 
-@pytest.mark.parametrize("depth, message", [("0", "max_depth: must be at least 1, got 0"),
-                                            ("257", "max_depth: must be at most 256, got 257")])
+@pytest.mark.parametrize("depth, message", [("0", "--max-depth: must be at least 1, got 0"),
+                                            ("257", "--max-depth: must be at most 256, got 257")])
 def test_max_depth_bounds_are_the_scene_files(tmp_path, capsys, depth, message):
     assert main(["render", "builtin:cornell-statue?detail=0", "-o", str(tmp_path / "i.exr"), "--max-depth", depth,
                  "--quiet"]) == 2
