@@ -30,7 +30,7 @@ import numpy as np
 
 from ..accel.normal_mapping import usable_texel
 
-__all__ = ["NormalMapStatement", "clean_mtl_text", "clean_obj_text", "normal_map_statement", "scaled_normal_texels",
+__all__ = ["MapStatement", "clean_mtl_text", "clean_obj_text", "normal_map_statement", "scaled_normal_texels",
            "used_material_names"]
 
 _STATEMENTS = ("norm", "map_bump", "bump")  # in order of preference (trimesh lower-cases the keys)
@@ -42,16 +42,17 @@ _DEFAULTS = {"-o": 0.0, "-s": 1.0, "-t": 0.0}  # UV offset, scale, turbulence: t
 
 
 @dataclass(frozen=True)
-class NormalMapStatement:
-    """A material's normal-map statement: its keyword as trimesh keeps it, the image's file name as
-    written (relative to the OBJ's folder) and the ``-bm`` scale."""
+class MapStatement:
+    """A material's map statement (its normal map's, or a ``map_Kd`` being cleaned): its keyword as
+    trimesh keeps it, the image's file name as written (relative to the OBJ's folder) and the
+    ``-bm`` scale."""
 
     keyword: str
     file_name: str
     scale: float
 
 
-def normal_map_statement(statements: dict) -> NormalMapStatement | None:
+def normal_map_statement(statements: dict) -> MapStatement | None:
     """The normal map among a trimesh ``SimpleMaterial``'s unread statements (its ``kwargs``:
     lower-cased keyword -> list of tokens), or None where it has none. A ValueError says why a
     statement cannot be used as written."""
@@ -62,7 +63,7 @@ def normal_map_statement(statements: dict) -> NormalMapStatement | None:
     return None
 
 
-def _parsed(keyword: str, tokens: list[str]) -> NormalMapStatement:
+def _parsed(keyword: str, tokens: list[str]) -> MapStatement:
     scale, i = 1.0, 0
     while i < len(tokens) and tokens[i].startswith("-") and not _is_number(tokens[i]):
         option = tokens[i].lower()
@@ -89,7 +90,7 @@ def _parsed(keyword: str, tokens: list[str]) -> NormalMapStatement:
             raise ValueError(f"its statement {keyword} moves or scales the map's UVs ({tokens[i]} {' '.join(values)}), "
                              f"which is not applied")
         i += 1 + len(values)
-    return NormalMapStatement(keyword, " ".join(tokens[i:]), scale)
+    return MapStatement(keyword, " ".join(tokens[i:]), scale)
 
 
 def _is_number(token: str) -> bool:
