@@ -75,6 +75,19 @@ def _fmt(value) -> str:
     return str(value)
 
 
+def run_seconds(fn, repeats: int) -> list[float]:
+    """Wall seconds of each of ``repeats`` calls of ``fn`` (take the min where the machine is shared
+    and the least disturbed run is wanted, the median for a typical one)."""
+    import time
+
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return times
+
+
 def print_table(rows: list[dict], columns: list[str]) -> None:
     """Print ``rows`` (dicts) as an aligned text table with the given column order."""
     cells = [[_fmt(r.get(c, "")) for c in columns] for r in rows]

@@ -19,7 +19,6 @@ On a CUDA GPU (Triton kernels, fused inference, training step): bench_lsnif_kern
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
@@ -30,7 +29,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import (ArgumentParser, check_mesh_spec, description, int_in, load_mesh_spec,  # noqa: E402
-                     nonnegative_int, parse_mesh_spec, positive_int, print_table, result_name, run_main, write_results)
+                     nonnegative_int, parse_mesh_spec, positive_int, print_table, result_name, run_main, run_seconds,
+                     write_results)
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.geometry.mesh import Mesh  # noqa: E402
@@ -47,12 +47,7 @@ COLUMNS = ["mesh", "triangles", "threads", "H", "voxelize_ms", "featurize_Mrays/
 
 
 def best_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
+    return min(run_seconds(fn, repeats))
 
 
 def bench_mesh(name: str, mesh: Mesh, n_rays: int, repeats: int, max_points: int) -> dict:

@@ -9,7 +9,6 @@ Prints a table and writes benchmarks/results/NAME.json (``--name``, default mesh
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import neuralrt  # noqa: F401  (first: it sets how OpenMP threads wait before torch loads OpenMP)
@@ -19,7 +18,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import (SHARED_MESHES, ArgumentParser, description, detail_level, positive_int, print_table,  # noqa: E402
-                     result_name, run_main, subdivided_file, write_results)
+                     result_name, run_main, run_seconds, subdivided_file, write_results)
 
 from neuralrt.accel.mesh_blas import MeshBLAS  # noqa: E402
 from neuralrt.geometry.mesh import Mesh, load_mesh  # noqa: E402
@@ -45,12 +44,7 @@ def random_rays(mesh: Mesh, n: int, seed: int = 0) -> Rays:
 
 def best_seconds(fn, repeats: int) -> float:
     """Fastest of ``repeats`` runs: the machine is shared, the minimum is the least disturbed."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
+    return min(run_seconds(fn, repeats))
 
 
 def measure(label: str, mesh: Mesh, n_rays: int, repeats: int) -> dict:

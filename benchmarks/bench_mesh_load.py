@@ -16,7 +16,6 @@ from __future__ import annotations
 import statistics
 import sys
 import tempfile
-import time
 import tracemalloc
 from pathlib import Path
 
@@ -24,7 +23,8 @@ import neuralrt  # noqa: F401  (before torch: sets how OpenMP threads wait)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import ArgumentParser, description, fail, int_in, print_table, result_name, run_main, write_results  # noqa: E402
+from _common import (ArgumentParser, description, fail, int_in, print_table, result_name, run_main,  # noqa: E402
+                     run_seconds, write_results)
 
 from neuralrt.geometry.mesh import import_trimesh, load_mesh  # noqa: E402
 
@@ -43,12 +43,7 @@ def _write(mesh, folder: Path, fmt: str) -> Path:
 
 
 def _median_seconds(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(run_seconds(fn, repeats))
 
 
 def main(argv=None) -> None:
