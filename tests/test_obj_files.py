@@ -163,3 +163,9 @@ def test_a_concave_polygon_is_split_inside_it_and_keeps_its_side(tmp_path, order
     np.testing.assert_allclose(mesh.face_normals()[:, 2], normal_z)
     centroids = mesh.triangles().mean(axis=1)
     assert not ((centroids[:, 0] > 1) & (centroids[:, 1] > 1)).any()  # nothing in the notch
+
+
+def test_relative_indices_after_an_absolute_one_are_found_too(tmp_path):
+    # (only faces whose first index was relative were rewritten: "f 1 -2 -1" was counted from the file's end)
+    obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 -2 -1\nv 5 5 5\nv 6 5 5\nv 5 6 5\nf 4 -2 -1\n"
+    np.testing.assert_array_equal(load_mesh(_write(tmp_path, obj)).faces, [[0, 1, 2], [3, 4, 5]])
