@@ -112,16 +112,8 @@ class Mesh:
         return self.vertices[self.faces]
 
     def face_normals(self) -> np.ndarray:
-        """[F, 3] unit geometric normals (zero for degenerate triangles). In chunks of faces: the
-        float64 temporaries of the whole mesh at once were ~150 B per triangle (row-wise, so the
-        values do not depend on the chunking)."""
-        out = np.empty((len(self.faces), 3), np.float32)
-        for s in range(0, len(self.faces), _CHUNK):
-            tri = self.vertices[self.faces[s:s + _CHUNK]].astype(np.float64)
-            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            length = np.linalg.norm(n, axis=1, keepdims=True)
-            out[s:s + _CHUNK] = n / np.where(length > 0, length, 1)
-        return out
+        """[F, 3] unit geometric normals (zero for degenerate triangles): `unit_face_normals`."""
+        return unit_face_normals(self.vertices, self.faces)
 
     def face_areas(self) -> np.ndarray:
         tri = self.triangles().astype(np.float64)
@@ -263,12 +255,17 @@ def _cross_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
-def _unit_face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """[F, 3] float32 unit normals of the faces (counter-clockwise); zero where a face has no area."""
-    a, b, c = (vertices[faces[:, k]].astype(np.float64) for k in range(3))
-    n = np.cross(b - a, c - a)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
+def unit_face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """[F, 3] float32 unit geometric normals (counter-clockwise; zero for degenerate triangles). In
+    chunks of faces: the float64 temporaries of the whole mesh at once were ~150 B per triangle
+    (row-wise, so the values do not depend on the chunking)."""
+    out = np.empty((len(faces), 3), np.float32)
+    for s in range(0, len(faces), _CHUNK):
+        tri = vertices[faces[s:s + _CHUNK]].astype(np.float64)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        out[s:s + _CHUNK] = n / np.where(length > 0, length, 1)
+    return out
 
 
 def smooth_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -345,7 +342,8 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
             return material, uv, colors
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
-        exact = (getattr(mat, "kwargs", None) or {}).get("kd")  # the MTL's Kd as written (diffuse: 8 bits)
+        statements = getattr(mat, "kwargs", None) or {}  # (the MTL's statements trimesh passes on unread)
+        exact = statements.get("kd")  # the MTL's Kd as written (diffuse: 8 bits)
         diffuse = getattr(mat, "diffuse", None)
         if isinstance(exact, (list, tuple)) and len(exact) >= 3:
             material.base_color = srgb_to_linear(np.clip(np.asarray(exact[:3], np.float32), 0.0, 1.0))
@@ -357,7 +355,6 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
         if texture is not None:
             material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
-        statements = getattr(mat, "kwargs", None) or {}
         material.normal_map = _mtl_normal_map(statements, uv, material.name, where)
         if _positive(statements.get("ke")):
             warnings.warn(f"{where}: the emission of material {material.name!r} (Ke) is not read: give the slot an "
@@ -398,7 +395,7 @@ def _scene_parts(scene) -> tuple[list, list]:
     """A trimesh Scene's triangle meshes moved to their instances' places, as ``Scene.dump`` does,
     keeping what its copies drop: the file's vertex normals (trimesh's cache, which
     ``apply_transform`` turns with the part) and a glTF COLOR_0 beside a material (the visual's
-    ``vertex_attributes``; None where there is none), one per part."""
+    ``vertex_attributes``; None where there is none, or one of another length), one per part."""
     from trimesh import Trimesh
 
     parts, colors = [], []
@@ -411,7 +408,8 @@ def _scene_parts(scene) -> tuple[list, list]:
         part.apply_transform(transform)
         parts.append(part)
         attributes = getattr(geometry.visual, "vertex_attributes", None)
-        colors.append(attributes.get("color") if getattr(geometry.visual, "kind", None) == "texture" and attributes else None)
+        color = attributes.get("color") if getattr(geometry.visual, "kind", None) == "texture" and attributes else None
+        colors.append(color if color is not None and len(color) == len(part.vertices) else None)
     return parts, colors
 
 
@@ -578,17 +576,22 @@ def load_mesh(path: str | Path) -> Mesh:
     problem = input_file_problem(path, "mesh file")
     if problem:
         raise MeshError(problem)
-    header = gltf_header(path) if path.suffix.lower() in (".gltf", ".glb") else None
+    suffix = path.suffix.lower()
+    gltf = suffix in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
+    header = gltf_header(path) if gltf else None
     unreadable, notes = gltf_file_notes(header) if header else (None, [])
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
+    used_materials: set[str] = set()
     try:
         with unread_assets() as unread:
-            data = path.read_bytes() if path.suffix.lower() == ".obj" else None
-            cleaned = None if data is None else clean_obj_text(data)
-            used_materials = set() if data is None else used_material_names(data)
-            source = dict(file_obj=str(path)) if cleaned is None else dict(file_obj=io.BytesIO(cleaned), file_type="obj")
-            data = cleaned = None
+            source = dict(file_obj=str(path))
+            if suffix == ".obj":  # (read once here: trimesh reads the bytes as they are, or as cleaned)
+                data = path.read_bytes()
+                used_materials = used_material_names(data)
+                cleaned = clean_obj_text(data)
+                source = dict(file_obj=io.BytesIO(data if cleaned is None else cleaned), file_type="obj")
+                data = cleaned = None
             loaded = trimesh.load(**source, process=False, resolver=regular_files_resolver(str(path)))
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
@@ -597,18 +600,15 @@ def load_mesh(path: str | Path) -> Mesh:
     extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
     for note in notes + extras_notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
-    if isinstance(loaded, trimesh.Trimesh) and path.suffix.lower() in (".off", ".ply"):
+    if isinstance(loaded, trimesh.Trimesh) and suffix in (".off", ".ply"):
         _read_what_trimesh_drops(loaded, path)
-    gltf_colors: list = []
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
         parts, gltf_colors = _scene_parts(loaded)
     elif isinstance(loaded, trimesh.Trimesh):
-        parts = [loaded]
+        parts, gltf_colors = [loaded], [None]
     else:
-        parts = []
-    gltf_colors = [c if c is not None and len(c) == len(p.vertices) else None
-                   for p, c in zip(parts, gltf_colors)] or [None] * len(parts)
+        parts, gltf_colors = [], []
     cut_short = truncation_problem(path, sum(len(p.vertices) for p in parts), sum(len(p.faces) for p in parts))
     if cut_short:
         raise MeshError(f"{path}: {cut_short}")
@@ -626,7 +626,6 @@ def load_mesh(path: str | Path) -> Mesh:
     face_colors_of = [_varying_face_colors(p.visual) for p in parts]  # (None for most parts: small)
     any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) \
         or any(c is not None for c in face_colors_of) or any(c is not None for c in gltf_colors)
-    gltf = path.suffix.lower() in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -662,20 +661,15 @@ def load_mesh(path: str | Path) -> Mesh:
         del part  # frees trimesh's int64 faces before the normals pass
         if file_normals:
             vn = vn if vn.shape == v.shape and np.isfinite(vn).all() else smooth_vertex_normals(v, f)
-        elif gltf:  # the glTF spec: flat normals where a primitive has none (each face its own three vertices)
-            corners = f.reshape(-1)
-            uv = uv[corners] if uv is not None and len(uv) == len(v) else None
-            col = col[corners] if col is not None and len(col) == len(v) else None
-            v, vn = v[corners], np.repeat(_unit_face_normals(v, f), 3, axis=0)
-            f = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+        elif gltf:  # the glTF spec: flat normals where a primitive has none
+            vn = np.repeat(unit_face_normals(v, f), 3, axis=0)
+            f, v, uv, col = _per_corner(f, v, uv, col)
         else:  # what trimesh would compute, from its float64 vertices, without its caches
             vn = angle_weighted_vertex_normals(vertices64, f)
         del vertices64
-        if face_colors is not None:  # colours per face, exactly: each face gets its own three vertices (normals kept)
-            corners = f.reshape(-1)
-            v, vn, uv = v[corners], vn[corners], None
-            col = np.repeat(face_colors, 3, axis=0)
-            f = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+        if face_colors is not None:  # colours per face, exactly (normals kept)
+            f, v, vn = _per_corner(f, v, vn)
+            uv, col = None, np.repeat(face_colors, 3, axis=0)
         normals.append(vn)
         verts.append(v)
         faces.append(f + np.int32(offset) if offset else f)
@@ -737,8 +731,8 @@ _IMAGE_ROLES = {"image": "texture", "baseColorTexture": "texture", "normalTextur
 def _drop_undecodable_images(scene, where: str) -> None:
     """Decode each image a trimesh Scene's materials hold, leaving out one that cannot be (with the
     warning `_texture_pixels` gives, where neuralrt uses that image): PIL decodes lazily, and
-    `Scene.dump` copies every material, which decoded a damaged PNG inside a .glb outside any check
-    (an OSError that named no file). (A lone Trimesh is not dumped: `_texture_pixels` decodes the
+    copying a part (`_scene_parts`, as `Scene.dump` did) copies its material, which decoded a
+    damaged PNG inside a .glb outside any check (an OSError that named no file). (A lone Trimesh is not dumped: `_texture_pixels` decodes the
     images it uses, after its memory check.)"""
     for geometry in scene.geometry.values():
         material = getattr(getattr(geometry, "visual", None), "material", None)
@@ -753,6 +747,15 @@ def _drop_undecodable_images(scene, where: str) -> None:
                     _warn_undecodable(role, image.size, getattr(material, "name", None) or "unnamed", where,
                                       f"{type(exc).__name__}: {exc}", stacklevel=4)
                 setattr(material, attribute, None)
+
+
+def _per_corner(faces: np.ndarray, vertices: np.ndarray, *attributes):
+    """Each face its own three vertices: (``faces`` renumbered 0..3F-1, ``vertices`` and each
+    per-vertex attribute read at the faces' corners; an attribute that is None, or of another
+    length, as None)."""
+    corners = faces.reshape(-1)
+    read = [None if a is None or len(a) != len(vertices) else a[corners] for a in attributes]
+    return (np.arange(len(corners), dtype=np.int32).reshape(-1, 3), vertices[corners], *read)
 
 
 def _joined(arrays: list[np.ndarray]) -> np.ndarray:
