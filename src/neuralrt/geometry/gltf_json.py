@@ -147,22 +147,22 @@ def gltf_material_extras(header: dict) -> tuple[dict[str, MaterialExtras], list[
         if not isinstance(material, dict):
             continue
         name, label = material.get("name"), _label(material, index)
-        placement = _placement(material, label, notes)
+        extras = _extras(material, label, notes)
         if isinstance(name, str):
-            found.setdefault(name, []).append(placement)
-        elif placement.moves_maps:  # (an unnamed material's factor stays as trimesh reads it: 8 bits)
+            found.setdefault(name, []).append(extras)
+        elif extras.moves_maps:  # (an unnamed material's factor stays as trimesh reads it: 8 bits)
             notes.append(f"how the maps of {label} are placed (normal map scale, KHR_texture_transform) is not "
                          f"applied: trimesh keeps materials by name")
-    extras = {}
+    by_name = {}
     for name, each in found.items():
         first, placed_alike = each[0], all(_placed_alike(p, each[0]) for p in each)
         if not placed_alike:
             notes.append(f"how the maps of material {name!r} are placed is not applied: {len(each)} materials share "
                          f"that name and place their maps differently")
         colour = first.base_color if all(p.base_color == first.base_color for p in each) else None
-        extras[name] = MaterialExtras(first.normal_scale, first.uv_transform, colour) if placed_alike \
+        by_name[name] = MaterialExtras(first.normal_scale, first.uv_transform, colour) if placed_alike \
             else MaterialExtras(base_color=colour)
-    return extras, notes
+    return by_name, notes
 
 
 def _placed_alike(a: MaterialExtras, b: MaterialExtras) -> bool:
@@ -171,7 +171,7 @@ def _placed_alike(a: MaterialExtras, b: MaterialExtras) -> bool:
     return a.uv_transform is None or bool(np.array_equal(a.uv_transform, b.uv_transform))
 
 
-def _placement(material: dict, label: str, notes: list[str]) -> MaterialExtras:
+def _extras(material: dict, label: str, notes: list[str]) -> MaterialExtras:
     slots = {"normalTexture": material.get("normalTexture"),
              "baseColorTexture": (material.get("pbrMetallicRoughness") or {}).get("baseColorTexture")}
     transforms = {}
@@ -230,14 +230,15 @@ def gltf_header(path: str | Path) -> dict:
     too, and says what is wrong with it)."""
     path = Path(path)
     try:
-        data = path.read_bytes()
-        if data[:4] == b"glTF":  # binary: a 12-byte header, then the JSON chunk (length, type, bytes)
-            length, kind = struct.unpack_from("<II", data, 12)
-            if kind != 0x4E4F534A:  # "JSON"
-                return {}
-            header = json.loads(data[20:20 + length])
-        else:
-            header = json.loads(data)
+        with path.open("rb") as f:
+            start = f.read(20)
+            if start[:4] == b"glTF":  # binary: a 12-byte header, then the JSON chunk (length, type, bytes)
+                length, kind = struct.unpack_from("<II", start, 12)  # (only the chunk is read: not the buffers)
+                if kind != 0x4E4F534A:  # "JSON"
+                    return {}
+                header = json.loads(f.read(length))
+            else:
+                header = json.loads(start + f.read())
     except (OSError, ValueError, struct.error, UnicodeDecodeError, RecursionError):
         return {}
     return header if isinstance(header, dict) else {}
