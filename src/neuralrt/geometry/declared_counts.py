@@ -46,19 +46,10 @@ def truncation_problem(path: str | Path, vertices_read: int, faces_read: int) ->
 
 def _ply(head: bytes) -> tuple[int, int, int | None] | None:
     """(vertices, faces, where ASCII records start or None for a binary PLY)."""
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    header = _ply_header(head)
+    if header is None or "vertex" not in header[0]:
         return None
-    counts, ascii_data = {}, False
-    for line in head[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if len(words) == 3 and words[0] == "element" and words[2].isdigit():
-            counts[words[1]] = int(words[2])
-        elif len(words) >= 2 and words[0] == "format":
-            ascii_data = words[1] == "ascii"
-    if "vertex" not in counts:
-        return None
-    data_at = head.find(b"\n", end) + 1
+    counts, ascii_data, data_at, _ = header
     return counts["vertex"], counts.get("face", 0), data_at if ascii_data and data_at > 0 else None
 
 
@@ -69,17 +60,28 @@ def ply_vertex_properties(path: str | Path) -> list[str]:
             head = f.read(_HEADER_BYTES)
     except OSError:
         return []
+    header = _ply_header(head)
+    return [] if header is None else header[3]
+
+
+def _ply_header(head: bytes) -> tuple[dict[str, int], bool, int, list[str]] | None:
+    """(element counts, whether the data are ASCII, where the data start (0: not found), the vertex
+    properties' names) of the PLY header at the start of ``head``, or None where it holds none."""
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
-        return []
-    names, element = [], None
+        return None
+    counts, ascii_data, element, properties = {}, False, None, []
     for line in head[:end].decode("ascii", "replace").splitlines():
         words = line.split()
         if len(words) >= 2 and words[0] == "element":
             element = words[1]
+            if len(words) == 3 and words[2].isdigit():
+                counts[words[1]] = int(words[2])
+        elif len(words) >= 2 and words[0] == "format":
+            ascii_data = words[1] == "ascii"
         elif len(words) >= 3 and words[0] == "property" and element == "vertex":
-            names.append(words[-1])
-    return names
+            properties.append(words[-1])
+    return counts, ascii_data, head.find(b"\n", end) + 1, properties
 
 
 def off_header(head: bytes) -> tuple[int, int, int] | None:
