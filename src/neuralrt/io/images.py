@@ -91,22 +91,23 @@ def write_exr(path: str | Path, rgb: np.ndarray, half: bool = False) -> None:
 
 def write_png(path: str | Path, linear_rgb: np.ndarray, exposure: float = 0.0, tone: str = "clamp") -> None:
     """Write linear RGB as an 8-bit sRGB PNG: ``2**exposure`` scale, tone map (`tone_map`), sRGB curve."""
-    from PIL import Image
-
     path = Path(path)
-    rgb = _as_rgb(linear_rgb, path)
-    encoded = np.round(linear_to_srgb(tone_map(rgb, exposure, tone)) * 255.0).astype(np.uint8)
-    _atomic_write(path, lambda tmp: Image.fromarray(encoded, "RGB").save(tmp, format="PNG"))
+    _write_png8(path, linear_to_srgb(tone_map(_as_rgb(linear_rgb, path), exposure, tone)))
 
 
 def write_data_png(path: str | Path, values: np.ndarray) -> None:
     """Write RGB values in [0, 1] that are data, not colour (a normal map), as an 8-bit PNG: no
     sRGB curve, as a normal map is stored."""
+    path = Path(path)
+    _write_png8(path, np.clip(_as_rgb(values, path), 0.0, 1.0))
+
+
+def _write_png8(path: Path, encoded01: np.ndarray) -> None:
+    """Values in [0, 1], already encoded as they are to be stored, as an 8-bit RGB PNG (atomically)."""
     from PIL import Image
 
-    path = Path(path)
-    encoded = np.round(np.clip(_as_rgb(values, path), 0.0, 1.0) * 255.0).astype(np.uint8)
-    _atomic_write(path, lambda tmp: Image.fromarray(encoded, "RGB").save(tmp, format="PNG"))
+    pixels = np.round(encoded01 * 255.0).astype(np.uint8)
+    _atomic_write(path, lambda tmp: Image.fromarray(pixels, "RGB").save(tmp, format="PNG"))
 
 
 def write_hdr(path: str | Path, rgb: np.ndarray) -> None:
