@@ -150,9 +150,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         test_n, test_d, test_hits = render_normal_depth(blas, cam, (near, far))
         ious[view] = _silhouette_iou(ref_hits, test_hits)
         for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
-            if view in axes and out_dir is None:
-                continue  # (the axis views count in the IoU; FLIP stays the orbit views', comparable across runs)
-            if view not in axes:
+            if view not in axes:  # (the axis views count in the IoU; FLIP stays the orbit views', comparable across runs)
                 # The arrays are display values: pass them as linear values whose sRGB encoding they are.
                 flips[name].append(compare_images(srgb_to_linear(ref), srgb_to_linear(test)).flip)
             if out_dir is not None:

@@ -212,12 +212,13 @@ def _triangles(corners: list[str], positions: list) -> list[list[str]]:
     return triangles
 
 
-_USEMTL = re.compile(rb"\n[ \t]*usemtl[ \t]+([^\r\n]*)")  # (a literal prefix: memchr speed, as above)
+_USEMTL = re.compile(rb"\n[ \t]*usemtl[ \t]+([^\r\n]*)")  # (starts at a line end: a check per line, not per byte)
 
 
 def used_material_names(data: bytes) -> set[str]:
     """The material names an OBJ's ``usemtl`` statements give, as trimesh reads them."""
-    found = _USEMTL.findall(b"\n" + data.removeprefix(_BOM))
+    first = re.match(rb"[ \t]*usemtl[ \t]+([^\r\n]*)", data.removeprefix(_BOM))  # (no line end before the first)
+    found = _USEMTL.findall(data) + ([first.group(1)] if first else [])
     return {_without_comment(name.decode("utf-8", errors="replace")).strip() for name in found} - {""}
 
 
