@@ -116,9 +116,18 @@ def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
 
 def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, Hits]:
     """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
+    return _normal_depth_images(camera, *_pixel_hits(blas, camera), depth_range)
+
+
+def _pixel_hits(blas, camera) -> tuple[Rays, Hits]:
+    """``camera``'s rays through its pixel centres and ``blas``'s hits of them, on the CPU."""
     idx = torch.arange(camera.num_pixels)
     rays = camera.generate_rays(idx, torch.full((len(idx), 2), 0.5))
-    hits = blas.intersect(rays.to(getattr(blas, "device", rays.device))).to("cpu")  # cameras make CPU rays
+    return rays, blas.intersect(rays.to(getattr(blas, "device", rays.device))).to("cpu")  # cameras make CPU rays
+
+
+def _normal_depth_images(camera, rays: Rays, hits: Hits, depth_range: tuple[float, float]):
+    """`render_normal_depth`'s images from hits already traced (and the hits)."""
     h, w = camera.height, camera.width
     n = face_forward(torch.nn.functional.normalize(hits.normal, dim=-1), rays.directions) if len(hits) else hits.normal
     normal_img = torch.where(hits.hit[:, None], 0.5 + 0.5 * n, torch.zeros_like(n)).reshape(h, w, 3)
@@ -134,19 +143,16 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
 
     cams = orbit_cameras(bounds, cameras, resolution)
     axes = axis_cameras(bounds, resolution)
+    views = {**{str(k): c for k, c in enumerate(cams)}, **axes}
+    exact_hits = {view: _pixel_hits(exact, cam) for view, cam in views.items()}  # (traced once: range and images)
     # Depth range from the exact hits (one range for all views, so images are comparable).
-    ranges = []
-    for cam in [*cams, *axes.values()]:
-        rays = cam.generate_rays(torch.arange(cam.num_pixels), torch.full((cam.num_pixels, 2), 0.5))
-        h = exact.intersect(rays.to(exact.device)).to("cpu")
-        if h.hit.any():
-            ranges.append((float(h.t[h.hit].min()), float(h.t[h.hit].max())))
+    ranges = [(float(h.t[h.hit].min()), float(h.t[h.hit].max())) for _, h in exact_hits.values() if h.hit.any()]
     near = min((r[0] for r in ranges), default=0.0)
     far = max((r[1] for r in ranges), default=1.0)
     flips = {"normal": [], "depth": []}
     ious = {}
-    for view, cam in [*((str(k), c) for k, c in enumerate(cams)), *axes.items()]:
-        ref_n, ref_d, ref_hits = render_normal_depth(exact, cam, (near, far))
+    for view, cam in views.items():
+        ref_n, ref_d, ref_hits = _normal_depth_images(cam, *exact_hits.pop(view), (near, far))
         test_n, test_d, test_hits = render_normal_depth(blas, cam, (near, far))
         ious[view] = _silhouette_iou(ref_hits, test_hits)
         for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
