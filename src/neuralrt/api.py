@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .arguments import check_count, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
-from .errors import ConfigError, NeuralRTError
+from .errors import ConfigError, ModelFileError, NeuralRTError
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
@@ -33,12 +33,20 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
     return out
 
 
-def info(path: str | Path) -> dict:
-    """Facts about a mesh, scene (file or ``builtin:NAME``) or model file."""
+def info(path: str | Path, plot: str | Path | None = None) -> dict:
+    """Facts about a mesh, scene (file or ``builtin:NAME``) or model file; for a model or training
+    checkpoint, ``plot`` (.png, .pdf or .svg) draws its training curve (loss, its terms, hit accuracy)."""
+    from .io.plots import check_plot_path
+
     spec = str(check_path("path", path))
     suffix = Path(spec).suffix.lower()
-    if suffix in MODEL_SUFFIXES or suffix == CHECKPOINT_SUFFIX:
-        return _model_info(Path(spec))
+    is_model = suffix in MODEL_SUFFIXES or suffix == CHECKPOINT_SUFFIX
+    if plot is not None:
+        plot = check_plot_path(check_path("plot", plot))
+        if not is_model:
+            raise NeuralRTError(f"{spec}: only a model (.nrt) or training checkpoint (.ckpt) has a training curve to plot")
+    if is_model:
+        return _model_info(Path(spec), plot)
     if spec.startswith("builtin:") or suffix in SCENE_SUFFIXES:
         return _scene_info(spec)
     return _mesh_info(Path(spec))
@@ -102,20 +110,20 @@ def _scene_info(spec: str) -> dict:
     }
 
 
-def _model_info(path: Path) -> dict:
+def _model_info(path: Path, plot: Path | None = None) -> dict:
     from .io.model_file import FORMAT_VERSION, read_header, read_model_header
     from .methods import load_model
     from .training.trainer import CHECKPOINT_METHOD
 
     raw = read_header(path)
     if raw.get("method") == CHECKPOINT_METHOD:
-        return _checkpoint_info(path, raw)
+        return _plotted(_checkpoint_info(path, raw), plot)
     if path.suffix.lower() == CHECKPOINT_SUFFIX:
         raise NeuralRTError(f"{path}: a {CHECKPOINT_SUFFIX} file that holds no training checkpoint (method {raw.get('method')!r})")
     header = read_model_header(path)
     model = load_model(path)
     report = model.memory_bytes()
-    return {
+    return _plotted({
         "kind": "model",
         "path": str(path),
         "method": header.method,
@@ -129,7 +137,22 @@ def _model_info(path: Path) -> dict:
         "mesh_sha256": header.mesh_sha256,
         "config": model.config.model_dump(mode="json"),
         "training": header.training,
-    }
+    }, plot)
+
+
+def _plotted(facts: dict, plot: Path | None) -> dict:
+    """``facts`` (`info` of a model or checkpoint), with its training curve drawn to ``plot`` if asked."""
+    from .io.plots import plot_problem, training_plot_title, write_training_plot
+
+    if plot is None:
+        return facts
+    record = facts["training"]
+    problem = plot_problem(record)
+    if problem:
+        raise ModelFileError(f"{facts['path']}: {problem}")
+    name = facts.get("mesh_name") or f"mesh {str(facts.get('mesh_sha256'))[:12]}"
+    write_training_plot(plot, record["curve"], training_plot_title(str(facts["method"]), name, record))
+    return {**facts, "plot": str(plot)}
 
 
 def _checkpoint_info(path: Path, header: dict) -> dict:
@@ -277,6 +300,7 @@ def train(
     device: str = "cpu",
     progress: bool = True,
     settings: dict | None = None,
+    plot: str | Path | None = None,
 ) -> dict:
     """Train a model of ``mesh`` (a path or a `Mesh`) with ``method`` (default: lsnif) and ``preset``
     (default: the method's default for ``device``; LSNIF: ``hq`` on the CPU, ``gpu`` on CUDA), and
@@ -284,7 +308,8 @@ def train(
     (``{"voxel": {"resolution": 64}}``; the CLI's ``--set voxel.resolution=64``; keys: docs/config.md).
 
     A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
-    interrupted run from it. It is removed once the model file is written.
+    interrupted run from it. It is removed once the model file is written. ``plot`` (.png, .pdf or
+    .svg) draws the run's training curve (also kept in the model file: `info` draws it later).
     """
     from .geometry.mesh import Mesh, load_mesh
     from .methods import DEFAULT_METHOD, get_method
@@ -306,6 +331,10 @@ def train(
     check_output_file(output, "model file")
     checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
     check_output_file(checkpoint, "checkpoint")  # (its name is longer)
+    if plot is not None:
+        from .io.plots import check_plot_path
+
+        plot = check_plot_path(check_path("plot", plot))
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
     if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
@@ -321,8 +350,15 @@ def train(
     model.save(output)
     checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
-    return {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
-            "memory_parts": dict(memory.parts), "training": model.training_record}
+    result = {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
+              "memory_parts": dict(memory.parts), "training": model.training_record}
+    if plot is not None:
+        from .io.plots import training_plot_title, write_training_plot
+
+        record = model.training_record
+        write_training_plot(plot, record["curve"], training_plot_title(f"{spec.name} {preset}", model.mesh_name, record))
+        result["plot"] = str(plot)
+    return result
 
 
 def list_presets() -> list[dict]:

@@ -45,6 +45,8 @@ def _print_result(result: dict, as_json: bool) -> None:
         print(json.dumps(_strict_json(plain), allow_nan=False))
         return
     for key, value in result.items():
+        if key == "training" and isinstance(value, dict) and isinstance(value.get("curve"), dict):
+            value = {**value, "curve": _curve_summary(value["curve"])}
         if isinstance(value, float):
             value = f"{value:.6g}"
         elif isinstance(value, dict) and any(isinstance(v, (dict, list)) for v in value.values()):
@@ -52,6 +54,12 @@ def _print_result(result: dict, as_json: bool) -> None:
         elif isinstance(value, dict):
             value = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())
         print(f"{key:>24}: {value}")
+
+
+def _curve_summary(curve: dict) -> str:
+    """A training curve in one phrase (its points are for --json and --plot)."""
+    points = len(curve.get("step", [])) if isinstance(curve.get("step"), list) else 0
+    return f"{points} points (--plot FILE.png draws them)" if points else "none"
 
 
 # --- commands -----------------------------------------------------------------------------------
@@ -62,7 +70,7 @@ def _cmd_compare(args) -> None:
 
 
 def _cmd_info(args) -> None:
-    _print_result(api.info(args.path), args.json)
+    _print_result(api.info(args.path, plot=args.plot), args.json)
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -118,7 +126,7 @@ def _cmd_train(args) -> None:
         else "no checkpoint was written yet: run the command again to start over")
     result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
                        seed=args.seed, resume=args.resume, device=args.device, progress=not args.quiet,
-                       settings=parse_settings(args.settings) or None)
+                       settings=parse_settings(args.settings) or None, plot=args.plot)
     _print_result(result, args.json)
 
 
@@ -207,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("info", help="triangles, bounds and BVH A/B bytes of a mesh; summary of a scene or model")
     p.add_argument("path", help="mesh file or procedural:NAME:DETAIL, scene file / builtin:NAME, or model file (.nrt)")
+    p.add_argument("--plot", metavar="PNG", help="a model or checkpoint: draw its training curve here (.png, .pdf, .svg)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_info)
 
@@ -235,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB) or a built-in mesh, procedural:NAME:DETAIL (statue:0..5, hairball:0..8, foliage:0..6)")
     p.add_argument("-o", "--output", help="model file to write (.nrt)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt")
+    p.add_argument("--plot", metavar="PNG", help="draw the training curve (loss, its terms, hit accuracy) here (.png, .pdf, .svg)")
     p.add_argument("--list-presets", action="store_true", help="list every method's presets and exit")
     _add_training(p)
     _add_common(p)

@@ -185,6 +185,11 @@ class NeuralBLAS(nn.Module, ABC):
         """Method-specific fields the training progress bar shows (e.g. N-BVH's node count). Default: none."""
         return {}
 
+    def curve_states(self) -> dict[str, float]:
+        """Method-specific values the training curve keeps at each of its points, as they stand
+        (e.g. N-BVH's node count; the plot draws them). Default: none."""
+        return {}
+
     def training_rays(self, truth, device: torch.device):
         """The ray distribution training draws batches from (``sample(n)``, ``state_dict``/``load_state_dict``),
         with exact answers from ``truth``. Default: `BoxRayDistribution` around `box` (N-BVH draws its own)."""

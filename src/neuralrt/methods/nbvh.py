@@ -263,6 +263,9 @@ class NBVHModel(NeuralBLAS):
     def progress_fields(self) -> dict[str, str]:
         return {"nodes": str(self.live_nodes())}
 
+    def curve_states(self) -> dict[str, float]:
+        return {"BVH cut nodes": float(self.live_nodes())}
+
     def training_rays(self, truth, device: torch.device) -> NBVHRayDistribution:
         return NBVHRayDistribution(self, truth, device)
 

@@ -27,6 +27,7 @@ from torch import nn
 
 from ..errors import ConfigError, ModelFileError, TrainingError, validation_message
 from ..io.model_file import read_header, read_model_file, write_model_file
+from .curve import TrainingCurve, curve_problem
 from .prefetch import BatchSource
 
 __all__ = ["TrainingRecord", "train_model", "identity_differences", "CHECKPOINT_METHOD"]
@@ -54,6 +55,12 @@ class TrainingRecord:
     batches_drawn_ahead: bool | None = None  # as `BatchSource.draws_ahead` at the end (None: trial unfinished)
     window: PositiveInt = 50
     extra: dict = field(default_factory=dict)  # method-specific: "<count>_fraction" over the last `window` steps
+    curve: dict = field(default_factory=dict)  # loss, hit accuracy, loss terms over the steps (`TrainingCurve.as_dict`)
+
+    def __post_init__(self):
+        problem = curve_problem(self.curve)
+        if problem:
+            raise ValueError(f"curve: {problem}")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -102,6 +109,7 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
 
 
 def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict) -> None:
+    """(``record.curve`` holds the open bin, if any: the resumed run fills it.)"""
     sampler_meta, sampler_arrays = sampler.state_dict()
     opt_meta, opt_arrays = _optimizer_arrays(opt)
     arrays = {f"model.{k}": v.detach().cpu().clone() for k, v in model.state_dict().items()}
@@ -243,6 +251,8 @@ def train_model(
             warnings.warn(f"{ckpt}: the checkpoint is already at step {start}, past steps={steps}: "
                           f"the model is saved as of step {start}", stacklevel=2)
     running = _Running(record.window)
+    curve = TrainingCurve.from_dict(record.curve, start=start)
+    curve.states = getattr(model, "curve_states", None)
     model.train()
     bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
     step = start
@@ -275,12 +285,14 @@ def train_model(
             running.add(loss=loss, correct=result.correct, count=result.count,
                         **{f"count_{k}": v for k, v in result.ray_counts.items()},
                         **{f"loss_{k}": v for k, v in result.parts.items()})
+            curve.add(step + 1, record.seconds, loss, result.correct, result.count, result.parts)
             bar.update(1)
             if progress and (step % 10 == 0 or step == steps - 1):
                 bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
                                 rays_s=f"{result.count / max(dt, 1e-9):.3g}", **getattr(model, "progress_fields", dict)())
             if checkpoint_after:
                 _finish(record, running, step + 1)
+                record.curve = curve.as_dict(checkpoint=True)
                 save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity)
     finally:
         batches.close()
@@ -288,6 +300,8 @@ def train_model(
     record.batches_drawn_ahead = batches.draws_ahead
     if steps > start:  # a run resumed at (or past) its last step trained nothing: keep the checkpoint's figures
         _finish(record, running, steps)
+    curve.close()
+    record.curve = curve.as_dict()
     if ckpt is not None:
         try:
             save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)

@@ -1,0 +1,128 @@
+"""Training curves kept in model files and checkpoints, drawn by `train --plot` and `info --plot`."""
+
+import json
+
+import pytest
+from PIL import Image
+
+from neuralrt.accel.mesh_blas import MeshBLAS
+from neuralrt.cli import main
+from neuralrt.geometry.procedural import sphere
+from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+from neuralrt.training.ray_distribution import BoxRayDistribution
+from neuralrt.training.trainer import train_model
+
+
+def _run(steps, **kw):
+    mesh = sphere(2)
+    model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq"))
+    rays = BoxRayDistribution(MeshBLAS(mesh), model.box, pool_size=1024, seed=0)
+    return train_model(model, rays, steps=steps, batch_size=256, learning_rate=0.01, progress=False, **kw)
+
+
+def _without_seconds(curve):
+    return {k: v for k, v in curve.items() if k != "seconds"}
+
+
+def test_the_record_keeps_every_steps_loss_and_a_resumed_run_the_same_curve(tmp_path):
+    straight = _run(7)
+    curve = straight.curve
+    assert curve["step"] == list(range(1, 8)) and curve["every"] == 1 and "open" not in curve
+    assert set(curve["losses"]) == {"occlusion", "distance", "normal", "albedo"} and curve["states"] == {}
+    assert all(0.0 <= a <= 1.0 for a in curve["hit_accuracy"]) and curve["seconds"] == sorted(curve["seconds"])
+    assert curve["loss"][-1] < curve["loss"][0]
+    # the weighted sum the optimizer minimizes: LSNIF's loss weights are all 1
+    assert curve["loss"][3] == pytest.approx(sum(v[3] for v in curve["losses"].values()), rel=1e-4)
+
+    ckpt = tmp_path / "run.nrt"
+
+    def stop_at_5(step, optimizer):
+        if step == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _run(7, checkpoint=ckpt, checkpoint_every=3, on_step=stop_at_5)
+    resumed = _run(7, checkpoint=ckpt, checkpoint_every=3, resume=True)
+    assert resumed.resumed_from == 3 and _without_seconds(resumed.curve) == _without_seconds(curve)
+
+
+def test_nbvh_curves_keep_the_cut_size():
+    from neuralrt.methods.nbvh_config import NBVHConfig
+    from neuralrt.training.api import train
+
+    config = NBVHConfig.preset("cpu").with_training(steps=60, batch_size=1024)
+    record = train(sphere(2), config, progress=False).training_record
+    nodes = record["curve"]["states"]["BVH cut nodes"]
+    assert len(nodes) == 60 and nodes == sorted(nodes) and nodes[-1] > nodes[0] >= 1  # the cut only grows
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("plots")
+    model = folder / "ball.nrt"
+    assert main(["train", "procedural:statue:0", "-o", str(model), "--preset", "lq", "--steps", "12", "--batch", "512",
+                 "--quiet", "--plot", str(folder / "curve.png")]) == 0
+    return model
+
+
+def test_train_and_info_draw_the_curve(trained, tmp_path, capsys):
+    assert main(["info", str(trained), "--plot", str(tmp_path / "new" / "folder" / "c.png")]) == 0  # made, as -o's
+    capsys.readouterr()
+    with Image.open(trained.parent / "curve.png") as image:
+        assert image.format == "PNG" and image.width > 800
+    for name in ("again.png", "again.svg", "again.pdf"):
+        assert main(["info", str(trained), "--plot", str(tmp_path / name), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["plot"] == str(tmp_path / name)
+    assert (tmp_path / "again.svg").read_text().lstrip().startswith("<?xml")
+    assert (tmp_path / "again.pdf").read_bytes().startswith(b"%PDF")
+    assert main(["info", str(trained)]) == 0
+    out = capsys.readouterr().out
+    assert '"curve": "12 points (--plot FILE.png draws them)"' in out and '"loss": [' not in out
+    assert main(["info", str(trained), "--json"]) == 0
+    assert len(json.loads(capsys.readouterr().out)["training"]["curve"]["loss"]) == 12
+
+
+def test_an_interrupted_runs_checkpoint_draws_its_curve_so_far(tmp_path, capsys):
+    from neuralrt import api
+
+    ckpt = tmp_path / "run.nrt.ckpt"
+
+    def stop_at_5(step, optimizer):
+        if step == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _run(9, checkpoint=ckpt, checkpoint_every=4, on_step=stop_at_5)
+    result = api.info(ckpt, plot=tmp_path / "so_far.png")
+    assert result["kind"] == "checkpoint" and result["training"]["curve"]["step"] == [1, 2, 3, 4]
+    assert (tmp_path / "so_far.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "c.jpg"], "c.jpg: a plot is written as .png, .pdf, .svg"),
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "/proc/c.png"], "/proc: cannot write the plot there"),
+    (["info", "procedural:statue:0", "--plot", "c.png"], "only a model (.nrt) or training checkpoint (.ckpt) has a training curve"),
+])
+def test_a_plot_that_cannot_be_drawn_is_one_line_before_any_work(argv, needle, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("neuralrt: error:") and needle in err and "\n" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_model_from_before_curves_says_so(trained, tmp_path, capsys):
+    from neuralrt.io.model_file import read_model_file, write_model_file
+
+    f = read_model_file(trained)
+    header = {k: v for k, v in f.header.items() if k not in ("format_version", "checksum")}
+    header["training"] = {k: v for k, v in header["training"].items() if k != "curve"}
+    write_model_file(tmp_path / "old.nrt", f.header["method"], header, f.arrays)
+    assert main(["info", str(tmp_path / "old.nrt")]) == 0
+    assert main(["info", str(tmp_path / "old.nrt"), "--plot", str(tmp_path / "c.png")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no curve (trained before neuralrt kept one" in err and not (tmp_path / "c.png").exists()
+    header["training"]["curve"] = {"every": 1, "step": [1], "seconds": [], "loss": [1.0], "hit_accuracy": [0.5]}
+    write_model_file(tmp_path / "bad.nrt", f.header["method"], header, f.arrays)
+    assert main(["info", str(tmp_path / "bad.nrt"), "--plot", str(tmp_path / "c.png")]) == 2
+    assert "training curve is malformed (its columns differ in length)" in capsys.readouterr().err
