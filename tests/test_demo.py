@@ -36,8 +36,10 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     t = report["time"]
     assert t["train_s"] > 0 and t["exact_render_s"] > 0 and t["hybrid_render_s"] > 0
     assert report["neural_objects"] == 1 and report["settings"]["resolution"] == [32, 24]
-    for name in report["images"].values():
+    training = report["images"].pop("training")
+    for name in [*report["images"].values(), *training.values()]:
         assert (out / name).is_file(), name
+    assert list(training) == ["statue-d0"] and f"![training curve of statue-d0]({training['statue-d0']})" in (out / "report.md").read_text()
     for png in ("exact.png", "hybrid.png", "flip.png"):
         assert Image.open(out / png).size == (32, 24)
     assert Image.open(out / "side_by_side.png").size[0] == 3 * 32

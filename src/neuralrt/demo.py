@@ -2,7 +2,7 @@
 
 The report folder holds both renders (EXR + PNG), the FLIP heat map, a side-by-side PNG, and a
 table (``report.md`` and ``report.json``) of memory (BVH A, BVH B, neural), FLIP and PSNR, render times and
-training time. FLIP comes twice: hybrid vs exact at the same seed (shared random numbers: the
+training time, and each model's training curve (``training_K.png``). FLIP comes twice: hybrid vs exact at the same seed (shared random numbers: the
 difference is mostly the model's) and hybrid vs exact at another seed, the figure to hold against
 the noise floor (exact vs exact at that other seed, same spp).
 """
@@ -121,7 +121,25 @@ def _markdown(report: dict) -> str:
         "![exact | hybrid | FLIP](side_by_side.png)",
         "",
     ]
+    for name, image in report["images"].get("training", {}).items():
+        lines += [f"Training of `{name}`:", "", f"![training curve of {name}]({image})", ""]
     return "\n".join(lines)
+
+
+def _training_plots(models, out: Path) -> dict[str, str]:
+    """Each model's training curve drawn into ``out`` (mesh name -> file name); models trained
+    before curves were kept have none to draw."""
+    from .io.model_file import read_model_header
+    from .io.plots import plot_problem, training_plot_title, write_training_plot
+
+    plots = {}
+    for k, m in enumerate(models):
+        header = read_model_header(m.model_path)
+        if plot_problem(header.training) is None:
+            name = f"training_{k}.png"
+            write_training_plot(out / name, header.training["curve"], training_plot_title(header.method, m.mesh_name, header.training))
+            plots[m.mesh_name] = name
+    return plots
 
 
 def _write_text(path: Path, text: str) -> None:
@@ -181,6 +199,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     _side_by_side([linear_to_srgb(tone_map(exact.image)), linear_to_srgb(tone_map(hybrid.image)), quality.flip_map],
                   ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / "side_by_side.png")
 
+    training_plots = _training_plots(conversion.models, out)
+
     say("[4/4] memory accounting ...")
     memory = replaced_memory(hybrid_scene)
     # What the hybrid scene really holds: with exact camera rays the neural objects keep their meshes too.
@@ -217,6 +237,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         "images": {
             "exact": "exact.png", "exact_exr": "exact.exr", "hybrid": "hybrid.png", "hybrid_exr": "hybrid.exr",
             "flip": "flip.png", "side_by_side": "side_by_side.png", "report_md": "report.md",
+            "training": training_plots,
         },
     }
     _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
