@@ -66,3 +66,24 @@ def test_known_errors():
     assert m["t_error_median"] == pytest.approx(0.25, rel=1e-5)
     assert m["normal_error_deg_median"] == pytest.approx(math.degrees(0.1) / 2, rel=1e-3)
     assert m["material_accuracy"] == 0.5 and m["normal_backfacing_fraction"] == 0.0
+
+
+def test_eval_figures_show_every_view_and_both_ray_sets(tmp_path):
+    from PIL import Image
+
+    mesh = sphere(subdivisions=2)
+    exact = MeshBLAS(mesh)
+    r = evaluate_model(exact, mesh, rays=2048, cameras=2, resolution=32, image_dir=tmp_path)["images"]
+    assert r["figures"] == {"errors": str(tmp_path / "errors.png"), "overview": str(tmp_path / "overview.png")}
+    with Image.open(tmp_path / "overview.png") as overview, Image.open(tmp_path / "errors.png") as errors:
+        assert 1.5 * overview.height < overview.width < 2.5 * overview.height  # eight views across, four images down
+        assert errors.width > 1000
+
+    class NeverHits:  # a model that answers no hit: nothing to draw errors of, the figure still comes
+        bounds, secondary_offset, material_names = exact.bounds, exact.secondary_offset, ["default"]
+
+        def intersect(self, rays):
+            return Hits.empty(len(rays))
+
+    r = evaluate_model(NeverHits(), mesh, rays=1024, cameras=2, resolution=16, image_dir=tmp_path / "none")["images"]
+    assert r["silhouette_iou"] == 0.0 and (tmp_path / "none" / "errors.png").stat().st_size > 0

@@ -256,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rays", type=int, default=1 << 17, help="held-out rays, half outside, half surface (default: 131072, at most 4194304)")
     p.add_argument("--seed", type=int, help="seed of the held-out rays (default: 1000003)")
     images = p.add_mutually_exclusive_group()
-    images.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here")
+    images.add_argument("--images", metavar="DIR", help="write the neural/exact normal and depth images here, with overview.png "
+                        "(all of them) and errors.png (error distributions, IoU per view)")
     images.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
     p.add_argument("--allow-mesh-mismatch", action="store_true",
                    help="evaluate even if the model was trained on another mesh (default: an error)")

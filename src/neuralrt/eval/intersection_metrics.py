@@ -30,7 +30,7 @@ from ..methods.base import is_neural
 from ..rays import AABB, Hits, Rays, face_forward
 from ..training.ray_distribution import BoxRayDistribution
 
-__all__ = ["evaluate_model", "ray_metrics", "orbit_cameras", "axis_cameras", "render_normal_depth", "HELD_OUT_SEED"]
+__all__ = ["evaluate_model", "ray_errors", "ray_metrics", "orbit_cameras", "axis_cameras", "render_normal_depth", "HELD_OUT_SEED"]
 
 # Training seeds are small integers; held-out rays use a seed far from them.
 HELD_OUT_SEED = 1_000_003
@@ -43,6 +43,18 @@ def _quantiles(x: Tensor) -> tuple[float, float]:
     return float(q[0]), float(q[1])
 
 
+def ray_errors(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Of the rays both hit (CPU): |t error| as a distance over ``diagonal``, the normal's angle
+    error in degrees, and the predicted unit normals."""
+    both = pred.hit.cpu() & truth.hit.cpu()
+    d = rays.directions.cpu()
+    dist_err = ((pred.t.cpu() - truth.t.cpu()).abs() * d.norm(dim=-1))[both] / diagonal
+    n_pred = torch.nn.functional.normalize(pred.normal.cpu()[both], dim=-1)
+    n_true = face_forward(torch.nn.functional.normalize(truth.normal.cpu()[both], dim=-1), d[both])
+    cos = (n_pred * n_true).sum(-1).clamp(-1, 1)
+    return dist_err, torch.rad2deg(torch.acos(cos)), n_pred
+
+
 def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
     """Hit/miss, distance, normal and material errors of ``pred`` against ``truth`` for ``rays``."""
     ph, th = pred.hit.cpu(), truth.hit.cpu()
@@ -50,11 +62,7 @@ def ray_metrics(pred: Hits, truth: Hits, rays: Rays, diagonal: float) -> dict:
     pos, neg = int(th.sum()), int((~th).sum())
     both = ph & th
     d = rays.directions.cpu()
-    dist_err = ((pred.t.cpu() - truth.t.cpu()).abs() * d.norm(dim=-1))[both] / diagonal
-    n_pred = torch.nn.functional.normalize(pred.normal.cpu()[both], dim=-1)
-    n_true = face_forward(torch.nn.functional.normalize(truth.normal.cpu()[both], dim=-1), d[both])
-    cos = (n_pred * n_true).sum(-1).clamp(-1, 1)
-    angle = torch.rad2deg(torch.acos(cos))
+    dist_err, angle, n_pred = ray_errors(pred, truth, rays, diagonal)
     t_med, t_p90 = _quantiles(dist_err)
     a_med, a_p90 = _quantiles(angle)
     mat_ok = (pred.material_id.cpu() == truth.material_id.cpu())[both]
@@ -137,7 +145,9 @@ def _normal_depth_images(camera, rays: Rays, hits: Hits, depth_range: tuple[floa
     return normal_img.numpy().astype(np.float32), depth_img.numpy().astype(np.float32), hits
 
 
-def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None) -> dict:
+def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None) -> tuple[dict, dict]:
+    """The image figures, and (with ``out_dir``) each view's images for the overview: view ->
+    (normal exact, normal neural, depth exact, depth neural)."""
     from ..eval.image_metrics import compare_images
     from ..io.images import srgb_to_linear, write_png
 
@@ -150,11 +160,13 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
     near = min((r[0] for r in ranges), default=0.0)
     far = max((r[1] for r in ranges), default=1.0)
     flips = {"normal": [], "depth": []}
-    ious = {}
+    ious, shown = {}, {}
     for view, cam in views.items():
         ref_n, ref_d, ref_hits = _normal_depth_images(cam, *exact_hits.pop(view), (near, far))
         test_n, test_d, test_hits = render_normal_depth(blas, cam, (near, far))
         ious[view] = _silhouette_iou(ref_hits, test_hits)
+        if out_dir is not None:
+            shown[view] = (ref_n, test_n, ref_d, test_d)
         for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
             if view not in axes:  # (the axis views count in the IoU; FLIP stays the orbit views', comparable across runs)
                 # The arrays are display values: pass them as linear values whose sRGB encoding they are.
@@ -173,7 +185,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         "silhouette_iou": float(np.mean(list(ious.values()))),
         "silhouette_iou_min": float(min(ious.values())),
         "silhouette_iou_per_view": ious,
-    }
+    }, shown
 
 
 def evaluate_model(
@@ -210,5 +222,14 @@ def evaluate_model(
             for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))
         }
     if images:
-        result["images"] = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, Path(image_dir) if image_dir else None)
+        out_dir = Path(image_dir) if image_dir else None
+        result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir)
+        if out_dir is not None:
+            from ..io.plots import write_eval_errors, write_eval_overview
+
+            errors = {name: ray_errors(pred[sel], batch.truth[sel], batch.rays[sel], diag)[:2]
+                      for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))}
+            ious = result["images"]["silhouette_iou_per_view"]
+            result["images"]["figures"] = {"errors": str(write_eval_errors(out_dir / "errors.png", errors, ious)),
+                                           "overview": str(write_eval_overview(out_dir / "overview.png", shown, ious))}
     return result

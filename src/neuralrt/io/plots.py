@@ -1,4 +1,5 @@
-"""Figures written by the commands: a training run's curve (``train --plot``, ``info --plot``).
+"""Figures written by the commands: a training run's curve (``train --plot``, ``info --plot``) and
+eval's error distributions and image overview (``eval --images DIR``).
 
 matplotlib's object API (a `Figure` of its own, no pyplot state), so plotting is safe beside other
 threads and leaves no window or global backend behind. Written atomically, like every output.
@@ -13,7 +14,8 @@ import numpy as np
 from ..errors import NeuralRTError
 from .files import check_output_file, write_atomically
 
-__all__ = ["PLOT_SUFFIXES", "check_plot_path", "plot_problem", "training_plot_title", "write_training_plot"]
+__all__ = ["PLOT_SUFFIXES", "check_plot_path", "plot_problem", "training_plot_title", "write_eval_errors",
+           "write_eval_overview", "write_training_plot"]
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
@@ -53,10 +55,7 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     for ax in (loss_ax, accuracy_ax, *state_ax):
         ax.set_xlabel("step")
         ax.grid(alpha=0.3, which="both")
-    fmt = path.suffix.lower().lstrip(".")
-    path.parent.mkdir(parents=True, exist_ok=True)  # (as every output's folder is made)
-    write_atomically(path, lambda tmp: fig.savefig(tmp, format=fmt))
-    return path
+    return _write_figure(fig, path)
 
 
 def training_plot_title(method: str, mesh_name: str, record: dict) -> str:
@@ -80,3 +79,81 @@ def plot_problem(record) -> str | None:
         return "its training record holds no curve (trained before neuralrt kept one: train it again to plot it)"
     problem = curve_problem(curve)
     return f"its training curve is malformed ({problem})" if problem else None
+
+
+def _cdf_points(values, limit: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """(sorted values, fraction at or below each), thinned to at most ``limit`` points."""
+    x = np.sort(np.asarray(values, dtype=np.float64))
+    y = np.arange(1, len(x) + 1) / max(len(x), 1)
+    keep = np.unique(np.linspace(0, len(x) - 1, min(len(x), limit)).astype(np.int64)) if len(x) else []
+    return x[keep], y[keep]
+
+
+def _view_label(view: str) -> str:
+    return f"orbit {view}" if view.isdigit() else f"from {view}"
+
+
+def write_eval_errors(path, errors: dict, silhouette_iou: dict) -> Path:
+    """eval's figure: the cumulative distributions of |t error| (over the box diagonal) and of the
+    normal's angle error, for the held-out rays from outside and from the surface that both the
+    model and the mesh hit (``errors``: part -> (t errors, angles)), and the silhouette IoU per view."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(14, 4), dpi=110, layout="constrained")
+    t_ax, angle_ax, iou_ax = fig.subplots(1, 3)
+    for part, (t_error, angle) in errors.items():
+        if len(t_error):
+            x, y = _cdf_points(np.maximum(np.asarray(t_error), 1e-7))  # (exact zeros at the axis' floor)
+            t_ax.plot(x, y, label=f"{part}: {len(t_error):,} rays hit by both")
+            x, y = _cdf_points(angle)
+            angle_ax.plot(x, y, label=part)
+    t_ax.set_xscale("log")
+    t_ax.set_xlabel("|t error| / box diagonal")
+    angle_ax.set_xscale("symlog", linthresh=1.0)
+    angle_ax.set_xlabel("normal error (degrees)")
+    for ax in (t_ax, angle_ax):
+        ax.set_ylabel("fraction of rays hit by both")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3, which="both")
+        if ax.lines:
+            ax.legend(fontsize=8, frameon=False)
+        else:  # (a model that answers no hit)
+            ax.text(0.5, 0.5, "no held-out ray hit by both", ha="center", transform=ax.transAxes)
+    views = list(silhouette_iou)
+    iou_ax.bar(range(len(views)), [silhouette_iou[v] for v in views], color="tab:blue")
+    iou_ax.set_xticks(range(len(views)), [_view_label(v) for v in views], rotation=45, ha="right", fontsize=8)
+    low = min(silhouette_iou.values(), default=1.0)
+    iou_ax.set_ylim(max(0.0, low - 0.1 * (1.0 - low) - 0.02), 1.0)
+    iou_ax.set_ylabel("silhouette intersection over union")
+    iou_ax.grid(alpha=0.3, axis="y")
+    fig.suptitle("neural vs exact: held-out rays (left, middle) and primary-ray silhouettes (right)", fontsize=10)
+    return _write_figure(fig, path)
+
+
+def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
+    """Every view's normal and depth images, exact above neural, in one figure (``shown``: view ->
+    the four images as display values in [0, 1])."""
+    from matplotlib.figure import Figure
+
+    views = list(shown)
+    rows = ("normals, exact", "normals, neural", "depth, exact", "depth, neural")
+    fig = Figure(figsize=(1.9 * len(views), 1.9 * len(rows) + 0.4), dpi=110, layout="constrained")
+    axes = fig.subplots(len(rows), len(views), squeeze=False)
+    for c, view in enumerate(views):
+        for r, image in enumerate(shown[view]):
+            ax = axes[r][c]
+            ax.imshow(np.clip(image, 0.0, 1.0), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"{_view_label(view)}\nIoU {silhouette_iou[view]:.3f}", fontsize=8)
+            if c == 0:
+                ax.set_ylabel(rows[r], fontsize=8)
+    return _write_figure(fig, path)
+
+
+def _write_figure(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)  # (as every output's folder is made)
+    write_atomically(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lower().lstrip(".")))
+    return path
