@@ -119,10 +119,9 @@ def write_results(name: str, rows: list[dict], extra: dict | None = None) -> Pat
 
 def save_figure(fig, path: Path) -> Path:
     """``fig.savefig(path)`` atomically (as `write_results`; the format from ``path``'s suffix)."""
-    from neuralrt.io.files import write_atomically
+    from neuralrt.io.plots import write_figure
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return write_atomically(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lstrip(".") or None))
+    return write_figure(fig, path)
 
 
 def read_results(name: str) -> dict:

@@ -15,7 +15,7 @@ from ..errors import NeuralRTError
 from .files import check_output_file, write_atomically
 
 __all__ = ["PLOT_SUFFIXES", "check_plot_path", "plot_problem", "training_plot_title", "write_eval_errors",
-           "write_eval_overview", "write_training_plot"]
+           "write_eval_overview", "write_figure", "write_training_plot"]
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
@@ -55,7 +55,7 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     for ax in (loss_ax, accuracy_ax, *state_ax):
         ax.set_xlabel("step")
         ax.grid(alpha=0.3, which="both")
-    return _write_figure(fig, path)
+    return write_figure(fig, path)
 
 
 def training_plot_title(method: str, mesh_name: str, record: dict) -> str:
@@ -127,7 +127,7 @@ def write_eval_errors(path, errors: dict, silhouette_iou: dict) -> Path:
     iou_ax.set_ylabel("silhouette intersection over union")
     iou_ax.grid(alpha=0.3, axis="y")
     fig.suptitle("neural vs exact: held-out rays (left, middle) and primary-ray silhouettes (right)", fontsize=10)
-    return _write_figure(fig, path)
+    return write_figure(fig, path)
 
 
 def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
@@ -149,11 +149,12 @@ def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
                 ax.set_title(f"{_view_label(view)}\nIoU {silhouette_iou[view]:.3f}", fontsize=8)
             if c == 0:
                 ax.set_ylabel(rows[r], fontsize=8)
-    return _write_figure(fig, path)
+    return write_figure(fig, path)
 
 
-def _write_figure(fig, path) -> Path:
+def write_figure(fig, path) -> Path:
+    """``fig`` saved to ``path`` atomically, in the format its suffix names, its folder made."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)  # (as every output's folder is made)
-    write_atomically(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lower().lstrip(".")))
+    write_atomically(path, lambda tmp: fig.savefig(tmp, format=path.suffix.lower().lstrip(".") or None))
     return path
