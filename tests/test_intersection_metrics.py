@@ -42,7 +42,7 @@ def test_a_hole_at_the_top_shows_in_the_view_from_above():
             hits.hit[top] = False
             return hits
 
-    r = evaluate_model(Holed(), mesh, rays=4096, cameras=4, resolution=48)["images"]["silhouette_iou_per_view"]
+    r = evaluate_model(Holed(), mesh, rays=4096, cameras=4, resolution=48, timing=False)["images"]["silhouette_iou_per_view"]
     assert r["+y"] < 0.9 and min(r[v] for v in ("0", "1", "2", "3", "+x", "-x", "+z", "-z")) > 0.95  # (0.86; 0.97)
 
 
@@ -85,5 +85,41 @@ def test_eval_figures_show_every_view_and_both_ray_sets(tmp_path):
         def intersect(self, rays):
             return Hits.empty(len(rays))
 
-    r = evaluate_model(NeverHits(), mesh, rays=1024, cameras=2, resolution=16, image_dir=tmp_path / "none")["images"]
+    r = evaluate_model(NeverHits(), mesh, rays=1024, cameras=2, resolution=16, image_dir=tmp_path / "none",
+                       timing=False)["images"]
     assert r["silhouette_iou"] == 0.0 and (tmp_path / "none" / "errors.png").stat().st_size > 0
+
+
+def test_speed_and_memory_are_measured_against_exact_tracing_in_the_same_run():
+    from neuralrt.eval.costs import same_run_speed
+    from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel
+
+    mesh = sphere(subdivisions=3)
+    exact = MeshBLAS(mesh)
+    model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq")).eval()
+    r = evaluate_model(model, mesh, rays=2048, images=False)
+    assert r["memory"]["model_bytes"] == model.memory_bytes().total and r["memory"]["bvh_a_bytes"] > 0
+    assert r["memory"]["bvh_a_over_model"] == pytest.approx(r["memory"]["bvh_a_bytes"] / r["memory"]["model_bytes"])
+    speed = r["speed"]
+    assert speed["rays"] == 2048 and speed["exact_backend"] == "embree" and speed["device"] == "cpu"
+    for query in ("intersect", "occluded"):
+        q = speed[query]
+        assert q["neural_rays_per_second"] > 0 and q["exact_rays_per_second"] > 0
+        assert q["neural_over_exact"] == pytest.approx(q["neural_rays_per_second"] / q["exact_rays_per_second"])
+    assert "speed" not in evaluate_model(model, mesh, rays=256, images=False, timing=False)
+
+    class Slow:  # exact tracing made 20 ms slower a call: the ratio follows
+        bounds, backend = exact.bounds, "slowed"
+
+        def intersect(self, rays):
+            import time
+
+            time.sleep(0.02)
+            return exact.intersect(rays)
+
+        occluded = intersect
+
+    rays = Rays(torch.zeros(64, 3), torch.tensor([[0.0, 0.0, 1.0]]).expand(64, 3).contiguous())
+    timed = same_run_speed(exact, Slow(), rays, repeats=3)
+    assert timed["exact_backend"] == "slowed" and timed["intersect"]["neural_over_exact"] > 5
+    assert timed["intersect"]["exact_rays_per_second"] < 64 / 0.02

@@ -117,7 +117,7 @@ def test_json_output_is_strict(tmp_path, capsys):
 
 
 def test_system_errors_are_one_line(monkeypatch, capsys):
-    def refuse(path):
+    def refuse(path, **options):
         raise PermissionError(13, "Permission denied", "/somewhere/model.nrt")
 
     monkeypatch.setattr(api, "info", refuse)

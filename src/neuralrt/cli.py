@@ -132,14 +132,15 @@ def _cmd_train(args) -> None:
 
 def _cmd_evaluate(args) -> None:
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
-                          image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch)
+                          image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch,
+                          timing=not args.no_timing)
     if args.json:
         _print_result(result, True)
         return
     for part in ("outside", "surface"):
         print(f"{part}:")
         _print_result(result[part], False)
-    for part in ("images", "features"):
+    for part in ("images", "features", "memory", "speed"):
         if part in result:
             print(f"{part}:")
             _print_result(result[part], False)
@@ -261,6 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     images.add_argument("--no-images", action="store_true", help="skip the orbit-camera images")
     p.add_argument("--allow-mesh-mismatch", action="store_true",
                    help="evaluate even if the model was trained on another mesh (default: an error)")
+    p.add_argument("--no-timing", action="store_true",
+                   help="skip the speed figures (rays/s of the model and of exact tracing on the held-out rays)")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)
 

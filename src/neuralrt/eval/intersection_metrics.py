@@ -198,11 +198,14 @@ def evaluate_model(
     cameras: int = 4,
     resolution: int = 256,
     image_dir: str | Path | None = None,
+    timing: bool = True,
 ) -> dict:
     """Held-out metrics of ``model_blas`` on ``mesh`` (see module docstring); a JSON-able dict.
 
     Keys: ``outside`` and ``surface`` (each from `ray_metrics`), ``images`` (``normal_flip``,
-    ``depth_flip``), and, for models with voxel features, ``features`` (how often H truncates).
+    ``depth_flip``), for models with voxel features ``features`` (how often H truncates), for
+    models ``memory`` (against BVH A / B, `neuralrt.eval.costs`), and with ``timing`` ``speed``
+    (rays/s of the model and of exact tracing on the held-out rays, in this run).
     """
     neural = is_neural(model_blas)
     device = model_blas.device if neural else torch.device("cpu")
@@ -221,6 +224,14 @@ def evaluate_model(
             name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel])
             for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))
         }
+    if neural:
+        from .costs import memory_against_bvh
+
+        result["memory"] = memory_against_bvh(model_blas, mesh)
+    if timing:
+        from .costs import same_run_speed
+
+        result["speed"] = same_run_speed(model_blas, exact, batch.rays)
     if images:
         out_dir = Path(image_dir) if image_dir else None
         result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir)
