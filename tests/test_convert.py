@@ -11,6 +11,7 @@ import torch
 
 from neuralrt.accel.mesh_blas import MeshBLAS
 from neuralrt.errors import SceneError
+from neuralrt.geometry.mesh import load_mesh
 from neuralrt.methods.lsnif import LSNIFModel
 from neuralrt.rays import Rays
 from neuralrt.render.integrator import render
@@ -313,6 +314,34 @@ def test_group_keeps_textures(tmp_path):
     assert albedo[0, 0] > 0.6 > albedo[0, 2]  # the striped ball's red half
     assert albedo[1, 2] > 0.6 > albedo[1, 0]  # its blue half
     assert torch.allclose(albedo[2], torch.ones(3))  # the plain one: the default white
+
+
+def test_group_keeps_vertex_colours(tmp_path):
+    # A ball coloured per vertex (red where x < 0, blue where x > 0) grouped with a plain one: the
+    # merged OBJ writes ``v x y z r g b`` (white on the plain ball), so camera rays still see the colours
+    # (they were dropped with a warning).
+    import warnings
+
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    colours = np.where(ball.vertices[:, :1] < 0, [[230, 20, 20, 255]], [[20, 40, 230, 255]]).astype(np.uint8)
+    trimesh.Trimesh(ball.vertices, ball.faces, vertex_colors=colours, process=False).export(tmp_path / "painted.obj")
+    assert load_mesh(tmp_path / "painted.obj").vertex_colors is not None
+    ball.export(tmp_path / "plain.obj")
+    _two_balls_scene(tmp_path, "painted", "plain")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "vertex colours not carried" warning any more
+        convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
+                      steps=20, batch=1024, seed=0, progress=False)
+    scene = load_scene(tmp_path / "out" / "scene.toml")
+    merged = scene.accel.instances[0].camera_blas.mesh
+    assert merged.vertex_colors is not None and len(merged.materials) == 1
+    rays = Rays(torch.tensor([[-1.6, 0.0, 4.0], [-0.8, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 3))
+    albedo = scene.accel.instances[0].camera_blas.intersect(rays).albedo
+    assert albedo[0, 0] > 0.6 > albedo[0, 2]  # the painted ball's red half
+    assert albedo[1, 2] > 0.6 > albedo[1, 0]  # its blue half
+    assert torch.allclose(albedo[2], torch.ones(3))  # the plain one: white, as it was
 
 
 def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path):

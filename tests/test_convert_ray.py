@@ -56,9 +56,11 @@ _RUN_HISTORY = ("seconds", "rays_per_second", "resumed_from", "final_loss", "fin
 
 
 def _model_part(header: dict) -> dict:
-    """A model file's header minus its run history (`_RUN_HISTORY`) and the header's digest (which covers the history)."""
-    return {**{k: v for k, v in header.items() if k != "header_sha256"},
-            "training": {k: v for k, v in header["training"].items() if k not in _RUN_HISTORY}}
+    """A model file's header minus its run history (`_RUN_HISTORY`, the curve's seconds) and the
+    header's digest (which covers the history)."""
+    training = {k: v for k, v in header["training"].items() if k not in _RUN_HISTORY}
+    training["curve"] = {k: v for k, v in training["curve"].items() if k != "seconds"}
+    return {**{k: v for k, v in header.items() if k != "header_sha256"}, "training": training}
 
 
 def _models(folder: Path) -> dict[str, dict]:

@@ -169,3 +169,57 @@ def test_relative_indices_after_an_absolute_one_are_found_too(tmp_path):
     # (only faces whose first index was relative were rewritten: "f 1 -2 -1" was counted from the file's end)
     obj = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 -2 -1\nv 5 5 5\nv 6 5 5\nv 5 6 5\nf 4 -2 -1\n"
     np.testing.assert_array_equal(load_mesh(_write(tmp_path, obj)).faces, [[0, 1, 2], [3, 4, 5]])
+
+
+def _coloured_grid(materials: bool, uvs: bool) -> tuple[str, dict]:
+    """A 4x4 grid of vertices whose colour follows its position (so a colour found on a loaded
+    vertex says whether it came from that vertex), two material groups, optional UVs and normals."""
+    lines, colour_at = [], {}
+    for j in range(4):
+        for i in range(4):
+            rgb = (i / 3, j / 3, 0.25 + 0.25 * ((i + j) % 3))
+            colour_at[(float(i), float(j))] = rgb
+            lines.append(f"v {i} {j} 0 {rgb[0]:.6f} {rgb[1]:.6f} {rgb[2]:.6f}")
+            lines.append(f"vt {i / 3} {j / 3}")  # (one per vertex; with UVs and normals trimesh unmerges)
+    lines.append("vn 0 0 1")
+    faces = []
+    for j in range(3):
+        for i in range(3):
+            a, b, c, d = (j * 4 + i + 1, j * 4 + i + 2, (j + 1) * 4 + i + 2, (j + 1) * 4 + i + 1)
+            corner = "{0}/{0}/1" if uvs else "{0}"
+            faces.append((j, [" ".join(["f", *(corner.format(k) for k in tri)]) for tri in ((a, b, c), (a, c, d))]))
+    for group in (0, 1):
+        if materials:
+            lines.append(f"usemtl {'red' if group == 0 else 'blue'}")
+        lines += [f for j, pair in faces if (j == 0) == (group == 0) for f in pair]
+    return ("mtllib m.mtl\n" if materials else "") + "\n".join(lines) + "\n", colour_at
+
+
+@pytest.mark.parametrize("uvs", [False, True])
+def test_vertex_colours_beside_materials_are_kept(tmp_path, uvs):
+    """``v x y z r g b`` in a file with materials (a coloured scan as MeshLab writes it): trimesh
+    dropped the colours of every part with a material; each vertex now keeps its own, as without."""
+    text, colour_at = _coloured_grid(materials=True, uvs=uvs)
+    mesh = load_mesh(_write(tmp_path, text, mtl="newmtl red\nKd 1 0 0\n\nnewmtl blue\nKd 0 0 1\n"))
+    assert sorted(m.name for m in mesh.materials) == ["blue", "red"] and mesh.num_triangles == 18
+    assert mesh.vertex_colors is not None
+    expected = np.array([colour_at[(float(x), float(y))] for x, y, _ in mesh.vertices], np.float32)
+    np.testing.assert_allclose(mesh.vertex_colors, srgb_to_linear(np.round(expected * 255) / 255), atol=1e-6)
+    plain_text, _ = _coloured_grid(materials=False, uvs=uvs)
+    (tmp_path / "plain").mkdir()
+    plain = load_mesh(_write(tmp_path / "plain", plain_text))
+    by_position = {tuple(v): c for v, c in zip(plain.vertices.tolist(), plain.vertex_colors.tolist())}
+    assert all(by_position[tuple(v)] == c for v, c in zip(mesh.vertices.tolist(), mesh.vertex_colors.tolist()))
+
+
+def test_a_file_without_vertex_colours_is_parsed_once(tmp_path, monkeypatch):
+    import trimesh.exchange.obj
+
+    def no_second_parse(*args, **kwargs):
+        raise AssertionError("parsed again")
+
+    monkeypatch.setattr(trimesh.exchange.obj, "load_obj", no_second_parse)  # (trimesh.load holds its own reference)
+    text, _ = _coloured_grid(materials=True, uvs=True)
+    text = re.sub(r"(?m)^(v \S+ \S+ \S+) .*$", r"\1", text)
+    mesh = load_mesh(_write(tmp_path, text, mtl="newmtl red\nKd 1 0 0\n\nnewmtl blue\nKd 0 0 1\n"))
+    assert mesh.vertex_colors is None and len(mesh.materials) == 2

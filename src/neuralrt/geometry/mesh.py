@@ -20,7 +20,7 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import gltf_file_notes, gltf_header, gltf_material_extras
-from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names
+from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
 
@@ -319,11 +319,12 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 # --- loading --------------------------------------------------------------------------------
 
 
-def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=None, linear_colors: bool = False,
+def _material_from_visual(visual, fallback_name: str, where: str, kept_colors=None, linear_colors: bool = False,
                           base_color=None) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
     """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
-    mesh file, for warnings about a texture that cannot be decoded). ``gltf_colors``: a glTF
-    primitive's COLOR_0 as trimesh reads it beside a material; ``linear_colors``: vertex colours are
+    mesh file, for warnings about a texture that cannot be decoded). ``kept_colors``: vertex colours
+    beside a material, a glTF primitive's COLOR_0 as trimesh reads it or an OBJ's linear colours
+    (`_keep_obj_colours`); ``linear_colors``: vertex colours are
     linear (glTF's), not sRGB (PLY's, OBJ's); ``base_color``: a glTF material's base colour factor
     as the file writes it (trimesh keeps 8 bits)."""
     uv = colors = None
@@ -334,12 +335,13 @@ def _material_from_visual(visual, fallback_name: str, where: str, gltf_colors=No
         uv = None if visual.uv is None else np.asarray(visual.uv, np.float32)
         material.name = getattr(mat, "name", None) or fallback_name
         if hasattr(mat, "baseColorFactor"):  # glTF PBR
-            colors = None if gltf_colors is None else _accessor_colors(gltf_colors, where)
+            colors = None if kept_colors is None else _accessor_colors(kept_colors, where)
             _pbr_colour(material, mat, uv, where, base_color)
             normals = getattr(mat, "normalTexture", None)
             if normals is not None and _has_uvs(uv, "normal map", material.name, where):
                 material.normal_map = _normal_map(normals, material.name, where)
             return material, uv, colors
+        colors = None if kept_colors is None else _accessor_colors(kept_colors, where)  # (an OBJ's, linear)
         if _is_placeholder(mat):  # UVs but no material (no or a missing MTL): white, as without UVs
             return material, uv, colors
         statements = getattr(mat, "kwargs", None) or {}  # (the MTL's statements trimesh passes on unread)
@@ -391,11 +393,37 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
 
 
+def _keep_obj_colours(loaded, data: bytes, path: Path) -> None:
+    """An OBJ's ``v x y z r g b`` colours (`vertex_colours_of_parts`), which trimesh drops beside a
+    material, put where a glTF's are found (`_kept_colours`): the visual's ``vertex_attributes``, linear.
+    ``loaded``: trimesh's Scene of the file's parts, or its one part."""
+    if getattr(loaded, "visual", None) is not None and getattr(loaded.visual, "kind", None) != "texture":
+        return  # (a lone part without a material: trimesh kept its colours)
+    with unread_assets():  # (what this second read cannot find, the first has said)
+        colours = vertex_colours_of_parts(data, regular_files_resolver(str(path))) or {}
+    named = loaded.geometry.items() if hasattr(loaded, "geometry") else [(None, loaded)]
+    for name, geometry in named:
+        visual = getattr(geometry, "visual", None)
+        srgb = colours.get(name) if name is not None else next(iter(colours.values())) if len(colours) == 1 else None
+        if srgb is not None and getattr(visual, "kind", None) == "texture" and len(srgb) == len(geometry.vertices):
+            visual.vertex_attributes["color"] = srgb_to_linear(srgb)
+
+
+def _kept_colours(geometry) -> np.ndarray | None:
+    """Vertex colours a part keeps beside a material (a texture visual's ``vertex_attributes``: a
+    glTF COLOR_0, an OBJ's from `_keep_obj_colours`), or None (none, or one of another length)."""
+    visual = getattr(geometry, "visual", None)
+    attributes = getattr(visual, "vertex_attributes", None)
+    color = attributes.get("color") if getattr(visual, "kind", None) == "texture" and attributes else None
+    return color if color is not None and len(color) == len(geometry.vertices) else None
+
+
 def _scene_parts(scene) -> tuple[list, list]:
     """A trimesh Scene's triangle meshes moved to their instances' places, as ``Scene.dump`` does,
     keeping what its copies drop: the file's vertex normals (trimesh's cache, which
-    ``apply_transform`` turns with the part) and a glTF COLOR_0 beside a material (the visual's
-    ``vertex_attributes``; None where there is none, or one of another length), one per part."""
+    ``apply_transform`` turns with the part) and vertex colours beside a material (the visual's
+    ``vertex_attributes``: a glTF COLOR_0, an OBJ's from `_keep_obj_colours`; None where there is
+    none, or one of another length), one per part."""
     from trimesh import Trimesh
 
     parts, colors = [], []
@@ -407,9 +435,7 @@ def _scene_parts(scene) -> tuple[list, list]:
         part = geometry.copy(include_cache=True)
         part.apply_transform(transform)
         parts.append(part)
-        attributes = getattr(geometry.visual, "vertex_attributes", None)
-        color = attributes.get("color") if getattr(geometry.visual, "kind", None) == "texture" and attributes else None
-        colors.append(color if color is not None and len(color) == len(part.vertices) else None)
+        colors.append(_kept_colours(geometry))
     return parts, colors
 
 
@@ -585,14 +611,18 @@ def load_mesh(path: str | Path) -> Mesh:
     used_materials: set[str] = set()
     try:
         with unread_assets() as unread:
-            source = dict(file_obj=str(path))
+            source, obj_bytes = dict(file_obj=str(path)), None
             if suffix == ".obj":  # (read once here: trimesh reads the bytes as they are, or as cleaned)
                 data = path.read_bytes()
                 used_materials = used_material_names(data)
                 cleaned = clean_obj_text(data)
-                source = dict(file_obj=io.BytesIO(data if cleaned is None else cleaned), file_type="obj")
+                obj_bytes = data if cleaned is None else cleaned
+                source = dict(file_obj=io.BytesIO(obj_bytes), file_type="obj")
                 data = cleaned = None
             loaded = trimesh.load(**source, process=False, resolver=regular_files_resolver(str(path)))
+        if obj_bytes is not None and isinstance(loaded, (trimesh.Scene, trimesh.Trimesh)):
+            _keep_obj_colours(loaded, obj_bytes, path)
+        source = obj_bytes = None
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
@@ -604,15 +634,15 @@ def load_mesh(path: str | Path) -> Mesh:
         _read_what_trimesh_drops(loaded, path)
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
-        parts, gltf_colors = _scene_parts(loaded)
+        parts, kept_colors = _scene_parts(loaded)
     elif isinstance(loaded, trimesh.Trimesh):
-        parts, gltf_colors = [loaded], [None]
+        parts, kept_colors = [loaded], [_kept_colours(loaded)]
     else:
-        parts, gltf_colors = [], []
+        parts, kept_colors = [], []
     cut_short = truncation_problem(path, sum(len(p.vertices) for p in parts), sum(len(p.faces) for p in parts))
     if cut_short:
         raise MeshError(f"{path}: {cut_short}")
-    gltf_colors = [c for p, c in zip(parts, gltf_colors) if len(p.faces)]
+    kept_colors = [c for p, c in zip(parts, kept_colors) if len(p.faces)]
     parts = [p for p in parts if len(p.faces)]
     if not parts:
         raise MeshError(f"{path}: file contains no triangles")
@@ -625,7 +655,7 @@ def load_mesh(path: str | Path) -> Mesh:
     any_uv = any(getattr(p.visual, "kind", None) == "texture" and getattr(p.visual, "uv", None) is not None for p in parts)
     face_colors_of = [_varying_face_colors(p.visual) for p in parts]  # (None for most parts: small)
     any_color = any(getattr(p.visual, "kind", None) == "vertex" for p in parts) \
-        or any(c is not None for c in face_colors_of) or any(c is not None for c in gltf_colors)
+        or any(c is not None for c in face_colors_of) or any(c is not None for c in kept_colors)
     for i in range(len(parts)):
         part, parts[i] = parts[i], None  # each part's trimesh arrays go once it is copied
         v = _as_float32(part.vertices)
@@ -638,9 +668,9 @@ def load_mesh(path: str | Path) -> Mesh:
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
         extras = extras_of.get(getattr(getattr(part.visual, "material", None), "name", None))  # (glTF: what trimesh drops)
-        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), gltf_colors[i], gltf,
+        material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), kept_colors[i], gltf,
                                                   None if extras is None else extras.base_color)
-        gltf_colors[i] = None
+        kept_colors[i] = None
         if extras is not None:
             uv = None if uv is None else extras.transformed_uvs(uv)
             if material.normal_map is not None:

@@ -17,6 +17,9 @@ is grey. ``-bm`` scales it as glTF's ``normalTexture.scale`` does (x and y of ea
 normalised); a statement that moves or scales the map's UVs (``-o``, ``-s``, ``-t``) or picks one
 channel of it (``-imfchan``: a height map) is left out with a reason, rather than shading with a
 map placed wrong.
+
+Read again where trimesh drops it (`vertex_colours_of_parts`): ``v x y z r g b`` colours in a file
+with materials (as MeshLab and photogrammetry tools write a coloured scan).
 """
 
 from __future__ import annotations
@@ -213,6 +216,30 @@ def _triangles(corners: list[str], positions: list) -> list[list[str]]:
 
 
 _USEMTL = re.compile(rb"\n[ \t]*usemtl[ \t]+([^\r\n]*)")  # (starts at a line end: a check per line, not per byte)
+
+
+_FIRST_VERTEX = re.compile(rb"(?m)^[ \t]*v[ \t]+([^\r\n]*)")
+
+
+def vertex_colours_of_parts(data: bytes, resolver) -> dict[str, np.ndarray] | None:
+    """An OBJ's ``v x y z r g b`` colours, which trimesh drops from every part with a material:
+    part name (as trimesh names the parts of a Scene from the same bytes) -> [V, 3] sRGB in [0, 1],
+    8-bit as trimesh keeps them without a material, aligned with that part's vertices. None where
+    the file's vertices hold no colours (trimesh reads them when the first ``v`` has six values)."""
+    first = _FIRST_VERTEX.search(data)
+    if first is None or len(first.group(1).split()) < 6:
+        return None
+    import io
+
+    from trimesh.exchange.obj import load_obj
+    from trimesh.visual.color import to_rgba
+
+    # (trimesh parses the file again: its parts' vertices are unmerged by UV and normal, so this
+    # is how its colours line up with them; only coloured files with materials pay it)
+    loaded = load_obj(io.BytesIO(data), resolver=resolver)
+    geometry = loaded.get("geometry", {}) if isinstance(loaded, dict) else {}
+    return {name: to_rgba(kw["vertex_colors"])[:, :3].astype(np.float32) / np.float32(255.0)
+            for name, kw in geometry.items() if isinstance(kw, dict) and kw.get("vertex_colors") is not None}
 
 
 def used_material_names(data: bytes) -> set[str]:

@@ -8,8 +8,8 @@ moved, re-lit and re-materialised without retraining. Models are cached in a mod
 ``group=True`` is the paper's granularity option: all selected objects are merged (in world space)
 into one mesh and one model; the merged mesh is written beside the models so camera rays can still
 be answered exactly. It keeps each mesh slot's colour and texture (the model learns them as it
-would per object; textures and normal maps are written as PNGs beside the merged OBJ); vertex colours are not
-carried over (a warning says whose).
+would per object; textures and normal maps are written as PNGs beside the merged OBJ) and vertex
+colours (``v x y z r g b``, 8-bit sRGB as OBJ readers take them; white on objects without).
 """
 
 from __future__ import annotations
@@ -162,19 +162,14 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
     their own colours, textures and normal maps (a textured slot's colour is multiplied into its
     texture: an OBJ's ``map_Kd`` replaces ``Kd``). A normal map stays valid in world space: its
     tangent frame follows the transformed positions and UVs."""
-    import warnings
 
     index = material_index(spec)
     slot_of: dict[tuple, int] = {}  # (scene material, colour bytes, texture's id) -> merged slot
     materials: list[MeshMaterial] = []
     mapping: dict[str, str] = {}
-    verts, faces, normals, uvs, mat_ids = [], [], [], [], []
-    # (An OBJ with materials keeps no vertex colours in trimesh, and the merged mesh goes through one.)
-    coloured = [spec.objects[i].name for i in objects if meshes[i].vertex_colors is not None]
-    if coloured:
-        warnings.warn(f"group: the vertex colours of {', '.join(coloured)} are not carried into the merged mesh (its "
-                      "slot colours and textures are); convert without --group to keep them", stacklevel=3)
+    verts, faces, normals, uvs, colours, mat_ids = [], [], [], [], [], []
     any_uv = any(meshes[i].uvs is not None for i in objects)
+    any_colour = any(meshes[i].vertex_colors is not None for i in objects)
     offset = 0
     for i in objects:
         obj, mesh = spec.objects[i], meshes[i]
@@ -184,6 +179,8 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
         faces.append(mesh.faces + offset)
         if any_uv:
             uvs.append(mesh.uvs if mesh.uvs is not None else np.zeros((len(mesh.vertices), 2), np.float32))
+        if any_colour:  # (colours multiply the slot's colour: white leaves an uncoloured object as it was)
+            colours.append(mesh.vertex_colors if mesh.vertex_colors is not None else np.ones((len(mesh.vertices), 3), np.float32))
         slot_to_merged = []
         for slot in mesh.materials:
             target = scene_material_for(obj, slot.name, index)
@@ -205,7 +202,7 @@ def _merged_world_mesh(spec: SceneSpec, objects: list[int], meshes: list[Mesh]) 
         offset += len(mesh.vertices)
     merged = Mesh(np.concatenate(verts), np.concatenate(faces), vertex_normals=np.concatenate(normals),
                   uvs=np.concatenate(uvs) if any_uv else None, face_material_ids=np.concatenate(mat_ids),
-                  materials=materials, name="group")
+                  vertex_colors=np.concatenate(colours) if any_colour else None, materials=materials, name="group")
     return merged, mapping
 
 
@@ -229,7 +226,8 @@ def _obj_round_trip(mesh: Mesh, folder: Path) -> Mesh:
 
 
 def write_mesh_obj(mesh: Mesh, path: Path) -> None:
-    """Write positions, normals, UVs and per-face material groups as OBJ (+ MTL: each slot's colour
+    """Write positions (with vertex colours, sRGB, after them: ``v x y z r g b``), normals, UVs and
+    per-face material groups as OBJ (+ MTL: each slot's colour
     as ``Kd``, sRGB as OBJ readers and `load_mesh` take it; a textured slot's texture as an 8-bit
     sRGB PNG beside it, ``map_Kd``; a normal map as an 8-bit PNG of its stored values, ``norm``),
     each file atomically (`neuralrt.io.files.write_atomically`)."""
@@ -238,7 +236,11 @@ def write_mesh_obj(mesh: Mesh, path: Path) -> None:
     path = Path(path)
     mtl = path.with_suffix(".mtl")
     lines = [f"mtllib {mtl.name}"]
-    lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in mesh.vertices]
+    if mesh.vertex_colors is None:
+        lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in mesh.vertices]
+    else:
+        srgb = linear_to_srgb(np.clip(mesh.vertex_colors, 0.0, 1.0))
+        lines += [f"v {x:.9g} {y:.9g} {z:.9g} {r:.6g} {g:.6g} {b:.6g}" for (x, y, z), (r, g, b) in zip(mesh.vertices, srgb)]
     lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in mesh.vertex_normals]
     corner = "{0}//{0}"
     if mesh.uvs is not None:

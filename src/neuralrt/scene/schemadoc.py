@@ -87,7 +87,8 @@ mesh in the file's world space (glTF node transforms applied). A file's own norm
 every part (else smooth angle-weighted ones are computed; flat ones for glTF, as its spec says). MTL `Kd` / `map_Kd` and PLY or OBJ
 vertex colours are sRGB; glTF's `baseColorFactor` (as written, where trimesh keeps 8 bits) and
 `COLOR_0` are linear, its texture sRGB. OFF colours (`COFF` vertex colours, colours after a
-triangle's corners; 0-255 or 0-1) are read as sRGB, which trimesh's OFF reader leaves out.
+triangle's corners; 0-255 or 0-1) are read as sRGB, which trimesh's OFF reader leaves out, as are
+OBJ `v x y z r g b` colours in a file with materials, which trimesh drops.
 OBJ and MTL text is read as the file means where trimesh would misread it (relative face indices,
 comments after values, a byte-order mark, one-value colours, `map_Kd` options, several files on
 one `mtllib` line; faces of five corners or more split by ear clipping, where trimesh's fan
