@@ -31,6 +31,11 @@ def test_the_record_keeps_every_steps_loss_and_a_resumed_run_the_same_curve(tmp_
     assert set(curve["losses"]) == {"occlusion", "distance", "normal", "albedo"} and curve["states"] == {}
     assert all(0.0 <= a <= 1.0 for a in curve["hit_accuracy"]) and curve["seconds"] == sorted(curve["seconds"])
     assert curve["loss"][-1] < curve["loss"][0]
+    # the record's own running means (over its 50-step window: all 7 steps here) agree
+    assert straight.final_loss == pytest.approx(sum(curve["loss"]) / 7, rel=1e-5)
+    assert straight.hit_accuracy == pytest.approx(sum(curve["hit_accuracy"]) / 7, rel=1e-5)  # (equal batches)
+    for term, values in curve["losses"].items():
+        assert straight.final_losses[term] == pytest.approx(sum(values) / 7, rel=1e-5, abs=1e-9)
     # the weighted sum the optimizer minimizes: LSNIF's loss weights are all 1
     assert curve["loss"][3] == pytest.approx(sum(v[3] for v in curve["losses"].values()), rel=1e-4)
 
