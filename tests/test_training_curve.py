@@ -94,6 +94,10 @@ def test_a_run_given_more_steps_keeps_its_short_last_bin_exact():
     (lambda c: c["step"].reverse(), "not increasing"),
     (lambda c: c["step"].__setitem__(0, 0.5), "not increasing"),
     (lambda c: c.update(open={"steps": 1}), "open bin"),
+    (lambda c: c.update(open={"steps": "1", "loss": 0.5, "correct": 1, "count": 2, "losses": {}, "end": 21, "seconds": 1.0}),
+     "open bin"),
+    (lambda c: c.update(open={"steps": 1, "loss": 0.5, "correct": 1, "count": 2, "losses": {"a": None}, "end": 21,
+                              "seconds": 1.0}), "open bin"),
 ])
 def test_a_malformed_curve_is_named(change, problem):
     from neuralrt.training.trainer import TrainingRecord

@@ -6,7 +6,8 @@ false positive and negative rates, |t error| relative to the box diagonal, norma
 material accuracy; then it renders primary normal and depth images of the object from orbit
 cameras, neural vs exact, and compares them with FLIP, and from those and six axis views (along
 +-x, +-y, +-z, where a scene's camera most often looks, and where an undertrained model's holes
-at the surface's extreme points show) the silhouettes' intersection over union. The keys are the
+at the surface's extreme points show) the silhouettes' intersection over union. A model's memory
+and speed against exact tracing come from `neuralrt.eval.costs`. The keys are the
 `neuralrt eval --json` interface that scripts rely on.
 
 Conventions: the exact shading normal is turned to face the ray (the model is trained that way);

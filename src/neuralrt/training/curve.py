@@ -141,7 +141,20 @@ def curve_problem(stored) -> str | None:
     if any(not isinstance(s, int) for s in steps) or any(a >= b for a, b in zip([start, *steps], steps)):
         return "its steps are not increasing whole numbers"
     opened = stored.get("open")
-    if opened is not None and not (isinstance(opened, dict) and {"steps", "loss", "correct", "count", "losses", "end",
-                                                                 "seconds"} <= set(opened)):
+    if opened is not None and not _well_formed_bin(opened):
         return "its open bin is malformed"
     return None
+
+
+def _well_formed_bin(b) -> bool:
+    """Whether ``b`` holds the sums `TrainingCurve.add` keeps (a checkpoint's open bin), each of its type."""
+    def whole(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    return (isinstance(b, dict) and {"steps", "loss", "correct", "count", "losses", "end", "seconds"} <= set(b)
+            and all(whole(b[k]) for k in ("steps", "correct", "count", "end")) and b["steps"] >= 1
+            and number(b["loss"]) and number(b["seconds"]) and isinstance(b["losses"], dict)
+            and all(number(v) for v in b["losses"].values()))
