@@ -280,12 +280,25 @@ def test_group_keeps_each_meshs_own_colours(tmp_path):
     assert albedo[0, 0] > 0.6 > albedo[0, 2] and albedo[1, 2] > 0.6 > albedo[1, 0]
 
 
+def _grouped_two_balls(folder, left, right):
+    """``left`` and ``right`` (OBJs in ``folder``) converted as one group, with no warning; the
+    merged mesh and the albedo camera rays see at x = -1.6 and -0.8 (left ball) and 1.2 (right)."""
+    import warnings
+
+    _two_balls_scene(folder, left, right)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        convert_scene(folder / "scene.toml", folder / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
+                      steps=20, batch=1024, seed=0, progress=False)
+    group = load_scene(folder / "out" / "scene.toml").accel.instances[0]
+    rays = Rays(torch.tensor([[-1.6, 0.0, 4.0], [-0.8, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 3))
+    return group.camera_blas.mesh, group.camera_blas.intersect(rays).albedo
+
+
 def test_group_keeps_textures(tmp_path):
     # A textured ball (red where x < 0, blue where x > 0, by u) grouped with a plain grey one: the
     # merged mesh keeps the texture (written as a PNG beside its OBJ), so camera rays still see it
     # (the group dropped textures with a warning).
-    import warnings
-
     import trimesh
     from PIL import Image
 
@@ -300,17 +313,9 @@ def test_group_keeps_textures(tmp_path):
     lines += ["usemtl paint"] + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in ball.faces]
     (tmp_path / "ball.obj").write_text("\n".join(lines) + "\n")
     ball.export(tmp_path / "plain.obj")
-    _two_balls_scene(tmp_path, "ball", "plain")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no "textures not carried" warning any more
-        convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
-                      steps=20, batch=1024, seed=0, progress=False)
-    scene = load_scene(tmp_path / "out" / "scene.toml")
-    merged = scene.accel.instances[0].camera_blas.mesh
+    merged, albedo = _grouped_two_balls(tmp_path, "ball", "plain")  # (no "textures not carried" warning any more)
     assert sum(m.texture is not None for m in merged.materials) == 1 and merged.uvs is not None
     assert list((tmp_path / "out" / "models").glob("*-texture*.png"))
-    rays = Rays(torch.tensor([[-1.6, 0.0, 4.0], [-0.8, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 3))
-    albedo = scene.accel.instances[0].camera_blas.intersect(rays).albedo
     assert albedo[0, 0] > 0.6 > albedo[0, 2]  # the striped ball's red half
     assert albedo[1, 2] > 0.6 > albedo[1, 0]  # its blue half
     assert torch.allclose(albedo[2], torch.ones(3))  # the plain one: the default white
@@ -320,8 +325,6 @@ def test_group_keeps_vertex_colours(tmp_path):
     # A ball coloured per vertex (red where x < 0, blue where x > 0) grouped with a plain one: the
     # merged OBJ writes ``v x y z r g b`` (white on the plain ball), so camera rays still see the colours
     # (they were dropped with a warning).
-    import warnings
-
     import trimesh
 
     ball = trimesh.creation.icosphere(subdivisions=3)
@@ -329,16 +332,8 @@ def test_group_keeps_vertex_colours(tmp_path):
     trimesh.Trimesh(ball.vertices, ball.faces, vertex_colors=colours, process=False).export(tmp_path / "painted.obj")
     assert load_mesh(tmp_path / "painted.obj").vertex_colors is not None
     ball.export(tmp_path / "plain.obj")
-    _two_balls_scene(tmp_path, "painted", "plain")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no "vertex colours not carried" warning any more
-        convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "scene.toml", group=True, min_triangles=100, preset="lq",
-                      steps=20, batch=1024, seed=0, progress=False)
-    scene = load_scene(tmp_path / "out" / "scene.toml")
-    merged = scene.accel.instances[0].camera_blas.mesh
+    merged, albedo = _grouped_two_balls(tmp_path, "painted", "plain")  # (no "vertex colours not carried" warning any more)
     assert merged.vertex_colors is not None and len(merged.materials) == 1
-    rays = Rays(torch.tensor([[-1.6, 0.0, 4.0], [-0.8, 0.0, 4.0], [1.2, 0.0, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 3))
-    albedo = scene.accel.instances[0].camera_blas.intersect(rays).albedo
     assert albedo[0, 0] > 0.6 > albedo[0, 2]  # the painted ball's red half
     assert albedo[1, 2] > 0.6 > albedo[1, 0]  # its blue half
     assert torch.allclose(albedo[2], torch.ones(3))  # the plain one: white, as it was

@@ -20,6 +20,16 @@ def _run(steps, **kw):
     return train_model(model, rays, steps=steps, batch_size=256, learning_rate=0.01, progress=False, **kw)
 
 
+def _interrupted(steps, checkpoint, every, stop_after):
+    """A run stopped (as by Ctrl-C) after step ``stop_after`` (counted from 0), checkpointing every ``every`` steps."""
+    def stop(step, optimizer):
+        if step == stop_after:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _run(steps, checkpoint=checkpoint, checkpoint_every=every, on_step=stop)
+
+
 def _without_seconds(curve):
     return {k: v for k, v in curve.items() if k != "seconds"}
 
@@ -40,13 +50,7 @@ def test_the_record_keeps_every_steps_loss_and_a_resumed_run_the_same_curve(tmp_
     assert curve["loss"][3] == pytest.approx(sum(v[3] for v in curve["losses"].values()), rel=1e-4)
 
     ckpt = tmp_path / "run.nrt"
-
-    def stop_at_5(step, optimizer):
-        if step == 5:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        _run(7, checkpoint=ckpt, checkpoint_every=3, on_step=stop_at_5)
+    _interrupted(7, ckpt, every=3, stop_after=5)
     resumed = _run(7, checkpoint=ckpt, checkpoint_every=3, resume=True)
     assert resumed.resumed_from == 3 and _without_seconds(resumed.curve) == _without_seconds(curve)
 
@@ -91,13 +95,7 @@ def test_an_interrupted_runs_checkpoint_draws_its_curve_so_far(tmp_path, capsys)
     from neuralrt import api
 
     ckpt = tmp_path / "run.nrt.ckpt"
-
-    def stop_at_5(step, optimizer):
-        if step == 5:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        _run(9, checkpoint=ckpt, checkpoint_every=4, on_step=stop_at_5)
+    _interrupted(9, ckpt, every=4, stop_after=5)
     result = api.info(ckpt, plot=tmp_path / "so_far.png")
     assert result["kind"] == "checkpoint" and result["training"]["curve"]["step"] == [1, 2, 3, 4]
     assert (tmp_path / "so_far.png").stat().st_size > 0
