@@ -101,7 +101,9 @@ def test_speed_and_memory_are_measured_against_exact_tracing_in_the_same_run():
     assert r["memory"]["model_bytes"] == model.memory_bytes().total and r["memory"]["bvh_a_bytes"] > 0
     assert r["memory"]["bvh_a_over_model"] == pytest.approx(r["memory"]["bvh_a_bytes"] / r["memory"]["model_bytes"])
     speed = r["speed"]
-    assert speed["rays"] == 2048 and speed["exact_backend"] == "embree" and speed["device"] == "cpu"
+    # a fixed count of rays, whatever --rays is (2,048 calls would time their overhead)
+    assert speed["rays"] == 1 << 17 and speed["exact_backend"] == "embree" and speed["device"] == "cpu"
+    assert 0.1 < speed["exact_hit_fraction"] < 0.9
     for query in ("intersect", "occluded"):
         q = speed[query]
         assert q["neural_rays_per_second"] > 0 and q["exact_rays_per_second"] > 0

@@ -91,19 +91,41 @@ def test_train_and_info_draw_the_curve(trained, tmp_path, capsys):
     assert len(json.loads(capsys.readouterr().out)["training"]["curve"]["loss"]) == 12
 
 
-def test_an_interrupted_runs_checkpoint_draws_its_curve_so_far(tmp_path, capsys):
+def test_an_interrupted_runs_checkpoint_draws_its_curve_so_far(tmp_path, monkeypatch):
     from neuralrt import api
+    from neuralrt.io import plots
 
+    titles = []
+    draw = plots.write_training_plot
+    monkeypatch.setattr(plots, "write_training_plot", lambda path, curve, title: titles.append(title) or draw(path, curve, title))
     ckpt = tmp_path / "run.nrt.ckpt"
     _interrupted(9, ckpt, every=4, stop_after=5)
     result = api.info(ckpt, plot=tmp_path / "so_far.png")
     assert result["kind"] == "checkpoint" and result["training"]["curve"]["step"] == [1, 2, 3, 4]
-    assert (tmp_path / "so_far.png").stat().st_size > 0
+    assert result["mesh_name"] == sphere(2).name and (tmp_path / "so_far.png").stat().st_size > 0
+    # (a run without the CLI's identity records no method: the title leaves it out)
+    assert titles[-1].startswith(f"{sphere(2).name} · checkpoint of an unfinished run at step 4 (256 rays a step)")
+    resumed = _run(9, checkpoint=ckpt, checkpoint_every=4, resume=True)
+    assert plots.training_plot_title("lsnif", "ball", resumed.as_dict()).startswith("lsnif · ball · 9 steps of 256 rays (resumed at step 4)")
+
+
+def test_info_and_train_name_the_preset_a_model_was_made_from(trained, tmp_path):
+    from neuralrt import api
+    from neuralrt.methods import get_method, load_model
+
+    assert api.info(trained)["preset"] == "lq"  # (trained with --steps and --batch: still the lq preset)
+    config = load_model(trained).config
+    changed = type(config).validated({**config.model_dump(), "voxel": {**config.voxel.model_dump(), "resolution": 64}})
+    assert get_method("lsnif").preset_of(changed) is None and get_method("lsnif").preset_of(LSNIFConfig.preset("hq")) == "hq"
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "c.jpg"], "c.jpg: a plot is written as .png, .pdf, .svg"),
-    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "/proc/c.png"], "/proc: cannot write the plot there"),
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "c.jpg"], "c.jpg: a plot's file name ends in .png, .pdf, .svg"),
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", ".png"], ".png: a plot needs a file name before its suffix"),
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", ""], "--plot: expected a path"),
+    (["train", "procedural:statue:0", "-o", "m.nrt", "--plot", "/proc/c.png"],
+     "/proc: cannot write the plot there (it takes no new files)"),
+    (["eval", "procedural:statue:0", "procedural:statue:0"], "names a built-in mesh, not a model: eval takes a model file"),
     (["info", "procedural:statue:0", "--plot", "c.png"], "only a model (.nrt) or training checkpoint (.ckpt) has a training curve"),
 ])
 def test_a_plot_that_cannot_be_drawn_is_one_line_before_any_work(argv, needle, tmp_path, capsys, monkeypatch):

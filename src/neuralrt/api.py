@@ -42,7 +42,7 @@ def info(path: str | Path, plot: str | Path | None = None) -> dict:
     suffix = Path(spec).suffix.lower()
     is_model = suffix in MODEL_SUFFIXES or suffix == CHECKPOINT_SUFFIX
     if plot is not None:
-        plot = check_plot_path(check_path("plot", plot))
+        plot = check_plot_path(check_path(given("plot"), plot))
         if not is_model:
             raise NeuralRTError(f"{spec}: only a model (.nrt) or training checkpoint (.ckpt) has a training curve to plot")
     if is_model:
@@ -120,6 +120,8 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         return _plotted(_checkpoint_info(path, raw), plot)
     if path.suffix.lower() == CHECKPOINT_SUFFIX:
         raise NeuralRTError(f"{path}: a {CHECKPOINT_SUFFIX} file that holds no training checkpoint (method {raw.get('method')!r})")
+    from .methods import get_method
+
     header = read_model_header(path)
     model = load_model(path)
     report = model.memory_bytes()
@@ -127,6 +129,7 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         "kind": "model",
         "path": str(path),
         "method": header.method,
+        "preset": get_method(header.method).preset_of(model.config),  # (None: keys set past a preset's)
         "format_version": read_header(path)["format_version"],
         "reader_format_version": FORMAT_VERSION,
         "memory_bytes": report.total,
@@ -151,7 +154,9 @@ def _plotted(facts: dict, plot: Path | None) -> dict:
     if problem:
         raise ModelFileError(f"{facts['path']}: {problem}")
     name = facts.get("mesh_name") or f"mesh {str(facts.get('mesh_sha256'))[:12]}"
-    write_training_plot(plot, record["curve"], training_plot_title(str(facts["method"]), name, record))
+    label = " ".join(str(part) for part in (facts["method"], facts.get("preset")) if part)
+    step = facts["step"] if facts["kind"] == "checkpoint" else None
+    write_training_plot(plot, record["curve"], training_plot_title(label, name, record, checkpoint_step=step))
     return {**facts, "plot": str(plot)}
 
 
@@ -164,6 +169,7 @@ def _checkpoint_info(path: Path, header: dict) -> dict:
         "kind": "checkpoint",
         "path": str(path),
         "method": config.get("method"),
+        "mesh_name": header.get("mesh_name") if isinstance(header.get("mesh_name"), str) else None,
         "step": header.get("step"),
         "format_version": header.get("format_version"),
         "mesh_sha256": identity.get("mesh_sha256"),
@@ -334,7 +340,7 @@ def train(
     if plot is not None:
         from .io.plots import check_plot_path
 
-        plot = check_plot_path(check_path("plot", plot))
+        plot = check_plot_path(check_path(given("plot"), plot))
     if resume and not checkpoint.is_file():
         raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
     if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
@@ -356,7 +362,8 @@ def train(
         from .io.plots import training_plot_title, write_training_plot
 
         record = model.training_record
-        write_training_plot(plot, record["curve"], training_plot_title(f"{spec.name} {preset}", model.mesh_name, record))
+        label = " ".join(part for part in (spec.name, spec.preset_of(model.config)) if part)  # (as `info` names it)
+        write_training_plot(plot, record["curve"], training_plot_title(label, model.mesh_name, record))
         result["plot"] = str(plot)
     return result
 
@@ -406,6 +413,9 @@ def evaluate(
         if isinstance(model, Mesh):
             raise ConfigError("model: got a Mesh; evaluate(model, mesh) takes the model first")
         model = check_path("model", model)
+        if str(model).startswith("procedural:"):
+            raise ConfigError(f"{model}: names a built-in mesh, not a model: eval takes a model file (.nrt, from "
+                              "neuralrt train) first, then the mesh it was trained on")
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)
     image_dir = check_path("image_dir", image_dir, optional=True)

@@ -3,9 +3,11 @@ run (``neuralrt eval``'s ``speed`` and ``memory``).
 
 Speed: the same rays through the model and through `MeshBLAS` (Embree on the CPU, OptiX on
 CUDA), `intersect` and `occluded` each called once untimed (kernels load, caches fill), then
-``repeats`` times alternating model and exact, the median wall time of each. A ratio of two
-figures from one run on one machine, as the benchmarks report them; `benchmarks/` holds the
-controlled measurements (fixed ray sets, thread counts, idle machines).
+``repeats`` times alternating model and exact, the median wall time of each. eval times
+`TIMING_RAYS` rays of its held-out distribution (half from a sphere around the object, many of
+which miss it, half from its surface), not a render's rays: a render's speed is `bench_scenes.py`'s.
+A ratio of two figures from one run on one machine, as the benchmarks report them; `benchmarks/`
+holds the controlled measurements (fixed ray sets, thread counts, idle machines).
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ import time
 
 import torch
 
-__all__ = ["same_run_speed", "memory_against_bvh"]
+__all__ = ["TIMING_RAYS", "same_run_speed", "memory_against_bvh"]
+
+TIMING_RAYS = 1 << 17  # per call: enough that a call's fixed cost is a few percent on the CPU
 
 
 def _seconds(call, rays, device: torch.device) -> float:

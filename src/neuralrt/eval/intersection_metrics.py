@@ -230,9 +230,16 @@ def evaluate_model(
 
         result["memory"] = memory_against_bvh(model_blas, mesh)
     if timing:
-        from .costs import same_run_speed
+        from .costs import TIMING_RAYS, same_run_speed
 
-        result["speed"] = same_run_speed(model_blas, exact, batch.rays)
+        # A fixed count, whatever --rays is: 10 rays would time call overhead, 4M take minutes.
+        if rays < TIMING_RAYS:
+            timed = distribution.sample(TIMING_RAYS)
+            timed_rays, timed_hits = timed.rays, timed.truth.hit
+        else:
+            every = torch.linspace(0, rays - 1, TIMING_RAYS, device=batch.truth.hit.device).long()
+            timed_rays, timed_hits = batch.rays[every], batch.truth.hit[every]
+        result["speed"] = {**same_run_speed(model_blas, exact, timed_rays), "exact_hit_fraction": float(timed_hits.float().mean())}
     if images:
         out_dir = Path(image_dir) if image_dir else None
         result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir)

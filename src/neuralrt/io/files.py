@@ -13,6 +13,7 @@ write of the same file, once it is an hour old). The temporary file is created w
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import os
 import re
@@ -126,8 +127,9 @@ def _writable_folder_problem(folder: Path, what: str) -> str | None:
     # Probing with a real file: os.access says yes to root everywhere (sysfs, ACLs, some network mounts).
     try:
         probe = _create_sibling(ancestor / "neuralrt-write-probe")
-    except OSError as exc:
-        return f"{ancestor}: cannot write the {what} there ({exc.strerror or exc})"
+    except OSError as exc:  # (ENOENT where the folder exists: /proc and the like take no new files)
+        reason = "it takes no new files" if exc.errno == errno.ENOENT else exc.strerror or exc
+        return f"{ancestor}: cannot write the {what} there ({reason})"
     probe.unlink()
     return None
 

@@ -24,7 +24,9 @@ def check_plot_path(path) -> Path:
     """``path`` as a `Path` a figure can be written to (its suffix names the format); else one line."""
     path = Path(path)
     if path.suffix.lower() not in PLOT_SUFFIXES:
-        raise NeuralRTError(f"{path}: a plot is written as {', '.join(PLOT_SUFFIXES)} (the suffix names the format)")
+        if path.name.lower() in PLOT_SUFFIXES:  # (".png" is a name without a suffix)
+            raise NeuralRTError(f"{path}: a plot needs a file name before its suffix, e.g. curve{path.name}")
+        raise NeuralRTError(f"{path}: a plot's file name ends in {', '.join(PLOT_SUFFIXES)} (the suffix names the format)")
     check_output_file(path, "plot")
     return path
 
@@ -40,12 +42,13 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     fig = Figure(figsize=(10 + 4 * bool(states), 4), dpi=120, layout="constrained")
     fig.suptitle(title, fontsize=10)
     loss_ax, accuracy_ax, *state_ax = fig.subplots(1, 2 + bool(states))
-    loss_ax.plot(steps, curve["loss"], color="black", lw=1.6, label="loss (weighted sum)")
+    loss_ax.plot(steps, curve["loss"], color="black", lw=1.6, label="loss trained on\n(terms x their weights)")
     for term, values in sorted(curve.get("losses", {}).items()):
-        loss_ax.plot(steps, values, lw=1.0, ls="--", label=term)
+        loss_ax.plot(steps, values, lw=1.0, ls="--", label=f"{term}, unweighted")
     loss_ax.set_yscale("log")
     loss_ax.set_ylabel("loss (mean over each point's steps)")
-    loss_ax.legend(fontsize=8, frameon=False)
+    # beside the axes: on them it hid curves
+    loss_ax.legend(fontsize=8, frameon=False, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     accuracy_ax.plot(steps, curve["hit_accuracy"], color="tab:blue", lw=1.4)
     accuracy_ax.set_ylabel("hit / miss accuracy on the training rays")
     for name, values in states:
@@ -58,16 +61,23 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     return write_figure(fig, path)
 
 
-def training_plot_title(method: str, mesh_name: str, record: dict) -> str:
-    """``lsnif · bunny · 800 steps of 8,192 rays · 588k rays/s · hit accuracy 0.9982`` from a training record."""
-    parts = [method, mesh_name or "(unnamed mesh)", f"{record.get('steps', 0):,} steps of {record.get('batch_size', 0):,} rays"]
+def training_plot_title(label: str, mesh_name: str, record: dict, checkpoint_step: int | None = None) -> str:
+    """``lsnif hq · bunny · 800 steps of 8,192 rays · 55.7 s, 588k rays/s on cpu · final hit accuracy 0.9982``
+    from a training record (``label``: the method and its preset); an interrupted run's checkpoint
+    says so (``checkpoint_step``), and a resumed run where it resumed."""
+    steps = f"{record.get('steps', 0):,} steps of {record.get('batch_size', 0):,} rays"
+    if checkpoint_step is not None:
+        steps = f"checkpoint of an unfinished run at step {checkpoint_step:,} ({record.get('batch_size', 0):,} rays a step)"
+    elif record.get("resumed_from") is not None:
+        steps += f" (resumed at step {record['resumed_from']:,})"
+    parts = [label, mesh_name or "(unnamed mesh)", steps]
     if record.get("rays_per_second"):
-        parts.append(f"{record.get('seconds', 0.0):,.1f} s, {record['rays_per_second'] / 1e3:,.0f}k rays/s on "
-                     f"{record.get('device') or '?'}")
+        where = f" on {record['device']}" if record.get("device") else ""
+        parts.append(f"{record.get('seconds', 0.0):,.1f} s, {record['rays_per_second'] / 1e3:,.0f}k rays/s{where}")
     accuracy = record.get("hit_accuracy")
     if isinstance(accuracy, float) and np.isfinite(accuracy):
         parts.append(f"final hit accuracy {accuracy:.4f}")
-    return " · ".join(parts)
+    return " · ".join(part for part in parts if part)
 
 
 def plot_problem(record) -> str | None:

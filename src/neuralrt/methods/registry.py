@@ -99,6 +99,17 @@ class MethodSpec:
         return self.config_class.preset(preset or self.default_preset(device), **(settings or {})).with_training(**training)
 
 
+    def preset_of(self, config: MethodConfig) -> str | None:
+        """The preset ``config`` was made from, up to the training keys `config` sets (steps, batch
+        size, seed) and what makes no other model (`model_defining`); None where other keys differ."""
+        t = config.training
+        for name in self.presets:
+            made = self.config(name, steps=t.steps, batch_size=t.batch_size, seed=t.seed)
+            if made.model_defining() == config.model_defining():
+                return name
+        return None
+
+
 _METHODS: dict[str, MethodSpec] = {}
 
 

@@ -115,7 +115,8 @@ def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, recor
     arrays = {f"model.{k}": v.detach().cpu().clone() for k, v in model.state_dict().items()}
     arrays.update({f"sampler.{k}": v for k, v in sampler_arrays.items()})
     arrays.update(opt_arrays)
-    header = {"step": step, "identity": identity, "sampler": sampler_meta, "optimizer": opt_meta, "record": record.as_dict()}
+    header = {"step": step, "identity": identity, "sampler": sampler_meta, "optimizer": opt_meta, "record": record.as_dict(),
+              "mesh_name": getattr(model, "mesh_name", None)}  # (shown by `info`; not part of the run's identity)
     write_model_file(path, CHECKPOINT_METHOD, header, arrays)
 
 
