@@ -57,9 +57,12 @@ def _print_result(result: dict, as_json: bool) -> None:
 
 
 def _curve_summary(curve: dict) -> str:
-    """A training curve in one phrase (its points are for --json and --plot)."""
-    points = len(curve.get("step", [])) if isinstance(curve.get("step"), list) else 0
-    return f"{points} points (--plot FILE.png draws them)" if points else "none"
+    """A training curve in one phrase: ``150 points, loss 2.95 -> 0.236 (--plot FILE.png draws them)``
+    (its points are for --json and --plot)."""
+    losses = curve.get("loss") if isinstance(curve.get("loss"), list) else []
+    if not losses:
+        return "none"
+    return f"{len(losses)} points, loss {losses[0]:.3g} -> {losses[-1]:.3g} (--plot FILE.png draws them)"
 
 
 # --- commands -----------------------------------------------------------------------------------
