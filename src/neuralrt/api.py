@@ -394,12 +394,13 @@ def evaluate(
     device: str = "cpu",
     allow_mesh_mismatch: bool = False,
     timing: bool = True,
+    progress: bool = True,
 ) -> dict:
     """Held-out accuracy of a model (a path or a loaded model) against its mesh (a path or a `Mesh`):
     rays from outside and from the surface, plus normal/depth images from orbit cameras, neural vs
     exact, with FLIP; its memory against BVH A / B; with ``timing``, its rays/s against exact
     tracing's on the held-out rays (this run, this machine). A model trained on another mesh is an
-    error unless ``allow_mesh_mismatch``."""
+    error unless ``allow_mesh_mismatch``. ``progress``: a bar over the stages on stderr."""
     from .eval.intersection_metrics import HELD_OUT_SEED, evaluate_model
     from .geometry.mesh import Mesh, load_mesh
     from .methods import check_mesh_match, is_neural, load_model
@@ -407,8 +408,9 @@ def evaluate(
     check_device(device)
     check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
     check_seed(given("seed"), seed)
-    if not isinstance(timing, bool):  # (a CLI flag cannot be anything else)
-        raise ConfigError(f"timing: expected True or False, got {type(timing).__name__}")
+    for name, flag in (("timing", timing), ("progress", progress)):  # (a CLI flag cannot be anything else)
+        if not isinstance(flag, bool):
+            raise ConfigError(f"{name}: expected True or False, got {type(flag).__name__}")
     if not is_neural(model):
         if isinstance(model, Mesh):
             raise ConfigError("model: got a Mesh; evaluate(model, mesh) takes the model first")
@@ -434,7 +436,7 @@ def evaluate(
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")
     with folders_removed_if_left_empty(*([image_dir] if image_dir is not None else [])):
         result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
-                                images=images, image_dir=image_dir, timing=timing)
+                                images=images, image_dir=image_dir, timing=timing, progress=progress)
     result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash
     return result
 

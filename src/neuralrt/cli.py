@@ -136,7 +136,7 @@ def _cmd_train(args) -> None:
 def _cmd_evaluate(args) -> None:
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
                           image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch,
-                          timing=not args.no_timing)
+                          timing=not args.no_timing, progress=not args.quiet)
     if args.json:
         _print_result(result, True)
         return
@@ -267,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate even if the model was trained on another mesh (default: an error)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the speed figures (rays/s of the model and of exact tracing on the held-out rays)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)
 

@@ -146,9 +146,10 @@ def _normal_depth_images(camera, rays: Rays, hits: Hits, depth_range: tuple[floa
     return normal_img.numpy().astype(np.float32), depth_img.numpy().astype(np.float32), hits
 
 
-def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None) -> tuple[dict, dict]:
+def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None,
+                   view_done=lambda view: None) -> tuple[dict, dict]:
     """The image figures, and (with ``out_dir``) each view's images for the overview: view ->
-    (normal exact, normal neural, depth exact, depth neural)."""
+    (normal exact, normal neural, depth exact, depth neural). ``view_done(view)`` after each view."""
     from ..eval.image_metrics import compare_images
     from ..io.images import srgb_to_linear, write_png
 
@@ -176,6 +177,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
                 out_dir.mkdir(parents=True, exist_ok=True)
                 write_png(out_dir / f"{name}_{view}_exact.png", srgb_to_linear(ref))
                 write_png(out_dir / f"{name}_{view}_neural.png", srgb_to_linear(test))
+        view_done(view)
     return {
         "cameras": len(cams),
         "resolution": resolution,
@@ -200,55 +202,81 @@ def evaluate_model(
     resolution: int = 256,
     image_dir: str | Path | None = None,
     timing: bool = True,
+    progress: bool = False,
 ) -> dict:
     """Held-out metrics of ``model_blas`` on ``mesh`` (see module docstring); a JSON-able dict.
 
     Keys: ``outside`` and ``surface`` (each from `ray_metrics`), ``images`` (``normal_flip``,
     ``depth_flip``), for models with voxel features ``features`` (how often H truncates), for
     models ``memory`` (against BVH A / B, `neuralrt.eval.costs`), and with ``timing`` ``speed``
-    (rays/s of the model and of exact tracing on the held-out rays, in this run).
+    (rays/s of the model and of exact tracing on held-out rays, in this run). ``progress``: a bar
+    over those stages (on stderr).
     """
+    from tqdm.auto import tqdm
+
     neural = is_neural(model_blas)
-    device = model_blas.device if neural else torch.device("cpu")
-    exact = MeshBLAS(mesh, device=device)
-    # Held-out rays aim at the region the model answers in, on the model's device.
-    box = model_blas.box if neural else exact.bounds.inflated(0.005)
-    distribution = BoxRayDistribution(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)), device=device)
-    batch = distribution.sample(rays)
-    pred = model_blas.intersect(batch.rays)
-    diag = exact.bounds.diagonal
-    result: dict = {"rays": rays, "seed": seed}
-    for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface)):
-        result[name] = ray_metrics(pred[sel], batch.truth[sel], batch.rays[sel], diag)
-    if neural and hasattr(model_blas, "feature_statistics"):
-        result["features"] = {
-            name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel])
-            for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))
-        }
-    if neural:
-        from .costs import memory_against_bvh
+    out_dir = Path(image_dir) if image_dir and images else None
+    stages = 1 + neural + timing + (cameras + len(_AXES) if images else 0) + (out_dir is not None)
+    bar = tqdm(total=stages, desc="eval", unit="stage", disable=not progress, dynamic_ncols=True)
 
-        result["memory"] = memory_against_bvh(model_blas, mesh)
-    if timing:
-        from .costs import TIMING_RAYS, same_run_speed
+    def stage(name: str) -> None:
+        bar.set_postfix_str(name, refresh=True)
 
-        # A fixed count, whatever --rays is: 10 rays would time call overhead, 4M take minutes.
-        if rays < TIMING_RAYS:
-            timed = distribution.sample(TIMING_RAYS)
-            timed_rays, timed_hits = timed.rays, timed.truth.hit
-        else:
-            every = torch.linspace(0, rays - 1, TIMING_RAYS, device=batch.truth.hit.device).long()
-            timed_rays, timed_hits = batch.rays[every], batch.truth.hit[every]
-        result["speed"] = {**same_run_speed(model_blas, exact, timed_rays), "exact_hit_fraction": float(timed_hits.float().mean())}
-    if images:
-        out_dir = Path(image_dir) if image_dir else None
-        result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir)
-        if out_dir is not None:
-            from ..io.plots import write_eval_errors, write_eval_overview
+    try:
+        stage("held-out rays")
+        device = model_blas.device if neural else torch.device("cpu")
+        exact = MeshBLAS(mesh, device=device)
+        # Held-out rays aim at the region the model answers in, on the model's device.
+        box = model_blas.box if neural else exact.bounds.inflated(0.005)
+        distribution = BoxRayDistribution(exact, box, seed=seed, pool_size=min(1 << 18, max(rays, 1024)), device=device)
+        batch = distribution.sample(rays)
+        pred = model_blas.intersect(batch.rays)
+        diag = exact.bounds.diagonal
+        parts = (("outside", ~batch.from_surface), ("surface", batch.from_surface))
+        result: dict = {"rays": rays, "seed": seed}
+        for name, sel in parts:
+            result[name] = ray_metrics(pred[sel], batch.truth[sel], batch.rays[sel], diag)
+        if neural and hasattr(model_blas, "feature_statistics"):
+            result["features"] = {name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel]) for name, sel in parts}
+        bar.update(1)
+        if neural:
+            from .costs import memory_against_bvh
 
-            errors = {name: ray_errors(pred[sel], batch.truth[sel], batch.rays[sel], diag)[:2]
-                      for name, sel in (("outside", ~batch.from_surface), ("surface", batch.from_surface))}
-            ious = result["images"]["silhouette_iou_per_view"]
-            result["images"]["figures"] = {"errors": str(write_eval_errors(out_dir / "errors.png", errors, ious)),
-                                           "overview": str(write_eval_overview(out_dir / "overview.png", shown, ious))}
+            stage("memory (BVH A / B)")
+            result["memory"] = memory_against_bvh(model_blas, mesh)
+            bar.update(1)
+        if timing:
+            stage("speed")
+            result["speed"] = _speed(model_blas, exact, distribution, batch)
+            bar.update(1)
+        if images:
+            stage("orbit and axis views")
+            result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir,
+                                                     lambda view: bar.update(1))
+            if out_dir is not None:
+                from ..io.plots import write_eval_errors, write_eval_overview
+
+                stage("figures")
+                errors = {name: ray_errors(pred[sel], batch.truth[sel], batch.rays[sel], diag)[:2] for name, sel in parts}
+                ious = result["images"]["silhouette_iou_per_view"]
+                result["images"]["figures"] = {"errors": str(write_eval_errors(out_dir / "errors.png", errors, ious)),
+                                               "overview": str(write_eval_overview(out_dir / "overview.png", shown, ious))}
+                bar.update(1)
+    finally:
+        bar.close()
     return result
+
+
+def _speed(model_blas, exact: MeshBLAS, distribution: BoxRayDistribution, batch) -> dict:
+    """`same_run_speed` on `TIMING_RAYS` held-out rays: a fixed count, whatever eval's own ray count
+    is (10 rays would time call overhead, 4M take minutes), with the fraction of them that hit."""
+    from .costs import TIMING_RAYS, same_run_speed
+
+    n = len(batch.rays)
+    if n < TIMING_RAYS:
+        timed = distribution.sample(TIMING_RAYS)
+        timed_rays, timed_hits = timed.rays, timed.truth.hit
+    else:
+        every = torch.linspace(0, n - 1, TIMING_RAYS, device=batch.truth.hit.device).long()
+        timed_rays, timed_hits = batch.rays[every], batch.truth.hit[every]
+    return {**same_run_speed(model_blas, exact, timed_rays), "exact_hit_fraction": float(timed_hits.float().mean())}
