@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -44,6 +45,16 @@ def test_a_hole_at_the_top_shows_in_the_view_from_above():
 
     r = evaluate_model(Holed(), mesh, rays=4096, cameras=4, resolution=48, timing=False)["images"]["silhouette_iou_per_view"]
     assert r["+y"] < 0.9 and min(r[v] for v in ("0", "1", "2", "3", "+x", "-x", "+z", "-z")) > 0.95  # (0.86; 0.97)
+
+
+def test_the_overview_shows_a_hole_as_exact_only_pixels():
+    from neuralrt.eval.intersection_metrics import _SILHOUETTE_COLOURS, _silhouette_image
+
+    exact, test = Hits.empty(4), Hits.empty(4)
+    exact.hit[:] = torch.tensor([True, True, False, False])
+    test.hit[:] = torch.tensor([True, False, True, False])
+    image = _silhouette_image(exact, test, 2, 2)
+    np.testing.assert_array_equal(image.reshape(4, 3), _SILHOUETTE_COLOURS[[1, 2, 3, 0]])  # both, hole, extra, neither
 
 
 def test_known_errors():

@@ -123,6 +123,17 @@ def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
     return both / either if either else 1.0
 
 
+# Silhouettes compared, per pixel: neither hits, both hit, only exact (a hole in the model), only the model.
+_SILHOUETTE_COLOURS = np.array([[0.0, 0.0, 0.0], [0.55, 0.55, 0.55], [0.9, 0.1, 0.1], [0.15, 0.35, 1.0]], np.float32)
+
+
+def _silhouette_image(exact_hits: Hits, test_hits: Hits, height: int, width: int) -> np.ndarray:
+    """[H, W, 3] display colours of each pixel's agreement (`_SILHOUETTE_COLOURS`)."""
+    exact, test = exact_hits.hit.cpu().numpy(), test_hits.hit.cpu().numpy()
+    kind = np.where(exact & test, 1, np.where(exact, 2, np.where(test, 3, 0)))
+    return _SILHOUETTE_COLOURS[kind].reshape(height, width, 3)
+
+
 def render_normal_depth(blas, camera, depth_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, Hits]:
     """Primary-ray images from pixel centres: normals (faced, as 0.5 + 0.5 n) and depth (near = bright)."""
     return _normal_depth_images(camera, *_pixel_hits(blas, camera), depth_range)
@@ -149,7 +160,8 @@ def _normal_depth_images(camera, rays: Rays, hits: Hits, depth_range: tuple[floa
 def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution: int, out_dir: Path | None,
                    view_done=lambda view: None) -> tuple[dict, dict]:
     """The image figures, and (with ``out_dir``) each view's images for the overview: view ->
-    (normal exact, normal neural, depth exact, depth neural). ``view_done(view)`` after each view."""
+    (normal exact, normal neural, depth exact, depth neural, silhouettes compared).
+    ``view_done(view)`` after each view."""
     from ..eval.image_metrics import compare_images
     from ..io.images import srgb_to_linear, write_png
 
@@ -168,7 +180,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         test_n, test_d, test_hits = render_normal_depth(blas, cam, (near, far))
         ious[view] = _silhouette_iou(ref_hits, test_hits)
         if out_dir is not None:
-            shown[view] = (ref_n, test_n, ref_d, test_d)
+            shown[view] = (ref_n, test_n, ref_d, test_d, _silhouette_image(ref_hits, test_hits, cam.height, cam.width))
         for name, ref, test in (("normal", ref_n, test_n), ("depth", ref_d, test_d)):
             if view not in axes:  # (the axis views count in the IoU; FLIP stays the orbit views', comparable across runs)
                 # The arrays are display values: pass them as linear values whose sRGB encoding they are.

@@ -141,12 +141,13 @@ def write_eval_errors(path, errors: dict, silhouette_iou: dict) -> Path:
 
 
 def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
-    """Every view's normal and depth images, exact above neural, in one figure (``shown``: view ->
-    the four images as display values in [0, 1])."""
+    """Every view's normal and depth images, exact above neural, and the silhouettes compared, in
+    one figure (``shown``: view -> the five images as display values in [0, 1])."""
     from matplotlib.figure import Figure
 
     views = list(shown)
-    rows = ("normals, exact", "normals, neural", "depth, exact", "depth, neural")
+    rows = ("normals, exact", "normals, neural", "depth, exact", "depth, neural",
+            "silhouettes: grey both,\nred exact only (a hole),\nblue neural only")
     fig = Figure(figsize=(1.9 * len(views), 1.9 * len(rows) + 0.4), dpi=110, layout="constrained")
     axes = fig.subplots(len(rows), len(views), squeeze=False)
     for c, view in enumerate(views):
