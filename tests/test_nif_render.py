@@ -154,3 +154,15 @@ def test_cli_render_with_nif_reports_it(tmp_path, capsys):
     assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2 and nif["pair_fraction"] == 0.5
     assert nif["shadow_rays"]["shadow_rays"] > 0 and nif["training"]["outer_pairs"] + nif["training"]["inner_pairs"] > 0
     assert nif["memory"]["paper_bytes_per_object"] == 327_680 and out.exists()
+    plot = tmp_path / "img_nif_training.png"
+    assert str(plot) in result["files"] and plot.stat().st_size > 0  # the per-round losses, beside the image
+    assert len(nif["training"]["loss_outer"]) == nif["training"]["rounds"] >= 1
+
+
+def test_a_nif_plot_that_cannot_be_written_stops_the_render_before_it_starts(tmp_path, capsys):
+    (tmp_path / "img_nif_training.png").mkdir()  # a folder where the plot goes
+    args = ["render", "builtin:cornell-statue?detail=0", "-o", str(tmp_path / "img.exr"), "--spp", "3", "--res", "24x16",
+            "--quiet", "--nif", "statue", "--nif-train-spp", "2"]
+    assert main(args) == 2
+    assert "img_nif_training.png: is a folder, not a render output" in capsys.readouterr().err
+    assert not (tmp_path / "img.exr").exists()

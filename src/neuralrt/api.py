@@ -230,7 +230,9 @@ def render(
 
     output = check_render_output(output)
 
-    check_output_files(output_files(output), "render output")  # the image and every AOV beside it, before the scene loads
+    nif_plot = output.with_name(f"{output.stem}_nif_training.png") if nif is not None else None
+    # the image, every AOV beside it (and NIF's training plot), before the scene loads
+    check_output_files(output_files(output) + ([nif_plot] if nif_plot else []), "render output")
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch)
     primary = loaded.primary
@@ -254,6 +256,11 @@ def render(
 
         raise NeuralRTError(validation_message(exc) if isinstance(exc, ValidationError) else str(exc)) from None
     files = result.save(output)
+    if nif_report is not None and nif_report["training"]["rounds"]:
+        from .io.plots import write_nif_training_plot
+
+        title = f"NIF online training: {', '.join(nif_report['objects'])}, first {nif_report['train_spp']} of {nif_report['spp']} spp"
+        files.append(write_nif_training_plot(nif_plot, nif_report["training"], title))
     h, w = result.image.shape[:2]
     return {
         "scene": scene if isinstance(scene, (str, Path)) else (getattr(loaded, "name", "") or type(scene).__name__),

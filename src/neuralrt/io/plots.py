@@ -1,5 +1,6 @@
-"""Figures written by the commands: a training run's curve (``train --plot``, ``info --plot``) and
-eval's error distributions and image overview (``eval --images DIR``).
+"""Figures written by the commands: a training run's curve (``train --plot``, ``info --plot``),
+eval's error distributions and image overview (``eval --images DIR``) and NIF's online training
+(``render --nif``: ``OUTPUT_nif_training.png``).
 
 matplotlib's object API (a `Figure` of its own, no pyplot state), so plotting is safe beside other
 threads and leaves no window or global backend behind. Written atomically, like every output.
@@ -15,7 +16,7 @@ from ..errors import NeuralRTError
 from .files import check_output_file, write_atomically
 
 __all__ = ["PLOT_SUFFIXES", "check_plot_path", "plot_problem", "training_plot_title", "write_eval_errors",
-           "write_eval_overview", "write_figure", "write_training_plot"]
+           "write_eval_overview", "write_figure", "write_nif_training_plot", "write_training_plot"]
 
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
@@ -160,6 +161,32 @@ def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
                 ax.set_title(f"{_view_label(view)}\nIoU {silhouette_iou[view]:.3f}", fontsize=8)
             if c == 0:
                 ax.set_ylabel(rows[r], fontsize=8)
+    return write_figure(fig, path)
+
+
+def write_nif_training_plot(path, training: dict, title: str) -> Path:
+    """NIF's online training (``training``: `NIFTrainingStats.as_dict`): each network's loss on its
+    last pass over each round's pairs, against the round (a round trains on `round_pairs` pairs
+    collected from the exact samples)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4), dpi=120, layout="constrained")
+    ax = fig.subplots()
+    for key, label in (("loss_outer", "outer network (shadow rays entering the box)"),
+                       ("loss_inner", "inner network (shadow rays leaving a point inside)")):
+        values = training.get(key) or []
+        if values:
+            ax.plot(np.arange(1, len(values) + 1), values, marker="o" if len(values) < 30 else None, ms=3, label=label)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.set_yscale("log")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel(f"training round ({training.get('rounds', 0)} in all, {training.get('seconds', 0.0):.2f} s)")
+    ax.set_ylabel("L2 loss, last pass over the round's pairs")
+    ax.grid(alpha=0.3, which="both")
+    if ax.lines:
+        ax.legend(fontsize=8, frameon=False)
+    fig.suptitle(title, fontsize=10)
     return write_figure(fig, path)
 
 
