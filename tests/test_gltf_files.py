@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from gltf_files import edited_glb
+from gltf_files import edited_glb, quantized_uvs_glb
 from neuralrt.errors import MeshError
 from neuralrt.geometry.mesh import load_mesh
 
@@ -52,6 +52,11 @@ def _fan(header):
 
 
 def _normalised_uvs(header):
+    """Mesh 0's UVs as normalised unsigned shorts, mesh 1's floats: stored two ways, the parts
+    trimesh makes cannot be told apart (stored one way throughout, they are read: test below)."""
+    second = header["meshes"][1]["primitives"][0]["attributes"]
+    header["accessors"].append(dict(header["accessors"][second["TEXCOORD_0"]]))  # (trimesh may share one accessor)
+    second["TEXCOORD_0"] = len(header["accessors"]) - 1
     uv = header["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]
     header["accessors"][uv].update(componentType=5123, normalized=True)
 
@@ -150,3 +155,35 @@ def test_the_base_colour_factor_is_read_as_written(tmp_path):
     by_name = {m.name: m for m in mesh.materials}
     np.testing.assert_allclose(by_name["a"].base_color, [0.0015, 0.003, 0.5], rtol=1e-6)
     np.testing.assert_array_equal(by_name["b"].base_color, [1, 1, 1])
+
+
+@pytest.mark.parametrize("component, step", [(5121, 1 / 255), (5123, 1 / 65535), (5120, 1 / 127), (5122, 1 / 32767)])
+def test_normalised_integer_uvs_are_scaled_as_the_file_means(tmp_path, component, step):
+    """UVs stored as normalised integers throughout (gltfpack's, KHR_mesh_quantization's signed ones):
+    trimesh reads them unscaled (v wrapped around in the integer type); they are read as the
+    float UVs they stand for, and the texture lands where it did (this warned before)."""
+    import warnings
+
+    import torch
+    import trimesh
+    from PIL import Image
+
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.rays import Rays
+
+    stripes = np.zeros((4, 8, 3), np.uint8)
+    stripes[:, :4], stripes[:, 4:] = (230, 20, 20), (20, 40, 230)
+    quad = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    quad.visual = trimesh.visual.TextureVisuals(uv=[[0.25, 0.1], [0.75, 0.1], [0.75, 0.9], [0.25, 0.9]],
+                                                image=Image.fromarray(stripes))
+    quad.export(tmp_path / "float.glb")
+    (tmp_path / "float.glb").rename(tmp_path / "quantized.glb")
+    quad.export(tmp_path / "float.glb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        exact, quantized = load_mesh(tmp_path / "float.glb"), load_mesh(quantized_uvs_glb(tmp_path / "quantized.glb", component))
+    np.testing.assert_allclose(quantized.uvs, exact.uvs, atol=step)
+    rays = Rays(torch.tensor([[0.3, 0.5, 1.0], [0.7, 0.5, 1.0]]), torch.tensor([[0.0, 0.0, -1.0]] * 2))
+    albedo = MeshBLAS(quantized).intersect(rays).albedo
+    assert torch.allclose(albedo, MeshBLAS(exact).intersect(rays).albedo)
+    assert albedo[0, 0] > 10 * albedo[0, 2] and albedo[1, 2] > 10 * albedo[1, 0]  # red left, blue right

@@ -13,6 +13,10 @@ factor, and says what it cannot apply: a second UV set (trimesh reads only the f
 of one material placed differently (they share one UV set here), and a material that trimesh's
 parts cannot be told apart from another (they keep its name, not its index, so an unnamed or
 twice-named material's extras are not applied).
+
+`uv_dequantization` / `dequantized_uvs`: UVs stored as normalised integers (gltfpack's output,
+KHR_mesh_quantization), which trimesh reads unscaled, scaled as the file means them where every
+primitive stores them one way (else a note: trimesh's parts cannot be matched to primitives).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MaterialExtras", "gltf_file_notes", "gltf_header", "gltf_material_extras"]
+__all__ = ["MaterialExtras", "dequantized_uvs", "gltf_file_notes", "gltf_header", "gltf_material_extras", "uv_dequantization"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -57,6 +61,46 @@ _UNREADABLE_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed geomet
                           "EXT_meshopt_compression": "meshoptimizer-compressed buffers",
                           "EXT_mesh_gpu_instancing": "instances placed by the extension"}
 _TRIANGLE_FAN, _COMPONENT_BYTES = 6, {5121: "unsigned bytes", 5123: "unsigned shorts"}
+# Normalised integer components (the glTF spec's "accessor.normalized"; signed ones from
+# KHR_mesh_quantization): (bits, signed); 1.0 is stored as the largest value, -1.0 as minus it.
+_NORMALISED = {5121: (8, False), 5123: (16, False), 5120: (8, True), 5122: (16, True)}
+
+
+def uv_dequantization(header: dict) -> int | None:
+    """The component type (5121, 5123; 5120, 5122 signed) of normalised integer UVs, which trimesh
+    reads unscaled, where every primitive's TEXCOORD_0 is stored so (as gltfpack and
+    KHR_mesh_quantization write them); None where none is, or where they are stored in more than
+    one way (the parts trimesh makes cannot be told apart: `gltf_file_notes` warns)."""
+    accessors = _list(header.get("accessors"))
+    kinds = set()
+    for mesh in _list(header.get("meshes")):
+        for primitive in _list(mesh.get("primitives")) if isinstance(mesh, dict) else []:
+            attributes = primitive.get("attributes") if isinstance(primitive, dict) else None
+            index = attributes.get("TEXCOORD_0") if isinstance(attributes, dict) else None
+            accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else None
+            if isinstance(accessor, dict):
+                kinds.add((accessor.get("componentType"), bool(accessor.get("normalized"))))
+    if len(kinds) != 1:
+        return None
+    component, normalised = kinds.pop()
+    return component if normalised and component in _NORMALISED else None
+
+
+def dequantized_uvs(uv: np.ndarray, component: int) -> np.ndarray:
+    """UVs as trimesh reads normalised integers of ``component`` type (unscaled; v turned to 1 - v
+    in the integer type, so it wraps around) as the file means them, in trimesh's v-up convention."""
+    bits, signed = _NORMALISED[component]
+    largest = float(2 ** (bits - 1) - 1 if signed else 2**bits - 1)
+
+    def stored(x):  # the integer the file holds, from what trimesh kept (wrapped or not)
+        x = np.mod(np.rint(x).astype(np.int64), 2**bits)
+        return x - 2**bits * (x >= 2 ** (bits - 1)) if signed else x
+
+    def unit(x):
+        return np.maximum(x / largest, -1.0)
+
+    uv = np.asarray(uv, np.float64)
+    return np.stack([unit(stored(uv[:, 0])), 1.0 - unit(stored(1.0 - uv[:, 1]))], axis=1).astype(np.float32)
 
 
 def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
@@ -92,7 +136,7 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
                     integer_uvs[m] = _COMPONENT_BYTES[accessor["componentType"]]
         weights = mesh.get("weights") if isinstance(mesh, dict) else None
         morphs += isinstance(weights, list) and any(isinstance(w, (int, float)) and w != 0 for w in weights)
-    if integer_uvs:
+    if integer_uvs and uv_dequantization(header) is None:  # (stored one way throughout: the loader scales them)
         notes.append(f"the UVs of {_meshes(integer_uvs)} are normalised {' or '.join(sorted(set(integer_uvs.values())))}, "
                      f"which trimesh reads unscaled: their textures and normal maps are placed wrong")
     if short_colours:

@@ -19,7 +19,7 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
-from .gltf_json import gltf_file_notes, gltf_header, gltf_material_extras
+from .gltf_json import dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras, uv_dequantization
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -628,6 +628,7 @@ def load_mesh(path: str | Path) -> Mesh:
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=2)
     extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
+    uv_component = uv_dequantization(header) if header else None
     for note in notes + extras_notes:
         warnings.warn(f"{path}: {note}", stacklevel=2)
     if isinstance(loaded, trimesh.Trimesh) and suffix in (".off", ".ply"):
@@ -671,6 +672,8 @@ def load_mesh(path: str | Path) -> Mesh:
         material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), kept_colors[i], gltf,
                                                   None if extras is None else extras.base_color)
         kept_colors[i] = None
+        if uv_component is not None and uv is not None:  # (before a texture transform, as the glTF spec orders them)
+            uv = dequantized_uvs(uv, uv_component)
         if extras is not None:
             uv = None if uv is None else extras.transformed_uvs(uv)
             if material.normal_map is not None:
