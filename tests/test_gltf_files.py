@@ -77,6 +77,8 @@ def _ushort_colours_without_material(header):
      "the emission of material 'b' is not read: give the slot an emissive scene material to make it a light"),
     (lambda h: h.update(extensionsUsed=["EXT_mesh_gpu_instancing"]), "instances of EXT_mesh_gpu_instancing are not read"),
     (_ushort_colours_without_material, "the vertex colours of mesh 0 are unsigned shorts on a primitive without a material"),
+    (lambda h: h["accessors"][h["meshes"][0]["primitives"][0]["attributes"]["POSITION"]].update(normalized=True),
+     "the positions of mesh 0 are normalised integers, which trimesh reads unscaled"),
 ])
 def test_what_trimesh_leaves_out_is_a_warning_naming_it(tmp_path, edit, note):
     path = edited_glb(_quads(tmp_path / "quads.glb"), edit)

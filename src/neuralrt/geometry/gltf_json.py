@@ -113,6 +113,7 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
     notes: list[str] = []
     fans = morphs = 0
     integer_uvs: dict[int, str] = {}  # mesh -> how its UVs are stored
+    scaled_positions: list[int] = []  # meshes whose positions are normalised integers
     short_colours: list[int] = []
     for m, mesh in enumerate(_list(header.get("meshes"))):
         primitives = _list(mesh.get("primitives")) if isinstance(mesh, dict) else []
@@ -131,6 +132,8 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
                 if role == "COLOR_0" and isinstance(accessor, dict) and accessor.get("componentType") == 5123 \
                         and "material" not in primitive:
                     short_colours.append(m)
+                if role == "POSITION" and isinstance(accessor, dict) and accessor.get("normalized"):
+                    scaled_positions.append(m)
                 if role == "TEXCOORD_0" and isinstance(accessor, dict) and accessor.get("normalized") \
                         and accessor.get("componentType") in _COMPONENT_BYTES:
                     integer_uvs[m] = _COMPONENT_BYTES[accessor["componentType"]]
@@ -139,6 +142,9 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
     if integer_uvs and uv_dequantization(header) is None:  # (stored one way throughout: the loader scales them)
         notes.append(f"the UVs of {_meshes(integer_uvs)} are normalised {' or '.join(sorted(set(integer_uvs.values())))}, "
                      f"which trimesh reads unscaled: their textures and normal maps are placed wrong")
+    if scaled_positions:
+        notes.append(f"the positions of {_meshes(scaled_positions)} are normalised integers, which trimesh reads "
+                     f"unscaled: the mesh is read at the wrong size and place")
     if short_colours:
         notes.append(f"the vertex colours of {_meshes(short_colours)} are unsigned shorts on a primitive without a "
                      f"material, which trimesh reads wrong")
