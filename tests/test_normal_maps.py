@@ -3,6 +3,7 @@ the CPU (numpy) and torch implementations against each other, glTF loading (texe
 not sRGB-decoded), the mesh hash, the render
 (Lambert with the mapped normal) and bad normal maps."""
 
+import json
 import math
 import re
 
@@ -284,9 +285,10 @@ def _transform(offset=(0.0, 0.0), rotation=0.0, scale=(1.0, 1.0)):
     return {"extensions": {"KHR_texture_transform": {"offset": list(offset), "rotation": rotation, "scale": list(scale)}}}
 
 
-def test_gltf_normal_texture_scale_is_applied(tmp_path):
+@pytest.mark.parametrize("named", [True, False])  # (one unnamed material, as gltfpack writes, is matched too)
+def test_gltf_normal_texture_scale_is_applied(tmp_path, named):
     path = _glb(tmp_path / "quad.glb", _image([200, 128, 230]))
-    edited_glb(path, lambda h: h["materials"][0]["normalTexture"].update(scale=0.5))
+    edited_glb(path, lambda h: h["materials"][0]["normalTexture"].update(scale=0.5) or named or h["materials"][0].pop("name"))
     m = np.array([200, 128, 230]) / 255.0 * 2 - 1
     expected = m * [0.5, 0.5, 1]
     np.testing.assert_allclose(_normals_at_centre(load_mesh(path))[0], expected / np.linalg.norm(expected), atol=1e-5)
@@ -323,10 +325,18 @@ def test_gltf_texture_transform_places_the_base_colour_texture_as_the_extension_
     np.testing.assert_allclose(albedo[:, :2], expected, atol=2e-4)
 
 
+def _two_unnamed_materials_placed_differently(header):
+    """(trimesh names every unnamed material None: their parts cannot be told apart)"""
+    header["materials"][0].pop("name")
+    other = json.loads(json.dumps(header["materials"][0]))
+    other["normalTexture"]["scale"] = 2.0
+    header["materials"].append(other)
+
+
 @pytest.mark.parametrize("edit, note", [
     (lambda h: h["materials"][0]["normalTexture"].update(texCoord=1), "the normalTexture of material 'bumpy' maps UV set 1"),
-    (lambda h: h["materials"][0].pop("name") and h["materials"][0]["normalTexture"].update(scale=2.0),
-     "how the maps of unnamed material 0 are placed (normal map scale, KHR_texture_transform) is not applied"),
+    (_two_unnamed_materials_placed_differently,
+     "how the maps of the 2 unnamed materials are placed (normal map scale, KHR_texture_transform) is not applied"),
     (lambda h: h["materials"][0]["normalTexture"].update(_transform(offset=(0.5, 0))),
      "the KHR_texture_transforms of material 'bumpy' are not applied: its baseColorTexture and normalTexture are placed "
      "differently"),

@@ -11,8 +11,9 @@ that picks a UV set, and keeps ``baseColorFactor`` in 8 bits (a linear 0.0015 be
 reads them from the file's JSON so that `load_mesh` applies the scale, the transform and the exact
 factor, and says what it cannot apply: a second UV set (trimesh reads only the first), two images
 of one material placed differently (they share one UV set here), and a material that trimesh's
-parts cannot be told apart from another (they keep its name, not its index, so an unnamed or
-twice-named material's extras are not applied).
+parts cannot be told apart from another (they keep its name, not its index, so the extras of a
+name two materials share, or of unnamed materials, apply only where those materials place their
+maps alike; one unnamed material, as gltfpack writes, is matched).
 
 `uv_dequantization` / `dequantized_uvs`: UVs stored as normalised integers (gltfpack's output,
 KHR_mesh_quantization), which trimesh reads unscaled, scaled as the file means them where every
@@ -188,25 +189,26 @@ def _list(value) -> list:
 
 
 def gltf_material_extras(header: dict) -> tuple[dict[str, MaterialExtras], list[str]]:
-    """(extras per material name; one line per thing in the file that is not applied), from the
+    """(extras per material name, None for the unnamed ones (one material, as gltfpack writes, or
+    several placing their maps alike); one line per thing in the file that is not applied), from the
     file's JSON (`gltf_header`)."""
     materials = _list(header.get("materials"))
-    found: dict[str, list[MaterialExtras]] = {}
+    found: dict[str | None, list[MaterialExtras]] = {}  # (None: the unnamed ones, which trimesh names None)
     notes: list[str] = []
     for index, material in enumerate(materials):
         if not isinstance(material, dict):
             continue
         name, label = material.get("name"), _label(material, index)
         extras = _extras(material, label, notes)
-        if isinstance(name, str):
-            found.setdefault(name, []).append(extras)
-        elif extras.moves_maps:  # (an unnamed material's factor stays as trimesh reads it: 8 bits)
-            notes.append(f"how the maps of {label} are placed (normal map scale, KHR_texture_transform) is not "
-                         f"applied: trimesh keeps materials by name")
+        found.setdefault(name if isinstance(name, str) else None, []).append(extras)
     by_name = {}
     for name, each in found.items():
         first, placed_alike = each[0], all(_placed_alike(p, each[0]) for p in each)
-        if not placed_alike:
+        if not placed_alike and name is None:
+            notes.append(f"how the maps of the {len(each)} unnamed materials are placed (normal map scale, "
+                         f"KHR_texture_transform) is not applied: they place them differently, and trimesh keeps "
+                         f"materials by name")
+        elif not placed_alike:
             notes.append(f"how the maps of material {name!r} are placed is not applied: {len(each)} materials share "
                          f"that name and place their maps differently")
         colour = first.base_color if all(p.base_color == first.base_color for p in each) else None

@@ -668,7 +668,8 @@ def load_mesh(path: str | Path) -> Mesh:
                 raise
             warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
             continue
-        extras = extras_of.get(getattr(getattr(part.visual, "material", None), "name", None))  # (glTF: what trimesh drops)
+        part_material = getattr(part.visual, "material", None)  # (glTF: what trimesh drops, by name; None: unnamed)
+        extras = extras_of.get(getattr(part_material, "name", None)) if part_material is not None else None
         material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), kept_colors[i], gltf,
                                                   None if extras is None else extras.base_color)
         kept_colors[i] = None
