@@ -209,10 +209,12 @@ def _striped_ball():
     return mesh
 
 
-def test_a_gltfpack_file_reads_as_the_mesh_it_was_packed_from(tmp_path):
+@pytest.mark.parametrize("name", ["gltfpack_ball.glb", "gltfpack_ball_vpn.glb"])  # (-vpn: normalised positions)
+def test_a_gltfpack_file_reads_as_the_mesh_it_was_packed_from(tmp_path, name):
     """gltfpack's output (KHR_mesh_quantization, normalised UVs dequantized by a texture transform
-    of its one unnamed material) hit and coloured as the float original: before, its UVs were read
-    unscaled and the transform was not applied (a warning each)."""
+    of its one unnamed material; with -vpn, normalised positions too) hit and coloured as the float
+    original: before, its UVs (and -vpn's positions) were read unscaled and the transform was not
+    applied (a warning each)."""
     import warnings
     from pathlib import Path
 
@@ -224,7 +226,7 @@ def test_a_gltfpack_file_reads_as_the_mesh_it_was_packed_from(tmp_path):
     _striped_ball().export(tmp_path / "ball.glb")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        packed = load_mesh(Path(__file__).parent / "data" / "gltfpack_ball.glb")
+        packed = load_mesh(Path(__file__).parent / "data" / name)
     original = load_mesh(tmp_path / "ball.glb")
     g = torch.Generator().manual_seed(0)
     origins = torch.randn(4000, 3, generator=g)

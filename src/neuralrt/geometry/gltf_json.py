@@ -15,9 +15,10 @@ parts cannot be told apart from another (they keep its name, not its index, so t
 name two materials share, or of unnamed materials, apply only where those materials place their
 maps alike; one unnamed material, as gltfpack writes, is matched).
 
-`uv_dequantization` / `dequantized_uvs`: UVs stored as normalised integers (gltfpack's output,
-KHR_mesh_quantization), which trimesh reads unscaled, scaled as the file means them where every
-primitive stores them one way (else a note: trimesh's parts cannot be matched to primitives).
+`uv_dequantization` / `dequantized_uvs` (and the same for positions): UVs and positions stored as
+normalised integers (gltfpack's output, KHR_mesh_quantization), which trimesh reads unscaled,
+scaled as the file means them where every primitive stores them one way (else a note: trimesh's
+parts cannot be matched to primitives).
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MaterialExtras", "dequantized_uvs", "gltf_file_notes", "gltf_header", "gltf_material_extras", "uv_dequantization"]
+__all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "gltf_file_notes", "gltf_header",
+           "gltf_material_extras", "position_dequantization", "uv_dequantization"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -72,12 +74,21 @@ def uv_dequantization(header: dict) -> int | None:
     reads unscaled, where every primitive's TEXCOORD_0 is stored so (as gltfpack and
     KHR_mesh_quantization write them); None where none is, or where they are stored in more than
     one way (the parts trimesh makes cannot be told apart: `gltf_file_notes` warns)."""
+    return _normalised_throughout(header, "TEXCOORD_0")
+
+
+def position_dequantization(header: dict) -> int | None:
+    """As `uv_dequantization`, for positions (gltfpack ``-vpn``: normalised, placed by their node)."""
+    return _normalised_throughout(header, "POSITION")
+
+
+def _normalised_throughout(header: dict, attribute: str) -> int | None:
     accessors = _list(header.get("accessors"))
     kinds = set()
     for mesh in _list(header.get("meshes")):
         for primitive in _list(mesh.get("primitives")) if isinstance(mesh, dict) else []:
             attributes = primitive.get("attributes") if isinstance(primitive, dict) else None
-            index = attributes.get("TEXCOORD_0") if isinstance(attributes, dict) else None
+            index = attributes.get(attribute) if isinstance(attributes, dict) else None
             accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else None
             if isinstance(accessor, dict):
                 kinds.add((accessor.get("componentType"), bool(accessor.get("normalized"))))
@@ -87,21 +98,31 @@ def uv_dequantization(header: dict) -> int | None:
     return component if normalised and component in _NORMALISED else None
 
 
+def _unit(stored: np.ndarray, component: int) -> np.ndarray:
+    """Normalised integers of ``component`` type as the values they stand for (glTF's formulas)."""
+    bits, signed = _NORMALISED[component]
+    largest = float(2 ** (bits - 1) - 1 if signed else 2**bits - 1)
+    return np.maximum(stored / largest, -1.0)
+
+
+def dequantized_positions(vertices: np.ndarray, component: int) -> np.ndarray:
+    """Positions as trimesh reads normalised integers of ``component`` type (unscaled, before their
+    node's transform) as the file means them."""
+    return _unit(np.asarray(vertices, np.float64), component)
+
+
 def dequantized_uvs(uv: np.ndarray, component: int) -> np.ndarray:
     """UVs as trimesh reads normalised integers of ``component`` type (unscaled; v turned to 1 - v
     in the integer type, so it wraps around) as the file means them, in trimesh's v-up convention."""
     bits, signed = _NORMALISED[component]
-    largest = float(2 ** (bits - 1) - 1 if signed else 2**bits - 1)
 
     def stored(x):  # the integer the file holds, from what trimesh kept (wrapped or not)
         x = np.mod(np.rint(x).astype(np.int64), 2**bits)
         return x - 2**bits * (x >= 2 ** (bits - 1)) if signed else x
 
-    def unit(x):
-        return np.maximum(x / largest, -1.0)
-
     uv = np.asarray(uv, np.float64)
-    return np.stack([unit(stored(uv[:, 0])), 1.0 - unit(stored(1.0 - uv[:, 1]))], axis=1).astype(np.float32)
+    return np.stack([_unit(stored(uv[:, 0]), component), 1.0 - _unit(stored(1.0 - uv[:, 1]), component)],
+                    axis=1).astype(np.float32)
 
 
 def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
@@ -143,7 +164,7 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
     if integer_uvs and uv_dequantization(header) is None:  # (stored one way throughout: the loader scales them)
         notes.append(f"the UVs of {_meshes(integer_uvs)} are normalised {' or '.join(sorted(set(integer_uvs.values())))}, "
                      f"which trimesh reads unscaled: their textures and normal maps are placed wrong")
-    if scaled_positions:
+    if scaled_positions and position_dequantization(header) is None:  # (stored one way throughout: scaled)
         notes.append(f"the positions of {_meshes(scaled_positions)} are normalised integers, which trimesh reads "
                      f"unscaled: the mesh is read at the wrong size and place")
     if short_colours:

@@ -19,7 +19,8 @@ from ..errors import MeshError
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
-from .gltf_json import dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras, uv_dequantization
+from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras,
+                        position_dequantization, uv_dequantization)
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -418,7 +419,7 @@ def _kept_colours(geometry) -> np.ndarray | None:
     return color if color is not None and len(color) == len(geometry.vertices) else None
 
 
-def _scene_parts(scene) -> tuple[list, list]:
+def _scene_parts(scene, position_component: int | None = None) -> tuple[list, list]:
     """A trimesh Scene's triangle meshes moved to their instances' places, as ``Scene.dump`` does,
     keeping what its copies drop: the file's vertex normals (trimesh's cache, which
     ``apply_transform`` turns with the part) and vertex colours beside a material (the visual's
@@ -433,6 +434,11 @@ def _scene_parts(scene) -> tuple[list, list]:
         if not isinstance(geometry, Trimesh):
             continue
         part = geometry.copy(include_cache=True)
+        if position_component is not None:  # (normalised integers, as trimesh reads them: unscaled; before the node's transform)
+            normals = part._cache["vertex_normals"] if "vertex_normals" in part._cache else None
+            part.vertices = dequantized_positions(part.vertices, position_component)
+            if normals is not None:  # (setting vertices clears the cache: the file's normals stay)
+                part.vertex_normals = normals
         part.apply_transform(transform)
         parts.append(part)
         colors.append(_kept_colours(geometry))
@@ -635,7 +641,7 @@ def load_mesh(path: str | Path) -> Mesh:
         _read_what_trimesh_drops(loaded, path)
     if isinstance(loaded, trimesh.Scene):
         _drop_undecodable_images(loaded, str(path))
-        parts, kept_colors = _scene_parts(loaded)
+        parts, kept_colors = _scene_parts(loaded, position_dequantization(header) if header else None)
     elif isinstance(loaded, trimesh.Trimesh):
         parts, kept_colors = [loaded], [_kept_colours(loaded)]
     else:

@@ -96,7 +96,7 @@ covered a concave one's notches), and a texture or buffer not found as named is 
 URIs), with `/` for `\\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
-weights, triangle fans, normalised integer positions, and normalised integer UVs where a file stores UVs in more than one way
+weights, triangle fans, and positions or UVs stored as normalised integers in more than one way
 (stored so throughout, as gltfpack and KHR_mesh_quantization write them, they are read as meant,
 and one unnamed material's texture transform is applied: a gltfpack file reads as its source);
 so is an OBJ `usemtl` naming no material (its
