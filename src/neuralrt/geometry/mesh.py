@@ -405,7 +405,10 @@ def _keep_obj_colours(loaded, data: bytes, path: Path) -> None:
     named = loaded.geometry.items() if hasattr(loaded, "geometry") else [(None, loaded)]
     for name, geometry in named:
         visual = getattr(geometry, "visual", None)
-        srgb = colours.get(name) if name is not None else next(iter(colours.values())) if len(colours) == 1 else None
+        if name is None:  # (a lone part: the file's one coloured part, if it has one)
+            srgb = next(iter(colours.values())) if len(colours) == 1 else None
+        else:
+            srgb = colours.get(name)
         if srgb is not None and getattr(visual, "kind", None) == "texture" and len(srgb) == len(geometry.vertices):
             visual.vertex_attributes["color"] = srgb_to_linear(srgb)
 
