@@ -338,8 +338,8 @@ def _two_unnamed_materials_placed_differently(header):
     (_two_unnamed_materials_placed_differently,
      "how the maps of the 2 unnamed materials are placed (normal map scale, KHR_texture_transform) is not applied"),
     (lambda h: h["materials"][0]["normalTexture"].update(_transform(offset=(0.5, 0))),
-     "the KHR_texture_transforms of material 'bumpy' are not applied: its baseColorTexture and normalTexture are placed "
-     "differently"),
+     "the normalTexture of material 'bumpy' is placed by its baseColorTexture's KHR_texture_transform: the two are "
+     "placed differently"),
     (lambda h: h["materials"][0]["normalTexture"].update(_transform(scale=(1.0,))),
      "the KHR_texture_transform of the normalTexture of material 'bumpy' is not applied (offset and scale must be two"),
 ])
@@ -348,3 +348,20 @@ def test_what_a_gltf_places_but_cannot_be_applied_is_a_warning(tmp_path, edit, n
     with pytest.warns(UserWarning, match=re.escape(f"quad.glb: {note}")):
         loaded = load_mesh(path)
     np.testing.assert_array_equal(loaded.uvs, QUAD_UVS[QUAD_FACES.ravel()])  # as they were (per corner: flat normals)
+
+
+def test_maps_placed_differently_follow_the_base_colour_map(tmp_path):
+    """Two transforms, one UV set: the colour (what shows) is placed right, the normal map with it, and
+    a warning says so (gltfpack scales both maps' transforms: dropping both misplaced both)."""
+    def both(path, base, normal):
+        edited_glb(path, lambda h: h["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"].update(base)
+                   or h["materials"][0]["normalTexture"].update(normal))
+        return path
+
+    images = dict(normal_image=_image([200, 128, 230]), base_image=_image([200, 20, 20]))
+    base = _transform(offset=(0.25, 0.1), scale=(2.0, 2.0))
+    alike = load_mesh(both(_glb(tmp_path / "alike.glb", **images), base, base))
+    with pytest.warns(UserWarning, match="the normal map is misplaced"):
+        differ = load_mesh(both(_glb(tmp_path / "differ.glb", **images), base, _transform(scale=(16.0, 16.0))))
+    np.testing.assert_allclose(differ.uvs, alike.uvs)
+    assert not np.allclose(differ.uvs, QUAD_UVS[QUAD_FACES.ravel()])

@@ -169,7 +169,8 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
                      f"unscaled: the mesh is read at the wrong size and place")
     if short_colours:
         notes.append(f"the vertex colours of {_meshes(short_colours)} are unsigned shorts on a primitive without a "
-                     f"material, which trimesh reads wrong")
+                     f"material, which trimesh reads as their low byte: right only for 8-bit colours stored as 257 times "
+                     f"their value (as gltfpack writes them)")
     if fans:
         notes.append(f"{fans} primitive(s) drawn as triangle fans are left out (trimesh reads triangles and strips)")
     if morphs:
@@ -264,9 +265,10 @@ def _extras(material: dict, label: str, notes: list[str]) -> MaterialExtras:
             transforms[slot] = None
     uv_transform = None
     distinct = {None if t is None else t.tobytes() for t in transforms.values()}
-    if len(distinct) > 1:
-        notes.append(f"the KHR_texture_transforms of {label} are not applied: its baseColorTexture and normalTexture "
-                     f"are placed differently, and share one UV set here")
+    if len(distinct) > 1:  # (the colour is what shows: it is placed right, and the normal map with it)
+        uv_transform = transforms["baseColorTexture"]
+        notes.append(f"the normalTexture of {label} is placed by its baseColorTexture's KHR_texture_transform: the "
+                     f"two are placed differently and share one UV set here, so the normal map is misplaced")
     elif transforms:
         uv_transform = next(iter(transforms.values()))
     scale = slots["normalTexture"].get("scale", 1.0) if isinstance(slots["normalTexture"], dict) else 1.0
