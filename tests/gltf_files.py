@@ -58,3 +58,16 @@ def quantized_uvs_glb(path, component):
     body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + struct.pack("<II", len(binary), 0x004E4942) + bytes(binary)
     path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
     return path
+
+
+def glb_as_gltf(glb_path, gltf_path):
+    """The .glb at ``glb_path`` written as a .gltf (its JSON) and a .bin beside it (its binary chunk)."""
+    data = glb_path.read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    header = json.loads(data[20:20 + length])
+    binary = data[20 + length + 8:]
+    bin_path = gltf_path.with_suffix(".bin")
+    bin_path.write_bytes(binary)
+    header["buffers"][0]["uri"] = bin_path.name
+    gltf_path.write_text(json.dumps(header))
+    return gltf_path

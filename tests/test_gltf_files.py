@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from gltf_files import edited_glb, quantized_uvs_glb
+from gltf_files import edited_glb, glb_as_gltf, quantized_uvs_glb
 from neuralrt.errors import MeshError
 from neuralrt.geometry.mesh import load_mesh
 
@@ -238,3 +238,45 @@ def test_a_gltfpack_file_reads_as_the_mesh_it_was_packed_from(tmp_path, name):
     both = a.hit & b.hit
     far = (a.albedo[both] - b.albedo[both]).abs().amax(dim=1) > 0.05
     assert far.float().mean() < 0.01  # (measured: 0 of them)
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".gltf"])
+def test_unnamed_materials_placing_their_maps_differently_are_told_apart(tmp_path, suffix):
+    """trimesh names every unnamed material None: two of them with different texture transforms
+    could not be matched to their parts (a warning, both transforms dropped); the file is read
+    under names of its own, and each part gets its material's transform, as if they were named."""
+    import warnings
+
+    import trimesh
+    from PIL import Image
+    from trimesh.visual.material import PBRMaterial
+
+    def write(path, named):
+        scene = trimesh.Scene()
+        for k in range(2):
+            quad = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+            quad.apply_translation([2 * k, 0, 0])
+            image = Image.fromarray(np.full((4, 4, 3), 60 + 100 * k, np.uint8))
+            quad.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1], [0, 1]],
+                                                        material=PBRMaterial(name=f"m{k}", baseColorTexture=image))
+            scene.add_geometry(quad)
+        scene.export(path)
+
+        def edit(header):
+            for k, material in enumerate(header["materials"]):
+                material["pbrMetallicRoughness"]["baseColorTexture"]["extensions"] = {
+                    "KHR_texture_transform": {"scale": [2.0 + k, 1.0]}}
+                if not named:
+                    material.pop("name")
+        return edited_glb(path, edit)
+
+    named_path, unnamed_path = write(tmp_path / "named.glb", True), write(tmp_path / "unnamed.glb", False)
+    if suffix == ".gltf":
+        named_path = glb_as_gltf(named_path, tmp_path / "named.gltf")
+        unnamed_path = glb_as_gltf(unnamed_path, tmp_path / "unnamed.gltf")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        named, unnamed = load_mesh(named_path), load_mesh(unnamed_path)
+    np.testing.assert_allclose(unnamed.uvs, named.uvs)
+    assert unnamed.uvs[:, 0].max() > 2.5  # (the second quad's u scaled by 3: transforms applied)
+    assert sorted(m.name for m in unnamed.materials) == ["material0", "material1"]

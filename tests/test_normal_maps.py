@@ -3,7 +3,6 @@ the CPU (numpy) and torch implementations against each other, glTF loading (texe
 not sRGB-decoded), the mesh hash, the render
 (Lambert with the mapped normal) and bad normal maps."""
 
-import json
 import math
 import re
 
@@ -325,18 +324,8 @@ def test_gltf_texture_transform_places_the_base_colour_texture_as_the_extension_
     np.testing.assert_allclose(albedo[:, :2], expected, atol=2e-4)
 
 
-def _two_unnamed_materials_placed_differently(header):
-    """(trimesh names every unnamed material None: their parts cannot be told apart)"""
-    header["materials"][0].pop("name")
-    other = json.loads(json.dumps(header["materials"][0]))
-    other["normalTexture"]["scale"] = 2.0
-    header["materials"].append(other)
-
-
 @pytest.mark.parametrize("edit, note", [
     (lambda h: h["materials"][0]["normalTexture"].update(texCoord=1), "the normalTexture of material 'bumpy' maps UV set 1"),
-    (_two_unnamed_materials_placed_differently,
-     "how the maps of the 2 unnamed materials are placed (normal map scale, KHR_texture_transform) is not applied"),
     (lambda h: h["materials"][0]["normalTexture"].update(_transform(offset=(0.5, 0))),
      "the normalTexture of material 'bumpy' is placed by its baseColorTexture's KHR_texture_transform: the two are "
      "placed differently"),

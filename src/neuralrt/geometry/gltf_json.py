@@ -12,8 +12,9 @@ reads them from the file's JSON so that `load_mesh` applies the scale, the trans
 factor, and says what it cannot apply: a second UV set (trimesh reads only the first), two images
 of one material placed differently (they share one UV set here), and a material that trimesh's
 parts cannot be told apart from another (they keep its name, not its index, so the extras of a
-name two materials share, or of unnamed materials, apply only where those materials place their
-maps alike; one unnamed material, as gltfpack writes, is matched).
+name two materials share apply only where those materials place their maps alike; unnamed
+materials, which trimesh names None, are matched as one where they place their maps alike, as
+gltfpack's one material, and else the file is read under names of its own, `named_materials`).
 
 `uv_dequantization` / `dequantized_uvs` (and the same for positions): UVs and positions stored as
 normalised integers (gltfpack's output, KHR_mesh_quantization), which trimesh reads unscaled,
@@ -32,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "gltf_file_notes", "gltf_header",
-           "gltf_material_extras", "position_dequantization", "uv_dequantization"]
+           "gltf_material_extras", "named_materials", "position_dequantization", "uv_dequantization", "with_header"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -237,6 +238,43 @@ def gltf_material_extras(header: dict) -> tuple[dict[str, MaterialExtras], list[
         by_name[name] = MaterialExtras(first.normal_scale, first.uv_transform, colour) if placed_alike \
             else MaterialExtras(base_color=colour)
     return by_name, notes
+
+
+def named_materials(header: dict) -> dict | None:
+    """A copy of ``header`` whose unnamed materials are named ``material<index>`` (another name where
+    that one is taken), where two or more of them place their maps differently: trimesh names every
+    unnamed material None, so their parts could not be told apart (`gltf_material_extras`), and the
+    file is read again under this header (`with_header`). None where no such renaming is needed."""
+    materials = _list(header.get("materials"))
+    unnamed = [i for i, m in enumerate(materials) if isinstance(m, dict) and not isinstance(m.get("name"), str)]
+    if len(unnamed) < 2:
+        return None
+    quiet: list[str] = []  # (the notes come from the header as it is read)
+    extras = [_extras(materials[i], _label(materials[i], i), quiet) for i in unnamed]
+    if all(_placed_alike(e, extras[0]) for e in extras):
+        return None
+    taken = {m.get("name") for m in materials if isinstance(m, dict)}
+    renamed = json.loads(json.dumps(header))
+    for i in unnamed:
+        name = f"material{i}"
+        while name in taken:
+            name += "'"
+        taken.add(name)
+        renamed["materials"][i]["name"] = name
+    return renamed
+
+
+def with_header(path: str | Path, header: dict) -> bytes:
+    """The glTF file at ``path`` with its JSON replaced by ``header``: a .glb's chunk rewritten (its
+    binary chunk kept), or a .gltf's text."""
+    data = Path(path).read_bytes()
+    chunk = json.dumps(header).encode()
+    if data[:4] != b"glTF":
+        return chunk
+    length = struct.unpack_from("<I", data, 12)[0]
+    chunk += b" " * (-len(chunk) % 4)
+    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + data[20 + length:]
+    return data[:8] + struct.pack("<I", 12 + len(body)) + body
 
 
 def _placed_alike(a: MaterialExtras, b: MaterialExtras) -> bool:

@@ -20,7 +20,7 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras,
-                        position_dequantization, uv_dequantization)
+                        named_materials, position_dequantization, uv_dequantization, with_header)
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -618,9 +618,12 @@ def load_mesh(path: str | Path) -> Mesh:
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     used_materials: set[str] = set()
+    renamed = named_materials(header) if header else None
     try:
         with unread_assets() as unread:
             source, obj_bytes = dict(file_obj=str(path)), None
+            if renamed is not None:  # (read under a header naming its unnamed materials: their parts told apart)
+                source, header = dict(file_obj=io.BytesIO(with_header(path, renamed)), file_type=suffix[1:]), renamed
             if suffix == ".obj":  # (read once here: trimesh reads the bytes as they are, or as cleaned)
                 data = path.read_bytes()
                 used_materials = used_material_names(data)

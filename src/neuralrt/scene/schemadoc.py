@@ -98,7 +98,7 @@ What a file holds but is not read is a warning naming it: emission (MTL `Ke`, gl
 `emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
 weights, triangle fans, and positions or UVs stored as normalised integers in more than one way
 (stored so throughout, as gltfpack and KHR_mesh_quantization write them, they are read as meant,
-and one unnamed material's texture transform is applied: a gltfpack file reads as its source);
+and unnamed materials' texture transforms are applied: a gltfpack file reads as its source);
 so is an OBJ `usemtl` naming no material (its
 faces render white), and PLY colours or UVs in properties trimesh does not read (`diffuse_red`,
 `texture_s`). A glTF that needs Draco or meshopt compression (gltfpack `-c`, `-cc`) or GPU
