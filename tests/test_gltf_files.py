@@ -75,7 +75,6 @@ def _ushort_colours_without_material(header):
     (lambda h: h["meshes"][0].update(weights=[0.0, 1.0]), "the morph target weights of 1 mesh(es) are not applied"),
     (lambda h: h["materials"][1].update(emissiveFactor=[1.0, 0.5, 0.0]),
      "the emission of material 'b' is not read: give the slot an emissive scene material to make it a light"),
-    (lambda h: h.update(extensionsUsed=["EXT_mesh_gpu_instancing"]), "instances of EXT_mesh_gpu_instancing are not read"),
     (_ushort_colours_without_material, "the vertex colours of mesh 0 are unsigned shorts on a primitive without a material"),
     (lambda h: h["accessors"][h["meshes"][0]["primitives"][0]["attributes"]["POSITION"]].update(normalized=True),
      "the positions of mesh 0 are normalised integers, which trimesh reads unscaled"),
@@ -280,3 +279,59 @@ def test_unnamed_materials_placing_their_maps_differently_are_told_apart(tmp_pat
     np.testing.assert_allclose(unnamed.uvs, named.uvs)
     assert unnamed.uvs[:, 0].max() > 2.5  # (the second quad's u scaled by 3: transforms applied)
     assert sorted(m.name for m in unnamed.materials) == ["material0", "material1"]
+
+
+def _three_boxes():
+    """The scene tests/data/gltfpack_instances.glb was made from (``gltfpack -i boxes.glb -o
+    gltfpack_instances.glb -mi``): one box on three nodes, each turned and moved its own way."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    box = trimesh.creation.box((0.5, 0.3, 0.2))
+    for k in range(3):
+        placed = trimesh.transformations.rotation_matrix(0.4 * k, [0, 0, 1])
+        placed[:3, 3] = [1.5 * k, 0.2 * k, 0.1 * k]
+        scene.add_geometry(box, node_name=f"box{k}", geom_name="box", transform=placed)
+    return scene
+
+
+@pytest.mark.parametrize("as_gltf", [False, True])
+def test_gpu_instances_are_read_as_nodes(tmp_path, as_gltf):
+    """EXT_mesh_gpu_instancing (gltfpack -mi; trimesh reads no instances): each instance's
+    TRANSLATION, ROTATION (normalised shorts here) and SCALE place one copy, as the nodes of the
+    scene it was packed from did (an error before). From a .glb's binary chunk or a .gltf's .bin."""
+    import warnings
+    from pathlib import Path
+
+    import torch
+
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.rays import Rays
+
+    packed_path = Path(__file__).parent / "data" / "gltfpack_instances.glb"
+    if as_gltf:
+        packed_path = glb_as_gltf(packed_path, tmp_path / "instances.gltf")
+    _three_boxes().export(tmp_path / "boxes.glb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        packed, source = load_mesh(packed_path), load_mesh(tmp_path / "boxes.glb")
+    assert packed.num_triangles == source.num_triangles == 36
+    np.testing.assert_allclose(packed.bounds, source.bounds, atol=1e-4)
+    centres = torch.tensor([[1.5 * k, 0.2 * k, 0.1 * k] for k in range(3)], dtype=torch.float32).repeat_interleave(300, 0)
+    g = torch.Generator().manual_seed(0)
+    origins = centres + 2.0 * torch.nn.functional.normalize(torch.randn(900, 3, generator=g), dim=1)
+    directions = torch.nn.functional.normalize(centres - origins + 0.1 * torch.randn(900, 3, generator=g), dim=1)
+    a, b = MeshBLAS(source).intersect(Rays(origins, directions)), MeshBLAS(packed).intersect(Rays(origins, directions))
+    assert a.hit.float().mean() > 0.5 and (a.hit == b.hit).float().mean() > 0.995
+    assert (a.t[a.hit & b.hit] - b.t[a.hit & b.hit]).abs().max() < 1e-3
+
+
+def test_gpu_instances_that_cannot_be_read_are_one_line(tmp_path):
+    from pathlib import Path
+
+    broken = tmp_path / "broken.glb"
+    broken.write_bytes((Path(__file__).parent / "data" / "gltfpack_instances.glb").read_bytes())
+    edited_glb(broken, lambda h: h["accessors"][h["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"][
+        "TRANSLATION"]].update(count=10**6))
+    with pytest.raises(MeshError, match="broken.glb: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot be read"):
+        load_mesh(broken)

@@ -32,8 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "gltf_file_notes", "gltf_header",
-           "gltf_material_extras", "named_materials", "position_dequantization", "uv_dequantization", "with_header"]
+__all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "expanded_instances", "gltf_file_notes",
+           "gltf_header", "gltf_material_extras", "named_materials", "position_dequantization", "uv_dequantization",
+           "with_header"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -62,8 +63,8 @@ class MaterialExtras:
 
 # Required extensions without which trimesh reads no geometry, or only part of it.
 _UNREADABLE_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed geometry",
-                          "EXT_meshopt_compression": "meshoptimizer-compressed buffers",
-                          "EXT_mesh_gpu_instancing": "instances placed by the extension"}
+                          "EXT_meshopt_compression": "meshoptimizer-compressed buffers"}
+_INSTANCING = "EXT_mesh_gpu_instancing"
 _TRIANGLE_FAN, _COMPONENT_BYTES = 6, {5121: "unsigned bytes", 5123: "unsigned shorts"}
 # Normalised integer components (the glTF spec's "accessor.normalized"; signed ones from
 # KHR_mesh_quantization): (bits, signed); 1.0 is stored as the largest value, -1.0 as minus it.
@@ -178,8 +179,6 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
         notes.append(f"the morph target weights of {morphs} mesh(es) are not applied: each is read in its base shape")
     if _list(header.get("skins")):
         notes.append("skins are not applied: skinned meshes are read in their bind pose, placed by their nodes")
-    if "EXT_mesh_gpu_instancing" in _list(header.get("extensionsUsed")):
-        notes.append("instances of EXT_mesh_gpu_instancing are not read: each such node's mesh is read once")
     glowing = [_label(material, i) for i, material in enumerate(_list(header.get("materials")))
                if isinstance(material, dict) and _emits(material)]
     if glowing:
@@ -262,6 +261,89 @@ def named_materials(header: dict) -> dict | None:
         taken.add(name)
         renamed["materials"][i]["name"] = name
     return renamed
+
+
+def expanded_instances(header: dict, path: str | Path) -> dict | None:
+    """A copy of ``header`` whose ``EXT_mesh_gpu_instancing`` nodes (gltfpack ``-mi``; trimesh reads
+    no instances) hold one child node per instance, placed by the instance's TRANSLATION, ROTATION
+    and SCALE, and the extension gone; the file is read again under it (`with_header`). None where
+    no node uses the extension. A ValueError names an instance accessor that cannot be read."""
+    nodes = _list(header.get("nodes"))
+    instanced = [i for i, n in enumerate(nodes) if isinstance(n, dict) and isinstance(
+        (n.get("extensions") or {}).get(_INSTANCING), dict)]
+    if not instanced:
+        return None
+    expanded = json.loads(json.dumps(header))
+    binary = _glb_binary(path)
+    for i in instanced:
+        node = expanded["nodes"][i]
+        attributes = node["extensions"].pop(_INSTANCING).get("attributes") or {}
+        columns = {name: _accessor_values(expanded, attributes[name], path, binary)
+                   for name in ("TRANSLATION", "ROTATION", "SCALE") if name in attributes}
+        counts = {len(c) for c in columns.values()}
+        if len(counts) != 1:
+            raise ValueError(f"node {i}'s {_INSTANCING} attributes are of different lengths (or none)")
+        children = []
+        for k in range(counts.pop()):
+            child = {"mesh": node["mesh"]} if "mesh" in node else {}
+            for name, key in (("TRANSLATION", "translation"), ("ROTATION", "rotation"), ("SCALE", "scale")):
+                if name in columns:
+                    child[key] = [float(x) for x in columns[name][k]]
+            children.append(len(expanded["nodes"]))
+            expanded["nodes"].append(child)
+        node.pop("mesh", None)
+        node["children"] = list(node.get("children") or []) + children
+    for key in ("extensionsUsed", "extensionsRequired"):
+        if key in expanded:
+            expanded[key] = [e for e in _list(expanded[key]) if e != _INSTANCING]
+    return expanded
+
+
+_COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def _glb_binary(path: str | Path) -> bytes | None:
+    """A .glb's binary chunk (None for a .gltf, or a .glb without one)."""
+    data = Path(path).read_bytes()
+    if data[:4] != b"glTF":
+        return None
+    at = 20 + struct.unpack_from("<I", data, 12)[0]
+    if at + 8 > len(data):
+        return None
+    length, kind = struct.unpack_from("<II", data, at)
+    return data[at + 8:at + 8 + length] if kind == 0x004E4942 else None
+
+
+def _accessor_values(header: dict, index, path: str | Path, binary: bytes | None) -> np.ndarray:
+    """An accessor's values, [count, width] float64 (normalised integers scaled as the spec says)."""
+    import base64
+    from urllib.parse import unquote
+
+    accessors = _list(header.get("accessors"))
+    if not (isinstance(index, int) and 0 <= index < len(accessors)):
+        raise ValueError(f"instance accessor {index!r} does not exist")
+    accessor = accessors[index]
+    view = _list(header.get("bufferViews"))[accessor["bufferView"]]
+    buffer = _list(header.get("buffers"))[view.get("buffer", 0)]
+    uri = buffer.get("uri")
+    if uri is None:
+        data = binary
+    elif uri.startswith("data:"):
+        data = base64.b64decode(uri.split(",", 1)[1])
+    else:
+        data = (Path(path).parent / unquote(uri)).read_bytes()
+    if data is None:
+        raise ValueError(f"instance accessor {index}'s buffer holds no data")
+    dtype = np.dtype(_COMPONENTS[accessor["componentType"]]).newbyteorder("<")
+    width, count = _WIDTHS[accessor["type"]], int(accessor["count"])
+    stride = view.get("byteStride") or dtype.itemsize * width
+    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    at = start + np.arange(count)[:, None] * stride + np.arange(width * dtype.itemsize)[None, :]
+    values = np.frombuffer(data, np.uint8)[at].view(dtype).reshape(count, width).astype(np.float64)  # (IndexError: cut short)
+    if accessor.get("normalized") and accessor["componentType"] in _NORMALISED:
+        values = _unit(values, accessor["componentType"])
+    return values
 
 
 def with_header(path: str | Path, header: dict) -> bytes:

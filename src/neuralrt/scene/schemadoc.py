@@ -101,9 +101,9 @@ weights, triangle fans, and positions or UVs stored as normalised integers in mo
 and unnamed materials' texture transforms are applied: a gltfpack file reads as its source);
 so is an OBJ `usemtl` naming no material (its
 faces render white), and PLY colours or UVs in properties trimesh does not read (`diffuse_red`,
-`texture_s`). A glTF that needs Draco or meshopt compression (gltfpack `-c`, `-cc`) or GPU
-instancing (`EXT_mesh_gpu_instancing`, gltfpack `-mi`), or whose primitives use sparse accessors,
-is an error. A material's base-colour and normal maps placed by different texture transforms share
+`texture_s`). A glTF that needs Draco or meshopt compression (gltfpack `-c`, `-cc`), or whose
+primitives use sparse accessors, is an error. GPU instances (`EXT_mesh_gpu_instancing`, gltfpack
+`-mi`) are read as nodes: each instance a copy in the merged mesh. A material's base-colour and normal maps placed by different texture transforms share
 one UV set here: the base colour's places both (a warning says the normal map is misplaced).
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
