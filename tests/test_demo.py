@@ -40,6 +40,12 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     for name in [*report["images"].values(), *training.values()]:
         assert (out / name).is_file(), name
     assert list(training) == ["statue-d0"] and f"![training curve of statue-d0]({training['statue-d0']})" in (out / "report.md").read_text()
+    from neuralrt.methods import get_method
+    from neuralrt.methods.registry import config_from_dict
+    from neuralrt.io.model_file import read_model_header
+
+    made = config_from_dict(read_model_header(report["models"][0]["model_path"]).config)
+    assert get_method("lsnif").preset_of(made) == "hq"  # (what the training plot's title names)
     for png in ("exact.png", "hybrid.png", "flip.png"):
         assert Image.open(out / png).size == (32, 24)
     assert Image.open(out / "side_by_side.png").size[0] == 3 * 32

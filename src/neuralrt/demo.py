@@ -131,13 +131,17 @@ def _training_plots(models, out: Path) -> dict[str, str]:
     before curves were kept have none to draw."""
     from .io.model_file import read_model_header
     from .io.plots import plot_problem, training_plot_title, write_training_plot
+    from .methods import get_method
+    from .methods.registry import config_from_dict
 
     plots = {}
     for k, m in enumerate(models):
         header = read_model_header(m.model_path)
         if plot_problem(header.training) is None:
             name = f"training_{k}.png"
-            write_training_plot(out / name, header.training["curve"], training_plot_title(header.method, m.mesh_name, header.training))
+            preset = get_method(header.method).preset_of(config_from_dict(header.config))  # (as `info` names it)
+            label = " ".join(part for part in (header.method, preset) if part)
+            write_training_plot(out / name, header.training["curve"], training_plot_title(label, m.mesh_name, header.training))
             plots[m.mesh_name] = name
     return plots
 
