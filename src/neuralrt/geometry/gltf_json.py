@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "expanded_instances", "gltf_file_notes",
-           "gltf_header", "gltf_material_extras", "named_materials", "position_dequantization", "uv_dequantization",
-           "with_header"]
+           "gltf_header", "gltf_material_extras", "instanced_nodes", "named_materials", "position_dequantization",
+           "uv_dequantization", "with_header"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up
@@ -263,22 +263,26 @@ def named_materials(header: dict) -> dict | None:
     return renamed
 
 
-def expanded_instances(header: dict, path: str | Path) -> dict | None:
-    """A copy of ``header`` whose ``EXT_mesh_gpu_instancing`` nodes (gltfpack ``-mi``; trimesh reads
-    no instances) hold one child node per instance, placed by the instance's TRANSLATION, ROTATION
-    and SCALE, and the extension gone; the file is read again under it (`with_header`). None where
-    no node uses the extension. A ValueError names an instance accessor that cannot be read."""
-    nodes = _list(header.get("nodes"))
-    instanced = [i for i, n in enumerate(nodes) if isinstance(n, dict) and isinstance(
+def instanced_nodes(header: dict) -> list[int]:
+    """The nodes that ``EXT_mesh_gpu_instancing`` draws several times (gltfpack ``-mi``)."""
+    return [i for i, n in enumerate(_list(header.get("nodes"))) if isinstance(n, dict) and isinstance(
         (n.get("extensions") or {}).get(_INSTANCING), dict)]
+
+
+def expanded_instances(header: dict, path: str | Path, data: bytes) -> dict | None:
+    """A copy of ``header`` whose `instanced_nodes` (trimesh reads no instances) hold one child node
+    per instance, placed by the instance's TRANSLATION, ROTATION and SCALE, and the extension gone;
+    the file (``data``, its bytes) is read again under it (`with_header`). None where no node uses
+    the extension. A ValueError names an instance accessor that cannot be read."""
+    instanced = instanced_nodes(header)
     if not instanced:
         return None
     expanded = json.loads(json.dumps(header))
-    binary = _glb_binary(path)
+    buffers = {None: _glb_binary(data)}  # (buffer URI -> bytes: a .glb's own chunk, each file or data URI read once)
     for i in instanced:
         node = expanded["nodes"][i]
         attributes = node["extensions"].pop(_INSTANCING).get("attributes") or {}
-        columns = {name: _accessor_values(expanded, attributes[name], path, binary)
+        columns = {name: _accessor_values(expanded, attributes[name], path, buffers)
                    for name in ("TRANSLATION", "ROTATION", "SCALE") if name in attributes}
         counts = {len(c) for c in columns.values()}
         if len(counts) != 1:
@@ -303,20 +307,20 @@ _COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5
 _WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 
 
-def _glb_binary(path: str | Path) -> bytes | None:
-    """A .glb's binary chunk (None for a .gltf, or a .glb without one)."""
-    data = Path(path).read_bytes()
+def _glb_binary(data: bytes) -> bytes | None:
+    """A .glb's binary chunk (None for a .gltf, or a .glb without one), from the file's bytes."""
     if data[:4] != b"glTF":
         return None
-    at = 20 + struct.unpack_from("<I", data, 12)[0]
+    at = _after_json_chunk(data)
     if at + 8 > len(data):
         return None
     length, kind = struct.unpack_from("<II", data, at)
     return data[at + 8:at + 8 + length] if kind == 0x004E4942 else None
 
 
-def _accessor_values(header: dict, index, path: str | Path, binary: bytes | None) -> np.ndarray:
-    """An accessor's values, [count, width] float64 (normalised integers scaled as the spec says)."""
+def _accessor_values(header: dict, index, path: str | Path, buffers: dict) -> np.ndarray:
+    """An accessor's values, [count, width] float64 (normalised integers scaled as the spec says);
+    ``buffers``: the bytes of the buffers read so far, by URI (None: a .glb's binary chunk)."""
     import base64
     from urllib.parse import unquote
 
@@ -327,12 +331,10 @@ def _accessor_values(header: dict, index, path: str | Path, binary: bytes | None
     view = _list(header.get("bufferViews"))[accessor["bufferView"]]
     buffer = _list(header.get("buffers"))[view.get("buffer", 0)]
     uri = buffer.get("uri")
-    if uri is None:
-        data = binary
-    elif uri.startswith("data:"):
-        data = base64.b64decode(uri.split(",", 1)[1])
-    else:
-        data = (Path(path).parent / unquote(uri)).read_bytes()
+    if uri not in buffers:
+        buffers[uri] = base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") \
+            else (Path(path).parent / unquote(uri)).read_bytes()
+    data = buffers[uri]
     if data is None:
         raise ValueError(f"instance accessor {index}'s buffer holds no data")
     dtype = np.dtype(_COMPONENTS[accessor["componentType"]]).newbyteorder("<")
@@ -346,17 +348,20 @@ def _accessor_values(header: dict, index, path: str | Path, binary: bytes | None
     return values
 
 
-def with_header(path: str | Path, header: dict) -> bytes:
-    """The glTF file at ``path`` with its JSON replaced by ``header``: a .glb's chunk rewritten (its
-    binary chunk kept), or a .gltf's text."""
-    data = Path(path).read_bytes()
+def with_header(data: bytes, header: dict) -> bytes:
+    """A glTF file's bytes (``data``) with its JSON replaced by ``header``: a .glb's chunk rewritten
+    (its binary chunk kept), or a .gltf's text."""
     chunk = json.dumps(header).encode()
     if data[:4] != b"glTF":
         return chunk
-    length = struct.unpack_from("<I", data, 12)[0]
     chunk += b" " * (-len(chunk) % 4)
-    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + data[20 + length:]
+    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + data[_after_json_chunk(data):]
     return data[:8] + struct.pack("<I", 12 + len(body)) + body
+
+
+def _after_json_chunk(data: bytes) -> int:
+    """Where a .glb's JSON chunk ends: a 12-byte header, then the chunk's length, type and bytes."""
+    return 20 + struct.unpack_from("<I", data, 12)[0]
 
 
 def _placed_alike(a: MaterialExtras, b: MaterialExtras) -> bool:

@@ -20,8 +20,8 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras,
-                        expanded_instances, named_materials, position_dequantization, uv_dequantization,
-                        with_header)
+                        expanded_instances, instanced_nodes, named_materials, position_dequantization,
+                        uv_dequantization, with_header)
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -395,20 +395,20 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
 
 
-_REWRITTEN = "neuralrt_rewritten"  # (a key of our own in a header `load_mesh` rewrote: never in a file's)
-
-
-def _rewritten_gltf_header(header: dict, path: Path) -> dict:
-    """``header``, or a rewrite of it for trimesh to read (marked `_REWRITTEN`): unnamed materials
-    that place their maps differently named (`named_materials`), GPU instances made nodes
-    (`expanded_instances`)."""
-    rewritten = named_materials(header) or header
+def _rewritten_gltf(header: dict, path: Path) -> tuple[dict, bytes | None]:
+    """(the header trimesh is to read the file under, the file's bytes with it, or None where the
+    file is read as it is): unnamed materials that place their maps differently named
+    (`named_materials`), GPU instances made nodes (`expanded_instances`). The file is read once."""
+    rewritten = named_materials(header)
+    if rewritten is None and not instanced_nodes(header):
+        return header, None
+    data = path.read_bytes()
     try:
-        rewritten = expanded_instances(rewritten, path) or rewritten
+        rewritten = expanded_instances(rewritten or header, path, data) or rewritten
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         raise MeshError(f"{path}: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot be read "
                         f"({type(exc).__name__}: {exc})") from None
-    return header if rewritten is header else {**rewritten, _REWRITTEN: True}
+    return rewritten, with_header(data, rewritten)
 
 
 def _keep_obj_colours(loaded, data: bytes, path: Path) -> None:
@@ -635,14 +635,12 @@ def load_mesh(path: str | Path) -> Mesh:
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     used_materials: set[str] = set()
-    if header:
-        header = _rewritten_gltf_header(header, path)
+    header, rewritten = _rewritten_gltf(header, path) if header else (header, None)
     try:
         with unread_assets() as unread:
             source, obj_bytes = dict(file_obj=str(path)), None
-            if header and header.get(_REWRITTEN):  # (read under a header of our own: see `_rewritten_gltf_header`)
-                own = {k: v for k, v in header.items() if k != _REWRITTEN}
-                source = dict(file_obj=io.BytesIO(with_header(path, own)), file_type=suffix[1:])
+            if rewritten is not None:  # (read under a header of our own: see `_rewritten_gltf`)
+                source = dict(file_obj=io.BytesIO(rewritten), file_type=suffix[1:])
             if suffix == ".obj":  # (read once here: trimesh reads the bytes as they are, or as cleaned)
                 data = path.read_bytes()
                 used_materials = used_material_names(data)
@@ -653,7 +651,7 @@ def load_mesh(path: str | Path) -> Mesh:
             loaded = trimesh.load(**source, process=False, resolver=regular_files_resolver(str(path)))
         if obj_bytes is not None and isinstance(loaded, (trimesh.Scene, trimesh.Trimesh)):
             _keep_obj_colours(loaded, obj_bytes, path)
-        source = obj_bytes = None
+        source = obj_bytes = rewritten = None
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
