@@ -415,11 +415,11 @@ def _keep_obj_colours(loaded, data: bytes, path: Path) -> None:
     """An OBJ's ``v x y z r g b`` colours (`vertex_colours_of_parts`), which trimesh drops beside a
     material, put where a glTF's are found (`_kept_colours`): the visual's ``vertex_attributes``, linear.
     ``loaded``: trimesh's Scene of the file's parts, or its one part."""
-    if getattr(loaded, "visual", None) is not None and getattr(loaded.visual, "kind", None) != "texture":
-        return  # (a lone part without a material: trimesh kept its colours)
+    named = list(loaded.geometry.items()) if hasattr(loaded, "geometry") else [(None, loaded)]
+    if not any(getattr(getattr(g, "visual", None), "kind", None) == "texture" for _, g in named):
+        return  # (no part has a material: trimesh kept their colours, no second parse)
     with unread_assets():  # (what this second read cannot find, the first has said)
         colours = vertex_colours_of_parts(data, regular_files_resolver(str(path))) or {}
-    named = loaded.geometry.items() if hasattr(loaded, "geometry") else [(None, loaded)]
     for name, geometry in named:
         visual = getattr(geometry, "visual", None)
         if name is None:  # (a lone part: the file's one coloured part, if it has one)
