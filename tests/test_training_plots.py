@@ -108,7 +108,7 @@ def test_an_interrupted_runs_checkpoint_draws_its_curve_so_far(tmp_path, monkeyp
     # (a run without the CLI's identity records no method: the title leaves it out)
     assert titles[-1].startswith(f"{sphere(2).name} · checkpoint of an unfinished run at step 4 (256 rays a step)")
     resumed = _run(9, checkpoint=ckpt, checkpoint_every=4, resume=True)
-    assert plots.training_plot_title("lsnif", "ball", resumed.as_dict()).startswith("lsnif · ball · 9 steps of 256 rays (resumed at step 4)")
+    assert plots.training_plot_title("lsnif", None, "ball", resumed.as_dict()).startswith("lsnif · ball · 9 steps of 256 rays (resumed at step 4)")
 
 
 def test_info_and_train_name_the_preset_a_model_was_made_from(trained, tmp_path):

@@ -154,9 +154,9 @@ def _plotted(facts: dict, plot: Path | None) -> dict:
     if problem:
         raise ModelFileError(f"{facts['path']}: {problem}")
     name = facts.get("mesh_name") or f"mesh {str(facts.get('mesh_sha256'))[:12]}"
-    label = " ".join(str(part) for part in (facts["method"], facts.get("preset")) if part)
     step = facts["step"] if facts["kind"] == "checkpoint" else None
-    write_training_plot(plot, record["curve"], training_plot_title(label, name, record, checkpoint_step=step))
+    title = training_plot_title(facts["method"], facts.get("preset"), name, record, checkpoint_step=step)
+    write_training_plot(plot, record["curve"], title)
     return {**facts, "plot": str(plot)}
 
 
@@ -369,8 +369,8 @@ def train(
         from .io.plots import training_plot_title, write_training_plot
 
         record = model.training_record
-        label = " ".join(part for part in (spec.name, spec.preset_of(model.config)) if part)  # (as `info` names it)
-        write_training_plot(plot, record["curve"], training_plot_title(label, model.mesh_name, record))
+        title = training_plot_title(spec.name, spec.preset_of(model.config), model.mesh_name, record)  # (as `info` names it)
+        write_training_plot(plot, record["curve"], title)
         result["plot"] = str(plot)
     return result
 

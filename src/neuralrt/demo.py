@@ -140,8 +140,8 @@ def _training_plots(models, out: Path) -> dict[str, str]:
         if plot_problem(header.training) is None:
             name = f"training_{k}.png"
             preset = get_method(header.method).preset_of(config_from_dict(header.config))  # (as `info` names it)
-            label = " ".join(part for part in (header.method, preset) if part)
-            write_training_plot(out / name, header.training["curve"], training_plot_title(label, m.mesh_name, header.training))
+            title = training_plot_title(header.method, preset, m.mesh_name, header.training)
+            write_training_plot(out / name, header.training["curve"], title)
             plots[m.mesh_name] = name
     return plots
 

@@ -62,16 +62,17 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     return write_figure(fig, path)
 
 
-def training_plot_title(label: str, mesh_name: str, record: dict, checkpoint_step: int | None = None) -> str:
+def training_plot_title(method: str | None, preset: str | None, mesh_name: str, record: dict,
+                        checkpoint_step: int | None = None) -> str:
     """``lsnif hq · bunny · 800 steps of 8,192 rays · 55.7 s, 588k rays/s on cpu · final hit accuracy 0.9982``
-    from a training record (``label``: the method and its preset); an interrupted run's checkpoint
-    says so (``checkpoint_step``), and a resumed run where it resumed."""
+    from a training record (the method, and its preset where the config is one: `MethodSpec.preset_of`);
+    an interrupted run's checkpoint says so (``checkpoint_step``), and a resumed run where it resumed."""
     steps = f"{record.get('steps', 0):,} steps of {record.get('batch_size', 0):,} rays"
     if checkpoint_step is not None:
         steps = f"checkpoint of an unfinished run at step {checkpoint_step:,} ({record.get('batch_size', 0):,} rays a step)"
     elif record.get("resumed_from") is not None:
         steps += f" (resumed at step {record['resumed_from']:,})"
-    parts = [label, mesh_name or "(unnamed mesh)", steps]
+    parts = [" ".join(part for part in (method, preset) if part), mesh_name or "(unnamed mesh)", steps]
     if record.get("rays_per_second"):
         where = f" on {record['device']}" if record.get("device") else ""
         parts.append(f"{record.get('seconds', 0.0):,.1f} s, {record['rays_per_second'] / 1e3:,.0f}k rays/s{where}")

@@ -98,7 +98,6 @@ class MethodSpec:
             raise ConfigError(f"settings: expected a dict of config sections, got {type(settings).__name__}")
         return self.config_class.preset(preset or self.default_preset(device), **(settings or {})).with_training(**training)
 
-
     def preset_of(self, config: MethodConfig) -> str | None:
         """The preset ``config`` was made from, up to the training keys `config` sets (steps, batch
         size, seed) and what makes no other model (`model_defining`); None where other keys differ."""
