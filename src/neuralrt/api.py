@@ -112,7 +112,7 @@ def _scene_info(spec: str) -> dict:
 
 def _model_info(path: Path, plot: Path | None = None) -> dict:
     from .io.model_file import FORMAT_VERSION, read_header, read_model_header
-    from .methods import load_model
+    from .methods import get_method, load_model
     from .training.trainer import CHECKPOINT_METHOD
 
     raw = read_header(path)
@@ -120,8 +120,6 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         return _plotted(_checkpoint_info(path, raw), plot)
     if path.suffix.lower() == CHECKPOINT_SUFFIX:
         raise NeuralRTError(f"{path}: a {CHECKPOINT_SUFFIX} file that holds no training checkpoint (method {raw.get('method')!r})")
-    from .methods import get_method
-
     header = read_model_header(path)
     model = load_model(path)
     report = model.memory_bytes()
@@ -130,7 +128,7 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         "path": str(path),
         "method": header.method,
         "preset": get_method(header.method).preset_of(model.config),  # (None: keys set past a preset's)
-        "format_version": read_header(path)["format_version"],
+        "format_version": raw["format_version"],  # (the header read above: read_model_header checks it)
         "reader_format_version": FORMAT_VERSION,
         "memory_bytes": report.total,
         "memory_parts": {k: int(v) for k, v in report.parts.items()},
