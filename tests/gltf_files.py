@@ -71,3 +71,50 @@ def glb_as_gltf(glb_path, gltf_path):
     header["buffers"][0]["uri"] = bin_path.name
     gltf_path.write_text(json.dumps(header))
     return gltf_path
+
+
+def street_glb(path, lights=True):
+    """A small glTF scene: a ground, one house mesh drawn by three nodes, a metal ball, an emissive
+    lamp; with ``lights``, a perspective camera, a point light and a directional light
+    (KHR_lights_punctual). trimesh writes a mesh per node, so the JSON is edited to share one."""
+    import numpy as np
+    import trimesh
+    from trimesh.transformations import translation_matrix
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    def part(mesh, **material):
+        mesh.visual = TextureVisuals(material=PBRMaterial(**material))
+        return mesh
+
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.creation.box((10, 0.1, 10)), node_name="ground", geom_name="ground",
+                       transform=translation_matrix([0, -0.05, 0]))
+    house = part(trimesh.creation.box((1, 2, 1)), name="brick", baseColorFactor=[200, 80, 60, 255], metallicFactor=0.0,
+                 roughnessFactor=0.7)
+    for k, x in enumerate((-2.0, 0.0, 2.0)):
+        scene.add_geometry(house, node_name=f"house{k}", geom_name="house", transform=translation_matrix([x, 1, -1]))
+    ball = part(trimesh.creation.icosphere(2, 0.5), name="chrome", baseColorFactor=[230, 230, 230, 255],
+                metallicFactor=1.0, roughnessFactor=0.2)
+    scene.add_geometry(ball, node_name="ball", geom_name="ball", transform=translation_matrix([0, 0.5, 1]))
+    lamp = part(trimesh.creation.box((0.4, 0.05, 0.4)), name="lamp", baseColorFactor=[255, 255, 255, 255],
+                emissiveFactor=[1.0, 0.9, 0.7])
+    scene.add_geometry(lamp, node_name="lamp", geom_name="lamp", transform=translation_matrix([0, 3, 0]))
+    scene.export(path)
+
+    def edit(header):
+        header["nodes"][2]["mesh"] = header["nodes"][3]["mesh"] = header["nodes"][1]["mesh"]
+        if not lights:
+            return
+        header["cameras"] = [{"type": "perspective", "perspective": {"yfov": 0.8, "aspectRatio": 1.5, "znear": 0.1}}]
+        header.setdefault("extensions", {})["KHR_lights_punctual"] = {"lights": [
+            {"type": "point", "color": [1, 1, 1], "intensity": 30000.0, "name": "bulb"},
+            {"type": "directional", "color": [1, 0.95, 0.9], "intensity": 1500.0, "name": "sun"}]}
+        header.setdefault("extensionsUsed", []).append("KHR_lights_punctual")
+        n, half = len(header["nodes"]), float(np.sqrt(0.5))
+        header["nodes"] += [{"name": "cam", "camera": 0, "translation": [0, 2, 8], "rotation": [-0.0998, 0, 0, 0.995]},
+                            {"name": "bulb", "translation": [2, 4, 2], "extensions": {"KHR_lights_punctual": {"light": 0}}},
+                            {"name": "sun", "rotation": [-half, 0, 0, half], "extensions": {"KHR_lights_punctual": {"light": 1}}}]
+        header["scenes"][header.get("scene", 0)]["nodes"] += [n, n + 1, n + 2]
+
+    return edited_glb(path, edit)

@@ -91,7 +91,7 @@ def test_load_toml_scene(scene_dir):
 def test_instancing_builds_each_mesh_once(scene_dir, monkeypatch):
     calls = []
     real = loader_module.load_mesh
-    monkeypatch.setattr(loader_module, "load_mesh", lambda p: calls.append(p) or real(p))
+    monkeypatch.setattr(loader_module, "load_mesh", lambda p, *more: calls.append(p) or real(p, *more))
     scene = load_scene(scene_dir / "scene.toml")
     assert len(calls) == 1  # four objects, three spellings of one path
     assert len({id(i.blas) for i in scene.accel.instances}) == 1

@@ -12,7 +12,8 @@ from .errors import ConfigError, ModelFileError, NeuralRTError
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
-__all__ = ["compare", "convert", "demo", "evaluate", "info", "list_builtins", "list_presets", "render", "train"]
+__all__ = ["compare", "convert", "demo", "evaluate", "import_scene", "info", "list_builtins", "list_presets", "render",
+           "train"]
 
 MODEL_SUFFIXES = {MODEL_SUFFIX}
 MAX_EVAL_RAYS = 1 << 22  # ~0.44 KB per held-out ray measured (bunny, 2^18 vs 2^20 rays): 2^22 take ~1.9 GB
@@ -444,6 +445,18 @@ def evaluate(
                                 images=images, image_dir=image_dir, timing=timing, progress=progress)
     result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash
     return result
+
+
+def import_scene(gltf: str | Path, output: str | Path) -> dict:
+    """Write a scene file (.toml/.json) for the glTF scene ``gltf`` (``neuralrt import``): each node's
+    mesh an object naming that mesh of the file, placed by the node (a mesh many nodes draw is one
+    accelerator), the file's first perspective camera, its lights and its named materials
+    (`neuralrt.scene.gltf_import`). Returns what the scene holds."""
+    from .scene.gltf_import import import_gltf_scene
+
+    gltf, output = check_path("gltf", gltf), check_path("output", output)
+    check_output_file(output, "scene file")
+    return import_gltf_scene(gltf, output)
 
 
 def convert(scene: str | Path, output: str | Path, **options) -> dict:

@@ -149,6 +149,10 @@ def _cmd_evaluate(args) -> None:
             _print_result(result[part], False)
 
 
+def _cmd_import(args) -> None:
+    _print_result(api.import_scene(args.gltf, args.output), args.json)
+
+
 def _cmd_convert(args) -> None:
     select = [n.strip() for n in args.select.split(",") if n.strip()] if args.select else None
     args.interrupt_hint = ("run the same command again: finished models are reused, and unfinished ones resume "
@@ -270,6 +274,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("import", help="a glTF scene as a scene file: its nodes' meshes as instances, its camera and lights")
+    p.add_argument("gltf", help="glTF file (.gltf, .glb)")
+    p.add_argument("-o", "--output", required=True, help="scene file to write (.toml/.json)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_import)
 
     p = sub.add_parser("convert", help="train models for a scene's complex objects; write a scene that uses them")
     p.add_argument("scene", help="scene file or builtin:NAME")

@@ -20,6 +20,9 @@ gltfpack's one material, and else the file is read under names of its own, `name
 normalised integers (gltfpack's output, KHR_mesh_quantization), which trimesh reads unscaled,
 scaled as the file means them where every primitive stores them one way (else a note: trimesh's
 parts cannot be matched to primitives).
+
+`gltf_mesh_index` / `mesh_alone`: one of the file's meshes read alone, in its own space (a scene
+object's ``gltf_mesh``: `neuralrt.scene.gltf_import` places each node's mesh as an instance).
 """
 
 from __future__ import annotations
@@ -27,13 +30,14 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Container
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "expanded_instances", "gltf_file_notes",
-           "gltf_header", "gltf_material_extras", "instanced_nodes", "named_materials", "position_dequantization",
+           "gltf_header", "gltf_material_extras", "gltf_mesh_index", "instanced_nodes", "mesh_alone", "named_materials", "position_dequantization",
            "uv_dequantization", "with_header"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
@@ -127,8 +131,9 @@ def dequantized_uvs(uv: np.ndarray, component: int) -> np.ndarray:
                     axis=1).astype(np.float32)
 
 
-def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
-    """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out)."""
+def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None, list[str]]:
+    """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out, but
+    for the emission of the materials named in ``lit``, which a scene makes lights)."""
     required = [e for e in _list(header.get("extensionsRequired")) if e in _UNREADABLE_EXTENSIONS]
     if required:
         return (f"it needs the glTF extension {required[0]} ({_UNREADABLE_EXTENSIONS[required[0]]}), which trimesh "
@@ -180,7 +185,8 @@ def gltf_file_notes(header: dict) -> tuple[str | None, list[str]]:
     if _list(header.get("skins")):
         notes.append("skins are not applied: skinned meshes are read in their bind pose, placed by their nodes")
     glowing = [_label(material, i) for i, material in enumerate(_list(header.get("materials")))
-               if isinstance(material, dict) and _emits(material)]
+               if isinstance(material, dict) and _emits(material)
+               and not (isinstance(material.get("name"), str) and material["name"] in lit)]
     if glowing:
         notes.append(f"the emission of {', '.join(glowing)} is not read: give the slot an emissive scene material to "
                      f"make it a light")
@@ -261,6 +267,46 @@ def named_materials(header: dict) -> dict | None:
         taken.add(name)
         renamed["materials"][i]["name"] = name
     return renamed
+
+
+def gltf_mesh_index(header: dict, mesh: int | str) -> int:
+    """The index in ``meshes`` of the mesh that ``mesh`` names: an index, or the name of exactly one
+    mesh. A ValueError says why none is."""
+    meshes = _list(header.get("meshes"))
+    if isinstance(mesh, bool) or not isinstance(mesh, (int, str)):
+        raise ValueError(f"a glTF mesh is named by its index or its name, not {type(mesh).__name__} {mesh!r}")
+    if isinstance(mesh, int):
+        if not 0 <= mesh < len(meshes):
+            raise ValueError(f"the file has no mesh {mesh} (it has {len(meshes)}: 0 to {len(meshes) - 1})"
+                             if meshes else f"the file has no mesh {mesh} (it has none)")
+        return mesh
+    named = [i for i, m in enumerate(meshes) if isinstance(m, dict) and m.get("name") == mesh]
+    if len(named) != 1:
+        raise ValueError(f"{len(named)} of the file's meshes are named {mesh!r} (name one by its index instead)"
+                         if named else f"no mesh of the file is named {mesh!r}")
+    return named[0]
+
+
+def mesh_alone(header: dict, index: int) -> dict:
+    """A copy of ``header`` whose scene is the one mesh ``index`` in its own space: one node, no
+    transform. The other meshes and the materials this one does not use become empty (a stub keeping
+    a material's name), so that reading it decodes neither their accessors nor their images, and
+    indices stay as they were. Skins and animations, which name nodes, are dropped."""
+    alone = json.loads(json.dumps(header))
+    meshes = _list(alone.get("meshes"))
+    chosen = meshes[index] if isinstance(meshes[index], dict) else {}
+    used = {p.get("material") for p in _list(chosen.get("primitives")) if isinstance(p, dict)}
+    alone["meshes"] = [m if i == index else {"primitives": []} for i, m in enumerate(meshes)]
+    materials = _list(alone.get("materials"))
+    if materials:
+        alone["materials"] = [m if i in used or not isinstance(m, dict) else
+                              {"name": m["name"] if isinstance(m.get("name"), str) else f"unused material {i}"}
+                              for i, m in enumerate(materials)]
+    alone["nodes"] = [{"mesh": index}]
+    alone["scenes"], alone["scene"] = [{"nodes": [0]}], 0
+    for key in ("skins", "animations"):
+        alone.pop(key, None)
+    return alone
 
 
 def instanced_nodes(header: dict) -> list[int]:

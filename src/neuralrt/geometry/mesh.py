@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import io
 import warnings
+from collections.abc import Container
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,8 +21,8 @@ from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras,
-                        expanded_instances, instanced_nodes, named_materials, position_dequantization,
-                        uv_dequantization, with_header)
+                        gltf_mesh_index, expanded_instances, instanced_nodes, mesh_alone, named_materials,
+                        position_dequantization, uv_dequantization, with_header)
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -322,13 +323,14 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 
 
 def _material_from_visual(visual, fallback_name: str, where: str, kept_colors=None, linear_colors: bool = False,
-                          base_color=None) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+                          base_color=None, lit: Container[str] = ()) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
     """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
     mesh file, for warnings about a texture that cannot be decoded). ``kept_colors``: vertex colours
     beside a material, a glTF primitive's COLOR_0 as trimesh reads it or an OBJ's linear colours
     (`_keep_obj_colours`); ``linear_colors``: vertex colours are
     linear (glTF's), not sRGB (PLY's, OBJ's); ``base_color``: a glTF material's base colour factor
-    as the file writes it (trimesh keeps 8 bits)."""
+    as the file writes it (trimesh keeps 8 bits); ``lit``: the material names whose emission a scene
+    makes a light (not warned as unread)."""
     uv = colors = None
     material = MeshMaterial(name=fallback_name)
     kind = getattr(visual, "kind", None)
@@ -360,7 +362,7 @@ def _material_from_visual(visual, fallback_name: str, where: str, kept_colors=No
             material.texture = texture
             material.base_color = np.ones(3, np.float32)  # texture carries the colour (OBJ Kd is usually 1 then)
         material.normal_map = _mtl_normal_map(statements, uv, material.name, where)
-        if _positive(statements.get("ke")):
+        if _positive(statements.get("ke")) and material.name not in lit:
             warnings.warn(f"{where}: the emission of material {material.name!r} (Ke) is not read: give the slot an "
                           f"emissive scene material to make it a light", stacklevel=3)
     elif kind == "vertex":
@@ -395,11 +397,16 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
 
 
-def _rewritten_gltf(header: dict, path: Path) -> tuple[dict, bytes | None]:
+def _rewritten_gltf(header: dict, path: Path, gltf_mesh: int | None) -> tuple[dict, bytes | None]:
     """(the header trimesh is to read the file under, the file's bytes with it, or None where the
     file is read as it is): unnamed materials that place their maps differently named
-    (`named_materials`), GPU instances made nodes (`expanded_instances`). The file is read once."""
+    (`named_materials`), GPU instances made nodes (`expanded_instances`), or only the mesh of index
+    ``gltf_mesh``, in its own space (`mesh_alone`, after the whole file's materials are named).
+    The file is read once."""
     rewritten = named_materials(header)
+    if gltf_mesh is not None:
+        alone = mesh_alone(rewritten or header, gltf_mesh)
+        return alone, with_header(path.read_bytes(), alone)
     if rewritten is None and not instanced_nodes(header):
         return header, None
     data = path.read_bytes()
@@ -600,7 +607,7 @@ def _is_placeholder(mat) -> bool:
             and np.array_equal(np.asarray(getattr(mat, "diffuse", None)), np.asarray(stand_in.diffuse)))
 
 
-def load_mesh(path: str | Path) -> Mesh:
+def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Container[str] = ()) -> Mesh:
     """Load a triangle mesh from any format trimesh reads (OBJ+MTL, PLY, OFF, STL, glTF/GLB), or
     build the built-in one that ``procedural:NAME:DETAIL`` names (e.g. ``procedural:statue:2``;
     `neuralrt.geometry.procedural`), so every command that takes a mesh runs without mesh files.
@@ -616,6 +623,11 @@ def load_mesh(path: str | Path) -> Mesh:
     (`neuralrt.geometry.gltf_json`). Vertices are
     kept as the file has them (``process=False``): an STL, which stores each triangle's corners
     apart, stays a triangle soup (3 vertices per triangle in ``mesh_bytes``, flat shading).
+
+    ``gltf_mesh`` (a glTF file's mesh: its index, or its name where one mesh has it) loads that mesh
+    alone, in its own space (not placed by the nodes that draw it), named ``FILE-INDEX``. ``lit``: the
+    names of the materials a scene makes lights (emissive scene materials): their emission in the
+    file (MTL ``Ke``, glTF ``emissiveFactor``) is not warned of as unread.
     """
     from ..devices import check_path
 
@@ -631,11 +643,21 @@ def load_mesh(path: str | Path) -> Mesh:
     suffix = path.suffix.lower()
     gltf = suffix in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
     header = gltf_header(path) if gltf else None
-    unreadable, notes = gltf_file_notes(header) if header else (None, [])
+    if gltf_mesh is not None and not header:
+        raise MeshError(f"{path}: gltf_mesh: only a glTF file (.gltf, .glb) has meshes to choose from"
+                        if not gltf else f"{path}: cannot read mesh: its glTF JSON cannot be read")
+    if gltf_mesh is not None:
+        try:
+            gltf_mesh = gltf_mesh_index(header, gltf_mesh)  # (one name whichever way it is chosen)
+        except ValueError as exc:
+            raise MeshError(f"{path}: gltf_mesh: {exc}") from None
+    unreadable, notes = gltf_file_notes(header, lit) if header else (None, [])
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     used_materials: set[str] = set()
-    header, rewritten = _rewritten_gltf(header, path) if header else (header, None)
+    header, rewritten = _rewritten_gltf(header, path, gltf_mesh) if header else (header, None)
+    if gltf_mesh is not None:
+        unreadable, notes = gltf_file_notes(header, lit)  # (what is not read of this mesh and its materials only)
     try:
         with unread_assets() as unread:
             source, obj_bytes = dict(file_obj=str(path)), None
@@ -700,7 +722,7 @@ def load_mesh(path: str | Path) -> Mesh:
         part_material = getattr(part.visual, "material", None)  # (glTF: what trimesh drops, by name; None: unnamed)
         extras = extras_of.get(getattr(part_material, "name", None)) if part_material is not None else None
         material, uv, col = _material_from_visual(part.visual, f"material{i}", str(path), kept_colors[i], gltf,
-                                                  None if extras is None else extras.base_color)
+                                                  None if extras is None else extras.base_color, lit)
         kept_colors[i] = None
         if uv_component is not None and uv is not None:  # (before a texture transform, as the glTF spec orders them)
             uv = dequantized_uvs(uv, uv_component)
@@ -753,7 +775,7 @@ def load_mesh(path: str | Path) -> Mesh:
         vertex_colors=_joined(colors) if any_color else None,
         face_material_ids=_joined(mat_ids),
         materials=materials,
-        name=path.stem,
+        name=path.stem if gltf_mesh is None else f"{path.stem}-{gltf_mesh}",
     )
 
 

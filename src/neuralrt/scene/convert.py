@@ -32,7 +32,7 @@ from ..io.model_file import read_model_file, read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from .convert_executors import Executor, TrainingJob, make_executor
 from .loader import load_scene_spec, shape_for
-from .material_rules import is_emissive, material_index, scene_material_for
+from .material_rules import is_emissive, lit_slots, material_index, scene_material_for
 from .schema import ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
@@ -333,7 +333,8 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
              preset: str, group: bool, detail, progress: bool) -> ConversionReport:
     spec, _, label = load_scene_spec(scene, detail=detail)
     shapes: dict = {}  # instances of one mesh share one load
-    meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}"), "mesh", None) for i, obj in enumerate(spec.objects)]
+    meshes = [getattr(shape_for(obj, shapes, label, f"objects.{i}", lit=lit_slots(spec, obj)), "mesh", None)
+              for i, obj in enumerate(spec.objects)]
     chosen = selected_objects(spec, meshes, select, min_triangles)
     if not chosen:
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "

@@ -46,7 +46,7 @@ from .schema import (
     SceneSpec,
     check_resolution,
 )
-from .material_rules import is_emissive, material_index, material_map, scene_material_for, scene_materials
+from .material_rules import is_emissive, lit_slots, material_index, material_map, scene_material_for, scene_materials
 from .scene import Scene, instance_ray_offsets
 from .studio import is_lone_object
 
@@ -367,7 +367,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
         if i in given.meshes:
             shape = shapes.setdefault(("memory", id(given.meshes[i])), _Shape(given.meshes[i], dev))
         else:
-            shape = shape_for(obj, shapes, label, key, device=dev)
+            shape = shape_for(obj, shapes, label, key, device=dev, lit=lit_slots(spec, obj))
         if obj.model is None:
             slots = [m.name for m in shape.mesh.materials]
             blas, camera_blas = shape.blas, None
@@ -448,11 +448,12 @@ def _material_names(blas, label: str, key: str) -> list[str]:
     return list(names)
 
 
-def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None) -> _Shape | None:
+def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None, lit=()) -> _Shape | None:
     """The object's mesh and exact BLAS (on ``device``, built on first use of ``.blas``), loaded once
-    per source (cached in ``shapes``); None for a model-only object. Errors name ``label`` and ``key``."""
+    per source (cached in ``shapes``); None for a model-only object. Errors name ``label`` and ``key``;
+    ``lit``: the slots the object makes lights (`lit_slots`: their emission in the file is used)."""
     if obj.mesh is not None:
-        cache_key = ("file", obj.mesh)
+        cache_key = ("file", obj.mesh, obj.gltf_mesh)
     elif obj.generator is not None:
         cache_key = ("generator", obj.generator.name, _generator_arguments(obj.generator.name, obj.generator.params))
     else:
@@ -460,7 +461,7 @@ def shape_for(obj: ObjectSpec, shapes: dict, label: str, key: str, device=None) 
     if cache_key not in shapes:
         if obj.mesh is not None:
             try:
-                mesh = load_mesh(obj.mesh)
+                mesh = load_mesh(obj.mesh, obj.gltf_mesh, lit)
             except NeuralRTError as exc:
                 raise SceneError(f"{label}: {key}.mesh: {exc}") from None
         else:

@@ -7,14 +7,15 @@
   the object's ``materials`` map; else the scene material of the same name; else ``default``
   (`scene_material_for`, `material_map`).
 - An object is an area light when any slot gets a material that emits: type ``emissive`` with
-  a non-zero emission (`emits`, `is_emissive`). Area lights stay exact meshes.
+  a non-zero emission (`emits`, `is_emissive`). Area lights stay exact meshes. The slot names an
+  object makes lights (`lit_slots`) are the ones whose emission in the mesh file is not "unread".
 """
 
 from __future__ import annotations
 
 from .schema import DEFAULT_MATERIAL_NAME, DiffuseMaterialSpec, EmissiveMaterialSpec, ObjectSpec, SceneSpec
 
-__all__ = ["DEFAULT_MATERIAL", "scene_materials", "material_index", "scene_material_for", "material_map", "emits", "is_emissive"]
+__all__ = ["DEFAULT_MATERIAL", "scene_materials", "material_index", "scene_material_for", "material_map", "emits", "is_emissive", "lit_slots"]
 
 DEFAULT_MATERIAL = DiffuseMaterialSpec(name=DEFAULT_MATERIAL_NAME, albedo=(0.8, 0.8, 0.8))  # for slots nothing else names
 
@@ -55,3 +56,19 @@ def is_emissive(spec: SceneSpec, obj: ObjectSpec, slot_names: list[str]) -> bool
     """Whether any of ``obj``'s slots (named ``slot_names``) gets a material that emits."""
     specs = scene_materials(spec)
     return any(emits(specs[i]) for i in material_map(obj, slot_names, material_index(spec)))
+
+
+class _EverySlot:
+    def __contains__(self, slot) -> bool:
+        return True
+
+
+def lit_slots(spec: SceneSpec, obj: ObjectSpec):
+    """The slot names ``obj`` gives a material that emits, as a container (before its slots are
+    known: every name, where the object's ``material`` emits)."""
+    specs = {m.name: m for m in scene_materials(spec)}
+    if obj.material is not None:
+        return _EverySlot() if emits(specs.get(obj.material)) else frozenset()
+    mapped = {slot for slot, name in obj.materials.items() if emits(specs.get(name))}
+    same_name = {name for name, m in specs.items() if emits(m) and name not in obj.materials}
+    return frozenset(mapped | same_name)

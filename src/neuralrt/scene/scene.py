@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,11 +103,39 @@ def save_scene(spec: SceneSpec, path: str | Path) -> None:
         raise SceneError(f"{path}: scene files must end in .toml or .json")
     if not path.parent.is_dir():
         raise SceneError(f"{path}: folder {path.parent} does not exist")
-    data = _relocated_paths(spec, path.parent.resolve()).model_dump(mode="json", exclude_none=True)
+    data = _without_defaults(_relocated_paths(spec, path.parent.resolve()).model_dump(mode="json", exclude_none=True))
     if suffix == ".json":
         text = json.dumps(data, indent=2) + "\n"
     else:
         import tomli_w
 
-        text = tomli_w.dumps(data)
+        text = _numbers_on_one_line(tomli_w.dumps(data))
     write_atomically(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
+_IDENTITY = {"translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1.0}
+
+
+def _without_defaults(data: dict) -> dict:
+    """A scene's dict without what each object's defaults say again (an identity ``translate``,
+    ``rotate`` and ``scale``, which a ``matrix`` replaces anyway; an empty ``materials`` map): an
+    imported scene has thousands of objects."""
+    for obj in data.get("objects", []):
+        transform = obj.get("transform", {})
+        for key, identity in _IDENTITY.items():
+            if "matrix" in transform or transform.get(key) == identity:
+                transform.pop(key, None)
+        if not transform:
+            obj.pop("transform", None)
+        if not obj.get("materials", True):
+            obj.pop("materials")
+    return data
+
+
+_NUMBER_ARRAY = re.compile(r"\[\n((?:[ \t]+[-+0-9.eEinfa]+,\n)+)[ \t]*\]")
+
+
+def _numbers_on_one_line(text: str) -> str:
+    """tomli_w's TOML with each array of numbers on one line (``[0.0, 1.0, 0.0]``; it writes one
+    number per line)."""
+    return _NUMBER_ARRAY.sub(lambda m: "[" + ", ".join(v.strip().rstrip(",") for v in m.group(1).splitlines()) + "]", text)

@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, field_validator, model_validator
 
 from ..errors import ConfigError
 from ..rays import MAX_CONDITION, MAX_SCALE, MIN_SCALE, Transform
@@ -274,6 +274,9 @@ class ObjectSpec(_Strict):
 
     name: str = Field("", description="label (used by conversion to select objects)")
     mesh: str | None = Field(None, description="mesh file (OBJ, PLY, OFF, STL, glTF), relative to the scene file")
+    gltf_mesh: Annotated[StrictInt, Field(ge=0)] | Annotated[str, Field(min_length=1)] | None = Field(
+        None, description="one mesh of the glTF `mesh` file (its index, or its name where one mesh has it), in its own "
+        "space; none: the whole file, placed by its nodes (`neuralrt import` writes these)")
     generator: GeneratorSpec | None = Field(None, description="procedural mesh instead of a file")
     model: str | None = Field(None, description="trained neural model (.nrt) answering this object's rays")
     transform: TransformSpec = Field(default_factory=TransformSpec, description="object-to-world transform")
@@ -287,6 +290,8 @@ class ObjectSpec(_Strict):
             raise ValueError("give either mesh or generator, not both")
         if self.mesh is None and self.generator is None and self.model is None:
             raise ValueError("an object needs a mesh, a generator or a model")
+        if self.gltf_mesh is not None and self.mesh is None:
+            raise ValueError("gltf_mesh chooses a mesh of the glTF file that mesh names: give mesh too")
         if self.material is not None and self.materials:
             raise ValueError("give either material or materials, not both")
         return self

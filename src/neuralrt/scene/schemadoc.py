@@ -95,7 +95,8 @@ one `mtllib` line; faces of five corners or more split by ear clipping, where tr
 covered a concave one's notches), and a texture or buffer not found as named is looked for percent-decoded (glTF
 URIs), with `/` for `\\`, by its last part beside the mesh, and in another letter case.
 What a file holds but is not read is a warning naming it: emission (MTL `Ke`, glTF
-`emissiveFactor`; give the slot an emissive scene material to make it a light), glTF skins, morph
+`emissiveFactor`; give the slot an emissive scene material to make it a light, and the warning
+goes), glTF skins, morph
 weights, triangle fans, and positions or UVs stored as normalised integers in more than one way
 (stored so throughout, as gltfpack and KHR_mesh_quantization write them, they are read as meant,
 and unnamed materials' texture transforms are applied: a gltfpack file reads as its source);
@@ -105,6 +106,20 @@ faces render white), and PLY colours or UVs in properties trimesh does not read 
 primitives use sparse accessors, is an error. GPU instances (`EXT_mesh_gpu_instancing`, gltfpack
 `-mi`) are read as nodes: each instance a copy in the merged mesh. A material's base-colour and normal maps placed by different texture transforms share
 one UV set here: the base colour's places both (a warning says the normal map is misplaced).
+
+**A glTF scene** (`neuralrt import city.glb -o city.toml`, `neuralrt.api.import_scene`) becomes a
+scene file instead of one merged mesh: an object per node that draws a mesh (GPU instances too),
+naming that mesh of the file (`gltf_mesh`: the mesh alone, in its own space) and placed by the
+node's world `matrix`, so a mesh many nodes draw is one accelerator, and one model once
+converted. The scene also gets the file's first perspective camera (256 pixels high, its aspect
+ratio), its `KHR_lights_punctual` lights (candela / 683 lm/W as W/sr; a spot light without its
+cone; a directional light as a point light 100 scene radii away giving the same irradiance), and
+a scene material per named glTF material: emissive where it emits (`emissiveFactor` x
+`KHR_materials_emissive_strength`), else a conductor (`metallicFactor` >= 0.5) or a plastic
+(glTF's dielectric), GGX alpha = `roughnessFactor`^2, albedo white (the mesh's base colour is the
+colour); `default` is white diffuse. A file without lights is lit and framed as a lone mesh is
+(`neuralrt render mesh.glb`). What is not read (orthographic cameras, unnamed emissive materials,
+a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 

@@ -1,0 +1,319 @@
+"""A glTF scene as a scene file: ``neuralrt import city.glb -o city.toml``.
+
+`load_mesh` merges a glTF file into one mesh, so a mesh that many nodes draw becomes as many
+copies. Here each node that draws a mesh becomes a scene object naming that mesh of the file
+(``gltf_mesh``: the mesh alone, in its own space) and placed by the node's world matrix, so a
+mesh drawn many times is one accelerator (one model once converted) and many instances, as
+LSNIF's instancing means. GPU instances (``EXT_mesh_gpu_instancing``) become objects too.
+
+What else the file says is read where the scene format has it:
+- The first perspective camera the scene's nodes reach (``yfov``, ``aspectRatio`` as the
+  resolution's shape, 256 pixels high); without one, the scene is framed as a lone mesh is.
+- ``KHR_lights_punctual``: a point light as a point light, its candela over 683 lm/W as W/sr
+  (as Blender's importer reads it); a spot light as a point light (its cone is dropped: a note
+  says so); a directional light as a point light 100 scene radii away, giving the same irradiance
+  at the scene's centre (within 2% across the scene).
+- Materials, by name (the scene gives each mesh slot the scene material of its name): a material
+  that emits (``emissiveFactor`` times ``KHR_materials_emissive_strength``) becomes an emissive
+  scene material, one with ``metallicFactor`` >= 0.5 a conductor, any other a plastic (glTF's
+  dielectric: a diffuse base under a coat of index 1.5), the GGX alpha being the square of
+  ``roughnessFactor``; each albedo is white, so the mesh's base colour (factor and texture) is
+  the colour. Unnamed materials and slots without a material take ``default``: white diffuse.
+- A scene without lights gets the lone-mesh key light and sky.
+What is not read (an orthographic camera, unnamed emissive materials, a node whose matrix cannot
+place a mesh) is a warning naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SceneError
+from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes
+
+__all__ = ["gltf_scene_dict", "import_gltf_scene"]
+
+CANDELA_PER_WATT_SR = 683.0  # lm/W at 555 nm: glTF lights are photometric, the scene's radiometric
+DISTANT = 100.0  # a directional light's distance, in scene radii
+IMAGE_HEIGHT = 256  # pixels; the width follows the camera's aspect ratio
+_LIGHTS = "KHR_lights_punctual"
+
+
+def import_gltf_scene(path: str | Path, output: str | Path) -> dict:
+    """Write the scene file ``output`` (.toml or .json) for the glTF scene ``path``: its paths
+    relative to the new file's folder, atomically. Returns what it holds."""
+    from .loader import validate_spec
+    from .scene import save_scene
+
+    path, output = Path(path), Path(output)
+    if output.suffix.lower() not in (".toml", ".json"):
+        raise SceneError(f"{output}: scene files must end in .toml or .json")
+    scene, facts = gltf_scene_dict(path)
+    spec = validate_spec(scene, str(path))
+    output.parent.mkdir(parents=True, exist_ok=True)
+    save_scene(spec, output)
+    return {"scene": str(output), **facts}
+
+
+def gltf_scene_dict(path: str | Path) -> tuple[dict, dict]:
+    """(a scene dict for `neuralrt.scene.loader.validate_spec`, its mesh paths absolute; facts about
+    it: objects, distinct meshes, camera, lights, materials)."""
+    path = Path(path).absolute()
+    if path.suffix.lower() not in (".gltf", ".glb"):
+        raise SceneError(f"{path}: a glTF file (.gltf, .glb) holds a scene to import; other mesh files are one "
+                         "object (name them as an object's mesh)")
+    from ..io.files import input_file_problem
+
+    problem = input_file_problem(path, "glTF file")
+    if problem:
+        raise SceneError(problem)
+    header = gltf_header(path)
+    if not header:
+        raise SceneError(f"{path}: cannot read its glTF JSON")
+    unreadable, _ = gltf_file_notes(header)
+    if unreadable:
+        raise SceneError(f"{path}: cannot read mesh: {unreadable}")
+    if instanced_nodes(header):
+        try:
+            header = expanded_instances(header, path, path.read_bytes())
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise SceneError(f"{path}: its EXT_mesh_gpu_instancing instances cannot be read "
+                             f"({type(exc).__name__}: {exc})") from None
+    placed = _placed_nodes(header, path)
+    objects, bounds = _objects(header, placed, path)
+    if not objects:
+        raise SceneError(f"{path}: no node of its scene draws a mesh")
+    lo, hi = bounds
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-30)
+    materials, emissive = _materials(header, path)
+    lights = _lights(header, placed, (lo + hi) / 2, radius, path)
+    camera = _camera(header, placed, radius, path)
+    from .studio import studio_dict
+
+    studio = studio_dict("mesh", None, lo, hi, (IMAGE_HEIGHT, IMAGE_HEIGHT))
+    scene = {"camera": camera or studio["camera"], "materials": materials, "objects": objects, "lights": lights}
+    if not lights and not emissive:  # (a file with no light of its own would render black)
+        scene["lights"], scene["environment"] = studio["lights"], studio["environment"]
+    facts = {"objects": len(objects), "meshes": len({o["gltf_mesh"] for o in objects}),
+             "camera": "the file's" if camera else "framed", "lights": len(scene["lights"]),
+             "emissive_materials": emissive, "lit_as_a_lone_mesh": "environment" in scene}
+    return scene, facts
+
+
+def _placed_nodes(header: dict, path: Path) -> list[tuple[int, np.ndarray]]:
+    """(node index, world matrix) of every node the scene reaches, parents before children."""
+    nodes = header.get("nodes") if isinstance(header.get("nodes"), list) else []
+    scenes = header.get("scenes") if isinstance(header.get("scenes"), list) else []
+    chosen = header.get("scene", 0)
+    if scenes and isinstance(chosen, int) and 0 <= chosen < len(scenes) and isinstance(scenes[chosen], dict):
+        roots = scenes[chosen].get("nodes") or []
+    else:  # (no scene: every node that is no node's child, as viewers show such a file)
+        children = {c for n in nodes if isinstance(n, dict) for c in n.get("children") or [] if isinstance(c, int)}
+        roots = [i for i in range(len(nodes)) if i not in children]
+    placed, stack = [], [(r, np.eye(4), ()) for r in reversed(roots)]
+    while stack:
+        index, parent, above = stack.pop()
+        if not isinstance(index, int) or not 0 <= index < len(nodes) or not isinstance(nodes[index], dict):
+            raise SceneError(f"{path}: a scene or node names node {index!r}, which the file does not have")
+        if index in above:
+            raise SceneError(f"{path}: node {index} is its own ancestor (its children lead back to it)")
+        try:
+            world = parent @ _local_matrix(nodes[index])
+        except (TypeError, ValueError) as exc:
+            raise SceneError(f"{path}: node {index}'s transform cannot be read ({exc})") from None
+        placed.append((index, world))
+        for child in reversed(nodes[index].get("children") or []):
+            stack.append((child, world, above + (index,)))
+    return placed
+
+
+def _local_matrix(node: dict) -> np.ndarray:
+    """A node's matrix (glTF stores it column by column), or its translation, rotation and scale."""
+    if "matrix" in node:
+        values = np.array(node["matrix"], np.float64)
+        if values.shape != (16,):
+            raise ValueError("a matrix is 16 numbers")
+        return values.reshape(4, 4).T
+    t = np.array(node.get("translation", (0.0, 0.0, 0.0)), np.float64)
+    q = np.array(node.get("rotation", (0.0, 0.0, 0.0, 1.0)), np.float64)
+    s = np.array(node.get("scale", (1.0, 1.0, 1.0)), np.float64)
+    if t.shape != (3,) or s.shape != (3,) or q.shape != (4,) or not np.linalg.norm(q) > 0:
+        raise ValueError("translation and scale are 3 numbers, rotation 4 (a unit quaternion)")
+    x, y, z, w = q / np.linalg.norm(q)  # (exporters write them rounded)
+    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation * s[None, :]
+    matrix[:3, 3] = t
+    return matrix
+
+
+def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[np.ndarray, np.ndarray]]:
+    """One object per node that draws a mesh, and the world bounds of them all."""
+    from .schema import TransformSpec
+
+    nodes, meshes = header["nodes"], header.get("meshes") if isinstance(header.get("meshes"), list) else []
+    objects, corners, taken = [], [], {}
+    for index, world in placed:
+        mesh = nodes[index].get("mesh")
+        if mesh is None:
+            continue
+        if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
+            raise SceneError(f"{path}: node {index} draws mesh {mesh!r}, which the file does not have")
+        name = _name(nodes[index]) or _name(meshes[mesh]) or f"node{index}"
+        taken[name] = taken.get(name, 0) + 1
+        name = name if taken[name] == 1 else f"{name}.{taken[name] - 1}"
+        matrix = [[float(x) for x in row] for row in world]
+        try:
+            TransformSpec(matrix=matrix)
+        except ValueError as exc:
+            reason = str(exc).splitlines()[-1].strip()
+            warnings.warn(f"{path}: node {index} ({name!r}) is left out: its world matrix cannot place a mesh ({reason})",
+                          stacklevel=3)
+            continue
+        objects.append({"name": name, "mesh": str(path), "gltf_mesh": mesh, "transform": {"matrix": matrix}})
+        corners.append(_world_corners(header, mesh, world, path))
+    every = np.concatenate(corners) if corners else np.zeros((1, 3))
+    return objects, (every.min(axis=0), every.max(axis=0))
+
+
+def _name(entry) -> str | None:
+    name = entry.get("name") if isinstance(entry, dict) else None
+    return name if isinstance(name, str) and name.strip() else None
+
+
+def _world_corners(header: dict, mesh: int, world: np.ndarray, path: Path) -> np.ndarray:
+    """The corners of a mesh's box (its POSITION accessors' ``min`` and ``max``, which glTF requires)
+    in world space; where a file leaves them out, the mesh's own bounds, read."""
+    accessors = header.get("accessors") if isinstance(header.get("accessors"), list) else []
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for primitive in header["meshes"][mesh].get("primitives") or []:
+        index = (primitive.get("attributes") or {}).get("POSITION") if isinstance(primitive, dict) else None
+        accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else {}
+        try:
+            low, high = np.array(accessor["min"], np.float64), np.array(accessor["max"], np.float64)
+            if low.shape != (3,) or high.shape != (3,) or accessor.get("normalized"):
+                raise ValueError
+        except (KeyError, TypeError, ValueError):
+            from ..geometry.mesh import load_mesh
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # (said again when the scene loads it)
+                low, high = load_mesh(path, mesh).bounds
+        lo, hi = np.minimum(lo, low), np.maximum(hi, high)
+    box = np.array([[(lo, hi)[i >> k & 1][k] for k in range(3)] for i in range(8)])
+    return box @ world[:3, :3].T + world[:3, 3]
+
+
+def _materials(header: dict, path: Path) -> tuple[list[dict], int]:
+    """(the scene materials of the file's named materials, ``default`` white diffuse; how many emit)."""
+    found, emissive, unnamed = [{"name": "default", "type": "diffuse", "albedo": [1.0, 1.0, 1.0]}], 0, []
+    seen = {"default"}
+    for i, material in enumerate(header.get("materials") or []):
+        if not isinstance(material, dict):
+            continue
+        name, glow = _name(material), _emission(material)
+        if name is None or name in seen:
+            if glow is not None:
+                unnamed.append(f"material {i}")
+            continue
+        seen.add(name)
+        pbr = material.get("pbrMetallicRoughness") if isinstance(material.get("pbrMetallicRoughness"), dict) else {}
+        metallic, roughness = _unit_number(pbr.get("metallicFactor", 1.0)), _unit_number(pbr.get("roughnessFactor", 1.0))
+        if glow is not None:
+            emissive += 1
+            found.append({"name": name, "type": "emissive", "emission": glow})
+        else:
+            alpha = max(float(f"{roughness**2:.6g}"), 1e-3)  # (GGX alpha: perceptual roughness squared)
+            found.append({"name": name, "type": "conductor" if metallic >= 0.5 else "plastic", "albedo": [1.0, 1.0, 1.0],
+                          "roughness": alpha})
+    if unnamed:
+        warnings.warn(f"{path}: the emission of {', '.join(unnamed)} is not read: a scene material takes a slot by "
+                      f"name, and these have none (or another material's)", stacklevel=3)
+    return found, emissive
+
+
+def _unit_number(value) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return min(max(float(value), 0.0), 1.0) if ok else 1.0
+
+
+def _emission(material: dict) -> list[float] | None:
+    factor = material.get("emissiveFactor")
+    strength = ((material.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}).get("emissiveStrength", 1.0)
+    try:
+        emission = [float(x) * float(strength) for x in factor]
+    except (TypeError, ValueError):
+        return None
+    if len(emission) != 3 or not all(math.isfinite(x) and x >= 0 for x in emission) or max(emission) <= 0:
+        return None
+    return emission
+
+
+def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path: Path) -> list[dict]:
+    table = ((header.get("extensions") or {}).get(_LIGHTS) or {}).get("lights") or []
+    lights = []
+    for index, world in placed:
+        used = ((header["nodes"][index].get("extensions") or {}).get(_LIGHTS) or {}).get("light")
+        if used is None:
+            continue
+        light = table[used] if isinstance(used, int) and 0 <= used < len(table) and isinstance(table[used], dict) else None
+        if light is None:
+            raise SceneError(f"{path}: node {index} uses light {used!r}, which {_LIGHTS} does not define")
+        try:
+            colour = np.array(light.get("color", (1.0, 1.0, 1.0)), np.float64) * float(light.get("intensity", 1.0))
+            if colour.shape != (3,) or not np.isfinite(colour).all() or (colour < 0).any():
+                raise ValueError
+        except (TypeError, ValueError):
+            raise SceneError(f"{path}: light {used}'s color and intensity must be finite, non-negative numbers") from None
+        kind, label = light.get("type"), f"{light.get('type')} light {_name(light) or used!r}"
+        position = world[:3, 3]
+        if kind == "directional":  # (lux at the centre from far away: the same irradiance)
+            facing = -world[:3, 2] / max(np.linalg.norm(world[:3, 2]), 1e-30)
+            distance = DISTANT * radius
+            position, colour = centre - facing * distance, colour * distance**2
+        elif kind == "spot":
+            warnings.warn(f"{path}: {label} is read as a point light (its cone is not)", stacklevel=3)
+        elif kind != "point":
+            warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)", stacklevel=3)
+            continue
+        lights.append({"position": [float(x) for x in position],
+                       "intensity": [float(x) for x in colour / CANDELA_PER_WATT_SR]})
+    return lights
+
+
+def _camera(header: dict, placed: list, radius: float, path: Path) -> dict | None:
+    """The first perspective camera the nodes reach, as the scene's camera; None where there is none."""
+    cameras = header.get("cameras") if isinstance(header.get("cameras"), list) else []
+    for index, world in placed:
+        used = header["nodes"][index].get("camera")
+        if used is None:
+            continue
+        camera = cameras[used] if isinstance(used, int) and 0 <= used < len(cameras) else None
+        if not isinstance(camera, dict):
+            raise SceneError(f"{path}: node {index} uses camera {used!r}, which the file does not have")
+        lens = camera.get("perspective")
+        if camera.get("type") != "perspective" or not isinstance(lens, dict):
+            warnings.warn(f"{path}: camera {_name(camera) or used!r} is left out: only perspective cameras are read",
+                          stacklevel=3)
+            continue
+        fov = math.degrees(float(lens.get("yfov", 0.0))) if isinstance(lens.get("yfov"), (int, float)) else 0.0
+        aspect = lens.get("aspectRatio", 1.0)
+        if not 0 < fov < 180 or not isinstance(aspect, (int, float)) or not 0 < aspect < 64:
+            raise SceneError(f"{path}: camera {used}: yfov must be in (0, pi) and aspectRatio positive, got "
+                             f"{json.dumps(lens.get('yfov'))} and {json.dumps(aspect)}")
+        forward, up = -world[:3, 2], world[:3, 1]
+        if np.linalg.norm(forward) == 0 or np.linalg.norm(np.cross(forward, up)) == 0:
+            raise SceneError(f"{path}: node {index}'s matrix leaves camera {used} no view direction")
+        position = world[:3, 3]
+        look_at = position + forward / np.linalg.norm(forward) * radius
+        width = max(1, round(IMAGE_HEIGHT * float(aspect)))
+        return {"position": [float(x) for x in position], "look_at": [float(x) for x in look_at],
+                "up": [float(x) for x in up / np.linalg.norm(up)], "fov": fov, "resolution": [width, IMAGE_HEIGHT]}
+    return None
