@@ -206,3 +206,17 @@ def test_saved_scenes_say_no_default_again_and_read_back_the_same(street, tmp_pa
     assert again == spec and "rotate" not in (tmp_path / "b.toml").read_text()
     save_scene(spec, tmp_path / "b.json")
     assert load_scene_spec(tmp_path / "b.json")[0] == spec
+
+
+def test_meshes_that_name_the_same_accessors_are_one(tmp_path):
+    import trimesh
+    from trimesh.transformations import translation_matrix
+
+    scene = trimesh.Scene()
+    for k in range(3):  # (trimesh writes a mesh per node, all three naming one POSITION and indices)
+        scene.add_geometry(trimesh.creation.box(), node_name=f"box{k}", geom_name="box", transform=translation_matrix([2 * k, 0, 0]))
+    scene.export(tmp_path / "boxes.glb")
+    facts = api.import_scene(tmp_path / "boxes.glb", tmp_path / "boxes.toml")
+    assert facts["objects"] == 3 and facts["meshes"] == 1
+    spec, _, _ = load_scene_spec(tmp_path / "boxes.toml")
+    np.testing.assert_allclose(_placed_triangles(spec), _world_triangles(load_mesh(tmp_path / "boxes.glb")), atol=2e-4)

@@ -4,7 +4,9 @@
 copies. Here each node that draws a mesh becomes a scene object naming that mesh of the file
 (``gltf_mesh``: the mesh alone, in its own space) and placed by the node's world matrix, so a
 mesh drawn many times is one accelerator (one model once converted) and many instances, as
-LSNIF's instancing means. GPU instances (``EXT_mesh_gpu_instancing``) become objects too.
+LSNIF's instancing means. GPU instances (``EXT_mesh_gpu_instancing``) become objects too, and
+meshes whose primitives name the same accessors and materials (trimesh writes one per node) are
+one mesh.
 
 What else the file says is read where the scene format has it:
 - The first perspective camera the scene's nodes reach (``yfov``, ``aspectRatio`` as the
@@ -159,7 +161,7 @@ def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[
     from .schema import TransformSpec
 
     nodes, meshes = header["nodes"], header.get("meshes") if isinstance(header.get("meshes"), list) else []
-    objects, corners, taken = [], [], {}
+    objects, corners, taken, first_alike = [], [], {}, {}
     for index, world in placed:
         mesh = nodes[index].get("mesh")
         if mesh is None:
@@ -167,6 +169,9 @@ def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[
         if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
             raise SceneError(f"{path}: node {index} draws mesh {mesh!r}, which the file does not have")
         name = _name(nodes[index]) or _name(meshes[mesh]) or f"node{index}"
+        # (exporters such as trimesh write a mesh per node, each naming the same accessors: one mesh)
+        drawn = meshes[mesh] if isinstance(meshes[mesh], dict) else {}
+        mesh = first_alike.setdefault(json.dumps([drawn.get("primitives"), drawn.get("weights")], sort_keys=True), mesh)
         taken[name] = taken.get(name, 0) + 1
         name = name if taken[name] == 1 else f"{name}.{taken[name] - 1}"
         matrix = [[float(x) for x in row] for row in world]

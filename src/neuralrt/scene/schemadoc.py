@@ -111,7 +111,7 @@ one UV set here: the base colour's places both (a warning says the normal map is
 scene file instead of one merged mesh: an object per node that draws a mesh (GPU instances too),
 naming that mesh of the file (`gltf_mesh`: the mesh alone, in its own space) and placed by the
 node's world `matrix`, so a mesh many nodes draw is one accelerator, and one model once
-converted. The scene also gets the file's first perspective camera (256 pixels high, its aspect
+converted (meshes naming the same accessors, as trimesh writes one per node, are one). The scene also gets the file's first perspective camera (256 pixels high, its aspect
 ratio), its `KHR_lights_punctual` lights (candela / 683 lm/W as W/sr; a spot light without its
 cone; a directional light as a point light 100 scene radii away giving the same irradiance), and
 a scene material per named glTF material: emissive where it emits (`emissiveFactor` x
