@@ -206,6 +206,11 @@ IN_PROCESS_CASES = [
     ("bench_memory.py", ["--subdivide", "bunny00.off:-1"], "argument --subdivide: 'bunny00.off:-1'"),
     ("bench_memory.py", ["--meshes", str(BENCH / "_common.py")], "argument --meshes"),
     ("bench_memory.py", ["--no-large", "--name", "../x"], "argument --name: '../x'"),
+    # bench_gltf_import
+    ("bench_gltf_import.py", ["--grid", "0"], "argument --grid: must be an integer in 1..64"),
+    ("bench_gltf_import.py", ["--mesh", "nonexistent.off"], "nonexistent.off: mesh file not found"),
+    ("bench_gltf_import.py", ["--spp", "-2"], "argument --spp: must be at least 1"),
+    ("bench_gltf_import.py", ["--name", "a/b"], "argument --name: 'a/b'"),
     # bench_lsnif_kernels
     ("bench_lsnif_kernels.py", ["nonexistent.off"], "nonexistent.off: mesh file not found"),
     ("bench_lsnif_kernels.py", ["procedural:statue:0", "procedural:statue:9"], "DETAIL must be an integer in 0..5"),
