@@ -220,3 +220,16 @@ def test_meshes_that_name_the_same_accessors_are_one(tmp_path):
     assert facts["objects"] == 3 and facts["meshes"] == 1
     spec, _, _ = load_scene_spec(tmp_path / "boxes.toml")
     np.testing.assert_allclose(_placed_triangles(spec), _world_triangles(load_mesh(tmp_path / "boxes.glb")), atol=2e-4)
+
+
+def test_rendering_a_gltf_scene_as_one_mesh_says_what_goes_unused(street, tmp_path):
+    from neuralrt.scene.gltf_import import unused_scene_note
+
+    note = unused_scene_note(street)
+    assert note == (f"{street}: rendered as one merged mesh, framed and lit (1 mesh drawn by several nodes is copied; "
+                    f"1 camera and 2 lights are not used): `neuralrt import {street} -o {street.with_suffix('.toml')}` "
+                    f"writes a scene that keeps them")
+    with pytest.warns(UserWarning, match="rendered as one merged mesh"):
+        load_scene(str(street), resolution=(8, 8))
+    assert unused_scene_note(DATA / "gltfpack_ball.glb") is None  # (one node, one mesh)
+    assert unused_scene_note(DATA / "README.md") is None

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 import warnings
 from pathlib import Path
 
@@ -38,7 +39,7 @@ import numpy as np
 from ..errors import SceneError
 from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes
 
-__all__ = ["gltf_scene_dict", "import_gltf_scene"]
+__all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
 
 CANDELA_PER_WATT_SR = 683.0  # lm/W at 555 nm: glTF lights are photometric, the scene's radiometric
 DISTANT = 100.0  # a directional light's distance, in scene radii
@@ -105,6 +106,37 @@ def gltf_scene_dict(path: str | Path) -> tuple[dict, dict]:
              "camera": "the file's" if camera else "framed", "lights": len(scene["lights"]),
              "emissive_materials": emissive, "lit_as_a_lone_mesh": "environment" in scene}
     return scene, facts
+
+
+def unused_scene_note(path: str | Path) -> str | None:
+    """What a glTF file holds as a scene that rendering it as one merged mesh leaves unused (meshes
+    drawn more than once, which become copies; cameras; lights), with the command that keeps it;
+    None where there is nothing of the kind (or the file is no glTF)."""
+    header = gltf_header(path) if Path(path).suffix.lower() in (".gltf", ".glb") else {}
+    nodes = [n for n in header.get("nodes") or [] if isinstance(n, dict)] if isinstance(header.get("nodes"), list) else []
+    meshes = header.get("meshes") if isinstance(header.get("meshes"), list) else []
+    drawn: dict[str, int] = {}
+    for node in nodes:
+        mesh = node.get("mesh")
+        if isinstance(mesh, int) and 0 <= mesh < len(meshes) and isinstance(meshes[mesh], dict):
+            key = json.dumps([meshes[mesh].get("primitives"), meshes[mesh].get("weights")], sort_keys=True)
+            drawn[key] = drawn.get(key, 0) + (2 if (node.get("extensions") or {}).get("EXT_mesh_gpu_instancing") else 1)
+    repeated = sum(count > 1 for count in drawn.values())
+    cameras = sum(isinstance(node.get("camera"), int) for node in nodes)
+    lights = sum(isinstance(((node.get("extensions") or {}).get(_LIGHTS) or {}).get("light"), int) for node in nodes)
+    lost = [f"{repeated} {_plural(repeated, 'mesh', 'meshes')} drawn by several nodes {_plural(repeated, 'is', 'are')} copied"] \
+        if repeated else []
+    unused = [f"{n} {_plural(n, what, what + 's')}" for n, what in ((cameras, "camera"), (lights, "light")) if n]
+    if unused:
+        lost.append(f"{' and '.join(unused)} {_plural(cameras + lights, 'is', 'are')} not used")
+    if not lost:
+        return None
+    command = f"neuralrt import {shlex.quote(str(path))} -o {shlex.quote(str(Path(path).with_suffix('.toml')))}"
+    return f"{path}: rendered as one merged mesh, framed and lit ({'; '.join(lost)}): `{command}` writes a scene that keeps them"
+
+
+def _plural(count: int, one: str, more: str) -> str:
+    return one if count == 1 else more
 
 
 def _placed_nodes(header: dict, path: Path) -> list[tuple[int, np.ndarray]]:

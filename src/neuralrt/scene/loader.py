@@ -99,8 +99,13 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         value, key = load_model(name, device=device), "model"  # (its errors name the file: one line as they are)
         lo, hi = value.bounds.lo.cpu().numpy(), value.bounds.hi.cpu().numpy()
     else:
+        from .gltf_import import unused_scene_note
+
         value, key = load_mesh(name), "mesh"
         lo, hi = value.bounds
+        note = unused_scene_note(name)
+        if note:
+            warnings.warn(note, stacklevel=3)
     with warnings.catch_warnings():
         # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
         warnings.filterwarnings("ignore", category=MeshMismatchWarning)

@@ -120,6 +120,8 @@ a scene material per named glTF material: emissive where it emits (`emissiveFact
 colour); `default` is white diffuse. A file without lights is lit and framed as a lone mesh is
 (`neuralrt render mesh.glb`). What is not read (orthographic cameras, unnamed emissive materials,
 a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
+Rendering a glTF alone warns of what it leaves unused (copies of meshes several nodes draw,
+cameras, lights) and names the `neuralrt import` command that keeps them.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
