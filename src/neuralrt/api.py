@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .arguments import check_count, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
-from .errors import ConfigError, ModelFileError, NeuralRTError
+from .errors import ConfigError, ModelFileError, NeuralRTError, outside_stacklevel
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
@@ -353,7 +353,7 @@ def train(
         import warnings
 
         warnings.warn(f"{checkpoint}: an earlier interrupted run's checkpoint is there; this run starts afresh and "
-                      "replaces it (--resume continues it instead)", stacklevel=2)
+                      "replaces it (--resume continues it instead)", stacklevel=outside_stacklevel())
     if not isinstance(mesh, Mesh):
         mesh = load_mesh(mesh)
     with folders_removed_if_left_empty(output.parent):  # (an interrupt too) stopped before the first checkpoint
@@ -426,6 +426,8 @@ def evaluate(
                               "neuralrt train) first, then the mesh it was trained on")
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)
+        if mesh.suffix.lower() in MODEL_SUFFIXES and not is_neural(model) and Path(model).suffix.lower() not in MODEL_SUFFIXES:
+            raise ConfigError(f"{model}, {mesh}: the model comes first: eval MODEL MESH ({mesh.name} is the model file)")
     image_dir = check_path("image_dir", image_dir, optional=True)
     if image_dir is not None:
         if not images:
@@ -436,7 +438,7 @@ def evaluate(
         import warnings
 
         warnings.warn(f"{given('seed', seed)} is the model's training seed: these rays may repeat its training rays "
-                      f"(not held out; the default seed, {HELD_OUT_SEED}, is far from training seeds)", stacklevel=2)
+                      f"(not held out; the default seed, {HELD_OUT_SEED}, is far from training seeds)", stacklevel=outside_stacklevel())
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")

@@ -1,7 +1,23 @@
-"""Errors neuralrt raises for bad input. The CLI prints them as one line, never a traceback."""
+"""Errors neuralrt raises for bad input. The CLI prints them as one line, never a traceback.
+
+Warnings point at the caller's line outside neuralrt (`outside_stacklevel`), not at ours."""
 
 import math
+import os
 import re
+import sys
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def outside_stacklevel() -> int:
+    """The ``stacklevel`` for a ``warnings.warn`` in the function calling this one that points at the
+    first frame outside the neuralrt package: the user's line, however deep in neuralrt the warning
+    is raised (Python 3.12's ``skip_file_prefixes``, on 3.11 too)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 class NeuralRTError(Exception):

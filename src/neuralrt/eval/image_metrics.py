@@ -69,7 +69,8 @@ def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False,
             raise ImageError(problem)
     reference, test = np.asarray(reference, np.float32), np.asarray(test, np.float32)
     if reference.shape != test.shape:
-        raise ImageError(f"images differ in size: reference {reference.shape[:2]} vs test {test.shape[:2]}")
+        raise ImageError(f"images differ in size: reference {reference.shape[1]}x{reference.shape[0]} vs test "
+                         f"{test.shape[1]}x{test.shape[0]} (width x height)")
     if hdr:
         flip_map, mean_flip, _ = flip_evaluator.evaluate(np.maximum(reference, 0), np.maximum(test, 0), "HDR")
     else:

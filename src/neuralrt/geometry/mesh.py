@@ -16,7 +16,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ..errors import MeshError
+from ..errors import MeshError, outside_stacklevel
 from ..io.files import input_file_problem
 from ..io.images import srgb_to_linear
 from .declared_counts import ply_vertex_properties, truncation_problem
@@ -364,7 +364,7 @@ def _material_from_visual(visual, fallback_name: str, where: str, kept_colors=No
         material.normal_map = _mtl_normal_map(statements, uv, material.name, where)
         if _positive(statements.get("ke")) and material.name not in lit:
             warnings.warn(f"{where}: the emission of material {material.name!r} (Ke) is not read: give the slot an "
-                          f"emissive scene material to make it a light", stacklevel=3)
+                          f"emissive scene material to make it a light", stacklevel=outside_stacklevel())
     elif kind == "vertex":
         colors = np.asarray(visual.vertex_colors, np.float32)[:, :3] / 255.0
         colors = colors if linear_colors else srgb_to_linear(colors)
@@ -391,7 +391,7 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     RGB or RGBA, float or normalised unsigned bytes or shorts (trimesh does not scale those)."""
     values = np.asarray(values)
     if values.ndim != 2 or values.shape[1] not in (3, 4):
-        warnings.warn(f"{where}: vertex colours of shape {list(values.shape)} are left out", stacklevel=5)
+        warnings.warn(f"{where}: vertex colours of shape {list(values.shape)} are left out", stacklevel=outside_stacklevel())
         return None
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(values.dtype, 1.0)
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
@@ -492,14 +492,14 @@ def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str, 
 def _has_uvs(uv: np.ndarray | None, what: str, material: str, where: str) -> bool:
     """Whether an image can be mapped (the part has UVs); else a warning that it is left out."""
     if uv is None:
-        warnings.warn(f"{where}: the {what} of material {material!r} is left out: the mesh has no UVs", stacklevel=4)
+        warnings.warn(f"{where}: the {what} of material {material!r} is left out: the mesh has no UVs", stacklevel=outside_stacklevel())
     return uv is not None
 
 
 _GREY_MODES = ("1", "L", "LA", "La", "I", "I;16", "F")  # PIL modes of one channel (with alpha)
 
 
-def _normal_map(image, material: str, where: str, stacklevel: int = 4) -> np.ndarray | None:
+def _normal_map(image, material: str, where: str) -> np.ndarray | None:
     """A normal map's image (glTF ``normalTexture``, MTL ``norm``/``map_Bump``) as stored texels,
     or None with a warning where it cannot be a tangent-space normal map: a grey image (a height
     map, most likely; also one stored as RGB), or texels that point into the surface on average
@@ -509,7 +509,7 @@ def _normal_map(image, material: str, where: str, stacklevel: int = 4) -> np.nda
         why = f"it is a grey ({image.mode}) image: a tangent-space normal map has three channels (a height map?)"
         texels = None
     else:
-        texels = _texture_pixels(image, material, where, data=True, stacklevel=stacklevel + 1)
+        texels = _texture_pixels(image, material, where, data=True)
         blue = None if texels is None else float(texels[..., 2].mean())
         if texels is not None and _is_grey(texels):
             why = "its red, green and blue are equal everywhere: a grey image (a height map?)"
@@ -517,7 +517,7 @@ def _normal_map(image, material: str, where: str, stacklevel: int = 4) -> np.nda
             why = f"its texels point into the surface on average (mean blue {blue:.3f}, below 0.5)"
     if why is None:
         return texels
-    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=stacklevel)
+    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=outside_stacklevel())
     return None
 
 
@@ -537,7 +537,7 @@ def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, wher
     try:
         statement = normal_map_statement(statements)
     except ValueError as exc:
-        warnings.warn(f"{where}: the normal map of material {material!r} is left out: {exc}", stacklevel=4)
+        warnings.warn(f"{where}: the normal map of material {material!r} is left out: {exc}", stacklevel=outside_stacklevel())
         return None
     if statement is None or not _has_uvs(uv, "normal map", material, where):
         return None
@@ -546,9 +546,9 @@ def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, wher
     except Exception as exc:  # missing or not a regular file (OSError), not an image, a decompression bomb
         warnings.warn(f"{where}: the normal map of material {material!r} is left out: its file "
                       f"{statement.file_name!r} ({statement.keyword}) could not be read "
-                      f"({type(exc).__name__}: {exc})", stacklevel=4)
+                      f"({type(exc).__name__}: {exc})", stacklevel=outside_stacklevel())
         return None
-    texels = _normal_map(image, material, where, stacklevel=5)
+    texels = _normal_map(image, material, where)
     return None if texels is None else scaled_normal_texels(texels, statement.scale)
 
 
@@ -556,7 +556,7 @@ def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, wher
 _TEXTURE_BYTES_PER_PIXEL = 3 * 4 * 3
 
 
-def _texture_pixels(image, material: str, where: str, data: bool = False, stacklevel: int = 4) -> np.ndarray | None:
+def _texture_pixels(image, material: str, where: str, data: bool = False) -> np.ndarray | None:
     """[H, W, 3] linear RGB of a PIL image; 16-bit grey (PIL mode I;16 or I) scaled from 65535, where
     ``convert("RGB")`` would clip every value above 255 to white. ``data``: values as stored in
     [0, 1], not decoded from sRGB (a normal map). trimesh decodes textures lazily, here: one it
@@ -576,14 +576,14 @@ def _texture_pixels(image, material: str, where: str, data: bool = False, stackl
             return decode(np.asarray(image.convert("RGB"), np.float32) / 255.0)
         except (OSError, ValueError, MemoryError) as exc:  # PIL: truncated data; numpy: allocation
             why = f"{type(exc).__name__}: {exc}"
-    _warn_undecodable("normal map" if data else "texture", image.size, material, where, why, stacklevel=stacklevel)
+    _warn_undecodable("normal map" if data else "texture", image.size, material, where, why)
     return None
 
 
-def _warn_undecodable(what: str, size: tuple[int, int], material: str, where: str, why: str, stacklevel: int) -> None:
+def _warn_undecodable(what: str, size: tuple[int, int], material: str, where: str, why: str) -> None:
     fallback = "its interpolated normals" if what == "normal map" else "its base colour"
     warnings.warn(f"{where}: the {size[0]}x{size[1]} {what} of material {material!r} could not be decoded ({why}); "
-                  f"its material renders with {fallback}", stacklevel=stacklevel)
+                  f"its material renders with {fallback}", stacklevel=outside_stacklevel())
 
 
 def _varying_face_colors(visual) -> np.ndarray | None:
@@ -641,6 +641,9 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
     if problem:
         raise MeshError(problem)
     suffix = path.suffix.lower()
+    if suffix in (".nrt", ".ckpt"):  # (trimesh's answer: "file_type 'nrt' not supported")
+        raise MeshError(f"{path}: a neuralrt model file{' (a training checkpoint)' if suffix == '.ckpt' else ''}, not a "
+                        f"mesh: load it with neuralrt.load_model")
     gltf = suffix in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
     header = gltf_header(path) if gltf else None
     if gltf_mesh is not None and not header:
@@ -677,11 +680,11 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
     except Exception as exc:  # trimesh raises many types for malformed files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     for what in unread:
-        warnings.warn(f"{path}: {what}", stacklevel=2)
+        warnings.warn(f"{path}: {what}", stacklevel=outside_stacklevel())
     extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
     uv_component = uv_dequantization(header) if header else None
     for note in notes + extras_notes:
-        warnings.warn(f"{path}: {note}", stacklevel=2)
+        warnings.warn(f"{path}: {note}", stacklevel=outside_stacklevel())
     if isinstance(loaded, trimesh.Trimesh) and suffix in (".off", ".ply"):
         _read_what_trimesh_drops(loaded, path)
     if isinstance(loaded, trimesh.Scene):
@@ -717,7 +720,7 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
         except MeshError as exc:
             if len(parts) == 1:
                 raise
-            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=2)
+            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=outside_stacklevel())
             continue
         part_material = getattr(part.visual, "material", None)  # (glTF: what trimesh drops, by name; None: unnamed)
         extras = extras_of.get(getattr(part_material, "name", None)) if part_material is not None else None
@@ -766,7 +769,7 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
     unknown = sorted(used_materials - {m.name for m in materials})
     if unknown and not unread:  # (a material file that could not be read is said already)
         warnings.warn(f"{path}: usemtl {', '.join(map(repr, unknown))} names no material of its material file(s): "
-                      f"those faces render white", stacklevel=2)
+                      f"those faces render white", stacklevel=outside_stacklevel())
     return Mesh(
         vertices=_joined(verts),
         faces=_joined(faces),
@@ -795,7 +798,7 @@ def _read_what_trimesh_drops(mesh, path: Path) -> None:
         if face_colours is not None and len(mesh.faces) != len(face_colours):
             face_colours, why = None, why or "its face colours are not read: trimesh read another number of faces"
         if why:
-            warnings.warn(f"{path}: {why}", stacklevel=3)
+            warnings.warn(f"{path}: {why}", stacklevel=outside_stacklevel())
         if face_colours is not None:
             mesh.visual = ColorVisuals(mesh, face_colors=face_colours)
         elif vertex_colours is not None:
@@ -805,7 +808,7 @@ def _read_what_trimesh_drops(mesh, path: Path) -> None:
     for name in sorted(set(ply_vertex_properties(path)) & set(_UNREAD_PLY)):
         if (_UNREAD_PLY[name] == "colours" and kind != "vertex") or (_UNREAD_PLY[name] == "UVs" and kind != "texture"):
             warnings.warn(f"{path}: its vertex {_UNREAD_PLY[name]} ({name}, ...) are not read: trimesh reads "
-                          f"{'red, green, blue' if name == 'diffuse_red' else 'u, v or s, t'}", stacklevel=3)
+                          f"{'red, green, blue' if name == 'diffuse_red' else 'u, v or s, t'}", stacklevel=outside_stacklevel())
 
 
 # Where trimesh's materials hold images (OBJ/MTL, glTF PBR), and what neuralrt makes of each (None: unused).
@@ -830,7 +833,7 @@ def _drop_undecodable_images(scene, where: str) -> None:
             except (OSError, ValueError, MemoryError, SyntaxError) as exc:  # PIL: truncated or damaged data
                 if role is not None:
                     _warn_undecodable(role, image.size, getattr(material, "name", None) or "unnamed", where,
-                                      f"{type(exc).__name__}: {exc}", stacklevel=4)
+                                      f"{type(exc).__name__}: {exc}")
                 setattr(material, attribute, None)
 
 

@@ -17,6 +17,8 @@ import logging
 import threading
 from pathlib import Path
 
+from ..errors import outside_stacklevel
+
 __all__ = ["unread_assets", "regular_files_resolver"]
 
 _LOGGER = "trimesh.util"  # the logger trimesh's OBJ and glTF readers write to
@@ -107,7 +109,7 @@ def regular_files_resolver(mesh_path: str):
             data = self._found(name)
             if name.strip().lower().endswith(".mtl"):
                 data = clean_mtl_text(data, lambda material, why: warnings.warn(
-                    f"{mesh_path}: the texture of material {material!r} is left out: {why}", stacklevel=2))
+                    f"{mesh_path}: the texture of material {material!r} is left out: {why}", stacklevel=outside_stacklevel()))
             return data
 
         def _found(self, name: str) -> bytes:

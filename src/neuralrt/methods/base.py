@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from ..arguments import given
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
-from ..errors import DeviceError, MeshMismatchError, ModelFileError, validation_message
+from ..errors import DeviceError, MeshMismatchError, ModelFileError, outside_stacklevel, validation_message
 from ..fork_guard import check_not_forked
 from ..io.files import check_output_file
 from ..io.model_file import ModelHeader, check_model_path, read_model, write_model
@@ -104,7 +104,7 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
         expected, name = own_mesh.content_hash(), own_mesh.name
     if mesh_hash is None or expected is None:
         what = "no mesh is given" if mesh_hash is None else "the model records no mesh hash"
-        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning, stacklevel=2)
+        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning, stacklevel=outside_stacklevel())
         return
     if mesh_hash != expected and not allow_mismatch:
         raise MeshMismatchError(
@@ -229,6 +229,14 @@ class NeuralBLAS(nn.Module, ABC):
     def secondary_offset(self) -> float:
         """Origin offset (object-space units, along the normal) for rays leaving a neural hit."""
         return float(self.config.inference.secondary_offset * self.box.diagonal)
+
+    def to(self, *args, **kwargs):
+        """``nn.Module.to``, with the device checked first: one line naming it where this process has
+        no such device (torch's own is an AssertionError about how it was compiled)."""
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]
+        if device is not None:
+            check_device(device)
+        return super().to(*args, **kwargs)
 
     @property
     def device(self) -> torch.device:

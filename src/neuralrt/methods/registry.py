@@ -29,8 +29,9 @@ from dataclasses import dataclass, field
 
 from pydantic import ValidationError
 
+from ..arguments import given
 from ..devices import check_device_name
-from ..errors import ConfigError, validation_message
+from ..errors import ConfigError, outside_stacklevel, validation_message
 from .config import MethodConfig
 
 __all__ = ["MethodSpec", "register_method", "get_method", "method_names", "config_from_dict", "DEFAULT_METHOD",
@@ -96,6 +97,12 @@ class MethodSpec:
         changed (``steps=..., batch_size=..., seed=...``; ``None`` keeps the preset's). Errors are one-line `ConfigError`s."""
         if settings is not None and not isinstance(settings, dict):
             raise ConfigError(f"settings: expected a dict of config sections, got {type(settings).__name__}")
+        named = (settings or {}).get("training")
+        for key, value in training.items():  # (one would silently win over the other)
+            if value is not None and isinstance(named, dict) and key in named and named[key] != value:
+                argument = {"batch_size": "batch"}.get(key, key)
+                raise ConfigError(f"{given(argument, value)} and training.{key}={named[key]!r} in "
+                                  f"{given('settings', flag='--set')} disagree: give one of them")
         return self.config_class.preset(preset or self.default_preset(device), **(settings or {})).with_training(**training)
 
     def preset_of(self, config: MethodConfig) -> str | None:
@@ -154,7 +161,7 @@ def load_plugins() -> list[str]:
         try:
             importlib.import_module(module)
         except Exception as exc:  # a plugin's own bug must not stop the built-in methods
-            warnings.warn(f"method plugin {module!r} ({source}) not loaded: {type(exc).__name__}: {exc}", stacklevel=2)
+            warnings.warn(f"method plugin {module!r} ({source}) not loaded: {type(exc).__name__}: {exc}", stacklevel=outside_stacklevel())
         else:
             loaded.append(module)
     return loaded

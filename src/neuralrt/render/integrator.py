@@ -147,6 +147,9 @@ def render(
         raise ConfigError(f"scene: expected a loaded neuralrt Scene (load_scene, load_dict), got {type(scene).__name__}")
     if settings is None:
         settings = IntegratorSettings(max_depth=scene.settings.max_depth, primary=scene.primary)
+    elif not isinstance(settings, IntegratorSettings):
+        raise ConfigError(f"settings: expected an IntegratorSettings (or give its fields as keyword arguments: spp=, "
+                          f"max_depth=, ...), got {type(settings).__name__}")
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
     check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
@@ -160,7 +163,7 @@ def render(
     if settings.shading not in SHADING_BACKENDS:
         raise ConfigError(f"shading must be one of {', '.join(map(repr, SHADING_BACKENDS))}, got {settings.shading!r}")
     if settings.primary == "exact" and scene.primary == "neural":
-        raise ValueError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
+        raise ConfigError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
                          "load it with primary='exact' to render that way")
     spp = int(spp if spp is not None else scene.settings.spp)
     camera = scene.camera.with_resolution(check_resolution(resolution)) if resolution is not None else scene.camera

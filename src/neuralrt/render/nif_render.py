@@ -22,7 +22,7 @@ import torch
 from pydantic import ValidationError
 
 from ..arguments import check_count, given, seed_or_default
-from ..errors import ConfigError, validation_message
+from ..errors import ConfigError, outside_stacklevel, validation_message
 from ..methods.nif import NIFNetworks
 from ..methods.nif_config import NIFConfig
 from ..methods.nif_training import NIFTrainer
@@ -153,7 +153,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         if spp < 2:
             raise ConfigError(f"{given('spp', spp)}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
         warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (training.train_spp "
-                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)", stacklevel=2)
+                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)", stacklevel=outside_stacklevel())
         train_spp = spp // 2
     if train_spp is not None:
         config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": train_spp})})
@@ -176,7 +176,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     trainer.finish()
     if answer == "answer" and trainer.stats.outer_pairs == 0:
         warnings.warn("NIF: no shadow ray toward the chosen objects was traced while training (has the scene "
-                      "lights that they can shadow?): the networks answer untrained", stacklevel=2)
+                      "lights that they can shadow?): the networks answer untrained", stacklevel=outside_stacklevel())
     shadows.mode = answer
     second = render(nif_scene, spp=spp - train_spp, seed=seed + SECOND_PART_SEED,
                     progress_label="render, NIF answering" if answer == "answer" else "render, exact shadows", **render_kwargs)

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError
+from ..errors import SceneError, outside_stacklevel
 from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes
 
 __all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
@@ -212,7 +212,7 @@ def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[
         except ValueError as exc:
             reason = str(exc).splitlines()[-1].strip()
             warnings.warn(f"{path}: node {index} ({name!r}) is left out: its world matrix cannot place a mesh ({reason})",
-                          stacklevel=3)
+                          stacklevel=outside_stacklevel())
             continue
         objects.append({"name": name, "mesh": str(path), "gltf_mesh": mesh, "transform": {"matrix": matrix}})
         corners.append(_world_corners(header, mesh, world, path))
@@ -272,7 +272,7 @@ def _materials(header: dict, path: Path) -> tuple[list[dict], int]:
                           "roughness": alpha})
     if unnamed:
         warnings.warn(f"{path}: the emission of {', '.join(unnamed)} is not read: a scene material takes a slot by "
-                      f"name, and these have none (or another material's)", stacklevel=3)
+                      f"name, and these have none (or another material's)", stacklevel=outside_stacklevel())
     return found, emissive
 
 
@@ -316,9 +316,9 @@ def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path:
             distance = DISTANT * radius
             position, colour = centre - facing * distance, colour * distance**2
         elif kind == "spot":
-            warnings.warn(f"{path}: {label} is read as a point light (its cone is not)", stacklevel=3)
+            warnings.warn(f"{path}: {label} is read as a point light (its cone is not)", stacklevel=outside_stacklevel())
         elif kind != "point":
-            warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)", stacklevel=3)
+            warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)", stacklevel=outside_stacklevel())
             continue
         lights.append({"position": [float(x) for x in position],
                        "intensity": [float(x) for x in colour / CANDELA_PER_WATT_SR]})
@@ -338,7 +338,7 @@ def _camera(header: dict, placed: list, radius: float, path: Path) -> dict | Non
         lens = camera.get("perspective")
         if camera.get("type") != "perspective" or not isinstance(lens, dict):
             warnings.warn(f"{path}: camera {_name(camera) or used!r} is left out: only perspective cameras are read",
-                          stacklevel=3)
+                          stacklevel=outside_stacklevel())
             continue
         fov = math.degrees(float(lens.get("yfov", 0.0))) if isinstance(lens.get("yfov"), (int, float)) else 0.0
         aspect = lens.get("aspectRatio", 1.0)

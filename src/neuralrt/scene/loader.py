@@ -28,7 +28,7 @@ from ..accel.mesh_blas import MeshBLAS
 from ..arguments import given
 from ..accel.tlas import Instance, SceneAccel
 from ..devices import check_device, check_path
-from ..errors import NeuralRTError, SceneError, validation_errors
+from ..errors import NeuralRTError, SceneError, outside_stacklevel, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import AABB
@@ -105,7 +105,7 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         lo, hi = value.bounds
         note = unused_scene_note(name)
         if note:
-            warnings.warn(note, stacklevel=3)
+            warnings.warn(note, stacklevel=outside_stacklevel())
     with warnings.catch_warnings():
         # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
         warnings.filterwarnings("ignore", category=MeshMismatchWarning)
@@ -400,7 +400,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
         unknown = [slot for slot in obj.materials if slot not in slots]
         if unknown:  # a typo would silently leave the slot at its default
             warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
-                          f"(the object's slots: {', '.join(slots)})", stacklevel=2)
+                          f"(the object's slots: {', '.join(slots)})", stacklevel=outside_stacklevel())
         slot_materials = material_map(obj, slots, index)
         _warn_untextured(material_specs, obj, slot_materials, shape, label, key, primary)
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(slot_materials),
@@ -433,10 +433,10 @@ def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], sh
         kept = shape is not None and primary == "exact" and shape.mesh.uvs is not None  # (who answers camera rays)
         warnings.warn(f"{label}: {key}: material {names} has a texture, but a neural model's hits carry no UVs: "
                       f"they show one texel{' (camera rays answered by the kept mesh show the texture)' if kept else ''}",
-                      stacklevel=3)
+                      stacklevel=outside_stacklevel())
     elif shape is not None and shape.mesh.uvs is None:
         warnings.warn(f"{label}: {key}: material {names} has a texture, but the mesh has no UVs: it shows one texel",
-                      stacklevel=3)
+                      stacklevel=outside_stacklevel())
 
 
 def _more(count: int) -> str:

@@ -284,6 +284,13 @@ class ObjectSpec(_Strict):
     materials: dict[str, str] = Field(default_factory=dict, description="mesh material name -> scene material name "
                                       "(unmapped slots use the scene material of the same name, else 'default')")
 
+    @field_validator("transform", mode="before")
+    @classmethod
+    def _transform_object(cls, v):
+        from ..rays import Transform  # (from Python, load_dict takes the API's Transform too)
+
+        return {"matrix": v._m64.tolist()} if isinstance(v, Transform) else v
+
     @model_validator(mode="after")
     def _one_source(self) -> "ObjectSpec":
         if self.mesh is not None and self.generator is not None:

@@ -59,8 +59,8 @@ a `SceneSpec`, e.g. `neuralrt.scene.loader.load_scene_spec(path)[0]`).
 Every number must be finite (`nan` / `inf` are errors naming the key).
 
 From Python, `neuralrt.scene.loader.load_dict(d)` builds a scene from a dict with these same keys,
-validated at once; there an object's `mesh` may also be a `neuralrt.Mesh` and its `model` a
-loaded model (any BLAS with `material_names`). A model's material slots map to scene materials
+validated at once; there an object's `mesh` may also be a `neuralrt.Mesh`, its `model` a
+loaded model (any BLAS with `material_names`) and its `transform` a `neuralrt.Transform`. A model's material slots map to scene materials
 like a mesh's: the object's `material`, else its `materials` map, else the scene material of the
 same name, else `default`. `load_scene(..., primary="neural")` / `render --primary neural`
 builds no mesh BVH for objects with a model (camera rays go to the model too).

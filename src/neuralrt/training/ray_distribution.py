@@ -28,7 +28,7 @@ from torch import Tensor
 
 from . import ray_distribution_cpu as cpu
 from ..accel.blas import BLAS
-from ..errors import ConfigError, MeshError
+from ..errors import ConfigError, MeshError, outside_stacklevel
 from ..rays import AABB, Hits, Rays, face_forward
 
 __all__ = ["TrainingBatch", "BoxRayDistribution", "cosine_weighted_directions", "uniform_sphere_points"]
@@ -157,7 +157,7 @@ class BoxRayDistribution:
         if len(self.pool_points) < self._pool_size:
             warnings.warn(f"{name}: {tries} x 65536 rays from its bounding sphere found {len(self.pool_points):,} of "
                           f"{self._pool_size:,} surface points (the mesh covers little of its box); training starts with "
-                          "them and keeps adding hits", stacklevel=3)
+                          "them and keeps adding hits", stacklevel=outside_stacklevel())
 
     # -- surface rays ----------------------------------------------------------------------
     def surface_rays(self, n: int) -> Rays:

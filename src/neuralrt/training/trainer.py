@@ -25,7 +25,7 @@ from pydantic import ConfigDict, NonNegativeFloat, NonNegativeInt, PositiveInt, 
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 from torch import nn
 
-from ..errors import ConfigError, ModelFileError, TrainingError, validation_message
+from ..errors import ConfigError, ModelFileError, TrainingError, outside_stacklevel, validation_message
 from ..io.model_file import read_header, read_model_file, write_model_file
 from .curve import TrainingCurve, curve_problem
 from .prefetch import BatchSource
@@ -250,7 +250,7 @@ def train_model(
         record.resumed_from = start
         if start > steps:  # kept (see below), but the run then ends with more steps than asked: say so
             warnings.warn(f"{ckpt}: the checkpoint is already at step {start}, past steps={steps}: "
-                          f"the model is saved as of step {start}", stacklevel=2)
+                          f"the model is saved as of step {start}", stacklevel=outside_stacklevel())
     running = _Running(record.window)
     curve = TrainingCurve.from_dict(record.curve, start=start)
     curve.states = getattr(model, "curve_states", None)
@@ -308,7 +308,7 @@ def train_model(
             save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
         except OSError as exc:  # insurance only (~7x the model's bytes): a full disk must not cost the trained model
             warnings.warn(f"{ckpt}: the final checkpoint could not be written ({exc.strerror or exc}); the trained "
-                          "model is kept", stacklevel=2)
+                          "model is kept", stacklevel=outside_stacklevel())
     model.eval()
     return record
 

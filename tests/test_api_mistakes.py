@@ -1,0 +1,95 @@
+"""Python API mistakes a researcher made in a new-user trial: each is a `NeuralRTError` of one line
+naming the argument (never a bare ValueError, TypeError or torch's AssertionError), or something
+the API now accepts."""
+
+import numpy as np
+import pytest
+import torch
+
+from neuralrt import api
+from neuralrt.cli import main
+from neuralrt.errors import ConfigError, DeviceError, MeshError
+from neuralrt.geometry.mesh import load_mesh
+from neuralrt.geometry.procedural import make_procedural
+from neuralrt.io.images import write_exr
+from neuralrt.methods import LSNIFConfig, get_method
+from neuralrt.methods.lsnif import LSNIFModel
+from neuralrt.render.integrator import render as render_scene
+from neuralrt.rays import Transform
+from neuralrt.scene.loader import load_dict
+
+BALL = {"name": "ball", "generator": {"name": "sphere", "params": {"subdivisions": 1}}}
+
+
+def _model():
+    return LSNIFModel.from_mesh(make_procedural("sphere", subdivisions=1), LSNIFConfig.preset("lq"))
+
+
+def test_rendering_exact_a_scene_loaded_neural_is_a_config_error():
+    scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [{"model": _model()}]}, primary="neural")
+    with pytest.raises(ConfigError, match="loaded with primary='neural'"):
+        render_scene(scene, spp=1, primary="exact", progress=False)
+
+
+def test_settings_that_are_no_integrator_settings_are_named():
+    scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [BALL]})
+    with pytest.raises(ConfigError, match=r"settings: expected an IntegratorSettings .* got dict"):
+        render_scene(scene, settings={"spp": 2}, progress=False)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_moving_a_model_to_a_device_this_process_lacks_is_a_device_error():
+    model = _model()
+    with pytest.raises(DeviceError, match="device=cuda"):
+        model.to("cuda")
+    with pytest.raises(DeviceError):
+        model.to(torch.device("cuda", 0))
+    assert model.to("cpu") is model and model.to(dtype=torch.float32) is model
+
+
+@pytest.mark.parametrize("argument, value", [("steps", 5), ("batch_size", 4096), ("seed", 3)])
+def test_a_training_key_given_twice_differently_is_an_error(argument, value):
+    spec = get_method("lsnif")
+    with pytest.raises(ConfigError, match=rf"training.{argument}=.* disagree: give one of them"):
+        spec.config("lq", settings={"training": {argument: value + 1}}, **{argument: value})
+    same = spec.config("lq", settings={"training": {argument: value}}, **{argument: value})  # (agreeing: fine)
+    assert getattr(same.training, argument) == value
+
+
+def test_the_cli_names_both_spellings_of_a_training_key(tmp_path, capsys):
+    assert main(["train", "procedural:statue:0", "-o", str(tmp_path / "k.nrt"), "--steps", "5", "--set", "training.steps=7"]) == 2
+    assert capsys.readouterr().err == ("neuralrt: error: --steps 5 and training.steps=7 in --set disagree: give one of "
+                                       "them\n")
+
+
+def test_a_model_file_loaded_as_a_mesh_says_what_it_is(tmp_path):
+    _model().save(tmp_path / "ball.nrt")
+    with pytest.raises(MeshError, match="a neuralrt model file, not a mesh: load it with neuralrt.load_model"):
+        load_mesh(tmp_path / "ball.nrt")
+
+
+def test_eval_with_mesh_and_model_swapped_says_which_comes_first(tmp_path):
+    _model().save(tmp_path / "ball.nrt")
+    make_procedural("sphere", subdivisions=1)
+    (tmp_path / "ball.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(ConfigError, match=r"the model comes first: eval MODEL MESH \(ball.nrt is the model file\)"):
+        api.evaluate(tmp_path / "ball.off", tmp_path / "ball.nrt")
+
+
+def test_images_of_different_sizes_are_named_width_by_height(tmp_path):
+    write_exr(tmp_path / "a.exr", np.zeros((64, 96, 3), np.float32))
+    write_exr(tmp_path / "b.exr", np.zeros((16, 16, 3), np.float32))
+    with pytest.raises(Exception, match=r"reference 96x64 vs test 16x16 \(width x height\)"):
+        api.compare(tmp_path / "a.exr", tmp_path / "b.exr")
+
+
+def test_a_scene_dict_takes_the_apis_transform():
+    placed = Transform.translate([1.0, 2.0, 3.0])
+    scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [{**BALL, "transform": placed}]})
+    assert torch.equal(scene.accel.instances[0].transform.matrix, placed.matrix)
+
+
+def test_a_warning_points_at_the_callers_line_not_at_neuralrt():
+    with pytest.warns(UserWarning, match="cannot check that the model belongs") as caught:
+        load_dict({"camera": {"resolution": [4, 4]}, "objects": [{"model": _model()}]})
+    assert caught[0].filename == __file__
