@@ -93,3 +93,9 @@ def test_a_warning_points_at_the_callers_line_not_at_neuralrt():
     with pytest.warns(UserWarning, match="cannot check that the model belongs") as caught:
         load_dict({"camera": {"resolution": [4, 4]}, "objects": [{"model": _model()}]})
     assert caught[0].filename == __file__
+
+
+def test_a_shape_without_detail_says_how_to_make_it():
+    with pytest.raises(MeshError, match=r"sphere has no detail level: in Python, neuralrt.geometry.procedural.sphere\("
+                                        r"subdivisions=4, radius=1.0\); in a scene file, generator = \{ name = \"sphere\" \}"):
+        load_mesh("procedural:sphere:3")

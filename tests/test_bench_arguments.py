@@ -119,7 +119,7 @@ def test_script_refuses_bad_argument_in_one_line(subprocess_results, index):
 IN_PROCESS_CASES = [
     # bench_lsnif: mesh specs, presets, counts, names (defects 1, 2, 4)
     ("bench_lsnif.py", ["procedural:statue"], "procedural:statue: not a procedural mesh spec"),
-    ("bench_lsnif.py", ["procedural:sphere:2"], "use procedural:NAME:DETAIL with NAME one of statue"),
+    ("bench_lsnif.py", ["procedural:sphere:2"], "sphere has no detail level"),
     ("bench_lsnif.py", ["procedural:statue:9"], "DETAIL must be an integer in 0..5"),
     ("bench_lsnif.py", ["procedural:statue:0", "procedural:hairball:0@loop1"], "DETAIL must be an integer in 0..8"),
     ("bench_lsnif.py", ["procedural:statue:0", "--presets", "lq", "bogus"], "unknown lsnif preset 'bogus'"),
@@ -149,7 +149,7 @@ IN_PROCESS_CASES = [
     ("bench_training_seeds.py", ["--seeds", "bogus"], "argument --seeds: 'bogus'"),
     ("bench_training_seeds.py", ["--preset", "bogus"], "unknown lsnif preset 'bogus'"),
     ("bench_training_seeds.py", ["--steps", "0"], "argument --steps"),
-    ("bench_training_seeds.py", ["--mesh", "procedural:sphere:2"], "not a procedural mesh spec"),
+    ("bench_training_seeds.py", ["--mesh", "procedural:sphere:2"], "sphere has no detail level"),
     # bench_methods
     ("bench_methods.py", ["nonexistent.off"], "nonexistent.off: mesh file not found"),
     ("bench_methods.py", ["procedural:statue:0", "--variants", "bogus:hq"], "unknown method 'bogus'"),

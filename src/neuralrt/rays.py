@@ -111,6 +111,7 @@ class Rays:
         return Rays(self.origins[index], self.directions[index], self.t_min[index], self.t_max[index])
 
     def to(self, device) -> "Rays":
+        """The rays on ``device`` (a new `Rays`); a device this process lacks is a `DeviceError`."""
         device = check_device(device)  # (cuda on a CPU-only torch: one line, not torch's AssertionError)
         return Rays(self.origins.to(device), self.directions.to(device), self.t_min.to(device), self.t_max.to(device),
                     batch_shape=self.batch_shape)
@@ -154,38 +155,43 @@ def check_rays(rays, where: str) -> None:
 @dataclass(eq=False)  # (as Rays)
 class Hits:
     """Closest-hit records, one row per ray, on the rays' device; in the space of the rays that
-    were asked (object space from a BLAS, world space from a scene). Rows with ``hit == False``
-    carry ``t = inf`` and the other fields' miss values.
+    were asked (object space from a BLAS, world space from a scene). The hit point is derived, not
+    stored: `position`.
 
-    ``albedo`` is the surface's own colour factor at the hit (texture, vertex colour, or the
-    value a neural model predicts; 1 where the surface has none); scene materials multiply it.
-    The hit point is derived, not stored: `position`.
+    Fields (``N`` rays; the value on a miss in brackets):
+
+    - ``hit`` [N] bool: the ray hit something in its interval.
+    - ``t`` [N] float32: ray parameter of the hit, in units of the direction's length (inf).
+    - ``normal`` [N, 3] float32: unit shading normal (zeros). An exact BLAS gives the mesh's own
+      side (the winding's; not flipped towards the ray); a neural BLAS gives one facing the ray, as
+      it was trained (one ray cannot tell a surface's outside: LSNIF returns its prediction, so an
+      undertrained model may return some facing away; N-BVH flips its output). `face_forward`
+      gives one convention from both.
+    - ``geometric_normal`` [N, 3] float32: unit face normal, sides as ``normal``'s (zeros); a
+      neural BLAS's is its ``normal``.
+    - ``uv`` [N, 2] float32: texture coordinates (zeros; zeros where the mesh has none, and from
+      a neural BLAS, which learns no UVs).
+    - ``albedo`` [N, 3] float32 in [0, 1]: the surface's own colour factor at the hit (texture,
+      vertex colour, or the value a neural model predicts; 1 where the surface has none); scene
+      materials multiply it (ones).
+    - ``material_id`` [N] int64: material slot, a BLAS's ``material_names`` index, or the scene's
+      material table index from a scene (-1).
+    - ``primitive_id`` [N] int64: triangle index (-1; -1 for neural hits too).
+    - ``instance_id`` [N] int64: scene instance (-1; -1 outside a scene).
+
+    Queries are not differentiable: no field carries a gradient to the rays or to a model's
+    parameters (training uses its own loss, `neuralrt.training`).
     """
 
     hit: Mask
-    """[N] bool: the ray hit something in its interval."""
     t: Scalars
-    """[N] float32: ray parameter of the hit (units of the direction's length); inf on miss."""
     normal: Vectors
-    """[N, 3] float32: unit shading normal (zeros on miss). An exact BLAS gives the mesh's own side
-    (the winding's; not flipped towards the ray); a neural BLAS gives one facing the ray, as it was
-    trained (one ray cannot tell a surface's outside: LSNIF returns its prediction, so an
-    undertrained model may return some facing away; N-BVH flips its output). `face_forward` gives
-    one convention from both."""
     geometric_normal: Vectors
-    """[N, 3] float32: unit face normal (zeros on miss); sides as ``normal``'s (a neural BLAS's is
-    its ``normal``)."""
     uv: Annotated[Tensor, "[N, 2] float32"]
-    """[N, 2] float32: texture coordinates (zeros where absent)."""
     albedo: Vectors
-    """[N, 3] float32 in [0, 1]: the surface's colour factor (ones on miss)."""
     material_id: Indices
-    """[N] int64: material slot (a BLAS's ``material_names`` index; a scene's material table index
-    from a scene); -1 on miss."""
     primitive_id: Indices
-    """[N] int64: triangle index; -1 on miss and for neural hits."""
     instance_id: Indices
-    """[N] int64: scene instance; -1 on miss or outside a scene."""
 
     @staticmethod
     def empty(n: int, device=None) -> "Hits":
@@ -239,6 +245,7 @@ class Hits:
         return self
 
     def to(self, device) -> "Hits":
+        """The hits on ``device`` (a new `Hits`; as `Rays.to`)."""
         device = check_device(device)
         return Hits(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
 

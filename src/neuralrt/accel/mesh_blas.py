@@ -74,8 +74,10 @@ def _backend_for(device: torch.device) -> type["MeshBLAS"]:
 class MeshBLAS(ABC):
     """Exact closest-hit and any-hit queries over one triangle mesh, in the mesh's own space.
 
-    ``MeshBLAS(mesh, device=None)`` builds the backend for ``device`` (default CPU): an
-    `EmbreeMeshBLAS` on the CPU, a `MitsubaMeshBLAS` (OptiX) on CUDA when Mitsuba 3 is installed.
+    ``MeshBLAS(mesh, device=None, threads=None)`` builds the backend for ``device`` (default CPU):
+    an `EmbreeMeshBLAS` on the CPU, a `MitsubaMeshBLAS` (OptiX) on CUDA when Mitsuba 3 is installed.
+    ``threads``: the CPU threads a query uses (Embree's calls and the numba passes around them;
+    default: numba's thread count, all cores).
     Built once per mesh (instances share it through the scene TLAS). A ``mesh`` that is not a `Mesh`
     raises `ConfigError`, a device this process cannot use (``cuda`` on a CPU-only torch) `DeviceError`.
 

@@ -64,7 +64,24 @@ class MeshMaterial:
 
 @dataclass
 class Mesh:
-    """An indexed triangle mesh with optional shading normals, UVs, colours and materials."""
+    """An indexed triangle mesh with optional shading normals, UVs, colours and materials.
+
+    Fields (numpy arrays, or anything numpy reads as one: lists, other dtypes, converted on
+    construction and checked: a wrong shape, NaN/Inf positions or indices out of range raise a
+    one-line `MeshError`):
+
+    - ``vertices`` [V, 3] float32; ``faces`` [F, 3] int32 vertex indices, counter-clockwise seen
+      from the front (the normal's side).
+    - ``vertex_normals`` [V, 3] float32 unit shading normals (default: smooth ones from the faces).
+    - ``uvs`` [V, 2] float32 texture coordinates, v up (None: none).
+    - ``vertex_colors`` [V, 3] float32 linear RGB (None: white).
+    - ``face_material_ids`` [F] int32 indices into ``materials`` (default: all 0).
+    - ``materials``: `MeshMaterial` per slot (name, linear base colour, texture, normal map;
+      default: one white ``default``); ``name``: a label for errors and model files.
+
+    `load_mesh` reads one from a file; `neuralrt.geometry.procedural` builds test shapes (``sphere``,
+    ``box``, ``plane``) and the built-in scenes' meshes.
+    """
 
     vertices: np.ndarray  # [V, 3] float32
     faces: np.ndarray  # [F, 3] int32
@@ -140,7 +157,9 @@ class Mesh:
         return int(self.vertices.nbytes + self.faces.nbytes)
 
     def subdivided(self, iterations: int = 1) -> "Mesh":
-        """Loop subdivision (trimesh), keeping one material per face; UVs/colours are dropped."""
+        """Loop subdivision by trimesh (``iterations`` levels), keeping one material per face; UVs
+        and colours are dropped. For tens of millions of triangles,
+        `neuralrt.geometry.subdivision.loop_subdivided` gives the same triangles in less memory."""
         trimesh = import_trimesh()
 
         tm = trimesh.Trimesh(self.vertices, self.faces, process=False)

@@ -564,6 +564,10 @@ def parse_procedural_spec(spec: str) -> tuple[str, int]:
     parts = spec.split(":")
     name = parts[1] if len(parts) > 1 else ""
     limit = MAX_DETAIL.get(name)
+    if limit is None and name in GENERATORS:  # (sphere, box, ...: parameters, no detail level)
+        shape = ", ".join(f"{k}={v.default!r}" for k, v in inspect.signature(GENERATORS[name]).parameters.items())
+        raise MeshError(f"{spec}: {name} has no detail level: in Python, neuralrt.geometry.procedural.{name}({shape}); "
+                        f"in a scene file, generator = {{ name = \"{name}\" }}")
     if len(parts) != 3 or limit is None:
         raise MeshError(f"{spec}: not a procedural mesh spec: use procedural:NAME:DETAIL with NAME one of "
                         f"{', '.join(f'{n} (DETAIL 0..{d})' for n, d in MAX_DETAIL.items())}")

@@ -45,7 +45,7 @@ class FeatureConfig(_Section):
 
 
 class EncodingConfig(_Section):
-    type: Literal["sparse_hash_grid"] = "sparse_hash_grid"
+    type: Literal["sparse_hash_grid"] = Field("sparse_hash_grid", description="multiresolution hash grid over the occupied voxels only (paper Sec. 5.2)")
     resolutions: tuple[int, ...] = Field((64, 128), min_length=1, description="grid resolution per level (paper: 64^3, 128^3)")
     features_per_level: int = Field(3, ge=1, le=16, description="features per hash-table entry (paper: 3)")
     log2_table_size: int = Field(17, ge=4, le=24, description="log2 of hash-table entries per level (paper: 2^17)")
@@ -53,7 +53,7 @@ class EncodingConfig(_Section):
 
 
 class NetworkConfig(_Section):
-    type: Literal["mlp"] = "mlp"
+    type: Literal["mlp"] = Field("mlp", description="fully connected layers with leaky ReLUs")
     hidden_width: int = Field(128, ge=1, le=4096, description="neurons per hidden layer (paper: 128; preset lq: 64)")
     hidden_layers: int = Field(2, ge=1, le=16, description="hidden layers (paper: 2)")
     leaky_relu_slope: float = Field(0.01, ge=0.0, lt=1.0, description="negative slope of the leaky ReLUs")
@@ -62,11 +62,11 @@ class NetworkConfig(_Section):
 class LossConfig(_Section):
     """Weights of the five losses (paper: occlusion BCE, distance L1, normal cosine, albedo relative L2, material CE)."""
 
-    occlusion: float = Field(1.0, ge=0.0)
-    distance: float = Field(1.0, ge=0.0)
-    normal: float = Field(1.0, ge=0.0)
-    albedo: float = Field(1.0, ge=0.0)
-    material: float = Field(1.0, ge=0.0)
+    occlusion: float = Field(1.0, ge=0.0, description="BCE on hit / no hit, over the rays that reach the network")
+    distance: float = Field(1.0, ge=0.0, description="L1 on the hit's fraction of the ray's box interval, hits only")
+    normal: float = Field(1.0, ge=0.0, description="1 - cos against the exact normal turned towards the ray, hits only")
+    albedo: float = Field(1.0, ge=0.0, description="relative L2 on the albedo, hits only")
+    material: float = Field(1.0, ge=0.0, description="cross-entropy on the material slot, hits only, meshes with several materials")
 
 
 class LSNIFConfig(MethodConfig):

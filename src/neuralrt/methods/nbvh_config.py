@@ -20,7 +20,7 @@ __all__ = ["NBVHEncodingConfig", "NBVHNetworkConfig", "QueryConfig", "CutConfig"
 
 
 class NBVHEncodingConfig(_Section):
-    type: Literal["hash_grid"] = "hash_grid"
+    type: Literal["hash_grid"] = Field("hash_grid", description="one multiresolution hash grid over the whole object, queried at points in each BVH-cut leaf")
     levels: int = Field(8, ge=1, le=12, description="grid levels (paper: 8)")
     base_resolution: int = Field(8, ge=2, le=64, description="vertices per axis of the coarsest level; each level doubles it (paper: 8 .. 1024)")
     features_per_level: int = Field(4, ge=1, le=8, description="features per table row (paper: 4)")
@@ -29,7 +29,7 @@ class NBVHEncodingConfig(_Section):
 
 
 class NBVHNetworkConfig(_Section):
-    type: Literal["mlp"] = "mlp"
+    type: Literal["mlp"] = Field("mlp", description="fully connected layers with ReLUs")
     hidden_width: int = Field(64, ge=1, le=1024, description="neurons per hidden layer (paper: 64)")
     hidden_layers: int = Field(4, ge=1, le=16, description="hidden ReLU layers (paper: 4)")
 
