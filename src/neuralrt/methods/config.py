@@ -14,6 +14,7 @@ from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from ..arguments import given
 from ..errors import ConfigError, validation_message
 
 __all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings"]
@@ -119,7 +120,8 @@ class MethodConfig(ConfigSection):
         be dicts or config sections. An unknown preset or a bad override is a one-line `ConfigError`
         (a ``ValueError``) naming the known presets or the key."""
         if not isinstance(name, str) or name not in cls.PRESETS:
-            raise ConfigError(f"unknown {cls._method_name()} preset {name!r} (choose from {', '.join(cls.PRESETS)})")
+            raise ConfigError(f"{given('preset')}: unknown {cls._method_name()} preset {name!r} (choose from "
+                              f"{', '.join(cls.PRESETS)})")
         data = cls.PRESETS[name]().model_dump()
         for section, values in overrides.items():
             if isinstance(values, BaseModel):
