@@ -17,7 +17,7 @@ def _json(capsys) -> dict:
 
 def test_python_dash_m_help():
     out = subprocess.run([sys.executable, "-m", "neuralrt", "--help"], capture_output=True, text=True, check=True).stdout
-    for command in ("render", "compare", "info", "train", "eval", "convert", "demo"):
+    for command in ("render", "compare", "info", "train", "eval", "convert", "import", "demo"):
         assert command in out
 
 

@@ -54,6 +54,23 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     assert report["settings"]["steps"] == 40 and report["settings"]["preset"] == "hq"  # the patched settings ran
 
 
+def test_demo_flags_reach_its_settings_and_json_prints_the_report(tmp_path, capsys, monkeypatch):
+    import neuralrt.demo as demo
+
+    tiny = demo.DemoSettings(steps=40, batch=2048, detail=0, min_triangles=1000, resolution=(32, 24), spp=2,
+                             max_depth=2)
+    monkeypatch.setattr(demo, "DEMO_QUICK", tiny)
+    out = tmp_path / "report"
+    assert main(["demo", "--quick", "--out", str(out), "--quiet", "--json", "--seed", "3", "--max-depth", "1",
+                 "--batch", "1024", "--min-triangles", "500", "--primary", "neural"]) == 0
+    captured = capsys.readouterr()
+    printed = json.loads(captured.out)
+    assert printed["settings"] == {**printed["settings"], "seed": 3, "max_depth": 1, "batch": 1024, "min_triangles": 500,
+                                   "primary": "neural"}
+    assert printed["flip"] == json.loads((out / "report.json").read_text())["flip"]
+    assert "step" not in captured.err  # (--quiet: no progress bars)
+
+
 def test_quick_is_a_shorter_run_of_the_same_model():
     import neuralrt.demo as demo
 

@@ -170,8 +170,13 @@ def _cmd_convert(args) -> None:
 
 def _cmd_demo(args) -> None:
     args.interrupt_hint = "run the same command again: a model already trained in the folder is reused"
-    report = api.demo(args.out, quick=args.quick, device=args.device, progress=True, scene=args.scene, method=args.method,
-                      preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps, detail=args.detail)
+    report = api.demo(args.out, quick=args.quick, device=args.device, progress=not args.quiet, scene=args.scene,
+                      method=args.method, preset=args.preset, spp=args.spp, resolution=args.res, steps=args.steps,
+                      batch=args.batch, detail=args.detail, min_triangles=args.min_triangles, max_depth=args.max_depth,
+                      primary=args.primary, seed=args.seed)
+    if args.json:
+        _print_result(report, True)
+        return
     m, t = report["memory"], report["time"]
     print(f"FLIP {report['flip']:.4f} (same seed; at another seed {report['flip_other_seed']:.4f}, "
           f"noise floor {report['flip_noise_floor']:.4f}), "
@@ -314,8 +319,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, help="samples per pixel of each render")
     p.add_argument("--res", type=_resolution, metavar="WxH", help="render resolution")
     p.add_argument("--steps", type=int, help="training steps")
+    p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
     p.add_argument("--detail", type=int, help="procedural mesh detail of the built-in scene")
-    _add_common(p, json_flag=False)
+    p.add_argument("--min-triangles", type=int, help="objects this large become neural (default: convert's, 10000)")
+    p.add_argument("--max-depth", type=int, help="maximum bounces of both renders (default: 4)")
+    p.add_argument("--primary", choices=("exact", "neural"), help="who answers the hybrid render's camera rays (default: exact)")
+    p.add_argument("--seed", type=int, help="seed of both renders (default: 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    _add_common(p)
     p.set_defaults(func=_cmd_demo)
 
     return parser
