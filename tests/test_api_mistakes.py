@@ -99,3 +99,12 @@ def test_a_shape_without_detail_says_how_to_make_it():
     with pytest.raises(MeshError, match=r"sphere has no detail level: in Python, neuralrt.geometry.procedural.sphere\("
                                         r"subdivisions=4, radius=1.0\); in a scene file, generator = \{ name = \"sphere\" \}"):
         load_mesh("procedural:sphere:3")
+
+
+def test_info_takes_a_mesh_object_as_train_and_evaluate_do():
+    ball = make_procedural("sphere", subdivisions=1)
+    facts = api.info(ball)
+    assert facts["kind"] == "mesh" and facts["triangles"] == ball.num_triangles and facts["name"] == "sphere"
+    assert facts["bvh_a_bytes"] > 0
+    with pytest.raises(Exception, match="a mesh has no training curve"):
+        api.info(ball, plot="curve.png")

@@ -34,11 +34,17 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
     return out
 
 
-def info(path: str | Path, plot: str | Path | None = None) -> dict:
-    """Facts about a mesh, scene (file or ``builtin:NAME``) or model file; for a model or training
-    checkpoint, ``plot`` (.png, .pdf or .svg) draws its training curve (loss, its terms, hit accuracy)."""
+def info(path, plot: str | Path | None = None) -> dict:
+    """Facts about a mesh (a file or a `Mesh`), scene (file or ``builtin:NAME``) or model file; for a
+    model or training checkpoint, ``plot`` (.png, .pdf or .svg) draws its training curve (loss, its
+    terms, hit accuracy)."""
+    from .geometry.mesh import Mesh
     from .io.plots import check_plot_path
 
+    if isinstance(path, Mesh):  # (as train and evaluate take one)
+        if plot is not None:
+            raise NeuralRTError("a mesh has no training curve to plot: plot takes a model or checkpoint file")
+        return _mesh_info(path)
     spec = str(check_path("path", path))
     suffix = Path(spec).suffix.lower()
     is_model = suffix in MODEL_SUFFIXES or suffix == CHECKPOINT_SUFFIX
@@ -53,16 +59,17 @@ def info(path: str | Path, plot: str | Path | None = None) -> dict:
     return _mesh_info(Path(spec))
 
 
-def _mesh_info(path: Path) -> dict:
+def _mesh_info(path) -> dict:
     from .accel.classical_memory import classical_memory
-    from .geometry.mesh import load_mesh
+    from .geometry.mesh import Mesh, load_mesh
 
-    mesh = load_mesh(path)
+    mesh = path if isinstance(path, Mesh) else load_mesh(path)
     lo, hi = mesh.bounds
     mem = classical_memory(mesh)
     return {
         "kind": "mesh",
-        "path": str(path),
+        "path": str(path) if not isinstance(path, Mesh) else None,
+        "name": mesh.name,
         "triangles": mesh.num_triangles,
         "vertices": int(len(mesh.vertices)),
         "bounds": [lo.tolist(), hi.tolist()],
