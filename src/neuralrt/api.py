@@ -445,7 +445,8 @@ def evaluate(
         import warnings
 
         warnings.warn(f"{given('seed', seed)} is the model's training seed: these rays may repeat its training rays "
-                      f"(not held out; the default seed, {HELD_OUT_SEED}, is far from training seeds)", stacklevel=outside_stacklevel())
+                      f"(not held out; the default seed, {HELD_OUT_SEED}, is far from training seeds)",
+                      stacklevel=outside_stacklevel())
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")

@@ -323,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detail", type=int, help="procedural mesh detail of the built-in scene")
     p.add_argument("--min-triangles", type=int, help="objects this large become neural (default: convert's, 10000)")
     p.add_argument("--max-depth", type=int, help="maximum bounces of both renders (default: 4)")
-    p.add_argument("--primary", choices=("exact", "neural"), help="who answers the hybrid render's camera rays (default: exact)")
+    p.add_argument("--primary", choices=("exact", "neural"),
+                   help="who answers the hybrid render's camera rays (default: exact)")
     p.add_argument("--seed", type=int, help="seed of both renders (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     _add_common(p)

@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "expanded_instances", "gltf_file_notes",
-           "gltf_header", "gltf_material_extras", "gltf_mesh_index", "instanced_nodes", "mesh_alone", "named_materials", "position_dequantization",
-           "uv_dequantization", "with_header"]
+           "gltf_header", "gltf_material_extras", "gltf_mesh_index", "instanced_nodes", "mesh_alone", "named_materials",
+           "position_dequantization", "uv_dequantization", "with_header"]
 
 _SLOTS = ("baseColorTexture", "normalTexture")  # the images neuralrt uses
 _FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # glTF's v down <-> trimesh's v up

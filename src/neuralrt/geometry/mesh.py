@@ -342,7 +342,8 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
 
 
 def _material_from_visual(visual, fallback_name: str, where: str, kept_colors=None, linear_colors: bool = False,
-                          base_color=None, lit: Container[str] = ()) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
+                          base_color=None, lit: Container[str] = ()
+                          ) -> tuple[MeshMaterial, np.ndarray | None, np.ndarray | None]:
     """(material, per-vertex uv, per-vertex linear colour) from a trimesh visual (``where``: the
     mesh file, for warnings about a texture that cannot be decoded). ``kept_colors``: vertex colours
     beside a material, a glTF primitive's COLOR_0 as trimesh reads it or an OBJ's linear colours
@@ -410,7 +411,8 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     RGB or RGBA, float or normalised unsigned bytes or shorts (trimesh does not scale those)."""
     values = np.asarray(values)
     if values.ndim != 2 or values.shape[1] not in (3, 4):
-        warnings.warn(f"{where}: vertex colours of shape {list(values.shape)} are left out", stacklevel=outside_stacklevel())
+        warnings.warn(f"{where}: vertex colours of shape {list(values.shape)} are left out",
+                      stacklevel=outside_stacklevel())
         return None
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(values.dtype, 1.0)
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
@@ -511,7 +513,8 @@ def _pbr_colour(material: MeshMaterial, pbr, uv: np.ndarray | None, where: str, 
 def _has_uvs(uv: np.ndarray | None, what: str, material: str, where: str) -> bool:
     """Whether an image can be mapped (the part has UVs); else a warning that it is left out."""
     if uv is None:
-        warnings.warn(f"{where}: the {what} of material {material!r} is left out: the mesh has no UVs", stacklevel=outside_stacklevel())
+        warnings.warn(f"{where}: the {what} of material {material!r} is left out: the mesh has no UVs",
+                      stacklevel=outside_stacklevel())
     return uv is not None
 
 
@@ -536,7 +539,8 @@ def _normal_map(image, material: str, where: str) -> np.ndarray | None:
             why = f"its texels point into the surface on average (mean blue {blue:.3f}, below 0.5)"
     if why is None:
         return texels
-    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}", stacklevel=outside_stacklevel())
+    warnings.warn(f"{where}: the normal map of material {material!r} is left out: {why}",
+                  stacklevel=outside_stacklevel())
     return None
 
 
@@ -556,7 +560,8 @@ def _mtl_normal_map(statements: dict, uv: np.ndarray | None, material: str, wher
     try:
         statement = normal_map_statement(statements)
     except ValueError as exc:
-        warnings.warn(f"{where}: the normal map of material {material!r} is left out: {exc}", stacklevel=outside_stacklevel())
+        warnings.warn(f"{where}: the normal map of material {material!r} is left out: {exc}",
+                      stacklevel=outside_stacklevel())
         return None
     if statement is None or not _has_uvs(uv, "normal map", material, where):
         return None
@@ -739,7 +744,8 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
         except MeshError as exc:
             if len(parts) == 1:
                 raise
-            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=outside_stacklevel())
+            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})",
+                          stacklevel=outside_stacklevel())
             continue
         part_material = getattr(part.visual, "material", None)  # (glTF: what trimesh drops, by name; None: unnamed)
         extras = extras_of.get(getattr(part_material, "name", None)) if part_material is not None else None
@@ -827,7 +833,8 @@ def _read_what_trimesh_drops(mesh, path: Path) -> None:
     for name in sorted(set(ply_vertex_properties(path)) & set(_UNREAD_PLY)):
         if (_UNREAD_PLY[name] == "colours" and kind != "vertex") or (_UNREAD_PLY[name] == "UVs" and kind != "texture"):
             warnings.warn(f"{path}: its vertex {_UNREAD_PLY[name]} ({name}, ...) are not read: trimesh reads "
-                          f"{'red, green, blue' if name == 'diffuse_red' else 'u, v or s, t'}", stacklevel=outside_stacklevel())
+                          f"{'red, green, blue' if name == 'diffuse_red' else 'u, v or s, t'}",
+                          stacklevel=outside_stacklevel())
 
 
 # Where trimesh's materials hold images (OBJ/MTL, glTF PBR), and what neuralrt makes of each (None: unused).

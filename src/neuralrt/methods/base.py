@@ -104,7 +104,8 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
         expected, name = own_mesh.content_hash(), own_mesh.name
     if mesh_hash is None or expected is None:
         what = "no mesh is given" if mesh_hash is None else "the model records no mesh hash"
-        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning, stacklevel=outside_stacklevel())
+        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning,
+                      stacklevel=outside_stacklevel())
         return
     if mesh_hash != expected and not allow_mismatch:
         raise MeshMismatchError(

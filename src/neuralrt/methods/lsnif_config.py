@@ -45,7 +45,8 @@ class FeatureConfig(_Section):
 
 
 class EncodingConfig(_Section):
-    type: Literal["sparse_hash_grid"] = Field("sparse_hash_grid", description="multiresolution hash grid over the occupied voxels only (paper Sec. 5.2)")
+    type: Literal["sparse_hash_grid"] = Field(
+        "sparse_hash_grid", description="multiresolution hash grid over the occupied voxels only (paper Sec. 5.2)")
     resolutions: tuple[int, ...] = Field((64, 128), min_length=1, description="grid resolution per level (paper: 64^3, 128^3)")
     features_per_level: int = Field(3, ge=1, le=16, description="features per hash-table entry (paper: 3)")
     log2_table_size: int = Field(17, ge=4, le=24, description="log2 of hash-table entries per level (paper: 2^17)")
@@ -66,7 +67,8 @@ class LossConfig(_Section):
     distance: float = Field(1.0, ge=0.0, description="L1 on the hit's fraction of the ray's box interval, hits only")
     normal: float = Field(1.0, ge=0.0, description="1 - cos against the exact normal turned towards the ray, hits only")
     albedo: float = Field(1.0, ge=0.0, description="relative L2 on the albedo, hits only")
-    material: float = Field(1.0, ge=0.0, description="cross-entropy on the material slot, hits only, meshes with several materials")
+    material: float = Field(1.0, ge=0.0,
+                            description="cross-entropy on the material slot, hits only, meshes with several materials")
 
 
 class LSNIFConfig(MethodConfig):

@@ -20,7 +20,8 @@ __all__ = ["NBVHEncodingConfig", "NBVHNetworkConfig", "QueryConfig", "CutConfig"
 
 
 class NBVHEncodingConfig(_Section):
-    type: Literal["hash_grid"] = Field("hash_grid", description="one multiresolution hash grid over the whole object, queried at points in each BVH-cut leaf")
+    type: Literal["hash_grid"] = Field(
+        "hash_grid", description="one multiresolution hash grid over the whole object, queried at points in each BVH-cut leaf")
     levels: int = Field(8, ge=1, le=12, description="grid levels (paper: 8)")
     base_resolution: int = Field(8, ge=2, le=64, description="vertices per axis of the coarsest level; each level doubles it (paper: 8 .. 1024)")
     features_per_level: int = Field(4, ge=1, le=8, description="features per table row (paper: 4)")

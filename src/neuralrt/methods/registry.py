@@ -161,7 +161,8 @@ def load_plugins() -> list[str]:
         try:
             importlib.import_module(module)
         except Exception as exc:  # a plugin's own bug must not stop the built-in methods
-            warnings.warn(f"method plugin {module!r} ({source}) not loaded: {type(exc).__name__}: {exc}", stacklevel=outside_stacklevel())
+            warnings.warn(f"method plugin {module!r} ({source}) not loaded: {type(exc).__name__}: {exc}",
+                          stacklevel=outside_stacklevel())
         else:
             loaded.append(module)
     return loaded

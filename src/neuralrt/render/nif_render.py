@@ -153,7 +153,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         if spp < 2:
             raise ConfigError(f"{given('spp', spp)}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
         warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (training.train_spp "
-                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)", stacklevel=outside_stacklevel())
+                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)",
+                      stacklevel=outside_stacklevel())
         train_spp = spp // 2
     if train_spp is not None:
         config = config.model_copy(update={"training": config.training.model_copy(update={"train_spp": train_spp})})

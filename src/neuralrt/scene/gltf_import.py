@@ -124,15 +124,16 @@ def unused_scene_note(path: str | Path) -> str | None:
     repeated = sum(count > 1 for count in drawn.values())
     cameras = sum(isinstance(node.get("camera"), int) for node in nodes)
     lights = sum(isinstance(((node.get("extensions") or {}).get(_LIGHTS) or {}).get("light"), int) for node in nodes)
-    lost = [f"{repeated} {_plural(repeated, 'mesh', 'meshes')} drawn by several nodes {_plural(repeated, 'is', 'are')} copied"] \
-        if repeated else []
+    lost = [f"{repeated} {_plural(repeated, 'mesh', 'meshes')} drawn by several nodes "
+            f"{_plural(repeated, 'is', 'are')} copied"] if repeated else []
     unused = [f"{n} {_plural(n, what, what + 's')}" for n, what in ((cameras, "camera"), (lights, "light")) if n]
     if unused:
         lost.append(f"{' and '.join(unused)} {_plural(cameras + lights, 'is', 'are')} not used")
     if not lost:
         return None
     command = f"neuralrt import {shlex.quote(str(path))} -o {shlex.quote(str(Path(path).with_suffix('.toml')))}"
-    return f"{path}: rendered as one merged mesh, framed and lit ({'; '.join(lost)}): `{command}` writes a scene that keeps them"
+    return (f"{path}: rendered as one merged mesh, framed and lit ({'; '.join(lost)}): `{command}` writes a scene that "
+            f"keeps them")
 
 
 def _plural(count: int, one: str, more: str) -> str:
@@ -316,9 +317,11 @@ def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path:
             distance = DISTANT * radius
             position, colour = centre - facing * distance, colour * distance**2
         elif kind == "spot":
-            warnings.warn(f"{path}: {label} is read as a point light (its cone is not)", stacklevel=outside_stacklevel())
+            warnings.warn(f"{path}: {label} is read as a point light (its cone is not)",
+                          stacklevel=outside_stacklevel())
         elif kind != "point":
-            warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)", stacklevel=outside_stacklevel())
+            warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)",
+                          stacklevel=outside_stacklevel())
             continue
         lights.append({"position": [float(x) for x in position],
                        "intensity": [float(x) for x in colour / CANDELA_PER_WATT_SR]})

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from .schema import DEFAULT_MATERIAL_NAME, DiffuseMaterialSpec, EmissiveMaterialSpec, ObjectSpec, SceneSpec
 
-__all__ = ["DEFAULT_MATERIAL", "scene_materials", "material_index", "scene_material_for", "material_map", "emits", "is_emissive", "lit_slots"]
+__all__ = ["DEFAULT_MATERIAL", "scene_materials", "material_index", "scene_material_for", "material_map", "emits", "is_emissive",
+           "lit_slots"]
 
 DEFAULT_MATERIAL = DiffuseMaterialSpec(name=DEFAULT_MATERIAL_NAME, albedo=(0.8, 0.8, 0.8))  # for slots nothing else names
 

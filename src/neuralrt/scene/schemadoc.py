@@ -60,8 +60,8 @@ Every number must be finite (`nan` / `inf` are errors naming the key).
 
 From Python, `neuralrt.scene.loader.load_dict(d)` builds a scene from a dict with these same keys,
 validated at once; there an object's `mesh` may also be a `neuralrt.Mesh`, its `model` a
-loaded model (any BLAS with `material_names`) and its `transform` a `neuralrt.Transform`. A model's material slots map to scene materials
-like a mesh's: the object's `material`, else its `materials` map, else the scene material of the
+loaded model (any BLAS with `material_names`) and its `transform` a `neuralrt.Transform`. A
+model's material slots map to scene materials like a mesh's: the object's `material`, else its `materials` map, else the scene material of the
 same name, else `default`. `load_scene(..., primary="neural")` / `render --primary neural`
 builds no mesh BVH for objects with a model (camera rays go to the model too).
 
@@ -111,8 +111,8 @@ one UV set here: the base colour's places both (a warning says the normal map is
 scene file instead of one merged mesh: an object per node that draws a mesh (GPU instances too),
 naming that mesh of the file (`gltf_mesh`: the mesh alone, in its own space) and placed by the
 node's world `matrix`, so a mesh many nodes draw is one accelerator, and one model once
-converted (meshes naming the same accessors, as trimesh writes one per node, are one). The scene also gets the file's first perspective camera (256 pixels high, its aspect
-ratio), its `KHR_lights_punctual` lights (candela / 683 lm/W as W/sr; a spot light without its
+converted (meshes naming the same accessors, as trimesh writes one per node, are one). The scene
+also gets the file's first perspective camera (256 pixels high, its aspect ratio), its `KHR_lights_punctual` lights (candela / 683 lm/W as W/sr; a spot light without its
 cone; a directional light as a point light 100 scene radii away giving the same irradiance), and
 a scene material per named glTF material: emissive where it emits (`emissiveFactor` x
 `KHR_materials_emissive_strength`), else a conductor (`metallicFactor` >= 0.5) or a plastic
