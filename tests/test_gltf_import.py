@@ -233,3 +233,20 @@ def test_rendering_a_gltf_scene_as_one_mesh_says_what_goes_unused(street, tmp_pa
         load_scene(str(street), resolution=(8, 8))
     assert unused_scene_note(DATA / "gltfpack_ball.glb") is None  # (one node, one mesh)
     assert unused_scene_note(DATA / "README.md") is None
+
+
+def test_nodes_under_turned_and_scaled_parents_are_placed_as_the_whole_file_reads(street, tmp_path):
+    def nest(header):  # (the houses under a parent turned about y, scaled and moved, as exporters nest them)
+        houses = [1, 2, 3]
+        header["nodes"].append({"name": "block", "children": houses, "translation": [0.5, 0.0, -2.0],
+                                "rotation": [0.0, 0.3826834, 0.0, 0.9238795], "scale": [1.5, 1.0, 0.5]})
+        roots = header["scenes"][0]["nodes"]
+        header["scenes"][0]["nodes"] = [n for n in roots if n not in houses] + [len(header["nodes"]) - 1]
+
+    path = tmp_path / "nested.glb"
+    path.write_bytes(street.read_bytes())
+    edited_glb(path, nest)
+    api.import_scene(path, tmp_path / "nested.toml")
+    spec, _, _ = load_scene_spec(tmp_path / "nested.toml")
+    assert len(spec.objects) == 6
+    np.testing.assert_allclose(_placed_triangles(spec), _world_triangles(load_mesh(path)), atol=2e-4)
