@@ -34,7 +34,9 @@ __all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_
 def import_trimesh():
     """``trimesh``, imported the first time with Ctrl-C and SIGTERM held until it is done: its optional
     imports catch ``BaseException``, so an interrupt landing inside them was swallowed and the run
-    went on (a pending signal is delivered once the import returns)."""
+    went on. The signals' Python handlers only note them meanwhile (masking the main thread was not
+    enough: torch's and numba's threads took the signal, and Python still ran the handler in the
+    main thread, inside the import); one that came is raised again once the import returns."""
     import signal
     import sys
     import threading
@@ -43,11 +45,15 @@ def import_trimesh():
         import trimesh
 
         return trimesh
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    came: list[int] = []
+    held = {s: signal.signal(s, lambda signum, frame: came.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         import trimesh
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        for s, handler in held.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+    if came:
+        signal.raise_signal(came[0])  # (its own handler now: KeyboardInterrupt, or the CLI's SIGTERM stop)
     return trimesh
 
 
