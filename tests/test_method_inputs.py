@@ -50,6 +50,30 @@ def test_a_diverging_run_stops_with_one_line_and_writes_no_model(tmp_path, capsy
     assert not out.exists() and not (tmp_path / "models").exists()
 
 
+def test_weights_past_the_storage_range_write_no_model_and_no_checkpoint(tmp_path, capsys):
+    """A learning rate that grows the hash table past float16's range with a finite loss: the model
+    file would hold infinities no command loads (a new-user trial), so nothing is written."""
+    mesh = _obj(tmp_path / "ball.obj", sphere(1))
+    out = tmp_path / "models" / "ball.nrt"
+    args = ["train", str(mesh), "-o", str(out), "--preset", "lq", "--steps", "30", "--batch", "1024", "--quiet",
+            "--set", "training.learning_rate=1e5"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"neuralrt: error: {out}: the model cannot be stored: its encoder.table holds NaN or infinite "
+                          f"values as float16") and err.count("\n") == 1
+    assert not (tmp_path / "models").exists()
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("encoding.init_scale=1e5", "encoding.init_scale: Input should be less than or equal to 1"),
+    ("training.adam_betas=[2,-1]", "training.adam_betas.0: Input should be less than 1"),
+])
+def test_settings_torch_would_refuse_after_set_up_are_refused_first(setting, message):
+    for config_class in (LSNIFConfig, NBVHConfig):
+        with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+            config_class.preset(next(iter(config_class.PRESETS)), **parse_settings([setting]))
+
+
 def test_rerunning_without_resume_warns_that_the_checkpoint_is_replaced(tmp_path):
     mesh = _obj(tmp_path / "ball.obj", sphere(1))
     out = tmp_path / "ball.nrt"

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from .arguments import check_count, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
-from .errors import ConfigError, ModelFileError, NeuralRTError, outside_stacklevel
+from .errors import ConfigError, ModelFileError, NeuralRTError, TrainingError, outside_stacklevel
 from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
@@ -366,7 +366,11 @@ def train(
     with folders_removed_if_left_empty(output.parent):  # (an interrupt too) stopped before the first checkpoint
         output.parent.mkdir(parents=True, exist_ok=True)
         model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
-    model.save(output)
+        try:
+            model.save(output)
+        except TrainingError:  # (weights past the storage's range: resuming would store the same)
+            checkpoint.unlink(missing_ok=True)
+            raise
     checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
     result = {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,

@@ -36,7 +36,7 @@ from torch import Tensor, nn
 from ..arguments import given
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
-from ..errors import DeviceError, MeshMismatchError, ModelFileError, outside_stacklevel, validation_message
+from ..errors import DeviceError, MeshMismatchError, ModelFileError, TrainingError, outside_stacklevel, validation_message
 from ..fork_guard import check_not_forked
 from ..io.files import check_output_file
 from ..io.model_file import ModelHeader, check_model_path, read_model, write_model
@@ -347,7 +347,13 @@ class NeuralBLAS(nn.Module, ABC):
         path = check_path("path", path)
         check_model_path(path)
         check_output_file(path, "model file")
-        return write_model(path, self.header(), self._arrays())
+        arrays = self._arrays()
+        beyond = next((name for name, a in sorted(arrays.items()) if a.is_floating_point() and not torch.isfinite(a).all()), None)
+        if beyond is not None:  # (a file no command could load: say so here, and write nothing)
+            raise TrainingError(f"{path}: the model cannot be stored: its {beyond} holds NaN or infinite values as "
+                                f"{str(arrays[beyond].dtype).removeprefix('torch.')} (weights past the storage's range: "
+                                f"training diverged; a lower training.learning_rate or encoding.init_scale keeps them in range)")
+        return write_model(path, self.header(), arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike, device: str | torch.device = "cpu") -> "NeuralBLAS":

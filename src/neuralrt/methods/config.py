@@ -10,12 +10,14 @@ its presets in ``PRESETS`` (name -> function returning the config).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..arguments import given
 from ..errors import ConfigError, validation_message
+
+AdamBeta = Annotated[float, Field(ge=0.0, lt=1.0)]  # (torch's Adam refuses others, after set-up)
 
 __all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings"]
 
@@ -58,7 +60,7 @@ class TrainingConfig(ConfigSection):
         "LSNIF `hq` holds ~1.8 KB per ray in a step, so 2^22 rays take ~7.5 GB)",
     )
     learning_rate: float = Field(0.01, gt=0.0, description="Adam learning rate (paper: 0.01)")
-    adam_betas: tuple[float, float] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
+    adam_betas: tuple[AdamBeta, AdamBeta] = Field((0.9, 0.99), description="Adam betas (instant-ngp's hash-grid setting)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (instant-ngp's: tiny, so rarely-hit table entries still move)")
     adam_l2: float = Field(0.0, ge=0.0, le=1.0, description="L2 regularisation: this times each parameter added to its gradient "
                            "(tiny-cuda-nn's Adam l2_reg; LSNIF's paper names none)")

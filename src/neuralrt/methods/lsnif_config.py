@@ -50,7 +50,7 @@ class EncodingConfig(_Section):
     resolutions: tuple[int, ...] = Field((64, 128), min_length=1, description="grid resolution per level (paper: 64^3, 128^3)")
     features_per_level: int = Field(3, ge=1, le=16, description="features per hash-table entry (paper: 3)")
     log2_table_size: int = Field(17, ge=4, le=24, description="log2 of hash-table entries per level (paper: 2^17)")
-    init_scale: float = Field(1e-4, gt=0.0, description="features start U(-s, s) (paper: 1e-4)")
+    init_scale: float = Field(1e-4, gt=0.0, le=1.0, description="features start U(-s, s) (paper: 1e-4)")
 
 
 class NetworkConfig(_Section):

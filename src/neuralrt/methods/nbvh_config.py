@@ -12,7 +12,7 @@ from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from .config import ConfigSection as _Section
+from .config import AdamBeta, ConfigSection as _Section
 from .config import InferenceConfig, MethodConfig, TrainingConfig
 
 __all__ = ["NBVHEncodingConfig", "NBVHNetworkConfig", "QueryConfig", "CutConfig", "NBVHLossConfig",
@@ -26,7 +26,7 @@ class NBVHEncodingConfig(_Section):
     base_resolution: int = Field(8, ge=2, le=64, description="vertices per axis of the coarsest level; each level doubles it (paper: 8 .. 1024)")
     features_per_level: int = Field(4, ge=1, le=8, description="features per table row (paper: 4)")
     log2_table_size: int = Field(18, ge=14, le=22, description="log2 of the rows of a hashed level (paper: 14..22, default 18)")
-    init_scale: float = Field(1e-4, gt=0.0, description="features start U(-s, s) (paper: 1e-4)")
+    init_scale: float = Field(1e-4, gt=0.0, le=1.0, description="features start U(-s, s) (paper: 1e-4)")
 
 
 class NBVHNetworkConfig(_Section):
@@ -72,7 +72,7 @@ class NBVHLossConfig(_Section):
 class NBVHTrainingConfig(TrainingConfig):
     steps: int = Field(4000, ge=1, description="optimizer steps (paper: 10,000 of 2^18 rays)")
     batch_size: int = Field(1 << 13, ge=16, description="leaf samples per step (paper: 2^18)")
-    adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (the code's)")
+    adam_betas: tuple[AdamBeta, AdamBeta] = Field((0.9, 0.999), description="Adam betas (the code's)")
     adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")
     adam_l2: float = Field(1e-8, ge=0.0, le=1.0, description="L2 regularisation added to the gradients (the code's Adam l2_reg)")
     lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant, as in the paper)")

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from .config import ConfigSection
+from .config import AdamBeta, ConfigSection
 
 __all__ = ["NIFGridConfig", "NIFNetworkConfig", "NIFTrainingConfig", "NIFConfig"]
 
@@ -57,9 +57,9 @@ class NIFTrainingConfig(ConfigSection):
     inner_batch: int = Field(1 << 12, ge=16, description="pairs per inner training step (paper: 2^12)")
     round_pairs: int = Field(1 << 16, ge=1, description="collected pairs buffered before a training round (shuffled within it)")
     learning_rate: float = Field(0.005, gt=0.0, description="Adam learning rate (paper: 0.005)")
-    adam_betas: tuple[float, float] = Field((0.9, 0.999), description="Adam betas (paper: 0.9, 0.999)")
+    adam_betas: tuple[AdamBeta, AdamBeta] = Field((0.9, 0.999), description="Adam betas (paper: 0.9, 0.999)")
     adam_eps: float = Field(1e-15, gt=0.0, description="Adam epsilon (paper: 1e-15)")
-    init_scale: float = Field(1e-4, gt=0.0, description="grid features start U(-s, s)")
+    init_scale: float = Field(1e-4, gt=0.0, le=1.0, description="grid features start U(-s, s)")
     seed: int = Field(0, ge=0, lt=1 << 63, description="seeds grids, MLP weights and the batch order; 0 <= seed < 2^63, as `training.seed`")
 
 
