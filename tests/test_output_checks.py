@@ -123,3 +123,32 @@ def test_system_errors_are_one_line(monkeypatch, capsys):
     monkeypatch.setattr(api, "info", refuse)
     assert main(["info", "x.nrt"]) == 2
     assert _one_error_line(capsys) == "neuralrt: error: /somewhere/model.nrt: Permission denied"
+
+
+def test_a_link_into_a_missing_folder_is_refused_before_any_work(tmp_path, capsys):
+    (tmp_path / "out.nrt").symlink_to(tmp_path / "missing" / "x.nrt")
+    with pytest.raises(NeuralRTError, match=r"out.nrt: a link to .*missing/x.nrt, whose folder does not exist"):
+        check_output_file(tmp_path / "out.nrt", "model file")
+    assert not (tmp_path / "missing").exists()
+
+
+def test_convert_refuses_a_models_folder_at_its_output_and_an_output_that_is_its_source(tmp_path):
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({"objects": [{"name": "ball", "generator": {"name": "sphere"}}]}))
+    for models in ("out.toml", "out.toml/models"):
+        with pytest.raises(NeuralRTError, match="the models folder would be at or under the converted scene's path"):
+            api.convert(scene, tmp_path / "out.toml", models_dir=tmp_path / models, min_triangles=1)
+    with pytest.raises(NeuralRTError, match="the converted scene would replace the scene it converts"):
+        api.convert(scene, tmp_path / "scene.json", min_triangles=1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.json"]
+
+
+def test_compare_refuses_a_heat_map_over_one_of_its_images(tmp_path):
+    from neuralrt.io.images import write_png
+
+    image = np.full((4, 4, 3), 0.5, np.float32)
+    write_png(tmp_path / "a.png", image)
+    write_png(tmp_path / "b.png", image)
+    for target, which in (("a.png", "reference"), ("b.png", "test")):
+        with pytest.raises(NeuralRTError, match=f"the heat map would replace the {which} image"):
+            api.compare(tmp_path / "a.png", tmp_path / "b.png", heatmap=tmp_path / target)

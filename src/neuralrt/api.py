@@ -27,6 +27,9 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
 
     reference, test = check_path("reference", reference), check_path("test", test)
     heatmap = check_path("heatmap", heatmap, optional=True)
+    for name, image in (("reference", reference), ("test", test)):
+        if heatmap is not None and heatmap.is_file() and image.is_file() and os.path.samefile(heatmap, image):
+            raise NeuralRTError(f"{heatmap}: the heat map would replace the {name} image: give another {given('heatmap')}")
     result = compare_files(reference, test, heatmap=heatmap, hdr=hdr)
     out = result.as_dict()
     if heatmap is not None:

@@ -147,7 +147,10 @@ def check_output_files(paths, what: str) -> None:
     for path in map(Path, paths):
         if path.is_dir():
             raise NeuralRTError(f"{path}: is a folder, not a {what}")
-        targets.append(_link_target(path))
+        target = _link_target(path)
+        if target != path and not target.parent.is_dir():  # (commands make the link's folder, not its target's)
+            raise NeuralRTError(f"{path}: a link to {target}, whose folder does not exist")
+        targets.append(target)
     for folder in dict.fromkeys(target.parent for target in targets):
         problem = _writable_folder_problem(folder, what)
         if problem:

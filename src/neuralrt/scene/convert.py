@@ -316,6 +316,11 @@ def convert_scene(
     check_output_file(output, "converted scene")
     models_dir = Path(models_dir) if models_dir is not None else output.parent / "models"
     check_output_folder(models_dir, "models")
+    placed, models_at = Path(os.path.abspath(output)), Path(os.path.abspath(models_dir))
+    if models_at == placed or placed in models_at.parents:  # (found after training, when the scene is written)
+        raise SceneError(f"{models_dir}: the models folder would be at or under the converted scene's path {output}")
+    if isinstance(scene, (str, os.PathLike)) and output.is_file() and Path(scene).is_file() and os.path.samefile(scene, output):
+        raise SceneError(f"{output}: the converted scene would replace the scene it converts: give another output")
     spec_of_method = get_method(method or DEFAULT_METHOD)
     preset = preset or spec_of_method.default_preset(device)
     config = spec_of_method.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
