@@ -344,3 +344,35 @@ def test_scene_numbers_found_by_the_authoring_trial(section, message):
 
     with pytest.raises(SceneError, match=message):
         load_dict(section)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("huge.toml", "[render]\nspp = " + "9" * 5000 + "\n[[objects]]\ngenerator = { name = \"box\" }\n",
+     "not valid TOML: Exceeds the limit"),
+    ("huge.json", '{"render": {"spp": ' + "9" * 5000 + '}, "objects": [{"generator": {"name": "box"}}]}',
+     "not valid JSON: Exceeds the limit"),
+    ("twice.json", '{"objects": [{"generator": {"name": "box"}}], "objects": []}',
+     "not valid JSON: key 'objects' is given twice in one object"),
+])
+def test_scene_text_python_cannot_take_is_one_line(tmp_path, name, text, message):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(SceneError, match=message):
+        load_scene_spec(tmp_path / name)
+
+
+def test_a_scene_file_with_a_byte_order_mark_reads_as_without(tmp_path):
+    (tmp_path / "bom.toml").write_bytes(b"\xef\xbb\xbf[[objects]]\ngenerator = { name = \"box\" }\n")
+    (tmp_path / "bom.json").write_bytes(b'\xef\xbb\xbf{"objects": [{"generator": {"name": "box"}}]}')
+    assert load_scene_spec(tmp_path / "bom.toml")[0] == load_scene_spec(tmp_path / "bom.json")[0]
+
+
+def test_a_model_header_with_an_integer_python_cannot_read_is_one_line(tmp_path):
+    import torch
+    from safetensors.torch import save_file
+
+    from neuralrt.errors import ModelFileError
+    from neuralrt.methods import load_model
+
+    save_file({"x": torch.zeros(1)}, str(tmp_path / "m.nrt"), metadata={"neuralrt": '{"format_version": ' + "9" * 5000 + "}"})
+    with pytest.raises(ModelFileError, match=r"m.nrt: corrupted header \(Exceeds the limit"):
+        load_model(tmp_path / "m.nrt")

@@ -155,7 +155,7 @@ def _check_data_size(path: Path, header_len: int, size: int) -> None:
         f.seek(8)
         try:
             entries = json.loads(f.read(header_len))
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
+        except (ValueError, UnicodeDecodeError, RecursionError):  # (JSONDecodeError is a ValueError)
             return  # (safetensors names the problem)
     if not isinstance(entries, dict):
         return
@@ -207,6 +207,8 @@ def _parse_header(path: Path, handle) -> dict:
         raise ModelFileError(f"{path}: corrupted header (invalid JSON: {exc.msg} at char {exc.pos})") from None
     except RecursionError:
         raise ModelFileError(f"{path}: corrupted header (JSON nested too deeply)") from None
+    except ValueError as exc:  # (an integer of thousands of digits: Python's conversion limit)
+        raise ModelFileError(f"{path}: corrupted header ({str(exc).split(';')[0]})") from None
     except UnicodeEncodeError:
         raise ModelFileError(f"{path}: corrupted header (a string that is not valid Unicode text)") from None
     if not isinstance(header, dict):

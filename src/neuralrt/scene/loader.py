@@ -232,7 +232,7 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
     if problem:
         raise SceneError(problem)
     try:
-        raw = path.read_bytes().decode("utf-8")
+        raw = path.read_bytes().decode("utf-8").removeprefix("\ufeff")  # (a byte-order mark, as some editors write)
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: cannot read scene file ({exc})") from None
     suffix = path.suffix.lower()
@@ -240,16 +240,27 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         if suffix == ".toml":
             data = tomllib.loads(raw)
         elif suffix == ".json":
-            data = json.loads(raw)
+            data = json.loads(raw, object_pairs_hook=_keys_once)
         else:
             raise SceneError(f"{path}: unknown scene file type {suffix!r} (use .toml or .json)")
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: {exc}") from None
     except RecursionError:
         raise SceneError(f"{label}: not valid {suffix[1:].upper()}: nested too deeply") from None
+    except ValueError as exc:  # (an integer of thousands of digits: Python's conversion limit; a key given twice)
+        raise SceneError(f"{label}: not valid {suffix[1:].upper()}: {str(exc).split(';')[0]}") from None
     spec, folder = validate_spec(data, label), path.resolve().parent
     _absolute_in_place(spec, folder)  # (a fresh spec: no copy needed)
     return spec, folder, label
+
+
+def _keys_once(pairs: list) -> dict:
+    """A JSON object whose keys are all different (TOML refuses a key given twice; JSON's last would win)."""
+    found = dict(pairs)
+    if len(found) != len(pairs):
+        twice = next(k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i]))
+        raise ValueError(f"key {twice!r} is given twice in one object")
+    return found
 
 
 def validate_spec(data, label: str) -> SceneSpec:
