@@ -155,6 +155,13 @@ def _cycle(header):
     (lambda h: h["nodes"][1].update(matrix=[1, 2, 3]), "node 1's transform cannot be read"),
     (lambda h: h["scenes"][0]["nodes"].append(99), "names node 99, which the file does not have"),
     (lambda h: h["cameras"][0]["perspective"].update(yfov=4.0), "camera 0: yfov must be in"),
+    # (what the scene could not load is found here, not at its render)
+    (lambda h: h["meshes"][h["nodes"][4]["mesh"]]["primitives"][0].update(material=99),
+     r"cannot read mesh \(IndexError.*\(glTF mesh \d\)"),
+    (lambda h: h["nodes"][0].update(matrix=[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 1e30, 0, 0, 1]),
+     r"its meshes reach 1e\+30 from the origin"),
+    (lambda h: h["extensions"]["KHR_lights_punctual"]["lights"][0].update(intensity=1e300),
+     r"point light 'bulb' at node \d+: its position must lie within 1e\+18 and its intensity within 1e\+20"),
 ])
 def test_a_malformed_scene_is_one_error(street, tmp_path, edit, message):
     path = tmp_path / "bad.glb"

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..errors import SceneError, outside_stacklevel
 from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes
+from .schema import MAX_LIGHT_COORDINATE, MAX_RADIANCE
 
 __all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
 
@@ -88,12 +89,17 @@ def gltf_scene_dict(path: str | Path) -> tuple[dict, dict]:
             raise SceneError(f"{path}: its EXT_mesh_gpu_instancing instances cannot be read "
                              f"({type(exc).__name__}: {exc})") from None
     placed = _placed_nodes(header, path)
-    objects, bounds = _objects(header, placed, path)
+    materials, emissive = _materials(header, path)
+    lit = {m["name"] for m in materials if m["type"] == "emissive"}
+    objects, bounds = _objects(header, placed, path, lit)
     if not objects:
         raise SceneError(f"{path}: no node of its scene draws a mesh")
     lo, hi = bounds
+    reach = float(np.max(np.abs([lo, hi])))
+    if not reach < MAX_LIGHT_COORDINATE / DISTANT:  # (its lights, or the ones a scene without lights gets, go further)
+        raise SceneError(f"{path}: its meshes reach {reach:.3g} from the origin: a scene holds lights within "
+                         f"{MAX_LIGHT_COORDINATE:g}, and this one's would be further (move or scale the file's nodes)")
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-30)
-    materials, emissive = _materials(header, path)
     lights = _lights(header, placed, (lo + hi) / 2, radius, path)
     camera = _camera(header, placed, radius, path)
     from .studio import studio_dict
@@ -189,12 +195,16 @@ def _local_matrix(node: dict) -> np.ndarray:
     return matrix
 
 
-def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[np.ndarray, np.ndarray]]:
-    """One object per node that draws a mesh, and the world bounds of them all."""
+def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], tuple[np.ndarray, np.ndarray]]:
+    """One object per node that draws a mesh, and the world bounds of them all; each mesh is read
+    once (``lit``: the material names the scene makes lights)."""
+    from pydantic import ValidationError
+
+    from ..errors import validation_message
     from .schema import TransformSpec
 
     nodes, meshes = header["nodes"], header.get("meshes") if isinstance(header.get("meshes"), list) else []
-    objects, corners, taken, first_alike = [], [], {}, {}
+    objects, corners, taken, first_alike, bounds_of = [], [], {}, {}, {}
     for index, world in placed:
         mesh = nodes[index].get("mesh")
         if mesh is None:
@@ -210,15 +220,27 @@ def _objects(header: dict, placed: list, path: Path) -> tuple[list[dict], tuple[
         matrix = [[float(x) for x in row] for row in world]
         try:
             TransformSpec(matrix=matrix)
-        except ValueError as exc:
-            reason = str(exc).splitlines()[-1].strip()
+        except ValidationError as exc:
+            reason = validation_message(exc, TransformSpec)
             warnings.warn(f"{path}: node {index} ({name!r}) is left out: its world matrix cannot place a mesh ({reason})",
                           stacklevel=outside_stacklevel())
             continue
+        if mesh not in bounds_of:  # (read here, so that a mesh the scene could not load fails the import)
+            bounds_of[mesh] = _mesh_bounds(path, mesh, lit)
         objects.append({"name": name, "mesh": str(path), "gltf_mesh": mesh, "transform": {"matrix": matrix}})
-        corners.append(_world_corners(header, mesh, world, path))
+        corners.append(_world_corners(bounds_of[mesh], world))
     every = np.concatenate(corners) if corners else np.zeros((1, 3))
     return objects, (every.min(axis=0), every.max(axis=0))
+
+
+def _mesh_bounds(path: Path, mesh: int, lit) -> tuple[np.ndarray, np.ndarray]:
+    from ..errors import NeuralRTError
+    from ..geometry.mesh import load_mesh
+
+    try:
+        return load_mesh(path, mesh, lit=lit).bounds
+    except NeuralRTError as exc:
+        raise SceneError(f"{exc} (glTF mesh {mesh})") from None
 
 
 def _name(entry) -> str | None:
@@ -226,25 +248,9 @@ def _name(entry) -> str | None:
     return name if isinstance(name, str) and name.strip() else None
 
 
-def _world_corners(header: dict, mesh: int, world: np.ndarray, path: Path) -> np.ndarray:
-    """The corners of a mesh's box (its POSITION accessors' ``min`` and ``max``, which glTF requires)
-    in world space; where a file leaves them out, the mesh's own bounds, read."""
-    accessors = header.get("accessors") if isinstance(header.get("accessors"), list) else []
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for primitive in header["meshes"][mesh].get("primitives") or []:
-        index = (primitive.get("attributes") or {}).get("POSITION") if isinstance(primitive, dict) else None
-        accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else {}
-        try:
-            low, high = np.array(accessor["min"], np.float64), np.array(accessor["max"], np.float64)
-            if low.shape != (3,) or high.shape != (3,) or accessor.get("normalized"):
-                raise ValueError
-        except (KeyError, TypeError, ValueError):
-            from ..geometry.mesh import load_mesh
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # (said again when the scene loads it)
-                low, high = load_mesh(path, mesh).bounds
-        lo, hi = np.minimum(lo, low), np.maximum(hi, high)
+def _world_corners(bounds: tuple[np.ndarray, np.ndarray], world: np.ndarray) -> np.ndarray:
+    """The corners of a mesh's box, ``bounds`` in its own space, in world space."""
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
     box = np.array([[(lo, hi)[i >> k & 1][k] for k in range(3)] for i in range(8)])
     return box @ world[:3, :3].T + world[:3, 3]
 
@@ -323,8 +329,12 @@ def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path:
             warnings.warn(f"{path}: {label} is left out (point, spot and directional lights are read)",
                           stacklevel=outside_stacklevel())
             continue
-        lights.append({"position": [float(x) for x in position],
-                       "intensity": [float(x) for x in colour / CANDELA_PER_WATT_SR]})
+        intensity = colour / CANDELA_PER_WATT_SR
+        if not (np.abs(position) <= MAX_LIGHT_COORDINATE).all() or not (intensity <= MAX_RADIANCE).all():
+            raise SceneError(f"{path}: {label} at node {index}: its position must lie within {MAX_LIGHT_COORDINATE:g} "
+                             f"and its intensity within {MAX_RADIANCE:g} W/sr (got {position.tolist()} and "
+                             f"{intensity.tolist()})")
+        lights.append({"position": [float(x) for x in position], "intensity": [float(x) for x in intensity]})
     return lights
 
 
