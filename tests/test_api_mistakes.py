@@ -108,3 +108,32 @@ def test_info_takes_a_mesh_object_as_train_and_evaluate_do():
     assert facts["bvh_a_bytes"] > 0
     with pytest.raises(Exception, match="a mesh has no training curve"):
         api.info(ball, plot="curve.png")
+
+
+def test_a_model_file_of_no_extent_is_refused_when_loaded(tmp_path):
+    from neuralrt.errors import ModelFileError
+    from neuralrt.methods import load_model
+
+    model = _model()
+    model.bounds = type(model.bounds)(torch.zeros(3), torch.zeros(3))  # (as an edited file's header says)
+    model.save(tmp_path / "flat.nrt")
+    with pytest.raises(ModelFileError, match=r"flat.nrt: invalid LSNIF model \(its bounds .* are no box a model is trained in"):
+        load_model(tmp_path / "flat.nrt")
+
+
+def test_names_from_files_are_printed_with_control_characters_escaped(capsys):
+    from neuralrt.cli import _print_result
+
+    _print_result({"mesh_name": "evil\n\x1b[31mneuralrt: error: fake"}, as_json=False)
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and "\x1b" not in out and "evil\\n\\x1b[31mneuralrt: error: fake" in out
+
+
+@pytest.mark.parametrize("losses", [["x", 1.0], [None, 1.0], [10**400, 1.0]])
+def test_a_training_curve_of_no_numbers_is_summed_up_in_words(losses):
+    from neuralrt.cli import _curve_summary
+    from neuralrt.training.curve import curve_problem
+
+    assert _curve_summary({"loss": losses}) == "2 points, not numbers (an edited file: --plot says what is wrong)"
+    assert curve_problem({"every": 1, "start": 0, "step": [1, 2], "loss": losses, "hit_accuracy": [0.5, 0.5],
+                          "seconds": [0.1, 0.2], "losses": {}, "states": {}}) is not None

@@ -53,7 +53,13 @@ def _print_result(result: dict, as_json: bool) -> None:
             value = json.dumps(value, default=float)  # nested (a config, a training record): compact JSON
         elif isinstance(value, dict):
             value = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())
-        print(f"{key:>24}: {value}")
+        print(f"{key:>24}: {_printable(str(value))}")
+
+
+def _printable(text: str) -> str:
+    """``text`` with control characters escaped: a name from a file (a model's mesh name) cannot move
+    the cursor, colour the terminal or start a line of its own."""
+    return text if text.isprintable() else "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 def _curve_summary(curve: dict) -> str:
@@ -62,6 +68,8 @@ def _curve_summary(curve: dict) -> str:
     losses = curve.get("loss") if isinstance(curve.get("loss"), list) else []
     if not losses:
         return "none"
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and -1e308 < x < 1e308 for x in (losses[0], losses[-1])):
+        return f"{len(losses)} points, not numbers (an edited file: --plot says what is wrong)"
     return f"{len(losses)} points, loss {losses[0]:.3g} -> {losses[-1]:.3g} (--plot FILE.png draws them)"
 
 

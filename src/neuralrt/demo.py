@@ -47,12 +47,12 @@ class DemoSettings:
     seed: int = 1
 
     def __post_init__(self) -> None:
-        from .arguments import check_count
+        from .arguments import check_count, given
         from .errors import ConfigError
         from .methods import get_method
 
         for name, minimum in (("spp", 1), ("max_depth", 1), ("steps", 1), ("batch", 1), ("detail", 0), ("min_triangles", 0)):
-            check_count(name, getattr(self, name), minimum)
+            check_count(given(name), getattr(self, name), minimum)  # (named as the caller spelled it: --spp, spp)
         if len(self.resolution) != 2:
             raise ConfigError(f"resolution: must be (width, height), got {self.resolution!r}")
         for v in self.resolution:

@@ -207,10 +207,10 @@ def _parse_header(path: Path, handle) -> dict:
         raise ModelFileError(f"{path}: corrupted header (invalid JSON: {exc.msg} at char {exc.pos})") from None
     except RecursionError:
         raise ModelFileError(f"{path}: corrupted header (JSON nested too deeply)") from None
-    except ValueError as exc:  # (an integer of thousands of digits: Python's conversion limit)
-        raise ModelFileError(f"{path}: corrupted header ({str(exc).split(';')[0]})") from None
     except UnicodeEncodeError:
         raise ModelFileError(f"{path}: corrupted header (a string that is not valid Unicode text)") from None
+    except ValueError as exc:  # (an integer of thousands of digits: Python's conversion limit)
+        raise ModelFileError(f"{path}: corrupted header ({str(exc).split(';')[0]})") from None
     if not isinstance(header, dict):
         raise ModelFileError(f"{path}: corrupted header (not a JSON object)")
     # Checked whatever the version says: a flipped digit must not pass as an older version.

@@ -71,6 +71,19 @@ def _stored_arrays_problem(found: dict[str, Tensor], expected: dict[str, Tensor]
     return None
 
 
+def _bounds_problem(bounds: AABB) -> str | None:
+    """Why a model file's bounds cannot be a trained model's (None if they can): not finite, corners
+    swapped, or a diagonal outside the sizes training takes (`FLOAT32_DIAGONAL_RANGE`)."""
+    from ..geometry.mesh import FLOAT32_DIAGONAL_RANGE
+
+    lo, hi = bounds.lo.double(), bounds.hi.double()
+    diagonal = float(torch.linalg.norm(hi - lo))
+    low, high = FLOAT32_DIAGONAL_RANGE
+    if not (torch.isfinite(lo).all() and torch.isfinite(hi).all() and (lo <= hi).all()) or not low <= diagonal <= high:
+        return f"its bounds {bounds.tolist()} are no box a model is trained in (diagonal within [{low:g}, {high:g}])"
+    return None
+
+
 def is_neural(blas) -> bool:
     """Whether ``blas`` answers rays with a trained model (the one place that decides it)."""
     return isinstance(blas, NeuralBLAS)
@@ -368,6 +381,9 @@ class NeuralBLAS(nn.Module, ABC):
             raise ModelFileError(f"{path}: invalid {cls.TITLE} config in the model header ({validation_message(exc)[:300]})") from None
         try:
             bounds = AABB(torch.tensor(header.bounds[0], dtype=torch.float32), torch.tensor(header.bounds[1], dtype=torch.float32))
+            problem = _bounds_problem(bounds)
+            if problem:  # (an edited file: a model of no extent answers nothing, and a scene of it divides by zero)
+                raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({problem})")
             model = cls._from_arrays(config, bounds, [m.model_dump() for m in header.materials], arrays)
             problem = _stored_arrays_problem(arrays, model._arrays())
         except ModelFileError:

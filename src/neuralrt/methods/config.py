@@ -18,6 +18,7 @@ from ..arguments import given
 from ..errors import ConfigError, validation_message
 
 AdamBeta = Annotated[float, Field(ge=0.0, lt=1.0)]  # (torch's Adam refuses others, after set-up)
+MAX_STEPS = 10**9  # (a typo of 1e20 steps would run forever; the papers train 2,000-10,000)
 
 __all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings"]
 
@@ -53,7 +54,7 @@ class ConfigSection(BaseModel):
 class TrainingConfig(ConfigSection):
     """What the shared training loop and the training ray distribution read."""
 
-    steps: int = Field(4000, ge=1, description="optimizer steps (paper: 2,000 of 2^18 rays; CPU default: 4,000 of 2^13, see docs/lsnif.md)")
+    steps: int = Field(4000, ge=1, le=MAX_STEPS, description="optimizer steps (paper: 2,000 of 2^18 rays; CPU default: 4,000 of 2^13, see docs/lsnif.md)")
     batch_size: int = Field(
         1 << 13, ge=16, le=1 << 22,
         description="rays drawn per step (paper: 2^18 on a GPU; CPU default measured, see docs/lsnif.md; at most 2^22: "

@@ -12,7 +12,7 @@ from typing import ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from .config import AdamBeta, ConfigSection as _Section
+from .config import MAX_STEPS, AdamBeta, ConfigSection as _Section
 from .config import InferenceConfig, MethodConfig, TrainingConfig
 
 __all__ = ["NBVHEncodingConfig", "NBVHNetworkConfig", "QueryConfig", "CutConfig", "NBVHLossConfig",
@@ -70,7 +70,7 @@ class NBVHLossConfig(_Section):
 
 
 class NBVHTrainingConfig(TrainingConfig):
-    steps: int = Field(4000, ge=1, description="optimizer steps (paper: 10,000 of 2^18 rays)")
+    steps: int = Field(4000, ge=1, le=MAX_STEPS, description="optimizer steps (paper: 10,000 of 2^18 rays)")
     batch_size: int = Field(1 << 13, ge=16, description="leaf samples per step (paper: 2^18)")
     adam_betas: tuple[AdamBeta, AdamBeta] = Field((0.9, 0.999), description="Adam betas (the code's)")
     adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")

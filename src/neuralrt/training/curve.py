@@ -137,6 +137,8 @@ def curve_problem(stored) -> str | None:
         return "its columns differ in length"
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for c in columns for v in c):
         return "a value is not a number"
+    if not all(isinstance(v, float) or -1e308 < v < 1e308 for c in columns for v in c):
+        return "a value is an integer beyond floating point's range"
     steps = stored["step"]
     if any(not isinstance(s, int) for s in steps) or any(a >= b for a, b in zip([start, *steps], steps)):
         return "its steps are not increasing whole numbers"
