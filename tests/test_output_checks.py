@@ -152,3 +152,45 @@ def test_compare_refuses_a_heat_map_over_one_of_its_images(tmp_path):
     for target, which in (("a.png", "reference"), ("b.png", "test")):
         with pytest.raises(NeuralRTError, match=f"the heat map would replace the {which} image"):
             api.compare(tmp_path / "a.png", tmp_path / "b.png", heatmap=tmp_path / target)
+
+
+def test_a_render_that_fails_while_writing_leaves_the_earlier_render_whole(tmp_path, monkeypatch):
+    from neuralrt.io import images
+    from neuralrt.render.film import output_files
+
+    scene = {"camera": {"resolution": [6, 4]}, "objects": [{"generator": {"name": "sphere", "params": {"subdivisions": 1}}}]}
+    out = tmp_path / "r.exr"
+    api.render(scene, out, spp=1, progress=False)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(before) == sorted(p.name for p in output_files(out))
+    real, calls = images.write_png, []
+
+    def failing(path, *args, **kwargs):  # (the disk fills up at the third PNG)
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device", str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(images, "write_png", failing)
+    with pytest.raises(OSError, match="No space left"):
+        api.render(scene, out, spp=2, seed=5, progress=False)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # (no new file, no temporary)
+
+
+def test_an_eval_interrupted_while_writing_its_images_leaves_no_folder(tmp_path, monkeypatch):
+    from neuralrt.geometry.procedural import make_procedural
+    from neuralrt.io import plots
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+
+    ball = make_procedural("sphere", subdivisions=1)
+    model = LSNIFModel.from_mesh(ball, LSNIFConfig.preset("lq"))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plots, "write_eval_overview", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        api.evaluate(model, ball, rays=256, image_dir=tmp_path / "figures", timing=False, progress=False,
+                     allow_mesh_mismatch=True)
+    assert not (tmp_path / "figures").exists()

@@ -9,7 +9,8 @@ from pathlib import Path
 from .arguments import check_count, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, ModelFileError, NeuralRTError, TrainingError, outside_stacklevel
-from .io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty
+from .io.files import (check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty,
+                       written_together)
 from .io.model_file import MODEL_SUFFIX, check_model_path
 
 __all__ = ["compare", "convert", "demo", "evaluate", "import_scene", "info", "list_builtins", "list_presets", "render",
@@ -457,7 +458,7 @@ def evaluate(
     source = mesh if isinstance(mesh, Mesh) else load_mesh(mesh)
     mesh_hash = source.content_hash()
     check_mesh_match(blas, mesh_hash, allow_mismatch=allow_mesh_mismatch, label=str(model) if isinstance(model, (str, os.PathLike)) else "")
-    with folders_removed_if_left_empty(*([image_dir] if image_dir is not None else [])):
+    with folders_removed_if_left_empty(*([image_dir] if image_dir is not None else [])), written_together():
         result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
                                 images=images, image_dir=image_dir, timing=timing, progress=progress)
     result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash

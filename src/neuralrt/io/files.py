@@ -13,6 +13,7 @@ write of the same file, once it is an hour old). The temporary file is created w
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import glob
 import os
@@ -25,7 +26,7 @@ from pathlib import Path
 
 from ..errors import NeuralRTError
 
-__all__ = ["write_atomically", "input_file_problem", "check_output_file", "check_output_files", "check_output_folder",
+__all__ = ["write_atomically", "written_together", "input_file_problem", "check_output_file", "check_output_files", "check_output_folder",
            "folders_removed_if_left_empty"]
 
 
@@ -77,21 +78,48 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
     path = _link_target(Path(path))
     tmp = _create_sibling(path)
     mode = stat.S_IMODE(os.stat(tmp).st_mode)  # 0o666 & ~umask, as the kernel applied it
+    staged = _STAGED.get()
     try:
         write_to(str(tmp))
         os.chmod(tmp, mode)  # some writers (safetensors) replace the file with a 0600 one of their own
         if fsync:
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
+        if staged is not None:  # (`written_together`: renamed with the others, at the block's end)
+            staged.append((tmp, path))
+            return path
         os.replace(tmp, path)
     except OSError as exc:
         if exc.filename is None or str(exc.filename) == str(tmp):  # name the file the user asked for, not our temporary
             raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
         raise
     finally:
-        if tmp.exists():
+        if tmp.exists() and (staged is None or (tmp, path) not in staged):
             tmp.unlink()
     return path
+
+
+_STAGED: contextvars.ContextVar[list | None] = contextvars.ContextVar("neuralrt_staged_writes", default=None)
+
+
+@contextlib.contextmanager
+def written_together():
+    """Within the block, `write_atomically` leaves each file under its temporary name; when the block
+    ends they are all renamed into place, or, if it fails (an interrupt too), all removed: a set of
+    outputs (a render's image and AOVs, eval's figures) is written whole or not at all, never half
+    new and half as an earlier run left it."""
+    staged: list[tuple[Path, Path]] = []
+    token = _STAGED.set(staged)
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        _STAGED.reset(token)
+    for tmp, path in staged:
+        os.replace(tmp, path)
 
 
 def _link_target(path: Path) -> Path:

@@ -139,15 +139,17 @@ class RenderResult:
             write_png(png_path, png, exposure=png_exposure)
             out.extend([exr, png_path])
 
-        both("", self.image, self.image, exposure)
-        both("_albedo", self.albedo, self.albedo)
-        # Normals in [-1, 1] shown as colours 0.5 + 0.5 n (stored linear so the PNG shows that mapping).
+        from ..io.files import written_together
         from ..io.images import srgb_to_linear
 
-        both("_normal", self.normal, srgb_to_linear(0.5 + 0.5 * self.normal))
-        hit = self.coverage > 0
-        far = float(self.depth[hit].max()) if hit.any() else 1.0
-        near_bright = (1.0 - self.depth / far) * self.coverage
-        both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat(near_bright[..., None], 3, -1)))
-        both("_coverage", np.repeat(self.coverage[..., None], 3, -1), np.repeat(self.coverage[..., None], 3, -1))
+        with written_together():  # (all ten files, or none: never some new beside an earlier render's)
+            both("", self.image, self.image, exposure)
+            both("_albedo", self.albedo, self.albedo)
+            # Normals in [-1, 1] shown as colours 0.5 + 0.5 n (stored linear so the PNG shows that mapping).
+            both("_normal", self.normal, srgb_to_linear(0.5 + 0.5 * self.normal))
+            hit = self.coverage > 0
+            far = float(self.depth[hit].max()) if hit.any() else 1.0
+            near_bright = (1.0 - self.depth / far) * self.coverage
+            both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat(near_bright[..., None], 3, -1)))
+            both("_coverage", np.repeat(self.coverage[..., None], 3, -1), np.repeat(self.coverage[..., None], 3, -1))
         return out
