@@ -448,3 +448,18 @@ def test_an_nbvh_checkpoint_whose_tree_cannot_be_walked_is_refused(tmp_path):
     bad = _edited_checkpoint_arrays(tmp_path / "n.ckpt", tmp_path / "bad.ckpt", far_child)
     with pytest.raises(ModelFileError, match=r"cannot resume from this checkpoint \(ValueError: the tree's child indices"):
         train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda a: a.pop(next(k for k in a if k.endswith(".exp_avg"))), r"Adam's state of a parameter lacks exp_avg"),
+    (lambda a: a[next(k for k in a if k.endswith(".exp_avg_sq"))].fill_(float("nan")), r"Adam's exp_avg_sq holds NaN"),
+])
+def test_a_checkpoint_whose_optimizer_state_is_incomplete_or_nan_is_refused(checkpointed, tmp_path, change, message):
+    # A missing moment was a KeyError traceback from inside Adam's first step after the resume.
+    from neuralrt.errors import ModelFileError
+    from neuralrt.training.api import train
+
+    mesh, config, path = checkpointed
+    bad = _edited_checkpoint_arrays(path, tmp_path / "adam.ckpt", change)
+    with pytest.raises(ModelFileError, match=message):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)

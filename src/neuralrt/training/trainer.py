@@ -103,9 +103,15 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
     # torch takes moments of any shape, and the step after would fail inside Adam's kernel.
     for p in (p for group in opt.param_groups for p in group["params"]):
-        for name, value in opt.state.get(p, {}).items():
+        held = opt.state.get(p, {})
+        missing = sorted({"step", "exp_avg", "exp_avg_sq"} - set(held)) if held else []
+        if missing:  # (Adam's next step reads them: a KeyError there, after set-up)
+            raise ValueError(f"Adam's state of a parameter lacks {', '.join(missing)}")
+        for name, value in held.items():
             if value.ndim and value.shape != p.shape:
                 raise ValueError(f"Adam's {name} has shape {list(value.shape)}, its parameter {list(p.shape)}")
+            if value.is_floating_point() and not torch.isfinite(value).all():
+                raise ValueError(f"Adam's {name} holds NaN or infinite values")
 
 
 def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict) -> None:
