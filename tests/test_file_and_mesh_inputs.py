@@ -553,3 +553,17 @@ def test_colours_a_reader_cannot_place_or_read_are_warnings(tmp_path):
     (tmp_path / "d.ply").write_text(header + "0 0 0 255 0 0\n1 0 0 255 0 0\n0 1 0 255 0 0\n3 0 1 2\n")
     with pytest.warns(UserWarning, match=re.escape("d.ply: its vertex colours (diffuse_red, ...) are not read")):
         load_mesh(tmp_path / "d.ply")
+
+
+def test_a_gltf_whose_json_is_cut_short_says_so(tmp_path):
+    (tmp_path / "cut.gltf").write_text('{"asset": {"version": "2.0"}, "meshes": [')
+    with pytest.raises(MeshError, match=r"cut.gltf: cannot read mesh: its glTF JSON cannot be read \(cut short, or not glTF\)"):
+        load_mesh(tmp_path / "cut.gltf")
+
+
+def test_rendering_a_mesh_too_large_for_float32_alone_names_the_mesh(tmp_path):
+    from neuralrt.scene.loader import load_scene
+
+    (tmp_path / "huge.obj").write_text("v 0 0 0\nv 1e30 0 0\nv 0 1e30 0\nf 1 2 3\n")
+    with pytest.raises(NeuralRTError, match=r"huge.obj: bounding-box diagonal 1.41e\+30 is outside"):
+        load_scene(str(tmp_path / "huge.obj"))

@@ -676,9 +676,10 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
                         f"mesh: load it with neuralrt.load_model")
     gltf = suffix in (".gltf", ".glb")  # (its COLOR_0 is linear, PLY's and OBJ's sRGB; flat normals)
     header = gltf_header(path) if gltf else None
+    if gltf and not header:  # (trimesh's word for it: "FileNotFoundError: model.gltf")
+        raise MeshError(f"{path}: cannot read mesh: its glTF JSON cannot be read (cut short, or not glTF)")
     if gltf_mesh is not None and not header:
-        raise MeshError(f"{path}: gltf_mesh: only a glTF file (.gltf, .glb) has meshes to choose from"
-                        if not gltf else f"{path}: cannot read mesh: its glTF JSON cannot be read")
+        raise MeshError(f"{path}: gltf_mesh: only a glTF file (.gltf, .glb) has meshes to choose from")
     if gltf_mesh is not None:
         try:
             gltf_mesh = gltf_mesh_index(header, gltf_mesh)  # (one name whichever way it is chosen)

@@ -101,7 +101,10 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
     else:
         from .gltf_import import unused_scene_note
 
+        from ..geometry.mesh import check_float32_extent
+
         value, key = load_mesh(name), "mesh"
+        check_float32_extent(value, name)  # (said of the mesh, before its framing's light is out of range)
         lo, hi = value.bounds
         note = unused_scene_note(name)
         if note:
