@@ -313,8 +313,8 @@ def train_model(
         try:
             save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
         except OSError as exc:  # insurance only (~7x the model's bytes): a full disk must not cost the trained model
-            warnings.warn(f"{ckpt}: the final checkpoint could not be written ({exc.strerror or exc}); the trained "
-                          "model is kept", stacklevel=outside_stacklevel())
+            warnings.warn(f"{ckpt}: the final checkpoint could not be written ({exc.strerror or exc}); training "
+                          "goes on to write the model", stacklevel=outside_stacklevel())
     model.eval()
     return record
 
