@@ -448,12 +448,15 @@ def test_an_interrupt_during_trimeshs_import_is_raised_after_it(tmp_path, monkey
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setitem(sys.modules, "trimesh", sys.modules.get("trimesh"))  # (restored, or removed, afterwards)
     del sys.modules["trimesh"]
-    before = signal.getsignal(signal.SIGINT)
-    with pytest.raises(KeyboardInterrupt):
-        import_trimesh()
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # (Python's: an earlier test may have set another)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            import_trimesh()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # (the handler is back)
+    finally:
+        signal.signal(signal.SIGINT, before)
     fake = sys.modules["trimesh"]
     assert fake.__file__ == str(tmp_path / "trimesh.py") and fake.reached  # (the import ran through, uninterrupted)
-    assert signal.getsignal(signal.SIGINT) is before  # (the handler is back)
 
 
 def _cut(path, fraction=0.6):

@@ -533,7 +533,7 @@ def test_cli_train_info_eval(ball, tmp_path, capsys):
     metrics = json.loads(capsys.readouterr().out)
     assert metrics["outside"]["true_hit_fraction"] > 0.2 and 0 <= metrics["outside"]["accuracy"] <= 1
     assert main(["train", str(mesh_path), "-o", str(model), "--method", "nbvh", "--preset", "nope"]) == 2
-    assert capsys.readouterr().err.strip().startswith("neuralrt: error: unknown nbvh preset")
+    assert capsys.readouterr().err.strip().startswith("neuralrt: error: --preset: unknown nbvh preset 'nope'")
 
 
 def test_secondary_lod_view_resolution(ball):
