@@ -99,9 +99,8 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         value, key = load_model(name, device=device), "model"  # (its errors name the file: one line as they are)
         lo, hi = value.bounds.lo.cpu().numpy(), value.bounds.hi.cpu().numpy()
     else:
-        from .gltf_import import unused_scene_note
-
         from ..geometry.mesh import check_float32_extent
+        from .gltf_import import unused_scene_note
 
         value, key = load_mesh(name), "mesh"
         check_float32_extent(value, name)  # (said of the mesh, before its framing's light is out of range)
