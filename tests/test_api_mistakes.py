@@ -25,6 +25,7 @@ def _model():
     return LSNIFModel.from_mesh(make_procedural("sphere", subdivisions=1), LSNIFConfig.preset("lq"))
 
 
+@pytest.mark.filterwarnings("ignore:.*cannot check that the model belongs")  # (a model alone: no mesh to check)
 def test_rendering_exact_a_scene_loaded_neural_is_a_config_error():
     scene = load_dict({"camera": {"resolution": [4, 4]}, "objects": [{"model": _model()}]}, primary="neural")
     with pytest.raises(ConfigError, match="loaded with primary='neural'"):
