@@ -186,19 +186,23 @@ def _bounds(metadata) -> list[str]:
 def _range(field) -> str:
     """The allowed values the schema enforces on a key (its own bounds, or each element's), derived,
     so the page cannot drift from the checks."""
-    from typing import Annotated, get_args, get_origin
+    from types import UnionType
+    from typing import Annotated, Union, get_args, get_origin
 
     own = _bounds(field.metadata)
     if own:
         return ", ".join(own)
-    elements = set()
+    elements, alone = set(), set()
     for arg in get_args(field.annotation):  # a tuple or list of bounded numbers (Vec3 of NonNegFinite, ...)
         for inner in (arg, *get_args(arg)):
             if get_origin(inner) is Annotated:  # (pydantic's Field(...) there holds its bounds in .metadata)
                 constraints = [m for a in get_args(inner)[1:] for m in getattr(a, "metadata", [a])]
-                elements.add(", ".join(_bounds(constraints)))
+                # (a bounded value that is one of a union's kinds, as gltf_mesh's index, is no element)
+                (alone if inner is arg and get_origin(field.annotation) in (Union, UnionType) else elements).add(
+                    ", ".join(_bounds(constraints)))
     elements.discard("")
-    return f"each {' or '.join(sorted(elements))}" if elements else ""
+    alone.discard("")
+    return " or ".join(sorted(alone) + ([f"each {' or '.join(sorted(elements))}"] if elements else []))
 
 
 def scene_reference() -> str:
