@@ -424,18 +424,14 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
 
 
-def _rewritten_gltf(header: dict, path: Path, gltf_mesh: int | None) -> tuple[dict, bytes | None]:
+def _rewritten_gltf(header: dict, path: Path, changed: bool = False) -> tuple[dict, bytes | None]:
     """(the header trimesh is to read the file under, the file's bytes with it, or None where the
     file is read as it is): unnamed materials that place their maps differently named
-    (`named_materials`), GPU instances made nodes (`expanded_instances`), or only the mesh of index
-    ``gltf_mesh``, in its own space (`mesh_alone`, after the whole file's materials are named).
-    The file is read once."""
+    (`named_materials`), GPU instances made nodes (`expanded_instances`); ``changed``: ``header`` is
+    already not the file's (`mesh_alone`). The file is read once."""
     rewritten = named_materials(header)
-    if gltf_mesh is not None:
-        alone = mesh_alone(rewritten or header, gltf_mesh)
-        return alone, with_header(path.read_bytes(), alone)
     if rewritten is None and not instanced_nodes(header):
-        return header, None
+        return header, with_header(path.read_bytes(), header) if changed else None
     data = path.read_bytes()
     try:
         rewritten = expanded_instances(rewritten or header, path, data) or rewritten
@@ -678,20 +674,19 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
     header = gltf_header(path) if gltf else None
     if gltf and not header:  # (trimesh's word for it: "FileNotFoundError: model.gltf")
         raise MeshError(f"{path}: cannot read mesh: its glTF JSON cannot be read (cut short, or not glTF)")
-    if gltf_mesh is not None and not header:
+    if gltf_mesh is not None and not gltf:
         raise MeshError(f"{path}: gltf_mesh: only a glTF file (.gltf, .glb) has meshes to choose from")
-    if gltf_mesh is not None:
+    if gltf_mesh is not None:  # (the notes below are then of this mesh and its materials only)
         try:
             gltf_mesh = gltf_mesh_index(header, gltf_mesh)  # (one name whichever way it is chosen)
         except ValueError as exc:
             raise MeshError(f"{path}: gltf_mesh: {exc}") from None
+        header = mesh_alone(named_materials(header) or header, gltf_mesh)  # (named as the whole file's are)
     unreadable, notes = gltf_file_notes(header, lit) if header else (None, [])
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     used_materials: set[str] = set()
-    header, rewritten = _rewritten_gltf(header, path, gltf_mesh) if header else (header, None)
-    if gltf_mesh is not None:
-        unreadable, notes = gltf_file_notes(header, lit)  # (what is not read of this mesh and its materials only)
+    header, rewritten = _rewritten_gltf(header, path, changed=gltf_mesh is not None) if header else (header, None)
     try:
         with unread_assets() as unread:
             source, obj_bytes = dict(file_obj=str(path)), None

@@ -124,8 +124,8 @@ def unused_scene_note(path: str | Path) -> str | None:
     drawn: dict[str, int] = {}
     for node in nodes:
         mesh = node.get("mesh")
-        if isinstance(mesh, int) and 0 <= mesh < len(meshes) and isinstance(meshes[mesh], dict):
-            key = json.dumps([meshes[mesh].get("primitives"), meshes[mesh].get("weights")], sort_keys=True)
+        if isinstance(mesh, int) and 0 <= mesh < len(meshes):
+            key = _geometry_key(meshes[mesh])
             drawn[key] = drawn.get(key, 0) + (2 if (node.get("extensions") or {}).get("EXT_mesh_gpu_instancing") else 1)
     repeated = sum(count > 1 for count in drawn.values())
     cameras = sum(isinstance(node.get("camera"), int) for node in nodes)
@@ -185,12 +185,11 @@ def _local_matrix(node: dict) -> np.ndarray:
     s = np.array(node.get("scale", (1.0, 1.0, 1.0)), np.float64)
     if t.shape != (3,) or s.shape != (3,) or q.shape != (4,) or not np.linalg.norm(q) > 0:
         raise ValueError("translation and scale are 3 numbers, rotation 4 (a unit quaternion)")
-    x, y, z, w = q / np.linalg.norm(q)  # (exporters write them rounded)
-    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    matrix = np.eye(4)
-    matrix[:3, :3] = rotation * s[None, :]
+    from ..geometry.mesh import import_trimesh  # (trimesh's first import holds Ctrl-C: see there)
+
+    x, y, z, w = q
+    matrix = import_trimesh().transformations.quaternion_matrix([w, x, y, z])  # (normalised: exporters round them)
+    matrix[:3, :3] *= s[None, :]
     matrix[:3, 3] = t
     return matrix
 
@@ -212,9 +211,7 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
         if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
             raise SceneError(f"{path}: node {index} draws mesh {mesh!r}, which the file does not have")
         name = _name(nodes[index]) or _name(meshes[mesh]) or f"node{index}"
-        # (exporters such as trimesh write a mesh per node, each naming the same accessors: one mesh)
-        drawn = meshes[mesh] if isinstance(meshes[mesh], dict) else {}
-        mesh = first_alike.setdefault(json.dumps([drawn.get("primitives"), drawn.get("weights")], sort_keys=True), mesh)
+        mesh = first_alike.setdefault(_geometry_key(meshes[mesh]), mesh)
         taken[name] = taken.get(name, 0) + 1
         name = name if taken[name] == 1 else f"{name}.{taken[name] - 1}"
         matrix = [[float(x) for x in row] for row in world]
@@ -233,6 +230,13 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
     return objects, (every.min(axis=0), every.max(axis=0))
 
 
+def _geometry_key(mesh) -> str:
+    """What a glTF mesh draws, as one key: its primitives (accessors and materials) and morph weights.
+    Exporters such as trimesh write a mesh per node, each naming the same accessors: one mesh."""
+    drawn = mesh if isinstance(mesh, dict) else {}
+    return json.dumps([drawn.get("primitives"), drawn.get("weights")], sort_keys=True)
+
+
 def _mesh_bounds(path: Path, mesh: int, lit) -> tuple[np.ndarray, np.ndarray]:
     from ..errors import NeuralRTError
     from ..geometry.mesh import load_mesh
@@ -249,7 +253,8 @@ def _name(entry) -> str | None:
 
 
 def _world_corners(bounds: tuple[np.ndarray, np.ndarray], world: np.ndarray) -> np.ndarray:
-    """The corners of a mesh's box, ``bounds`` in its own space, in world space."""
+    """The corners of a mesh's box, ``bounds`` in its own space, in world space (float64: the
+    import's reach check sees the file's numbers, not float32's)."""
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     box = np.array([[(lo, hi)[i >> k & 1][k] for k in range(3)] for i in range(8)])
     return box @ world[:3, :3].T + world[:3, 3]

@@ -258,10 +258,11 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
 
 def _keys_once(pairs: list) -> dict:
     """A JSON object whose keys are all different (TOML refuses a key given twice; JSON's last would win)."""
-    found = dict(pairs)
-    if len(found) != len(pairs):
-        twice = next(k for i, (k, _) in enumerate(pairs) if k in dict(pairs[:i]))
-        raise ValueError(f"key {twice!r} is given twice in one object")
+    found = {}
+    for key, value in pairs:
+        if key in found:
+            raise ValueError(f"key {key!r} is given twice in one object")
+        found[key] = value
     return found
 
 

@@ -289,7 +289,7 @@ class ObjectSpec(_Strict):
     def _transform_object(cls, v):
         from ..rays import Transform  # (from Python, load_dict takes the API's Transform too)
 
-        return {"matrix": v._m64.tolist()} if isinstance(v, Transform) else v
+        return {"matrix": v.tolist()} if isinstance(v, Transform) else v
 
     @model_validator(mode="after")
     def _one_source(self) -> "ObjectSpec":
