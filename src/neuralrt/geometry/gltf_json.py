@@ -89,10 +89,10 @@ def position_dequantization(header: dict) -> int | None:
 
 
 def _normalised_throughout(header: dict, attribute: str) -> int | None:
-    accessors = _list(header.get("accessors"))
+    accessors = json_list(header.get("accessors"))
     kinds = set()
-    for mesh in _list(header.get("meshes")):
-        for primitive in _list(mesh.get("primitives")) if isinstance(mesh, dict) else []:
+    for mesh in json_list(header.get("meshes")):
+        for primitive in json_list(mesh.get("primitives")) if isinstance(mesh, dict) else []:
             attributes = primitive.get("attributes") if isinstance(primitive, dict) else None
             index = attributes.get(attribute) if isinstance(attributes, dict) else None
             accessor = accessors[index] if isinstance(index, int) and 0 <= index < len(accessors) else None
@@ -134,18 +134,18 @@ def dequantized_uvs(uv: np.ndarray, component: int) -> np.ndarray:
 def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None, list[str]]:
     """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out, but
     for the emission of the materials named in ``lit``, which a scene makes lights)."""
-    required = [e for e in _list(header.get("extensionsRequired")) if e in _UNREADABLE_EXTENSIONS]
+    required = [e for e in json_list(header.get("extensionsRequired")) if e in _UNREADABLE_EXTENSIONS]
     if required:
         return (f"it needs the glTF extension {required[0]} ({_UNREADABLE_EXTENSIONS[required[0]]}), which trimesh "
                 f"does not read"), []
-    accessors = _list(header.get("accessors"))
+    accessors = json_list(header.get("accessors"))
     notes: list[str] = []
     fans = morphs = 0
     integer_uvs: dict[int, str] = {}  # mesh -> how its UVs are stored
     scaled_positions: list[int] = []  # meshes whose positions are normalised integers
     short_colours: list[int] = []
-    for m, mesh in enumerate(_list(header.get("meshes"))):
-        primitives = _list(mesh.get("primitives")) if isinstance(mesh, dict) else []
+    for m, mesh in enumerate(json_list(header.get("meshes"))):
+        primitives = json_list(mesh.get("primitives")) if isinstance(mesh, dict) else []
         for primitive in primitives:
             if not isinstance(primitive, dict):
                 continue
@@ -182,9 +182,9 @@ def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None,
         notes.append(f"{fans} primitive(s) drawn as triangle fans are left out (trimesh reads triangles and strips)")
     if morphs:
         notes.append(f"the morph target weights of {morphs} mesh(es) are not applied: each is read in its base shape")
-    if _list(header.get("skins")):
+    if json_list(header.get("skins")):
         notes.append("skins are not applied: skinned meshes are read in their bind pose, placed by their nodes")
-    glowing = [_label(material, i) for i, material in enumerate(_list(header.get("materials")))
+    glowing = [_label(material, i) for i, material in enumerate(json_list(header.get("materials")))
                if isinstance(material, dict) and _emits(material)
                and not (isinstance(material.get("name"), str) and material["name"] in lit)]
     if glowing:
@@ -212,7 +212,8 @@ def _label(material: dict, index: int) -> str:
     return f"material {name!r}" if isinstance(name, str) else f"unnamed material {index}"
 
 
-def _list(value) -> list:
+def json_list(value) -> list:
+    """`value` if the JSON gave a list there, else [] (a file's wrong type is read as absent)."""
     return value if isinstance(value, list) else []
 
 
@@ -220,7 +221,7 @@ def gltf_material_extras(header: dict) -> tuple[dict[str, MaterialExtras], list[
     """(extras per material name, None for the unnamed ones (one material, as gltfpack writes, or
     several placing their maps alike); one line per thing in the file that is not applied), from the
     file's JSON (`gltf_header`)."""
-    materials = _list(header.get("materials"))
+    materials = json_list(header.get("materials"))
     found: dict[str | None, list[MaterialExtras]] = {}  # (None: the unnamed ones, which trimesh names None)
     notes: list[str] = []
     for index, material in enumerate(materials):
@@ -250,7 +251,7 @@ def named_materials(header: dict) -> dict | None:
     that one is taken), where two or more of them place their maps differently: trimesh names every
     unnamed material None, so their parts could not be told apart (`gltf_material_extras`), and the
     file is read again under this header (`with_header`). None where no such renaming is needed."""
-    materials = _list(header.get("materials"))
+    materials = json_list(header.get("materials"))
     unnamed = [i for i, m in enumerate(materials) if isinstance(m, dict) and not isinstance(m.get("name"), str)]
     if len(unnamed) < 2:
         return None
@@ -272,7 +273,7 @@ def named_materials(header: dict) -> dict | None:
 def gltf_mesh_index(header: dict, mesh: int | str) -> int:
     """The index in ``meshes`` of the mesh that ``mesh`` names: an index, or the name of exactly one
     mesh. A ValueError says why none is."""
-    meshes = _list(header.get("meshes"))
+    meshes = json_list(header.get("meshes"))
     if isinstance(mesh, bool) or not isinstance(mesh, (int, str)):
         raise ValueError(f"a glTF mesh is named by its index or its name, not {type(mesh).__name__} {mesh!r}")
     if isinstance(mesh, int):
@@ -293,11 +294,11 @@ def mesh_alone(header: dict, index: int) -> dict:
     a material's name), so that reading it decodes neither their accessors nor their images, and
     indices stay as they were. Skins and animations, which name nodes, are dropped."""
     alone = json.loads(json.dumps(header))
-    meshes = _list(alone.get("meshes"))
+    meshes = json_list(alone.get("meshes"))
     chosen = meshes[index] if isinstance(meshes[index], dict) else {}
-    used = {p.get("material") for p in _list(chosen.get("primitives")) if isinstance(p, dict)}
+    used = {p.get("material") for p in json_list(chosen.get("primitives")) if isinstance(p, dict)}
     alone["meshes"] = [m if i == index else {"primitives": []} for i, m in enumerate(meshes)]
-    materials = _list(alone.get("materials"))
+    materials = json_list(alone.get("materials"))
     if materials:
         alone["materials"] = [m if i in used or not isinstance(m, dict) else
                               {"name": m["name"] if isinstance(m.get("name"), str) else f"unused material {i}"}
@@ -311,7 +312,7 @@ def mesh_alone(header: dict, index: int) -> dict:
 
 def instanced_nodes(header: dict) -> list[int]:
     """The nodes that ``EXT_mesh_gpu_instancing`` draws several times (gltfpack ``-mi``)."""
-    return [i for i, n in enumerate(_list(header.get("nodes"))) if isinstance(n, dict) and isinstance(
+    return [i for i, n in enumerate(json_list(header.get("nodes"))) if isinstance(n, dict) and isinstance(
         (n.get("extensions") or {}).get(_INSTANCING), dict)]
 
 
@@ -345,7 +346,7 @@ def expanded_instances(header: dict, path: str | Path, data: bytes) -> dict | No
         node["children"] = list(node.get("children") or []) + children
     for key in ("extensionsUsed", "extensionsRequired"):
         if key in expanded:
-            expanded[key] = [e for e in _list(expanded[key]) if e != _INSTANCING]
+            expanded[key] = [e for e in json_list(expanded[key]) if e != _INSTANCING]
     return expanded
 
 
@@ -370,12 +371,12 @@ def _accessor_values(header: dict, index, path: str | Path, buffers: dict) -> np
     import base64
     from urllib.parse import unquote
 
-    accessors = _list(header.get("accessors"))
+    accessors = json_list(header.get("accessors"))
     if not (isinstance(index, int) and 0 <= index < len(accessors)):
         raise ValueError(f"instance accessor {index!r} does not exist")
     accessor = accessors[index]
-    view = _list(header.get("bufferViews"))[accessor["bufferView"]]
-    buffer = _list(header.get("buffers"))[view.get("buffer", 0)]
+    view = json_list(header.get("bufferViews"))[accessor["bufferView"]]
+    buffer = json_list(header.get("buffers"))[view.get("buffer", 0)]
     uri = buffer.get("uri")
     if uri not in buffers:
         buffers[uri] = base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") \

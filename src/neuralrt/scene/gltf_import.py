@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError, outside_stacklevel
-from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes
+from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes, json_list
 from .schema import MAX_LIGHT_COORDINATE, MAX_RADIANCE
 
 __all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
@@ -119,8 +119,8 @@ def unused_scene_note(path: str | Path) -> str | None:
     drawn more than once, which become copies; cameras; lights), with the command that keeps it;
     None where there is nothing of the kind (or the file is no glTF)."""
     header = gltf_header(path) if Path(path).suffix.lower() in (".gltf", ".glb") else {}
-    nodes = [n for n in header.get("nodes") or [] if isinstance(n, dict)] if isinstance(header.get("nodes"), list) else []
-    meshes = header.get("meshes") if isinstance(header.get("meshes"), list) else []
+    nodes = [n for n in json_list(header.get("nodes")) if isinstance(n, dict)]
+    meshes = json_list(header.get("meshes"))
     drawn: dict[str, int] = {}
     for node in nodes:
         mesh = node.get("mesh")
@@ -148,8 +148,8 @@ def _plural(count: int, one: str, more: str) -> str:
 
 def _placed_nodes(header: dict, path: Path) -> list[tuple[int, np.ndarray]]:
     """(node index, world matrix) of every node the scene reaches, parents before children."""
-    nodes = header.get("nodes") if isinstance(header.get("nodes"), list) else []
-    scenes = header.get("scenes") if isinstance(header.get("scenes"), list) else []
+    nodes = json_list(header.get("nodes"))
+    scenes = json_list(header.get("scenes"))
     chosen = header.get("scene", 0)
     if scenes and isinstance(chosen, int) and 0 <= chosen < len(scenes) and isinstance(scenes[chosen], dict):
         roots = scenes[chosen].get("nodes") or []
@@ -202,7 +202,7 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
     from ..errors import validation_message
     from .schema import TransformSpec
 
-    nodes, meshes = header["nodes"], header.get("meshes") if isinstance(header.get("meshes"), list) else []
+    nodes, meshes = header["nodes"], json_list(header.get("meshes"))
     objects, corners, taken, first_alike, bounds_of = [], [], {}, {}, {}
     for index, world in placed:
         mesh = nodes[index].get("mesh")
@@ -345,7 +345,7 @@ def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path:
 
 def _camera(header: dict, placed: list, radius: float, path: Path) -> dict | None:
     """The first perspective camera the nodes reach, as the scene's camera; None where there is none."""
-    cameras = header.get("cameras") if isinstance(header.get("cameras"), list) else []
+    cameras = json_list(header.get("cameras"))
     for index, world in placed:
         used = header["nodes"][index].get("camera")
         if used is None:
