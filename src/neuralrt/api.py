@@ -12,6 +12,7 @@ from .errors import ConfigError, ModelFileError, NeuralRTError, TrainingError, o
 from .io.files import (check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty,
                        written_together)
 from .io.model_file import MODEL_SUFFIX, check_model_path
+from .io.run_lock import held_alone
 
 __all__ = ["compare", "convert", "demo", "evaluate", "import_scene", "info", "list_builtins", "list_presets", "render",
            "train"]
@@ -358,24 +359,27 @@ def train(
         from .io.plots import check_plot_path
 
         plot = check_plot_path(check_path(given("plot"), plot))
-    if resume and not checkpoint.is_file():
-        raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
-    if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
-        import warnings
-
-        warnings.warn(f"{checkpoint}: an earlier interrupted run's checkpoint is there; this run starts afresh and "
-                      "replaces it (--resume continues it instead)", stacklevel=outside_stacklevel())
-    if not isinstance(mesh, Mesh):
-        mesh = load_mesh(mesh)
-    with folders_removed_if_left_empty(output.parent):  # (an interrupt too) stopped before the first checkpoint
+    # (an interrupt too) stopped before the first checkpoint: no new empty folder is left
+    with folders_removed_if_left_empty(output.parent):
         output.parent.mkdir(parents=True, exist_ok=True)
-        model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
-        try:
-            model.save(output)
-        except TrainingError:  # (weights past the storage's range: resuming would store the same)
+        # Another run on this checkpoint is told first: the checks below would call its checkpoint left over.
+        with held_alone(checkpoint):
+            if resume and not checkpoint.is_file():
+                raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
+            if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint
+                import warnings
+
+                warnings.warn(f"{checkpoint}: an earlier interrupted run's checkpoint is there; this run starts afresh "
+                              "and replaces it (--resume continues it instead)", stacklevel=outside_stacklevel())
+            if not isinstance(mesh, Mesh):
+                mesh = load_mesh(mesh)
+            model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
+            try:
+                model.save(output)
+            except TrainingError:  # (weights past the storage's range: resuming would store the same)
+                checkpoint.unlink(missing_ok=True)
+                raise
             checkpoint.unlink(missing_ok=True)
-            raise
-    checkpoint.unlink(missing_ok=True)
     memory = model.memory_bytes()
     result = {"model": str(output), "method": spec.name, "preset": preset, "memory_bytes": memory.total,
               "memory_parts": dict(memory.parts), "training": model.training_record}

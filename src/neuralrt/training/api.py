@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 
@@ -12,6 +13,7 @@ from ..devices import check_device, check_path
 from ..errors import ConfigError
 from ..fork_guard import check_not_forked
 from ..geometry.mesh import Mesh, check_float32_extent, load_mesh
+from ..io.run_lock import held_alone
 from ..methods import DEFAULT_METHOD, MethodConfig, NeuralBLAS, get_method
 from ..neural.precision import precision_name
 from .trainer import TrainingRecord, check_checkpoint, train_model
@@ -78,17 +80,20 @@ def train(
     config = config or spec.config(device=device.type)
     tc = config.training
     identity = run_identity(mesh.content_hash(), config)
-    if resume and checkpoint.exists():  # a truncated or foreign checkpoint is told before the set-up (seconds)
-        check_checkpoint(checkpoint, identity)
-    model = spec.model_class.from_mesh(mesh, config).to(device)
-    rays = model.training_rays(MeshBLAS(mesh, device=device), device)  # default: BoxRayDistribution
-    start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
-    record = train_model(
-        model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
-        adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, adam_l2=tc.adam_l2, lr_decay_final=tc.lr_decay_final,
-        checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=identity,
-        progress=progress, description=f"{spec.name} {mesh.name}", on_step=_then(model.after_training_step, on_step), record=start,
-    )
+    # (two runs on one checkpoint would each resume from the other's: the second is told, here)
+    with held_alone(checkpoint) if checkpoint is not None else contextlib.nullcontext():
+        if resume and checkpoint.exists():  # a truncated or foreign checkpoint is told before the set-up (seconds)
+            check_checkpoint(checkpoint, identity)
+        model = spec.model_class.from_mesh(mesh, config).to(device)
+        rays = model.training_rays(MeshBLAS(mesh, device=device), device)  # default: BoxRayDistribution
+        start = TrainingRecord(compute_precision=precision_name(model.compute_dtype(training=True)), device=device.type)
+        record = train_model(
+            model, rays, steps=tc.steps, batch_size=tc.batch_size, learning_rate=tc.learning_rate,
+            adam_betas=tc.adam_betas, adam_eps=tc.adam_eps, adam_l2=tc.adam_l2, lr_decay_final=tc.lr_decay_final,
+            checkpoint=checkpoint, checkpoint_every=tc.checkpoint_every, resume=resume, identity=identity,
+            progress=progress, description=f"{spec.name} {mesh.name}", on_step=_then(model.after_training_step, on_step),
+            record=start,
+        )
     model.training_record = record.as_dict()
     return model.round_to_storage_precision_().eval()
 

@@ -1,0 +1,87 @@
+"""One training run per checkpoint: a second process (or thread) is told, before its work, with the
+holder's pid; a holder killed outright leaves no lock behind; the lock file goes when the run ends."""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from neuralrt.cli import main
+from neuralrt.errors import NeuralRTError
+from neuralrt.io.run_lock import held_alone, lock_path
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="flock: POSIX only (Windows runs unlocked)")
+
+
+@pytest.fixture
+def holder(tmp_path):
+    """A process holding the lock of ``tmp_path/m.nrt.ckpt`` until killed (started, and holding, when yielded)."""
+    checkpoint = tmp_path / "m.nrt.ckpt"
+    code = ("import sys, time\nfrom neuralrt.io.run_lock import held_alone\n"
+            f"with held_alone({str(checkpoint)!r}):\n    print('held', flush=True)\n    time.sleep(120)\n")
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "held"
+    yield checkpoint, process
+    process.kill()
+    process.wait()
+
+
+def test_a_second_process_is_told_who_holds_the_checkpoint(holder):
+    checkpoint, process = holder
+    with pytest.raises(NeuralRTError, match=rf"m\.nrt\.ckpt: another process \(pid {process.pid}\) is training this model"):
+        with held_alone(checkpoint):
+            pass
+    assert lock_path(checkpoint).exists()  # (the holder's file is left alone)
+
+
+def test_a_killed_holder_leaves_no_lock(holder):
+    checkpoint, process = holder
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert lock_path(checkpoint).exists()  # its file stays, but the kernel released its lock
+    with held_alone(checkpoint):
+        assert lock_path(checkpoint).read_text().strip() == str(os.getpid())
+    assert not lock_path(checkpoint).exists()
+
+
+def test_nested_in_one_thread_shares_the_lock_and_another_thread_is_told(tmp_path):
+    checkpoint = tmp_path / "m.nrt.ckpt"
+    errors = []
+
+    def other_thread():
+        try:
+            with held_alone(checkpoint):
+                pass
+        except NeuralRTError as exc:
+            errors.append(str(exc))
+
+    with held_alone(checkpoint):
+        with held_alone(checkpoint):  # (api.train holds it around training.api.train, which takes it too)
+            thread = threading.Thread(target=other_thread)
+            thread.start()
+            thread.join()
+        assert lock_path(checkpoint).exists()  # the inner block did not remove the outer one's lock
+    assert len(errors) == 1 and f"pid {os.getpid()}" in errors[0]
+    assert not lock_path(checkpoint).exists()
+
+
+def test_the_lock_goes_when_the_block_fails(tmp_path):
+    checkpoint = tmp_path / "m.nrt.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        with held_alone(checkpoint):
+            raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_train_while_another_run_trains_the_same_output_is_one_line_before_any_work(holder, capsys):
+    checkpoint, process = holder
+    checkpoint.write_bytes(b"the other run's")  # without the lock, this run would warn of it as left over
+    output = checkpoint.with_suffix("")
+    assert main(["train", "procedural:statue:0", "-o", str(output), "--preset", "lq", "--steps", "2", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"neuralrt: error: {checkpoint}: another process (pid {process.pid}) is training this model; "
+                   "wait for it to end, or write elsewhere")
+    assert checkpoint.read_bytes() == b"the other run's" and not output.exists()
