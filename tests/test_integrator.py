@@ -122,6 +122,39 @@ def test_point_light_over_diffuse_plane_matches_closed_form(tmp_path):
     assert float(res.image.mean()) == pytest.approx(float(expected.mean()), rel=1e-3)
 
 
+def test_a_far_bright_point_light_does_not_starve_a_near_one(tmp_path):
+    """A sun-like light (1,000 scene radii away, as bright on the plane as the near light) beside a
+    near one: lights are picked by the irradiance they give the scene, not by intensity (which would
+    pick the near one once in 10^7 samples: a black image with a few white pixels)."""
+    albedo, near, near_intensity = 0.6, torch.tensor([0.3, 1.5, -0.2]), 4.0
+    direction = torch.tensor([1.0, 2.0, 1.0]) / math.sqrt(6.0)
+    far = direction * 7000.0
+    far_intensity = 0.8 * near_intensity / 1.5**2 * 7000.0**2  # 0.8x the near light's irradiance below it
+    spec = SceneSpec(
+        camera=CameraSpec(position=(0, 3, 2), look_at=(0, 0, 0), fov=40, resolution=(40, 32)),
+        materials=[DiffuseMaterialSpec(name="m", albedo=(albedo,) * 3)],
+        objects=[ObjectSpec(mesh=_quad_file(tmp_path / "p.ply", half=5.0), material="m")],
+        lights=[PointLightSpec(position=tuple(light.tolist()), intensity=(i,) * 3)
+                for light, i in ((near, near_intensity), (far, far_intensity))],
+    )
+    scene = build_scene(spec)
+    res = render(scene, spp=64, max_depth=1, progress=False, seed=3)
+
+    def closed_form(p):
+        total = torch.zeros(p.shape[0])
+        for light, intensity in ((near, near_intensity), (far, far_intensity)):
+            d = light - p
+            r2 = (d * d).sum(-1)
+            total += albedo / math.pi * intensity * (d[:, 1] / r2.sqrt()).clamp(min=0) / r2
+        return total[:, None].expand(-1, 3)
+
+    expected = _closed_form_plane_pixels(scene, closed_form)
+    # The near light is picked in about 1 sample of 8: its share of each pixel is noisy, the image mean is not.
+    assert float(res.image.mean()) == pytest.approx(float(expected.mean()), rel=0.02)
+    np.testing.assert_allclose(res.image.mean(axis=(0, 1)), expected.mean(axis=(0, 1)), rtol=0.02)
+    assert float(np.median(np.abs(res.image - expected) / expected)) < 0.15
+
+
 def test_area_light_over_diffuse_plane_matches_closed_form(tmp_path):
     """A square Lambertian emitter of half-side a at height h: E = 4 L (a/s) atan(a/s), s = sqrt(a^2 + h^2),
     below its centre; the plane reflects albedo/pi * E. Light sampling and BSDF sampling both

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..rays import AABB
 from .sampling import DiscreteDistribution, luminance, uniform_triangle
 
 __all__ = ["AreaLights", "PointLights", "Environment", "LightSet", "LightSample"]
@@ -103,11 +104,24 @@ class AreaLights:
 
 
 class PointLights:
-    def __init__(self, positions: Tensor, intensities: Tensor, device="cpu"):
+    """Point lights, one picked per sample in proportion to the irradiance it gives the scene
+    (with ``scene_bounds``; by intensity alone without): intensity / (d^2 + r^2 / 3), d the light's
+    distance to the centre of the scene's bounding ball, r its radius. (The mean of 1 / distance^2
+    over the ball is 3 / r^2 from its centre and tends to 1 / d^2 from far away.) By intensity
+    alone, a far and bright light (glTF's sun, imported as a point light 100 scene radii away)
+    would be picked nearly always while lighting the scene as much as a dim near one."""
+
+    def __init__(self, positions: Tensor, intensities: Tensor, device="cpu", scene_bounds: AABB | None = None):
         dev = torch.device(device)
         self.positions = torch.as_tensor(positions, dtype=torch.float32).reshape(-1, 3).to(dev)
         self.intensities = torch.as_tensor(intensities, dtype=torch.float32).reshape(-1, 3).to(dev)
-        self.distribution = DiscreteDistribution(luminance(self.intensities)).to(dev)
+        weights = luminance(self.intensities).double()
+        if scene_bounds is not None:
+            centre = ((scene_bounds.lo + scene_bounds.hi) / 2).to(dev).double()
+            radius = float(torch.linalg.norm((scene_bounds.hi - scene_bounds.lo).double()) / 2)
+            distance_sq = ((self.positions.double() - centre) ** 2).sum(-1)
+            weights = weights / (distance_sq + radius * radius / 3).clamp(min=1e-300)
+        self.distribution = DiscreteDistribution(weights).to(dev)
 
     def __len__(self) -> int:
         return self.positions.shape[0]

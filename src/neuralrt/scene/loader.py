@@ -425,7 +425,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     area = _area_lights(instances, meshes, materials, dev)
     points = None
     if spec.lights:
-        points = PointLights([l.position for l in spec.lights], [l.intensity for l in spec.lights], device=dev) \
+        points = PointLights([l.position for l in spec.lights], [l.intensity for l in spec.lights], device=dev,
+                             scene_bounds=accel.bounds) \
             if any(max(l.intensity) > 0 for l in spec.lights) else None
     env = _environment(spec, label, dev)
     cam = spec.camera
