@@ -162,6 +162,11 @@ def _cycle(header):
      r"its meshes reach 1e\+30 from the origin"),
     (lambda h: h["extensions"]["KHR_lights_punctual"]["lights"][0].update(intensity=1e300),
      r"point light 'bulb' at node \d+: its position must lie within 1e\+18 and its intensity within 1e\+20"),
+    # (JSON of the wrong type is named, not a traceback)
+    (lambda h: h["nodes"][1].update(children=2), "node 1's children must be a list of node indices, not int"),
+    (lambda h: h["scenes"][0].update(nodes=3), "scene 0's nodes must be a list of node indices, not int"),
+    (lambda h: h["extensions"]["KHR_lights_punctual"].update(lights={"0": {}}), "KHR_lights_punctual's lights must be a list"),
+    (lambda h: h.update(scene=5), "the default scene is 5, but the file has 1 scene"),
 ])
 def test_a_malformed_scene_is_one_error(street, tmp_path, edit, message):
     path = tmp_path / "bad.glb"
@@ -178,6 +183,26 @@ def test_a_node_that_cannot_place_its_mesh_is_left_out_with_a_warning(street, tm
     edited_glb(path, lambda h: h["nodes"][4].update(matrix=[1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]))
     with pytest.warns(UserWarning, match=r"node 4 \('ball'\) is left out"):
         facts = api.import_scene(path, tmp_path / "flat.toml")
+    assert facts["objects"] == 5
+
+
+def test_a_node_whose_mesh_draws_no_triangles_is_left_out_with_a_warning(street, tmp_path):
+    """Points and lines (which rays cannot hit) are left out: a node drawing only them, with a warning
+    naming it; a mesh mixing them with triangles, with a note on the primitives."""
+    path = tmp_path / "lines.glb"
+    path.write_bytes(street.read_bytes())
+
+    def edit(header):
+        header["meshes"][header["nodes"][4]["mesh"]]["primitives"][0]["mode"] = 1  # (the ball: lines)
+        ground = header["meshes"][header["nodes"][0]["mesh"]]["primitives"]
+        ground.append({**ground[0], "mode": 0})  # (the ground: triangles, and the same vertices as points)
+
+    edited_glb(path, edit)
+    with pytest.warns(UserWarning) as caught:
+        facts = api.import_scene(path, tmp_path / "lines.toml")
+    said = [str(w.message) for w in caught]
+    assert any(r"node 4 ('ball') is left out: mesh" in m and "draws no triangles" in m for m in said), said
+    assert any("1 primitive(s) of points or lines are left out" in m for m in said), said
     assert facts["objects"] == 5
 
 

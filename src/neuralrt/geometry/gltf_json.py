@@ -70,6 +70,7 @@ _UNREADABLE_EXTENSIONS = {"KHR_draco_mesh_compression": "Draco-compressed geomet
                           "EXT_meshopt_compression": "meshoptimizer-compressed buffers"}
 _INSTANCING = "EXT_mesh_gpu_instancing"
 _TRIANGLE_FAN, _COMPONENT_BYTES = 6, {5121: "unsigned bytes", 5123: "unsigned shorts"}
+_POINTS_AND_LINES, _TRIANGLES_AND_STRIPS = (0, 1, 2, 3), (4, 5)  # (primitive modes; 4 when none is given)
 # Normalised integer components (the glTF spec's "accessor.normalized"; signed ones from
 # KHR_mesh_quantization): (bits, signed); 1.0 is stored as the largest value, -1.0 as minus it.
 _NORMALISED = {5121: (8, False), 5123: (16, False), 5120: (8, True), 5122: (16, True)}
@@ -140,7 +141,7 @@ def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None,
                 f"does not read"), []
     accessors = json_list(header.get("accessors"))
     notes: list[str] = []
-    fans = morphs = 0
+    fans = morphs = strokes = 0
     integer_uvs: dict[int, str] = {}  # mesh -> how its UVs are stored
     scaled_positions: list[int] = []  # meshes whose positions are normalised integers
     short_colours: list[int] = []
@@ -150,6 +151,7 @@ def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None,
             if not isinstance(primitive, dict):
                 continue
             fans += primitive.get("mode") == _TRIANGLE_FAN
+            strokes += primitive.get("mode") in _POINTS_AND_LINES
             attributes = primitive.get("attributes") if isinstance(primitive.get("attributes"), dict) else {}
             used = {**{name: attributes.get(name) for name in ("POSITION", "NORMAL", "TEXCOORD_0", "COLOR_0")},
                     "indices": primitive.get("indices")}
@@ -180,6 +182,8 @@ def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None,
                      f"their value (as gltfpack writes them)")
     if fans:
         notes.append(f"{fans} primitive(s) drawn as triangle fans are left out (trimesh reads triangles and strips)")
+    if strokes:
+        notes.append(f"{strokes} primitive(s) of points or lines are left out (rays hit triangles only)")
     if morphs:
         notes.append(f"the morph target weights of {morphs} mesh(es) are not applied: each is read in its base shape")
     if json_list(header.get("skins")):
@@ -210,6 +214,20 @@ def _emits(material: dict) -> bool:
 def _label(material: dict, index: int) -> str:
     name = material.get("name")
     return f"material {name!r}" if isinstance(name, str) else f"unnamed material {index}"
+
+
+def draws_triangles(mesh) -> bool:
+    """Whether a glTF mesh has a primitive that trimesh reads as triangles (mode 4 or 5; not fans,
+    points or lines)."""
+    primitives = json_list(mesh.get("primitives")) if isinstance(mesh, dict) else []
+    return any(isinstance(p, dict) and p.get("mode", 4) in _TRIANGLES_AND_STRIPS for p in primitives)
+
+
+def json_extension(owner, name: str) -> dict:
+    """``owner["extensions"][name]`` where both are JSON objects, else {} (a wrong type is read as absent)."""
+    extensions = owner.get("extensions") if isinstance(owner, dict) else None
+    found = extensions.get(name) if isinstance(extensions, dict) else None
+    return found if isinstance(found, dict) else {}
 
 
 def json_list(value) -> list:
@@ -312,8 +330,7 @@ def mesh_alone(header: dict, index: int) -> dict:
 
 def instanced_nodes(header: dict) -> list[int]:
     """The nodes that ``EXT_mesh_gpu_instancing`` draws several times (gltfpack ``-mi``)."""
-    return [i for i, n in enumerate(json_list(header.get("nodes"))) if isinstance(n, dict) and isinstance(
-        (n.get("extensions") or {}).get(_INSTANCING), dict)]
+    return [i for i, n in enumerate(json_list(header.get("nodes"))) if json_extension(n, _INSTANCING)]
 
 
 def expanded_instances(header: dict, path: str | Path, data: bytes) -> dict | None:
@@ -343,7 +360,7 @@ def expanded_instances(header: dict, path: str | Path, data: bytes) -> dict | No
             children.append(len(expanded["nodes"]))
             expanded["nodes"].append(child)
         node.pop("mesh", None)
-        node["children"] = list(node.get("children") or []) + children
+        node["children"] = json_list(node.get("children")) + children
     for key in ("extensionsUsed", "extensionsRequired"):
         if key in expanded:
             expanded[key] = [e for e in json_list(expanded[key]) if e != _INSTANCING]
@@ -425,7 +442,7 @@ def _extras(material: dict, label: str, notes: list[str]) -> MaterialExtras:
         info = slots[slot]
         if not isinstance(info, dict):
             continue
-        extension = (info.get("extensions") or {}).get("KHR_texture_transform")
+        extension = json_extension(info, "KHR_texture_transform")
         extension = extension if isinstance(extension, dict) else {}
         uv_set = extension.get("texCoord", info.get("texCoord", 0))
         if uv_set not in (0, None):

@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError, outside_stacklevel
-from ..geometry.gltf_json import expanded_instances, gltf_file_notes, gltf_header, instanced_nodes, json_list
+from ..geometry.gltf_json import (draws_triangles, expanded_instances, gltf_file_notes, gltf_header, instanced_nodes,
+                                  json_extension, json_list)
 from .schema import MAX_LIGHT_COORDINATE, MAX_RADIANCE
 
 __all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
@@ -126,10 +127,10 @@ def unused_scene_note(path: str | Path) -> str | None:
         mesh = node.get("mesh")
         if isinstance(mesh, int) and 0 <= mesh < len(meshes):
             key = _geometry_key(meshes[mesh])
-            drawn[key] = drawn.get(key, 0) + (2 if (node.get("extensions") or {}).get("EXT_mesh_gpu_instancing") else 1)
+            drawn[key] = drawn.get(key, 0) + (2 if json_extension(node, "EXT_mesh_gpu_instancing") else 1)
     repeated = sum(count > 1 for count in drawn.values())
     cameras = sum(isinstance(node.get("camera"), int) for node in nodes)
-    lights = sum(isinstance(((node.get("extensions") or {}).get(_LIGHTS) or {}).get("light"), int) for node in nodes)
+    lights = sum(isinstance(json_extension(node, _LIGHTS).get("light"), int) for node in nodes)
     lost = [f"{repeated} {_plural(repeated, 'mesh', 'meshes')} drawn by several nodes "
             f"{_plural(repeated, 'is', 'are')} copied"] if repeated else []
     unused = [f"{n} {_plural(n, what, what + 's')}" for n, what in ((cameras, "camera"), (lights, "light")) if n]
@@ -151,10 +152,13 @@ def _placed_nodes(header: dict, path: Path) -> list[tuple[int, np.ndarray]]:
     nodes = json_list(header.get("nodes"))
     scenes = json_list(header.get("scenes"))
     chosen = header.get("scene", 0)
-    if scenes and isinstance(chosen, int) and 0 <= chosen < len(scenes) and isinstance(scenes[chosen], dict):
-        roots = scenes[chosen].get("nodes") or []
+    if "scene" in header and not (isinstance(chosen, int) and 0 <= chosen < len(scenes)):
+        raise SceneError(f"{path}: the default scene is {chosen!r}, but the file has {len(scenes)} "
+                         f"{_plural(len(scenes), 'scene', 'scenes')}")
+    if scenes and isinstance(scenes[chosen], dict):
+        roots = _indices(scenes[chosen], "nodes", path, f"scene {chosen}")
     else:  # (no scene: every node that is no node's child, as viewers show such a file)
-        children = {c for n in nodes if isinstance(n, dict) for c in n.get("children") or [] if isinstance(c, int)}
+        children = {c for n in nodes if isinstance(n, dict) for c in json_list(n.get("children")) if isinstance(c, int)}
         roots = [i for i in range(len(nodes)) if i not in children]
     placed, stack = [], [(r, np.eye(4), ()) for r in reversed(roots)]
     while stack:
@@ -168,9 +172,17 @@ def _placed_nodes(header: dict, path: Path) -> list[tuple[int, np.ndarray]]:
         except (TypeError, ValueError) as exc:
             raise SceneError(f"{path}: node {index}'s transform cannot be read ({exc})") from None
         placed.append((index, world))
-        for child in reversed(nodes[index].get("children") or []):
+        for child in reversed(_indices(nodes[index], "children", path, f"node {index}")):
             stack.append((child, world, above + (index,)))
     return placed
+
+
+def _indices(owner: dict, key: str, path: Path, label: str) -> list:
+    """``owner[key]``, a list of node indices ([] if absent; ``label`` names the owner): an error if it is no list."""
+    found = owner.get(key, [])
+    if not isinstance(found, list):
+        raise SceneError(f"{path}: {label}'s {key} must be a list of node indices, not {type(found).__name__}")
+    return found
 
 
 def _local_matrix(node: dict) -> np.ndarray:
@@ -221,6 +233,10 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
             reason = validation_message(exc, TransformSpec)
             warnings.warn(f"{path}: node {index} ({name!r}) is left out: its world matrix cannot place a mesh ({reason})",
                           stacklevel=outside_stacklevel())
+            continue
+        if not draws_triangles(meshes[mesh]):
+            warnings.warn(f"{path}: node {index} ({name!r}) is left out: mesh {mesh} draws no triangles (points, lines "
+                          "or fans)", stacklevel=outside_stacklevel())
             continue
         if mesh not in bounds_of:  # (read here, so that a mesh the scene could not load fails the import)
             bounds_of[mesh] = _mesh_bounds(path, mesh, lit)
@@ -295,7 +311,7 @@ def _unit_number(value) -> float:
 
 def _emission(material: dict) -> list[float] | None:
     factor = material.get("emissiveFactor")
-    strength = ((material.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}).get("emissiveStrength", 1.0)
+    strength = json_extension(material, "KHR_materials_emissive_strength").get("emissiveStrength", 1.0)
     try:
         emission = [float(x) * float(strength) for x in factor]
     except (TypeError, ValueError):
@@ -306,10 +322,12 @@ def _emission(material: dict) -> list[float] | None:
 
 
 def _lights(header: dict, placed: list, centre: np.ndarray, radius: float, path: Path) -> list[dict]:
-    table = ((header.get("extensions") or {}).get(_LIGHTS) or {}).get("lights") or []
+    table = json_extension(header, _LIGHTS).get("lights", [])
+    if not isinstance(table, list):
+        raise SceneError(f"{path}: {_LIGHTS}'s lights must be a list, not {type(table).__name__}")
     lights = []
     for index, world in placed:
-        used = ((header["nodes"][index].get("extensions") or {}).get(_LIGHTS) or {}).get("light")
+        used = json_extension(header["nodes"][index], _LIGHTS).get("light")
         if used is None:
             continue
         light = table[used] if isinstance(used, int) and 0 <= used < len(table) and isinstance(table[used], dict) else None
