@@ -18,6 +18,7 @@ from neuralrt.errors import MeshError, NeuralRTError, SceneError
 from neuralrt.geometry.mesh import load_mesh
 from neuralrt.scene.gltf_import import CANDELA_PER_WATT_SR, DISTANT
 from neuralrt.scene.loader import load_scene, load_scene_spec
+from neuralrt.scene.material_rules import scene_materials
 
 DATA = Path(__file__).parent / "data"
 pytestmark = pytest.mark.filterwarnings("ignore:.*the emission of material 'lamp' is not read")
@@ -70,8 +71,8 @@ def test_the_camera_lights_and_materials_are_the_files(street, tmp_path):
     np.testing.assert_allclose(sun.position, centre + [0, DISTANT * radius, 0], rtol=1e-6, atol=1e-9)  # (it shines straight down)
     irradiance = np.array(sun.intensity) / (DISTANT * radius) ** 2  # at the centre, W/m^2
     np.testing.assert_allclose(irradiance, np.array([1, 0.95, 0.9]) * 1500 / CANDELA_PER_WATT_SR, rtol=1e-6)
-    kinds = {m.name: m for m in spec.materials}
-    assert kinds["default"].type == "diffuse" and tuple(kinds["default"].albedo) == (1, 1, 1)
+    kinds = {m.name: m for m in scene_materials(spec)}
+    assert kinds["default"].type == "diffuse" and tuple(kinds["default"].albedo) == (0.8, 0.8, 0.8)  # (as a lone mesh's)
     assert kinds["brick"].type == "plastic" and kinds["brick"].roughness == pytest.approx(0.49)
     assert kinds["chrome"].type == "conductor" and kinds["chrome"].roughness == pytest.approx(0.04)
     assert kinds["lamp"].type == "emissive" and tuple(kinds["lamp"].emission) == pytest.approx((1.0, 0.9, 0.7))

@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import SceneError, outside_stacklevel
 from ..geometry.gltf_json import (draws_triangles, expanded_instances, gltf_file_notes, gltf_header, instanced_nodes,
                                   json_extension, json_list)
-from .schema import MAX_LIGHT_COORDINATE, MAX_RADIANCE
+from .schema import DEFAULT_MATERIAL_NAME, MAX_LIGHT_COORDINATE, MAX_RADIANCE
 
 __all__ = ["gltf_scene_dict", "import_gltf_scene", "unused_scene_note"]
 
@@ -277,9 +277,10 @@ def _world_corners(bounds: tuple[np.ndarray, np.ndarray], world: np.ndarray) -> 
 
 
 def _materials(header: dict, path: Path) -> tuple[list[dict], int]:
-    """(the scene materials of the file's named materials, ``default`` white diffuse; how many emit)."""
-    found, emissive, unnamed = [{"name": "default", "type": "diffuse", "albedo": [1.0, 1.0, 1.0]}], 0, []
-    seen = {"default"}
+    """(the scene materials of the file's named materials; how many emit). The rest take the scene's
+    ``default`` (diffuse 0.8, as `neuralrt render mesh.glb` gives them)."""
+    found, emissive, unnamed = [], 0, []
+    seen = {DEFAULT_MATERIAL_NAME}
     for i, material in enumerate(header.get("materials") or []):
         if not isinstance(material, dict):
             continue
