@@ -187,6 +187,25 @@ def test_a_node_that_cannot_place_its_mesh_is_left_out_with_a_warning(street, tm
     assert facts["objects"] == 5
 
 
+def test_a_camera_or_mesh_its_node_cannot_place_is_left_out_in_one_line(street, tmp_path):
+    path = tmp_path / "odd.glb"
+    path.write_bytes(street.read_bytes())
+
+    def edit(header):
+        camera = next(n for n in header["nodes"] if "camera" in n)
+        camera["scale"] = [0.0, 0.0, 0.0]
+        header["nodes"][4]["matrix"] = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, float("nan"), 0, 0, 1]
+
+    edited_glb(path, edit)
+    with pytest.warns(UserWarning) as caught:
+        facts = api.import_scene(path, tmp_path / "odd.toml")
+    said = [str(w.message) for w in caught]
+    assert any("camera 0 at node" in m and "gives it no view direction" in m for m in said), said
+    assert any(m.endswith("node 4 ('ball') is left out: its world matrix cannot place a mesh (it holds numbers that are "
+                          "not finite)") for m in said), said
+    assert facts["camera"] == "framed" and facts["objects"] == 5
+
+
 def test_a_node_whose_mesh_draws_no_triangles_is_left_out_with_a_warning(street, tmp_path):
     """Points and lines (which rays cannot hit) are left out: a node drawing only them, with a warning
     naming it; a mesh mixing them with triangles, with a note on the primitives."""

@@ -209,11 +209,6 @@ def _local_matrix(node: dict) -> np.ndarray:
 def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], tuple[np.ndarray, np.ndarray]]:
     """One object per node that draws a mesh, and the world bounds of them all; each mesh is read
     once (``lit``: the material names the scene makes lights)."""
-    from pydantic import ValidationError
-
-    from ..errors import validation_message
-    from .schema import TransformSpec
-
     nodes, meshes = header["nodes"], json_list(header.get("meshes"))
     objects, corners, taken, first_alike, bounds_of = [], [], {}, {}, {}
     for index, world in placed:
@@ -227,10 +222,8 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
         taken[name] = taken.get(name, 0) + 1
         name = name if taken[name] == 1 else f"{name}.{taken[name] - 1}"
         matrix = [[float(x) for x in row] for row in world]
-        try:
-            TransformSpec(matrix=matrix)
-        except ValidationError as exc:
-            reason = validation_message(exc, TransformSpec)
+        reason = _placing_problem(world, matrix)
+        if reason:
             warnings.warn(f"{path}: node {index} ({name!r}) is left out: its world matrix cannot place a mesh ({reason})",
                           stacklevel=outside_stacklevel())
             continue
@@ -244,6 +237,22 @@ def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], t
         corners.append(_world_corners(bounds_of[mesh], world))
     every = np.concatenate(corners) if corners else np.zeros((1, 3))
     return objects, (every.min(axis=0), every.max(axis=0))
+
+
+def _placing_problem(world: np.ndarray, matrix: list) -> str | None:
+    """Why a node's world matrix cannot place a mesh (not finite; singular: a scale of 0), or None."""
+    from pydantic import ValidationError
+
+    from ..errors import validation_message
+    from .schema import TransformSpec
+
+    if not np.isfinite(world).all():  # (one reason, not pydantic's line per entry)
+        return "it holds numbers that are not finite"
+    try:
+        TransformSpec(matrix=matrix)
+    except ValidationError as exc:
+        return validation_message(exc, TransformSpec)
+    return None
 
 
 def _geometry_key(mesh) -> str:
@@ -383,8 +392,10 @@ def _camera(header: dict, placed: list, radius: float, path: Path) -> dict | Non
             raise SceneError(f"{path}: camera {used}: yfov must be in (0, pi) and aspectRatio positive, got "
                              f"{json.dumps(lens.get('yfov'))} and {json.dumps(aspect)}")
         forward, up = -world[:3, 2], world[:3, 1]
-        if np.linalg.norm(forward) == 0 or np.linalg.norm(np.cross(forward, up)) == 0:
-            raise SceneError(f"{path}: node {index}'s matrix leaves camera {used} no view direction")
+        if not np.isfinite(world).all() or np.linalg.norm(forward) == 0 or np.linalg.norm(np.cross(forward, up)) == 0:
+            warnings.warn(f"{path}: camera {_name(camera) or used!r} at node {index} is left out: the node's matrix "
+                          "gives it no view direction (a scale of 0, or not finite)", stacklevel=outside_stacklevel())
+            continue
         position = world[:3, 3]
         look_at = position + forward / np.linalg.norm(forward) * radius
         width = max(1, round(IMAGE_HEIGHT * float(aspect)))
