@@ -229,7 +229,7 @@ def test_a_part_left_out_of_a_file_is_a_warning(tmp_path):
     vertices = bad.vertices.copy()
     vertices[0] = np.nan
     bad = trimesh.Trimesh(vertices, bad.faces, process=False)
-    with pytest.warns(UserWarning, match=r"part \d of 2 is left out \(1 vertices have NaN or Inf coordinates \(in float32, where beyond 3.4e38 is Inf\)\)"):
+    with pytest.warns(UserWarning, match=r"part \d of 2 \(node 'geometry_\d'\) is left out \(1 vertices have NaN or Inf coordinates \(in float32, where beyond 3.4e38 is Inf\)\)"):
         mesh = load_mesh(_glb(tmp_path / "part.glb", good, bad))
     assert mesh.num_triangles == 12
 

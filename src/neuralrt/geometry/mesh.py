@@ -490,6 +490,7 @@ def _scene_parts(scene, position_component: int | None = None) -> tuple[list, li
             if normals is not None:  # (setting vertices clears the cache: the file's normals stay)
                 part.vertex_normals = normals
         part.apply_transform(transform)
+        part.metadata["neuralrt_node"] = node  # (what a warning about this part calls it)
         parts.append(part)
         colors.append(_kept_colours(geometry))
     return parts, colors
@@ -746,8 +747,9 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
         except MeshError as exc:
             if len(parts) == 1:
                 raise
-            warnings.warn(f"{path}: part {i} of {len(parts)} is left out ({str(exc).removeprefix(f'{path}: ')})",
-                          stacklevel=outside_stacklevel())
+            node = part.metadata.get("neuralrt_node")
+            warnings.warn(f"{path}: part {i} of {len(parts)}{f' (node {node!r})' if node is not None else ''} is left "
+                          f"out ({str(exc).removeprefix(f'{path}: ')})", stacklevel=outside_stacklevel())
             continue
         part_material = getattr(part.visual, "material", None)  # (glTF: what trimesh drops, by name; None: unnamed)
         extras = extras_of.get(getattr(part_material, "name", None)) if part_material is not None else None
