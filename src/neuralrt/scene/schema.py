@@ -381,10 +381,12 @@ class SceneSpec(_Strict):
                 errors.append((f"materials.{i}.name", f"duplicate material name {m.name!r} (also materials.{names[m.name]})"))
             names.setdefault(m.name, i)
         known = set(names) | {DEFAULT_MATERIAL_NAME}  # the implicit diffuse material is always there
+        listed = [*names, *([DEFAULT_MATERIAL_NAME] if DEFAULT_MATERIAL_NAME not in names else [])]
+        choices = ", ".join(map(repr, listed[:12])) + (f", ... ({len(listed)})" if len(listed) > 12 else "")
         for i, obj in enumerate(self.objects):
             if obj.material is not None and obj.material not in known:
-                errors.append((f"objects.{i}.material", f"unknown material {obj.material!r}"))
+                errors.append((f"objects.{i}.material", f"unknown material {obj.material!r} (the scene's: {choices})"))
             for slot, target in obj.materials.items():
                 if target not in known:
-                    errors.append((f"objects.{i}.materials.{slot}", f"unknown material {target!r}"))
+                    errors.append((f"objects.{i}.materials.{slot}", f"unknown material {target!r} (the scene's: {choices})"))
         return errors

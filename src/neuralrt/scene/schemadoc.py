@@ -117,8 +117,10 @@ cone; a directional light as a point light 100 scene radii away giving the same 
 a scene material per named glTF material: emissive where it emits (`emissiveFactor` x
 `KHR_materials_emissive_strength`), else a conductor (`metallicFactor` >= 0.5) or a plastic
 (glTF's dielectric), GGX alpha = `roughnessFactor`^2, albedo white (the mesh's base colour is the
-colour); `default` is white diffuse. A file without lights is lit and framed as a lone mesh is
-(`neuralrt render mesh.glb`). What is not read (orthographic cameras, unnamed emissive materials,
+colour); the other meshes take the scene's `default`, diffuse 0.8. A file without lights is lit
+and framed as a lone mesh is (`neuralrt render mesh.glb`), so a file without materials renders as
+it does alone; a file with named materials renders as they say, where alone every mesh is diffuse
+0.8 times its colours. What is not read (orthographic cameras, unnamed emissive materials,
 a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
 Rendering a glTF alone warns of what it leaves unused (copies of meshes several nodes draw,
 cameras, lights) and names the `neuralrt import` command that keeps them.
