@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from neuralrt.accel.mesh_blas import MeshBLAS
-from neuralrt.errors import TrainingError
+from neuralrt.errors import ModelFileError, TrainingError
 from neuralrt.geometry.mesh import Mesh
 from neuralrt.geometry.procedural import sphere
 from neuralrt.methods import load_model
@@ -317,17 +317,28 @@ def test_origins_inside_leaves_use_the_reversed_chord(ball, trained):
 
 
 def test_resume_continues_bit_for_bit(ball, trained, tmp_path):
+    """A run interrupted after its step-15 checkpoint, resumed, ends as the uninterrupted run; the
+    cut's schedule spans the run's steps, so another step count cannot resume it."""
     model, _, cfg = trained
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        short = cfg.with_training(steps=30)
+        short = cfg.with_training(steps=30, checkpoint_every=15)
         straight = train(ball, short, progress=False)
         ckpt = tmp_path / "r.ckpt"
-        train(ball, short.with_training(steps=15), progress=False, checkpoint=ckpt)
+
+        def interrupt(step, optimizer):
+            if step == 16:
+                raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt):
+            train(ball, short, progress=False, checkpoint=ckpt, on_step=interrupt)
+        with pytest.raises(ModelFileError, match=r"another run \(training.steps: checkpoint 30, now 20\)"):
+            train(ball, short.with_training(steps=20), progress=False, checkpoint=ckpt, resume=True)
         resumed = train(ball, short, progress=False, checkpoint=ckpt, resume=True)
     finally:
         torch.set_num_threads(before)
+    assert resumed.training_record["resumed_from"] == 15
     assert torch.equal(straight.encoder.table, resumed.encoder.table)
     assert torch.equal(straight.node_lod, resumed.node_lod) and torch.equal(straight.loss_sum, resumed.loss_sum)
 

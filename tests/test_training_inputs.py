@@ -299,6 +299,21 @@ def test_cli_resume_mismatch_and_resume_past_the_steps(tmp_path, capsys):
     assert neuralrt.load_model(out).training_record["steps"] == 4
 
 
+def test_cli_resume_takes_the_method_and_n_bvh_steps_from_the_checkpoint(tmp_path, capsys):
+    """``--resume`` alone continues the run: an N-BVH checkpoint resumes as N-BVH, at the run's step
+    count (its cut schedule spans them), and a count given that differs is named."""
+    mesh = _obj(tmp_path / "ball.obj", sphere(1))
+    out = tmp_path / "m.nrt"
+    config = get_method("nbvh").config("cpu", steps=4, batch_size=256)
+    neuralrt.train(load_mesh(mesh), config, progress=False, checkpoint=f"{out}.ckpt")
+    assert main(["train", mesh, "-o", str(out), "--resume", "--steps", "6", "--batch", "256", "--quiet"]) == 2
+    assert "(training.steps: checkpoint 4, now 6)" in _error_line(capsys)
+    assert main(["train", mesh, "-o", str(out), "--resume", "--batch", "256", "--quiet"]) == 0
+    model = neuralrt.load_model(out)
+    assert model.config.method == "nbvh" and model.training_record["resumed_from"] == 4
+    assert model.config.training.steps == 4 and not (tmp_path / "m.nrt.ckpt").exists()
+
+
 def test_train_validates_the_config_it_is_given_again():
     """An assignment can break a rule across sections, and ``model_copy(update=...)`` leaves a dict
     where a section was (train then failed with an AttributeError deep inside)."""

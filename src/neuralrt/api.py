@@ -332,12 +332,14 @@ def train(
     (``{"voxel": {"resolution": 64}}``; the CLI's ``--set voxel.resolution=64``; keys: docs/config.md).
 
     A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
-    interrupted run from it. It is removed once the model file is written. ``plot`` (.png, .pdf or
+    interrupted run from it (``method`` defaults to the run's, and, for N-BVH, whose cut schedule
+    spans the run, ``steps`` too). It is removed once the model file is written. ``plot`` (.png, .pdf or
     .svg) draws the run's training curve (also kept in the model file: `info` draws it later).
     """
     from .geometry.mesh import Mesh, load_mesh
     from .methods import DEFAULT_METHOD, get_method
     from .training.api import train as _train
+    from .training.trainer import checkpoint_run
 
     check_device(device)
     check_name("method", method)
@@ -345,15 +347,19 @@ def train(
     check_count(given("steps"), steps)
     check_count(given("batch"), batch)  # its bounds are the config's (training.batch_size)
     check_seed(given("seed"), seed)
+    output = check_path("output", output)
+    checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
+    if resume:  # what is not given is the run's it continues (--resume alone resumes an N-BVH run)
+        run_method, run_steps = checkpoint_run(checkpoint)
+        method = method or run_method
+        steps = steps if steps is not None or method != run_method else run_steps
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
     config = spec.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
-    output = check_path("output", output)
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)
     check_model_path(output)
     check_output_file(output, "model file")
-    checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
     check_output_file(checkpoint, "checkpoint")  # (its name is longer)
     if plot is not None:
         from .io.plots import check_plot_path

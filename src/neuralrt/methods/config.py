@@ -115,6 +115,10 @@ class MethodConfig(ConfigSection):
     # left out of `model_defining` while they hold it, so a new key does not retrain every cached
     # model or orphan every checkpoint (section -> key -> value).
     ADDED_KEYS: ClassVar[dict[str, dict[str, object]]] = {"training": {"adam_l2": 0.0}}
+    # Whether a run's schedule is laid over its ``training.steps`` (N-BVH's cut: splits and LoDs at
+    # fractions of the run), so that a checkpoint resumes only under the same count; else a run may
+    # be resumed to train longer.
+    SCHEDULE_SPANS_THE_STEPS: ClassVar[bool] = False
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "MethodConfig":

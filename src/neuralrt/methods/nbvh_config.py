@@ -115,6 +115,7 @@ class NBVHConfig(MethodConfig):
     inference: NBVHInferenceConfig = Field(default_factory=NBVHInferenceConfig)
 
     PRESETS: ClassVar[dict] = {}  # filled below
+    SCHEDULE_SPANS_THE_STEPS: ClassVar[bool] = True  # (the cut's splits and LoDs: `nbvh_cut.effective_last_split`)
 
     @model_validator(mode="after")
     def _lod_registered(self):

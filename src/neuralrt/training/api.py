@@ -23,9 +23,11 @@ __all__ = ["train", "run_identity"]
 
 def run_identity(mesh_hash: str, config: MethodConfig) -> dict:
     """What a checkpoint must match to be resumed: the mesh (its content hash) and the config,
-    except the step count (a run may be resumed to train longer) and the checkpoint interval."""
+    except the checkpoint interval and, unless the method's schedule spans the run (N-BVH), the
+    step count (a run may be resumed to train longer)."""
     run_config = config.model_defining()
-    run_config["training"].pop("steps")
+    if not config.SCHEDULE_SPANS_THE_STEPS:
+        run_config["training"].pop("steps")
     return {"mesh_sha256": mesh_hash, "config": run_config}
 
 

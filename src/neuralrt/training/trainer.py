@@ -30,7 +30,7 @@ from ..io.model_file import read_header, read_model_file, write_model_file
 from .curve import TrainingCurve, curve_problem
 from .prefetch import BatchSource
 
-__all__ = ["TrainingRecord", "train_model", "identity_differences", "CHECKPOINT_METHOD"]
+__all__ = ["TrainingRecord", "train_model", "identity_differences", "checkpoint_run", "CHECKPOINT_METHOD"]
 
 CHECKPOINT_METHOD = "checkpoint"
 
@@ -132,10 +132,26 @@ def check_checkpoint(path: Path, identity: dict, header: dict | None = None) -> 
     header = header if header is not None else read_header(path, method=CHECKPOINT_METHOD)
     if header.get("identity") != identity:
         raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(header.get('identity'), identity)}); "
-                             "delete it or drop --resume")
+                             "give the checkpoint's settings to resume it, or drop --resume to start afresh")
     step = header.get("step")
     if not isinstance(step, int) or isinstance(step, bool) or step < 0:
         raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop --resume")
+
+
+def checkpoint_run(path: Path) -> tuple[str | None, int | None]:
+    """(method, training.steps) of the run the checkpoint at ``path`` holds, where it records them
+    (the steps: where the method's schedule spans them); Nones where there is no readable
+    checkpoint (`check_checkpoint` then says what is wrong with it)."""
+    try:
+        identity = read_header(path, method=CHECKPOINT_METHOD).get("identity")
+    except (OSError, ModelFileError):
+        return None, None
+    config = identity.get("config") if isinstance(identity, dict) else None
+    config = config if isinstance(config, dict) else {}
+    method, training = config.get("method"), config.get("training")
+    steps = training.get("steps") if isinstance(training, dict) else None
+    return (method if isinstance(method, str) else None,
+            steps if isinstance(steps, int) and not isinstance(steps, bool) else None)
 
 
 def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) -> tuple[int, TrainingRecord]:
