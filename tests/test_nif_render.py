@@ -149,8 +149,11 @@ def test_cli_render_with_nif_reports_it(tmp_path, capsys):
     args = ["render", "builtin:cornell-statue?detail=0", "-o", str(out), "--spp", "3", "--res", "24x16", "--quiet", "--json",
             "--nif", "statue", "--nif-train-spp", "2"]
     assert main(args) == 0
-    result = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
     nif = result["nif"]
+    steps = nif["training"]["outer_steps"] + nif["training"]["inner_steps"]  # (24 x 16 pixels x 2 spp: a few)
+    assert f"NIF: the networks trained only {nif['training']['outer_steps']} outer" in captured.err and 0 < steps < 20
     assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2 and nif["pair_fraction"] == 0.5
     assert nif["shadow_rays"]["shadow_rays"] > 0 and nif["training"]["outer_pairs"] + nif["training"]["inner_pairs"] > 0
     assert nif["memory"]["paper_bytes_per_object"] == 327_680 and out.exists()

@@ -121,6 +121,22 @@ def _merge(a: RenderResult, b: RenderResult, seconds: float) -> RenderResult:
                         coverage=mean(a.coverage, b.coverage), spp=spp, seconds=seconds, stats=stats)
 
 
+# Fewer optimizer steps than this learn nothing beyond "visible" (docs/nif.md: 5 outer steps on the
+# instances scene learned nothing; ~150 on statue(2) halve the "visible" error).
+FEW_STEPS = 20
+
+
+def _warn_undertrained(stats) -> None:
+    """Warn where the networks that will answer saw no pairs, or too few steps to learn."""
+    if stats.outer_pairs == 0 and stats.inner_pairs == 0:
+        warnings.warn("NIF: no shadow ray toward the chosen objects was traced while training (has the scene "
+                      "lights that they can shadow?): the networks answer untrained", stacklevel=outside_stacklevel())
+    elif stats.outer_steps + stats.inner_steps < FEW_STEPS:
+        warnings.warn(f"NIF: the networks trained only {stats.outer_steps} outer + {stats.inner_steps} inner steps "
+                      f"({stats.outer_pairs + stats.inner_pairs:,} pairs), too few to learn much beyond \"visible\" "
+                      f"(fewer than {FEW_STEPS}): raise --nif-train-spp or the resolution", stacklevel=outside_stacklevel())
+
+
 def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, train_spp: int | None = None, seed: int = 0,
                config: NIFConfig | None = None, answer: str = "answer", audit: bool = False, **render_kwargs) -> tuple[RenderResult, dict]:
     """Render ``scene`` with NIF answering the shadow rays of the objects ``nif`` names (see
@@ -175,9 +191,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     shadows.mode = "collect"
     first = render(nif_scene, spp=train_spp, seed=seed, progress_label="render, NIF collecting", **render_kwargs)
     trainer.finish()
-    if answer == "answer" and trainer.stats.outer_pairs == 0:
-        warnings.warn("NIF: no shadow ray toward the chosen objects was traced while training (has the scene "
-                      "lights that they can shadow?): the networks answer untrained", stacklevel=outside_stacklevel())
+    if answer == "answer":
+        _warn_undertrained(trainer.stats)
     shadows.mode = answer
     second = render(nif_scene, spp=spp - train_spp, seed=seed + SECOND_PART_SEED,
                     progress_label="render, NIF answering" if answer == "answer" else "render, exact shadows", **render_kwargs)
