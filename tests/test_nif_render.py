@@ -154,6 +154,7 @@ def test_cli_render_with_nif_reports_it(tmp_path, capsys):
     nif = result["nif"]
     steps = nif["training"]["outer_steps"] + nif["training"]["inner_steps"]  # (24 x 16 pixels x 2 spp: a few)
     assert f"NIF: the networks trained only {nif['training']['outer_steps']} outer" in captured.err and 0 < steps < 20
+    assert nif["warmup_seconds"] > 0 and nif["render_seconds"]["total"] == pytest.approx(result["seconds"])
     assert result["spp"] == 3 and nif["objects"] == ["statue"] and nif["train_spp"] == 2 and nif["pair_fraction"] == 0.5
     assert nif["shadow_rays"]["shadow_rays"] > 0 and nif["training"]["outer_pairs"] + nif["training"]["inner_pairs"] > 0
     assert nif["memory"]["paper_bytes_per_object"] == 327_680 and out.exists()

@@ -23,11 +23,11 @@ from pydantic import ValidationError
 
 from ..arguments import check_count, given, seed_or_default
 from ..errors import ConfigError, outside_stacklevel, validation_message
-from ..methods.nif import NIFNetworks
+from ..methods.nif import NIFNetworks, NIFPairs
 from ..methods.nif_config import NIFConfig
 from ..methods.nif_training import NIFTrainer
 from .film import RenderResult
-from .integrator import render
+from .integrator import WARM_UP_RESOLUTION, render
 from .nif_shadows import NIFShadowAccel
 
 __all__ = ["render_nif", "select_nif_instances", "check_nif_names", "SECOND_PART_SEED"]
@@ -121,6 +121,34 @@ def _merge(a: RenderResult, b: RenderResult, seconds: float) -> RenderResult:
                         coverage=mean(a.coverage, b.coverage), spp=spp, seconds=seconds, stats=stats)
 
 
+def _warm_up(scene, chosen: list[int], config: NIFConfig, boxes: list, render_kwargs: dict) -> float:
+    """Load NIF's kernels untimed, on throwaway networks: one training round on synthetic pairs (a
+    tiny render may give none) and their answers, then a few pixels through the shadow accelerator
+    collecting and answering. Returns its seconds. (The first render in a process otherwise counts
+    their loading, or compiling on a cold numba cache: seconds, against ~20 ms of training.)"""
+    start = time.perf_counter()
+    networks = NIFNetworks(config, boxes).to(scene.device)
+    trainer = NIFTrainer(networks)
+    generator = torch.Generator().manual_seed(0)
+    objects = torch.arange(len(boxes)).repeat_interleave(64)
+    lo, hi = networks.box_lo.cpu()[objects], networks.box_hi.cpu()[objects]
+    inside = lo + torch.rand(len(objects), 3, generator=generator) * (hi - lo)
+    outside = inside + torch.linalg.norm(hi - lo, dim=-1, keepdim=True) * torch.randn(len(objects), 3, generator=generator)
+    origins = torch.where((torch.arange(len(objects)) % 2 == 0)[:, None], inside, outside)  # (inner and outer pairs)
+    pairs = NIFPairs(objects, origins, inside.flip(0) - origins, torch.zeros(len(objects)), torch.full((len(objects),), 1e30))
+    pairs = NIFPairs(*(getattr(pairs, k).to(scene.device) for k in ("obj", "origins", "directions", "t_min", "t_max")))
+    queries = networks.queries(pairs)
+    trainer.add(queries, torch.rand(len(objects), generator=generator).to(scene.device) < 0.5)
+    trainer.finish()
+    networks.occluded(pairs, queries)
+    shadows = NIFShadowAccel(scene.accel, chosen, networks, trainer)
+    few_pixels = {**render_kwargs, "progress": False, "resolution": WARM_UP_RESOLUTION}
+    for mode in ("collect", "answer"):
+        shadows.mode = mode
+        render(replace(scene, accel=shadows), spp=1, **few_pixels)
+    return time.perf_counter() - start
+
+
 # Fewer optimizer steps than this learn nothing beyond "visible" (docs/nif.md: 5 outer steps on the
 # instances scene learned nothing; ~150 on statue(2) halve the "visible" error).
 FEW_STEPS = 20
@@ -187,6 +215,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     shadows = NIFShadowAccel(accel, chosen, networks, trainer if answer == "answer" else None, audit=audit)
     nif_scene = replace(scene, accel=shadows)
 
+    warmup_seconds = _warm_up(scene, chosen, config, boxes, render_kwargs)  # (untimed, as `api.render`'s own)
     start = time.perf_counter()
     shadows.mode = "collect"
     first = render(nif_scene, spp=train_spp, seed=seed, progress_label="render, NIF collecting", **render_kwargs)
@@ -213,6 +242,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         "answer": answer,
         "training": tr.as_dict(),
         "training_seconds": tr.seconds,
+        "warmup_seconds": warmup_seconds,
         "training_seconds_per_spp": tr.seconds / train_spp,
         "training_share_of_render": tr.seconds / max(total, 1e-12),
         "render_seconds": {"train_part": first.seconds, "finish_training": total - first.seconds - second.seconds,
