@@ -52,7 +52,7 @@ THREE = [("sphere", {"subdivisions": 3}), ("statue", {"detail": 1}), ("hairball"
 # What describes a run rather than the model: wall time, and what a resumed run records instead of
 # the uninterrupted one (an interrupted task may have finished training before it was cancelled;
 # its rerun then resumes at the last step, with an empty window of running statistics).
-_RUN_HISTORY = ("seconds", "rays_per_second", "resumed_from", "final_loss", "final_losses", "hit_accuracy", "extra")
+_RUN_HISTORY = ("seconds", "rays_per_second", "first_step_seconds", "first_step_rays", "resumed_from", "final_loss", "final_losses", "hit_accuracy", "extra")
 
 
 def _model_part(header: dict) -> dict:

@@ -31,6 +31,21 @@ def test_hook_runs_after_every_step_and_extra_holds_method_statistics():
     assert set(record.extra) == {"truncated_fraction"} and 0.0 <= record.extra["truncated_fraction"] <= 1.0
 
 
+def test_rays_per_second_leaves_out_the_first_step_which_loads_the_kernels():
+    mesh = sphere(2)
+    model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq"))
+    rays = BoxRayDistribution(MeshBLAS(mesh), model.box, pool_size=1024, seed=0)
+
+    def first_step_compiles(step, optimizer):
+        if step == 0:
+            time.sleep(0.5)  # (as a cold numba cache's compile would)
+
+    record = train_model(model, rays, steps=4, batch_size=256, learning_rate=0.01, progress=False, on_step=first_step_compiles)
+    assert record.first_step_seconds >= 0.5 and record.first_step_rays == 256 and record.seconds > record.first_step_seconds
+    assert record.rays_per_second == pytest.approx(3 * 256 / (record.seconds - record.first_step_seconds))
+    assert record.rays_per_second > 4 * 256 / 0.5  # (all four steps over the whole time would be below this)
+
+
 def test_training_runs_on_every_device(device):
     from neuralrt.training.api import train
 
@@ -447,7 +462,7 @@ def test_an_nbvh_checkpoint_whose_tree_cannot_be_walked_is_refused(tmp_path):
 
     bad = _edited_checkpoint_arrays(tmp_path / "n.ckpt", tmp_path / "bad.ckpt", far_child)
     with pytest.raises(ModelFileError, match=r"cannot resume from this checkpoint \(ValueError: the tree's child indices"):
-        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
+        train(mesh, config, progress=False, checkpoint=bad, resume=True)
 
 
 @pytest.mark.parametrize("change, message", [

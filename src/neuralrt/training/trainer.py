@@ -45,7 +45,11 @@ class TrainingRecord:
     seconds: NonNegativeFloat = 0.0  # wall time spent in steps (summed over resumed sessions; setup before the first step not counted)
     rays: NonNegativeInt = 0  # rays drawn in total
     network_rays: NonNegativeInt = 0  # of those, rays that reached the network
-    rays_per_second: NonNegativeFloat = 0.0
+    rays_per_second: NonNegativeFloat = 0.0  # over the steps after each session's first (see first_step_seconds)
+    # Of `seconds` and `rays`: each session's first step, which loads the kernels (compiling them on
+    # a cold numba cache: 31 s for an N-BVH step of 0.1 s), left out of rays_per_second.
+    first_step_seconds: NonNegativeFloat = 0.0
+    first_step_rays: NonNegativeInt = 0
     final_loss: float = float("nan")  # mean over the last `window` steps, of the weighted sum the optimizer minimizes
     final_losses: dict = field(default_factory=dict)  # each term's mean, unweighted (N-BVH: `loss.*_weight` scale them)
     hit_accuracy: float = float("nan")  # running hit/miss accuracy over the last `window` steps
@@ -304,6 +308,9 @@ def train_model(
             dt = time.perf_counter() - t0
             record.seconds += dt
             record.rays += result.count
+            if step == start:
+                record.first_step_seconds += dt
+                record.first_step_rays += result.count
             record.network_rays += result.network_rays
             running.add(loss=loss, correct=result.correct, count=result.count,
                         **{f"count_{k}": v for k, v in result.ray_counts.items()},
@@ -342,7 +349,10 @@ def _diverged(step: int, loss: float, learning_rate: float) -> str:
 
 def _finish(record: TrainingRecord, running: _Running, steps: int) -> None:
     record.steps = steps
-    record.rays_per_second = record.rays / record.seconds if record.seconds > 0 else 0.0
+    seconds, rays = record.seconds - record.first_step_seconds, record.rays - record.first_step_rays
+    if not (seconds > 0 and rays > 0):  # (a run of one step per session: that step is all there is)
+        seconds, rays = record.seconds, record.rays
+    record.rays_per_second = rays / seconds if seconds > 0 else 0.0
     record.final_loss = running.mean("loss")
     keys = sorted({k for item in running.items for k in item if k.startswith("loss_")})
     record.final_losses = {k[len("loss_"):]: running.mean(k) for k in keys}
