@@ -20,7 +20,20 @@ from ..errors import ConfigError, validation_message
 AdamBeta = Annotated[float, Field(ge=0.0, lt=1.0)]  # (torch's Adam refuses others, after set-up)
 MAX_STEPS = 10**9  # (a typo of 1e20 steps would run forever; the papers train 2,000-10,000)
 
-__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings"]
+__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings", "merged_settings"]
+
+
+def merged_settings(base: dict, changes: dict) -> dict:
+    """``base`` (a config's ``model_dump``) with ``changes`` merged in key by key, at every depth:
+    ``{"outer": {"position_grid": {"resolution": 64}}}`` changes that one key and keeps the rest of
+    the section and its subsections. A config section among the changes counts by the keys set in it."""
+    merged = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, BaseModel):
+            value = value.model_dump(exclude_unset=True)
+        merged[key] = merged_settings(merged[key], value) if isinstance(merged.get(key), dict) and isinstance(value, dict) \
+            else value
+    return merged
 
 
 class ConfigSection(BaseModel):
@@ -122,19 +135,15 @@ class MethodConfig(ConfigSection):
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "MethodConfig":
-        """The preset ``name``, with ``overrides`` merged in key by key: ``preset("hq", training={"steps": 100})``
-        changes only ``training.steps`` and keeps every other training key of the preset. Values may
+        """The preset ``name``, with ``overrides`` merged in key by key (`merged_settings`):
+        ``preset("hq", training={"steps": 100})`` changes only ``training.steps`` and keeps every
+        other training key of the preset. Values may
         be dicts or config sections. An unknown preset or a bad override is a one-line `ConfigError`
         (a ``ValueError``) naming the known presets or the key."""
         if not isinstance(name, str) or name not in cls.PRESETS:
             raise ConfigError(f"{given('preset')}: unknown {cls._method_name()} preset {name!r} (choose from "
                               f"{', '.join(cls.PRESETS)})")
-        data = cls.PRESETS[name]().model_dump()
-        for section, values in overrides.items():
-            if isinstance(values, BaseModel):
-                values = values.model_dump(exclude_unset=True)
-            data[section] = {**data[section], **values} if isinstance(data.get(section), dict) and isinstance(values, dict) else values
-        return cls.validated(data)
+        return cls.validated(merged_settings(cls.PRESETS[name]().model_dump(), overrides))
 
     def with_training(self, **changes) -> "MethodConfig":
         """A copy with some training keys changed (``None`` values are ignored): ``with_training(steps=100, batch_size=4096)``.

@@ -23,6 +23,7 @@ from pydantic import ValidationError
 
 from ..arguments import check_count, given, seed_or_default
 from ..errors import ConfigError, outside_stacklevel, validation_message
+from ..methods.config import merged_settings
 from ..methods.nif import NIFNetworks, NIFPairs
 from ..methods.nif_config import NIFConfig
 from ..methods.nif_training import NIFTrainer
@@ -56,7 +57,8 @@ def check_nif_names(nif) -> None:
 
 
 def _nif_config(config) -> NIFConfig:
-    """``config`` (None, a `NIFConfig` or a dict shaped like one) as a `NIFConfig`; a bad one is a one-line `ConfigError`."""
+    """``config`` (None, a `NIFConfig`, or a dict of the keys to change from the defaults, at any
+    depth: ``{"outer": {"hidden_width": 32}}``) as a `NIFConfig`; a bad one is a one-line `ConfigError`."""
     if config is None:
         return NIFConfig()
     if isinstance(config, NIFConfig):
@@ -64,7 +66,7 @@ def _nif_config(config) -> NIFConfig:
     if not isinstance(config, dict):
         raise ConfigError(f"config: expected a NIFConfig or a dict, got {type(config).__name__}")
     try:
-        return NIFConfig.model_validate(config)
+        return NIFConfig.model_validate(merged_settings(NIFConfig().model_dump(), config))
     except ValidationError as exc:
         raise ConfigError(f"nif config: {validation_message(exc, NIFConfig)}") from None
 
