@@ -157,6 +157,10 @@ def test_info_describes_a_checkpoint_under_either_name(tmp_path, capsys):
         info = api.info(path)
         assert info["kind"] == "checkpoint" and info["method"] == "lsnif" and info["step"] == 4
         assert info["training"]["steps"] == 4 and "steps" not in info["config"]["training"]
+    assert api.info(ckpt)["resume"].startswith(f"neuralrt train MESH -o {tmp_path / 'ball.nrt'} --resume")
+    convert_named = tmp_path / "statue-0123456789-abcdef01.ckpt"  # (a convert models folder's: a rerun resumes it)
+    convert_named.write_bytes(ckpt.read_bytes())
+    assert api.info(convert_named)["resume"].startswith("run the neuralrt convert command that wrote it again")
     (tmp_path / "other.ckpt").write_bytes(ckpt.read_bytes()[:10])
     assert main(["info", str(tmp_path / "other.ckpt")]) == 2
     assert capsys.readouterr().err.startswith("neuralrt: error: ")

@@ -184,10 +184,21 @@ def _checkpoint_info(path: Path, header: dict) -> dict:
         "step": header.get("step"),
         "format_version": header.get("format_version"),
         "mesh_sha256": identity.get("mesh_sha256"),
-        "config": config,  # without training.steps and checkpoint_every: a resumed run may change them
+        "config": config,  # without checkpoint_every, and training.steps unless the method's schedule spans them
         "training": record,
-        "resume": "neuralrt train MESH -o MODEL.nrt --resume (with the run's method and settings)",
+        "resume": _resume_hint(path),
     }
+
+
+def _resume_hint(checkpoint: Path) -> str:
+    """The command that continues a checkpoint's run: `train --resume` writes MODEL.nrt.ckpt; `convert`
+    writes its models folder's STEM.ckpt, which a rerun of the same convert command resumes."""
+    import shlex
+
+    if checkpoint.name.lower().endswith(MODEL_SUFFIX + CHECKPOINT_SUFFIX):
+        model = shlex.quote(str(checkpoint)[: -len(CHECKPOINT_SUFFIX)])
+        return f"neuralrt train MESH -o {model} --resume (with the run's settings; its method is read from the checkpoint)"
+    return "run the neuralrt convert command that wrote it again: its unfinished models resume from their checkpoints"
 
 
 def list_builtins() -> list[tuple[str, str]]:
