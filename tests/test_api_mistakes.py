@@ -138,3 +138,12 @@ def test_a_training_curve_of_no_numbers_is_summed_up_in_words(losses):
     assert _curve_summary({"loss": losses}) == "2 points, not numbers (an edited file: --plot says what is wrong)"
     assert curve_problem({"every": 1, "start": 0, "step": [1, 2], "loss": losses, "hit_accuracy": [0.5, 0.5],
                           "seconds": [0.1, 0.2], "losses": {}, "states": {}}) is not None
+
+
+def test_a_section_of_another_method_names_that_method_and_dotted_settings_name_the_nesting(tmp_path, capsys):
+    assert main(["train", "procedural:statue:0", "-o", str(tmp_path / "k.nrt"), "--method", "lsnif", "--set", "cut.lods=3"]) == 2
+    assert capsys.readouterr().err.strip() == ("neuralrt: error: lsnif config: cut: not a section of lsnif's config (it is "
+                                               "of nbvh's: --method nbvh)")
+    with pytest.raises(ConfigError, match=r"^settings: 'cut.lods': sections nest as dicts here, \{'cut': \{'lods': \.\.\.\}\}"):
+        get_method("nbvh").config("cpu", settings={"cut.lods": 3})
+    assert get_method("nbvh").config("cpu", settings={"cut": {"lods": 3}}).cut.lods == 3

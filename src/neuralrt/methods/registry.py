@@ -97,6 +97,7 @@ class MethodSpec:
         changed (``steps=..., batch_size=..., seed=...``; ``None`` keeps the preset's). Errors are one-line `ConfigError`s."""
         if settings is not None and not isinstance(settings, dict):
             raise ConfigError(f"settings: expected a dict of config sections, got {type(settings).__name__}")
+        self._check_sections(settings or {})
         named = (settings or {}).get("training")
         for key, value in training.items():  # (one would silently win over the other)
             if value is not None and isinstance(named, dict) and key in named and named[key] != value:
@@ -104,6 +105,21 @@ class MethodSpec:
                 raise ConfigError(f"{given(argument, value)} and training.{key}={named[key]!r} in "
                                   f"{given('settings', flag='--set')} disagree: give one of them")
         return self.config_class.preset(preset or self.default_preset(device), **(settings or {})).with_training(**training)
+
+    def _check_sections(self, settings: dict) -> None:
+        """A one-line `ConfigError` for a dotted key (the CLI's spelling; a dict nests) or a section
+        this method lacks, naming the methods that have it."""
+        own = self.config_class.model_fields
+        for key in settings:
+            head, dot, rest = str(key).partition(".")
+            if dot and head in own:
+                raise ConfigError(f"{given('settings', flag='--set')}: {key!r}: sections nest as dicts here, "
+                                  f"{{{head!r}: {{{rest!r}: ...}}}} (the CLI's --set takes {key}=VALUE)")
+            if key not in own:
+                others = [name for name in method_names() if name != self.name and key in get_method(name).config_class.model_fields]
+                if others:
+                    raise ConfigError(f"{self.name} config: {key}: not a section of {self.name}'s config (it is of "
+                                      f"{', '.join(others)}'s: --method {others[0]})")
 
     def preset_of(self, config: MethodConfig) -> str | None:
         """The preset ``config`` was made from, up to the training keys `config` sets (steps, batch
