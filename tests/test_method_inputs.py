@@ -244,3 +244,15 @@ def test_cli_nif_with_the_scene_default_spp_renders(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "neuralrt: warning: NIF trains on the first 8 of 16 samples per pixel" in captured.err
     assert json.loads(captured.out)["nif"]["train_spp"] == 8 and out.exists()
+
+
+def test_info_of_a_model_set_past_its_preset_names_the_nearest_preset_and_the_keys(tmp_path):
+    out = tmp_path / "k.nrt"
+    api.train("procedural:statue:0", out, preset="lq", steps=2, batch=256, progress=False,
+              settings={"network": {"hidden_width": 32}})
+    info = api.info(out)
+    assert info["preset"] is None and info["nearest_preset"] == "lq"
+    assert info["changed_from_preset"] == {"network.hidden_width": 32}
+    plain = tmp_path / "plain.nrt"
+    api.train("procedural:statue:0", plain, preset="lq", steps=2, batch=256, progress=False)
+    assert api.info(plain)["preset"] == "lq" and "nearest_preset" not in api.info(plain)

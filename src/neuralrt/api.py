@@ -136,11 +136,15 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
     header = read_model_header(path)
     model = load_model(path)
     report = model.memory_bytes()
+    spec = get_method(header.method)
+    preset = spec.preset_of(model.config)
+    nearest = {} if preset is not None else dict(zip(("nearest_preset", "changed_from_preset"), spec.nearest_preset(model.config)))
     return _plotted({
         "kind": "model",
         "path": str(path),
         "method": header.method,
-        "preset": get_method(header.method).preset_of(model.config),  # (None: keys set past a preset's)
+        "preset": preset,  # (None: keys set past a preset's; then the nearest one and the keys set)
+        **nearest,
         "format_version": raw["format_version"],  # (the header read above: read_model_header checks it)
         "reader_format_version": FORMAT_VERSION,
         "memory_bytes": report.total,

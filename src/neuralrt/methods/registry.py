@@ -121,6 +121,19 @@ class MethodSpec:
                     raise ConfigError(f"{self.name} config: {key}: not a section of {self.name}'s config (it is of "
                                       f"{', '.join(others)}'s: --method {others[0]})")
 
+    def nearest_preset(self, config: MethodConfig) -> tuple[str, dict]:
+        """(the preset ``config`` differs from in the fewest keys, those keys as ``--set`` spells them
+        with ``config``'s values), up to the training keys `config` sets, as `preset_of` compares."""
+        t, mine = config.training, _flat(config.model_defining())
+        best = None
+        for name in self.presets:
+            theirs = _flat(self.config(name, steps=t.steps, batch_size=t.batch_size, seed=t.seed).model_defining())
+            changed = {k: v for k, v in mine.items() if theirs.get(k, object()) != v}
+            changed.update({k: None for k in theirs if k not in mine})
+            if best is None or len(changed) < len(best[1]):
+                best = (name, changed)
+        return best
+
     def preset_of(self, config: MethodConfig) -> str | None:
         """The preset ``config`` was made from, up to the training keys `config` sets (steps, batch
         size, seed) and what makes no other model (`model_defining`); None where other keys differ."""
@@ -130,6 +143,17 @@ class MethodSpec:
             if made.model_defining() == config.model_defining():
                 return name
         return None
+
+
+def _flat(data: dict, prefix: str = "") -> dict:
+    """``{"cut": {"lods": 3}}`` as ``{"cut.lods": 3}``."""
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 _METHODS: dict[str, MethodSpec] = {}
