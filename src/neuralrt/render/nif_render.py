@@ -198,8 +198,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
         if spp < 2:
             raise ConfigError(f"{given('spp', spp)}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
-        warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (training.train_spp "
-                      f"{config.training.train_spp} is not below spp; set {given('nif_train_spp')} to choose)",
+        warnings.warn(f"NIF trains on the first {spp // 2} of {spp} samples per pixel (its default, "
+                      f"{config.training.train_spp}, is not below spp; set {given('nif_train_spp')} to choose)",
                       stacklevel=outside_stacklevel())
         train_spp = spp // 2
     if train_spp is not None:
