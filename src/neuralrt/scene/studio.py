@@ -54,7 +54,8 @@ def studio_dict(key: str, value, lo, hi, resolution: tuple[int, int] | None = No
         camera["resolution"] = list(resolution)
     return {
         "camera": camera,
-        "objects": [{"name": "object", key: value}],
+        # (named as its mesh is, so that `--nif bunny` names a lone bunny)
+        "objects": [{"name": getattr(value, "name", None) or getattr(value, "mesh_name", None) or "object", key: value}],
         "lights": [{"position": (centre + key_dir * light_distance).tolist(),
                     "intensity": [_KEY_IRRADIANCE * light_distance ** 2] * 3}],
         "environment": {"color": [_SKY] * 3},
