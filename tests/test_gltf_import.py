@@ -302,3 +302,54 @@ def test_nodes_under_turned_and_scaled_parents_are_placed_as_the_whole_file_read
     spec, _, _ = load_scene_spec(tmp_path / "nested.toml")
     assert len(spec.objects) == 6
     np.testing.assert_allclose(_placed_triangles(spec), _world_triangles(load_mesh(path)), atol=2e-4)
+
+
+def _textured_pair_glb(path):
+    """Two meshes, a big red-textured ball and a small blue-textured box, in one .glb (images in its binary chunk)."""
+    import trimesh
+    from PIL import Image
+    from trimesh.visual import TextureVisuals
+    from trimesh.visual.material import PBRMaterial
+
+    scene = trimesh.Scene()
+    for name, mesh, colour, x in (("ball", trimesh.creation.icosphere(4), (255, 0, 0), 0.0),
+                                  ("box", trimesh.creation.box(), (0, 0, 255), 3.0)):
+        image = Image.new("RGB", (4, 4), colour)
+        mesh.visual = TextureVisuals(uv=np.random.default_rng(0).random((len(mesh.vertices), 2)),
+                                     material=PBRMaterial(name=name, baseColorTexture=image))
+        scene.add_geometry(mesh, node_name=name, geom_name=name, transform=trimesh.transformations.translation_matrix([x, 0, 0]))
+    scene.export(path)
+    return path
+
+
+def test_one_mesh_of_a_file_is_read_from_its_own_bytes_with_its_own_texture(tmp_path):
+    from gltf_files import glb_as_gltf
+    from neuralrt.geometry.gltf_json import gltf_header, gltf_mesh_index, mesh_alone
+    from neuralrt.geometry.gltf_pack import packed_alone
+
+    glb = _textured_pair_glb(tmp_path / "pair.glb")
+    header = gltf_header(glb)
+    box = gltf_mesh_index(header, "box")
+    packed = packed_alone(mesh_alone(header, box), glb)
+    assert len(packed) < glb.stat().st_size / 4  # (the ball's 2,562 vertices and its image are left out)
+    for name, colour in (("ball", [1, 0, 0]), ("box", [0, 0, 1])):
+        mesh = load_mesh(glb, name)
+        (material,) = mesh.materials
+        assert material.name == name and np.allclose(material.texture.reshape(-1, 3).mean(0), colour, atol=1e-3)
+        whole = [p for p in load_mesh(glb).materials if p.name == name]
+        assert whole and np.allclose(whole[0].texture, material.texture)
+    # A .gltf whose meshes are in two .bin files: a missing one fails only the mesh that reads it.
+    gltf = glb_as_gltf(glb, tmp_path / "pair.gltf")
+    data = json.loads(gltf.read_text())
+    box_views = {data["accessors"][a]["bufferView"] for p in data["meshes"][box]["primitives"]
+                 for a in [*p["attributes"].values(), p["indices"]]}
+    whole = (tmp_path / "pair.bin").read_bytes()
+    (tmp_path / "box.bin").write_bytes(whole)
+    data["buffers"].append({"uri": "box.bin", "byteLength": len(whole)})
+    for v in box_views:
+        data["bufferViews"][v]["buffer"] = 1
+    gltf.write_text(json.dumps(data))
+    (tmp_path / "box.bin").unlink()
+    assert load_mesh(gltf, "ball").num_triangles == 5120
+    with pytest.raises(MeshError, match=rf"cannot read glTF mesh {box}: buffer 1's file box.bin is not in {tmp_path}"):
+        load_mesh(gltf, "box")

@@ -27,6 +27,7 @@ object's ``gltf_mesh``: `neuralrt.scene.gltf_import` places each node's mesh as 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import struct
@@ -309,9 +310,10 @@ def gltf_mesh_index(header: dict, mesh: int | str) -> int:
 def mesh_alone(header: dict, index: int) -> dict:
     """A copy of ``header`` whose scene is the one mesh ``index`` in its own space: one node, no
     transform. The other meshes and the materials this one does not use become empty (a stub keeping
-    a material's name), so that reading it decodes neither their accessors nor their images, and
-    indices stay as they were. Skins and animations, which name nodes, are dropped."""
-    alone = json.loads(json.dumps(header))
+    a material's name), and indices stay as they were (`gltf_pack.packed_alone` then keeps only the
+    bytes it reads). Skins and animations, which name nodes, are dropped. (A shallow copy: the
+    entries it keeps are ``header``'s own, which neither changes.)"""
+    alone = dict(header)
     meshes = json_list(alone.get("meshes"))
     chosen = meshes[index] if isinstance(meshes[index], dict) else {}
     used = {p.get("material") for p in json_list(chosen.get("primitives")) if isinstance(p, dict)}
@@ -491,7 +493,19 @@ def _uv_transform(extension: dict) -> np.ndarray | None:
 
 def gltf_header(path: str | Path) -> dict:
     """The JSON of a .gltf or .glb file; {} where it cannot be read here (trimesh reads the file
-    too, and says what is wrong with it)."""
+    too, and says what is wrong with it). Read once per version of the file (its size, time and
+    inode) for the last few files: a scene reads each of a file's meshes alone, one header each
+    time. The dict is shared: a caller that changes it changes a copy (`mesh_alone`, `named_materials`)."""
+    try:
+        stat = Path(path).stat()
+    except OSError:
+        return {}
+    return _read_header(str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_header(path: str, size: int, mtime_ns: int, inode: int) -> dict:
+    """`gltf_header`, read (the file's version is the cache key)."""
     path = Path(path)
     try:
         with path.open("rb") as f:

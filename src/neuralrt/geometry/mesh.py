@@ -23,6 +23,7 @@ from .declared_counts import ply_vertex_properties, truncation_problem
 from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes, gltf_header, gltf_material_extras,
                         gltf_mesh_index, expanded_instances, instanced_nodes, mesh_alone, named_materials,
                         position_dequantization, uv_dequantization, with_header)
+from .gltf_pack import packed_alone
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
 from .unread_assets import regular_files_resolver, unread_assets
@@ -424,14 +425,13 @@ def _accessor_colors(values, where: str) -> np.ndarray | None:
     return np.clip(values[:, :3].astype(np.float32) / np.float32(scale), 0.0, 1.0)
 
 
-def _rewritten_gltf(header: dict, path: Path, changed: bool = False) -> tuple[dict, bytes | None]:
+def _rewritten_gltf(header: dict, path: Path) -> tuple[dict, bytes | None]:
     """(the header trimesh is to read the file under, the file's bytes with it, or None where the
     file is read as it is): unnamed materials that place their maps differently named
-    (`named_materials`), GPU instances made nodes (`expanded_instances`); ``changed``: ``header`` is
-    already not the file's (`mesh_alone`). The file is read once."""
+    (`named_materials`), GPU instances made nodes (`expanded_instances`). The file is read once."""
     rewritten = named_materials(header)
     if rewritten is None and not instanced_nodes(header):
-        return header, with_header(path.read_bytes(), header) if changed else None
+        return header, None
     data = path.read_bytes()
     try:
         rewritten = expanded_instances(rewritten or header, path, data) or rewritten
@@ -687,12 +687,21 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
     if unreadable:
         raise MeshError(f"{path}: cannot read mesh: {unreadable}")
     used_materials: set[str] = set()
-    header, rewritten = _rewritten_gltf(header, path, changed=gltf_mesh is not None) if header else (header, None)
+    if gltf_mesh is not None:  # (its own bytes only: `packed_alone`)
+        try:
+            rewritten, file_type = packed_alone(header, path), "glb"
+        except (OSError, ValueError) as exc:
+            raise MeshError(f"{path}: cannot read glTF mesh {gltf_mesh}: {getattr(exc, 'strerror', None) or exc}") from None
+    elif header:
+        header, rewritten = _rewritten_gltf(header, path)
+        file_type = suffix[1:]
+    else:
+        rewritten = None
     try:
         with unread_assets() as unread:
             source, obj_bytes = dict(file_obj=str(path)), None
             if rewritten is not None:  # (read under a header of our own: see `_rewritten_gltf`)
-                source = dict(file_obj=io.BytesIO(rewritten), file_type=suffix[1:])
+                source = dict(file_obj=io.BytesIO(rewritten), file_type=file_type)
             if suffix == ".obj":  # (read once here: trimesh reads the bytes as they are, or as cleaned)
                 data = path.read_bytes()
                 used_materials = used_material_names(data)

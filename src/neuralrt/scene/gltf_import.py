@@ -269,7 +269,8 @@ def _mesh_bounds(path: Path, mesh: int, lit) -> tuple[np.ndarray, np.ndarray]:
     try:
         return load_mesh(path, mesh, lit=lit).bounds
     except NeuralRTError as exc:
-        raise SceneError(f"{exc} (glTF mesh {mesh})") from None
+        said = str(exc)
+        raise SceneError(said if f"glTF mesh {mesh}:" in said else f"{said} (glTF mesh {mesh})") from None
 
 
 def _name(entry) -> str | None:

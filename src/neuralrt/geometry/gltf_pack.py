@@ -1,0 +1,222 @@
+"""One mesh of a glTF file as a .glb of its own, holding only the bytes that mesh reads.
+
+A scene `neuralrt import` writes names each mesh of a glTF file alone (``gltf_mesh``), and each is
+read on its own. Read under a `mesh_alone` header, trimesh still loads every buffer of the file,
+slices every buffer view and opens every image: a file of many meshes was read whole once per mesh
+(a 1.6 MB file of 200 meshes: 17 ms a mesh), and a missing .bin that only another mesh uses failed
+them all, in the name of the first mesh read. `packed_alone` reads the buffer views the mesh's
+accessors and its materials' images use (seeking to them in the .glb's binary chunk or the .bin
+files beside a .gltf) into one binary chunk; the other views and accessors are left out and the
+other images a one-pixel stand-in; the accessors and views kept are renumbered (trimesh then parses
+and slices those alone).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import urllib.parse
+from pathlib import Path
+
+from .gltf_json import json_list
+from .unread_assets import regular_files_resolver
+
+__all__ = ["packed_alone"]
+
+_GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
+# What trimesh opens for an image the mesh does not use (it opens each image of the file): 1 x 1 grey.
+_STAND_IN_IMAGE = ("data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAAAAAA6fptVAAAACklEQVR4nGNgAAAAAgAB"
+                   "SK+kcQAAAABJRU5ErkJggg==")
+_ALIGN = 16  # each view's bytes start at a multiple of this (glTF asks 4; a component is at most 4 bytes)
+
+
+def packed_alone(header: dict, path: Path) -> bytes:
+    """The .glb bytes of ``header`` (a `mesh_alone` header: one mesh, the others and the materials
+    it does not use empty) with only the accessors its mesh reads and the buffer views they and its
+    materials' images use (renumbered), read from ``path``'s buffers. An OSError names a buffer
+    file the mesh needs that cannot be read; a ValueError a view the file's buffers do not hold."""
+    accessors, views = json_list(header.get("accessors")), json_list(header.get("bufferViews"))
+    images = json_list(header.get("images"))
+    used_images = _material_images(header)
+    kept_accessors = sorted(a for a in _mesh_accessors(header) if 0 <= a < len(accessors) and isinstance(accessors[a], dict))
+    kept_views = sorted({v for a in kept_accessors for v in _accessor_views(accessors[a]) if 0 <= v < len(views)}
+                        | {images[i]["bufferView"] for i in used_images if 0 <= i < len(images) and isinstance(images[i], dict)
+                           and isinstance(images[i].get("bufferView"), int) and 0 <= images[i]["bufferView"] < len(views)})
+    new_accessor, new_view = {a: k for k, a in enumerate(kept_accessors)}, {v: k for k, v in enumerate(kept_views)}
+
+    reader = _BufferReader(header, path)
+    chunk, packed_views = bytearray(), []
+    for v in kept_views:
+        view = views[v] if isinstance(views[v], dict) else {}
+        data = reader.read(view.get("buffer"), view.get("byteOffset", 0), view.get("byteLength"), v)
+        chunk += b"\0" * (-len(chunk) % _ALIGN)
+        packed_views.append({**view, "buffer": 0, "byteOffset": len(chunk), "byteLength": len(data)})
+        chunk += data
+    chunk += b"\0" * (-len(chunk) % 4)
+
+    packed = dict(header)
+    packed["accessors"] = [_renumbered_accessor(accessors[a], new_view) for a in kept_accessors]
+    packed["bufferViews"] = packed_views
+    packed["buffers"] = [{"byteLength": len(chunk)}]
+    packed["meshes"] = [_renumbered_mesh(m, new_accessor) for m in json_list(header.get("meshes"))]
+    if images:
+        packed["images"] = [_renumbered_image(image, new_view) if i in used_images else {"uri": _STAND_IN_IMAGE}
+                            for i, image in enumerate(images)]
+    return _glb(packed, bytes(chunk))
+
+
+def _renumbered_accessor(accessor: dict, new_view: dict) -> dict:
+    out = {**accessor}
+    if isinstance(out.get("bufferView"), int):
+        out["bufferView"] = new_view[out["bufferView"]]
+    sparse = out.get("sparse")
+    if isinstance(sparse, dict):
+        out["sparse"] = {**sparse, **{part: {**sparse[part], "bufferView": new_view[sparse[part]["bufferView"]]}
+                                      for part in ("indices", "values") if isinstance(sparse.get(part), dict)
+                                      and isinstance(sparse[part].get("bufferView"), int)}}
+    return out
+
+
+def _renumbered_mesh(mesh, new_accessor: dict):
+    """``mesh`` with its primitives' accessor indices renumbered (an index it does not keep: the
+    mesh's own error, left for trimesh to say: -1)."""
+    if not isinstance(mesh, dict):
+        return mesh
+
+    def renumber(index):
+        return new_accessor.get(index, -1) if isinstance(index, int) else index
+
+    primitives = []
+    for primitive in json_list(mesh.get("primitives")):
+        if isinstance(primitive, dict):
+            primitive = dict(primitive)
+            if isinstance(primitive.get("attributes"), dict):
+                primitive["attributes"] = {k: renumber(v) for k, v in primitive["attributes"].items()}
+            if "indices" in primitive:
+                primitive["indices"] = renumber(primitive["indices"])
+            if isinstance(primitive.get("targets"), list):
+                primitive["targets"] = [{k: renumber(v) for k, v in t.items()} if isinstance(t, dict) else t
+                                        for t in primitive["targets"]]
+        primitives.append(primitive)
+    return {**mesh, "primitives": primitives}
+
+
+def _renumbered_image(image, new_view: dict):
+    if isinstance(image, dict) and isinstance(image.get("bufferView"), int):
+        return {**image, "bufferView": new_view[image["bufferView"]]}
+    return image
+
+
+def _mesh_accessors(header: dict) -> set[int]:
+    """The accessors the header's meshes read: attributes, indices and morph targets."""
+    used = set()
+    for mesh in json_list(header.get("meshes")):
+        for primitive in json_list(mesh.get("primitives")) if isinstance(mesh, dict) else []:
+            if not isinstance(primitive, dict):
+                continue
+            maps = [primitive.get("attributes"), *json_list(primitive.get("targets"))]
+            used.update(a for m in maps if isinstance(m, dict) for a in m.values() if isinstance(a, int))
+            if isinstance(primitive.get("indices"), int):
+                used.add(primitive["indices"])
+    return used
+
+
+def _accessor_views(accessor: dict) -> list[int]:
+    """The buffer views an accessor reads: its own, and a sparse one's indices and values."""
+    sparse = accessor.get("sparse") if isinstance(accessor.get("sparse"), dict) else {}
+    owners = [accessor, sparse.get("indices"), sparse.get("values")]
+    return [o["bufferView"] for o in owners if isinstance(o, dict) and isinstance(o.get("bufferView"), int)]
+
+
+def _material_images(header: dict) -> set[int]:
+    """The images the header's materials use: each ``...Texture`` slot's texture's sources (its own,
+    and those of its extensions, such as EXT_texture_webp)."""
+    textures, used = json_list(header.get("textures")), set()
+
+    def walk(value, key=""):
+        if isinstance(value, dict):
+            index = value.get("index")
+            if key.endswith("Texture") and isinstance(index, int) and 0 <= index < len(textures):
+                used.update(_sources(textures[index]))
+            for k, v in value.items():
+                walk(v, k)
+        elif isinstance(value, list):
+            for v in value:
+                walk(v, key)
+
+    for material in json_list(header.get("materials")):
+        walk(material)
+    return used
+
+
+def _sources(texture) -> list[int]:
+    if not isinstance(texture, dict):
+        return []
+    found = [texture["source"]] if isinstance(texture.get("source"), int) else []
+    extensions = texture.get("extensions") if isinstance(texture.get("extensions"), dict) else {}
+    return found + [e["source"] for e in extensions.values() if isinstance(e, dict) and isinstance(e.get("source"), int)]
+
+
+class _BufferReader:
+    """Byte ranges of a glTF file's buffers: the .glb's binary chunk and .bin files by seeking, data
+    URIs decoded once."""
+
+    def __init__(self, header: dict, path: Path):
+        self.buffers, self.path, self.decoded = json_list(header.get("buffers")), path, {}
+
+    def read(self, index, offset, length, view: int) -> bytes:
+        if not (isinstance(index, int) and 0 <= index < len(self.buffers) and isinstance(self.buffers[index], dict)):
+            raise ValueError(f"buffer view {view} names buffer {index!r}, which the file does not have")
+        if not (isinstance(offset, int) and isinstance(length, int) and offset >= 0 and length >= 0):
+            raise ValueError(f"buffer view {view}'s byteOffset and byteLength must be non-negative integers")
+        uri = self.buffers[index].get("uri")
+        if uri is None:  # (the .glb's own binary chunk)
+            data = self._from_file(self.path, self._binary_chunk_start() + offset, length)
+        elif not isinstance(uri, str):
+            raise ValueError(f"buffer {index}'s uri must be a string")
+        elif uri.startswith("data:"):
+            if index not in self.decoded:
+                self.decoded[index] = base64.b64decode(uri.partition(",")[2])
+            data = self.decoded[index][offset:offset + length]
+        else:
+            file = self.path.parent / urllib.parse.unquote(uri)
+            data = self._from_file(file, offset, length) if file.is_file() else self._other_spelling(uri, index)[offset:offset + length]
+        if len(data) != length:
+            raise ValueError(f"buffer view {view} reaches past the end of buffer {index} (cut short?)")
+        return data
+
+    def _binary_chunk_start(self) -> int:
+        with self.path.open("rb") as f:
+            start = f.read(20)
+            if start[:4] != _GLB_MAGIC:
+                raise ValueError("a buffer without a uri, in a file that is no .glb")
+            json_length = struct.unpack_from("<I", start, 12)[0]
+            f.seek(20 + json_length)
+            chunk = f.read(8)
+        if len(chunk) < 8 or struct.unpack_from("<I", chunk, 4)[0] != _BIN_CHUNK:
+            raise ValueError("the .glb has no binary chunk after its JSON (cut short?)")
+        return 20 + json_length + 8
+
+    def _other_spelling(self, uri: str, index: int) -> bytes:
+        """The whole file ``uri`` names as the mesh's other files are found (backslashes, letter case:
+        `regular_files_resolver`), or a FileNotFoundError naming where it was looked for."""
+        if index not in self.decoded:
+            try:
+                self.decoded[index] = regular_files_resolver(str(self.path)).get(uri)
+            except (OSError, ValueError):
+                raise FileNotFoundError(2, f"buffer {index}'s file {uri} is not in {self.path.parent}") from None
+        return self.decoded[index]
+
+    @staticmethod
+    def _from_file(file: Path, offset: int, length: int) -> bytes:
+        with file.open("rb") as f:
+            f.seek(offset)
+            return f.read(length)
+
+
+def _glb(header: dict, binary: bytes) -> bytes:
+    text = json.dumps(header).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), _JSON_CHUNK) + text + struct.pack("<II", len(binary), _BIN_CHUNK) + binary
+    return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
