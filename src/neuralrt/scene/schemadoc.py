@@ -123,7 +123,11 @@ it does alone; a file with named materials renders as they say, where alone ever
 0.8 times its colours. What is not read (orthographic cameras, unnamed emissive materials,
 a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
 Rendering a glTF alone warns of what it leaves unused (copies of meshes several nodes draw,
-cameras, lights) and names the `neuralrt import` command that keeps them.
+cameras, lights) and names the `neuralrt import` command that keeps them. A `gltf_mesh` is read
+from its own bytes (`neuralrt.geometry.gltf_pack`: its accessors, views and images only): a .glb
+of 200 meshes (1.6 MB) imports in 0.55 s and its scene loads in 0.99 s, against 3.30 s and 4.18 s
+when each mesh read the whole file; a buffer file that only some meshes use fails those alone,
+by name.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
