@@ -363,6 +363,15 @@ def test_the_cache_is_keyed_by_mesh_content_and_the_model_making_config(tmp_path
                               **common)
     assert not retrained.models[0].reused
     assert load_scene(tmp_path / "out" / "b.toml").accel.instances[0].blas is not None
+    # Other inference settings reuse the model too: the converted object says them (`ObjectSpec.inference`).
+    answering = convert_scene(tmp_path / "a.toml", tmp_path / "out" / "e.toml",
+                              settings={"inference": {"chunk_size": 4096, "compute_precision": "fp32"}}, **common)
+    assert answering.models[0].reused and answering.models[0].model_path == first.models[0].model_path
+    (obj,) = load_scene_spec(tmp_path / "out" / "e.toml")[0].objects
+    assert obj.inference == {"chunk_size": 4096, "compute_precision": "fp32"}
+    blas = load_scene(tmp_path / "out" / "e.toml").accel.instances[0].blas
+    assert blas.config.inference.chunk_size == 4096 and blas.memory_owner.config.inference.chunk_size != 4096
+    assert load_scene_spec(tmp_path / "out" / "a.toml")[0].objects[0].inference == {}
 
 
 def test_group_keeps_normal_maps_through_its_obj(tmp_path):

@@ -611,6 +611,55 @@ def test_scene_answers_camera_rays_finest_and_other_rays_coarser(ball, trained, 
     assert inst.blas is plain and inst.camera_blas is None
 
 
+def test_a_scene_object_changes_its_models_inference_settings_without_another_model(ball, trained, tmp_path):
+    """``inference = { lod = 2 }`` on one of two objects of one model file: that object answers with
+    LoD 2 (a view sharing the model's parameters, counted once), the other as the file says; bad
+    settings name the key; the scene file keeps them."""
+    import warnings
+
+    from neuralrt.errors import ConfigError, SceneError
+    from neuralrt.scene.loader import load_dict, load_scene_spec
+    from neuralrt.scene.memory import scene_memory
+    from neuralrt.scene.scene import save_scene
+    from neuralrt.scene.schema import ObjectSpec, SceneSpec
+
+    model, _, _ = trained
+    path = str(model.save(tmp_path / "ball.nrt"))
+    objects = [{"name": "fine", "mesh": ball, "model": path},
+               {"name": "coarse", "mesh": ball, "model": path, "transform": {"translate": [3, 0, 0]},
+                "inference": {"lod": 2, "secondary_lod": None}}]
+    spec = {"camera": {"position": [0, 0, 12], "resolution": [8, 8]}, "objects": objects}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load_dict(spec, primary="neural")
+    fine, coarse = scene.accel.instances
+    assert fine.blas.config.inference.lod == 1 and coarse.blas.config.inference.lod == 2  # (fine: its secondary LoD)
+    assert coarse.blas.memory_owner is fine.blas.memory_owner and coarse.camera_blas is None
+    rays = _sphere_rays(2048, 5)
+    assert torch.equal(coarse.blas.intersect(rays).t, fine.blas.memory_owner.at_lod(2).intersect(rays).t)
+    assert scene_memory(scene).neural_bytes == fine.blas.memory_owner.memory_bytes().total
+    assert model.with_inference(lod=model.config.inference.lod) is model
+    with pytest.raises(ConfigError, match="storage_precision is how the model's parameters were stored"):
+        model.with_inference(storage_precision="fp32")
+    for inference, message in (({"lod": 9}, r"objects.1.inference: nbvh config: inference.lod"),
+                               ({"lods": 2}, r"objects.1.inference: nbvh config: inference.lods: Extra inputs")):
+        bad = {**spec, "objects": [objects[0], {**objects[1], "inference": inference}]}
+        with pytest.raises(SceneError, match=message), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            load_dict(bad, primary="neural")
+    with pytest.raises(SceneError, match="inference changes how a model answers: give model too"):
+        load_dict({**spec, "objects": [{"mesh": ball, "inference": {"lod": 2}}]})
+    # A scene file keeps them: TOML (which has no null) for a number, JSON for None too.
+    saved = SceneSpec(objects=[ObjectSpec(model=path), ObjectSpec(model=path, inference={"lod": 2})])
+    save_scene(saved, tmp_path / "s.toml")
+    assert load_scene_spec(tmp_path / "s.toml")[0].objects[1].inference == {"lod": 2}
+    saved.objects[1].inference = {"lod": 2, "secondary_lod": None}
+    with pytest.raises(SceneError, match=r"objects.1.inference.secondary_lod is None, which TOML cannot write"):
+        save_scene(saved, tmp_path / "s.toml")
+    save_scene(saved, tmp_path / "s.json")
+    assert load_scene_spec(tmp_path / "s.json")[0].objects[1].inference == {"lod": 2, "secondary_lod": None}
+
+
 def test_cpu_sampler_draws_are_philox_streams_of_the_draw_number(ball):
     """The CPU training-ray sampler (`nbvh_rays_cpu`): Philox4x32-10 as Random123's known answer;
     the same samples on any numba thread count and for the same draw number, other samples for

@@ -23,6 +23,8 @@ method through one typed model-file header (`neuralrt.io.model_file.ModelHeader`
 
 from __future__ import annotations
 
+import copy
+import json
 import os
 import warnings
 from abc import ABC, abstractmethod
@@ -36,7 +38,7 @@ from torch import Tensor, nn
 from ..arguments import given
 from ..accel.blas import MemoryReport
 from ..devices import check_device, check_path
-from ..errors import DeviceError, MeshMismatchError, ModelFileError, TrainingError, outside_stacklevel, validation_message
+from ..errors import ConfigError, DeviceError, MeshMismatchError, ModelFileError, TrainingError, outside_stacklevel, validation_message
 from ..fork_guard import check_not_forked
 from ..io.files import check_output_file
 from ..io.model_file import ModelHeader, check_model_path, read_model, write_model
@@ -218,6 +220,31 @@ class NeuralBLAS(nn.Module, ABC):
         what answers every other ray (e.g. N-BVH's coarser level of detail after the first bounce).
         Views share this model's parameters (`memory_owner`). Default: the model answers both."""
         return self, self
+
+    def with_inference(self, **changes) -> "NeuralBLAS":
+        """This model answering with some ``inference`` settings changed (N-BVH's ``lod`` or
+        ``secondary_lod``, a ``compute_precision``, a ``chunk_size``; none changes the trained
+        parameters): a view that shares every parameter and buffer (a shallow copy with its own
+        config; `memory_owner` names this model), made once per setting; the model itself where
+        nothing changes. ``storage_precision``, how the parameters were stored, is no setting to
+        change. A bad key or value is a one-line `ConfigError`."""
+        if "storage_precision" in changes:
+            raise ConfigError("inference.storage_precision is how the model's parameters were stored, not a setting "
+                              "to change when it answers")
+        data = self.config.model_dump()
+        data["inference"] = {**data["inference"], **changes}
+        config = type(self.config).validated(data)  # (the cross-section rules too: N-BVH's lod < cut.lods)
+        owner = self.memory_owner
+        if config.inference == owner.config.inference:
+            return owner
+        views = owner.__dict__.setdefault("_inference_views", {})
+        key = json.dumps(config.inference.model_dump(mode="json"), sort_keys=True)
+        if key not in views:
+            view = copy.copy(owner)  # shares _parameters/_buffers/_modules: no bytes copied
+            view.config = config
+            object.__setattr__(view, "_view_of", owner)  # not nn.Module.__setattr__: a model is no submodule of its view
+            views[key] = view
+        return views[key]
 
     @property
     def memory_owner(self) -> "NeuralBLAS":

@@ -20,7 +20,6 @@ the registered cuts (`nbvh_cut.compact`), the hash table and the MLP.
 
 from __future__ import annotations
 
-import copy
 import math
 from typing import ClassVar
 
@@ -124,7 +123,6 @@ class NBVHModel(NeuralBLAS):
         self._batch: tuple[Tensor, Tensor | None] | None = None  # (leaf per sample, chord fractions) of the batch being trained
         self._batch_losses: Tensor | None = None
         self._h: Tensor | None = None
-        self._lod_views: dict[int, NBVHModel] = {}
 
     def _check_tree(self) -> None:
         """A ValueError unless the node arrays are a tree the traversal can walk: the kernels index
@@ -221,23 +219,12 @@ class NBVHModel(NeuralBLAS):
         return [lvl for lvl in range(MAX_LODS) if bool(self.registered[lvl])]
 
     def at_lod(self, lod: int) -> "NBVHModel":
-        """A view of this model answering rays with the cut of LoD ``lod``: it shares every parameter
-        and buffer (a shallow copy with its own config), reports this model as `memory_owner`, and is
-        made once per LoD (instances of one model share it)."""
+        """This model answering rays with the cut of LoD ``lod``: `with_inference` (``lod=lod``), a
+        view sharing every parameter and buffer, made once per setting (instances of one model share it)."""
         lods = self.config.cut.lods
         if isinstance(lod, bool) or not isinstance(lod, int) or not 0 <= lod < lods:
             raise ConfigError(f"N-BVH level of detail: expected an integer in 0..{lods - 1} (cut.lods = {lods}), got {lod!r}")
-        if lod == self.config.inference.lod:
-            return self
-        owner = self.memory_owner
-        if owner is not self:
-            return owner.at_lod(lod)
-        if lod not in self._lod_views:
-            view = copy.copy(self)  # shares _parameters/_buffers/_modules: no bytes copied
-            view.config = self.config.model_copy(update={"inference": self.config.inference.model_copy(update={"lod": lod})})
-            object.__setattr__(view, "_view_of", self)  # not nn.Module.__setattr__: a model is no submodule of its view
-            self._lod_views[lod] = view
-        return self._lod_views[lod]
+        return self if lod == self.config.inference.lod else self.with_inference(lod=lod)
 
     def views_for_rays(self) -> tuple["NBVHModel", "NBVHModel"]:
         """(this model, the view at ``inference.secondary_lod``): camera rays get the configured cut,

@@ -30,13 +30,14 @@ from ..geometry.mesh import Mesh, MeshMaterial
 from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_file, read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
+from ..methods.base import memory_owner
 from .convert_executors import Executor, TrainingJob, make_executor
 from .loader import load_scene_spec, shape_for
 from .material_rules import is_emissive, lit_slots, material_index, scene_material_for
 from .schema import ObjectSpec, SceneSpec, TransformSpec
 from .scene import save_scene
 
-__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "model_file_stem", "cached_model_is_valid", "cached_model_stem",
+__all__ = ["ConvertedModel", "ConversionReport", "convert_scene", "model_file_stem", "cached_model_is_valid", "cached_model_stem", "inference_changes",
            "selected_objects", "neural_bytes", "replaced_memory", "DEFAULT_MIN_TRIANGLES"]
 
 # Objects smaller than this stay triangles unless selected by name: a model costs ~1.5 MB, a
@@ -85,15 +86,26 @@ def _config_hash(config: MethodConfig) -> str:
     return hashlib.sha256(json.dumps(config.model_defining(), sort_keys=True).encode()).hexdigest()
 
 
-def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig) -> bool:
+def _parameters_defining(config: MethodConfig) -> dict:
+    """What makes a model's trained parameters: `MethodConfig.model_defining` but the inference
+    settings a model may answer with other values of (`NeuralBLAS.with_inference`; all but storage_precision)."""
+    data = config.model_defining()
+    data["inference"] = {k: v for k, v in data["inference"].items() if k == "storage_precision"}
+    return data
+
+
+def cached_model_is_valid(path: Path, mesh_hash: str, config: MethodConfig, *, answering_alike: bool = True) -> bool:
     """The file exists, is a readable model of this config's method, of this mesh, with this config
-    (`MethodConfig.model_defining`: the checkpoint interval aside)."""
+    (`MethodConfig.model_defining`: the checkpoint interval aside; ``answering_alike=False``: up to
+    the inference settings a scene object changes, `_parameters_defining`)."""
     if not path.is_file():
         return False
     try:
         header = read_model_header(path, method=config.method)
         stored = config_from_dict(header.config)
-        if header.mesh_sha256 != mesh_hash or stored.model_defining() != config.model_defining():
+        same = (stored.model_defining() == config.model_defining() if answering_alike
+                else _parameters_defining(stored) == _parameters_defining(config))
+        if header.mesh_sha256 != mesh_hash or not same:
             return False
         read_model_file(path, method=config.method)  # the arrays' checksum too: a corrupted file is retrained, not reused
     except (ModelFileError, ConfigError):
@@ -121,7 +133,19 @@ def cached_model_stem(models_dir: Path, mesh_name: str, mesh_hash: str, config: 
     for path in sorted(models_dir.glob(f"*{suffix}")):
         if cached_model_is_valid(path, mesh_hash, config):
             return path.stem
+    # One trained with other inference settings: its objects say the asked ones (`inference_changes`).
+    for path in sorted(models_dir.glob(f"*-{mesh_hash[:10]}-*.nrt")):
+        if cached_model_is_valid(path, mesh_hash, config, answering_alike=False):
+            return path.stem
     return None
+
+
+def inference_changes(model_path: Path, config: MethodConfig) -> dict:
+    """The inference settings ``config`` asks that the model file's config holds otherwise (a scene
+    object's ``inference``, `ObjectSpec.inference`): {} for a model trained with them."""
+    stored = config_from_dict(read_model_header(model_path, method=config.method).config).inference.model_dump(mode="json")
+    asked = config.inference.model_dump(mode="json")
+    return {k: v for k, v in asked.items() if stored.get(k) != v}
 
 
 def _object_names(spec: SceneSpec) -> list[str]:
@@ -397,15 +421,18 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
         done = trained.get(stem)
         report.models.append(ConvertedModel(mesh.name, mesh.num_triangles, str(model_path), [names[i] for i in users],
                                             done is None, done.seconds if done else 0.0, done.where if done else ""))
+        changes = inference_changes(model_path, config)  # (a model reused from a run with other inference settings)
         if group:
             mesh_path = models_dir / f"{stem}.obj"
             write_mesh_obj(group_source, mesh_path)
             grouped = ObjectSpec(name="group:" + "+".join(names[i] for i in users), mesh=str(mesh_path.resolve()),
-                                 model=str(model_path.resolve()), transform=TransformSpec(), materials=group_slots)
+                                 model=str(model_path.resolve()), transform=TransformSpec(), materials=group_slots,
+                                 inference=changes)
             out_spec.objects = [o for i, o in enumerate(out_spec.objects) if i not in set(users)] + [grouped]
         else:
             for i in users:
                 out_spec.objects[i].model = str(model_path.resolve())
+                out_spec.objects[i].inference = changes
     report.neural_objects = len(chosen)
     save_scene(out_spec, output)
     return report
@@ -413,7 +440,7 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
 
 def neural_bytes(scene) -> int:
     """Run-time bytes of a scene's neural models, each counted once (instancing), model-only objects included."""
-    models = {id(i.blas): i.blas for i in scene.accel.instances if is_neural(i.blas)}
+    models = {id(memory_owner(i.blas)): memory_owner(i.blas) for i in scene.accel.instances if is_neural(i.blas)}
     return int(sum(m.memory_bytes().total for m in models.values()))
 
 

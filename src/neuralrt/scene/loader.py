@@ -32,7 +32,7 @@ from ..errors import NeuralRTError, SceneError, outside_stacklevel, validation_e
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import AABB
-from ..methods.base import MeshMismatchWarning, check_mesh_match, ray_views
+from ..methods.base import MeshMismatchWarning, check_mesh_match, is_neural, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -403,6 +403,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                 blas = models[obj.model]
             check_mesh_match(blas, shape.content_hash if shape is not None else None, allow_mismatch=allow_mesh_mismatch,
                              label=f"{label}: {key}.model")
+            if obj.inference:
+                blas = _with_inference(blas, obj.inference, label, key)
             slots = _material_names(blas, label, key)
             if is_emissive(spec, obj, slots):
                 raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
@@ -434,6 +436,16 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
                  instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev,
                  primary=primary)
+
+
+def _with_inference(blas, changes: dict, label: str, key: str):
+    """``blas`` answering with the object's ``inference`` settings (`NeuralBLAS.with_inference`)."""
+    if not is_neural(blas):
+        raise SceneError(f"{label}: {key}.inference: the object's model is no neural model ({type(blas).__name__})")
+    try:
+        return blas.with_inference(**changes)
+    except NeuralRTError as exc:
+        raise SceneError(f"{label}: {key}.inference: {exc}") from None
 
 
 def _warn_untextured(specs: list, obj: ObjectSpec, slot_materials: list[int], shape, label: str, key: str,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..methods.base import is_neural
+from ..methods.base import is_neural, memory_owner
 
 __all__ = ["SceneMemory", "scene_memory"]
 
@@ -63,7 +63,8 @@ def scene_memory(scene) -> SceneMemory:
     else:  # a scene assembled by hand: hybrid instances are the ones we can tell
         has_model = [inst.camera_blas is not None for inst in instances]
     exact = {id(i.blas): i.blas for i, m in zip(instances, has_model) if not m}
-    neural = {id(i.blas): i.blas for i, m in zip(instances, has_model) if m and id(i.blas) not in exact}
+    # (views of one model, e.g. objects at other N-BVH LoDs, count its bytes once: `memory_owner`)
+    neural = {id(memory_owner(i.blas)): memory_owner(i.blas) for i, m in zip(instances, has_model) if m and id(i.blas) not in exact}
     # A neural camera BLAS is a view of the object's model (e.g. N-BVH's finest LoD), counted in `neural`.
     kept = [i.camera_blas is not None and not is_neural(i.camera_blas) for i in instances]
     camera = {id(i.camera_blas): i.camera_blas for i, m, k in zip(instances, has_model, kept) if m and k and id(i.camera_blas) not in exact}

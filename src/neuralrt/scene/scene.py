@@ -109,6 +109,10 @@ def save_scene(spec: SceneSpec, path: str | Path) -> None:
     else:
         import tomli_w
 
+        unset = [f"objects.{i}.inference.{k}" for i, o in enumerate(data.get("objects", []))
+                 for k, v in o.get("inference", {}).items() if v is None]
+        if unset:  # (secondary_lod = None: TOML has no null)
+            raise SceneError(f"{path}: {unset[0]} is None, which TOML cannot write: save the scene as .json")
         text = _numbers_on_one_line(tomli_w.dumps(data))
     write_atomically(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
@@ -118,8 +122,8 @@ _IDENTITY = {"translate": [0.0, 0.0, 0.0], "rotate": [0.0, 0.0, 0.0], "scale": 1
 
 def _without_defaults(data: dict) -> dict:
     """A scene's dict without what each object's defaults say again (an identity ``translate``,
-    ``rotate`` and ``scale``, which a ``matrix`` replaces anyway; an empty ``materials`` map): an
-    imported scene has thousands of objects."""
+    ``rotate`` and ``scale``, which a ``matrix`` replaces anyway; an empty ``materials`` or
+    ``inference`` map): an imported scene has thousands of objects."""
     for obj in data.get("objects", []):
         transform = obj.get("transform", {})
         for key, identity in _IDENTITY.items():
@@ -127,8 +131,9 @@ def _without_defaults(data: dict) -> dict:
                 transform.pop(key, None)
         if not transform:
             obj.pop("transform", None)
-        if not obj.get("materials", True):
-            obj.pop("materials")
+        for key in ("materials", "inference"):
+            if not obj.get(key, True):
+                obj.pop(key)
     return data
 
 

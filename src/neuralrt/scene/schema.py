@@ -44,7 +44,8 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, field_validator, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, field_validator,
+                      model_validator)
 
 from ..errors import ConfigError
 from ..rays import MAX_CONDITION, MAX_SCALE, MIN_SCALE, Transform
@@ -283,6 +284,10 @@ class ObjectSpec(_Strict):
     material: str | None = Field(None, description="scene material for every face")
     materials: dict[str, str] = Field(default_factory=dict, description="mesh material name -> scene material name "
                                       "(unmapped slots use the scene material of the same name, else 'default')")
+    inference: dict[str, StrictBool | StrictInt | StrictFloat | StrictStr | None] = Field(
+        default_factory=dict, description="the model's inference settings changed for this object, e.g. N-BVH's "
+        "{ lod = 2 } (keys of its method's inference section, docs/config.md, but storage_precision; the trained "
+        "parameters are the same: instances share them)")
 
     @field_validator("transform", mode="before")
     @classmethod
@@ -301,6 +306,8 @@ class ObjectSpec(_Strict):
             raise ValueError("gltf_mesh chooses a mesh of the glTF file that mesh names: give mesh too")
         if self.material is not None and self.materials:
             raise ValueError("give either material or materials, not both")
+        if self.inference and self.model is None:
+            raise ValueError("inference changes how a model answers: give model too")
         return self
 
 
