@@ -212,6 +212,7 @@ def test_render_nif_arguments_are_config_errors(args, message):
         render_nif(**call)
 
 
+@pytest.mark.filterwarnings("ignore:NIF. the networks trained only")  # (a few pixels: a few steps)
 def test_render_nif_takes_a_dict_config_and_defaults_to_half_the_spp():
     with pytest.warns(UserWarning, match=r"NIF trains on the first 2 of 4 samples per pixel \(its default, 32, is not below spp"):
         result, report = render_nif(_scene(), "ball", spp=4, config={"training": {"passes_per_spp": 2}}, progress=False)
