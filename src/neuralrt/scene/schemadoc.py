@@ -124,10 +124,12 @@ it does alone; a file with named materials renders as they say, where alone ever
 a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
 Rendering a glTF alone warns of what it leaves unused (copies of meshes several nodes draw,
 cameras, lights) and names the `neuralrt import` command that keeps them. A `gltf_mesh` is read
-from its own bytes (`neuralrt.geometry.gltf_pack`: its accessors, views and images only): a .glb
-of 200 meshes (1.6 MB) imports in 0.55 s and its scene loads in 0.99 s, against 3.30 s and 4.18 s
-when each mesh read the whole file; a buffer file that only some meshes use fails those alone,
-by name.
+from its own bytes (`neuralrt.geometry.gltf_pack`: its accessors, views and images only): in a
+.glb of 200 distinct meshes (1.6 MB) a mesh reads in 1.8 ms, all 200 in 1.7x the time of one read
+of the whole file, the file imports in 0.55 s and its scene loads in 0.86 s, against 15.6 ms,
+13.4x, 3.24 s and 3.51 s when each mesh read the whole file (`benchmarks/bench_gltf_mesh_reads.py`;
+`results/gltf_mesh_reads.json`, `gltf_mesh_reads_before.json`); a buffer file that only some
+meshes use fails those alone, by name.
 Emissive objects are the area lights (sampled by area x luminance); they emit from the side their
 triangles' normals face, and cannot be neural models.
 
