@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from neuralrt.errors import ConfigError
 from neuralrt.rays import AABB, Rays, Transform, ray_box_intervals, valid_ray_mask
 
 
@@ -183,3 +184,34 @@ def test_pinhole_rays_check_their_arguments(kwargs, message):
     args = {"width": 4, "height": 3, "fov_y_degrees": 40.0, "origin": (0, 0, 3), "look_at": (0, 0, 0), **kwargs}
     with pytest.raises(NeuralRTError, match=message):
         pinhole_rays(**args)
+
+
+def test_a_field_set_after_construction_is_checked_and_converted_as_at_construction():
+    """A path tracer shortens t_max to the last hit: a scalar or a batch-shaped value broadcasts,
+    a mis-shaped one is the construction's error (a 1-value t_max made the kernels read past it)."""
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.geometry.procedural import box
+
+    n = 1 << 12
+    rays = Rays(torch.tensor([[0.1, 0.2, 3.0]]).expand(n, 3), torch.tensor([[0.0, 0.0, -1.0]]).expand(n, 3))
+    rays.t_max = torch.tensor([5.0])
+    assert rays.t_max.shape == (n,) and bool(MeshBLAS(box((2, 2, 2))).intersect(rays).hit.all())
+    rays.t_max = 1.5  # (a float: stored as a tensor, one value per ray)
+    assert rays.t_max.shape == (n,) and not bool(MeshBLAS(box((2, 2, 2))).intersect(rays).hit.any())
+    with pytest.raises(ConfigError, match=r"ray directions \(4096, 3\) do not match origins \(1, 3\)"):
+        rays.origins = torch.zeros(1, 3)
+    assert rays.origins.shape == (n, 3)  # (left as it was)
+    grid = Rays(torch.zeros(2, 3, 3), torch.ones(2, 3, 3))
+    grid.t_min = torch.full((2, 3), 0.5)  # (in the batch shape, as at construction)
+    grid.origins = torch.ones(2, 3, 3)
+    assert grid.t_min.shape == (6,) and grid.origins.shape == (6, 3) and grid.batch_shape == (2, 3)
+
+
+def test_hit_positions_carry_no_gradient_as_the_queries_give_none():
+    from neuralrt.accel.mesh_blas import MeshBLAS
+    from neuralrt.geometry.procedural import box
+
+    origins = torch.tensor([[0.1, 0.2, 3.0]], requires_grad=True)
+    rays = Rays(origins, torch.tensor([[0.0, 0.0, -1.0]]))
+    position = MeshBLAS(box((2, 2, 2))).intersect(rays).position(rays)
+    assert not position.requires_grad and position.tolist() == [[pytest.approx(0.1), pytest.approx(0.2), pytest.approx(1.0)]]

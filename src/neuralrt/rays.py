@@ -33,6 +33,9 @@ Mask = Annotated[Tensor, "[N] bool"]
 Indices = Annotated[Tensor, "[N] int64"]
 
 
+_RAY_FIELDS = ("origins", "directions", "t_min", "t_max")
+
+
 @dataclass(eq=False)  # (identity: tensors have no single truth value; compare fields with torch.equal)
 class Rays:
     """A batch of rays ``origins + t * directions`` for ``t`` in ``[t_min, t_max]``.
@@ -43,13 +46,16 @@ class Rays:
       scene, the object's own space for a BLAS).
     - ``directions`` [N, 3]: need not be unit length: ``t`` is measured in units of the
       direction's length, which keeps ``t`` valid when rays are mapped through an affine transform.
+      (Shorter than about 1e-14, Embree's answers degrade: it clamps tiny direction components;
+      normalise such directions. Long ones, to 1e18 at least, are answered as unit ones.)
     - ``t_min``, ``t_max`` [N]: the interval, both ends included (as Embree's); default ``0`` and
       ``+inf``. A scalar or any tensor that broadcasts to the batch shape is accepted. A negative
       ``t_min`` is stored as 0: no BLAS answers hits behind the origin (a neural one cannot: it
       learned rays that start there), so exact and neural answers agree. Every BLAS traces from
       the origin moved to ``t_min`` (Embree's and OptiX's rays start at 0 there, a network's
       inputs are built from it), in float32: a surface at exactly ``t_min`` is found or skipped by
-      that rounding (about half of them), and ``t_min == t_max`` is an empty interval, a miss.
+      that rounding (about half of them), and ``t_min == t_max`` is a miss (an interval of no
+      length: the one exception to "both ends included").
       ``t_max`` holds exactly: a hit at ``t == t_max`` is kept.
 
     Batch shapes: origins and directions may be ``[..., 3]`` (e.g. ``[H, W, 3]``); they are
@@ -67,6 +73,22 @@ class Rays:
     batch_shape: tuple[int, ...] | None = field(default=None, kw_only=True)
     """Leading shape the rays were given in (default ``(N,)``); ``N = prod(batch_shape)``."""
 
+    def __setattr__(self, name: str, value) -> None:
+        # A field set after construction is checked and converted as at construction (a 1-value
+        # t_max for 2^20 rays made the kernels read past its end; a float had no .detach).
+        if name in _RAY_FIELDS and self.__dict__.get("_built"):
+            given = {k: self.__dict__[k] for k in _RAY_FIELDS}
+            n = len(self)
+            if name in ("origins", "directions"):  # (as stored, [N, 3], or in the batch shape)
+                value = _float_tensor(name, value, given["origins"].device)
+                value = value.reshape(n, 3) if value.shape[-1:] == (3,) and value.numel() == 3 * n else value
+            given[name] = value
+            checked = Rays(**given, batch_shape=self.batch_shape)
+            for k in _RAY_FIELDS:
+                object.__setattr__(self, k, checked.__dict__[k])
+            return
+        object.__setattr__(self, name, value)
+
     def __post_init__(self) -> None:
         origins = _float_tensor("origins", self.origins)
         directions = _float_tensor("directions", self.directions, origins.device)
@@ -80,6 +102,7 @@ class Rays:
         n, dev = math.prod(shape), origins.device
         if math.prod(self.batch_shape) != n:
             raise ConfigError(f"batch_shape {self.batch_shape} does not hold {n} rays")
+        shape = tuple(self.batch_shape)  # (what t_min / t_max broadcast to, the rays given flat or not)
         if origins.ndim != 2:
             origins, directions = origins.reshape(n, 3), directions.reshape(n, 3)
         self.origins, self.directions = origins, directions
@@ -88,6 +111,7 @@ class Rays:
         else:  # hits behind the origin: none (NaN stays NaN, a miss)
             self.t_min = self._interval("t_min", self.t_min, shape, n, dev).clamp_min(0.0)
         self.t_max = torch.full((n,), float("inf"), device=dev) if self.t_max is None else self._interval("t_max", self.t_max, shape, n, dev)
+        object.__setattr__(self, "_built", True)
 
     @staticmethod
     def _interval(name: str, value, shape: tuple[int, ...], n: int, dev) -> Tensor:
@@ -222,10 +246,12 @@ class Hits:
 
     def position(self, rays: Rays) -> Tensor:
         """[N, 3] hit points ``origins + t * directions`` of the ``rays`` these hits answer (same
-        space as the rays); NaN rows where the ray missed."""
+        space as the rays); NaN rows where the ray missed. No gradient, as the queries give none."""
         if len(rays) != len(self):
             raise ConfigError(f"position: {len(rays)} rays for {len(self)} hits (give the rays these hits answer)")
-        return torch.where(self.hit[:, None], rays.origins + torch.where(self.hit, self.t, 0.0)[:, None] * rays.directions, float("nan"))
+        # Detached: t holds no gradient (the queries are not differentiable), so one through the rays alone would be wrong.
+        origins, directions = rays.origins.detach(), rays.directions.detach()
+        return torch.where(self.hit[:, None], origins + torch.where(self.hit, self.t, 0.0)[:, None] * directions, float("nan"))
 
     def __getitem__(self, index) -> "Hits":
         return Hits(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
