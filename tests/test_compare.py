@@ -151,3 +151,16 @@ def test_heatmap_write_is_atomic_and_psnr_of_identical_files_is_inf(tmp_path, mo
         compare_files(ref, ref, heatmap=heat)
     assert heat.read_bytes() == before
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_hdr_flip_of_an_all_black_reference_is_a_number_not_the_end_of_the_process(tmp_path, capsys):
+    """flip_evaluator's HDR mode takes its exposures from the reference and, for a black one, ended
+    the process (exit 255, no error line): two black images are 0, a lit test is measured over its own range."""
+    black, grey = np.zeros((8, 8, 3), np.float32), np.full((8, 8, 3), 0.3, np.float32)
+    assert compare_images(black, black, hdr=True).flip == 0.0
+    assert compare_images(black, grey, hdr=True).flip == pytest.approx(compare_images(grey, black, hdr=True).flip)
+    assert 0.5 < compare_images(black, grey, hdr=True).flip <= 1.0
+    write_exr(tmp_path / "black.exr", black)
+    assert main(["compare", str(tmp_path / "black.exr"), str(tmp_path / "black.exr"), "--hdr", "--json",
+                 "--heatmap", str(tmp_path / "map.png")]) == 0
+    assert json.loads(capsys.readouterr().out)["flip"] == 0.0 and (tmp_path / "map.png").is_file()

@@ -72,12 +72,30 @@ def compare_images(reference: np.ndarray, test: np.ndarray, hdr: bool = False,
         raise ImageError(f"images differ in size: reference {reference.shape[1]}x{reference.shape[0]} vs test "
                          f"{test.shape[1]}x{test.shape[0]} (width x height)")
     if hdr:
-        flip_map, mean_flip, _ = flip_evaluator.evaluate(np.maximum(reference, 0), np.maximum(test, 0), "HDR")
+        flip_map, mean_flip = _hdr_flip(np.maximum(reference, 0), np.maximum(test, 0))
     else:
         ref_srgb = linear_to_srgb(tone_map(reference))
         test_srgb = linear_to_srgb(tone_map(test))
         flip_map, mean_flip, _ = flip_evaluator.evaluate(ref_srgb, test_srgb, "LDR")
     return ImageComparison(float(mean_flip), psnr(reference, test), relmse(reference, test), np.asarray(flip_map, np.float32))
+
+
+def _hdr_flip(reference: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, float]:
+    """HDR-FLIP's (map, mean). Its exposure range comes from the reference's luminance, and on an
+    all-black reference flip_evaluator ends the process ("Start exposure must be smaller than stop
+    exposure!", exit 255): there the test image's range is used, and two black images are 0."""
+    import flip_evaluator
+
+    if reference.max(initial=0.0) > 0:
+        flip_map, mean_flip, _ = flip_evaluator.evaluate(reference, test, "HDR")
+        return flip_map, mean_flip
+    if test.max(initial=0.0) <= 0:  # (the map of no error, in FLIP's colours: two equal lit images give it)
+        flip_map, _, _ = flip_evaluator.evaluate(np.ones_like(reference), np.ones_like(test), "HDR")
+        return flip_map, 0.0
+    _, _, exposures = flip_evaluator.evaluate(test, test, "HDR")
+    flip_map, mean_flip, _ = flip_evaluator.evaluate(reference, test, "HDR", parameters={
+        "startExposure": exposures["startExposure"], "stopExposure": exposures["stopExposure"]})
+    return flip_map, mean_flip
 
 
 def check_heatmap_path(path: str | Path) -> None:
