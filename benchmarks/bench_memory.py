@@ -56,6 +56,9 @@ def main() -> None:
         parser.error(f"argument --meshes: {args.meshes}: not a folder")
     large = parse_short_procedural(args.large, "--large", detail_required=True)
     sub_name, sub_steps = args.subdivide
+    if not any((args.meshes / name).is_file() for name in MESH_FILES):  # (a typo wrote an empty table over the results)
+        parser.error(f"argument --meshes: {args.meshes}: {'holds none of the shared meshes' if args.meshes.is_dir() else 'no such folder'} "
+                     f"({', '.join(MESH_FILES[:3])}, ...)")
 
     build_bvh(make_procedural("sphere", subdivisions=1))  # numba compile outside the timings
     rows = []
