@@ -75,7 +75,10 @@ def training_plot_title(method: str | None, preset: str | None, mesh_name: str, 
     parts = [" ".join(part for part in (method, preset) if part), mesh_name or "(unnamed mesh)", steps]
     if record.get("rays_per_second"):
         where = f" on {record['device']}" if record.get("device") else ""
-        parts.append(f"{record.get('seconds', 0.0):,.1f} s, {record['rays_per_second'] / 1e3:,.0f}k rays/s{where}")
+        seconds, first = record.get("seconds", 0.0), record.get("first_step_seconds", 0.0)
+        # (rays/s leaves out each session's first step, which loads or compiles the kernels: say so where it weighs)
+        loading = f" ({first:,.1f} s of it the first step, kernels loading; rays/s after it)" if first > 0.1 * seconds else ""
+        parts.append(f"{seconds:,.1f} s{loading}, {record['rays_per_second'] / 1e3:,.0f}k rays/s{where}")
     accuracy = record.get("hit_accuracy")
     if isinstance(accuracy, float) and np.isfinite(accuracy):
         parts.append(f"final hit accuracy {accuracy:.4f}")
