@@ -44,16 +44,19 @@ def _print_result(result: dict, as_json: bool) -> None:
         plain = json.loads(json.dumps(result, default=float))  # numpy scalars and the like as Python floats
         print(json.dumps(_strict_json(plain), allow_nan=False))
         return
+    width = max([24, *(len(str(key)) for key in result)])  # (a long key keeps the column)
     for key, value in result.items():
         if key == "training" and isinstance(value, dict) and isinstance(value.get("curve"), dict):
             value = {**value, "curve": _curve_summary(value["curve"])}
         if isinstance(value, float):
             value = f"{value:.6g}"
+        elif isinstance(value, list) and value and all(isinstance(v, float) for v in value):
+            value = ", ".join(f"{v:.6g}" for v in value)  # (per-view figures: as the dicts' numbers print)
         elif isinstance(value, dict) and any(isinstance(v, (dict, list)) for v in value.values()):
             value = json.dumps(value, default=float)  # nested (a config, a training record): compact JSON
         elif isinstance(value, dict):
             value = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())
-        print(f"{key:>24}: {_printable(str(value))}")
+        print(f"{key:>{width}}: {_printable(str(value))}")
 
 
 def _printable(text: str) -> str:
@@ -148,10 +151,9 @@ def _cmd_evaluate(args) -> None:
     if args.json:
         _print_result(result, True)
         return
-    for part in ("outside", "surface"):
-        print(f"{part}:")
-        _print_result(result[part], False)
-    for part in ("images", "features", "memory", "speed"):
+    parts = ("outside", "surface", "images", "features", "memory", "speed")
+    _print_result({k: v for k, v in result.items() if k not in parts}, False)  # (rays, seed, whether the mesh matches)
+    for part in parts:
         if part in result:
             print(f"{part}:")
             _print_result(result[part], False)

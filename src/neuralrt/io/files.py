@@ -128,12 +128,16 @@ def _link_target(path: Path) -> Path:
     return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
+def _article(noun: str) -> str:
+    return "an" if noun[:1].lower() in "aeio" else "a"
+
+
 def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
     """None when ``path`` is a readable file, else the one-line problem naming it, e.g.
     ``"scenes: is a directory, not a scene file"`` or ``"a.obj: mesh file not found"``."""
     path = Path(path)
     if path.is_dir():
-        return f"{path}: is a directory, not a {what}"
+        return f"{path}: is a directory, not {_article(what)} {what}"
     if not path.exists():
         return f"{path}: {what} not found"
     if not path.is_file():
@@ -174,7 +178,7 @@ def check_output_files(paths, what: str) -> None:
     targets = []
     for path in map(Path, paths):
         if path.is_dir():
-            raise NeuralRTError(f"{path}: is a folder, not a {what}")
+            raise NeuralRTError(f"{path}: is a folder, not {_article(what)} {what}")
         target = _link_target(path)
         if target != path and not target.parent.is_dir():  # (commands make the link's folder, not its target's)
             raise NeuralRTError(f"{path}: a link to {target}, whose folder does not exist")
