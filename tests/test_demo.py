@@ -44,7 +44,7 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     from neuralrt.methods.registry import config_from_dict
     from neuralrt.io.model_file import read_model_header
 
-    made = config_from_dict(read_model_header(report["models"][0]["model_path"]).config)
+    made = config_from_dict(read_model_header(out / report["models"][0]["model_path"]).config)  # (relative to the report)
     assert get_method("lsnif").preset_of(made) == "hq"  # (what the training plot's title names)
     for png in ("exact.png", "hybrid.png", "flip.png"):
         assert Image.open(out / png).size == (32, 24)

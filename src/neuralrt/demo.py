@@ -10,6 +10,7 @@ the noise floor (exact vs exact at that other seed, same spp).
 from __future__ import annotations
 
 import json
+import os
 import platform
 import time
 from dataclasses import asdict, dataclass, replace
@@ -104,8 +105,8 @@ def _markdown(report: dict) -> str:
         ("PSNR hybrid vs exact: same seed; another seed / floor",
          f"{q['psnr']:.2f} dB; {q['psnr_other_seed']:.2f} / {q['psnr_noise_floor']:.2f} dB"),
         ("training time (wall: setup and steps; the model's record counts steps only)", f"{t['train_s']:.1f} s"),
-        ("exact render", f"{t['exact_render_s']:.1f} s"),
-        ("hybrid render", f"{t['hybrid_render_s']:.1f} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x exact)"),
+        ("exact render", f"{t['exact_render_s']:.3g} s"),
+        ("hybrid render", f"{t['hybrid_render_s']:.3g} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x exact)"),
     ]
     s = report["settings"]
     lines = [
@@ -237,7 +238,8 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
             "exact_render_s": exact.seconds,
             "hybrid_render_s": hybrid.seconds,
         },
-        "models": [m.__dict__ for m in conversion.models],
+        # (paths relative to the report's folder, as the images' are)
+        "models": [{**m.__dict__, "model_path": os.path.relpath(m.model_path, out)} for m in conversion.models],
         "images": {
             "exact": "exact.png", "exact_exr": "exact.exr", "hybrid": "hybrid.png", "hybrid_exr": "hybrid.exr",
             "flip": "flip.png", "side_by_side": "side_by_side.png", "report_md": "report.md",
