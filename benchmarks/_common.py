@@ -410,12 +410,16 @@ def load_mesh_spec(spec: str):
     return mesh.subdivided(detail) if detail else mesh
 
 
-def check_presets(method: str, presets, **training) -> list:
+def check_presets(method: str, presets, flag: str = "--preset", **training) -> list:
     """The configs of ``method``'s ``presets`` with the training keys ``training`` (None: the
-    preset's); an unknown method or preset or a bad value is a one-line `ConfigError`."""
+    preset's); an unknown method or preset (named as ``flag``) or a bad value is a one-line `ConfigError`."""
+    from neuralrt.errors import ConfigError
     from neuralrt.methods import get_method
 
     spec = get_method(method)
+    unknown = [preset for preset in presets if preset not in spec.presets]
+    if unknown:
+        raise ConfigError(f"{flag}: unknown {method} preset {unknown[0]!r} (choose from {', '.join(spec.presets)})")
     return [spec.config(preset, **training) for preset in presets]
 
 

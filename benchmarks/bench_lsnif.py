@@ -176,7 +176,7 @@ def main() -> None:
     # Every check before the first training (a bad second preset or mesh must not cost the first's run).
     for spec in args.meshes:
         check_mesh_spec(spec)
-    check_presets("lsnif", args.presets, steps=args.steps, batch_size=args.batch, seed=args.seed)
+    check_presets("lsnif", args.presets, "--presets", steps=args.steps, batch_size=args.batch, seed=args.seed)
     path = RESULTS_DIR / f"{args.name}.json"
     runs = read_results(args.name).get("runs", {})
     if args.remeasure_inference:

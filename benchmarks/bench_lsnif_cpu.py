@@ -212,7 +212,7 @@ def main() -> None:
     args = p.parse_args()
     for spec in args.meshes:  # every check before the first mesh's work
         check_mesh_spec(spec)
-    check_presets("lsnif", args.presets)
+    check_presets("lsnif", args.presets, "--presets")
     rows = []
     for spec in args.meshes:
         for preset in args.presets:

@@ -281,7 +281,7 @@ def main() -> None:
     # Every check here, before the first process starts (a bad argument is one line, not each child's traceback).
     check_mesh_spec(args.train_mesh)
     check_mesh_spec(args.infer_mesh)
-    check_presets("lsnif", args.presets)
+    check_presets("lsnif", args.presets, "--presets")
     cores = sorted(os.sched_getaffinity(0))
     counts = [n for n in args.threads if n <= len(cores)]
     if not counts:
