@@ -164,3 +164,18 @@ def test_hdr_flip_of_an_all_black_reference_is_a_number_not_the_end_of_the_proce
     assert main(["compare", str(tmp_path / "black.exr"), str(tmp_path / "black.exr"), "--hdr", "--json",
                  "--heatmap", str(tmp_path / "map.png")]) == 0
     assert json.loads(capsys.readouterr().out)["flip"] == 0.0 and (tmp_path / "map.png").is_file()
+
+
+def test_a_display_image_against_a_linear_one_is_a_warning(tmp_path):
+    from neuralrt.eval.image_metrics import compare_files
+
+    write_exr(tmp_path / "a.exr", np.full((8, 8, 3), 2.0, np.float32))
+    write_png(tmp_path / "a.png", np.full((8, 8, 3), 0.5, np.float32))
+    with pytest.warns(UserWarning, match=r"a.png is a display image \(tone-mapped, \[0, 1\]\) and .*a.exr linear radiance"):
+        compare_files(tmp_path / "a.exr", tmp_path / "a.png")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        compare_files(tmp_path / "a.exr", tmp_path / "a.exr")
+        compare_files(tmp_path / "a.png", tmp_path / "a.png")

@@ -11,12 +11,13 @@ Conventions (the same for every figure neuralrt reports):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ImageError
+from ..errors import ImageError, outside_stacklevel
 from ..io.files import check_output_file
 from ..io.images import linear_to_srgb, nonfinite_problem, read_image, tone_map
 
@@ -118,6 +119,9 @@ def _write_heatmap(path: str | Path, flip_map: np.ndarray) -> None:
     write_srgb_png(path, flip_map)  # atomic: `write_png` goes through `write_atomically`
 
 
+_LINEAR_SUFFIXES = (".exr", ".hdr")  # (images of radiance; PNG and JPEG hold display values)
+
+
 def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path | None = None, hdr: bool = False) -> ImageComparison:
     """Compare two image files (EXR, PNG, JPG, HDR); optionally write the FLIP heat map as PNG.
 
@@ -127,6 +131,11 @@ def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path |
     """
     if heatmap is not None:
         check_heatmap_path(heatmap)
+    kinds = [Path(p).suffix.lower() in _LINEAR_SUFFIXES for p in (reference, test)]
+    if kinds[0] != kinds[1]:  # (render writes both: the .png is the .exr tone-mapped, clamped to [0, 1])
+        display, linear = (test, reference) if kinds[0] else (reference, test)
+        warnings.warn(f"{display} is a display image (tone-mapped, [0, 1]) and {linear} linear radiance: the figures "
+                      "compare unlike things (compare .exr with .exr, or .png with .png)", stacklevel=outside_stacklevel())
     result = compare_images(read_image(reference), read_image(test), hdr=hdr, names=(str(reference), str(test)))
     if heatmap is not None:
         _write_heatmap(heatmap, result.flip_map)
