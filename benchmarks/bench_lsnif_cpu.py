@@ -217,7 +217,8 @@ def main() -> None:
     for spec in args.meshes:
         for preset in args.presets:
             rows.append(bench(spec, preset, args.rays, args.repeats))
-            print_table(rows[-1:], COLUMNS)
+            if len(args.meshes) * len(args.presets) > 1:  # (each row as it comes; the whole table once at the end)
+                print_table(rows[-1:], COLUMNS)
     print_table(rows, COLUMNS)
     print(f"wrote {write_results(args.name, rows)}")
 
