@@ -256,3 +256,26 @@ def test_info_of_a_model_set_past_its_preset_names_the_nearest_preset_and_the_ke
     plain = tmp_path / "plain.nrt"
     api.train("procedural:statue:0", plain, preset="lq", steps=2, batch=256, progress=False)
     assert api.info(plain)["preset"] == "lq" and "nearest_preset" not in api.info(plain)
+
+
+def test_eval_set_changes_how_the_model_answers_and_takes_inference_keys_only(tmp_path, capsys):
+    from neuralrt.methods.nbvh_config import NBVHConfig
+    from neuralrt.training.api import train
+
+    from neuralrt.geometry.mesh import load_mesh
+
+    model = train(load_mesh("procedural:statue:0"), NBVHConfig.preset("cpu").with_training(steps=40, batch_size=1024),
+                  progress=False)
+    path = model.save(tmp_path / "statue.nrt")
+    common = ["eval", str(path), "procedural:statue:0", "--rays", "2048", "--no-images", "--no-timing", "--quiet", "--json"]
+    assert main(common) == 0
+    finest = json.loads(capsys.readouterr().out)
+    coarse_lod = max(model.registered_lods())
+    assert main([*common, "--set", f"inference.lod={coarse_lod}"]) == 0
+    coarse = json.loads(capsys.readouterr().out)
+    assert coarse["inference"] == {"lod": coarse_lod} and "inference" not in finest
+    assert coarse["outside"] != finest["outside"]  # (another cut answered)
+    assert main([*common, "--set", "training.steps=5"]) == 2
+    assert "eval --set takes inference.KEY=VALUE only" in capsys.readouterr().err
+    assert main([*common, "--set", "inference.storage_precision=fp32"]) == 2
+    assert "storage_precision is how the model's parameters were stored" in capsys.readouterr().err

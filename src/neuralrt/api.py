@@ -441,12 +441,15 @@ def evaluate(
     allow_mesh_mismatch: bool = False,
     timing: bool = True,
     progress: bool = True,
+    inference: dict | None = None,
 ) -> dict:
     """Held-out accuracy of a model (a path or a loaded model) against its mesh (a path or a `Mesh`):
     rays from outside and from the surface, plus normal/depth images from orbit cameras, neural vs
     exact, with FLIP; its memory against BVH A / B; with ``timing``, its rays/s against exact
     tracing's on the held-out rays (this run, this machine). A model trained on another mesh is an
-    error unless ``allow_mesh_mismatch``. ``progress``: a bar over the stages on stderr."""
+    error unless ``allow_mesh_mismatch``. ``progress``: a bar over the stages on stderr.
+    ``inference`` changes how the model answers (``{"lod": 2}``: `NeuralBLAS.with_inference`; the
+    CLI's ``--set inference.lod=2``)."""
     from .eval.intersection_metrics import HELD_OUT_SEED, evaluate_model
     from .geometry.mesh import Mesh, load_mesh
     from .methods import check_mesh_match, is_neural, load_model
@@ -473,7 +476,10 @@ def evaluate(
         if not images:
             raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
+    if inference is not None and not isinstance(inference, dict):
+        raise ConfigError(f"inference: expected a dict of inference settings, got {type(inference).__name__}")
     blas = model if is_neural(model) else load_model(model, device=device)
+    blas = blas.with_inference(**(inference or {}))
     if seed is not None and seed == blas.config.training.seed:  # (a NeuralBLAS: every method's config has it)
         import warnings
 
@@ -487,6 +493,8 @@ def evaluate(
         result = evaluate_model(blas, source, rays=rays, seed=HELD_OUT_SEED if seed is None else seed,
                                 images=images, image_dir=image_dir, timing=timing, progress=progress)
     result["mesh_matches_model"] = blas.mesh_hash is None or blas.mesh_hash == mesh_hash
+    if inference:
+        result["inference"] = dict(inference)  # (the settings it answered with, changed from the model file's)
     return result
 
 

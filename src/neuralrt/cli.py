@@ -145,9 +145,13 @@ def _cmd_train(args) -> None:
 
 
 def _cmd_evaluate(args) -> None:
+    settings = parse_settings(args.settings)
+    if set(settings) - {"inference"}:
+        raise NeuralRTError(f"eval --set takes inference.KEY=VALUE only (how the model answers), not "
+                            f"{sorted(set(settings) - {'inference'})[0]}.*: other keys make another model (neuralrt train)")
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
                           image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch,
-                          timing=not args.no_timing, progress=not args.quiet)
+                          timing=not args.no_timing, progress=not args.quiet, inference=settings.get("inference"))
     if args.json:
         _print_result(result, True)
         return
@@ -287,6 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate even if the model was trained on another mesh (default: an error)")
     p.add_argument("--no-timing", action="store_true",
                    help="skip the speed figures (rays/s of the model and of exact tracing on the held-out rays)")
+    p.add_argument("--set", dest="settings", action="append", metavar="inference.KEY=VALUE",
+                   help="evaluate the model answering with an inference setting changed, e.g. inference.lod=2 (an "
+                        "N-BVH level of detail; repeatable; keys: docs/config.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)
