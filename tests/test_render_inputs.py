@@ -19,7 +19,8 @@ SPHERE = {"name": "ball", "generator": {"name": "sphere", "params": {"subdivisio
 
 
 def scene_file(tmp_path, objects=None, **sections) -> str:
-    data = {"camera": {"resolution": [6, 4]}, "objects": objects or [dict(SPHERE)], **sections}
+    data = {"camera": {"resolution": [6, 4]}, "objects": objects or [dict(SPHERE)], "environment": {"color": [0.5, 0.5, 0.5]},
+            **sections}  # (lit: an unlit scene's render warns)
     path = tmp_path / "scene.json"
     path.write_text(json.dumps(data))
     return str(path)
@@ -230,3 +231,21 @@ def test_a_render_larger_than_the_memory_left_is_refused_before_it_starts(tmp_pa
     assert "render needs" in capsys.readouterr().err and not (tmp_path / "x.exr").exists()
     monkeypatch.setattr(neuralrt.devices, "available_bytes", lambda device: None)  # unknown: no check
     assert render(load_scene(scene_file(tmp_path)), spp=1, progress=False).image.shape == (4, 6, 3)
+
+
+def test_rendering_a_scene_without_light_warns_that_it_renders_black(tmp_path):
+    unlit = tmp_path / "unlit.json"
+    unlit.write_text(json.dumps({"camera": {"resolution": [6, 4]}, "objects": [dict(SPHERE)]}))
+    with pytest.warns(UserWarning, match=r"unlit.json: the scene has no light .*: it renders black"):
+        result = api.render(str(unlit), tmp_path / "x.exr", spp=1, progress=False)
+    assert result["spp"] == 1
+
+
+def test_a_texture_with_a_negative_texel_is_refused_as_a_negative_albedo_is(tmp_path):
+    texels = np.full((4, 4, 3), 0.5, np.float32)
+    texels[0, 0] = -0.5
+    write_exr(tmp_path / "tex.exr", texels)
+    scene = scene_file(tmp_path, materials=[{"name": "m", "type": "diffuse", "albedo": str(tmp_path / "tex.exr")}],
+                       objects=[{**SPHERE, "material": "m"}])
+    with pytest.raises(NeuralRTError, match=r"materials.0.albedo: .*tex.exr: 1 texel is negative \(albedo must be >= 0\)"):
+        api.render(scene, tmp_path / "x.exr", spp=1, progress=False)

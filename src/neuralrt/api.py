@@ -262,6 +262,11 @@ def render(
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch)
     primary = loaded.primary
+    if not loaded.lights:
+        import warnings
+
+        warnings.warn(f"{getattr(loaded, 'name', '') or 'scene'}: the scene has no light (no point light with intensity, "
+                      "no emissive object, no environment): it renders black", stacklevel=outside_stacklevel())
     nif_report = None
     try:
         # (untimed: the process's one-time kernel loading is not the render's time per sample)

@@ -569,6 +569,9 @@ def _material_table(specs: list, label: str, device) -> MaterialTable:
             except NeuralRTError as exc:
                 raise SceneError(f"{label}: materials.{i}.albedo: {exc}") from None
             problem = nonfinite_problem(pixels, m.albedo)
+            negative = int((pixels < 0).any(axis=-1).sum()) if not problem else 0
+            if negative:  # (as albedo = [-0.8, ...] is refused: a reflectance is >= 0)
+                problem = f"{m.albedo}: {negative} texel{'s are' if negative != 1 else ' is'} negative (albedo must be >= 0)"
             if problem:
                 raise SceneError(f"{label}: materials.{i}.albedo: {problem}")
             textures.append(torch.from_numpy(pixels))
