@@ -44,6 +44,9 @@ class StandInModel:
         return MemoryReport({"weights": 1000})
 
 
+# (a library of materials: the lamp is unused by most scenes here, which is a warning)
+pytestmark = pytest.mark.filterwarnings("ignore:.*emissive material 'lamp' is used by no object")
+
 MATERIALS = [{"name": "white", "type": "diffuse", "albedo": [0.8, 0.8, 0.8]},
              {"name": "core", "type": "diffuse", "albedo": [0.8, 0.1, 0.1]},
              {"name": "lamp", "type": "emissive", "emission": [5, 5, 5]}]
@@ -204,3 +207,17 @@ def test_a_spec_holding_in_memory_objects_is_not_saved(tmp_path):
     with pytest.raises(SceneError, match=r"objects.0.mesh: an in-memory mesh or model \(load_dict\) has no file to name"):
         save_scene(scene.spec, tmp_path / "s.toml")
     assert not list(tmp_path.iterdir())
+
+
+def test_an_emissive_material_no_object_uses_is_a_warning():
+    """A misspelt slot falls back to 'default': the scene's light was gone without a word."""
+    import warnings
+
+    d = _scene_dict(_two_part_mesh())
+    d["materials"] = [MATERIALS[0], {"name": "light", "type": "emissive", "emission": [5, 5, 5]}]
+    with pytest.warns(UserWarning, match=r"scene: emissive material 'light' is used by no object: no light comes from it"):
+        load_dict(d)
+    d["objects"].append({"generator": {"name": "sphere"}, "material": "light", "transform": {"translate": [0, 3, 0]}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_dict(d)

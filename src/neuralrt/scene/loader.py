@@ -375,6 +375,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     dev = device  # (checked by the public callers: `check_device`)
     index = material_index(spec)
     material_specs = scene_materials(spec)
+    used_materials: set[int] = set()
     materials = _material_table(material_specs, label, dev)
 
     shapes: dict[tuple, _Shape] = {}
@@ -418,11 +419,17 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
             warnings.warn(f"{label}: {key}.materials: no material slot named {', '.join(map(repr, unknown))} "
                           f"(the object's slots: {', '.join(slots)})", stacklevel=outside_stacklevel())
         slot_materials = material_map(obj, slots, index)
+        used_materials.update(slot_materials)
         _warn_untextured(material_specs, obj, slot_materials, shape, label, key, primary)
         instances.append(Instance(blas=blas, transform=obj.transform.to_transform(), material_map=torch.tensor(slot_materials),
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
 
+    unlit = [m.name for k, m in enumerate(material_specs) if isinstance(m, EmissiveMaterialSpec) and k not in used_materials]
+    if unlit:  # (a misspelt slot falls back to 'default': the light is gone, silently)
+        warnings.warn(f"{label}: emissive material {', '.join(map(repr, unlit))} is used by no object: no light comes "
+                      "from it (an object's material, or a mesh slot of its name, makes it a light)",
+                      stacklevel=outside_stacklevel())
     accel = SceneAccel(instances, device=dev)
     area = _area_lights(instances, meshes, materials, dev)
     points = None
