@@ -299,6 +299,8 @@ def render(
         "files": [str(f) for f in files],
         "resolution": [w, h],
         "spp": result.spp,
+        "max_depth": max_depth if max_depth is not None else loaded.settings.max_depth,
+        "seed": seed,
         "seconds": result.seconds,
         "warmup_seconds": warmup_seconds,
         "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),

@@ -144,8 +144,8 @@ def box(size=(1.0, 1.0, 1.0)) -> Mesh:
 
 def plane(size: float = 1.0) -> Mesh:
     """Square of side ``size`` in the xz-plane at y = 0, centred, facing +y; 2 triangles, UVs in [0, 1]."""
-    if not np.isfinite(size) or size <= 0:
-        raise NeuralRTError(f"plane: size must be a positive number, got {size!r}")
+    if isinstance(size, bool) or not isinstance(size, (int, float, np.number)) or not np.isfinite(size) or size <= 0:
+        raise NeuralRTError(f"plane: size must be a positive number (a square), got {size!r}")
     h = 0.5 * float(size)
     verts = np.array([(-h, 0, -h), (-h, 0, h), (h, 0, h), (h, 0, -h)])
     uvs = verts[:, [0, 2]] / size + 0.5

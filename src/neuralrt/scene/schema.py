@@ -140,6 +140,8 @@ class CameraSpec(_Strict):
         fwd = [b - a for a, b in zip(self.position, self.look_at)]
         if math.hypot(*fwd) == 0:
             raise ValueError("camera position and look_at coincide")
+        if math.hypot(*self.up) == 0:
+            raise ValueError("camera up is zero: give a direction, e.g. [0, 1, 0]")
         cross = (fwd[1] * self.up[2] - fwd[2] * self.up[1], fwd[2] * self.up[0] - fwd[0] * self.up[2], fwd[0] * self.up[1] - fwd[1] * self.up[0])
         if math.hypot(*cross) < 1e-9 * max(math.hypot(*fwd), 1e-30):
             raise ValueError("camera up is parallel to the view direction")

@@ -7,6 +7,7 @@ A test compares the committed file with `scene_reference()`, so the page stays t
 
 from __future__ import annotations
 
+import inspect
 import json
 import sys
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
+from ..geometry.procedural import GENERATORS
 from .builtins import BUILTIN_SCENES
 from .schema import (
     CameraSpec,
@@ -66,6 +68,9 @@ same name, else `default`. `load_scene(..., primary="neural")` / `render --prima
 builds no mesh BVH for objects with a model (camera rays go to the model too).
 
 Conventions: right-handed, +y up; the camera looks down its -z axis. Colours are linear RGB.
+Images (textures, environment maps) in PNG or JPEG are sRGB, decoded to linear (a texel of 128 is
+albedo 0.216); EXR and HDR are linear. Textures repeat outside [0, 1] and are filtered bilinearly,
+so an edge texel blends with the opposite edge's; an image's alpha is not read.
 A surface's colour is its scene material's `albedo` times the mesh's own colour at the hit (MTL
 `Kd` and `map_Kd`, glTF base colour, vertex colours; white where the mesh has none, as the
 generators' meshes): give one or the other. A neural object's own colour is what its model
@@ -225,6 +230,17 @@ def scene_reference() -> str:
         for name, field in model.model_fields.items():
             lines.append(f"| `{name}` | {_default(field)} | {_range(field)} | {field.description or ''} |")
         lines.append("")
+    lines.append("## Generators\n")
+    lines.append("`generator = { name = NAME, params = { ... } }`: a procedural mesh, built in object space "
+                 "(`neuralrt.geometry.procedural`; the CLI's `procedural:NAME[:DETAIL]`).\n")
+    lines.append("| name | params (defaults) | mesh |")
+    lines.append("|---|---|---|")
+    for name, make in GENERATORS.items():
+        params = ", ".join(f"`{p.name} = {p.default!r}`" for p in inspect.signature(make).parameters.values()
+                           if p.default is not inspect.Parameter.empty)
+        what = " ".join((make.__doc__ or "").strip().split("\n\n")[0].split())
+        lines.append(f"| `{name}` | {params or 'none'} | {what} |")
+    lines.append("")
     lines.append("## Built-in scenes\n")
     lines.append("`builtin:<name>` or `builtin:<name>?detail=N` (or `load_scene(..., detail=N)`) needs no files; "
                  "`detail` is the procedural meshes' detail level (triangle counts: `neuralrt.geometry.procedural`).\n")
