@@ -188,7 +188,7 @@ def _scene(lights=True):
     return load_dict({
         "camera": {"position": [0, 1.5, 5], "look_at": [0, 0, 0], "resolution": [12, 8]},
         "materials": [{"name": "white", "type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
-                      {"name": "lamp", "type": "emissive", "emission": [8, 8, 8]}],
+                      *([{"name": "lamp", "type": "emissive", "emission": [8, 8, 8]}] if lights else [])],
         "objects": objects,
     })
 

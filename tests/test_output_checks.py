@@ -158,7 +158,8 @@ def test_a_render_that_fails_while_writing_leaves_the_earlier_render_whole(tmp_p
     from neuralrt.io import images
     from neuralrt.render.film import output_files
 
-    scene = {"camera": {"resolution": [6, 4]}, "objects": [{"generator": {"name": "sphere", "params": {"subdivisions": 1}}}]}
+    scene = {"camera": {"resolution": [6, 4]}, "objects": [{"generator": {"name": "sphere", "params": {"subdivisions": 1}}}],
+             "environment": {"color": [0.5, 0.5, 0.5]}}
     out = tmp_path / "r.exr"
     api.render(scene, out, spp=1, progress=False)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
