@@ -77,6 +77,7 @@ class Film:
                             stats={"nonfinite_samples": self.nonfinite_samples})
 
 
+_FARTHEST_SHOWN = 0.2  # the depth PNG's farthest hit, apart from the background's 0
 AOV_SUFFIXES = ("", "_albedo", "_normal", "_depth", "_coverage")  # the image, then each AOV, as `RenderResult.save` writes them
 
 
@@ -123,7 +124,8 @@ class RenderResult:
     def save(self, path: str | Path, exposure: float = 0.0) -> list[Path]:
         """Write ``<stem>.exr`` (linear HDR) and ``<stem>.png`` (sRGB), plus ``<stem>_albedo``,
         ``<stem>_normal``, ``<stem>_depth`` and ``<stem>_coverage`` as EXR (exact values) and PNG
-        (to look at; the depth PNG shows near as bright, faded by coverage at silhouettes).
+        (to look at; the depth PNG shows the nearest hit white and the farthest 20% grey over a black
+        background, faded by coverage at silhouettes).
         Missing folders are created here, once there is something to write (a failed render
         leaves no empty folders behind). Returns the paths written."""
         from ..io.images import write_exr, write_png
@@ -148,8 +150,10 @@ class RenderResult:
             # Normals in [-1, 1] shown as colours 0.5 + 0.5 n (stored linear so the PNG shows that mapping).
             both("_normal", self.normal, srgb_to_linear(0.5 + 0.5 * self.normal))
             hit = self.coverage > 0
-            far = float(self.depth[hit].max()) if hit.any() else 1.0
-            near_bright = (1.0 - self.depth / far) * self.coverage
+            # Over the hits' own range: 1 - depth / farthest left objects 5.5-6 units away at 0-10% grey.
+            near, far = (float(self.depth[hit].min()), float(self.depth[hit].max())) if hit.any() else (0.0, 1.0)
+            near_bright = (_FARTHEST_SHOWN + (1.0 - _FARTHEST_SHOWN) * np.clip((far - self.depth) / max(far - near, 1e-30), 0.0, 1.0)
+                           ) * self.coverage
             both("_depth", np.repeat(self.depth[..., None], 3, -1), srgb_to_linear(np.repeat(near_bright[..., None], 3, -1)))
             both("_coverage", np.repeat(self.coverage[..., None], 3, -1), np.repeat(self.coverage[..., None], 3, -1))
         return out
