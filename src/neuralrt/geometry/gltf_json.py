@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .gltf_buffers import GLB_MAGIC, JSON_CHUNK, GltfBuffers
+
 __all__ = ["MaterialExtras", "dequantized_positions", "dequantized_uvs", "expanded_instances", "gltf_file_notes",
            "gltf_header", "gltf_material_extras", "gltf_mesh_index", "instanced_nodes", "mesh_alone", "named_materials",
            "position_dequantization", "uv_dequantization", "with_header"]
@@ -335,20 +337,20 @@ def instanced_nodes(header: dict) -> list[int]:
     return [i for i, n in enumerate(json_list(header.get("nodes"))) if json_extension(n, _INSTANCING)]
 
 
-def expanded_instances(header: dict, path: str | Path, data: bytes) -> dict | None:
-    """A copy of ``header`` whose `instanced_nodes` (trimesh reads no instances) hold one child node
-    per instance, placed by the instance's TRANSLATION, ROTATION and SCALE, and the extension gone;
-    the file (``data``, its bytes) is read again under it (`with_header`). None where no node uses
-    the extension. A ValueError names an instance accessor that cannot be read."""
+def expanded_instances(header: dict, path: str | Path) -> dict | None:
+    """A copy of ``header`` (the JSON of the file at ``path``) whose `instanced_nodes` (trimesh
+    reads no instances) hold one child node per instance, placed by the instance's TRANSLATION,
+    ROTATION and SCALE, and the extension gone; the file is read again under it (`with_header`).
+    None where no node uses the extension. A ValueError names an instance accessor that cannot be read."""
     instanced = instanced_nodes(header)
     if not instanced:
         return None
     expanded = json.loads(json.dumps(header))
-    buffers = {None: _glb_binary(data)}  # (buffer URI -> bytes: a .glb's own chunk, each file or data URI read once)
+    buffers = GltfBuffers(header, path)
     for i in instanced:
         node = expanded["nodes"][i]
         attributes = node["extensions"].pop(_INSTANCING).get("attributes") or {}
-        columns = {name: _accessor_values(expanded, attributes[name], path, buffers)
+        columns = {name: _accessor_values(expanded, attributes[name], buffers)
                    for name in ("TRANSLATION", "ROTATION", "SCALE") if name in attributes}
         counts = {len(c) for c in columns.values()}
         if len(counts) != 1:
@@ -373,40 +375,19 @@ _COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5
 _WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 
 
-def _glb_binary(data: bytes) -> bytes | None:
-    """A .glb's binary chunk (None for a .gltf, or a .glb without one), from the file's bytes."""
-    if data[:4] != b"glTF":
-        return None
-    at = _after_json_chunk(data)
-    if at + 8 > len(data):
-        return None
-    length, kind = struct.unpack_from("<II", data, at)
-    return data[at + 8:at + 8 + length] if kind == 0x004E4942 else None
-
-
-def _accessor_values(header: dict, index, path: str | Path, buffers: dict) -> np.ndarray:
-    """An accessor's values, [count, width] float64 (normalised integers scaled as the spec says);
-    ``buffers``: the bytes of the buffers read so far, by URI (None: a .glb's binary chunk)."""
-    import base64
-    from urllib.parse import unquote
-
+def _accessor_values(header: dict, index, buffers: GltfBuffers) -> np.ndarray:
+    """An accessor's values, [count, width] float64 (normalised integers scaled as the spec says),
+    read from its buffer view's bytes."""
     accessors = json_list(header.get("accessors"))
     if not (isinstance(index, int) and 0 <= index < len(accessors)):
         raise ValueError(f"instance accessor {index!r} does not exist")
     accessor = accessors[index]
     view = json_list(header.get("bufferViews"))[accessor["bufferView"]]
-    buffer = json_list(header.get("buffers"))[view.get("buffer", 0)]
-    uri = buffer.get("uri")
-    if uri not in buffers:
-        buffers[uri] = base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") \
-            else (Path(path).parent / unquote(uri)).read_bytes()
-    data = buffers[uri]
-    if data is None:
-        raise ValueError(f"instance accessor {index}'s buffer holds no data")
+    data = buffers.read(view.get("buffer", 0), view.get("byteOffset", 0), view.get("byteLength"), accessor["bufferView"])
     dtype = np.dtype(_COMPONENTS[accessor["componentType"]]).newbyteorder("<")
     width, count = _WIDTHS[accessor["type"]], int(accessor["count"])
     stride = view.get("byteStride") or dtype.itemsize * width
-    start = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    start = accessor.get("byteOffset", 0)  # (within the view's bytes)
     at = start + np.arange(count)[:, None] * stride + np.arange(width * dtype.itemsize)[None, :]
     values = np.frombuffer(data, np.uint8)[at].view(dtype).reshape(count, width).astype(np.float64)  # (IndexError: cut short)
     if accessor.get("normalized") and accessor["componentType"] in _NORMALISED:
@@ -418,10 +399,10 @@ def with_header(data: bytes, header: dict) -> bytes:
     """A glTF file's bytes (``data``) with its JSON replaced by ``header``: a .glb's chunk rewritten
     (its binary chunk kept), or a .gltf's text."""
     chunk = json.dumps(header).encode()
-    if data[:4] != b"glTF":
+    if data[:4] != GLB_MAGIC:
         return chunk
     chunk += b" " * (-len(chunk) % 4)
-    body = struct.pack("<II", len(chunk), 0x4E4F534A) + chunk + data[_after_json_chunk(data):]
+    body = struct.pack("<II", len(chunk), JSON_CHUNK) + chunk + data[_after_json_chunk(data):]
     return data[:8] + struct.pack("<I", 12 + len(body)) + body
 
 
@@ -510,9 +491,9 @@ def _read_header(path: str, size: int, mtime_ns: int, inode: int) -> dict:
     try:
         with path.open("rb") as f:
             start = f.read(20)
-            if start[:4] == b"glTF":  # binary: a 12-byte header, then the JSON chunk (length, type, bytes)
+            if start[:4] == GLB_MAGIC:  # binary: a 12-byte header, then the JSON chunk (length, type, bytes)
                 length, kind = struct.unpack_from("<II", start, 12)  # (only the chunk is read: not the buffers)
-                if kind != 0x4E4F534A:  # "JSON"
+                if kind != JSON_CHUNK:
                     return {}
                 header = json.loads(f.read(length))
             else:

@@ -13,18 +13,15 @@ and slices those alone).
 
 from __future__ import annotations
 
-import base64
 import json
 import struct
-import urllib.parse
 from pathlib import Path
 
+from .gltf_buffers import BIN_CHUNK, GLB_MAGIC, JSON_CHUNK, GltfBuffers
 from .gltf_json import json_list
-from .unread_assets import regular_files_resolver
 
 __all__ = ["packed_alone"]
 
-_GLB_MAGIC, _JSON_CHUNK, _BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
 # What trimesh opens for an image the mesh does not use (it opens each image of the file): 1 x 1 grey.
 _STAND_IN_IMAGE = ("data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAAAAAA6fptVAAAACklEQVR4nGNgAAAAAgAB"
                    "SK+kcQAAAABJRU5ErkJggg==")
@@ -45,7 +42,7 @@ def packed_alone(header: dict, path: Path) -> bytes:
                            and isinstance(images[i].get("bufferView"), int) and 0 <= images[i]["bufferView"] < len(views)})
     new_accessor, new_view = {a: k for k, a in enumerate(kept_accessors)}, {v: k for k, v in enumerate(kept_views)}
 
-    reader = _BufferReader(header, path)
+    reader = GltfBuffers(header, path)
     chunk, packed_views = bytearray(), []
     for v in kept_views:
         view = views[v] if isinstance(views[v], dict) else {}
@@ -158,65 +155,8 @@ def _sources(texture) -> list[int]:
     return found + [e["source"] for e in extensions.values() if isinstance(e, dict) and isinstance(e.get("source"), int)]
 
 
-class _BufferReader:
-    """Byte ranges of a glTF file's buffers: the .glb's binary chunk and .bin files by seeking, data
-    URIs decoded once."""
-
-    def __init__(self, header: dict, path: Path):
-        self.buffers, self.path, self.decoded = json_list(header.get("buffers")), path, {}
-
-    def read(self, index, offset, length, view: int) -> bytes:
-        if not (isinstance(index, int) and 0 <= index < len(self.buffers) and isinstance(self.buffers[index], dict)):
-            raise ValueError(f"buffer view {view} names buffer {index!r}, which the file does not have")
-        if not (isinstance(offset, int) and isinstance(length, int) and offset >= 0 and length >= 0):
-            raise ValueError(f"buffer view {view}'s byteOffset and byteLength must be non-negative integers")
-        uri = self.buffers[index].get("uri")
-        if uri is None:  # (the .glb's own binary chunk)
-            data = self._from_file(self.path, self._binary_chunk_start() + offset, length)
-        elif not isinstance(uri, str):
-            raise ValueError(f"buffer {index}'s uri must be a string")
-        elif uri.startswith("data:"):
-            if index not in self.decoded:
-                self.decoded[index] = base64.b64decode(uri.partition(",")[2])
-            data = self.decoded[index][offset:offset + length]
-        else:
-            file = self.path.parent / urllib.parse.unquote(uri)
-            data = self._from_file(file, offset, length) if file.is_file() else self._other_spelling(uri, index)[offset:offset + length]
-        if len(data) != length:
-            raise ValueError(f"buffer view {view} reaches past the end of buffer {index} (cut short?)")
-        return data
-
-    def _binary_chunk_start(self) -> int:
-        with self.path.open("rb") as f:
-            start = f.read(20)
-            if start[:4] != _GLB_MAGIC:
-                raise ValueError("a buffer without a uri, in a file that is no .glb")
-            json_length = struct.unpack_from("<I", start, 12)[0]
-            f.seek(20 + json_length)
-            chunk = f.read(8)
-        if len(chunk) < 8 or struct.unpack_from("<I", chunk, 4)[0] != _BIN_CHUNK:
-            raise ValueError("the .glb has no binary chunk after its JSON (cut short?)")
-        return 20 + json_length + 8
-
-    def _other_spelling(self, uri: str, index: int) -> bytes:
-        """The whole file ``uri`` names as the mesh's other files are found (backslashes, letter case:
-        `regular_files_resolver`), or a FileNotFoundError naming where it was looked for."""
-        if index not in self.decoded:
-            try:
-                self.decoded[index] = regular_files_resolver(str(self.path)).get(uri)
-            except (OSError, ValueError):
-                raise FileNotFoundError(2, f"buffer {index}'s file {uri} is not in {self.path.parent}") from None
-        return self.decoded[index]
-
-    @staticmethod
-    def _from_file(file: Path, offset: int, length: int) -> bytes:
-        with file.open("rb") as f:
-            f.seek(offset)
-            return f.read(length)
-
-
 def _glb(header: dict, binary: bytes) -> bytes:
     text = json.dumps(header).encode()
     text += b" " * (-len(text) % 4)
-    body = struct.pack("<II", len(text), _JSON_CHUNK) + text + struct.pack("<II", len(binary), _BIN_CHUNK) + binary
-    return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(body)) + body
+    body = struct.pack("<II", len(text), JSON_CHUNK) + text + struct.pack("<II", len(binary), BIN_CHUNK) + binary
+    return GLB_MAGIC + struct.pack("<II", 2, 12 + len(body)) + body

@@ -434,7 +434,7 @@ def _rewritten_gltf(header: dict, path: Path) -> tuple[dict, bytes | None]:
         return header, None
     data = path.read_bytes()
     try:
-        rewritten = expanded_instances(rewritten or header, path, data) or rewritten
+        rewritten = expanded_instances(rewritten or header, path) or rewritten
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
         raise MeshError(f"{path}: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot be read "
                         f"({type(exc).__name__}: {exc})") from None

@@ -85,7 +85,7 @@ def gltf_scene_dict(path: str | Path) -> tuple[dict, dict]:
         raise SceneError(f"{path}: cannot read mesh: {unreadable}")
     if instanced_nodes(header):
         try:
-            header = expanded_instances(header, path, path.read_bytes())
+            header = expanded_instances(header, path)
         except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise SceneError(f"{path}: its EXT_mesh_gpu_instancing instances cannot be read "
                              f"({type(exc).__name__}: {exc})") from None
