@@ -228,6 +228,8 @@ class NeuralBLAS(nn.Module, ABC):
         config; `memory_owner` names this model), made once per setting; the model itself where
         nothing changes. ``storage_precision``, how the parameters were stored, is no setting to
         change. A bad key or value is a one-line `ConfigError`."""
+        if not changes:
+            return self
         if "storage_precision" in changes:
             raise ConfigError("inference.storage_precision is how the model's parameters were stored, not a setting "
                               "to change when it answers")

@@ -20,7 +20,8 @@ from ..errors import ConfigError, validation_message
 AdamBeta = Annotated[float, Field(ge=0.0, lt=1.0)]  # (torch's Adam refuses others, after set-up)
 MAX_STEPS = 10**9  # (a typo of 1e20 steps would run forever; the papers train 2,000-10,000)
 
-__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings", "merged_settings"]
+__all__ = ["ConfigSection", "TrainingConfig", "InferenceConfig", "MethodConfig", "parse_settings", "merged_settings",
+           "differing_keys", "ABSENT"]
 
 
 def merged_settings(base: dict, changes: dict) -> dict:
@@ -34,6 +35,21 @@ def merged_settings(base: dict, changes: dict) -> dict:
         merged[key] = merged_settings(merged[key], value) if isinstance(merged.get(key), dict) and isinstance(value, dict) \
             else value
     return merged
+
+
+ABSENT = object()  # (`differing_keys`: a key one side has and the other lacks)
+
+
+def differing_keys(saved: dict, now: dict, prefix: str = ""):
+    """(dotted key, (``saved``'s value, ``now``'s)) for each leaf of two nested dicts (configs'
+    ``model_dump``, run identities) that differs, in ``now``'s key order; `ABSENT` where one side
+    lacks the key."""
+    for key in dict.fromkeys([*now, *saved]):
+        a, b = saved.get(key, ABSENT), now.get(key, ABSENT)
+        if isinstance(a, dict) and isinstance(b, dict):
+            yield from differing_keys(a, b, f"{prefix}{key}.")
+        elif a != b:
+            yield f"{prefix}{key}", (a, b)
 
 
 class ConfigSection(BaseModel):

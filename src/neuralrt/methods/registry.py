@@ -32,7 +32,7 @@ from pydantic import ValidationError
 from ..arguments import given
 from ..devices import check_device_name
 from ..errors import ConfigError, outside_stacklevel, validation_message
-from .config import MethodConfig
+from .config import ABSENT, MethodConfig, differing_keys
 
 __all__ = ["MethodSpec", "register_method", "get_method", "method_names", "config_from_dict", "DEFAULT_METHOD",
            "load_plugins", "PLUGIN_GROUP", "PLUGIN_VARIABLE", "HOW_TO_REGISTER"]
@@ -124,12 +124,11 @@ class MethodSpec:
     def nearest_preset(self, config: MethodConfig) -> tuple[str, dict]:
         """(the preset ``config`` differs from in the fewest keys, those keys as ``--set`` spells them
         with ``config``'s values), up to the training keys `config` sets, as `preset_of` compares."""
-        t, mine = config.training, _flat(config.model_defining())
+        t, mine = config.training, config.model_defining()
         best = None
         for name in self.presets:
-            theirs = _flat(self.config(name, steps=t.steps, batch_size=t.batch_size, seed=t.seed).model_defining())
-            changed = {k: v for k, v in mine.items() if theirs.get(k, object()) != v}
-            changed.update({k: None for k in theirs if k not in mine})
+            theirs = self.config(name, steps=t.steps, batch_size=t.batch_size, seed=t.seed).model_defining()
+            changed = {key: None if value is ABSENT else value for key, (_, value) in differing_keys(theirs, mine)}
             if best is None or len(changed) < len(best[1]):
                 best = (name, changed)
         return best
@@ -143,17 +142,6 @@ class MethodSpec:
             if made.model_defining() == config.model_defining():
                 return name
         return None
-
-
-def _flat(data: dict, prefix: str = "") -> dict:
-    """``{"cut": {"lods": 3}}`` as ``{"cut.lods": 3}``."""
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 _METHODS: dict[str, MethodSpec] = {}

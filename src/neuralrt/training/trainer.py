@@ -27,6 +27,7 @@ from torch import nn
 
 from ..errors import ConfigError, ModelFileError, TrainingError, outside_stacklevel, validation_message
 from ..io.model_file import read_header, read_model_file, write_model_file
+from ..methods.config import ABSENT, differing_keys
 from .curve import TrainingCurve, curve_problem
 from .prefetch import BatchSource
 
@@ -187,32 +188,18 @@ def _record(stored) -> TrainingRecord:
         raise ValueError(f"its record: {validation_message(exc)}") from None
 
 
-_ABSENT = object()  # a key one identity has and the other lacks
-
-
 def identity_differences(saved, now: dict, limit: int = 3) -> str:
     """What differs between a checkpoint's identity and this run's (`run_identity`'s form), at most
     ``limit`` parts: ``mesh: a different mesh (hash 1a2b3c4d5e6f in the checkpoint, ... now); training.seed: checkpoint 0, now 3``.
     The config's keys are named as in a config file; a different method is named alone (every key follows from it)."""
     if not isinstance(saved, dict):
         return "the checkpoint records no run identity"
-    diffs = dict(_differing_keys(saved, now))
+    diffs = dict(sorted(differing_keys(saved, now), key=lambda kv: kv[0] != "mesh_sha256"))  # (the mesh first)
     if "config.method" in diffs:
         diffs = {"config.method": diffs["config.method"]}
     parts = [_difference(key, *values) for key, values in diffs.items()]
     more = f" and {len(parts) - limit} more" if len(parts) > limit else ""
     return "; ".join(parts[:limit]) + more
-
-
-def _differing_keys(saved: dict, now: dict, prefix: str = ""):
-    """(dotted key, (checkpoint value, current value)) for each leaf that differs; the mesh first, then the config in its key order."""
-    keys = sorted(dict.fromkeys([*now, *saved]), key=lambda k: k != "mesh_sha256")
-    for key in keys:
-        a, b = saved.get(key, _ABSENT), now.get(key, _ABSENT)
-        if isinstance(a, dict) and isinstance(b, dict):
-            yield from _differing_keys(a, b, f"{prefix}{key}.")
-        elif a != b:
-            yield f"{prefix}{key}", (a, b)
 
 
 def _difference(key: str, saved, now) -> str:
@@ -222,7 +209,7 @@ def _difference(key: str, saved, now) -> str:
 
 
 def _shown(value) -> str:
-    text = "(none)" if value is _ABSENT else str(value)
+    text = "(none)" if value is ABSENT else str(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
 
