@@ -230,8 +230,9 @@ class NeuralBLAS(nn.Module, ABC):
         change. A bad key or value is a one-line `ConfigError`."""
         if not changes:
             return self
-        if "storage_precision" in changes:
-            raise ConfigError("inference.storage_precision is how the model's parameters were stored, not a setting "
+        stored = [key for key in type(self.config.inference).STORED_KEYS if key in changes]
+        if stored:
+            raise ConfigError(f"inference.{stored[0]} is how the model's parameters were stored, not a setting "
                               "to change when it answers")
         data = self.config.model_dump()
         data["inference"] = {**data["inference"], **changes}

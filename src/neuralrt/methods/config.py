@@ -117,6 +117,10 @@ class TrainingConfig(ConfigSection):
 class InferenceConfig(ConfigSection):
     """How a trained model answers rays."""
 
+    # Keys that describe the stored model, not how it answers: no view of a trained model changes
+    # them (`NeuralBLAS.with_inference`), and a cached model is reused only under the same ones.
+    STORED_KEYS: ClassVar[tuple[str, ...]] = ("storage_precision",)
+
     occlusion_threshold: float = Field(0.5, gt=0.0, lt=1.0, description="hit if the occlusion probability exceeds this (paper: 0.5)")
     secondary_offset: float = Field(
         1e-2, ge=0.0,

@@ -88,9 +88,11 @@ def _config_hash(config: MethodConfig) -> str:
 
 def _parameters_defining(config: MethodConfig) -> dict:
     """What makes a model's trained parameters: `MethodConfig.model_defining` but the inference
-    settings a model may answer with other values of (`NeuralBLAS.with_inference`; all but storage_precision)."""
+    settings a model may answer with other values of (`NeuralBLAS.with_inference`; all but the
+    inference section's `STORED_KEYS`)."""
     data = config.model_defining()
-    data["inference"] = {k: v for k, v in data["inference"].items() if k == "storage_precision"}
+    stored = type(config.inference).STORED_KEYS
+    data["inference"] = {k: v for k, v in data["inference"].items() if k in stored}
     return data
 
 

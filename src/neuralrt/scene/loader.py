@@ -575,10 +575,8 @@ def _material_table(specs: list, label: str, device) -> MaterialTable:
                 pixels = read_image(m.albedo)
             except NeuralRTError as exc:
                 raise SceneError(f"{label}: materials.{i}.albedo: {exc}") from None
-            problem = nonfinite_problem(pixels, m.albedo)
-            negative = int((pixels < 0).any(axis=-1).sum()) if not problem else 0
-            if negative:  # (as albedo = [-0.8, ...] is refused: a reflectance is >= 0)
-                problem = f"{m.albedo}: {negative} texel{'s are' if negative != 1 else ' is'} negative (albedo must be >= 0)"
+            # (as albedo = [-0.8, ...] is refused: a reflectance is >= 0)
+            problem = nonfinite_problem(pixels, m.albedo) or _negative_problem(pixels, m.albedo, "texel", "albedo")
             if problem:
                 raise SceneError(f"{label}: materials.{i}.albedo: {problem}")
             textures.append(torch.from_numpy(pixels))
@@ -615,17 +613,20 @@ def _area_lights(instances: list[Instance], meshes: list[Mesh | None], materials
     return AreaLights(torch.cat(tris), torch.cat(normals), torch.cat(emission), torch.cat(inst_ids), torch.cat(prim_ids), counts, device=device)
 
 
+def _negative_problem(pixels, name: str, unit: str, quantity: str) -> str | None:
+    """``"{name}: 3 pixels are negative (radiance must be >= 0)"``, or None where none is."""
+    negative = int((pixels < 0).any(axis=-1).sum())
+    return f"{name}: {negative} {unit}{'s are' if negative != 1 else ' is'} negative ({quantity} must be >= 0)" if negative else None
+
+
 def _radiance_image_problem(pixels, name: str, scale: float) -> str | None:
     """Why an image cannot be rendered as radiance (NaN/Inf or negative pixels, or values that overflow
     float32 once scaled), or None."""
     from ..io.images import nonfinite_problem
 
-    problem = nonfinite_problem(pixels, name)
+    problem = nonfinite_problem(pixels, name) or _negative_problem(pixels, name, "pixel", "radiance")
     if problem:
         return problem
-    negative = int((pixels < 0).any(axis=-1).sum())
-    if negative:
-        return f"{name}: {negative} pixel{'s are' if negative != 1 else ' is'} negative (radiance must be >= 0)"
     if pixels.size and float(pixels.max()) * scale > MAX_RADIANCE:
         return f"{name}: pixel values times scale reach {float(pixels.max()) * scale:.3g}, above {MAX_RADIANCE:g} (float32 rendering would overflow)"
     return None
