@@ -82,7 +82,7 @@ def train(
     config = config or spec.config(device=device.type)
     tc = config.training
     identity = run_identity(mesh.content_hash(), config)
-    # (two runs on one checkpoint would each resume from the other's: the second is told, here)
+    # (two runs on one checkpoint would each overwrite the other's: the second is told, here)
     with held_alone(checkpoint) if checkpoint is not None else contextlib.nullcontext():
         if resume and checkpoint.exists():  # a truncated or foreign checkpoint is told before the set-up (seconds)
             check_checkpoint(checkpoint, identity)
