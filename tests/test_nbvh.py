@@ -660,6 +660,53 @@ def test_a_scene_object_changes_its_models_inference_settings_without_another_mo
     assert load_scene_spec(tmp_path / "s.json")[0].objects[1].inference == {"lod": 2, "secondary_lod": None}
 
 
+def test_a_render_changes_every_models_inference_settings_that_has_them(ball, trained, tmp_path, capsys):
+    """``render --set inference.lod=2`` (``api.render(inference=...)``, ``load_dict(inference=...)``):
+    every neural model with the key answers with it, over its object's own setting, as a view of
+    the same model; a key no model has, a scene without models, a built Scene and other sections
+    are one-line errors."""
+    import warnings
+
+    from neuralrt import api
+    from neuralrt.cli import main
+    from neuralrt.errors import NeuralRTError, SceneError
+    from neuralrt.scene.loader import load_dict
+
+    model, _, _ = trained
+    path = str(model.save(tmp_path / "ball.nrt"))
+    objects = [{"name": "plain", "mesh": ball, "model": path},
+               {"name": "own", "mesh": ball, "model": path, "transform": {"translate": [3, 0, 0]},
+                "inference": {"lod": 1, "secondary_lod": None}},
+               {"name": "exact", "mesh": ball, "transform": {"translate": [-3, 0, 0]}}]
+    spec = {"camera": {"position": [0, 0, 12], "resolution": [8, 8]}, "objects": objects,
+            "lights": [{"position": [0, 5, 5], "intensity": [20, 20, 20]}]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = load_dict(spec, primary="neural", inference={"lod": 2, "secondary_lod": None})
+        plain, own, exact = scene.accel.instances
+        assert plain.blas.config.inference.lod == 2 and own.blas.config.inference.lod == 2
+        assert plain.blas is own.blas and plain.blas.memory_owner is not plain.blas  # one view of the file's model
+        assert isinstance(exact.blas, MeshBLAS)
+        untouched = load_dict(spec, primary="neural").accel.instances
+        assert untouched[0].blas.config.inference.lod == 1 and untouched[1].blas.config.inference.lod == 1
+        for inference, message in (({"lodd": 2}, r"scene: inference.lodd: no neural model of the scene \(nbvh\) has"),
+                                   ({"lod": 9}, r"objects.0.inference: nbvh config: inference.lod"),
+                                   ([("lod", 2)], r"inference: expected a dict of setting names")):
+            with pytest.raises(SceneError, match=message):
+                load_dict(spec, primary="neural", inference=inference)
+        with pytest.raises(SceneError, match=r"inference.lod: the scene has no neural model"):
+            load_dict({**spec, "objects": [objects[2]]}, inference={"lod": 2})
+        with pytest.raises(NeuralRTError, match="inference belong to a built Scene"):
+            api.render(scene, tmp_path / "x.exr", inference={"lod": 2}, progress=False)
+        result = api.render(spec, tmp_path / "lod2.exr", spp=1, primary="neural", inference={"lod": 2}, progress=False)
+    assert result["resolution"] == [8, 8]
+    assert main(["render", "builtin:cornell", "-o", str(tmp_path / "y.exr"), "--set", "cut.lods=3"]) == 2
+    assert "render --set takes inference.KEY=VALUE only" in capsys.readouterr().err
+    assert main(["render", "builtin:cornell-statue", "--detail", "0", "-o", str(tmp_path / "y.exr"), "--set",
+                 "inference.lod=2"]) == 2
+    assert "neuralrt: error: builtin:cornell-statue: inference.lod: the scene has no neural model" in capsys.readouterr().err
+
+
 def test_cpu_sampler_draws_are_philox_streams_of_the_draw_number(ball):
     """The CPU training-ray sampler (`nbvh_rays_cpu`): Philox4x32-10 as Random123's known answer;
     the same samples on any numba thread count and for the same draw number, other samples for

@@ -227,14 +227,17 @@ def render(
     allow_mesh_mismatch: bool = False,
     nif: str | list[str] | None = None,
     nif_train_spp: int | None = None,
+    inference: dict | None = None,
 ) -> dict:
     """Path-trace ``scene`` to ``output`` (EXR; PNG and AOVs beside it).
 
     ``scene`` is a scene file, ``builtin:NAME``, one mesh (a mesh file, ``procedural:NAME:DETAIL``)
     or model file (``.nrt``) to render alone (`neuralrt.scene.studio`), a dict shaped like a scene file (objects may hold
     `Mesh` and loaded model objects; see `neuralrt.scene.load_dict`) or an already built `Scene`
-    (then ``resolution``, ``detail`` and ``primary`` are the scene's own: passing them is an error).
+    (then ``resolution``, ``detail``, ``primary`` and ``inference`` are the scene's own: passing them is an error).
     A scene object whose model was trained on another mesh is an error unless ``allow_mesh_mismatch``.
+    ``inference`` (``{"lod": 2}``; the CLI's ``--set inference.lod=2``) changes how every neural model
+    of the scene that has the setting answers, over its object's own (`neuralrt.scene.build_scene`).
     ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
     online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
     from .render.integrator import render as _render
@@ -260,7 +263,7 @@ def render(
     # the image, every AOV beside it (and NIF's training plot), before the scene loads
     check_output_files(output_files(output) + ([nif_plot] if nif_plot else []), "render output")
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
-                         allow_mesh_mismatch=allow_mesh_mismatch)
+                         allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
     primary = loaded.primary
     if not loaded.lights:
         import warnings
@@ -308,7 +311,7 @@ def render(
     }
 
 
-def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch):
+def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch, inference=None):
     """A built `Scene` from a path / ``builtin:NAME``, a scene dict, or a `Scene` (returned as is)."""
     import torch
 
@@ -316,8 +319,8 @@ def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismat
     from .scene.scene import Scene
 
     if isinstance(scene, Scene):
-        if resolution is not None or detail is not None or primary != "exact":
-            raise NeuralRTError("resolution, detail and primary belong to a built Scene: set them when building it")
+        if resolution is not None or detail is not None or primary != "exact" or inference is not None:
+            raise NeuralRTError("resolution, detail, primary and inference belong to a built Scene: set them when building it")
         if torch.device(device).type != scene.device.type:
             raise NeuralRTError(f"the scene was built on {scene.device}, not on {device}: build it with device={device!r}")
         return scene
@@ -326,11 +329,12 @@ def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismat
             raise NeuralRTError("detail applies to builtin scenes, not to a scene dict")
         if resolution is not None:
             scene = {**scene, "camera": {**scene.get("camera", {}), "resolution": list(resolution)}}
-        return load_dict(scene, device=device, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch)
+        return load_dict(scene, device=device, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch,
+                         inference=inference)
     if not isinstance(scene, (str, Path)):
         raise NeuralRTError(f"scene must be a path, 'builtin:NAME', a dict or a Scene, not {type(scene).__name__}")
     return load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
-                      allow_mesh_mismatch=allow_mesh_mismatch)
+                      allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
 
 
 def train(

@@ -110,7 +110,8 @@ def _cmd_render(args) -> None:
     result = api.render(args.scene, args.output, spp=args.spp, resolution=args.res, seed=args.seed,
                         max_depth=args.max_depth, primary=args.primary, detail=args.detail, device=args.device,
                         progress=not args.quiet, allow_mesh_mismatch=args.allow_mesh_mismatch,
-                        nif=args.nif, nif_train_spp=args.nif_train_spp)
+                        nif=args.nif, nif_train_spp=args.nif_train_spp,
+                        inference=_inference_settings(args.settings, "render"))
     _print_result(result, args.json)
 
 
@@ -144,14 +145,20 @@ def _cmd_train(args) -> None:
     _print_result(result, args.json)
 
 
-def _cmd_evaluate(args) -> None:
-    settings = parse_settings(args.settings)
+def _inference_settings(pairs: list[str] | None, command: str) -> dict | None:
+    """The ``inference`` section of ``--set`` pairs (None without any): the one section a trained
+    model may change when it answers."""
+    settings = parse_settings(pairs)
     if set(settings) - {"inference"}:
-        raise NeuralRTError(f"eval --set takes inference.KEY=VALUE only (how the model answers), not "
+        raise NeuralRTError(f"{command} --set takes inference.KEY=VALUE only (how a model answers), not "
                             f"{sorted(set(settings) - {'inference'})[0]}.*: other keys make another model (neuralrt train)")
+    return settings.get("inference")
+
+
+def _cmd_evaluate(args) -> None:
     result = api.evaluate(args.model, args.mesh, rays=args.rays, seed=args.seed, images=not args.no_images,
                           image_dir=args.images, device=args.device, allow_mesh_mismatch=args.allow_mesh_mismatch,
-                          timing=not args.no_timing, progress=not args.quiet, inference=settings.get("inference"))
+                          timing=not args.no_timing, progress=not args.quiet, inference=_inference_settings(args.settings, "eval"))
     if args.json:
         _print_result(result, True)
         return
@@ -263,6 +270,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nif", metavar="OBJECTS|auto", help="answer these objects' shadow rays with NIF, trained online "
                    "(comma-separated names; auto: objects over 100K triangles; docs/nif.md)")
     p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32, or half of the spp when 32 is not below it)")
+    p.add_argument("--set", dest="settings", action="append", metavar="inference.KEY=VALUE",
+                   help="neural models answer with an inference setting changed, each model that has the key, e.g. "
+                        "inference.lod=2 (an N-BVH level of detail); over an object's own (repeatable; keys: docs/config.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_render)

@@ -63,6 +63,7 @@ def load_scene(
     detail: int | None = None,
     primary: str = "exact",
     allow_mesh_mismatch: bool = False,
+    inference: dict | None = None,
 ) -> Scene:
     """Load and build a scene.
 
@@ -72,21 +73,24 @@ def load_scene(
     (`neuralrt.scene.studio`). ``resolution`` (width, height)
     overrides the camera's; ``detail`` overrides a builtin's detail (procedural mesh size).
     ``primary``: who answers camera rays of objects with a model; ``allow_mesh_mismatch``: accept
-    a model trained on another mesh than its object's (see `build_scene`). A bad ``resolution``
+    a model trained on another mesh than its object's; ``inference``: settings every neural model
+    that has them answers with (see `build_scene`). A bad ``resolution``
     or ``path_or_builtin`` raises `ConfigError`, a device this process cannot use `DeviceError`,
     before the scene is read.
     """
     device = check_device(device)
     size = None if resolution is None else check_resolution(resolution)
     if isinstance(path_or_builtin, (str, os.PathLike)) and is_lone_object(os.fspath(path_or_builtin)):
-        return _lone_object_scene(os.fspath(path_or_builtin), device, size, detail, primary, allow_mesh_mismatch)
+        return _lone_object_scene(os.fspath(path_or_builtin), device, size, detail, primary, allow_mesh_mismatch,
+                                  inference)
     spec, base_dir, label = load_scene_spec(path_or_builtin, detail=detail)  # (its own spec, paths absolute)
     if size is not None:
         spec.camera.resolution = size
-    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch)
+    return _build(spec, base_dir, device, label, primary, _InMemory({}, {}), allow_mesh_mismatch, inference)
 
 
-def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh_mismatch: bool) -> Scene:
+def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh_mismatch: bool,
+                       inference: dict | None) -> Scene:
     """`neuralrt.scene.studio`: one mesh or model file, framed and lit; the file is read once."""
     from .studio import MODEL_SUFFIX, studio_dict
 
@@ -112,11 +116,11 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
         warnings.filterwarnings("ignore", category=MeshMismatchWarning)
         return load_dict(studio_dict(key, value, lo, hi, size), device=device, primary=primary, label=name,
-                         allow_mesh_mismatch=allow_mesh_mismatch)
+                         allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
 
 
 def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", primary: str = "exact", label: str = "scene",
-              allow_mesh_mismatch: bool = False) -> Scene:
+              allow_mesh_mismatch: bool = False, inference: dict | None = None) -> Scene:
     """Build a scene from a dict shaped like a scene file (cf. Mitsuba's ``load_dict``).
 
     Every key is that of a scene file (docs/scenes.md) and is validated at once: a bad value or an
@@ -150,7 +154,7 @@ def load_dict(scene: dict, base_dir: str | os.PathLike = ".", device="cpu", prim
         data["objects"] = [_take_in_memory(obj, i, given, label) for i, obj in enumerate(objects)]
     spec = validate_spec(data, label)
     _absolute_in_place(spec, Path(base_dir))  # (a fresh spec: no copy needed)
-    return _build(spec, base_dir, device, label, primary, given, allow_mesh_mismatch)
+    return _build(spec, base_dir, device, label, primary, given, allow_mesh_mismatch, inference)
 
 
 def _take_in_memory(obj, i: int, given: _InMemory, label: str):
@@ -349,7 +353,7 @@ class _InMemory:
 
 
 def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label: str = "scene", primary: str = "exact",
-                allow_mesh_mismatch: bool = False) -> Scene:
+                allow_mesh_mismatch: bool = False, inference: dict | None = None) -> Scene:
     """Runtime `Scene` from a validated spec (relative paths resolve against ``base_dir``).
 
     ``primary`` says who will answer camera rays for objects that have a model: ``"exact"`` keeps
@@ -357,6 +361,10 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
     An object's model must have been trained on the object's mesh (content hash) unless
     ``allow_mesh_mismatch``; a model-only object warns that nothing checks it
     (`neuralrt.methods.check_mesh_match`).
+
+    ``inference`` (``{"lod": 2}``) changes how the scene's neural models answer: each model whose
+    method has a key answers with it, over its object's own ``inference``; a key no model of the
+    scene has is an error (`NeuralBLAS.with_inference`).
     """
     base_dir, device = check_path("base_dir", base_dir), check_device(device)
     if not isinstance(spec, SceneSpec):
@@ -364,11 +372,11 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
                          f"got {type(spec).__name__}")
     # A copy: the scene keeps its spec (and render settings), which the caller may edit or build again.
     return _build(absolutize_paths(spec, Path(base_dir)), base_dir, device, label, primary, _InMemory({}, {}),
-                  allow_mesh_mismatch)
+                  allow_mesh_mismatch, inference)
 
 
 def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory,
-           allow_mesh_mismatch: bool = False) -> Scene:
+           allow_mesh_mismatch: bool = False, inference: dict | None = None) -> Scene:
     """The scene of ``spec``, which it keeps: one no one else holds, its paths absolute."""
     if primary not in PRIMARY_CHOICES:
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
@@ -378,6 +386,8 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     used_materials: set[int] = set()
     materials = _material_table(material_specs, label, dev)
 
+    inference = _check_inference(inference, label)
+    applied: set[str] = set()  # the keys of ``inference`` some model had
     shapes: dict[tuple, _Shape] = {}
     models: dict[str, BLAS] = {}
     instances: list[Instance] = []
@@ -404,8 +414,9 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                 blas = models[obj.model]
             check_mesh_match(blas, shape.content_hash if shape is not None else None, allow_mismatch=allow_mesh_mismatch,
                              label=f"{label}: {key}.model")
-            if obj.inference:
-                blas = _with_inference(blas, obj.inference, label, key)
+            changes = {**obj.inference, **_inference_of(blas, inference, applied)}
+            if changes:
+                blas = _with_inference(blas, changes, label, key)
             slots = _material_names(blas, label, key)
             if is_emissive(spec, obj, slots):
                 raise SceneError(f"{label}: {key}.model: emissive objects (area lights) must stay exact meshes")
@@ -425,6 +436,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                                   name=obj.name or f"object{i}", camera_blas=camera_blas))
         meshes.append(shape.mesh if obj.model is None else None)
 
+    _check_applied(inference, applied, models, given, label)
     unlit = [m.name for k, m in enumerate(material_specs) if isinstance(m, EmissiveMaterialSpec) and k not in used_materials]
     if unlit:  # (a misspelt slot falls back to 'default': the light is gone, silently)
         warnings.warn(f"{label}: emissive material {', '.join(map(repr, unlit))} is used by no object: no light comes "
@@ -443,6 +455,36 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
                  instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev,
                  primary=primary)
+
+
+def _check_inference(inference, label: str) -> dict:
+    """``inference`` (None: no change) as a dict of setting names, or a one-line error."""
+    if inference is None:
+        return {}
+    if not isinstance(inference, dict) or not all(isinstance(k, str) for k in inference):
+        raise SceneError(f"{label}: inference: expected a dict of setting names (e.g. {{'lod': 2}}), "
+                         f"got {type(inference).__name__}")
+    return inference
+
+
+def _inference_of(blas, inference: dict, applied: set[str]) -> dict:
+    """The settings of the scene-wide ``inference`` that ``blas``'s method has (noted in ``applied``)."""
+    if not inference or not is_neural(blas):
+        return {}
+    keys = [k for k in inference if k in type(blas.config.inference).model_fields]
+    applied.update(keys)
+    return {k: inference[k] for k in keys}
+
+
+def _check_applied(inference: dict, applied: set[str], models: dict, given: _InMemory, label: str) -> None:
+    """A scene-wide setting no model of the scene has (a typo, or no model of that method) is an error."""
+    missing = [k for k in inference if k not in applied]
+    if not missing:
+        return
+    methods = sorted({b.METHOD for b in [*models.values(), *given.models.values()] if is_neural(b)})
+    held = (f"no neural model of the scene ({', '.join(methods)}) has this setting" if methods
+            else "the scene has no neural model")
+    raise SceneError(f"{label}: inference.{missing[0]}: {held} (the keys of each method: docs/config.md)")
 
 
 def _with_inference(blas, changes: dict, label: str, key: str):
