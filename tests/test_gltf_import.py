@@ -98,6 +98,25 @@ def test_a_file_without_lights_is_lit_and_framed_as_a_lone_mesh(tmp_path):
     assert spec.environment is not None and len(spec.lights) == 1
 
 
+def test_alpha_cut_out_materials_are_said_to_render_opaque(tmp_path):
+    """``alphaMode`` MASK or BLEND (leaves, fences) is not read: import and a lone render say so."""
+    def cut_out(header):
+        header["materials"][0]["alphaMode"] = "MASK"
+        header["materials"][1]["alphaMode"] = "OPAQUE"
+    path = edited_glb(street_glb(tmp_path / "leafy.glb"), cut_out)
+    with pytest.warns(UserWarning, match=r"the alpha of '\w+' \(alphaMode MASK or BLEND\) is not read: its surfaces "
+                                         r"render opaque") as caught:
+        api.import_scene(path, tmp_path / "leafy.toml")
+    assert sum("alphaMode" in str(w.message) for w in caught) == 1 and path.name in str(caught[0].message)
+    with pytest.warns(UserWarning, match=r"alphaMode MASK or BLEND"), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*merged mesh")
+        load_scene(str(path), resolution=(4, 4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        warnings.filterwarnings("ignore", message=".*(emission|merged mesh)")
+        load_scene(str(street_glb(tmp_path / "plain.glb")), resolution=(4, 4))  # (no cut-out material: no note)
+
+
 def test_gpu_instances_become_objects(tmp_path):
     facts = api.import_scene(DATA / "gltfpack_instances.glb", tmp_path / "i.toml")
     spec, _, _ = load_scene_spec(tmp_path / "i.toml")

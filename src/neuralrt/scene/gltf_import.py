@@ -312,7 +312,24 @@ def _materials(header: dict, path: Path) -> tuple[list[dict], int]:
     if unnamed:
         warnings.warn(f"{path}: the emission of {', '.join(unnamed)} is not read: a scene material takes a slot by "
                       f"name, and these have none (or another material's)", stacklevel=outside_stacklevel())
+    note = unread_alpha_note(path, header)
+    if note:
+        warnings.warn(note, stacklevel=outside_stacklevel())
     return found, emissive
+
+
+def unread_alpha_note(path: str | Path, header: dict | None = None) -> str | None:
+    """That the file's materials cut surfaces out by alpha (``alphaMode`` MASK or BLEND: leaves,
+    fences, decals), which nothing reads: they render opaque. None where none does."""
+    if header is None:
+        header = gltf_header(path) if Path(path).suffix.lower() in (".gltf", ".glb") else {}
+    cut = [_name(m) or f"material {i}" for i, m in enumerate(json_list(header.get("materials")))
+           if isinstance(m, dict) and m.get("alphaMode") in ("MASK", "BLEND")]
+    if not cut:
+        return None
+    shown = ", ".join(map(repr, cut[:4])) + (f" and {len(cut) - 4} more" if len(cut) > 4 else "")
+    return (f"{path}: the alpha of {shown} (alphaMode MASK or BLEND) is not read: {_plural(len(cut), 'its', 'their')} "
+            f"surfaces render opaque, cut-out leaves as whole quads")
 
 
 def _unit_number(value) -> float:

@@ -104,14 +104,14 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         lo, hi = value.bounds.lo.cpu().numpy(), value.bounds.hi.cpu().numpy()
     else:
         from ..geometry.mesh import check_float32_extent
-        from .gltf_import import unused_scene_note
+        from .gltf_import import unread_alpha_note, unused_scene_note
 
         value, key = load_mesh(name), "mesh"
         check_float32_extent(value, name)  # (said of the mesh, before its framing's light is out of range)
         lo, hi = value.bounds
-        note = unused_scene_note(name)
-        if note:
-            warnings.warn(note, stacklevel=outside_stacklevel())
+        for note in (unused_scene_note(name), unread_alpha_note(name)):
+            if note:
+                warnings.warn(note, stacklevel=outside_stacklevel())
     with warnings.catch_warnings():
         # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
         warnings.filterwarnings("ignore", category=MeshMismatchWarning)

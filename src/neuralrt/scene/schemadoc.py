@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import inspect
 import json
-import sys
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -126,7 +125,8 @@ colour); the other meshes take the scene's `default`, diffuse 0.8. A file withou
 and framed as a lone mesh is (`neuralrt render mesh.glb`), so a file without materials renders as
 it does alone; a file with named materials renders as they say, where alone every mesh is diffuse
 0.8 times its colours. What is not read (orthographic cameras, unnamed emissive materials,
-a node whose matrix cannot place a mesh) is a warning naming it (`neuralrt.scene.gltf_import`).
+a node whose matrix cannot place a mesh, cut-outs by alpha: `alphaMode` MASK or BLEND surfaces
+render opaque, a leaf as its whole quad, also when the file renders alone) is a warning naming it (`neuralrt.scene.gltf_import`).
 Rendering a glTF alone warns of what it leaves unused (copies of meshes several nodes draw,
 cameras, lights) and names the `neuralrt import` command that keeps them. A `gltf_mesh` is read
 from its own bytes (`neuralrt.geometry.gltf_pack`: its accessors, views and images only): in a
@@ -257,8 +257,12 @@ def default_path() -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = sys.argv[1:] if argv is None else argv
-    path = Path(args[0]) if args else default_path()
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m neuralrt.scene.schemadoc",
+                                     description="write the scene file reference (docs/scenes.md)")
+    parser.add_argument("output", nargs="?", type=Path, default=default_path(), help="default: %(default)s")
+    path = parser.parse_args(argv).output
     path.write_text(scene_reference(), encoding="utf-8")
     print(f"wrote {path}")
 
