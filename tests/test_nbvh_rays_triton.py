@@ -163,14 +163,15 @@ def test_triton_sampler_draws_the_cpu_samplers_distribution(model, triton_draw):
 def test_cpu_sampler_draws_the_kernels_samples(model, kernels):
     """The numba sampler (`nbvh_rays_cpu`) runs the kernel's algorithm on the same Philox streams: for
     the same block size, the same leaves, rounds and Morton codes, and the same chords up to the
-    last bits of sin and cos."""
-    from neuralrt.methods.nbvh_rays_cpu import sample_leaf_chords_cpu
+    last bits of sin and cos; a limit on the rounds (not reached) changes no stream: the counters'
+    layout is fixed."""
+    from neuralrt.methods.nbvh_rays_cpu import CPU_MAX_ROUNDS, MAX_ROUNDS, sample_leaf_chords_cpu
 
     cpu_model = model.cpu() if CUDA else model
     depth = kernels.tree_depth(model.node_children)
-    for seed, call in ((0, 3), (9, 0)):
-        want = kernels.sample_leaf_chords_triton(model.to(DEVICE), 3000, seed, call, depth)
-        got = sample_leaf_chords_cpu(cpu_model.cpu(), 3000, seed, call, block=kernels._BLOCK)
+    for seed, call, rounds in ((0, 3, (MAX_ROUNDS, CPU_MAX_ROUNDS)), (9, 0, (MAX_ROUNDS, CPU_MAX_ROUNDS)), (9, 0, (64, 32))):
+        want = kernels.sample_leaf_chords_triton(model.to(DEVICE), 3000, seed, call, depth, max_rounds=rounds[0])
+        got = sample_leaf_chords_cpu(cpu_model.cpu(), 3000, seed, call, block=kernels._BLOCK, max_rounds=rounds[1])
         assert torch.equal(got.node, want.node.cpu()) and torch.equal(got.rounds, want.rounds.cpu()) and int(got.flag) == int(want.flag) == 0
         assert (got.code == want.code.cpu()).float().mean() > 0.999
         for name in ("start", "direction", "length"):

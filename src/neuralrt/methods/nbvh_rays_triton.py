@@ -32,7 +32,7 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from .nbvh_rays_cpu import OVERFLOW, UNFILLED, LeafChords
+from .nbvh_rays_cpu import MAX_ROUNDS, OVERFLOW, UNFILLED, LeafChords
 from .nbvh_rays_cpu import call_base as _call_base
 from .nbvh_traversal_triton import first_leaf_walk
 
@@ -41,7 +41,6 @@ __all__ = ["sample_leaf_chords_triton", "draw_candidates_triton", "tree_depth", 
 _BLOCK = 64
 _PROGRAMS = 2048  # at most; each owns ceil(n / programs) slots
 _WARPS = _BLOCK // 32  # one candidate per thread
-_MAX_ROUNDS = 1 << 16  # per program: 4M candidates; only a cut that (almost) no ray can be kept from reaches it
 _TWO_PI = tl.constexpr(2 * math.pi)
 _INF = tl.constexpr(float("inf"))
 
@@ -125,7 +124,7 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
                    loss_sum_ptr, samples_ptr, alive_ptr, h_max_ptr, min_acceptance,
                    start_out, dir_out, length_out, node_out, code_out, rounds_out, flag_ptr, stack_ptr, stack_f_ptr,
                    n, quota, seed, call_base, max_rounds,
-                   STACK: tl.constexpr, BLOCK: tl.constexpr, LEVELS: tl.constexpr):  # fmt: skip
+                   STACK: tl.constexpr, BLOCK: tl.constexpr, LEVELS: tl.constexpr, LAYOUT_ROUNDS: tl.constexpr):  # fmt: skip
     pid = tl.program_id(0)
     lanes = tl.arange(0, BLOCK)
     first = pid * quota
@@ -142,8 +141,9 @@ def _sample_kernel(center_ptr, extent_ptr, reg_ptr, box_scale, dil_base, dil_jit
     filled = pid * 0
     r = pid * 0
     while (filled < want) & (r < max_rounds):
-        # Two Philox counters per candidate: (program, round, lane) below 2^40, above them the call.
-        cand = (pid.to(tl.int64) * max_rounds + r) * BLOCK + lanes
+        # Two Philox counters per candidate: (program, round, lane) below 2^40, above them the call; laid
+        # out by the fixed LAYOUT_ROUNDS (the CPU sampler's), not by where this draw stops (max_rounds).
+        cand = (pid.to(tl.int64) * LAYOUT_ROUNDS + r) * BLOCK + lanes
         counter = call_base + 2 * cand
         ox, oy, oz, dx, dy, dz, lvl, dil, u_keep = _candidates(seed, counter, cx, cy, cz, ex, ey, ez, reg_ptr, dil_base,
                                                                dil_jitter, LEVELS)  # fmt: skip
@@ -204,7 +204,7 @@ def _level_flags(model) -> Tensor:
     return model.registered.view(torch.int8)
 
 
-def sample_leaf_chords_triton(model, n: int, seed: int, call: int, stack_depth: int, max_rounds: int = _MAX_ROUNDS) -> LeafChords:
+def sample_leaf_chords_triton(model, n: int, seed: int, call: int, stack_depth: int, max_rounds: int = MAX_ROUNDS) -> LeafChords:
     """``n`` accepted leaf chords of ``model``'s current cut and statistics (see the module docstring).
     ``call`` numbers the draws of a run (a different stream each); ``stack_depth``: `tree_depth` of the model's tree."""
     dev = model.node_lo.device
@@ -230,8 +230,8 @@ def sample_leaf_chords_triton(model, n: int, seed: int, call: int, stack_depth: 
         model.node_lo, model.node_hi, model.node_children, model.node_lod, model.live.view(torch.int8),
         model.loss_sum, model.samples, model.alive_steps, model.h_max, float(tc.min_acceptance),
         start, direction, length, node, code, rounds, flag, scratch, scratch.view(torch.float32),
-        n, quota, int(seed), _call_base(call), int(max_rounds), STACK=stack, BLOCK=_BLOCK, LEVELS=model.registered.numel(),
-        num_warps=_WARPS,
+        n, quota, int(seed), _call_base(call), min(int(max_rounds), MAX_ROUNDS), STACK=stack, BLOCK=_BLOCK,
+        LEVELS=model.registered.numel(), LAYOUT_ROUNDS=MAX_ROUNDS, num_warps=_WARPS,
     )  # fmt: skip
     return LeafChords(start, direction, length, node, code, rounds, flag, _BLOCK)
 
