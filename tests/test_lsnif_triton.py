@@ -85,6 +85,19 @@ def test_featurize_dispatches_on_device_and_checks_input():
         featurize_rays_triton(o, d, torch.ones(4, 4, 2, dtype=torch.bool, device=DEVICE))
     empty = featurize_rays_triton(o[:0], d[:0], occ)
     assert empty.points.shape == (0, 18, 3) and empty.count.device == o.device
+    # The kernel's own checks are featurize_rays's: a short direction tensor would be read past its end.
+    for bad, message in (((o, d[:0]), "must both be"), ((o[:, :2], d[:, :2]), "must both be")):
+        with pytest.raises(ValueError, match=message):
+            featurize_rays_triton(*bad, occ)
+    with pytest.raises(ValueError, match="max_points must be >= 1"):
+        featurize_rays_triton(o, d, occ, 0)
+    # Rays of two dtypes walk in float64 each as given, as numba's walk does (not cast to the origins').
+    rng = np.random.default_rng(5)
+    occ_np = rng.uniform(size=(8, 8, 8)) < 0.3
+    o64, d64 = _random_rays(rng, 64, occ_np)
+    o32, d64 = o64.float(), d64.double() * 1.0000001
+    mixed = featurize_rays_triton(o32.to(DEVICE), d64.to(DEVICE), torch.from_numpy(occ_np).to(DEVICE), 10)
+    _assert_features_match(mixed, featurize_rays_numba(o32, d64, occ_np, 10))
 
 
 # -- sparse hash grid -----------------------------------------------------------------------------
@@ -218,7 +231,8 @@ def test_lsnif_model_fused_answers_match_unfused():
 def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin_point, block, warps, dtype):
     """``input_per_ray`` (one ray per lane) and ``input`` (padded tile, checked against the unfused
     path above) write the same bytes; bf16 rows go out as packed pairs (neither stage has a dot
-    product, so bf16 runs under the interpreter too)."""
+    product, so bf16 runs under the interpreter too) and are the fp32 rows rounded to bf16: to
+    nearest even when compiled, truncated under Triton's interpreter (its casts truncate)."""
     from neuralrt.methods.lsnif_fused import pack_network, run_fused_kernel
     from neuralrt.neural.sparse_hash_grid import SparseHashGrid
 
@@ -241,6 +255,16 @@ def test_per_ray_kernel_writes_the_tiled_kernels_network_input(distances, origin
         torch.testing.assert_close(per_ray.values.float(), tiled.values.float(), **close)
     else:
         assert torch.equal(per_ray.values, tiled.values)
+    if dtype == torch.bfloat16:
+        wide = run_fused_kernel(o.to(DEVICE), d.to(DEVICE), occ_t, grid.table, res, pack_network(net, grid, 6, distances,
+                                torch.float32), stage="input_per_ray", block=block, num_warps=warps, **kw).values  # fmt: skip
+        nearest = wide.to(torch.bfloat16)
+        truncated = (wide.view(torch.int32) & -65536).view(torch.float32).to(torch.bfloat16)
+        assert not torch.equal(nearest, truncated)
+        if CUDA:  # (two compiled kernels: an fp32 ulp may move a rare value across a rounding boundary)
+            assert (per_ray.values == nearest).float().mean() > 0.99
+        else:
+            assert torch.equal(per_ray.values, truncated)
 
 
 def test_fused_hits_equal_the_unfused_intersect():

@@ -20,7 +20,7 @@ import triton
 import triton.language as tl
 from torch import Tensor
 
-from .lsnif_features import ORIGIN_POINT, PADDING, RayFeaturePoints
+from .lsnif_features import ORIGIN_POINT, PADDING, RayFeaturePoints, _check_rays
 
 __all__ = ["featurize_rays_triton", "dda_setup", "dda_next_point", "dda_point_coords"]
 
@@ -260,11 +260,12 @@ def featurize_rays_triton(
     block: int = 128,
 ) -> RayFeaturePoints:
     """`featurize_rays` as a Triton kernel on the rays' device (CUDA, or CPU under TRITON_INTERPRET=1)."""
+    _check_rays(origins, directions, max_points)  # (a short direction tensor would be read past its end)
     device = origins.device
     occ = occupancy_bytes(occupancy, device)
     res = occ.shape[0]
     o = origins.detach().contiguous()
-    d = directions.detach().to(o.dtype).contiguous()
+    d = directions.detach().to(device).contiguous()  # (each in its own dtype: the kernel upcasts both, as numba does)
     n = o.shape[0]
     pts = torch.zeros((n, max_points, 3), dtype=torch.float32, device=device)
     axes = torch.full((n, max_points), PADDING, dtype=torch.int8, device=device)
