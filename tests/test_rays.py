@@ -162,6 +162,8 @@ def test_hits_and_rays_check_their_arguments():
     if not torch.cuda.is_available():
         with pytest.raises(DeviceError, match=r"^device='cuda': "):  # (was torch's AssertionError)
             rays.to("cuda")
+        with pytest.raises(DeviceError, match=r"^device='cuda': "):
+            Hits.empty(2, "cuda")
 
 
 def test_rays_and_hits_compare_by_identity():

@@ -26,10 +26,17 @@ def check_device_name(device):
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
-        raise DeviceError(f"{given('device', device)}: not a torch device (use cpu or cuda)") from None
+        raise DeviceError(f"{_given_device(device)}: not a torch device (use cpu or cuda)") from None
     if dev.type not in DEVICE_TYPES:
-        raise DeviceError(f"{given('device', device)}: unsupported device type {dev.type!r} (use cpu or cuda)")
+        raise DeviceError(f"{_given_device(device)}: unsupported device type {dev.type!r} (use cpu or cuda)")
     return dev
+
+
+def _given_device(device) -> str:
+    """``device='cuda'`` whether it came as a string or a `torch.device` (as `given` spells it)."""
+    import torch
+
+    return given("device", str(device) if isinstance(device, torch.device) else device)
 
 
 def check_device(device):
@@ -40,10 +47,10 @@ def check_device(device):
     dev = check_device_name(device)
     if dev.type == "cuda":
         if not torch.backends.cuda.is_built():
-            raise DeviceError(f"{given('device', device)}: this torch ({torch.__version__}) is built without CUDA; "
+            raise DeviceError(f"{_given_device(device)}: this torch ({torch.__version__}) is built without CUDA; "
                               "install a CUDA build of torch to use a GPU")
         if not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count():
-            raise DeviceError(f"{given('device', device)}: no CUDA device is available")
+            raise DeviceError(f"{_given_device(device)}: no CUDA device is available")
     return resolve_device(dev)
 
 

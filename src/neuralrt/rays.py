@@ -221,7 +221,7 @@ class Hits:
     def empty(n: int, device=None) -> "Hits":
         """All-miss records for ``n`` rays."""
         check_count("n", n, minimum=0)
-        dev = torch.device(device) if device is not None else torch.device("cpu")
+        dev = check_device(device) if device is not None else torch.device("cpu")
         return Hits(
             hit=torch.zeros(n, dtype=torch.bool, device=dev),
             t=torch.full((n,), float("inf"), device=dev),

@@ -282,6 +282,10 @@ class NeuralBLAS(nn.Module, ABC):
             check_device(device)
         return super().to(*args, **kwargs)
 
+    def cuda(self, device=None):
+        """``nn.Module.cuda`` through `to` (its one-line check where this process has no GPU)."""
+        return self.to(torch.device("cuda", device) if isinstance(device, int) else device or "cuda")
+
     @property
     def device(self) -> torch.device:
         for tensor in self.buffers():

@@ -4,7 +4,7 @@ The kernel walks each ray through the voxels (`dda_next_point`, float64 as in `f
 and encodes each boundary point in the sparse hash grid as soon as it is found (`encode_point`):
 points never go to global memory. Where it stops is a choice (``stage``):
 
-- ``"input"`` (default): it writes the network input row (bf16, the unfused path's layout) and
+- ``"input"``: it writes the network input row (bf16, the unfused path's layout) and
   the MLP runs as torch GEMMs (`MLP.forward`). No accumulator in the kernel: fewest registers.
 - ``"first_layer"``: the network input is the concatenation of per-point blocks, so
   ``x @ W1^T`` is the sum over point slots of ``x_h @ W1[:, block h]^T``: one small tensor-core
@@ -17,12 +17,13 @@ points never go to global memory. Where it stops is a choice (``stage``):
   features] tile. In ``_fused_lsnif_kernel`` the walk's [BLOCK] vectors share the tile's layout,
   so with 32 rays on 128 threads every ray is walked 4 times over; here a thread walks one ray.
   Same bytes as ``input`` (tested under the interpreter; the bench compares them on the GPU).
+  The default (`DEFAULT_LAUNCH`), with `fused_hits` decoding.
 
 Measured on an H100 (benchmarks/results/lsnif_kernels_h100.json, hq, 2^22 hairball(6) rays):
 ``input`` 23.7 ms, ``whole`` 25.7 ms, ``first_layer`` 54.8 ms (its best launches); unfused
 26.2 ms. A point slot past every ray's last point in a block is skipped (its features are 0).
-``input_per_ray`` and `fused_hits` (the output layer and the hit decoding in a kernel writing
-`Hits`) are not measured yet: ``bench_lsnif_kernels_cuda.py --quick`` times them beside ``input``.
+``input_per_ray`` with `fused_hits` (the output layer and the hit decoding in a kernel writing
+`Hits`): 15.5 ms (hq, `DEFAULT_LAUNCH`'s comment; ``bench_lsnif_kernels_cuda.py --quick``).
 By ptxas for sm_90 (hq): ``input`` 32 x 4 125 registers; ``input_per_ray`` 32 x 1 88, 128 x 4 ~105.
 
 Same answers as the unfused path (`featurize_rays` -> `SparseHashGrid` -> MLP) up to the
