@@ -19,8 +19,11 @@ def test_demo_quick_writes_the_whole_report(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(demo, "DEMO_QUICK", tiny)
     out = tmp_path / "report"
     assert main(["demo", "--quick", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert "report:" in printed and "FLIP" in printed
+    # Progress lines go to stderr: stdout is the result (strict JSON with --json, quiet or not).
+    assert "[1/4] converting" in captured.err and "[1/1] training" in captured.err and "[1/" not in printed
 
     report = json.loads((out / "report.json").read_text())
     for key in ("flip", "psnr", "flip_other_seed", "psnr_other_seed", "flip_noise_floor"):
@@ -82,7 +85,11 @@ def test_quick_is_a_shorter_run_of_the_same_model():
 @pytest.mark.parametrize("field, value, needle", [
     ("spp", -1, "spp: must be at least 1, got -1"),
     ("max_depth", 0, "max_depth: must be at least 1"),
-    ("resolution", (0, 10), "resolution: must be at least 1"),
+    ("resolution", (0, 10), "resolution: 0x10 must be at least 1x1"),
+    ("resolution", (20000, 20), "resolution: 20000x20 is over the largest allowed"),
+    ("spp", 2_000_000, "spp: must be at most"),
+    ("max_depth", 1000, "max_depth: must be at most 256"),
+    ("seed", -1, "seed: must be at least 0"),
     ("preset", "mq", "unknown lsnif preset 'mq'"),
     ("batch", 3, "training.batch_size"),
 ])

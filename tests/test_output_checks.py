@@ -80,6 +80,12 @@ def test_demo_refuses_a_file_and_a_bad_scene_leaves_no_folder(tmp_path, a_file, 
     assert main(["demo", "--quick", "--scene", "builtin:nope", "--out", str(out)]) == 2
     assert "nope" in _one_error_line(capsys)
     assert not out.exists()
+    # Render's bounds are checked before the training (they failed after it, leaving its models).
+    for flags, message in ((["--seed", "-1"], "--seed: must be at least 0"), (["--max-depth", "1000"], "--max-depth: must be at most"),
+                           (["--res", "20000x20"], "--res: 20000x20 is over the largest allowed")):
+        assert main(["demo", "--quick", "--out", str(out), *flags]) == 2
+        assert message in _one_error_line(capsys)
+        assert not out.exists()
 
 
 def test_eval_images_and_no_images_contradict(tmp_path, capsys):

@@ -13,6 +13,7 @@ import signal
 import sys
 import threading
 import warnings
+from pathlib import Path
 
 from . import __version__, api
 from .arguments import spelled_as_flags
@@ -204,6 +205,7 @@ def _cmd_demo(args) -> None:
           f"PSNR {report['psnr']:.2f} dB; neural {m['neural_bytes'] / 2**20:.2f} MiB vs BVH A "
           f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; train {t['train_s']:.0f} s, exact {t['exact_render_s']:.3g} s, "
           f"hybrid {t['hybrid_render_s']:.3g} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x)")
+    print(f"report: {(Path(args.out) / report['images']['report_md']).resolve()}")
 
 
 def _add_method(p: argparse.ArgumentParser) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import sys
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -48,16 +49,17 @@ class DemoSettings:
     seed: int = 1
 
     def __post_init__(self) -> None:
-        from .arguments import check_count, given
+        from .arguments import check_count, check_seed, given
         from .errors import ConfigError
         from .methods import get_method
+        from .scene.schema import MAX_DEPTH, MAX_SPP, check_resolution
 
-        for name, minimum in (("spp", 1), ("max_depth", 1), ("steps", 1), ("batch", 1), ("detail", 0), ("min_triangles", 0)):
-            check_count(given(name), getattr(self, name), minimum)  # (named as the caller spelled it: --spp, spp)
-        if len(self.resolution) != 2:
-            raise ConfigError(f"resolution: must be (width, height), got {self.resolution!r}")
-        for v in self.resolution:
-            check_count("resolution", v)
+        # Render's bounds too: a bad value fails here, not after the training (as `render` refuses it at once).
+        for name, minimum, maximum in (("spp", 1, MAX_SPP), ("max_depth", 1, MAX_DEPTH), ("steps", 1, None),
+                                       ("batch", 1, None), ("detail", 0, None), ("min_triangles", 0, None)):
+            check_count(given(name), getattr(self, name), minimum, maximum)  # (named as the caller spelled it: --spp, spp)
+        check_seed(given("seed"), self.seed)
+        check_resolution(self.resolution)
         if self.primary not in ("exact", "neural"):
             raise ConfigError(f"primary: must be exact or neural, got {self.primary!r}")
         # The training config too (unknown preset, batch below the method's minimum, ...).
@@ -175,7 +177,7 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
 
     def say(msg: str) -> None:
         if progress:
-            print(msg, flush=True)
+            print(msg, file=sys.stderr, flush=True)  # (stdout is the result: --json)
 
     say(f"[1/4] converting {s.scene} ({s.method} {s.preset}) ...")
     conversion = convert_scene(s.scene, out / "scene_neural.toml", models_dir=out / "models", method=s.method, preset=s.preset,
@@ -248,5 +250,4 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     }
     _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
     _write_text(out / "report.md", _markdown(report))
-    say(f"report: {(out / 'report.md').resolve()}")
     return report

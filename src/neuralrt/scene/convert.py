@@ -18,6 +18,7 @@ import hashlib
 import json
 import os
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -404,7 +405,7 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
             (models_dir / f"{stems[mesh_hash]}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
             stems[mesh_hash] = stem = cached
             if progress:
-                print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", flush=True)
+                print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
             continue
         stem = stems[mesh_hash]
         # Absolute: a Ray worker runs in its own folder, where a relative path would put (and look for) another file.

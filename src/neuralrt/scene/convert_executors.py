@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import tempfile
 import time
 from abc import ABC, abstractmethod
@@ -155,7 +156,7 @@ class LocalExecutor(Executor):
     def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
         for k, job in enumerate(jobs):
             if self.progress:
-                print(f"[{k + 1}/{len(jobs)}] training {job.description}", flush=True)
+                print(f"[{k + 1}/{len(jobs)}] training {job.description}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
             model, seconds, used = _train_job(job, job.mesh, self.device, threads=self.threads, progress=self.progress)
             record = model.training_record
             yield TrainedModel(job.key, seconds, record.get("rays_per_second", 0.0), record.get("resumed_from"),
@@ -441,7 +442,7 @@ class RayExecutor(Executor):
                         self._show(bar, ray.get(board.snapshot.remote(), timeout=10), seen)
                     except ray.exceptions.RayError:  # the board is gone: the models still come, without step counts
                         board = None
-                        bar.write("(the progress board was lost: step counts stop, training goes on)")
+                        bar.write("(the progress board was lost: step counts stop, training goes on)", file=sys.stderr)
                 for ref in done:
                     job = running.pop(ref)
                     try:
@@ -452,7 +453,7 @@ class RayExecutor(Executor):
                     bar.update(1)
                     if self.progress:
                         bar.write(f"trained {job.description} in {result.seconds:.1f} s on {result.where} "
-                                  f"({result.rays_per_second:,.0f} rays/s)")
+                                  f"({result.rays_per_second:,.0f} rays/s)", file=sys.stderr)
                     yield result
         finally:
             bar.close()
@@ -471,7 +472,7 @@ class RayExecutor(Executor):
                 if row["attempt"] > 1 or row["resumed_from"]:
                     resumed = f"from step {row['resumed_from']}" if row["resumed_from"] else "from the start"
                     retry = f" (attempt {row['attempt']}: its first worker died)" if row["attempt"] > 1 else ""
-                    bar.write(f"{key}: resumed {resumed}{retry} on {row['node']}")
+                    bar.write(f"{key}: resumed {resumed}{retry} on {row['node']}", file=sys.stderr)
                 seen[key] = row["attempt"]
             total_rate += row["rays_per_second"]
             parts.append(f"{running_keys[key].mesh.name} {row['step']}/{row['steps']} {row['rays_per_second'] / 1e3:.0f}k")

@@ -47,6 +47,7 @@ from typing import Annotated, Literal, Union
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, StrictStr, field_validator,
                       model_validator)
 
+from ..arguments import given
 from ..errors import ConfigError
 from ..rays import MAX_CONDITION, MAX_SCALE, MIN_SCALE, Transform
 
@@ -110,19 +111,21 @@ MAX_RESOLUTION = 16384  # pixels per side
 Pixels = Annotated[int, NumberOnly, Field(gt=0, le=MAX_RESOLUTION)]
 
 
-def check_resolution(resolution) -> tuple[int, int]:
+def check_resolution(resolution, name: str | None = None) -> tuple[int, int]:
     """A caller's (width, height) override, checked like ``camera.resolution``; a one-line
-    `ConfigError` (``resolution: 100000x100000 is over the largest allowed 16384x16384``) if bad."""
+    `ConfigError` (``resolution: 100000x100000 is over the largest allowed 16384x16384``) if bad;
+    ``name``: the argument as its caller spells it (default: ``resolution``, ``--res`` on the command line)."""
+    name = name or given("resolution", flag="--res")
     try:
         w, h = (int(v) if int(v) == v else None for v in resolution)
     except (TypeError, ValueError, OverflowError):
         w = h = None
     if w is None or h is None:
-        raise ConfigError(f"resolution: expected two whole numbers (width, height), got {resolution!r}")
+        raise ConfigError(f"{name}: expected two whole numbers (width, height), got {resolution!r}")
     if w < 1 or h < 1:
-        raise ConfigError(f"resolution: {w}x{h} must be at least 1x1")
+        raise ConfigError(f"{name}: {w}x{h} must be at least 1x1")
     if max(w, h) > MAX_RESOLUTION:
-        raise ConfigError(f"resolution: {w}x{h} is over the largest allowed {MAX_RESOLUTION}x{MAX_RESOLUTION}")
+        raise ConfigError(f"{name}: {w}x{h} is over the largest allowed {MAX_RESOLUTION}x{MAX_RESOLUTION}")
     return w, h
 
 
