@@ -6,6 +6,7 @@ retried and resumed from its checkpoint, nothing retrained on a rerun, one-line 
 import os
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -148,6 +149,43 @@ def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(tmp_path, mo
     # Resuming is exact: the same arrays as one uninterrupted run.
     local = convert_scene(scene, tmp_path / "local" / "scene.toml", **options)
     assert read_model_file(local.models[0].model_path).header["arrays_sha256"] == header["arrays_sha256"]
+
+
+def _training_worker_seen(timeout: float) -> bool:
+    """Whether a Ray worker titled as a neuralrt training task runs within ``timeout`` seconds."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for pid in filter(str.isdigit, os.listdir("/proc")):
+            try:
+                if Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::neuralrt-train:"):
+                    return True
+            except OSError:
+                continue
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the worker through /proc")
+def test_sigterm_stops_a_ray_convert_as_it_stops_a_local_one(tmp_path):
+    """Ray's driver takes SIGTERM at its start (sys.exit; its core worker: an abort with a stack
+    dump), and its waits turn the CLI's Terminated into a plain KeyboardInterrupt: the command
+    keeps its own handler and ends 'terminated', exit 143, no lock or temporary file left."""
+    scene = _scene(tmp_path, [("statue", {"detail": 1})])
+    out = tmp_path / "out" / "scene.toml"
+    command = [sys.executable, "-m", "neuralrt", "convert", str(scene), "-o", str(out), "--executor", "ray", "--preset", "lq",
+               "--steps", "100000", "--batch", "512", "--min-triangles", "100", "--cpus-per-model", "1",
+               "--threads-per-model", "1", "--quiet"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _training_worker_seen(180), "the worker was never seen training"
+        time.sleep(1.0)
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert err.strip().splitlines()[-1].startswith("neuralrt: terminated (run the same command again"), err[-2000:]
+    assert not list(tmp_path.rglob("*.lock")) and _no_temporary_files(tmp_path) and not out.exists()
 
 
 def test_every_other_registered_method_trains_on_ray(tmp_path):

@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         hint = getattr(args, "interrupt_hint", None)
         hint = hint() if callable(hint) else hint
-        terminated = isinstance(exc, Terminated)
+        terminated = isinstance(exc, Terminated) or Terminated.received  # (Ray's waits re-raise a plain KeyboardInterrupt)
         print(f"neuralrt: {'terminated' if terminated else 'interrupted'}{f' ({hint})' if hint else ''}", file=sys.stderr)
         return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
     finally:
@@ -402,6 +402,8 @@ def main(argv: list[str] | None = None) -> int:
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, a job scheduler), raised where Ctrl-C would be: the same clean stop."""
 
+    received = False  # set by the handler: code that turns any KeyboardInterrupt into its own (Ray) loses the class
+
 
 def _terminate_as_interrupt():
     """Make SIGTERM stop a command as Ctrl-C does (checkpoints kept, temporary files and new empty
@@ -409,7 +411,10 @@ def _terminate_as_interrupt():
     if threading.current_thread() is not threading.main_thread():
         return None
 
+    Terminated.received = False
+
     def stop(signum, frame):
+        Terminated.received = True
         raise Terminated()
 
     return signal.signal(signal.SIGTERM, stop)

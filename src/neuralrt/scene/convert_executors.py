@@ -24,9 +24,11 @@ default, `RayExecutor` uses ``cpus_per_model`` threads by default.
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import sys
 import tempfile
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -210,6 +212,15 @@ _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x0
 _SETTINGS_FRAME = 0x04
 
 
+def _python_sigterm_handler():
+    """The Python function handling SIGTERM (the CLI's clean stop), or None (none, or not the main
+    thread, where no handler can be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    handler = signal.getsignal(signal.SIGTERM)
+    return handler if callable(handler) else None
+
+
 def _host_port(address: str) -> tuple[str, int]:
     """(host, port) of HOST:PORT or ray://HOST:PORT; a one-line error for anything else."""
     parsed = urlparse(address if "://" in address else f"tcp://{address}")
@@ -359,6 +370,7 @@ class RayExecutor(Executor):
         if self.options.address is not None:
             _probe(self.options.address)
         if not ray.is_initialized():  # else: a caller's own ray.init (tests, notebooks), used as it is
+            ours = _python_sigterm_handler()
             try:
                 if self.options.address is None:
                     # "local": always a new instance (a bare ray.init() joins a cluster that `ray start`
@@ -376,6 +388,9 @@ class RayExecutor(Executor):
                 raise ConfigError(f"{given('address', self.options.address)}: could not connect to Ray ({str(exc).splitlines()[0]}); "
                                   f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
                                   f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node {given('address', 'auto')} finds both") from None
+            finally:
+                if ours is not None:  # Ray's core worker takes SIGTERM (a stack dump, then abort): the command's stop again
+                    signal.signal(signal.SIGTERM, ours)
             self._started = True
         self._check_resources()
 
