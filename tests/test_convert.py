@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from neuralrt.accel.mesh_blas import MeshBLAS
-from neuralrt.errors import SceneError
+from neuralrt.errors import MeshError, SceneError
 from neuralrt.geometry.mesh import load_mesh
 from neuralrt.methods.lsnif import LSNIFModel
 from neuralrt.rays import Rays
@@ -80,6 +80,36 @@ def test_conversion_reuses_cached_models(converted):
                           preset="lq", min_triangles=1000, steps=STEPS, batch=BATCH, seed=0, progress=False)
     assert [m.reused for m in again.models] == [True] and again.train_seconds == 0
     assert again.models[0].model_path == first.models[0].model_path
+    summary = again.as_dict()
+    assert (summary["trained_models"], summary["reused_models"]) == (0, 1) and 0 < summary["seconds"] < 60
+    assert first.as_dict()["trained_models"] == 1 and first.seconds >= first.train_seconds > 0
+
+
+def test_the_cli_summary_prints_a_line_per_model(converted, capsys):
+    from neuralrt.cli import main
+
+    folder, _ = converted
+    assert main(["convert", str(folder / "scene.toml"), "-o", str(folder / "out" / "cli.toml"), "--models-dir",
+                 str(folder / "out" / "models"), "--preset", "lq", "--min-triangles", "1000", "--steps", str(STEPS),
+                 "--batch", str(BATCH), "--seed", "0"]) == 0
+    captured = capsys.readouterr()
+    assert "reusing sphere-" in captured.err and "reusing" not in captured.out  # (progress: stderr)
+    row = [line for line in captured.out.splitlines() if line.strip().startswith("- mesh_name=")]
+    assert len(row) == 1 and "objects=ball1 ball2, reused=True" in row[0], captured.out
+    assert "reused_models: 1" in captured.out
+
+
+def test_a_mesh_training_would_refuse_is_said_before_any_model_trains(tmp_path):
+    """A mesh float32 cannot trace (here 1e37 across) fails the conversion at once, naming its
+    object, not after the other models trained (as it did on Ray)."""
+    spec = _scene_spec()
+    (tmp_path / "huge.obj").write_text("v 0 0 0\nv 1e37 0 0\nv 0 1e37 0\nv 0 0 1e37\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 4\n")
+    spec.objects.append(ObjectSpec(name="huge", mesh=str(tmp_path / "huge.obj"), material="white"))
+    save_scene(spec, tmp_path / "scene.toml")
+    with pytest.raises(MeshError, match=r"scene.toml: objects.4.mesh \(huge\): bounding-box diagonal 1.73e\+37"):
+        convert_scene(tmp_path / "scene.toml", tmp_path / "out" / "x.toml", preset="lq", min_triangles=3, steps=STEPS,
+                      batch=BATCH, progress=False)
+    assert not (tmp_path / "out").exists()
 
 
 def test_selection_errors(converted):

@@ -211,7 +211,7 @@ def test_ray_not_installed_is_one_line_before_any_work(tmp_path, monkeypatch, ca
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     out = tmp_path / "out" / "scene.toml"
     assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--quiet"]) == 2
-    assert "pip install 'neuralrt[cluster]'" in _one_error_line(capsys)
+    assert "pip install ray (the cluster extra: pip install -e '.[cluster]'" in _one_error_line(capsys)
     assert not (tmp_path / "out").exists()
 
 
@@ -229,6 +229,7 @@ def test_unreachable_address_and_bad_options_are_one_line(tmp_path, capsys):
                          (["--executor", "ray", "--gpus-per-model", "1"], "needs --device cuda"),
                          (["--executor", "ray", "--cpus-per-model", "0"], "--cpus-per-model:"),
                          (["--executor", "ray", "--address", "nonsense"], "HOST:PORT"),
+                         (["--executor", "ray", "--max-retries", "2147483648"], "--max-retries: Input should be less than or equal to 1000"),
                          (["--executor", "ray", "--cpus-per-model", "3"], "no Ray node has 3 CPU"),  # the 2-CPU instance
                          (["--executor", "ray", "--device", "cuda"], "no Ray node has 1 CPU and 1 GPU")]:
         assert main(["convert", str(scene), "-o", str(out), "--min-triangles", "100", *extra]) == 2
@@ -265,8 +266,23 @@ def test_an_address_where_another_server_listens_is_one_line_at_once(tmp_path, c
     assert "something listens there, but not Ray" in _one_error_line(capsys) and time.monotonic() - start < 10
     assert not (tmp_path / "out").exists()  # made for the conversion, removed when it failed
     port, thread = _serve_once(b"\x00\x00\x18\x04\x00\x00\x00\x00\x00")  # a gRPC server's first frame: SETTINGS
-    _probe(f"127.0.0.1:{port}")
+    _probe(f"127.0.0.1:{port}", "--address")
     thread.join(5)
+
+
+def test_ray_address_in_the_environment_is_the_cluster_without_address(tmp_path, monkeypatch, capsys):
+    """As Ray reads it (`ray job submit` sets it): the run goes there, and errors name it."""
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    scene, out = _scene(tmp_path, THREE[:1]), tmp_path / "out" / "scene.toml"
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--min-triangles", "100", "--quiet"]) == 2
+    line = _one_error_line(capsys)
+    assert f"error: RAY_ADDRESS=127.0.0.1:{port}: no Ray cluster reachable" in line and "or unset RAY_ADDRESS" in line
+    monkeypatch.setenv("RAY_ADDRESS", "nonsense")
+    assert main(["convert", str(scene), "-o", str(out), "--executor", "ray", "--min-triangles", "100", "--quiet"]) == 2
+    assert "RAY_ADDRESS=nonsense: expected auto, HOST:PORT" in _one_error_line(capsys)
 
 
 def test_a_rerun_with_every_model_present_needs_no_cluster(tmp_path, capsys):

@@ -51,13 +51,29 @@ def _print_result(result: dict, as_json: bool) -> None:
             value = {**value, "curve": _curve_summary(value["curve"])}
         if isinstance(value, float):
             value = f"{value:.6g}"
-        elif isinstance(value, list) and value and all(isinstance(v, float) for v in value):
-            value = ", ".join(f"{v:.6g}" for v in value)  # (per-view figures: as the dicts' numbers print)
-        elif isinstance(value, dict) and any(isinstance(v, (dict, list)) for v in value.values()):
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            print(f"{key:>{width}}:")  # (convert's models): one line each
+            for row in value:
+                print(f"{'':>{width}}  - {_printable(_flat_text(row))}")
+            continue
+        elif isinstance(value, list) and not any(isinstance(v, dict) for v in value):
+            value = _flat_text(value) if value else "none"  # (per-view figures, material names, bounds' corners)
+        elif isinstance(value, dict) and any(isinstance(v, dict) for v in value.values()):
             value = json.dumps(value, default=float)  # nested (a config, a training record): compact JSON
         elif isinstance(value, dict):
-            value = ", ".join(f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items())
+            value = _flat_text(value)
         print(f"{key:>{width}}: {_printable(str(value))}")
+
+
+def _flat_text(value) -> str:
+    """A flat dict as ``k=v, ...``, a list as ``a, b``: floats to 6 digits, lists inside joined."""
+    def one(v):
+        if isinstance(v, float):
+            return f"{v:.6g}"
+        return " ".join(map(one, v)) if isinstance(v, (list, tuple)) else str(v)
+    if isinstance(value, dict):
+        return ", ".join(f"{k}={one(v)}" for k, v in value.items())
+    return ", ".join(map(one, value))
 
 
 def _printable(text: str) -> str:

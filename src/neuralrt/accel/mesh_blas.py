@@ -3,7 +3,7 @@ is trained against.
 
 `MeshBLAS(mesh, device=...)` picks the backend for the device once, at construction: Embree (through
 `embreex`) on the CPU; on CUDA, OptiX through Mitsuba 3 (`mesh_blas_mitsuba.py`, the optional
-``neuralrt[gpu]`` extra), or Embree on the host with a one-line notice when Mitsuba is missing.
+``gpu`` extra), or Embree on the host with a one-line notice when Mitsuba is missing.
 Every backend answers the same contract, tested against each other in tests/test_mesh_blas_backends.py.
 """
 
@@ -37,7 +37,7 @@ _NO_ATTRIBUTE = np.zeros((1, 3), np.float32)
 
 _fallback_noticed = False  # the CUDA-without-Mitsuba notice is printed once per process
 
-FALLBACK_NOTICE = ("neuralrt: note: Mitsuba 3 is not installed (pip install 'neuralrt[gpu]'): "
+FALLBACK_NOTICE = ("neuralrt: note: Mitsuba 3 is not installed (pip install mitsuba: the gpu extra): "
                    "exact rays on {device} are traced by Embree on the host")
 
 

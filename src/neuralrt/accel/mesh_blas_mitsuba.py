@@ -7,7 +7,7 @@ barycentrics; ``Scene.ray_test`` for shadow rays); validation of the rays and th
 seven contiguous float32 columns (a strided column view would be copied on the way).
 
 The same class runs on CPU tensors with the ``llvm_ad_rgb`` variant (Dr.Jit's LLVM backend, with
-Embree inside Mitsuba), so its logic is tested where no GPU is. Needs ``pip install 'neuralrt[gpu]'``.
+Embree inside Mitsuba), so its logic is tested where no GPU is. Needs ``pip install mitsuba`` (the ``gpu`` extra).
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ class MitsubaMeshBLAS(MeshBLAS):
         if not mitsuba_variant_available(self.device):
             raise NeuralRTError(
                 f"Mitsuba 3 with a working {MITSUBA_VARIANTS.get(self.device.type, 'variant')} for {self.device} "
-                "is not available (pip install 'neuralrt[gpu]')"
+                "is not available (pip install mitsuba: the gpu extra)"
             )
         self.backend = MITSUBA_VARIANTS[self.device.type]
         self._scene, self._types = _build_scene(mesh, self.backend)

@@ -50,7 +50,7 @@ def reference_render(scene, spp: int, max_depth: int | None = None, seed: int = 
     import mitsuba as mi
 
     if not mitsuba_reference_available():
-        raise SceneError("a Mitsuba reference render needs mitsuba 3 with its scalar_rgb variant (pip install 'neuralrt[gpu]')")
+        raise SceneError("a Mitsuba reference render needs mitsuba 3 with its scalar_rgb variant (pip install mitsuba: the gpu extra)")
     mi.set_variant(_VARIANT)
     depth = scene.settings.max_depth if max_depth is None else int(max_depth)
     description = {"type": "scene", "integrator": {"type": "path", "max_depth": depth + 1, "hide_emitters": False},

@@ -19,6 +19,7 @@ import json
 import os
 import re
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +28,7 @@ import torch
 
 from ..arguments import given
 from ..errors import ConfigError, ModelFileError, SceneError
-from ..geometry.mesh import Mesh, MeshMaterial
+from ..geometry.mesh import Mesh, MeshMaterial, check_float32_extent
 from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_file, read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
@@ -64,6 +65,7 @@ class ConversionReport:
     scene_path: str
     models: list[ConvertedModel] = field(default_factory=list)
     neural_objects: int = 0
+    seconds: float = 0.0  # the whole conversion, wall clock (scene loading and every model)
 
     @property
     def unique_models(self) -> int:
@@ -71,6 +73,7 @@ class ConversionReport:
 
     @property
     def train_seconds(self) -> float:
+        """The models' training times summed (Ray's run side by side: more than the wall time)."""
         return float(sum(m.train_seconds for m in self.models))
 
     def as_dict(self) -> dict:
@@ -78,6 +81,9 @@ class ConversionReport:
             "scene": self.scene_path,
             "neural_objects": self.neural_objects,
             "unique_models": self.unique_models,
+            "trained_models": sum(not m.reused for m in self.models),
+            "reused_models": sum(m.reused for m in self.models),
+            "seconds": self.seconds,
             "train_seconds": self.train_seconds,
             "models": [m.__dict__ for m in self.models],
         }
@@ -356,9 +362,12 @@ def convert_scene(
     runner = make_executor(executor, device=device, progress=progress, threads_per_model=threads_per_model,
                            address=address, cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
                            max_retries=max_retries)
+    start = time.perf_counter()
     with runner, folders_removed_if_left_empty(output.parent, models_dir):  # (Ray may fail once they exist)
-        return _convert(scene, output, runner, models_dir=models_dir, select=select, min_triangles=min_triangles,
-                        config=config, preset=preset, group=group, detail=detail, progress=progress)
+        report = _convert(scene, output, runner, models_dir=models_dir, select=select, min_triangles=min_triangles,
+                          config=config, preset=preset, group=group, detail=detail, progress=progress)
+    report.seconds = time.perf_counter() - start
+    return report
 
 
 def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select, min_triangles, config: MethodConfig,
@@ -372,6 +381,11 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "
                          f"{DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles} triangles)")
     names = _object_names(spec)
+    checked: set[int] = set()
+    for i in chosen:  # what training would refuse, said before any model trains (on Ray: before the others finish)
+        if id(meshes[i]) not in checked:
+            checked.add(id(meshes[i]))
+            check_float32_extent(meshes[i], f"{label}: objects.{i}.mesh ({meshes[i].name})")
     # Folders are made only once the input is known to be good (a failed convert leaves none behind).
     output.parent.mkdir(parents=True, exist_ok=True)
     models_dir.mkdir(parents=True, exist_ok=True)
@@ -405,7 +419,7 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
             (models_dir / f"{stems[mesh_hash]}.ckpt").unlink(missing_ok=True)  # left if a run stopped between the two
             stems[mesh_hash] = stem = cached
             if progress:
-                print(f"[{k + 1}/{len(jobs)}] reusing {stem}.nrt for {mesh.name!r}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
+                print(f"reusing {stem}.nrt for {mesh.name!r}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
             continue
         stem = stems[mesh_hash]
         # Absolute: a Ray worker runs in its own folder, where a relative path would put (and look for) another file.

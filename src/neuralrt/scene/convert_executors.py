@@ -51,7 +51,7 @@ __all__ = [
 ]
 
 EXECUTORS = ("local", "ray")
-INSTALL_HINT = "pip install 'neuralrt[cluster]'"
+INSTALL_HINT = "pip install ray (the cluster extra: pip install -e '.[cluster]' in the neuralrt checkout)"
 _PROGRESS_SECONDS = 0.5  # how often workers report and the driver redraws
 
 
@@ -183,7 +183,7 @@ class RayOptions(BaseModel):
                                                                  "a fraction shares a GPU)")
     threads_per_model: int | None = Field(None, ge=1, strict=True, description="torch and numba threads of each task "
                                                                   "(default: cpus_per_model, at least 1)")
-    max_retries: int = Field(3, ge=0, strict=True, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
+    max_retries: int = Field(3, ge=0, le=1000, strict=True, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
 
     @classmethod
     def parse(cls, **values) -> "RayOptions":
@@ -204,8 +204,21 @@ def _import_ray():
     return ray
 
 
-def _no_cluster_hint() -> str:
-    return f"start one with `ray start --head` on the head node, or leave {given('address')} out for a local Ray instance"
+def _no_cluster_hint(named: str) -> str:
+    left_out = "unset RAY_ADDRESS" if named.startswith("RAY_ADDRESS=") else f"leave {given('address')} out"
+    return f"start one with `ray start --head` on the head node, or {left_out} for a local Ray instance"
+
+
+def cluster_address(address: str | None) -> str | None:
+    """The cluster to use: ``address``, else ``RAY_ADDRESS`` as Ray reads it (set by `ray job
+    submit`), else None (a local instance)."""
+    return address if address is not None else (os.environ.get("RAY_ADDRESS") or None)
+
+
+def _named(address: str, given_address: str | None) -> str:
+    """The address as the user gave it: ``--address X`` (``address='X'``), or ``RAY_ADDRESS=X``
+    where ``given_address`` is None."""
+    return given("address", address) if given_address is not None else f"RAY_ADDRESS={address}"
 # A client's HTTP/2 connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the
 # Ray Client server) answers with its own SETTINGS frame at once; anything else does not.
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
@@ -221,7 +234,7 @@ def _python_sigterm_handler():
     return handler if callable(handler) else None
 
 
-def _host_port(address: str) -> tuple[str, int]:
+def _host_port(address: str, named: str) -> tuple[str, int]:
     """(host, port) of HOST:PORT or ray://HOST:PORT; a one-line error for anything else."""
     parsed = urlparse(address if "://" in address else f"tcp://{address}")
     try:
@@ -229,26 +242,26 @@ def _host_port(address: str) -> tuple[str, int]:
     except ValueError:
         host = port = None
     if not host or not port:
-        raise ConfigError(f"{given('address', address)}: expected auto, HOST:PORT or ray://HOST:PORT")
+        raise ConfigError(f"{named}: expected auto, HOST:PORT or ray://HOST:PORT")
     return host, port
 
 
-def _probe(address: str, timeout: float = 3.0) -> None:
+def _probe(address: str, named: str, timeout: float = 3.0) -> None:
     """One-line error unless a gRPC server (as Ray's are) answers at ``address`` (HOST:PORT or
     ray://HOST:PORT): Ray itself retries an unreachable address for minutes, and an address where
     another kind of server listens forever."""
     if address == "auto":
         return  # Ray finds the cluster on this machine, or says at once that there is none
-    host, port = _host_port(address)
+    host, port = _host_port(address, named)
     try:
         with socket.create_connection((host, port), timeout=timeout) as conn:
             conn.settimeout(timeout)
             conn.sendall(_HTTP2_PREFACE)
             head = conn.recv(9)
     except OSError as exc:
-        raise ConfigError(f"{given('address', address)}: no Ray cluster reachable ({exc.strerror or exc}); {_no_cluster_hint()}") from None
+        raise ConfigError(f"{named}: no Ray cluster reachable ({exc.strerror or exc}); {_no_cluster_hint(named)}") from None
     if len(head) < 9 or head[3] != _SETTINGS_FRAME:
-        raise ConfigError(f"{given('address', address)}: something listens there, but not Ray (no gRPC answer); give the Ray "
+        raise ConfigError(f"{named}: something listens there, but not Ray (no gRPC answer); give the Ray "
                           f"head's GCS port (`ray start --head --port`, 6379 by default) or ray://HOST:10001")
 
 
@@ -334,6 +347,8 @@ class RayExecutor(Executor):
         import torch
 
         self.options, self.progress = options, progress
+        self.address = cluster_address(options.address)
+        self._named = _named(self.address, options.address) if self.address is not None else ""
         self.device = torch.device(device).type  # a task sees its own GPUs as cuda:0...
         gpus = options.gpus_per_model
         if gpus is None:
@@ -352,9 +367,9 @@ class RayExecutor(Executor):
     # no cluster and never starts one); entry checks what it can without it.
     def __enter__(self):
         self._ray = _import_ray()
-        if self.options.address is not None:
-            if self.options.address != "auto":
-                _host_port(self.options.address)  # the syntax now; whether Ray answers there, in `run`
+        if self.address is not None:
+            if self.address != "auto":
+                _host_port(self.address, self._named)  # the syntax now; whether Ray answers there, in `run`
         elif self._ray.is_initialized():
             self._check_resources()
         else:  # the local instance to come gets this machine's cores and GPUs
@@ -367,25 +382,26 @@ class RayExecutor(Executor):
         import logging
 
         ray = self._ray
-        if self.options.address is not None:
-            _probe(self.options.address)
+        if self.address is not None:
+            _probe(self.address, self._named)
         if not ray.is_initialized():  # else: a caller's own ray.init (tests, notebooks), used as it is
             ours = _python_sigterm_handler()
+            level = logging.WARNING if self.progress else logging.ERROR  # (quiet: not Ray's token notice either)
             try:
-                if self.options.address is None:
+                if self.address is None:
                     # "local": always a new instance (a bare ray.init() joins a cluster that `ray start`
                     # left on this machine, and hangs if that one is gone).
-                    ray.init(address="local", include_dashboard=False, logging_level=logging.WARNING)
+                    ray.init(address="local", include_dashboard=False, logging_level=level)
                 else:
-                    ray.init(address=self.options.address, logging_level=logging.WARNING)
+                    ray.init(address=self.address, logging_level=level)
             except (ConnectionError, RuntimeError, ValueError) as exc:
-                if self.options.address is None:
+                if self.address is None:
                     raise ConfigError(f"could not start a local Ray instance ({str(exc).splitlines()[0]})") from None
-                if self.options.address == "auto":
-                    raise ConfigError(f"{given('address', 'auto')}: no running Ray cluster found on this machine ({str(exc).splitlines()[0]}); "
-                                      f"{_no_cluster_hint()}") from None
+                if self.address == "auto":
+                    raise ConfigError(f"{self._named}: no running Ray cluster found on this machine ({str(exc).splitlines()[0]}); "
+                                      f"{_no_cluster_hint(self._named)}") from None
                 # Ray sends its token only to a cluster it finds itself ("auto"), never to a given address.
-                raise ConfigError(f"{given('address', self.options.address)}: could not connect to Ray ({str(exc).splitlines()[0]}); "
+                raise ConfigError(f"{self._named}: could not connect to Ray ({str(exc).splitlines()[0]}); "
                                   f"a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token and its "
                                   f"token (RAY_AUTH_TOKEN or ~/.ray/auth_token); on a cluster node {given('address', 'auto')} finds both") from None
             finally:
@@ -455,6 +471,8 @@ class RayExecutor(Executor):
                 if self.progress and board is not None:
                     try:
                         self._show(bar, ray.get(board.snapshot.remote(), timeout=10), seen)
+                    except ray.exceptions.GetTimeoutError:  # a busy machine (not a lost board): the next redraw asks again
+                        pass
                     except ray.exceptions.RayError:  # the board is gone: the models still come, without step counts
                         board = None
                         bar.write("(the progress board was lost: step counts stop, training goes on)", file=sys.stderr)
