@@ -4,6 +4,7 @@ One small model (a sphere, `lq`, a short training run) is trained once per test 
 """
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,6 +98,28 @@ def test_the_cli_summary_prints_a_line_per_model(converted, capsys):
     row = [line for line in captured.out.splitlines() if line.strip().startswith("- mesh_name=")]
     assert len(row) == 1 and "objects=ball1 ball2, reused=True" in row[0], captured.out
     assert "reused_models: 1" in captured.out
+
+
+def test_an_unreadable_model_or_checkpoint_is_said_and_trained_again(converted, tmp_path):
+    """A corrupted model file of the cache's name, and a corrupted checkpoint (which failed every
+    rerun the same way): each is said, and the model trains from the start."""
+    import warnings
+
+    folder, first = converted
+    stem = Path(first.models[0].model_path).stem
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / f"{stem}.nrt").write_bytes(b"junk")
+    (models / f"{stem}.ckpt").write_bytes(b"junk")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        again = convert_scene(folder / "scene.toml", tmp_path / "out.toml", models_dir=models, preset="lq",
+                              min_triangles=1000, steps=STEPS, batch=BATCH, seed=0, progress=False)
+    said = [str(w.message) for w in caught]
+    assert any(f"{stem}.nrt: cannot be read as this mesh's model" in m for m in said), said
+    assert any("its checkpoint cannot be resumed" in m and "trains from the start" in m for m in said), said
+    assert [m.reused for m in again.models] == [False] and not (models / f"{stem}.ckpt").exists()
+    assert isinstance(load_scene(tmp_path / "out.toml").accel.instances[0].blas, LSNIFModel)
 
 
 def test_a_mesh_training_would_refuse_is_said_before_any_model_trains(tmp_path):

@@ -138,6 +138,11 @@ def cached_model_stem(models_dir: Path, mesh_name: str, mesh_hash: str, config: 
     stem = model_file_stem(mesh_name, mesh_hash, config)
     if cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
         return stem
+    if (models_dir / f"{stem}.nrt").exists():  # (its name says it is this model: a reader would expect it reused)
+        import warnings
+
+        warnings.warn(f"{models_dir / f'{stem}.nrt'}: cannot be read as this mesh's model (corrupted, or written by "
+                      "another version): it is trained again and replaced", stacklevel=2)
     suffix = f"-{mesh_hash[:10]}-{_config_hash(config)[:8]}.nrt"
     for path in sorted(models_dir.glob(f"*{suffix}")):
         if cached_model_is_valid(path, mesh_hash, config):

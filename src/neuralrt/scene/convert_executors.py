@@ -30,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -122,11 +123,31 @@ def _train_job(job: TrainingJob, mesh: Mesh, device: str, *, threads: int | None
     from ..training.api import train
 
     start = time.perf_counter()
+    _drop_unreadable_checkpoint(job)
     with training_threads(threads) as used:
         model = train(mesh, job.config, progress=progress, device=device, checkpoint=job.checkpoint, resume=True,
                       on_step=on_step)
         used = used or _current_threads()
     return model, time.perf_counter() - start, used
+
+
+def _drop_unreadable_checkpoint(job: TrainingJob) -> None:
+    """A conversion resumes its own checkpoints (named by mesh and config): one that cannot be read
+    back (truncated, corrupted) would fail every rerun the same way, so it is removed, said, and
+    the model trains from the start."""
+    from ..errors import ModelFileError
+    from ..io.model_file import read_model_file
+    from ..training.trainer import CHECKPOINT_METHOD
+
+    path = Path(job.checkpoint) if job.checkpoint is not None else None
+    if path is None or not path.is_file():
+        return
+    try:
+        read_model_file(path, method=CHECKPOINT_METHOD)  # (every array's checksum, as resuming reads them)
+    except ModelFileError as exc:
+        path.unlink(missing_ok=True)
+        warnings.warn(f"{job.key}: its checkpoint cannot be resumed ({exc}): removed, the model trains from the start",
+                      stacklevel=2)
 
 
 class Executor(ABC):
