@@ -26,6 +26,13 @@ def ball(tmp_path):
     (lambda d, b: api.evaluate(d / "m.nrt", None), "mesh: expected a path"),
     (lambda d, b: api.evaluate(d / "m.nrt", b, image_dir=["x"]), "image_dir: expected a path"),
     (lambda d, b: api.evaluate(d / "m.nrt", b, timing="no"), "timing: expected True or False, got str"),
+    # A flag given as a word counted as true ("no" allowed the mismatch): each API flag is checked.
+    (lambda d, b: api.render("builtin:cornell-statue", d / "a.exr", allow_mesh_mismatch="no"),
+     "allow_mesh_mismatch: expected True or False, got str 'no'"),
+    (lambda d, b: api.compare(d / "a.exr", d / "b.exr", hdr="yes"), "hdr: expected True or False"),
+    (lambda d, b: api.convert(d / "s.toml", d / "o.toml", group="yes"), "group: expected True or False"),
+    (lambda d, b: api.train(b, d / "m.nrt", progress=2), "progress: expected True or False, got int 2"),
+    (lambda d, b: api.demo(d / "x", quick="yes"), "quick: expected True or False"),
     (lambda d, b: api.train(b, d / "m.nrt", plot=["c.png"]), "plot: expected a path"),
     (lambda d, b: api.info(b, plot=3), "plot: expected a path"),
     (lambda d, b: api.compare(None, d / "b.exr"), "reference: expected a path"),

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .arguments import check_count, check_name, check_seed, given, seed_or_default
+from .arguments import check_count, check_flags, check_name, check_seed, given, seed_or_default
 from .devices import check_device, check_device_name, check_path
 from .errors import ConfigError, ModelFileError, NeuralRTError, TrainingError, outside_stacklevel
 from .io.files import (check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty,
@@ -27,6 +27,7 @@ def compare(reference: str | Path, test: str | Path, heatmap: str | Path | None 
     """FLIP, PSNR and relMSE of ``test`` against ``reference``; writes the FLIP heat map PNG if asked."""
     from .eval.image_metrics import compare_files
 
+    check_flags(hdr=hdr)
     reference, test = check_path("reference", reference), check_path("test", test)
     heatmap = check_path("heatmap", heatmap, optional=True)
     for name, image in (("reference", reference), ("test", test)):
@@ -245,6 +246,7 @@ def render(
     from .scene.schema import MAX_DEPTH, MAX_SPP
 
     check_device(device)
+    check_flags(progress=progress, allow_mesh_mismatch=allow_mesh_mismatch)
     check_count(given("spp"), spp, maximum=MAX_SPP)  # a scene file's bounds (named as the caller spells it)
     check_count(given("max_depth"), max_depth, minimum=1, maximum=MAX_DEPTH)
     seed = seed_or_default(given("seed"), seed)
@@ -370,6 +372,7 @@ def train(
     check_device(device)
     check_name("method", method)
     check_name("preset", preset)
+    check_flags(resume=resume, progress=progress)
     check_count(given("steps"), steps)
     check_count(given("batch"), batch)  # its bounds are the config's (training.batch_size)
     check_seed(given("seed"), seed)
@@ -468,9 +471,7 @@ def evaluate(
     check_device(device)
     check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
     check_seed(given("seed"), seed)
-    for name, flag in (("timing", timing), ("progress", progress)):  # (a CLI flag cannot be anything else)
-        if not isinstance(flag, bool):
-            raise ConfigError(f"{name}: expected True or False, got {type(flag).__name__}")
+    check_flags(images=images, allow_mesh_mismatch=allow_mesh_mismatch, timing=timing, progress=progress)
     if not is_neural(model):
         if isinstance(model, Mesh):
             raise ConfigError("model: got a Mesh; evaluate(model, mesh) takes the model first")
@@ -540,6 +541,9 @@ def convert(scene: str | Path, output: str | Path, **options) -> dict:
     for name in ("method", "preset", "executor", "address"):
         check_name(name, options.get(name))
     check_seed(given("seed"), options.get("seed"))
+    check_flags(**{k: options[k] for k in ("group", "progress") if k in options})
+    check_count(given("steps"), options.get("steps"))  # (as train names them, before the config does)
+    check_count(given("batch"), options.get("batch"))
     check_count(given("min_triangles"), options.get("min_triangles"), minimum=0)
     select = options.get("select")
     if isinstance(select, str):  # as on the command line: comma-separated names
@@ -561,6 +565,7 @@ def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: 
     from . import demo as demo_module
 
     check_device(device)
+    check_flags(quick=quick, progress=progress)
     out_dir = check_path("out_dir", out_dir)
     known = [f.name for f in fields(demo_module.DemoSettings)]
     unknown = sorted(set(overrides) - set(known))

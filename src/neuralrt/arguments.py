@@ -57,6 +57,14 @@ def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) 
 SEED_LIMIT = 1 << 63  # seeds feed torch's and numba's 64-bit generators
 
 
+def check_flags(**flags) -> None:
+    """One-line `ConfigError` unless each value is True or False (a CLI flag cannot be anything
+    else; ``"no"`` from Python would count as true)."""
+    for name, flag in flags.items():
+        if not isinstance(flag, bool):
+            raise ConfigError(f"{given(name)}: expected True or False, got {type(flag).__name__} {flag!r}")
+
+
 def check_seed(name: str, value) -> None:
     """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
     if value is not None:
