@@ -148,3 +148,10 @@ def test_a_section_of_another_method_names_that_method_and_dotted_settings_name_
     with pytest.raises(ConfigError, match=r"^settings: 'cut.lods': sections nest as dicts here, \{'cut': \{'lods': \.\.\.\}\}"):
         get_method("nbvh").config("cpu", settings={"cut.lods": 3})
     assert get_method("nbvh").config("cpu", settings={"cut": {"lods": 3}}).cut.lods == 3
+
+
+def test_an_inference_setting_of_another_method_names_it():
+    """``eval --set inference.lod=2`` on an LSNIF model: lod is N-BVH's (pydantic said "Extra inputs")."""
+    with pytest.raises(ConfigError, match=r"^inference.lod: not a setting of lsnif models; it is one of nbvh's "
+                                          r"\(lsnif's: occlusion_threshold, secondary_offset, compute_precision"):
+        _model().with_inference(lod=2)

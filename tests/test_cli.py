@@ -139,6 +139,9 @@ def test_list_presets(capsys):
     for preset in ("hq", "lq", "gpu"):
         assert f"lsnif    {preset}" in out
     assert "gpu" in out and "default on cuda" in out
+    assert main(["train", "--list-presets", "--method", "nbvh", "--json"]) == 0  # (--method: its presets only)
+    rows = json.loads(capsys.readouterr().out)
+    assert rows and {row["method"] for row in rows} == {"nbvh"} and "paper" in {row["preset"] for row in rows}
 
 
 @pytest.mark.parametrize(

@@ -74,6 +74,21 @@ def test_demo_flags_reach_its_settings_and_json_prints_the_report(tmp_path, caps
     assert "step" not in captured.err  # (--quiet: no progress bars)
 
 
+def test_the_help_states_the_defaults_demo_runs_with():
+    import neuralrt.demo as demo
+    from neuralrt.cli import build_parser
+
+    parser = build_parser()
+    helps = {a.dest: a.help for a in parser._subparsers._group_actions[0].choices["demo"]._actions}
+    full, quick = demo.DEMO_DEFAULT, demo.DEMO_QUICK
+    assert f"default: {full.spp}; --quick: {quick.spp})" in helps["spp"]
+    assert f"default: {'x'.join(map(str, full.resolution))}; --quick: {'x'.join(map(str, quick.resolution))})" in helps["res"]
+    assert f"--quick: {quick.steps})" in helps["steps"] and full.steps is None
+    assert f"--quick: {quick.batch})" in helps["batch"] and full.batch is None
+    assert f"default: {full.max_depth}; --quick: {quick.max_depth})" in helps["max_depth"]
+    assert f"default: {full.seed})" in helps["seed"]
+
+
 def test_quick_is_a_shorter_run_of_the_same_model():
     import neuralrt.demo as demo
 

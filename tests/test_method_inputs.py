@@ -279,3 +279,7 @@ def test_eval_set_changes_how_the_model_answers_and_takes_inference_keys_only(tm
     assert "eval --set takes inference.KEY=VALUE only" in capsys.readouterr().err
     assert main([*common, "--set", "inference.storage_precision=fp32"]) == 2
     assert "storage_precision is how the model's parameters were stored" in capsys.readouterr().err
+    assert main([*common, "--set", "inference.occlusion_threshold=0.4"]) == 0  # (a key every method has)
+    capsys.readouterr()
+    assert main([*common, "--set", "inference.lodd=1"]) == 2
+    assert "inference.lodd: not a setting of nbvh models (nbvh's: occlusion_threshold" in capsys.readouterr().err

@@ -642,7 +642,7 @@ def test_a_scene_object_changes_its_models_inference_settings_without_another_mo
     with pytest.raises(ConfigError, match="storage_precision is how the model's parameters were stored"):
         model.with_inference(storage_precision="fp32")
     for inference, message in (({"lod": 9}, r"objects.1.inference: nbvh config: inference.lod"),
-                               ({"lods": 2}, r"objects.1.inference: nbvh config: inference.lods: Extra inputs")):
+                               ({"lods": 2}, r"objects.1.inference: inference.lods: not a setting of nbvh models \(nbvh's: .*lod")):
         bad = {**spec, "objects": [objects[0], {**objects[1], "inference": inference}]}
         with pytest.raises(SceneError, match=message), warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -141,7 +141,7 @@ def _modified(path: str) -> int | None:
 
 def _cmd_train(args) -> None:
     if args.list_presets:
-        rows = api.list_presets()
+        rows = [row for row in api.list_presets() if args.method in (None, row["method"])]  # (--method: its own)
         if args.json:
             print(json.dumps(rows))
         for row in [] if args.json else rows:
@@ -246,7 +246,7 @@ def _add_training(p: argparse.ArgumentParser) -> None:
 def _add_common(p: argparse.ArgumentParser, json_flag: bool = True) -> None:
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
     if json_flag:
-        p.add_argument("--json", action="store_true", help="print one JSON object")
+        p.add_argument("--json", action="store_true", help="print the result as JSON (a list for the --list-* options)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -267,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("info", help="triangles, bounds and BVH A/B bytes of a mesh; summary of a scene or model")
     p.add_argument("path", help="mesh file or procedural:NAME:DETAIL, scene file / builtin:NAME, or model file (.nrt)")
-    p.add_argument("--plot", metavar="PNG", help="a model or checkpoint: draw its training curve here (.png, .pdf, .svg)")
+    p.add_argument("--plot", metavar="FILE", help="a model or checkpoint: draw its training curve here (.png, .pdf, .svg)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_info)
 
@@ -277,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="output .exr (the .png and AOVs are written beside it)")
     p.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     p.add_argument("--res", type=_resolution, metavar="WxH", help="resolution (default: the scene's)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same image)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same image; default: 0)")
     p.add_argument("--max-depth", type=int, help="maximum bounces (default: the scene's)")
     p.add_argument("--primary", choices=["exact", "neural"], default="exact",
                    help="who answers camera rays for neural objects that keep their mesh (default: exact)")
@@ -300,8 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="model file to write (.nrt)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt (its method, and "
                    "N-BVH's --steps, are the run's unless given)")
-    p.add_argument("--plot", metavar="PNG", help="draw the training curve (loss, its terms, hit accuracy) here (.png, .pdf, .svg)")
-    p.add_argument("--list-presets", action="store_true", help="list every method's presets and exit")
+    p.add_argument("--plot", metavar="FILE", help="draw the training curve (loss, its terms, hit accuracy) here (.png, .pdf, .svg)")
+    p.add_argument("--list-presets", action="store_true", help="list every method's presets (with --method: its own) and exit")
     _add_training(p)
     _add_common(p)
     p.set_defaults(func=_cmd_train)
@@ -352,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ray: GPUs each task asks for (default: 1 with --device cuda, else 0; 0.5 shares a GPU)")
     g.add_argument("--threads-per-model", type=int, metavar="T",
                    help="torch and numba threads while a model trains (ray default: --cpus-per-model; local default: "
-                        "the process's). Same threads, same model bits")
+                        "the process's); the same threads give the same model bits")
     g.add_argument("--max-retries", type=int, metavar="N",
                    help="ray: reruns of a task whose worker died; it resumes from its checkpoint (default: 3)")
     p.set_defaults(func=_cmd_convert)
@@ -362,13 +362,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="a short run: the same model trained for 150 steps of 4,096 rays, a small image")
     p.add_argument("--scene", help="scene to convert (default: builtin:cornell-statue)")
     _add_method(p)
-    p.add_argument("--spp", type=int, help="samples per pixel of each render")
-    p.add_argument("--res", type=_resolution, metavar="WxH", help="render resolution")
-    p.add_argument("--steps", type=int, help="training steps")
-    p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
+    p.add_argument("--spp", type=int, help="samples per pixel of each render (default: 256; --quick: 8)")
+    p.add_argument("--res", type=_resolution, metavar="WxH", help="render resolution (default: 256x256; --quick: 96x96)")
+    p.add_argument("--steps", type=int, help="training steps (default: the preset's; --quick: 150)")
+    p.add_argument("--batch", type=int, help="rays per training step (default: the preset's; --quick: 4096)")
     p.add_argument("--detail", type=int, help="procedural mesh detail of the built-in scene")
     p.add_argument("--min-triangles", type=int, help="objects this large become neural (default: convert's, 10000)")
-    p.add_argument("--max-depth", type=int, help="maximum bounces of both renders (default: 4)")
+    p.add_argument("--max-depth", type=int, help="maximum bounces of both renders (default: 4; --quick: 3)")
     p.add_argument("--primary", choices=("exact", "neural"),
                    help="who answers the hybrid render's camera rays (default: exact)")
     p.add_argument("--seed", type=int, help="seed of both renders (default: 1)")

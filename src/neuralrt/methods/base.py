@@ -230,6 +230,15 @@ class NeuralBLAS(nn.Module, ABC):
         change. A bad key or value is a one-line `ConfigError`."""
         if not changes:
             return self
+        fields = type(self.config.inference).model_fields
+        unknown = [key for key in changes if key not in fields]
+        if unknown:  # (pydantic would say "Extra inputs are not permitted")
+            from .registry import methods_answering_with
+
+            others = [m for m in methods_answering_with(unknown[0]) if m != self.METHOD]
+            where = f"; it is one of {', '.join(others)}'s" if others else ""
+            raise ConfigError(f"inference.{unknown[0]}: not a setting of {self.METHOD} models{where} ({self.METHOD}'s: "
+                              f"{', '.join(k for k in fields if k not in type(self.config.inference).STORED_KEYS)})")
         stored = [key for key in type(self.config.inference).STORED_KEYS if key in changes]
         if stored:
             raise ConfigError(f"inference.{stored[0]} is how the model's parameters were stored, not a setting "

@@ -229,3 +229,9 @@ def config_from_dict(data: dict) -> MethodConfig:
         return spec.config_class.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{spec.name} config: {validation_message(exc, spec.config_class)}") from None
+
+
+def methods_answering_with(key: str) -> list[str]:
+    """The registered methods whose ``inference`` section has ``key`` (for errors that name them)."""
+    return [name for name in method_names()
+            if key in get_method(name).config_class.model_fields["inference"].annotation.model_fields]
