@@ -216,10 +216,12 @@ def _cmd_demo(args) -> None:
         _print_result(report, True)
         return
     m, t = report["memory"], report["time"]
+    reused = all(model.get("reused") for model in report["models"])
+    trained = "models reused from the folder" if reused else f"train {t['train_s']:.0f} s"
     print(f"FLIP {report['flip']:.4f} (same seed; at another seed {report['flip_other_seed']:.4f}, "
           f"noise floor {report['flip_noise_floor']:.4f}), "
           f"PSNR {report['psnr']:.2f} dB; neural {m['neural_bytes'] / 2**20:.2f} MiB vs BVH A "
-          f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; train {t['train_s']:.0f} s, exact {t['exact_render_s']:.3g} s, "
+          f"{m['bvh_a_bytes'] / 2**20:.2f} MiB; {trained}, exact {t['exact_render_s']:.3g} s, "
           f"hybrid {t['hybrid_render_s']:.3g} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x)")
     print(f"report: {(Path(args.out) / report['images']['report_md']).resolve()}")
 

@@ -106,7 +106,9 @@ def _markdown(report: dict) -> str:
          f"{q['flip_other_seed']:.4f} / {q['flip_noise_floor']:.4f}"),
         ("PSNR hybrid vs exact: same seed; another seed / floor",
          f"{q['psnr']:.2f} dB; {q['psnr_other_seed']:.2f} / {q['psnr_noise_floor']:.2f} dB"),
-        ("training time (wall: setup and steps; the model's record counts steps only)", f"{t['train_s']:.1f} s"),
+        ("training time (wall: setup and steps; the model's record counts steps only)",
+         "none: the model was reused from the folder" if all(model["reused"] for model in report["models"])
+         else f"{t['train_s']:.1f} s"),
         ("exact render", f"{t['exact_render_s']:.3g} s"),
         ("hybrid render", f"{t['hybrid_render_s']:.3g} s ({t['hybrid_render_s'] / max(t['exact_render_s'], 1e-9):.2f}x exact)"),
     ]

@@ -164,7 +164,7 @@ def _warn_undertrained(stats) -> None:
     elif stats.outer_steps + stats.inner_steps < FEW_STEPS:
         warnings.warn(f"NIF: the networks trained only {stats.outer_steps} outer + {stats.inner_steps} inner steps "
                       f"({stats.outer_pairs + stats.inner_pairs:,} pairs), too few to learn much beyond \"visible\" "
-                      f"(fewer than {FEW_STEPS}): raise --nif-train-spp or the resolution", stacklevel=outside_stacklevel())
+                      f"(fewer than {FEW_STEPS}): raise {given('nif_train_spp')} or the resolution", stacklevel=outside_stacklevel())
 
 
 def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, train_spp: int | None = None, seed: int = 0,
@@ -186,7 +186,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         raise ConfigError(f"render_nif: scene must be a loaded Scene (neuralrt.scene.load_scene), not {type(scene).__name__}")
     check_nif_names(nif)
     check_count("spp", spp)
-    check_count("--nif-train-spp", train_spp)
+    check_count("train_spp", train_spp)
     seed = seed_or_default("seed", seed)
     if answer not in ("answer", "exact"):
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
