@@ -1,6 +1,6 @@
 """NIF shadow rays against exact shadow rays, in the paper's Table 2 form, plus image quality.
 
-    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--pair-fraction 1] [--repeats 3]
+    python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--pair-fraction 0.5] [--repeats 3]
                                    [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
 
 Scenes: ``NAME:D`` is ``builtin:NAME?detail=D`` with NIF on every statue (cornell-statue detail 2 =

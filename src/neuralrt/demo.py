@@ -67,8 +67,8 @@ class DemoSettings:
 
 
 DEMO_DEFAULT = DemoSettings()
-# The same model trained briefly (150 steps of 4,096 rays), a small image: measured 13 s on 2 idle
-# cores, 21 s on the same 2 cores shared with other jobs (load average 2).
+# The same model trained briefly (150 steps of 4,096 rays), a small image: measured 9 s on 2 idle
+# cores with numba's kernels cached (session 35), 21 s on 2 cores shared with other jobs (load 2).
 DEMO_QUICK = DemoSettings(steps=150, batch=1 << 12, resolution=(96, 96), spp=8, max_depth=3)
 
 
