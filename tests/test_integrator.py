@@ -275,6 +275,30 @@ def test_image_unchanged_when_geometry_moves_into_the_instance_transform(tmp_pat
     assert not np.allclose(blocks[3], blocks[0], rtol=0.03, atol=2e-3)  # moving the box by 0.1 is visible
 
 
+def test_a_scene_far_from_the_origin_renders_as_at_the_origin(tmp_path):
+    """Secondary rays leave a hit by at least a few float32 ulps of its coordinates: a unit sphere
+    on a floor under a point light, all moved to x = 1e4, shadowed itself where the point's
+    rounding (1e-3) passed its offset (1e-4 of its size): 2.1% darker before, with acne."""
+    sphere = _sphere_file(tmp_path / "s.ply")
+    floor = _quad_file(tmp_path / "f.ply", half=4.0, y=-1.0)
+
+    def image(x: float):
+        spec = SceneSpec(
+            camera=CameraSpec(position=(x, 1.5, 4), look_at=(x, 0, 0), fov=45, resolution=(24, 24)),
+            materials=[DiffuseMaterialSpec(name="m", albedo=(0.7,) * 3)],
+            objects=[ObjectSpec(mesh=sphere, material="m", transform=TransformSpec(translate=(x, 0, 0))),
+                     ObjectSpec(mesh=floor, material="m", transform=TransformSpec(translate=(x, 0, 0)))],
+            lights=[PointLightSpec(position=(x + 1.0, 3.0, 2.0), intensity=(20.0,) * 3)],
+        )
+        return render(build_scene(spec), spp=8, max_depth=2, seed=3, progress=False).image
+
+    near, far = image(0.0), image(1e4)
+    assert float(far.mean()) == pytest.approx(float(near.mean()), rel=0.01)
+    # (pixels of acne are dark specks: none where the render at the origin is lit)
+    lit = near.mean(-1) > 0.05
+    assert float((far.mean(-1)[lit] < 0.5 * near.mean(-1)[lit]).mean()) < 0.01
+
+
 def test_deterministic_for_a_seed_and_aovs(tmp_path):
     spec = _box_scene(tmp_path, _sphere_file(tmp_path / "s.ply", 2), TransformSpec(scale=0.5))
     scene = build_scene(spec)

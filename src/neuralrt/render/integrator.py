@@ -16,7 +16,8 @@ lights; point lights are delta lights (light sampling only). ``max_depth`` count
 direct lighting only (emission seen directly plus one scattering event).
 
 Secondary rays start at the hit point moved along the face-forwarded geometric normal by the hit
-instance's `Scene.instance_offsets` (its BLAS ``secondary_offset`` scaled to world); shadow rays
+instance's `Scene.instance_offsets` (its BLAS ``secondary_offset`` scaled to world), and by at least
+`shading_kernels.POSITION_OFFSET` of the point's largest coordinate (its float32 rounding); shadow rays
 stop short of their light point by a relative ``1e-3`` of its distance. The integrator only calls
 ``scene.accel.intersect`` / ``occluded``: it never knows which kind of BLAS answered.
 Randomness comes from one stream per wavefront seeded from a hash of (``seed``, wavefront index,

@@ -26,7 +26,12 @@ __all__ = ["shade_and_sample", "add_unoccluded", "camera_rays", "film_add", "bsd
 _DIFFUSE, _CONDUCTOR, _PLASTIC, _EMISSIVE = 0, 1, 2, 3  # MaterialKind
 _AREA, _POINT, _ENVIRONMENT = 0, 1, 2  # light kinds, in LightSet.kinds order
 _MIN_COAT_PROBABILITY = 0.25
-_SHADOW_T_MAX = 1.0 - 1e-3
+SHADOW_T_MAX = 1.0 - 1e-3  # shadow rays (direction = light point - origin) stop at this t
+# Secondary rays leave a hit at least this much of its largest coordinate off the surface (4-8
+# float32 ulps of the point): far from the origin the instance's own offset (1e-4 of its size) is
+# below the point's rounding, and surfaces shadowed themselves (acne: a unit mesh at x = 1e4 lost
+# 5% of its brightness). As pbrt bounds a hit point's error by a few ulps of its coordinates.
+POSITION_OFFSET = 2.0 ** -21
 _INV_PI = 1.0 / math.pi
 
 _jit = numba.njit(cache=True, inline="always", error_model="numpy")  # numba-level inlining: measured 35% faster kernels (compiles ~10 s longer, once: cached)
@@ -428,7 +433,7 @@ def shade_and_sample(
         mid_raw = material_id[i]
         mid = max(mid_raw, 0)
         ar, ag, ab = _albedo_at(mat_albedo, tex_offset, tex_size, tex_data, mid, uv[i, 0], uv[i, 1], surface_albedo[i, 0], surface_albedo[i, 1], surface_albedo[i, 2])
-        offset = instance_offsets[max(instance_id[i], 0)]
+        offset = max(instance_offsets[max(instance_id[i], 0)], POSITION_OFFSET * max(abs(px), abs(py), abs(pz)))
         # Emission seen at the hit (front faces only), MIS against light sampling after a bounce.
         if has_emitters and front and mid_raw >= 0:
             er, eg, eb = mat_emission[mid, 0], mat_emission[mid, 1], mat_emission[mid, 2]
@@ -468,7 +473,7 @@ def shade_and_sample(
                     shadow_direction[k, 0] = px + wx * dist - ox
                     shadow_direction[k, 1] = py + wy * dist - oy
                     shadow_direction[k, 2] = pz + wz * dist - oz
-                    shadow_t_max[k] = _SHADOW_T_MAX
+                    shadow_t_max[k] = SHADOW_T_MAX
                 else:
                     shadow_direction[k, 0], shadow_direction[k, 1], shadow_direction[k, 2] = wx, wy, wz
                     shadow_t_max[k] = np.inf

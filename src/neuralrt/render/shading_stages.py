@@ -40,11 +40,11 @@ from .lights import LightSet
 from .materials import MaterialTable
 from .rng import NumbaUniforms, TorchUniforms
 from .sampling import power_heuristic
+from .shading_kernels import POSITION_OFFSET, SHADOW_T_MAX
 
 __all__ = ["PathState", "ShadowQueries", "WavefrontFilm", "TorchShadingStages", "NumbaShadingStages", "shading_stages_for",
            "SHADOW_T_MAX"]
 
-SHADOW_T_MAX = 1.0 - 1e-3  # shadow rays (direction = light point - origin) stop at this t
 
 
 @dataclass
@@ -181,7 +181,8 @@ class TorchShadingStages:
         ns = torch.where(((ns * ng).sum(-1) < 0)[:, None], -ns, ns)
         ns = torch.where(((ns * wo).sum(-1) <= 0)[:, None], ng, ns)
         albedo = self.materials.albedo_at(hits.material_id, hits.uv, hits.albedo)
-        offset = self.scene.instance_offsets[hits.instance_id.clamp(min=0)]
+        offset = torch.maximum(self.scene.instance_offsets[hits.instance_id.clamp(min=0)],
+                               POSITION_OFFSET * p.abs().amax(-1))  # (`shading_kernels.POSITION_OFFSET`)
         return _Shading(p, wo, ng, ns, front, albedo, offset)
 
     # -- emission at hits --------------------------------------------------------------------------------
