@@ -31,9 +31,12 @@ from .tlas_stages import InstanceTable, intersect_group, occluded_group, stages_
 
 __all__ = ["Instance", "SceneAccel"]
 
-@dataclass
+@dataclass(frozen=True)
 class Instance:
-    """One placed object: a BLAS in object space, its object-to-world transform and materials."""
+    """One placed object: a BLAS in object space, its object-to-world transform and materials.
+    Frozen: a `SceneAccel` copies its instances into its tables when built, so a field changed
+    afterwards would change nothing it answers (edit a scene by building another: `load_dict`
+    with the loaded models reuses them)."""
 
     blas: BLAS  # answers rays in object space (MeshBLAS, or a neural model)
     transform: Transform  # object -> world
@@ -43,10 +46,11 @@ class Instance:
     world_bounds: AABB = field(init=False)
 
     def __post_init__(self) -> None:
-        self.material_map = torch.as_tensor(self.material_map, dtype=torch.int64).reshape(-1)
-        if self.material_map.numel() == 0:
+        material_map = torch.as_tensor(self.material_map, dtype=torch.int64).reshape(-1).clone()
+        if material_map.numel() == 0:
             raise ValueError(f"instance {self.name!r}: material_map is empty")
-        self.world_bounds = self.blas.bounds.transformed(self.transform)
+        object.__setattr__(self, "material_map", material_map)  # (its own copy: the caller's stays theirs)
+        object.__setattr__(self, "world_bounds", self.blas.bounds.transformed(self.transform))
 
     def blas_for(self, camera_rays: bool) -> BLAS:
         return self.camera_blas if (camera_rays and self.camera_blas is not None) else self.blas
@@ -93,7 +97,7 @@ class SceneAccel:
     def __init__(self, instances: list[Instance], device="cpu", stages: type | None = None):
         if not instances:
             raise ValueError("a scene needs at least one instance")
-        self.instances = list(instances)
+        self.instances = tuple(instances)  # (read into the tables below: a tuple, as nothing added later would count)
         self.device = resolve_device(device)
         dev = self.device
         n_inst = len(self.instances)
