@@ -166,6 +166,8 @@ def test_scene_memory_says_what_neural_objects_cost_and_replace():
     mem = scene_memory(hybrid)
     assert (mem.exact_bytes, mem.neural_bytes, mem.camera_bytes) == (exact_floor, 1000, exact_pair)  # instanced: once
     assert mem.replaced_bytes == exact_pair and mem.saved_bytes == -1000  # hybrid keeps the BVH: costs more
+    assert mem.saved_bytes_primary_neural == exact_pair - 1000  # (models answering camera rays too: the claim)
+    assert mem.as_dict()["saved_bytes_primary_neural"] == exact_pair - 1000
     assert mem.total == hybrid.accel.memory_bytes().total and mem.neural_objects == 2
     neural = scene_memory(load_dict({"materials": MATERIALS, "objects": objects}, primary="neural"))
     assert (neural.camera_bytes, neural.replaced_bytes, neural.primary) == (0, None, "neural")

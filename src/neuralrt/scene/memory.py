@@ -36,6 +36,13 @@ class SceneMemory:
         """What converting saved against the all-exact scene (negative: it costs more)."""
         return None if self.replaced_bytes is None else self.replaced_bytes - self.neural_bytes - self.camera_bytes
 
+    @property
+    def saved_bytes_primary_neural(self) -> int | None:
+        """What converting saves when the models answer camera rays too (``primary="neural"``: no
+        mesh kept), against the all-exact scene: the methods' memory claim. Known from a hybrid
+        load (``primary="exact"``), which builds the meshes' BVHs that a neural load skips."""
+        return None if self.replaced_bytes is None else self.replaced_bytes - self.neural_bytes
+
     def as_dict(self) -> dict:
         return {
             "total_bytes": self.total,
@@ -45,6 +52,7 @@ class SceneMemory:
             "instances_bytes": self.instances_bytes,
             "replaced_bytes": self.replaced_bytes,
             "saved_bytes": self.saved_bytes,
+            "saved_bytes_primary_neural": self.saved_bytes_primary_neural,
             "neural_objects": self.neural_objects,
             "primary": self.primary,
         }
