@@ -60,7 +60,8 @@ def test_is_neural_and_the_mesh_check():
     check_mesh_match(model, mesh.content_hash())  # same mesh: silent
     with pytest.raises(MeshMismatchError, match="scene.toml: objects.0: the model was trained on another mesh"):
         check_mesh_match(model, other.content_hash(), label="scene.toml: objects.0")
-    check_mesh_match(model, other.content_hash(), allow_mismatch=True)
+    with pytest.warns(MeshMismatchWarning, match="trained on another mesh .*used anyway, as allow_mesh_mismatch=True asks"):
+        check_mesh_match(model, other.content_hash(), allow_mismatch=True)  # (allowed, and said)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_mesh_match(model, None)

@@ -93,7 +93,13 @@ def _scene_info(spec: str) -> dict:
     from .scene.loader import load_scene
     from .scene.memory import scene_memory
 
-    scene = load_scene(spec, allow_mesh_mismatch=True)  # info inspects: a mismatch matters when rendering
+    import warnings
+
+    from .methods import MeshMismatchWarning
+
+    with warnings.catch_warnings():  # info inspects: a mismatch matters when rendering (which says so)
+        warnings.simplefilter("ignore", MeshMismatchWarning)
+        scene = load_scene(spec, allow_mesh_mismatch=True)
     accel = scene.accel
     blases = accel.unique_blases
     # Triangles traced for every ray (exact objects), apart from the meshes neural objects keep for

@@ -107,7 +107,7 @@ def memory_owner(blas):
 def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = False, label: str = "") -> None:
     """Check that ``model`` was trained on the mesh whose content hash is ``mesh_hash``.
 
-    A mismatch raises `MeshMismatchError` unless ``allow_mismatch``; ``mesh_hash=None`` (no mesh at
+    A mismatch raises `MeshMismatchError`, or with ``allow_mismatch`` warns; ``mesh_hash=None`` (no mesh at
     hand, e.g. a scene object given only a model) or a model that records no hash warns
     (`MeshMismatchWarning`). ``label`` prefixes the message (e.g. the scene file and key).
     """
@@ -122,7 +122,11 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
         warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning,
                       stacklevel=outside_stacklevel())
         return
-    if mesh_hash != expected and not allow_mismatch:
+    if mesh_hash != expected and allow_mismatch:  # (used as asked, and said: the figures are of another mesh)
+        warnings.warn(f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: "
+                      f"{mesh_hash[:12]}...): used anyway, as {given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} "
+                      "asks", MeshMismatchWarning, stacklevel=outside_stacklevel())
+    elif mesh_hash != expected:
         raise MeshMismatchError(
             f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...; "
             f"or the file reads differently since, as a newer neuralrt may read it); retrain, or pass "
