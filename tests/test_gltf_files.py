@@ -335,3 +335,26 @@ def test_gpu_instances_that_cannot_be_read_are_one_line(tmp_path):
         "TRANSLATION"]].update(count=10**6))
     with pytest.raises(MeshError, match="broken.glb: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot be read"):
         load_mesh(broken)
+
+
+def test_a_buffer_uri_leading_out_of_the_files_folder_is_refused(tmp_path):
+    """A scene object's one mesh of a glTF (``gltf_mesh``) read its buffers from wherever their uri
+    led: ``../``, an absolute path, /proc. trimesh refuses them for a whole file; so does the
+    per-mesh reader, in one line, and no byte of the outside file becomes geometry."""
+    import json
+    from pathlib import Path
+
+    source = tmp_path / "inside" / "quad.gltf"
+    source.parent.mkdir()
+    glb_as_gltf(_quads(tmp_path / "q.glb"), source)
+    outside = tmp_path / "secret.bin"
+    outside.write_bytes((source.with_suffix(".bin")).read_bytes())  # (a file the mesh could read, were it allowed)
+    for uri in ("../secret.bin", str(outside), "/proc/self/environ"):
+        header = json.loads(source.read_text())
+        header["buffers"][0]["uri"] = uri
+        source.write_text(json.dumps(header))
+        with pytest.raises(MeshError, match=re.escape(f"buffer 0's uri {uri!r} leads out of the file's folder")):
+            load_mesh(source, 0)
+        with pytest.raises(MeshError):
+            load_mesh(source)  # (trimesh's own rule, for the whole file)
+    assert Path(outside).is_file()

@@ -42,11 +42,22 @@ class GltfBuffers:
                 self.decoded[index] = base64.b64decode(uri.partition(",")[2])
             data = self.decoded[index][offset:offset + length]
         else:
-            file = self.path.parent / urllib.parse.unquote(uri)
+            file = self._inside_folder(urllib.parse.unquote(uri), index)
             data = self._from_file(file, offset, length) if file.is_file() else self._other_spelling(uri, index)[offset:offset + length]
         if len(data) != length:
             raise ValueError(f"buffer view {view} reaches past the end of buffer {index} (cut short?)")
         return data
+
+    def _inside_folder(self, name: str, index: int) -> Path:
+        """The file ``name`` beside the glTF, or a ValueError where it leads out of that folder (an
+        absolute path, ``..``, a link elsewhere): a file's data is read only from its own folder, as
+        trimesh reads a whole file's buffers."""
+        folder = self.path.parent.resolve()
+        file = (folder / name).resolve()
+        if not file.is_relative_to(folder):
+            raise ValueError(f"buffer {index}'s uri {name[:200]!r} leads out of the file's folder; buffers are read "
+                             f"only beside it")
+        return file
 
     def _binary_chunk_start(self) -> int:
         with self.path.open("rb") as f:
