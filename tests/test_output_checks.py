@@ -201,3 +201,26 @@ def test_an_eval_interrupted_while_writing_its_images_leaves_no_folder(tmp_path,
         api.evaluate(model, ball, rays=256, image_dir=tmp_path / "figures", timing=False, progress=False,
                      allow_mesh_mismatch=True)
     assert not (tmp_path / "figures").exists()
+
+
+def test_a_render_does_not_replace_a_file_its_scene_reads(tmp_path, capsys):
+    """``-o sky.exr`` wrote sky.png over the scene's environment image, ``-o r.exr`` r_albedo.png
+    over its texture: each is one line now, before anything is written."""
+    import trimesh
+    from PIL import Image
+
+    trimesh.creation.box().export(tmp_path / "box.obj")
+    Image.new("RGB", (4, 2), (90, 120, 200)).save(tmp_path / "sky.png")
+    Image.new("RGB", (2, 2), (200, 40, 40)).save(tmp_path / "r_albedo.png")
+    (tmp_path / "s.toml").write_text('[camera]\nresolution = [8, 8]\nposition = [0, 0, 4]\n[render]\nspp = 1\n'
+                                     '[[materials]]\nname = "tex"\nalbedo = "r_albedo.png"\n'
+                                     '[[objects]]\nmesh = "box.obj"\nmaterial = "tex"\n[environment]\nimage = "sky.png"\n')
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    for output, replaced in (("sky.exr", "sky.png"), ("r.exr", "r_albedo.png"), ("s.exr", None)):
+        code = main(["render", str(tmp_path / "s.toml"), "-o", str(tmp_path / output), "--quiet"])
+        if replaced is None:  # (a name that replaces nothing renders)
+            assert code == 0
+            continue
+        last = capsys.readouterr().err.strip().splitlines()[-1]  # (after the box's no-UV texture warning)
+        assert code == 2 and last.startswith("neuralrt: error: ") and f"{replaced}: the render would replace a file its scene" in last
+    assert all((tmp_path / name).read_bytes() == data for name, data in before.items())

@@ -272,6 +272,7 @@ def render(
     check_output_files(output_files(output) + ([nif_plot] if nif_plot else []), "render output")
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
+    _check_not_an_input(output_files(output) + ([nif_plot] if nif_plot else []), loaded, scene)
     primary = loaded.primary
     if not loaded.lights:
         import warnings
@@ -317,6 +318,18 @@ def render(
         "seconds_per_spp_per_megapixel": result.seconds / result.spp / (w * h / 1e6),
         **({"nif": nif_report} if nif_report is not None else {}),
     }
+
+
+def _check_not_an_input(outputs: list[Path], loaded, scene) -> None:
+    """A one-line error where a render output would replace a file the scene reads (its file, a
+    mesh, model, texture or environment image): ``-o sky.exr`` beside a scene lit by sky.png."""
+    inputs = [Path(scene)] if isinstance(scene, (str, Path)) else []
+    if loaded.spec is not None:
+        loaded.spec.with_paths(lambda p: inputs.append(Path(p)) or p)  # (every file path the scene names)
+    existing = [i for i in inputs if i.is_file()]
+    for out in outputs:
+        if out.is_file() and any(os.path.samefile(out, i) for i in existing):
+            raise NeuralRTError(f"{out}: the render would replace a file its scene reads: give another output name")
 
 
 def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch, inference=None):
