@@ -129,6 +129,12 @@ def test_names_from_files_are_printed_with_control_characters_escaped(capsys):
     _print_result({"mesh_name": "evil\n\x1b[31mneuralrt: error: fake"}, as_json=False)
     out = capsys.readouterr().out
     assert out.count("\n") == 1 and "\x1b" not in out and "evil\\n\\x1b[31mneuralrt: error: fake" in out
+    # Errors and warnings too: a name from a file cannot forge a second line or colour the terminal.
+    from neuralrt.cli import main
+
+    assert main(["info", "/nope/evil\n\x1b[31mneuralrt: error: fake.obj"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "\x1b" not in err and err.startswith("neuralrt: error: ")
 
 
 @pytest.mark.parametrize("losses", [["x", 1.0], [None, 1.0], [10**400, 1.0]])

@@ -382,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"neuralrt: warning: {message}", file=sys.stderr)
+    print(f"neuralrt: warning: {_printable(str(message))}", file=sys.stderr)  # (names from files: escaped, one line)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -395,14 +395,14 @@ def main(argv: list[str] | None = None) -> int:
         with spelled_as_flags():  # errors name --flags, as the user typed them
             args.func(args)
     except NeuralRTError as exc:
-        print(f"neuralrt: error: {exc}", file=sys.stderr)
+        print(f"neuralrt: error: {_printable(str(exc))}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader went away (`neuralrt info X | head`): stop quietly, as other tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the interpreter's final flush cannot fail too
         return 141
     except OSError as exc:  # the system refused a read or write the checks above let through (disk full, ...)
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"neuralrt: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"neuralrt: error: {_printable(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         hint = getattr(args, "interrupt_hint", None)
