@@ -289,6 +289,8 @@ def test_an_nbvh_tree_the_traversal_cannot_walk_is_refused(tmp_path, children, m
 @pytest.mark.parametrize("text, message", [
     ('{"format_version": 3, "method": "lsnif", "arrays_sha256": "", "deep": ' + "[" * 100_000 + "]" * 100_000 + "}",
      r"corrupted header \(JSON nested too deeply\)"),  # was a RecursionError traceback
+    ('{"format_version": 3, "method": "lsnif", "arrays_sha256": "", "deep": ' + "[" * 500 + "]" * 500 + "}",
+     r"corrupted header \(nested deeper than 32 levels\)"),  # (parsed, then `info` printing it overflowed)
     ('{"format_version": 3, "method": "lsnif", "arrays_sha256": "", "mesh_name": "\\ud800"}',
      r"corrupted header \(a string that is not valid Unicode text\)"),  # `info` failed printing it
     ('{"format_version": true, "method": "lsnif", "arrays_sha256": ""}', r"corrupted header \(format_version True\)"),

@@ -153,3 +153,17 @@ def test_a_model_from_before_curves_says_so(trained, tmp_path, capsys):
     write_model_file(tmp_path / "bad.nrt", f.header["method"], header, f.arrays)
     assert main(["info", str(tmp_path / "bad.nrt"), "--plot", str(tmp_path / "c.png")]) == 2
     assert "training curve is malformed (its columns differ in length)" in capsys.readouterr().err
+
+
+def test_a_title_from_a_files_record_draws_whatever_it_holds(tmp_path):
+    """A mesh name with ``$`` (matplotlib's mathtext) and record fields of the wrong type (an edited
+    file) gave tracebacks; the title keeps what is a number and prints the name as written."""
+    from neuralrt.io.plots import training_plot_title, write_training_plot
+
+    record = {"steps": "many", "batch_size": 8192, "rays_per_second": "fast", "seconds": 3.0, "resumed_from": "x",
+              "device": 5, "hit_accuracy": 0.99}
+    title = training_plot_title("lsnif", "hq", r"$\frac{$", record)
+    assert title == r"lsnif hq · $\frac{$ · 0 steps of 8,192 rays · final hit accuracy 0.9900"
+    curve = {"step": [1, 2, 3], "loss": [3.0, 2.0, 1.0], "hit_accuracy": [0.5, 0.8, 0.9]}
+    path = write_training_plot(tmp_path / "c.png", curve, title)
+    assert Image.open(path).size[0] > 100

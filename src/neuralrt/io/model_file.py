@@ -213,6 +213,8 @@ def _parse_header(path: Path, handle) -> dict:
         raise ModelFileError(f"{path}: corrupted header ({str(exc).split(';')[0]})") from None
     if not isinstance(header, dict):
         raise ModelFileError(f"{path}: corrupted header (not a JSON object)")
+    if _depth(header) > MAX_HEADER_DEPTH:  # (ours nest a few levels; a deep one fails later, printing it)
+        raise ModelFileError(f"{path}: corrupted header (nested deeper than {MAX_HEADER_DEPTH} levels)")
     # Checked whatever the version says: a flipped digit must not pass as an older version.
     if "header_sha256" in header and header["header_sha256"] != header_digest(header):
         raise ModelFileError(f"{path}: corrupted header (checksum mismatch)")
@@ -235,6 +237,22 @@ def _parse_header(path: Path, handle) -> dict:
 def _check_method(path: Path, header: dict, method: str | None) -> None:
     if method is not None and header["method"] != method:
         raise ModelFileError(f"{path}: this is a '{header['method']}' model, expected '{method}'")
+
+
+MAX_HEADER_DEPTH = 32  # nesting of a header's JSON: a config, a training record (ours: under 10)
+
+
+def _depth(value) -> int:
+    """How deeply ``value`` (parsed JSON) nests, counted without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        item, level = stack.pop()
+        deepest = max(deepest, level)
+        if isinstance(item, dict):
+            stack.extend((v, level + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, level + 1) for v in item)
+    return deepest
 
 
 def read_header(path: str | os.PathLike, method: str | None = None) -> dict:

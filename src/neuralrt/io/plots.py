@@ -41,7 +41,7 @@ def write_training_plot(path, curve: dict, title: str) -> Path:
     steps = np.asarray(curve["step"], dtype=float)
     states = sorted(curve.get("states", {}).items())
     fig = Figure(figsize=(10 + 4 * bool(states), 4), dpi=120, layout="constrained")
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(_plain_text(title), fontsize=10)
     loss_ax, accuracy_ax, *state_ax = fig.subplots(1, 2 + bool(states))
     loss_ax.plot(steps, curve["loss"], color="black", lw=1.6, label="loss trained on\n(terms x their weights)")
     for term, values in sorted(curve.get("losses", {}).items()):
@@ -67,14 +67,15 @@ def training_plot_title(method: str | None, preset: str | None, mesh_name: str, 
     """``lsnif hq · bunny · 800 steps of 8,192 rays · 55.7 s, 588k rays/s on cpu · final hit accuracy 0.9982``
     from a training record (the method, and its preset where the config is one: `MethodSpec.preset_of`);
     an interrupted run's checkpoint says so (``checkpoint_step``), and a resumed run where it resumed."""
-    steps = f"{record.get('steps', 0):,} steps of {record.get('batch_size', 0):,} rays"
+    record = {key: value for key, value in record.items() if key == "device" or _is_number(value)}  # (a file's: what is no number is left out)
+    steps = f"{record.get('steps', 0):,.0f} steps of {record.get('batch_size', 0):,.0f} rays"
     if checkpoint_step is not None:
-        steps = f"checkpoint of an unfinished run at step {checkpoint_step:,} ({record.get('batch_size', 0):,} rays a step)"
+        steps = f"checkpoint of an unfinished run at step {checkpoint_step:,} ({record.get('batch_size', 0):,.0f} rays a step)"
     elif record.get("resumed_from") is not None:
-        steps += f" (resumed at step {record['resumed_from']:,})"
+        steps += f" (resumed at step {record['resumed_from']:,.0f})"
     parts = [" ".join(part for part in (method, preset) if part), mesh_name or "(unnamed mesh)", steps]
     if record.get("rays_per_second"):
-        where = f" on {record['device']}" if record.get("device") else ""
+        where = f" on {record['device']}" if isinstance(record.get("device"), str) else ""
         seconds, first = record.get("seconds", 0.0), record.get("first_step_seconds", 0.0)
         # (rays/s leaves out each session's first step, which loads or compiles the kernels: say so where it weighs)
         loading = f" ({first:,.1f} s of it the first step, kernels loading; rays/s after it)" if first > 0.1 * seconds else ""
@@ -83,6 +84,15 @@ def training_plot_title(method: str | None, preset: str | None, mesh_name: str, 
     if isinstance(accuracy, float) and np.isfinite(accuracy):
         parts.append(f"final hit accuracy {accuracy:.4f}")
     return " · ".join(part for part in parts if part)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
+
+
+def _plain_text(text: str) -> str:
+    """``text`` as matplotlib prints it literally: a ``$`` (in a mesh name) would start mathtext."""
+    return text.replace("$", r"\$")
 
 
 def plot_problem(record) -> str | None:
@@ -190,7 +200,7 @@ def write_nif_training_plot(path, training: dict, title: str) -> Path:
     ax.grid(alpha=0.3, which="both")
     if ax.lines:
         ax.legend(fontsize=8, frameon=False)
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(_plain_text(title), fontsize=10)
     return write_figure(fig, path)
 
 
