@@ -188,3 +188,16 @@ def test_non_exr_bytes_under_exr_name(tmp_path):
     for name in ("png.exr", "empty.exr"):
         with pytest.raises(ImageError, match=rf"{name}: not an OpenEXR file"):
             read_image(tmp_path / name)
+
+
+def test_an_image_declaring_more_pixels_than_any_may_hold_is_refused_before_allocating(tmp_path):
+    """A few bytes of run-length .hdr declared 10^10 pixels, allocated before any was read (PNG had
+    PIL's limit; EXR and HDR none): every format now refuses PIL's decompression-bomb count."""
+    from neuralrt.errors import ImageError
+    from neuralrt.io.images import MAX_IMAGE_PIXELS, read_image
+
+    bomb = tmp_path / "bomb.hdr"
+    bomb.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 100000\n" + b"\x02\x02\x00\x08" * 4)
+    with pytest.raises(ImageError, match=r"bomb.hdr: declares 100000x100000 pixels, over the 178,956,970"):
+        read_image(bomb)
+    assert MAX_IMAGE_PIXELS == 2 * 89_478_485  # (PIL's Image.MAX_IMAGE_PIXELS, doubled: where PIL errors)

@@ -187,9 +187,23 @@ def _read_exr(path: Path) -> np.ndarray:
     return _as_rgb(rgb, path)
 
 
+# Pixels an image may declare: PIL's decompression-bomb limit, for every format (a few hundred
+# bytes of EXR or run-length HDR can declare gigabytes of pixels, allocated before any is read).
+MAX_IMAGE_PIXELS = 2 * 89_478_485
+
+
+def _check_pixel_count(path: Path, width: int, height: int) -> None:
+    if width * height > MAX_IMAGE_PIXELS:
+        raise ImageError(f"{path}: declares {width}x{height} pixels, over the {MAX_IMAGE_PIXELS:,} an image may hold "
+                         "(a decompression bomb, or a corrupt header)")
+
+
 def _read_exr_pixels(path: Path) -> np.ndarray:
     import OpenEXR
 
+    with OpenEXR.File(str(path), header_only=True) as f:
+        lo, hi = (np.asarray(v, np.int64) for v in f.header()["dataWindow"])
+    _check_pixel_count(path, int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
     with OpenEXR.File(str(path)) as f:
         channels = f.channels()
         if "RGB" in channels:
@@ -237,6 +251,7 @@ def _read_hdr(path: Path) -> np.ndarray:
     if end < 0 or m is None:
         raise ImageError(f"{path}: bad .hdr resolution line")
     h, w = int(m.group(2)), int(m.group(4))
+    _check_pixel_count(path, w, h)
     buf = np.frombuffer(data, np.uint8, offset=end + 1)
     rgbe = _decode_rgbe(buf, h, w, path)
     exponent = rgbe[..., 3].astype(np.int32)
