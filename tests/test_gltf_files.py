@@ -331,10 +331,12 @@ def test_gpu_instances_that_cannot_be_read_are_one_line(tmp_path):
 
     broken = tmp_path / "broken.glb"
     broken.write_bytes((Path(__file__).parent / "data" / "gltfpack_instances.glb").read_bytes())
-    edited_glb(broken, lambda h: h["accessors"][h["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"][
-        "TRANSLATION"]].update(count=10**6))
-    with pytest.raises(MeshError, match="broken.glb: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot be read"):
-        load_mesh(broken)
+    for count in (10**6, 10**10):  # (10^10: a MemoryError traceback, after gigabytes, before the count was checked)
+        edited_glb(broken, lambda h: h["accessors"][h["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"][
+            "TRANSLATION"]].update(count=count))
+        with pytest.raises(MeshError, match=f"broken.glb: cannot read mesh: its EXT_mesh_gpu_instancing instances cannot "
+                                            f"be read .*declares {count:,} values, more than"):
+            load_mesh(broken)
 
 
 def test_a_buffer_uri_leading_out_of_the_files_folder_is_refused(tmp_path):

@@ -388,6 +388,10 @@ def _accessor_values(header: dict, index, buffers: GltfBuffers) -> np.ndarray:
     width, count = _WIDTHS[accessor["type"]], int(accessor["count"])
     stride = view.get("byteStride") or dtype.itemsize * width
     start = accessor.get("byteOffset", 0)  # (within the view's bytes)
+    if count < 0 or (count and start + (count - 1) * stride + width * dtype.itemsize > len(data)):
+        # (checked before the index table is made: a count of 10^10 in a 1 KB file asked for gigabytes)
+        raise ValueError(f"instance accessor {index} declares {count:,} values, more than its buffer view's "
+                         f"{len(data):,} bytes hold (cut short?)")
     at = start + np.arange(count)[:, None] * stride + np.arange(width * dtype.itemsize)[None, :]
     values = np.frombuffer(data, np.uint8)[at].view(dtype).reshape(count, width).astype(np.float64)  # (IndexError: cut short)
     if accessor.get("normalized") and accessor["componentType"] in _NORMALISED:
