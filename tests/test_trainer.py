@@ -398,6 +398,9 @@ def _edited_checkpoint(path, out, change):
     (lambda h: h["record"].update(seconds=-1.0), r"its record: seconds: Input should be greater than or equal to 0 \(got -1.0\)"),
     (lambda h: h.update(record=[1]), r"\(ValueError: its record is a list, not a table\)"),
     (lambda h: h["optimizer"]["param_groups"][0]["params"].reverse(), r"cannot resume from this checkpoint \(ValueError: Adam's exp_avg has shape"),
+    # (a TypeError inside Adam's first step, after the set-up)
+    (lambda h: h["optimizer"]["param_groups"][0].update(betas="ab"), r"\(ValueError: Adam's betas is 'ab', not a value like"),
+    (lambda h: h["optimizer"]["param_groups"][0].update(lr=None), r"\(ValueError: Adam's lr is None, not a value like"),
 ])
 def test_a_checkpoint_that_cannot_be_resumed_is_one_line(checkpointed, tmp_path, change, message):
     # Each was a traceback (KeyError, TypeError, ...) from deep in the restore.

@@ -100,12 +100,30 @@ def _optimizer_arrays(opt: torch.optim.Optimizer) -> tuple[dict, dict[str, torch
     return meta, arrays
 
 
+def _same_kind(ours, theirs) -> bool:
+    """Whether ``theirs`` (from a file) is a value of ``ours``'s kind: a finite number for a number,
+    as many such for a tuple, the same for anything else (a flag, None)."""
+    if isinstance(ours, bool) or ours is None:
+        return theirs is ours or (isinstance(theirs, bool) and isinstance(ours, bool))
+    if isinstance(ours, (int, float)):
+        return isinstance(theirs, (int, float)) and not isinstance(theirs, bool) and math.isfinite(theirs)
+    if isinstance(ours, (tuple, list)):
+        return isinstance(theirs, (tuple, list)) and len(theirs) == len(ours) and all(map(_same_kind, ours, theirs))
+    return type(theirs) is type(ours)
+
+
 def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, torch.Tensor], device) -> None:
     state = {}
     for pid in meta["params"]:
         prefix = f"adam.{pid}."
         state[pid] = {k[len(prefix):]: v.to(device) if v.ndim else v for k, v in arrays.items() if k.startswith(prefix)}
+    fresh = [{k: v for k, v in group.items() if k != "params"} for group in opt.param_groups]
     opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    # A file's hyperparameters of another kind ("betas": "ab") failed inside Adam's step, after set-up.
+    for ours, loaded in zip(fresh, opt.param_groups):
+        for key, value in ours.items():
+            if not _same_kind(value, loaded.get(key)):
+                raise ValueError(f"Adam's {key} is {loaded.get(key)!r}, not a value like {value!r}")
     # torch takes moments of any shape, and the step after would fail inside Adam's kernel.
     for p in (p for group in opt.param_groups for p in group["params"]):
         held = opt.state.get(p, {})
