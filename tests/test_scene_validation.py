@@ -168,7 +168,7 @@ def test_camera_position_beyond_float32(tmp_path):
 def test_resolution_over_the_cap_from_the_cli(tmp_path, capsys):
     out = tmp_path / "out"
     err = cli_error(capsys, ["render", scene_file(tmp_path), "-o", str(out / "b.exr"), "--res", "100000x100000"])
-    assert err == "resolution: 100000x100000 is over the largest allowed 16384x16384"
+    assert err == "--res: 100000x100000 is over the largest allowed 16384x16384"  # (named as typed)
     assert not out.exists()
 
 
