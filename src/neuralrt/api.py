@@ -326,10 +326,20 @@ def _check_not_an_input(outputs: list[Path], loaded, scene) -> None:
     inputs = [Path(scene)] if isinstance(scene, (str, Path)) else []
     if loaded.spec is not None:
         loaded.spec.with_paths(lambda p: inputs.append(Path(p)) or p)  # (every file path the scene names)
-    existing = [i for i in inputs if i.is_file()]
+    read = {_file_identity(i) for i in dict.fromkeys(inputs)} - {None}  # (a scene of 20,000 objects: one stat each)
     for out in outputs:
-        if out.is_file() and any(os.path.samefile(out, i) for i in existing):
+        if _file_identity(out) in read:
             raise NeuralRTError(f"{out}: the render would replace a file its scene reads: give another output name")
+
+
+def _file_identity(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path``, as `os.path.samefile` compares them; None where none is."""
+    import stat
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
 
 
 def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch, inference=None):
