@@ -240,6 +240,8 @@ def _named(address: str, given_address: str | None) -> str:
     """The address as the user gave it: ``--address X`` (``address='X'``), or ``RAY_ADDRESS=X``
     where ``given_address`` is None."""
     return given("address", address) if given_address is not None else f"RAY_ADDRESS={address}"
+
+
 # A client's HTTP/2 connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the
 # Ray Client server) answers with its own SETTINGS frame at once; anything else does not.
 _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
