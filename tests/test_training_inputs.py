@@ -137,7 +137,7 @@ def test_devices_this_process_cannot_use(no_work, monkeypatch):
 @pytest.mark.parametrize("kwargs, message", [
     ({"resume": True}, "^resume=True needs checkpoint=PATH"),
     ({"checkpoint": ["x.ckpt"]}, r"^checkpoint: expected a path \(str or os.PathLike\), got list$"),
-    ({"resume": "yes", "checkpoint": "x.ckpt"}, "^resume: expected True or False, got str"),
+    ({"resume": "yes", "checkpoint": "x.ckpt"}, "^resume: expected True or False, got str 'yes'$"),
     ({"on_step": 3}, "^on_step: expected a function"),
 ])
 def test_bad_checkpoint_resume_and_hook_arguments(no_work, kwargs, message):

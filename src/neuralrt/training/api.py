@@ -9,6 +9,7 @@ from collections.abc import Callable
 import torch
 
 from ..accel.mesh_blas import MeshBLAS
+from ..arguments import check_flags
 from ..devices import check_device, check_path
 from ..errors import ConfigError
 from ..fork_guard import check_not_forked
@@ -71,8 +72,7 @@ def train(
     check_not_forked("train")
     config = _checked_config(config)
     checkpoint = check_path("checkpoint", checkpoint, optional=True)
-    if not isinstance(resume, bool):
-        raise ConfigError(f"resume: expected True or False, got {type(resume).__name__}")
+    check_flags(resume=resume)
     if resume and checkpoint is None:
         raise ConfigError("resume=True needs checkpoint=PATH, the checkpoint to resume from")
     if on_step is not None and not callable(on_step):
