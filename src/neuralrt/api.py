@@ -89,13 +89,12 @@ def _mesh_info(path) -> dict:
 
 
 def _scene_info(spec: str) -> dict:
-    from .methods.base import is_neural
-    from .scene.loader import load_scene
-    from .scene.memory import scene_memory
-
     import warnings
 
     from .methods import MeshMismatchWarning
+    from .methods.base import is_neural
+    from .scene.loader import load_scene
+    from .scene.memory import scene_memory
 
     with warnings.catch_warnings():  # info inspects: a mismatch matters when rendering (which says so)
         warnings.simplefilter("ignore", MeshMismatchWarning)
@@ -268,11 +267,11 @@ def render(
     output = check_render_output(output)
 
     nif_plot = output.with_name(f"{output.stem}_nif_training.png") if nif is not None else None
-    # the image, every AOV beside it (and NIF's training plot), before the scene loads
-    check_output_files(output_files(output) + ([nif_plot] if nif_plot else []), "render output")
+    written = output_files(output) + ([nif_plot] if nif_plot else [])  # the image, every AOV beside it, NIF's plot
+    check_output_files(written, "render output")  # (before the scene loads)
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
                          allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
-    _check_not_an_input(output_files(output) + ([nif_plot] if nif_plot else []), loaded, scene)
+    _check_not_an_input(written, loaded, scene)
     primary = loaded.primary
     if not loaded.lights:
         import warnings
@@ -496,6 +495,7 @@ def evaluate(
     from .eval.intersection_metrics import HELD_OUT_SEED, evaluate_model
     from .geometry.mesh import Mesh, load_mesh
     from .methods import check_mesh_match, is_neural, load_model
+    from .methods.base import checked_inference
 
     check_device(device)
     check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
@@ -517,10 +517,9 @@ def evaluate(
         if not images:
             raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
-    if inference is not None and not isinstance(inference, dict):
-        raise ConfigError(f"inference: expected a dict of inference settings, got {type(inference).__name__}")
+    inference = checked_inference(inference)
     blas = model if is_neural(model) else load_model(model, device=device)
-    blas = blas.with_inference(**(inference or {}))
+    blas = blas.with_inference(**inference)
     if seed is not None and seed == blas.config.training.seed:  # (a NeuralBLAS: every method's config has it)
         import warnings
 

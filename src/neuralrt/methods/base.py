@@ -46,7 +46,8 @@ from ..neural.precision import STORAGE_BYTES, STORAGE_DTYPES, compute_dtype
 from ..rays import AABB, Hits, Rays, check_rays
 from .config import MethodConfig
 
-__all__ = ["NeuralBLAS", "is_neural", "ray_views", "memory_owner", "check_mesh_match", "MeshMismatchWarning", "material_table"]
+__all__ = ["NeuralBLAS", "is_neural", "ray_views", "memory_owner", "check_mesh_match", "MeshMismatchWarning", "material_table",
+           "checked_inference"]
 
 DEFAULT_MATERIALS = [{"name": "default", "base_color": [1.0, 1.0, 1.0]}]
 
@@ -132,6 +133,16 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
             f"or the file reads differently since, as a newer neuralrt may read it); retrain, or pass "
             f"{given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} to use it anyway"
         )
+
+
+def checked_inference(inference) -> dict:
+    """A caller's inference changes (None: none) as a dict of setting names, for
+    `NeuralBLAS.with_inference`; a one-line `ConfigError` for anything else."""
+    if inference is None:
+        return {}
+    if not isinstance(inference, dict) or not all(isinstance(k, str) for k in inference):
+        raise ConfigError(f"inference: expected a dict of setting names (e.g. {{'lod': 2}}), got {type(inference).__name__}")
+    return inference
 
 
 def material_table(mesh) -> list[dict]:

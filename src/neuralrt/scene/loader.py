@@ -28,11 +28,11 @@ from ..accel.mesh_blas import MeshBLAS
 from ..arguments import given
 from ..accel.tlas import Instance, SceneAccel
 from ..devices import check_device, check_path
-from ..errors import NeuralRTError, SceneError, outside_stacklevel, validation_errors
+from ..errors import ConfigError, NeuralRTError, SceneError, outside_stacklevel, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..rays import AABB
-from ..methods.base import MeshMismatchWarning, check_mesh_match, is_neural, ray_views
+from ..methods.base import MeshMismatchWarning, check_mesh_match, checked_inference, is_neural, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -386,7 +386,10 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     used_materials: set[int] = set()
     materials = _material_table(material_specs, label, dev)
 
-    inference = _check_inference(inference, label)
+    try:
+        inference = checked_inference(inference)
+    except ConfigError as exc:
+        raise SceneError(f"{label}: {exc}") from None
     applied: set[str] = set()  # the keys of ``inference`` some model had
     shapes: dict[tuple, _Shape] = {}
     models: dict[str, BLAS] = {}
@@ -455,16 +458,6 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     return Scene(camera=camera, accel=accel, materials=materials, lights=LightSet(area, points, env),
                  instance_offsets=instance_ray_offsets(accel), settings=spec.render, spec=spec, name=label, device=dev,
                  primary=primary)
-
-
-def _check_inference(inference, label: str) -> dict:
-    """``inference`` (None: no change) as a dict of setting names, or a one-line error."""
-    if inference is None:
-        return {}
-    if not isinstance(inference, dict) or not all(isinstance(k, str) for k in inference):
-        raise SceneError(f"{label}: inference: expected a dict of setting names (e.g. {{'lod': 2}}), "
-                         f"got {type(inference).__name__}")
-    return inference
 
 
 def _inference_of(blas, inference: dict, applied: set[str]) -> dict:
