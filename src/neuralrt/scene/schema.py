@@ -111,11 +111,11 @@ MAX_RESOLUTION = 16384  # pixels per side
 Pixels = Annotated[int, NumberOnly, Field(gt=0, le=MAX_RESOLUTION)]
 
 
-def check_resolution(resolution, name: str | None = None) -> tuple[int, int]:
+def check_resolution(resolution) -> tuple[int, int]:
     """A caller's (width, height) override, checked like ``camera.resolution``; a one-line
-    `ConfigError` (``resolution: 100000x100000 is over the largest allowed 16384x16384``) if bad;
-    ``name``: the argument as its caller spells it (default: ``resolution``, ``--res`` on the command line)."""
-    name = name or given("resolution", flag="--res")
+    `ConfigError` (``resolution: 100000x100000 is over the largest allowed 16384x16384``; ``--res``
+    on the command line) if bad."""
+    name = given("resolution", flag="--res")
     try:
         w, h = (int(v) if int(v) == v else None for v in resolution)
     except (TypeError, ValueError, OverflowError):
