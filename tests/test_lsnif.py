@@ -168,7 +168,8 @@ def test_bad_model_files_rejected(trained, tmp_path):
     header = {k: v for k, v in f.header.items() if k not in ("format_version", "method", "arrays_sha256")}
     header["config"]["network"]["hidden_width"] = 64
     write_model_file(tmp_path / "odd.nrt", "lsnif", header, f.arrays)
-    with pytest.raises(ModelFileError, match="invalid LSNIF model.*shape"):
+    with pytest.raises(ModelFileError, match=r"invalid LSNIF model \(array 'network\.hidden\.0\.weight' is \[128, \d+\], "
+                                             r"expected \[64, \d+\] by its config\)"):
         load_model(tmp_path / "odd.nrt")
 
 

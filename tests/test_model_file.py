@@ -300,3 +300,22 @@ def test_headers_that_parse_oddly_are_one_line_errors(model_path, text, message)
     with pytest.raises(ModelFileError, match=message):
         read_header(model_path)
 
+
+
+@pytest.mark.parametrize("method, change, message", [
+    # 40 levels of 2^24 rows of 16 features: 43 GB of table, asked for by a file of a few KB
+    ("lsnif", lambda c: c["encoding"].update(resolutions=[64] * 40, log2_table_size=24, features_per_level=16),
+     r"array 'encoder\.table' is \[2, 131072, 3\], expected \[40, 16777216, 16\] by its config"),
+    ("lsnif", lambda c: c["network"].update(hidden_layers=16, hidden_width=4096), r"array 'network\.hidden\.0\.weight' is "),
+    ("nbvh", lambda c: c["network"].update(hidden_layers=6), r"arrays missing: network\.hidden\.4\.weight"),
+])
+def test_a_config_asking_for_more_than_its_arrays_is_refused_before_allocating(tmp_path, method, change, message):
+    # The model was built from the config before its arrays were compared: a 2 KB file took GBs.
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods import get_method, load_model
+
+    spec = get_method(method)
+    path = spec.model_class.from_mesh(sphere(1), spec.config_class.preset(spec.default_presets["*"])).save(tmp_path / "m.nrt")
+    _rewrite_header(path, lambda h: change(h["config"]))
+    with pytest.raises(ModelFileError, match=r"invalid (LSNIF|N-BVH) model \(" + message):
+        load_model(path)

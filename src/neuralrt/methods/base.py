@@ -13,8 +13,11 @@ A method subclasses `NeuralBLAS` and provides:
   which the training loop may compute on the thread that draws the batch, handing it to
   ``training_step(rays, truth, prepared)``; LSNIF: the voxel walk and the network rays),
   ``after_training_step(step, optimizer)`` (e.g. N-BVH refines its BVH cut), ``box``
-  (the region training rays aim at; default: the bounds) and ``training_rays(truth, device)`` (the
-  training ray distribution; default: `BoxRayDistribution` around ``box``).
+  (the region training rays aim at; default: the bounds), ``training_rays(truth, device)`` (the
+  training ray distribution; default: `BoxRayDistribution` around ``box``) and
+  ``_learned_modules(config, num_materials)`` (the modules whose parameters the file stores,
+  which loading builds on the meta device first to check a file's arrays against its config
+  before allocating anything).
 
 The base class holds config, bounds, mesh hash, materials and training record; it answers rays in
 chunks, picks the compute precision, rounds to the storage precision, and saves and loads every
@@ -71,6 +74,27 @@ def _stored_arrays_problem(found: dict[str, Tensor], expected: dict[str, Tensor]
                    f"{str(b.dtype).removeprefix('torch.')} {list(b.shape)}"
         if a.is_floating_point() and not torch.isfinite(a).all():
             return f"array '{name}' holds NaN or infinite values"
+    return None
+
+
+def prefixed_parameters(modules: dict[str, nn.Module]) -> dict[str, nn.Parameter]:
+    """File key -> parameter: each module's parameters under its prefix (``network.output.weight``)."""
+    return {f"{prefix}.{k}": p for prefix, module in modules.items() for k, p in module.named_parameters()}
+
+
+def _declared_parameters_problem(cls: type["NeuralBLAS"], config: MethodConfig, num_materials: int,
+                                 arrays: dict[str, Tensor]) -> str | None:
+    """Whether a file holds the parameters its config declares (None if it does), judged on
+    modules built on the meta device, which allocates nothing: a 2 KB file whose config asks for
+    a thousand hash-grid levels or 4096-wide layers is refused before they take gigabytes."""
+    with torch.device("meta"):
+        modules = cls._learned_modules(config, num_materials)
+    declared = prefixed_parameters(modules) if modules is not None else {}
+    for name, p in declared.items():
+        if name not in arrays:
+            return f"arrays missing: {name}"
+        if tuple(arrays[name].shape) != tuple(p.shape):
+            return f"array '{name}' is {list(arrays[name].shape)}, expected {list(p.shape)} by its config"
     return None
 
 
@@ -200,6 +224,16 @@ class NeuralBLAS(nn.Module, ABC):
     @abstractmethod
     def _from_arrays(cls, config: MethodConfig, bounds: AABB, materials: list[dict], arrays: dict[str, Tensor]) -> "NeuralBLAS":
         """Rebuild a model from a file's arrays; raise ValueError/KeyError for missing or mis-shaped ones."""
+
+    @classmethod
+    def _learned_modules(cls, config: MethodConfig, num_materials: int) -> dict[str, nn.Module] | None:
+        """Optional: the modules whose parameters the model file stores, by the prefix of their
+        arrays' names (``{"encoder": ..., "network": ...}``: `prefixed_parameters`), freshly built
+        from ``config`` on the default device. `load` builds them on the meta device, which
+        allocates nothing, to check a file's arrays against its config before building the model:
+        a small file whose config asks for gigabytes of layers is refused first. None (the
+        default): no such check."""
+        return None
 
     def prepare_training_batch(self, rays: Rays):
         """What ``training_step`` computes from the batch alone, never from the parameters, or None
@@ -441,6 +475,9 @@ class NeuralBLAS(nn.Module, ABC):
             bounds = AABB(torch.tensor(header.bounds[0], dtype=torch.float32), torch.tensor(header.bounds[1], dtype=torch.float32))
             problem = _bounds_problem(bounds)
             if problem:  # (an edited file: a model of no extent answers nothing, and a scene of it divides by zero)
+                raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({problem})")
+            problem = _declared_parameters_problem(cls, config, len(header.materials), arrays)
+            if problem:  # (before building: a small file's config may ask for gigabytes of layers)
                 raise ModelFileError(f"{path}: invalid {cls.TITLE} model ({problem})")
             model = cls._from_arrays(config, bounds, [m.model_dump() for m in header.materials], arrays)
             problem = _stored_arrays_problem(arrays, model._arrays())

@@ -28,7 +28,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..accel.blas import MemoryReport
 from ..geometry.mesh import Mesh
@@ -37,7 +37,7 @@ from ..neural.mlp import MLP, padded_rows
 from ..neural.sparse_hash_grid import SparseHashGrid
 from ..rays import AABB, Hits, Rays
 from ..training.step import StepResult
-from .base import NeuralBLAS, material_table
+from .base import NeuralBLAS, material_table, prefixed_parameters
 from .lsnif_config import LSNIFConfig
 from .lsnif_loss import training_loss
 from .lsnif_features import (RayFeaturePoints, featurize_rays, point_local_distances, select_network_rays, select_network_rows,
@@ -116,16 +116,8 @@ class LSNIFModel(NeuralBLAS):
         if occ.shape != (v, v, v):
             raise ValueError(f"occupancy has shape {tuple(occ.shape)}, expected ({v}, {v}, {v})")
         self.register_buffer("occupancy", occ)
-        enc = config.encoding
-        self.encoder = SparseHashGrid(
-            resolutions=tuple(enc.resolutions), features_per_level=enc.features_per_level,
-            log2_table_size=enc.log2_table_size, init_scale=enc.init_scale, seed=config.training.seed,
-        )
-        net = config.network
-        self.network = MLP(
-            self.network_inputs, 8 + self.num_materials, net.hidden_width, net.hidden_layers, net.leaky_relu_slope,
-            generator=torch.Generator().manual_seed(config.training.seed),
-        )
+        learned = self._learned_modules(config, self.num_materials)
+        self.encoder, self.network = learned["encoder"], learned["network"]
         # Training: the encoder reads the network rays through their index (True) or a copy of their
         # points is made first (False: the earlier path, kept to measure against); not stored in models.
         self.training_rows_by_index = True
@@ -135,6 +127,19 @@ class LSNIFModel(NeuralBLAS):
         self.float32_walk = True
 
     # -- construction ----------------------------------------------------------------------------
+    @classmethod
+    def _learned_modules(cls, config: LSNIFConfig, num_materials: int) -> dict[str, nn.Module]:
+        enc, net = config.encoding, config.network
+        encoder = SparseHashGrid(
+            resolutions=tuple(enc.resolutions), features_per_level=enc.features_per_level,
+            log2_table_size=enc.log2_table_size, init_scale=enc.init_scale, seed=config.training.seed,
+        )
+        network = MLP(
+            _network_inputs(config, encoder), 8 + num_materials, net.hidden_width, net.hidden_layers, net.leaky_relu_slope,
+            generator=torch.Generator().manual_seed(config.training.seed),
+        )
+        return {"encoder": encoder, "network": network}
+
     @classmethod
     def from_mesh(cls, mesh: Mesh, config: LSNIFConfig | None = None) -> "LSNIFModel":
         """An untrained model for ``mesh``: box, exact voxelization, material table."""
@@ -190,8 +195,7 @@ class LSNIFModel(NeuralBLAS):
     @property
     def network_inputs(self) -> int:
         """MLP input width: H*L*F encoded features (+ H point distances with ``features.point_distances``)."""
-        h = self.config.features.max_points
-        return self.encoder.output_dim(h) + (h if self.config.features.point_distances else 0)
+        return _network_inputs(self.config, self.encoder)
 
     def network_input(self, prep: _Prepared, dtype: torch.dtype = torch.float32) -> Tensor:
         """[M, network_inputs] in ``dtype``: encoded features of the active rays' points, in ray order."""
@@ -441,9 +445,7 @@ class LSNIFModel(NeuralBLAS):
         })
 
     def _stored_parameters(self) -> dict[str, torch.nn.Parameter]:
-        """File key -> parameter, for everything the file stores besides the voxels."""
-        return {**{f"encoder.{k}": p for k, p in self.encoder.named_parameters()},
-                **{f"network.{k}": p for k, p in self.network.named_parameters()}}
+        return prefixed_parameters({"encoder": self.encoder, "network": self.network})
 
     def _arrays(self) -> dict[str, Tensor]:
         occupancy_bits = torch.from_numpy(pack_occupancy(self.occupancy.cpu().numpy()))
@@ -459,6 +461,11 @@ class LSNIFModel(NeuralBLAS):
 
 # LSNIFModel already is a BLAS (bounds, secondary_offset, intersect, occluded, memory_bytes).
 LSNIFBLAS = LSNIFModel
+
+
+def _network_inputs(config: LSNIFConfig, encoder: SparseHashGrid) -> int:
+    h = config.features.max_points
+    return encoder.output_dim(h) + (h if config.features.point_distances else 0)
 
 
 def _logit(p: float) -> float:

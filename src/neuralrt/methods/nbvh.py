@@ -26,7 +26,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..accel.blas import MemoryReport
 from ..errors import ConfigError
@@ -35,7 +35,7 @@ from ..neural.hash_grid import HashGrid
 from ..neural.mlp import MLP
 from ..rays import AABB, Hits, Rays, face_forward, valid_ray_mask
 from ..training.step import StepResult
-from .base import NeuralBLAS, material_table
+from .base import NeuralBLAS, material_table, prefixed_parameters
 from .nbvh_config import NBVHConfig
 from .nbvh_cut import base_tree, choose_splits, compact, kept_nodes, lod_to_register, split_count
 from .nbvh_rays import NBVHRayDistribution
@@ -114,12 +114,8 @@ class NBVHModel(NeuralBLAS):
         self.register_buffer("alive_steps", torch.zeros(m, dtype=torch.float64))
         self.register_buffer("h_max", torch.zeros((), dtype=torch.float64))
         self.register_buffer("registered", torch.tensor([bool((self.node_lod == lvl).any()) for lvl in range(MAX_LODS)]))
-        enc = config.encoding
-        self.encoder = HashGrid(enc.levels, enc.base_resolution, enc.features_per_level, enc.log2_table_size, enc.init_scale,
-                                seed=config.training.seed)
-        net = config.network
-        self.network = MLP(self.encoder.output_dim(3), 8 + self.material_logits, net.hidden_width, net.hidden_layers, 0.0,
-                           generator=torch.Generator().manual_seed(config.training.seed))
+        learned = self._learned_modules(config, self.num_materials)
+        self.encoder, self.network = learned["encoder"], learned["network"]
         self._batch: tuple[Tensor, Tensor | None] | None = None  # (leaf per sample, chord fractions) of the batch being trained
         self._batch_losses: Tensor | None = None
         self._h: Tensor | None = None
@@ -158,6 +154,15 @@ class NBVHModel(NeuralBLAS):
         return model
 
     @classmethod
+    def _learned_modules(cls, config: NBVHConfig, num_materials: int) -> dict[str, nn.Module]:
+        enc, net = config.encoding, config.network
+        encoder = HashGrid(enc.levels, enc.base_resolution, enc.features_per_level, enc.log2_table_size, enc.init_scale,
+                           seed=config.training.seed)
+        network = MLP(encoder.output_dim(3), 8 + _material_logits(num_materials), net.hidden_width, net.hidden_layers, 0.0,
+                      generator=torch.Generator().manual_seed(config.training.seed))
+        return {"encoder": encoder, "network": network}
+
+    @classmethod
     def _from_arrays(cls, config: NBVHConfig, bounds: AABB, materials: list[dict], arrays: dict[str, Tensor]) -> "NBVHModel":
         model = cls(config, bounds, arrays["cut.lo"].float(), arrays["cut.hi"].float(), arrays["cut.children"].int(),
                     arrays["cut.lod"].to(torch.int8), materials)  # fmt: skip
@@ -168,7 +173,7 @@ class NBVHModel(NeuralBLAS):
     @property
     def material_logits(self) -> int:
         """Material outputs of the MLP: one per material slot, none for a single-material mesh."""
-        return self.num_materials if self.num_materials > 1 else 0
+        return _material_logits(self.num_materials)
 
     def cut_arrays(self) -> CutArrays:
         return CutArrays(self.node_lo, self.node_hi, self.node_children, self.node_lod, self.live)
@@ -432,8 +437,7 @@ class NBVHModel(NeuralBLAS):
         })
 
     def _stored_parameters(self) -> dict[str, torch.nn.Parameter]:
-        return {**{f"encoder.{k}": p for k, p in self.encoder.named_parameters()},
-                **{f"network.{k}": p for k, p in self.network.named_parameters()}}
+        return prefixed_parameters({"encoder": self.encoder, "network": self.network})
 
     def _arrays(self) -> dict[str, Tensor]:
         lo, hi, children, lod = compact(self.node_lo.cpu().numpy(), self.node_hi.cpu().numpy(), self.node_children.cpu().numpy(),
@@ -445,6 +449,10 @@ class NBVHModel(NeuralBLAS):
         c = self.config
         return (f"NBVHModel({self.mesh_name!r}, nodes={self.num_nodes}, table=2^{c.encoding.log2_table_size}, "
                 f"mlp={c.network.hidden_layers}x{c.network.hidden_width}, {self.memory_bytes().total} bytes)")
+
+
+def _material_logits(num_materials: int) -> int:
+    return num_materials if num_materials > 1 else 0
 
 
 def unit_cube(bounds: AABB, dilation: float) -> tuple[Tensor, float]:

@@ -30,8 +30,10 @@ class MLP(nn.Module):
         super().__init__()
         widths = [in_features] + [hidden_width] * hidden_layers
         # skip_init: nn.Linear's own init would draw from the global RNG; ``generator`` sets every value below.
-        self.hidden = nn.ModuleList(nn.utils.skip_init(nn.Linear, a, b) for a, b in zip(widths[:-1], widths[1:]))
-        self.output = nn.utils.skip_init(nn.Linear, widths[-1], out_features)
+        # (skip_init ignores a default-device context: the meta device of a model file's check.)
+        device = torch.get_default_device()
+        self.hidden = nn.ModuleList(nn.utils.skip_init(nn.Linear, a, b, device=device) for a, b in zip(widths[:-1], widths[1:]))
+        self.output = nn.utils.skip_init(nn.Linear, widths[-1], out_features, device=device)
         self.slope = slope
         for layer in self.hidden:
             nn.init.kaiming_uniform_(layer.weight, a=slope, nonlinearity="leaky_relu", generator=generator)
