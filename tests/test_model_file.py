@@ -319,3 +319,32 @@ def test_a_config_asking_for_more_than_its_arrays_is_refused_before_allocating(t
     _rewrite_header(path, lambda h: change(h["config"]))
     with pytest.raises(ModelFileError, match=r"invalid (LSNIF|N-BVH) model \(" + message):
         load_model(path)
+
+
+_TRUNCATE_WHILE_READING = """
+import os, sys
+from neuralrt.io import model_file
+path = sys.argv[1]
+parse = model_file._parse_header
+def parse_then_truncate(p, handle):  # another process's `cp small.nrt model.nrt` truncates first
+    header = parse(p, handle)
+    os.truncate(path, 4096)
+    return header
+model_file._parse_header = parse_then_truncate
+try:
+    model_file.read_model_file(path)
+except model_file.ModelFileError as exc:
+    print(exc)
+"""
+
+
+def test_a_file_truncated_while_it_is_read_is_one_line(tmp_path):
+    # Its arrays were read from safetensors' memory map: the truncated pages ended the process (SIGBUS).
+    import subprocess
+    import sys
+
+    path = write_model_file(tmp_path / "m.nrt", "lsnif", {}, {"table": torch.zeros(1 << 18)})  # 1 MB past the first page
+    size = path.stat().st_size
+    run = subprocess.run([sys.executable, "-c", _TRUNCATE_WHILE_READING, str(path)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-500:]
+    assert run.stdout.strip() == f"{path}: the model file changed while it was read ({size} bytes, then 4096)"

@@ -267,16 +267,32 @@ def read_model_file(path: str | os.PathLike, method: str | None = None) -> Model
     """Read and verify a model file; with ``method``, reject files of another method."""
     path = Path(path)
     handle = _open(path)
+    size = path.stat().st_size  # (what the header was read from)
     header = _parse_header(path, handle)
     _check_method(path, header, method)
-    try:
-        arrays = {k: handle.get_tensor(k) for k in handle.keys()}
-    except Exception as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ModelFileError(f"{path}: corrupted array data ({msg})") from None
+    arrays = _read_arrays(path, size)
     if arrays_digest(arrays) != header["arrays_sha256"]:
         raise ModelFileError(f"{path}: corrupted array data (checksum mismatch)")
     return ModelFile(header, arrays)
+
+
+def _read_arrays(path: Path, size: int) -> dict[str, Tensor]:
+    """Every array of the file, from its bytes read whole, not memory-mapped as safetensors' own
+    reader is: a file truncated while it is read (``cp`` over it truncates first) ended the process
+    with SIGBUS. A file replaced after its header was read fails the arrays' digest."""
+    from safetensors.torch import load
+
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the model file ({exc.strerror})") from None
+    if len(data) != size:
+        raise ModelFileError(f"{path}: the model file changed while it was read ({size} bytes, then {len(data)})")
+    try:
+        return load(data)
+    except Exception as exc:  # safetensors raises its own error types; report them as one line
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ModelFileError(f"{path}: corrupted array data ({msg})") from None
 
 
 def _model_header(path: Path, raw: dict) -> ModelHeader:
