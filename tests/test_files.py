@@ -42,6 +42,19 @@ def test_every_writer_gives_outputs_the_umask_mode(tmp_path, umask_027):
     assert read_header(tmp_path / "m.nrt")["method"] == "test"
 
 
+def test_a_file_written_again_keeps_its_mode(tmp_path, umask_027):
+    # It became 0o666 & ~umask: a private (0600) model or image was made readable by the group.
+    model, image = tmp_path / "m.nrt", tmp_path / "a.png"
+    write_model_file(model, "test", {}, {"w": torch.zeros(3)})
+    write_png(image, np.ones((2, 2, 3)))
+    os.chmod(model, 0o600)
+    os.chmod(image, 0o644)
+    write_model_file(model, "test", {}, {"w": torch.ones(3)})
+    write_png(image, np.zeros((2, 2, 3)))
+    assert (_mode(model), _mode(image)) == (0o600, 0o644)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "m.nrt"]
+
+
 def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")

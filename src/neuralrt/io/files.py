@@ -5,9 +5,9 @@ written there (without creating anything). `write_atomically` is the one way neu
 output file (images, model files, scene files, checkpoints): the data goes to a temporary
 sibling, then one ``os.replace`` puts it in place, so a crash leaves the old file or the new one,
 never half of one (a temporary file that a killed process left behind is removed by a later
-write of the same file, once it is an hour old). The temporary file is created with mode
-``0o666`` filtered by the umask, like any file a program opens for writing
-(``tempfile.mkstemp`` would make every output ``0600``).
+write of the same file, once it is an hour old). A new file gets mode ``0o666`` filtered by the
+umask, like any file a program opens for writing (``tempfile.mkstemp`` would make every output
+``0600``); a file written again keeps its mode, as ``cp`` over it does.
 """
 
 from __future__ import annotations
@@ -77,7 +77,9 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
     """
     path = _link_target(Path(path))
     tmp = _create_sibling(path)
-    mode = stat.S_IMODE(os.stat(tmp).st_mode)  # 0o666 & ~umask, as the kernel applied it
+    mode = _existing_mode(path)  # a file written again keeps its mode, as `cp` over it does
+    if mode is None:
+        mode = stat.S_IMODE(os.stat(tmp).st_mode)  # 0o666 & ~umask, as the kernel applied it
     staged = _STAGED.get()
     try:
         write_to(str(tmp))
@@ -97,6 +99,16 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
         if tmp.exists() and (staged is None or (tmp, path) not in staged):
             tmp.unlink()
     return path
+
+
+def _existing_mode(path: Path) -> int | None:
+    """The permission bits of the regular file at ``path`` (None if there is none): a user who made
+    an output private (0600) keeps it private when a run writes it again."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return stat.S_IMODE(st.st_mode) & 0o777 if stat.S_ISREG(st.st_mode) else None
 
 
 _STAGED: contextvars.ContextVar[list | None] = contextvars.ContextVar("neuralrt_staged_writes", default=None)
