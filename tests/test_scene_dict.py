@@ -224,3 +224,26 @@ def test_an_emissive_material_no_object_uses_is_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_dict(d)
+
+
+def test_byte_identical_copies_of_a_model_file_are_one_model(tmp_path):
+    # Each copy was loaded again: the same model twice in memory, its bytes counted twice.
+    import shutil
+
+    from neuralrt.geometry.procedural import sphere
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+    from neuralrt.scene.memory import scene_memory
+
+    mesh = sphere(1)
+    model = LSNIFModel.from_mesh(mesh, LSNIFConfig.preset("lq"))
+    model.save(tmp_path / "a.nrt")
+    shutil.copy(tmp_path / "a.nrt", tmp_path / "copy.nrt")
+    model.training_record = {"note": "another run"}  # (another header: another model, however alike)
+    model.save(tmp_path / "other.nrt")
+    objects = [{"mesh": mesh, "model": str(tmp_path / name), "transform": {"translate": [3 * k, 0, 0]}}
+               for k, name in enumerate(["a.nrt", "copy.nrt", "other.nrt"])]
+    scene = load_dict({"objects": objects}, primary="neural")
+    a, copy, other = (inst.blas.memory_owner for inst in scene.accel.instances)
+    assert a is copy and other is not a
+    assert scene_memory(scene).neural_bytes == 2 * model.memory_bytes().total

@@ -10,6 +10,7 @@ Objects that use the same mesh (same resolved file, or same generator and parame
 from __future__ import annotations
 
 import functools
+import hashlib
 import inspect
 import json
 import math
@@ -31,6 +32,7 @@ from ..devices import check_device, check_path
 from ..errors import ConfigError, NeuralRTError, SceneError, outside_stacklevel, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
+from ..io.model_file import read_header
 from ..rays import AABB
 from ..methods.base import MeshMismatchWarning, check_mesh_match, checked_inference, is_neural, ray_views
 from ..render.camera import Camera
@@ -393,6 +395,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
     applied: set[str] = set()  # the keys of ``inference`` some model had
     shapes: dict[tuple, _Shape] = {}
     models: dict[str, BLAS] = {}
+    by_content: dict[str, BLAS] = {}  # (the same models again: byte-identical copies of one model file)
     instances: list[Instance] = []
     meshes: list[Mesh | None] = []  # exact objects' meshes (area lights come from them)
     for i, obj in enumerate(spec.objects):
@@ -413,7 +416,7 @@ def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: s
                 blas = given.models[i]
             else:
                 if obj.model not in models:
-                    models[obj.model] = _load_model(obj.model, label, key, dev)
+                    models[obj.model] = _load_model(obj.model, label, key, dev, by_content)
                 blas = models[obj.model]
             check_mesh_match(blas, shape.content_hash if shape is not None else None, allow_mismatch=allow_mesh_mismatch,
                              label=f"{label}: {key}.model")
@@ -582,8 +585,10 @@ def _generate(obj: ObjectSpec, label: str, key: str) -> Mesh:
         raise SceneError(f"{label}: {key}.generator.params: {exc}") from None
 
 
-def _load_model(path: str, label: str, key: str, device):
-    """A trained neural model as this object's BLAS (the methods package is imported only here)."""
+def _load_model(path: str, label: str, key: str, device, by_content: dict[str, BLAS]):
+    """A trained neural model as this object's BLAS (the methods package is imported only here).
+    A file whose content ``by_content`` already holds (a copy of a model file another object
+    names) gives that model: one model in memory, counted once."""
     problem = input_file_problem(path, "model file")
     if problem:
         raise SceneError(f"{label}: {key}.model: {problem}")
@@ -592,9 +597,18 @@ def _load_model(path: str, label: str, key: str, device):
     except ImportError as exc:
         raise SceneError(f"{label}: {key}.model: neural models are not available ({exc})") from None
     try:
-        return load_model(path, device=device)
+        content = _content_digest(read_header(path))
+        if content not in by_content:
+            by_content[content] = load_model(path, device=device)
+        return by_content[content]
     except NeuralRTError as exc:
         raise SceneError(f"{label}: {key}.model: {exc}") from None
+
+
+def _content_digest(header: dict) -> str:
+    """What identifies a model file's content: its header, which holds the digest of its arrays
+    (loading the file checks both digests against what it reads)."""
+    return hashlib.sha256(json.dumps(header, sort_keys=True).encode()).hexdigest()
 
 
 def _material_table(specs: list, label: str, device) -> MaterialTable:

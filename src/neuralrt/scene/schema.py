@@ -284,7 +284,7 @@ class ObjectSpec(_Strict):
         None, description="one mesh of the glTF `mesh` file (its index, or its name where one mesh has it), in its own "
         "space; none: the whole file, placed by its nodes (`neuralrt import` writes these)")
     generator: GeneratorSpec | None = Field(None, description="procedural mesh instead of a file")
-    model: str | None = Field(None, description="trained neural model (.nrt) answering this object's rays")
+    model: str | None = Field(None, description="trained neural model (.nrt) answering this object's rays (objects naming one file, or byte-identical copies of it, share one model)")
     transform: TransformSpec = Field(default_factory=TransformSpec, description="object-to-world transform")
     material: str | None = Field(None, description="scene material for every face")
     materials: dict[str, str] = Field(default_factory=dict, description="mesh material name -> scene material name "
