@@ -179,3 +179,20 @@ def test_a_display_image_against_a_linear_one_is_a_warning(tmp_path):
         warnings.simplefilter("error")
         compare_files(tmp_path / "a.exr", tmp_path / "a.exr")
         compare_files(tmp_path / "a.png", tmp_path / "a.png")
+
+
+def test_images_flip_has_no_memory_for_are_refused_in_one_line(tmp_path, capsys, monkeypatch):
+    # Two 6000x6000 renders took 6.3 GB: where that is more than the machine has, the OOM killer ended it.
+    from neuralrt import devices
+    from neuralrt.eval.image_metrics import FLIP_BYTES_PER_PIXEL
+
+    img = np.full((40, 50, 3), 0.5, np.float32)
+    write_exr(tmp_path / "a.exr", img)
+    write_exr(tmp_path / "b.exr", img)
+    monkeypatch.setattr(devices, "available_bytes", lambda device: 40 * 50 * FLIP_BYTES_PER_PIXEL - 1)
+    assert main(["compare", str(tmp_path / "a.exr"), str(tmp_path / "b.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("neuralrt: error: comparing 50x40 images with FLIP needs 0.0 GiB of memory, 0.0 GiB is "
+                          "available on cpu: compare crops") and err.count("\n") == 1
+    monkeypatch.setattr(devices, "available_bytes", lambda device: 40 * 50 * FLIP_BYTES_PER_PIXEL)
+    assert compare_images(img, img).flip == 0.0
