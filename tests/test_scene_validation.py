@@ -376,3 +376,22 @@ def test_a_model_header_with_an_integer_python_cannot_read_is_one_line(tmp_path)
     save_file({"x": torch.zeros(1)}, str(tmp_path / "m.nrt"), metadata={"neuralrt": '{"format_version": ' + "9" * 5000 + "}"})
     with pytest.raises(ModelFileError, match=r"m.nrt: corrupted header \(Exceeds the limit"):
         load_model(tmp_path / "m.nrt")
+
+
+@pytest.mark.parametrize("camera, message", [
+    ({"position": [0, 1]}, "camera.position: takes 3 values, got 2"),  # was "camera.position.2: Field required"
+    ({"position": [0]}, "camera.position: takes 3 values, got 1"),  # (once, not once per missing value)
+    ({"position": [0, 1, 2, 3]}, "camera.position: takes 3 values, got 4"),  # was "Tuple should have at most 3 items ..."
+    ({"resolution": [8, 8, 8]}, "camera.resolution: takes 2 values, got 3"),
+])
+def test_a_list_of_the_wrong_length_says_how_many_values_it_takes(tmp_path, camera, message):
+    with pytest.raises(SceneError) as info:
+        load_scene_spec(scene_file(tmp_path, camera={"resolution": [8, 8], **camera}))
+    assert str(info.value) == f"{tmp_path / 'scene.json'}: {message}"
+
+
+def test_a_config_list_of_too_few_values_says_how_many_it_takes():
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+
+    with pytest.raises(ConfigError, match=r"^lsnif config: encoding\.resolutions: takes at least 1 value, got 0$"):
+        LSNIFConfig.preset("hq", encoding={"resolutions": []})

@@ -73,7 +73,7 @@ def validation_errors(exc, model=None) -> list[tuple[str, str]]:
     fits the input's shape, the others' "Input should be a valid ..." errors are dropped too.
     """
     rows = []  # (key, message, union position or None, is a type mismatch)
-    for err in exc.errors(include_url=False):
+    for err in _length_errors(exc.errors(include_url=False), model):
         key, union_at = _user_loc(err.get("loc", ()), model)
         got = "" if isinstance(err.get("input"), dict) or "input" not in err or ", got " in err.get("msg", "") \
             else f" (got {_short_repr(err['input'])})"  # (a message of ours may name the input itself)
@@ -81,6 +81,46 @@ def validation_errors(exc, model=None) -> list[tuple[str, str]]:
     fitting = {at for _, _, at, mismatch in rows if at is not None and not mismatch}
     rows = [r for r in rows if not (r[3] and r[2] in fitting)]
     return _merge_alternatives([(key, msg) for key, msg, _, _ in rows])
+
+
+def _length_errors(errors: list[dict], model) -> list[dict]:
+    """``errors`` with a list or tuple of the wrong length said as such, once: pydantic names a
+    3-tuple given 2 values as ``position.2: Field required``, and a long one as "Tuple should have
+    at most 3 items after validation, not 4"; both become ``position: takes 3 values, got 2``."""
+    out, said = [], set()
+    for err in errors:
+        loc, value, ctx = tuple(err.get("loc", ())), err.get("input"), err.get("ctx") or {}
+        if err.get("type") == "missing" and loc and isinstance(loc[-1], int) and isinstance(value, (list, tuple)):
+            loc, wanted = loc[:-1], _fixed_length(model, loc[:-1])
+            msg = f"takes {wanted} values, got {len(value)}" if wanted else f"takes more than {len(value)} values"
+        elif err.get("type") in ("too_long", "too_short") and "actual_length" in ctx:
+            wanted = _fixed_length(model, loc)
+            bound = f"{wanted}" if wanted else ("at most " + str(ctx.get("max_length")) if err["type"] == "too_long"
+                                                  else "at least " + str(ctx.get("min_length")))
+            noun = "value" if bound.endswith(" 1") or bound == "1" else "values"
+            msg = f"takes {bound} {noun}, got {ctx['actual_length']}"
+        else:
+            out.append(err)
+            continue
+        if loc not in said:
+            said.add(loc)
+            out.append({"type": "length", "loc": loc, "msg": msg, "input": value})
+    return out
+
+
+def _fixed_length(model, loc) -> int | None:
+    """How many values the tuple at ``loc`` of ``model`` takes, where that is fixed (None if not, or unknown)."""
+    from typing import Annotated, get_args, get_origin
+
+    tp = model
+    for part in loc:
+        if tp is None:
+            return None
+        tp, _ = _step(tp, part)
+    while tp is not None and get_origin(tp) is Annotated:
+        tp = get_args(tp)[0]
+    args = get_args(tp) if get_origin(tp) is tuple else ()
+    return len(args) if args and Ellipsis not in args else None
 
 
 def _user_loc(loc, model) -> tuple[str, tuple | None]:
