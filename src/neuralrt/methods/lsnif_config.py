@@ -46,7 +46,7 @@ class FeatureConfig(_Section):
 
 class EncodingConfig(_Section):
     type: Literal["sparse_hash_grid"] = Field(
-        "sparse_hash_grid", description="multiresolution hash grid over the occupied voxels only (paper Sec. 5.2)")
+        "sparse_hash_grid", description="multiresolution hash grid over the occupied voxels only (paper Sec. 3.2; its parameters Sec. 5.1)")
     resolutions: tuple[int, ...] = Field((64, 128), min_length=1, description="grid resolution per level (paper: 64^3, 128^3)")
     features_per_level: int = Field(3, ge=1, le=16, description="features per hash-table entry (paper: 3)")
     log2_table_size: int = Field(17, ge=4, le=24, description="log2 of hash-table entries per level (paper: 2^17)")

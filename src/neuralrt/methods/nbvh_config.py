@@ -25,8 +25,8 @@ class NBVHEncodingConfig(_Section):
     levels: int = Field(8, ge=1, le=12, description="grid levels (paper: 8)")
     base_resolution: int = Field(8, ge=2, le=64, description="vertices per axis of the coarsest level; each level doubles it (paper: 8 .. 1024)")
     features_per_level: int = Field(4, ge=1, le=8, description="features per table row (paper: 4)")
-    log2_table_size: int = Field(18, ge=14, le=22, description="log2 of the rows of a hashed level (paper: 14..22, default 18)")
-    init_scale: float = Field(1e-4, gt=0.0, le=1.0, description="features start U(-s, s) (paper: 1e-4)")
+    log2_table_size: int = Field(18, ge=14, le=22, description="log2 of the rows of a hashed level (paper: 2^18; the authors' configs 14..22)")
+    init_scale: float = Field(1e-4, gt=0.0, le=1.0, description="features start U(-s, s) (the authors' code, tiny-cuda-nn's: 1e-4; the paper names none)")
 
 
 class NBVHNetworkConfig(_Section):
@@ -50,9 +50,9 @@ class CutConfig(_Section):
     """The BVH cut grown during training (paper Sec. 5.1, 5.3; the code's split scheduler)."""
 
     max_leaf_size: int = Field(4, ge=1, le=64, description="triangles per leaf of the binary SAH base BVH (its leaves never split)")
-    splitting_interval: int = Field(40, ge=1, description="steps between splits at the start; the interval doubles along with k's growth")
+    splitting_interval: int = Field(40, ge=1, description="steps between splits, constant (the authors' scheduler; the paper has the interval grow too): only the number split at once grows, after steps 0, 2, 4, 8, ... intervals")
     split_scaling: float = Field(2.5, ge=1.0, le=16.0, description="factor by which the number of leaves split at once grows")
-    last_split_step: int = Field(3000, ge=0, description="no splits after this step (paper: 3000 of 10,000)")
+    last_split_step: int = Field(3000, ge=0, description="no splits after this step (the authors' configs: 3000 of 10,000)")
     target_nodes: int | None = Field(
         None, ge=1, description="stop splitting at this many nodes (interior included: 2 * leaves - 1); None: as the schedule gives"
     )
@@ -70,12 +70,12 @@ class NBVHLossConfig(_Section):
 
 
 class NBVHTrainingConfig(TrainingConfig):
-    steps: int = Field(4000, ge=1, le=MAX_STEPS, description="optimizer steps (paper: 10,000 of 2^18 rays)")
+    steps: int = Field(4000, ge=1, le=MAX_STEPS, description="optimizer steps (the authors' configs: 10,000 of 2^18 rays; the paper gives the batch, its Fig. 9 1,000 + 5,000 steps)")
     batch_size: int = Field(1 << 13, ge=16, description="leaf samples per step (paper: 2^18)")
     adam_betas: tuple[AdamBeta, AdamBeta] = Field((0.9, 0.999), description="Adam betas (the code's)")
     adam_eps: float = Field(1e-8, gt=0.0, description="Adam epsilon (the code's)")
     adam_l2: float = Field(1e-8, ge=0.0, le=1.0, description="L2 regularisation added to the gradients (the code's Adam l2_reg)")
-    lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant, as in the paper)")
+    lr_decay_final: float = Field(1.0, gt=0.0, le=1.0, description="learning rate at the last step relative to the first (1 = constant; the paper names no schedule)")
     surface_fraction: float = Field(0.0, ge=0.0, le=1.0, description="unused by N-BVH (its rays start in the scaled box): only 0")
     surface_pool_size: int = Field(1 << 16, ge=1, le=1 << 24, description="unused by N-BVH (its rays start in the scaled box): only the default")
     surface_offset: float = Field(1e-4, ge=0.0, description="unused by N-BVH (its rays start in the scaled box): only the default")
