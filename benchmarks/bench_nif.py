@@ -157,11 +157,12 @@ def check_scene_item(item: str) -> None:
 
 
 def nif_config(args) -> NIFConfig:
-    """The NIF config of --passes, --train-spp and --pair-fraction (a bad value is a one-line `ConfigError`)."""
+    """The NIF config of --passes, --train-spp, --pair-fraction and --shadow-rays (a bad value is a one-line `ConfigError`)."""
     from pydantic import ValidationError
 
     try:
-        return NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp, pair_fraction=args.pair_fraction))
+        return NIFConfig(training=NIFTrainingConfig(passes_per_spp=args.passes, train_spp=args.train_spp, pair_fraction=args.pair_fraction),
+                         shadow_rays=args.shadow_rays)
     except ValidationError as exc:
         raise ConfigError(f"nif config: {validation_message(exc, NIFTrainingConfig)}") from None
 
@@ -194,6 +195,7 @@ def bench_scene(item: str, args) -> dict:
         "tris": report["triangles"][0],
         "nif_instances": report["instances"],
         "shadow_rays": st["shadow_rays"],
+        "exact_only_rays": st["exact_only_rays"],  # (later bounces' shadow rays, traced exactly: shadow_rays first_hit)
         "outer": st["outer"],
         "inner": st["inner"],
         "exact_ms": 1e3 * st["audit_exact_seconds"],
@@ -234,6 +236,8 @@ def main() -> None:
     ap.add_argument("--scenes", default="cornell-statue:2,cornell-statue:4", help="builtin:detail pairs, comma-separated")
     ap.add_argument("--pair-fraction", type=float, default=NIFTrainingConfig().pair_fraction,
                     help="share of each round's pairs a training pass uses (NIFTrainingConfig.pair_fraction)")
+    ap.add_argument("--shadow-rays", choices=("first_hit", "every_hit"), default=NIFConfig().shadow_rays,
+                    help="the shadow rays NIF takes (NIFConfig.shadow_rays; every_hit: every figure before session 58)")
     ap.add_argument("--repeats", type=nonnegative_int, default=3, help="NIF renders without the audit, for the training share (median; 0: quality only)")
     ap.add_argument("--mesh-cache", default="/tmp/neuralrt-nif-meshes", help="where mesh:FILE@loopK scenes keep their subdivided meshes")
     ap.add_argument("--device", default="cpu")
@@ -252,7 +256,7 @@ def main() -> None:
         print_table(rows[-1:], COLUMNS)
     print()
     print_table(rows, COLUMNS)
-    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "pair_fraction", "repeats", "device")}
+    settings = {k: getattr(args, k) for k in ("resolution", "spp", "train_spp", "passes", "pair_fraction", "shadow_rays", "repeats", "device")}
     name = args.name or ("nif" if args.device == "cpu" else f"nif_{args.device}")
     path = write_results(name, rows, {"settings": settings, "load_average_1min": os.getloadavg()[0]})
     print(f"\nwrote {path}")

@@ -701,7 +701,7 @@ def test_a_render_changes_every_models_inference_settings_that_has_them(ball, tr
         result = api.render(spec, tmp_path / "lod2.exr", spp=1, primary="neural", inference={"lod": 2}, progress=False)
     assert result["resolution"] == [8, 8]
     assert main(["render", "builtin:cornell", "-o", str(tmp_path / "y.exr"), "--set", "cut.lods=3"]) == 2
-    assert "render --set takes inference.KEY=VALUE only" in capsys.readouterr().err
+    assert "render --set takes inference.KEY=VALUE and nif.KEY=VALUE only, not cut.*" in capsys.readouterr().err
     assert main(["render", "builtin:cornell-statue", "--detail", "0", "-o", str(tmp_path / "y.exr"), "--set",
                  "inference.lod=2"]) == 2
     assert "neuralrt: error: builtin:cornell-statue: inference.lod: the scene has no neural model" in capsys.readouterr().err

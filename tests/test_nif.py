@@ -45,16 +45,16 @@ def test_config_validates_with_one_line_naming_the_key():
 
 def test_a_config_dict_changes_only_the_keys_it_names_at_any_depth():
     from neuralrt.errors import ConfigError
-    from neuralrt.render.nif_render import _nif_config
+    from neuralrt.render.nif_render import checked_nif_config
 
-    config = _nif_config({"outer": {"hidden_width": 32, "position_grid": {"resolution": 64}}, "training": {"seed": 3}})
+    config = checked_nif_config({"outer": {"hidden_width": 32, "position_grid": {"resolution": 64}}, "training": {"seed": 3}})
     default = NIFConfig()
     assert config.outer.hidden_width == 32 and config.outer.position_grid.resolution == 64
     assert config.outer.position_grid.features == default.outer.position_grid.features
     assert config.outer.direction_grid == default.outer.direction_grid and config.inner == default.inner
     assert config.training.seed == 3 and config.training.learning_rate == default.training.learning_rate
     with pytest.raises(ConfigError, match=r"^nif config: outer.hidden_widthx: Extra inputs are not permitted"):
-        _nif_config({"outer": {"hidden_widthx": 32}})
+        checked_nif_config({"outer": {"hidden_widthx": 32}})
 
 
 def test_queries_split_outer_inner_and_skip_rays_missing_the_box():

@@ -36,12 +36,12 @@ def _scene(res=(24, 16)):
     })
 
 
-def _shadows(scene, names, seed=0, init_scale=1e-4):
+def _shadows(scene, names, seed=0, init_scale=1e-4, every_hit=False):
     cfg = NIFConfig(training=NIFTrainingConfig(seed=seed, init_scale=init_scale), compute_precision="fp32")
     chosen = select_nif_instances(scene, names, cfg)
     blases = list({id(scene.accel.instances[k].blas): scene.accel.instances[k].blas for k in chosen}.values())
     net = NIFNetworks(cfg, [b.bounds.inflated(cfg.box_inflation) for b in blases])
-    return NIFShadowAccel(scene.accel, chosen, net, NIFTrainer(net)), chosen, blases
+    return NIFShadowAccel(scene.accel, chosen, net, NIFTrainer(net), every_hit=every_hit), chosen, blases
 
 
 def test_collecting_changes_no_pixel_and_labels_every_pair():
@@ -57,6 +57,23 @@ def test_collecting_changes_no_pixel_and_labels_every_pair():
     assert shadows.trainer.stats.outer_pairs == st.outer and shadows.trainer.stats.inner_pairs == st.inner
 
 
+def test_nif_takes_the_shadow_rays_of_the_first_hits_unless_told_every_hit():
+    # The paper uses NIF for direct light at the camera rays' hits (Sec. 4); it took every bounce's.
+    from dataclasses import replace
+
+    scene = _scene()
+    stats, images = {}, {}
+    for every_hit in (False, True):
+        shadows, _, _ = _shadows(scene, "ball,cube", every_hit=every_hit)
+        images[every_hit] = render(replace(scene, accel=shadows), spp=2, seed=3, max_depth=3, progress=False).image
+        stats[every_hit] = shadows.stats["collect"]
+    first, every = stats[False], stats[True]
+    assert first.exact_only_rays > 0 and every.exact_only_rays == 0 and first.shadow_rays > 0
+    assert first.shadow_rays + first.exact_only_rays == every.shadow_rays  # (collecting answers exactly: the same paths)
+    assert first.pairs < every.pairs and np.array_equal(images[False], images[True])
+    assert NIFConfig().shadow_rays == "first_hit"
+
+
 def test_two_stage_answer_equals_each_instance_on_its_own():
     scene = _scene()
     shadows, chosen, blases = _shadows(scene, "ball,cube", init_scale=1.0)  # large features: varied answers
@@ -67,7 +84,7 @@ def test_two_stage_answer_equals_each_instance_on_its_own():
     o = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([4.0, 1.0, 3.0])
     target = torch.tensor([0.0, 2.5, 0.0]) + (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([1.0, 0.0, 1.0])
     rays = Rays(o, target - o, torch.zeros(n), torch.full((n,), 0.999))
-    answer = shadows.occluded(rays)
+    answer = shadows.occluded(rays, camera_hits=True)  # (the shadow rays NIF takes by default)
     # By hand: the exact objects, then every NIF instance alone (its own object-space rays).
     expected = shadows.exact.occluded(rays).clone()
     blas_index = {id(b): k for k, b in enumerate(blases)}
@@ -161,6 +178,20 @@ def test_cli_render_with_nif_reports_it(tmp_path, capsys):
     plot = tmp_path / "img_nif_training.png"
     assert str(plot) in result["files"] and plot.stat().st_size > 0  # the per-round losses, beside the image
     assert len(nif["training"]["loss_outer"]) == nif["training"]["rounds"] >= 1
+
+
+def test_cli_render_sets_nif_settings(tmp_path, capsys):
+    import json
+
+    args = ["render", "builtin:cornell-statue?detail=0", "-o", str(tmp_path / "img.exr"), "--spp", "3", "--res", "16x8",
+            "--quiet", "--json", "--nif", "statue", "--nif-train-spp", "2"]
+    assert main(args + ["--set", "nif.shadow_rays=every_hit"]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out)["nif"]["shadow_rays_of"] == "every_hit"
+    assert main(args + ["--set", "nif.shadow_rays=all"]) == 2
+    assert "neuralrt: error: nif config: shadow_rays: Input should be 'first_hit' or 'every_hit'" in capsys.readouterr().err
+    assert main(args[:-4] + ["--set", "nif.shadow_rays=every_hit"]) == 2
+    assert "neuralrt: error: --set nif.KEY=VALUE needs --nif OBJECTS|auto" in capsys.readouterr().err
 
 
 def test_a_nif_plot_that_cannot_be_written_stops_the_render_before_it_starts(tmp_path, capsys):

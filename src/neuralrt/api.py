@@ -233,6 +233,7 @@ def render(
     allow_mesh_mismatch: bool = False,
     nif: str | list[str] | None = None,
     nif_train_spp: int | None = None,
+    nif_config: dict | None = None,
     inference: dict | None = None,
 ) -> dict:
     """Path-trace ``scene`` to ``output`` (EXR; PNG and AOVs beside it).
@@ -245,7 +246,8 @@ def render(
     ``inference`` (``{"lod": 2}``; the CLI's ``--set inference.lod=2``) changes how every neural model
     of the scene that has the setting answers, over its object's own (`neuralrt.scene.build_scene`).
     ``nif`` (object names, or ``"auto"``) answers those objects' shadow rays with NIF, trained
-    online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report."""
+    online on the first ``nif_train_spp`` samples (docs/nif.md); the result then has a ``"nif"`` report.
+    ``nif_config`` changes NIF's settings (``{"shadow_rays": "every_hit"}``; the CLI's ``--set nif.KEY=VALUE``)."""
     from .render.integrator import render as _render
     from .render.integrator import warm_up
     from .scene.schema import MAX_DEPTH, MAX_SPP
@@ -258,10 +260,13 @@ def render(
     check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError(f"{given('nif_train_spp')} needs {given('nif', flag='--nif OBJECTS|auto')}")
+    if nif_config is not None and nif is None:
+        raise ConfigError(f"{given('nif_config', flag='--set nif.KEY=VALUE')} needs {given('nif', flag='--nif OBJECTS|auto')}")
     if nif is not None:
-        from .render.nif_render import check_nif_names
+        from .render.nif_render import check_nif_names, checked_nif_config
 
         check_nif_names(nif)
+        nif_config = checked_nif_config(nif_config)
     from .render.film import check_render_output, output_files
 
     output = check_render_output(output)
@@ -285,8 +290,8 @@ def render(
         if nif is not None:  # NIF hook (issue 10): objects and spp are checked before any sample is rendered
             from .render.nif_render import render_nif
 
-            result, nif_report = render_nif(loaded, nif, spp=spp, train_spp=nif_train_spp, seed=seed, max_depth=max_depth,
-                                            progress=progress, primary=primary)
+            result, nif_report = render_nif(loaded, nif, spp=spp, train_spp=nif_train_spp, seed=seed, config=nif_config,
+                                            max_depth=max_depth, progress=progress, primary=primary)
         else:
             result = _render(loaded, spp=spp, seed=seed, max_depth=max_depth, progress=progress, primary=primary)
     except NeuralRTError:

@@ -124,11 +124,12 @@ def _cmd_render(args) -> None:
         return
     if args.scene is None or args.output is None:
         raise NeuralRTError("render needs SCENE and -o OUTPUT.exr (or --list-builtins)")
+    settings = _settings_of(args.settings, "render", {"inference", "nif"})
     result = api.render(args.scene, args.output, spp=args.spp, resolution=args.res, seed=args.seed,
                         max_depth=args.max_depth, primary=args.primary, detail=args.detail, device=args.device,
                         progress=not args.quiet, allow_mesh_mismatch=args.allow_mesh_mismatch,
-                        nif=args.nif, nif_train_spp=args.nif_train_spp,
-                        inference=_inference_settings(args.settings, "render"))
+                        nif=args.nif, nif_train_spp=args.nif_train_spp, nif_config=settings.get("nif"),
+                        inference=settings.get("inference"))
     _print_result(result, args.json)
 
 
@@ -165,11 +166,18 @@ def _cmd_train(args) -> None:
 def _inference_settings(pairs: list[str] | None, command: str) -> dict | None:
     """The ``inference`` section of ``--set`` pairs (None without any): the one section a trained
     model may change when it answers."""
+    return _settings_of(pairs, command, {"inference"}).get("inference")
+
+
+def _settings_of(pairs: list[str] | None, command: str, sections: set[str]) -> dict:
+    """``--set`` pairs by section, where each is one of ``sections`` (``inference``: how a trained
+    model answers; ``nif``: render's NIF settings)."""
     settings = parse_settings(pairs)
-    if set(settings) - {"inference"}:
-        raise NeuralRTError(f"{command} --set takes inference.KEY=VALUE only (how a model answers), not "
-                            f"{sorted(set(settings) - {'inference'})[0]}.*: other keys make another model (neuralrt train)")
-    return settings.get("inference")
+    if set(settings) - sections:
+        takes = " and ".join(f"{s}.KEY=VALUE" for s in sorted(sections))
+        raise NeuralRTError(f"{command} --set takes {takes} only, not {sorted(set(settings) - sections)[0]}.*"
+                            + (": other keys make another model (neuralrt train)" if "inference" in sections else ""))
+    return settings
 
 
 def _cmd_evaluate(args) -> None:
@@ -292,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32, or half of the spp when 32 is not below it)")
     p.add_argument("--set", dest="settings", action="append", metavar="inference.KEY=VALUE",
                    help="neural models answer with an inference setting changed, each model that has the key, e.g. "
-                        "inference.lod=2 (an N-BVH level of detail); over an object's own (repeatable; keys: docs/config.md)")
+                        "inference.lod=2 (an N-BVH level of detail); over an object's own (repeatable; keys: docs/config.md); "
+                        "with --nif, nif.KEY=VALUE changes a NIF setting, e.g. nif.shadow_rays=every_hit (docs/nif.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_render)

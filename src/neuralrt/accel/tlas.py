@@ -159,8 +159,10 @@ class SceneAccel:
             best = intersect_group(stages, rays, group, t_limit, valid, best)
         return Hits.empty(n, rays.device) if best is None else best
 
-    def occluded(self, rays: Rays) -> Tensor:
-        """[N] bool: does any instance block the ray within [t_min, t_max]?"""
+    def occluded(self, rays: Rays, camera_hits: bool = False) -> Tensor:
+        """[N] bool: does any instance block the ray within [t_min, t_max]? ``camera_hits``: the
+        rays leave the camera rays' hits (direct light at the first hit), which a stand-in may
+        answer otherwise (`NIFShadowAccel`); answered alike here."""
         check_rays(rays, "occluded")
         self._check_device(rays)
         stages = self.stages

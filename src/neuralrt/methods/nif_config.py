@@ -75,6 +75,9 @@ class NIFConfig(ConfigSection):
     box_inflation: float = Field(1e-4, ge=0.0, le=0.1, description="object box padding per side, relative to its diagonal "
                                  "(no triangle lies on a box face)")
     training: NIFTrainingConfig = Field(default_factory=NIFTrainingConfig)
+    shadow_rays: Literal["first_hit", "every_hit"] = Field(
+        "first_hit", description="the shadow rays NIF trains on and answers: those of direct light at the camera rays' hits "
+        "(paper Sec. 4; deeper paths are its future work, Sec. 8), or those of every bounce; the others are traced exactly")
     auto_min_triangles: int = Field(100_000, ge=1, description="--nif auto: objects with more triangles than this "
                                     "(the paper's Bistro: 100K)")
 

@@ -91,7 +91,7 @@ class PathTracer:
                 u = g.uniform((n, 8))
             shadow, paths = self.stages.shade(paths, hits, u, bounce, film)
             if shadow is not None:
-                blocked = self.scene.accel.occluded(shadow.rays)  # NEE shadow rays: the one visibility query
+                blocked = self.scene.accel.occluded(shadow.rays, camera_hits=first)  # NEE shadow rays: the one visibility query
                 self.stages.add_unoccluded(film, shadow, blocked)
             if paths is None or paths.sample.numel() == 0:
                 break

@@ -31,7 +31,7 @@ from .film import RenderResult
 from .integrator import WARM_UP_RESOLUTION, render
 from .nif_shadows import NIFShadowAccel
 
-__all__ = ["render_nif", "select_nif_instances", "check_nif_names", "SECOND_PART_SEED"]
+__all__ = ["render_nif", "select_nif_instances", "check_nif_names", "checked_nif_config", "SECOND_PART_SEED"]
 
 SECOND_PART_SEED = 104_729  # added to the seed of the samples after training (any offset gives new wavefront seeds)
 
@@ -56,7 +56,7 @@ def check_nif_names(nif) -> None:
         raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
 
 
-def _nif_config(config) -> NIFConfig:
+def checked_nif_config(config) -> NIFConfig:
     """``config`` (None, a `NIFConfig`, or a dict of the keys to change from the defaults, at any
     depth: ``{"outer": {"hidden_width": 32}}``) as a `NIFConfig`; a bad one is a one-line `ConfigError`."""
     if config is None:
@@ -143,7 +143,7 @@ def _warm_up(scene, chosen: list[int], config: NIFConfig, boxes: list, render_kw
     trainer.add(queries, torch.rand(len(objects), generator=generator).to(scene.device) < 0.5)
     trainer.finish()
     networks.occluded(pairs, queries)
-    shadows = NIFShadowAccel(scene.accel, chosen, networks, trainer)
+    shadows = NIFShadowAccel(scene.accel, chosen, networks, trainer, every_hit=config.shadow_rays == "every_hit")
     few_pixels = {**render_kwargs, "progress": False, "resolution": WARM_UP_RESOLUTION}
     for mode in ("collect", "answer"):
         shadows.mode = mode
@@ -190,7 +190,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     seed = seed_or_default("seed", seed)
     if answer not in ("answer", "exact"):
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
-    config = _nif_config(config)
+    config = checked_nif_config(config)
     chosen = select_nif_instances(scene, nif, config)
     # As Python ints: numpy integers pass the checks, and their fixed-width arithmetic would overflow.
     spp = int(spp if spp is not None else scene.settings.spp)
@@ -214,7 +214,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     networks = NIFNetworks(config, boxes).to(scene.device)
     trainer = NIFTrainer(networks)
     # The exact reference needs no networks: nothing is trained for it.
-    shadows = NIFShadowAccel(accel, chosen, networks, trainer if answer == "answer" else None, audit=audit)
+    shadows = NIFShadowAccel(accel, chosen, networks, trainer if answer == "answer" else None, audit=audit,
+                             every_hit=config.shadow_rays == "every_hit")
     nif_scene = replace(scene, accel=shadows)
 
     warmup_seconds = _warm_up(scene, chosen, config, boxes, render_kwargs)  # (untimed, as `api.render`'s own)
@@ -241,6 +242,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         "train_spp": train_spp,
         "passes_per_spp": config.training.passes_per_spp,
         "pair_fraction": config.training.pair_fraction,
+        "shadow_rays_of": config.shadow_rays,
         "answer": answer,
         "training": tr.as_dict(),
         "training_seconds": tr.seconds,

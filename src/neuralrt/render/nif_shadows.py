@@ -12,7 +12,9 @@ accelerator unchanged. ``occluded`` (shadow rays) is answered in two parts:
   one MLP call for every outer pair and one for every inner pair (`NIFNetworks.occluded_from_features`).
 
 A ray is occluded if an exact object blocks it or any NIF object's answer says so. The integrator
-calls ``occluded`` as on any accelerator and never knows a network answered.
+calls ``occluded`` as on any accelerator and never knows a network answered. Only the shadow rays
+of the camera rays' hits go through NIF (the paper's use), unless ``every_hit``
+(``nif.shadow_rays = "every_hit"``); the others are traced exactly, in every mode.
 
 Modes (``mode``): ``"collect"`` answers NIF objects exactly (each object's own `occluded` on the
 pair's object-space ray) and hands every pair with its label to the `NIFTrainer` (all pairs, also
@@ -56,13 +58,15 @@ class ShadowRayStats:
     audit_exact_seconds: float = 0.0  # audit: the whole exact accelerator on the same rays
     audit_disagreements: int = 0  # audit: rays whose answer differs from the exact one
     audit_false_visible: int = 0  # audit: NIF says visible, exact says blocked
+    exact_only_rays: int = 0  # shadow rays of later bounces, traced exactly (not in ``shadow_rays``)
+    exact_only_seconds: float = 0.0
     audit_blocked_by_nif_objects_only: int = 0  # audit: rays only NIF objects block (the errors of answering "visible")
 
     def as_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
         rays = max(self.shadow_rays, 1)
         d["outer_share"], d["inner_share"] = self.outer / rays, self.inner / rays
-        d["seconds"] = self.exact_seconds + self.stage1_seconds + self.stage2_seconds
+        d["seconds"] = self.exact_seconds + self.stage1_seconds + self.stage2_seconds  # (NIF's shadow rays only)
         return d
 
 
@@ -74,10 +78,12 @@ class NIFShadowAccel:
         nif_instances: indices into ``accel.instances`` (exact mesh BLASes).
         networks: `NIFNetworks` with one object per unique BLAS of those instances, in first-seen order.
         trainer: where ``"collect"`` sends labelled pairs.
+        audit: also trace every shadow ray exactly, counting disagreements.
+        every_hit: NIF takes the shadow rays of every bounce, not only of the camera rays' hits.
     """
 
     def __init__(self, accel: SceneAccel, nif_instances: list[int], networks: NIFNetworks, trainer: NIFTrainer | None = None,
-                 audit: bool = False):
+                 audit: bool = False, every_hit: bool = False):
         chosen = set(nif_instances)
         if not chosen:
             raise ValueError("no NIF instances")
@@ -85,6 +91,7 @@ class NIFShadowAccel:
         self.networks = networks
         self.trainer = trainer
         self.audit = audit
+        self.every_hit = every_hit
         self.mode = "collect"
         dev = accel.device
         exact = [inst for k, inst in enumerate(accel.instances) if k not in chosen]
@@ -142,10 +149,16 @@ class NIFShadowAccel:
         return blocked
 
     # -- shadow rays ------------------------------------------------------------------------------------
-    def occluded(self, rays: Rays) -> Tensor:
+    def occluded(self, rays: Rays, camera_hits: bool = False) -> Tensor:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         st = self.stats[self.mode]
+        if not (camera_hits or self.every_hit):
+            t = time.perf_counter()
+            blocked = self.accel.occluded(rays)
+            st.exact_only_rays += len(rays)
+            st.exact_only_seconds += time.perf_counter() - t
+            return blocked
         st.calls += 1
         st.shadow_rays += len(rays)
         t = time.perf_counter()
