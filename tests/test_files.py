@@ -71,6 +71,36 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     assert target.read_text() == "new"
 
 
+def test_an_interrupt_while_a_set_is_put_in_place_lands_after_the_whole_set(tmp_path, monkeypatch):
+    # It landed between two renames: half the set new, half old, and the rest left as temporaries.
+    import signal
+
+    from neuralrt.io import files
+
+    names = ["img.exr", "img.png", "img_albedo.exr"]
+    for name in names:
+        (tmp_path / name).write_text("old")
+    replace, renamed = os.replace, []
+
+    def replace_then_interrupt(src, dst):
+        replace(src, dst)
+        renamed.append(dst)
+        if len(renamed) == 1:
+            signal.raise_signal(signal.SIGINT)  # (Ctrl-C, right after the first rename)
+
+    monkeypatch.setattr(files.os, "replace", replace_then_interrupt)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with files.written_together():
+                for name in names:
+                    write_atomically(tmp_path / name, lambda tmp: open(tmp, "w").write("new"))
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names)  # no temporaries
+    assert {(tmp_path / n).read_text() for n in names} == {"new"}
+
+
 def test_a_killed_writers_old_temporary_is_swept_by_the_next_write(tmp_path):
     # What a SIGKILL between creating the temporary sibling and the rename leaves behind.
     stale, fresh = tmp_path / ".model.0123abcd.tmp.nrt", tmp_path / ".model.89abcdef.tmp.nrt"

@@ -33,28 +33,18 @@ __all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_
 
 
 def import_trimesh():
-    """``trimesh``, imported the first time with Ctrl-C and SIGTERM held until it is done: its optional
-    imports catch ``BaseException``, so an interrupt landing inside them was swallowed and the run
-    went on. The signals' Python handlers only note them meanwhile (masking the main thread was not
-    enough: torch's and numba's threads took the signal, and Python still ran the handler in the
-    main thread, inside the import); one that came is raised again once the import returns."""
-    import signal
+    """``trimesh``, imported the first time with Ctrl-C and SIGTERM held until it is done
+    (`neuralrt.interrupts`): its optional imports catch ``BaseException``, so an interrupt landing
+    inside them was swallowed and the run went on. Every module of neuralrt that imports from
+    trimesh calls this first."""
     import sys
-    import threading
 
-    if "trimesh" in sys.modules or threading.current_thread() is not threading.main_thread():
-        import trimesh
+    from ..interrupts import interrupts_held
 
-        return trimesh
-    came: list[int] = []
-    held = {s: signal.signal(s, lambda signum, frame: came.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    if "trimesh" in sys.modules:
+        return sys.modules["trimesh"]
+    with interrupts_held():
         import trimesh
-    finally:
-        for s, handler in held.items():
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
-    if came:
-        signal.raise_signal(came[0])  # (its own handler now: KeyboardInterrupt, or the CLI's SIGTERM stop)
     return trimesh
 
 

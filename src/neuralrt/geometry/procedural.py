@@ -342,6 +342,7 @@ def statue(detail: int = 2, seed: int = 0) -> Mesh:
     Triangles (measured, seed 0; other seeds differ slightly below detail 2 and scale the same):
     detail 0: 8,392; 1: 18,930; 2: 75,720; 3: 302,880; 4: 1,211,520 (>= 1M); 5: 4,846,080.
     """
+    import_trimesh()  # (first: an interrupt during trimesh's first import was swallowed)
     from trimesh.remesh import subdivide
 
     detail = _check_detail("statue", detail)

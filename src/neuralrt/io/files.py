@@ -25,6 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import NeuralRTError
+from ..interrupts import interrupts_held
 
 __all__ = ["write_atomically", "written_together", "input_file_problem", "check_output_file", "check_output_files", "check_output_folder",
            "folders_removed_if_left_empty"]
@@ -130,8 +131,14 @@ def written_together():
         raise
     finally:
         _STAGED.reset(token)
-    for tmp, path in staged:
-        os.replace(tmp, path)
+    with interrupts_held():  # (an interrupt between two renames left half the set new, and temporaries)
+        try:
+            for tmp, path in staged:
+                os.replace(tmp, path)
+        except BaseException:
+            for tmp, _ in staged:
+                tmp.unlink(missing_ok=True)
+            raise
 
 
 def _link_target(path: Path) -> Path:
