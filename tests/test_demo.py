@@ -1,6 +1,7 @@
 """`neuralrt demo` end to end on a tiny configuration: every file of the report exists and is sane."""
 
 import json
+from pathlib import Path
 
 from PIL import Image
 
@@ -118,3 +119,28 @@ def test_settings_are_checked_on_construction(field, value, needle):
 
     with pytest.raises(ConfigError, match=needle.replace("(", r"\(").replace(")", r"\)")):
         demo.DemoSettings(**{field: value})
+
+
+@pytest.mark.parametrize("in_the_way", ["report.md", "exact_depth.exr", "training_0.png"])
+def test_a_folder_where_a_report_file_goes_stops_the_demo_before_it_trains(tmp_path, capsys, in_the_way):
+    # It was found at the end: after training and rendering, naming our temporary file, with the
+    # images written so far and temporaries left behind.
+    out = tmp_path / "report"
+    (out / in_the_way).mkdir(parents=True)
+    assert main(["demo", "--quick", "--out", str(out), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"neuralrt: error: {out / in_the_way}: is a folder, not a demo report file\n"
+    assert sorted(p.name for p in out.iterdir()) == [in_the_way]  # (no models trained, nothing written)
+
+
+def test_a_folder_where_a_model_goes_stops_the_conversion_before_it_trains(tmp_path, capsys):
+    # It warned the model was "corrupted", trained it, then failed writing it.
+    import json
+
+    args = ["convert", "builtin:cornell-statue?detail=0", "-o", str(tmp_path / "s.toml"), "--min-triangles", "1000", "--preset", "lq", "--steps", "5",
+            "--quiet", "--json"]
+    assert main(args) == 0
+    model = Path(json.loads(capsys.readouterr().out)["models"][0]["model_path"])
+    model.unlink()
+    model.mkdir()
+    assert main(args) == 2
+    assert capsys.readouterr().err == f"neuralrt: error: {model}: is a folder, not a model file\n"

@@ -157,3 +157,15 @@ def test_failed_render_leaves_no_empty_folders(tmp_path):
     done = api.render("builtin:cornell-statue?detail=0", tmp_path / "out" / "deep" / "img.exr", spp=1,
                       resolution=(8, 8), progress=False)
     assert (tmp_path / "out" / "deep" / "img.exr").is_file() and len(done["files"]) == 10  # image + 4 AOVs, EXR and PNG each
+
+
+def test_a_set_written_inside_another_appears_with_the_outer_one(tmp_path):
+    # (demo: a render's image and AOVs inside the report's set; the inner block renamed them at once)
+    from neuralrt.io.files import written_together
+
+    with written_together():
+        with written_together():
+            write_atomically(tmp_path / "inner.txt", lambda tmp: open(tmp, "w").write("a"))
+        assert not (tmp_path / "inner.txt").exists()
+        write_atomically(tmp_path / "outer.txt", lambda tmp: open(tmp, "w").write("b"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inner.txt", "outer.txt"]

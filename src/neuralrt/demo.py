@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .io.files import write_atomically
 from .methods.registry import DEFAULT_METHOD
 
 __all__ = ["DemoSettings", "DEMO_DEFAULT", "DEMO_QUICK", "run_demo"]
@@ -84,9 +85,7 @@ def _side_by_side(images: list[np.ndarray], labels: list[str], path: Path) -> No
     for k, (tile, label) in enumerate(zip(tiles, labels)):
         canvas.paste(tile, (k * w, caption))
         draw.text((k * w + 4, 2), label, fill=(255, 255, 255))
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    canvas.save(tmp)
-    tmp.replace(path)
+    write_atomically(path, canvas.save)
 
 
 def _markdown(report: dict) -> str:
@@ -152,16 +151,23 @@ def _training_plots(models, out: Path) -> dict[str, str]:
 
 
 def _write_text(path: Path, text: str) -> None:
-    from .io.files import write_atomically
-
     write_atomically(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def report_files(out: Path, objects: int) -> list[Path]:
+    """Every file of the report `run_demo` writes into ``out`` (the training plots: at most one per
+    object of the scene), checked before any step starts."""
+    from .render.film import output_files
+
+    return [*output_files(out / "exact.exr"), *output_files(out / "hybrid.exr"), out / "flip.png", out / "side_by_side.png",
+            *(out / f"training_{k}.png" for k in range(objects)), out / "report.json", out / "report.md"]
 
 
 def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device: str = "cpu",
              progress: bool = True, settings: DemoSettings | None = None) -> dict:
     """Run the whole demo and return the report (also written to ``out_dir/report.json``)."""
     from .eval.image_metrics import compare_images, write_srgb_png
-    from .io.files import check_output_folder
+    from .io.files import check_output_files, check_output_folder, written_together
     from .io.images import linear_to_srgb, tone_map
     from .render.integrator import render, warm_up
     from .scene.convert import convert_scene, replaced_memory
@@ -175,7 +181,9 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         s = replace(s, preset=get_method(s.method).default_preset(device))
     out = Path(out_dir)
     check_output_folder(out, "demo report")  # (made by the conversion, once the scene is known to be good)
-    load_scene_spec(s.scene, detail=s.detail)  # a bad scene fails here, before any step starts
+    spec, _, _ = load_scene_spec(s.scene, detail=s.detail)  # a bad scene fails here, before any step starts
+    # (a folder or unwritable file where a report file goes: said now, not after the training)
+    check_output_files(report_files(out, len(spec.objects)), "demo report file")
 
     def say(msg: str) -> None:
         if progress:
@@ -202,14 +210,6 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
     floor = compare_images(exact.image, exact_other_seed.image)
     # Against the same independent render as the floor: noise no longer shared, so the two compare.
     other_seed = compare_images(exact_other_seed.image, hybrid.image)
-    exact.save(out / "exact.exr")
-    hybrid.save(out / "hybrid.exr")
-    write_srgb_png(out / "flip.png", quality.flip_map)
-    _side_by_side([linear_to_srgb(tone_map(exact.image)), linear_to_srgb(tone_map(hybrid.image)), quality.flip_map],
-                  ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / "side_by_side.png")
-
-    training_plots = _training_plots(conversion.models, out)
-
     say("[4/4] memory accounting ...")
     memory = replaced_memory(hybrid_scene)
     # What the hybrid scene really holds: with exact camera rays the neural objects keep their meshes too.
@@ -247,9 +247,17 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         "images": {
             "exact": "exact.png", "exact_exr": "exact.exr", "hybrid": "hybrid.png", "hybrid_exr": "hybrid.exr",
             "flip": "flip.png", "side_by_side": "side_by_side.png", "report_md": "report.md",
-            "training": training_plots,
+            "training": {},  # (filled as they are drawn, below)
         },
     }
-    _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
-    _write_text(out / "report.md", _markdown(report))
+    # The report's files appear together (an interrupt leaves an earlier report whole, or none).
+    with written_together():
+        exact.save(out / "exact.exr")
+        hybrid.save(out / "hybrid.exr")
+        write_srgb_png(out / "flip.png", quality.flip_map)
+        _side_by_side([linear_to_srgb(tone_map(exact.image)), linear_to_srgb(tone_map(hybrid.image)), quality.flip_map],
+                      ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / "side_by_side.png")
+        report["images"]["training"] = _training_plots(conversion.models, out)
+        _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
+        _write_text(out / "report.md", _markdown(report))
     return report

@@ -120,7 +120,10 @@ def written_together():
     """Within the block, `write_atomically` leaves each file under its temporary name; when the block
     ends they are all renamed into place, or, if it fails (an interrupt too), all removed: a set of
     outputs (a render's image and AOVs, eval's figures) is written whole or not at all, never half
-    new and half as an earlier run left it."""
+    new and half as an earlier run left it. A block inside another joins the outer one."""
+    if _STAGED.get() is not None:  # (inside another such block: its files go with that block's)
+        yield
+        return
     staged: list[tuple[Path, Path]] = []
     token = _STAGED.set(staged)
     try:

@@ -29,7 +29,7 @@ import torch
 from ..arguments import given
 from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial, check_float32_extent
-from ..io.files import check_output_file, check_output_folder, folders_removed_if_left_empty, write_atomically
+from ..io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_file, read_model_header
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from ..methods.base import memory_owner
@@ -138,7 +138,7 @@ def cached_model_stem(models_dir: Path, mesh_name: str, mesh_hash: str, config: 
     stem = model_file_stem(mesh_name, mesh_hash, config)
     if cached_model_is_valid(models_dir / f"{stem}.nrt", mesh_hash, config):
         return stem
-    if (models_dir / f"{stem}.nrt").exists():  # (its name says it is this model: a reader would expect it reused)
+    if (models_dir / f"{stem}.nrt").is_file():  # (its name says it is this model: a reader would expect it reused)
         import warnings
 
         warnings.warn(f"{models_dir / f'{stem}.nrt'}: cannot be read as this mesh's model (corrupted, or written by "
@@ -431,6 +431,9 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
         to_train.append(TrainingJob(stem, mesh, config, method, models_dir.absolute() / f"{stem}.ckpt",
                                     f"{config.method} {preset} model of {mesh.name!r} ({mesh.num_triangles:,} triangles, "
                                     f"{len(users)} object(s))"))
+    # (a folder or unwritable file where a model goes: said now, not after its training)
+    check_output_files([models_dir / f"{job.key}.nrt" for job in to_train], "model file")
+    check_output_files([job.checkpoint for job in to_train], "training checkpoint")
     trained = {}
     for result in runner.run(to_train):  # each model is written as soon as it exists
         result.save(models_dir / f"{result.key}.nrt")
