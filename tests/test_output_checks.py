@@ -224,3 +224,23 @@ def test_a_render_does_not_replace_a_file_its_scene_reads(tmp_path, capsys):
         last = capsys.readouterr().err.strip().splitlines()[-1]  # (after the box's no-UV texture warning)
         assert code == 2 and last.startswith("neuralrt: error: ") and f"{replaced}: the render would replace a file its scene" in last
     assert all((tmp_path / name).read_bytes() == data for name, data in before.items())
+
+
+@pytest.mark.parametrize("in_the_way", ["overview.png", "depth_-z_neural.png"])
+def test_a_folder_where_an_eval_image_goes_stops_it_before_the_work(tmp_path, in_the_way):
+    # It was found after the whole evaluation, naming our temporary file and leaving it behind.
+    from neuralrt.errors import NeuralRTError
+    from neuralrt.eval.intersection_metrics import image_files
+    from neuralrt.geometry.procedural import make_procedural
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+
+    ball = make_procedural("sphere", subdivisions=1)
+    model = LSNIFModel.from_mesh(ball, LSNIFConfig.preset("lq"))
+    (tmp_path / "figures" / in_the_way).mkdir(parents=True)
+    with pytest.raises(NeuralRTError, match=rf"^{tmp_path / 'figures' / in_the_way}: is a folder, not an eval image$"):
+        api.evaluate(model, ball, rays=256, image_dir=tmp_path / "figures", timing=False, progress=False, allow_mesh_mismatch=True)
+    assert [p.name for p in (tmp_path / "figures").iterdir()] == [in_the_way]
+    result = api.evaluate(model, ball, rays=256, image_dir=tmp_path / "all", timing=False, progress=False, allow_mesh_mismatch=True)
+    assert sorted(p.name for p in (tmp_path / "all").iterdir()) == sorted(p.name for p in image_files(tmp_path / "all"))
+    assert result["images"]["figures"]["overview"] == str(tmp_path / "all" / "overview.png")

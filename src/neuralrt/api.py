@@ -522,6 +522,9 @@ def evaluate(
         if not images:
             raise ConfigError(f"{given('image_dir', flag='--images DIR')} and {given('images', False, flag='--no-images')} contradict each other: give one")
         check_output_folder(image_dir, "image")
+        from .eval.intersection_metrics import image_files
+
+        check_output_files(image_files(image_dir), "eval image")  # (a folder in the way: said now, not after the work)
     inference = checked_inference(inference)
     blas = model if is_neural(model) else load_model(model, device=device)
     blas = blas.with_inference(**inference)

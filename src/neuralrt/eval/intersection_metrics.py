@@ -31,10 +31,12 @@ from ..methods.base import is_neural
 from ..rays import AABB, Hits, Rays, face_forward
 from ..training.ray_distribution import BoxRayDistribution
 
-__all__ = ["evaluate_model", "ray_errors", "ray_metrics", "orbit_cameras", "axis_cameras", "render_normal_depth", "HELD_OUT_SEED"]
+__all__ = ["evaluate_model", "image_files", "ray_errors", "ray_metrics", "orbit_cameras", "axis_cameras", "render_normal_depth",
+           "HELD_OUT_SEED", "ORBIT_CAMERAS"]
 
 # Training seeds are small integers; held-out rays use a seed far from them.
 HELD_OUT_SEED = 1_000_003
+ORBIT_CAMERAS = 4  # orbit views of eval's image figures (besides the six axis views)
 
 
 def _quantiles(x: Tensor) -> tuple[float, float]:
@@ -115,6 +117,13 @@ def axis_cameras(bounds: AABB, resolution: int = 256, fov_y_degrees: float = 40.
         eye = center + dist * torch.tensor(axis, dtype=torch.float64)
         cams[name] = Camera.look_at(eye.tolist(), center.tolist(), up, fov_y_degrees, (resolution, resolution))
     return cams
+
+
+def image_files(out_dir: Path, cameras: int = ORBIT_CAMERAS) -> list[Path]:
+    """Every file `evaluate_model` writes into ``out_dir`` (checked before it starts)."""
+    views = [*map(str, range(cameras)), *_AXES]
+    return [out_dir / f"{name}_{view}_{who}.png" for view in views for name in ("normal", "depth") for who in ("exact", "neural")] \
+        + [out_dir / "errors.png", out_dir / "overview.png"]
 
 
 def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
@@ -210,7 +219,7 @@ def evaluate_model(
     seed: int = HELD_OUT_SEED,
     *,
     images: bool = True,
-    cameras: int = 4,
+    cameras: int = ORBIT_CAMERAS,
     resolution: int = 256,
     image_dir: str | Path | None = None,
     timing: bool = True,
