@@ -212,6 +212,50 @@ def test_interrupted_training_says_how_to_resume(tmp_path, capsys, monkeypatch):
     assert err.startswith("neuralrt: interrupted") and "--resume" in err
 
 
+def test_training_interrupted_after_its_model_was_written_says_so(tmp_path, capsys, monkeypatch):
+    # (Ctrl-C while --plot drew) It said "no checkpoint was written yet: run the command again".
+    from neuralrt import api
+
+    def written_then_interrupted(*args, **kwargs):
+        (tmp_path / "m.nrt").write_bytes(b"model")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(api, "train", written_then_interrupted)
+    assert main(["train", "mesh.obj", "-o", str(tmp_path / "m.nrt"), "--plot", str(tmp_path / "m.png")]) == 130
+    assert capsys.readouterr().err == ("neuralrt: interrupted (the model was written before the interrupt; "
+                                       "`neuralrt info MODEL --plot FILE` draws its training plot)\n")
+
+
+def test_an_interrupt_python_swallows_still_ends_the_command_as_interrupted(tmp_path, capsys, monkeypatch):
+    # Raised inside a weakref callback (garbage collection during eval's figures), Python printed
+    # "Exception ignored in ..." with a traceback and the command went on to exit 0.
+    import gc
+    import weakref
+
+    from neuralrt import api
+
+    class Figure:
+        pass
+
+    def compare_during_collection(*args, **kwargs):
+        def callback(ref):
+            raise KeyboardInterrupt  # (Ctrl-C landing in the callback)
+
+        figure = Figure()
+        ref = weakref.ref(figure, callback)
+        del figure
+        gc.collect()
+        assert ref() is None
+        return {"flip": 0.0}
+
+    monkeypatch.setattr(api, "compare", compare_during_collection)
+    assert main(["compare", "a.exr", "b.exr"]) == 130
+    out, err = capsys.readouterr()
+    assert "flip" in out and err == "neuralrt: interrupted\n"
+    monkeypatch.setattr(api, "compare", lambda *args, **kwargs: {"flip": 0.0})
+    assert main(["compare", "a.exr", "b.exr"]) == 0  # (the next command starts with no interrupt noted)
+
+
 def test_render_with_a_model_of_another_mesh_is_an_error_unless_allowed(plates, tmp_path, capsys):
     model = tmp_path / "plates.nrt"
     assert main(["train", str(plates), "-o", str(model), "--preset", "lq", "--steps", "2", "--batch", "256", "--quiet"]) == 0

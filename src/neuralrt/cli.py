@@ -152,9 +152,11 @@ def _cmd_train(args) -> None:
     if args.mesh is None or args.output is None:
         raise NeuralRTError("train needs MESH and -o OUTPUT.nrt (or --list-presets)")
     checkpoint = f"{args.output}.ckpt"
-    before = _modified(checkpoint)  # a checkpoint there now is an earlier run's (or the one --resume continues)
-    args.interrupt_hint = lambda: (  # (asked once interrupted: has this run written a checkpoint?)
-        "run the same command with --resume to continue from the last checkpoint"
+    before, model_before = _modified(checkpoint), _modified(args.output)  # (an earlier run's, or the one --resume continues)
+    args.interrupt_hint = lambda: (  # (asked once interrupted: has this run written its model, or a checkpoint?)
+        f"the model was written before the interrupt{'; `neuralrt info MODEL --plot FILE` draws its training plot' if args.plot else ''}"
+        if _modified(args.output) not in (None, model_before)
+        else "run the same command with --resume to continue from the last checkpoint"
         if _modified(checkpoint) not in (None, before) or (args.resume and before is not None)
         else "no checkpoint was written yet: run the command again to start over")
     result = api.train(args.mesh, args.output, method=args.method, preset=args.preset, steps=args.steps, batch=args.batch,
@@ -398,11 +400,15 @@ def main(argv: list[str] | None = None) -> int:
     show = warnings.showwarning
     warnings.showwarning = _show_warning  # one line per warning, no source line (a method plugin's too)
     on_term = _terminate_as_interrupt()
+    unraisable, sys.unraisablehook = sys.unraisablehook, _note_swallowed_interrupt
+    _SWALLOWED.clear()
     args = None
     try:
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
         with spelled_as_flags():  # errors name --flags, as the user typed them
             args.func(args)
+        if _SWALLOWED:  # (it ran to its end: an interrupt is still an interrupt, exit 130 or 143)
+            raise _SWALLOWED[0]
     except NeuralRTError as exc:
         print(f"neuralrt: error: {_printable(str(exc))}", file=sys.stderr)
         return 2
@@ -421,9 +427,25 @@ def main(argv: list[str] | None = None) -> int:
         return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
     finally:
         warnings.showwarning = show
+        sys.unraisablehook = unraisable
         if on_term is not None:
             signal.signal(signal.SIGTERM, on_term)
     return 0
+
+
+def _note_swallowed_interrupt(unraisable) -> None:
+    """`sys.unraisablehook`: an interrupt raised inside a finalizer or weakref callback (garbage
+    collection, as matplotlib's figures are freed) cannot propagate: Python printed "Exception
+    ignored in ..." with its traceback, and the command ran on to exit 0. It is noted instead, and
+    the command, once it returns, ends as interrupted (sending the signal again from here would
+    raise it inside this hook); other exceptions go to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _SWALLOWED.append(unraisable.exc_value)
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+_SWALLOWED: list[KeyboardInterrupt] = []  # interrupts raised where they could not propagate, this command
 
 
 class Terminated(KeyboardInterrupt):
