@@ -159,6 +159,7 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         "materials": model.material_names,
         "mesh_name": header.mesh_name,
         "mesh_sha256": header.mesh_sha256,
+        "arrays_sha256": raw["arrays_sha256"],  # (two runs of one seed: the same, though their files' timings differ)
         "config": model.config.model_dump(mode="json"),
         "training": header.training,
     }, plot)
