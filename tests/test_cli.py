@@ -111,6 +111,7 @@ def test_two_runs_of_one_seed_train_the_same_arrays_and_info_says_so(plates, tmp
     for k in range(2):
         model = tmp_path / f"m{k}.nrt"
         assert main(["train", str(plates), "-o", str(model), "--preset", "lq", "--steps", "4", "--batch", "512", "--quiet"]) == 0
+        capsys.readouterr()
         assert main(["info", str(model), "--json"]) == 0
         digests.append(_json(capsys)["arrays_sha256"])
         files.append(model.read_bytes())
