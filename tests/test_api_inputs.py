@@ -211,3 +211,25 @@ def test_counts_out_of_range_name_the_flag(tmp_path, capsys, argv, line):
     assert main([a.format(d=tmp_path) for a in argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"neuralrt: error: {line}") and err.count("\n") == 1
+
+
+def test_numpy_integers_are_taken_as_python_ints():
+    # A numpy integer passed the checks, then: the demo's report.json failed after the whole run,
+    # evaluate's seed failed inside torch, and results held int64 (not JSON).
+    import numpy as np
+
+    from neuralrt.demo import DemoSettings
+    from neuralrt.geometry.procedural import make_procedural
+    from neuralrt.methods.lsnif import LSNIFModel
+    from neuralrt.methods.lsnif_config import LSNIFConfig
+    from neuralrt.scene.loader import load_scene_spec
+
+    settings = DemoSettings(spp=np.int64(2), steps=np.int32(10), seed=np.uint8(3), resolution=(np.int64(16), 16))
+    assert json.loads(json.dumps([settings.spp, settings.steps, settings.seed, settings.resolution])) == [2, 10, 3, [16, 16]]
+    ball = make_procedural("sphere", subdivisions=1)
+    model = LSNIFModel.from_mesh(ball, LSNIFConfig.preset("lq"))
+    result = api.evaluate(model, ball, rays=np.int64(256), seed=np.int64(5), images=False, timing=False, progress=False)
+    assert type(result["rays"]) is int and json.dumps(result["rays"]) == "256"
+    assert load_scene_spec("builtin:cornell-statue", detail=np.int64(0))[0].objects  # (it said "must be an integer")
+    with pytest.raises(ConfigError, match=r"^resolution: expected two whole numbers \(width, height\), got \(True, 16\)$"):
+        api.render("builtin:cornell", "x.exr", resolution=(True, 16), progress=False)  # (it rendered 1x16)

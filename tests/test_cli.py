@@ -32,10 +32,15 @@ def test_render_builtin_writes_images_and_aovs(tmp_path, capsys):
 
 
 def test_list_builtins(capsys):
+    from neuralrt import api
+
     assert main(["render", "--list-builtins"]) == 0
     out = capsys.readouterr().out
     for name in ("cornell-statue", "hairball", "foliage", "instances"):
         assert f"builtin:{name}" in out
+    assert main(["render", "--list-builtins", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == api.list_builtins()  # (the API gave (name, description) pairs)
+    assert {"scene": "builtin:hairball", "description": api.list_builtins()[1]["description"]} in api.list_builtins()
 
 
 def test_info_mesh_and_scene_json(tmp_path, capsys):

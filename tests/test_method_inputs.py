@@ -78,7 +78,8 @@ def test_rerunning_without_resume_warns_that_the_checkpoint_is_replaced(tmp_path
     out = tmp_path / "ball.nrt"
     stale = out.with_name("ball.nrt.ckpt")
     stale.write_bytes(b"from an earlier run")
-    with pytest.warns(UserWarning, match=r"ball.nrt.ckpt: an earlier interrupted run's checkpoint .*--resume"):
+    # (as Python spells it: the warning said --resume to an API caller)
+    with pytest.warns(UserWarning, match=r"ball.nrt.ckpt: an earlier interrupted run's checkpoint .*\(resume=True continues it instead\)"):
         api.train(mesh, out, preset="lq", steps=2, batch=256, progress=False)
     assert out.is_file() and not stale.exists()
 
@@ -282,4 +283,4 @@ def test_eval_set_changes_how_the_model_answers_and_takes_inference_keys_only(tm
     assert main([*common, "--set", "inference.occlusion_threshold=0.4"]) == 0  # (a key every method has)
     capsys.readouterr()
     assert main([*common, "--set", "inference.lodd=1"]) == 2
-    assert "inference.lodd: not a setting of nbvh models (nbvh's: occlusion_threshold" in capsys.readouterr().err
+    assert "inference.lodd: not a setting of any method's models (theirs: occlusion_threshold" in capsys.readouterr().err

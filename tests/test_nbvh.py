@@ -689,7 +689,7 @@ def test_a_render_changes_every_models_inference_settings_that_has_them(ball, tr
         assert isinstance(exact.blas, MeshBLAS)
         untouched = load_dict(spec, primary="neural").accel.instances
         assert untouched[0].blas.config.inference.lod == 1 and untouched[1].blas.config.inference.lod == 1
-        for inference, message in (({"lodd": 2}, r"scene: inference.lodd: no neural model of the scene \(nbvh\) has"),
+        for inference, message in (({"lodd": 2}, r"scene: inference.lodd: not a setting of any method's models"),
                                    ({"lod": 9}, r"objects.0.inference: nbvh config: inference.lod"),
                                    ([("lod", 2)], r"inference: expected a dict of setting names")):
             with pytest.raises(SceneError, match=message):

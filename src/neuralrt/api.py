@@ -212,11 +212,12 @@ def _resume_hint(checkpoint: Path) -> str:
     return "run the neuralrt convert command that wrote it again: its unfinished models resume from their checkpoints"
 
 
-def list_builtins() -> list[tuple[str, str]]:
-    """(name, description) of every built-in scene, usable as ``builtin:NAME``."""
+def list_builtins() -> list[dict]:
+    """Every built-in scene, as ``render --list-builtins --json`` prints it: ``{"scene":
+    "builtin:NAME", "description": ...}`` (the scene as `render` and `load_scene` take it)."""
     from .scene.builtins import list_builtins as _list
 
-    return _list()
+    return [{"scene": f"builtin:{name}", "description": description} for name, description in _list()]
 
 
 def render(
@@ -255,10 +256,10 @@ def render(
 
     check_device(device)
     check_flags(progress=progress, allow_mesh_mismatch=allow_mesh_mismatch)
-    check_count(given("spp"), spp, maximum=MAX_SPP)  # a scene file's bounds (named as the caller spells it)
-    check_count(given("max_depth"), max_depth, minimum=1, maximum=MAX_DEPTH)
+    spp = check_count(given("spp"), spp, maximum=MAX_SPP)  # a scene file's bounds (named as the caller spells it)
+    max_depth = check_count(given("max_depth"), max_depth, minimum=1, maximum=MAX_DEPTH)
     seed = seed_or_default(given("seed"), seed)
-    check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
+    nif_train_spp = check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError(f"{given('nif_train_spp')} needs {given('nif', flag='--nif OBJECTS|auto')}")
     if nif_config is not None and nif is None:
@@ -407,9 +408,9 @@ def train(
     check_name("method", method)
     check_name("preset", preset)
     check_flags(resume=resume, progress=progress)
-    check_count(given("steps"), steps)
-    check_count(given("batch"), batch)  # its bounds are the config's (training.batch_size)
-    check_seed(given("seed"), seed)
+    steps = check_count(given("steps"), steps)
+    batch = check_count(given("batch"), batch)  # its bounds are the config's (training.batch_size)
+    seed = check_seed(given("seed"), seed)
     output = check_path("output", output)
     checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
     if resume:  # what is not given is the run's it continues (--resume alone resumes an N-BVH run)
@@ -439,7 +440,7 @@ def train(
                 import warnings
 
                 warnings.warn(f"{checkpoint}: an earlier interrupted run's checkpoint is there; this run starts afresh "
-                              "and replaces it (--resume continues it instead)", stacklevel=outside_stacklevel())
+                              f"and replaces it ({given('resume', True, flag='--resume')} continues it instead)", stacklevel=outside_stacklevel())
             if not isinstance(mesh, Mesh):
                 mesh = load_mesh(mesh)
             model = _train(mesh, config, progress=progress, checkpoint=checkpoint, resume=resume, device=device)
@@ -504,8 +505,8 @@ def evaluate(
     from .methods.base import checked_inference
 
     check_device(device)
-    check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
-    check_seed(given("seed"), seed)
+    rays = check_count(given("rays"), rays, minimum=2, maximum=MAX_EVAL_RAYS)
+    seed = check_seed(given("seed"), seed)
     check_flags(images=images, allow_mesh_mismatch=allow_mesh_mismatch, timing=timing, progress=progress)
     if not is_neural(model):
         if isinstance(model, Mesh):
@@ -577,11 +578,11 @@ def convert(scene: str | Path, output: str | Path, **options) -> dict:
     options["models_dir"] = check_path("models_dir", options.get("models_dir"), optional=True)
     for name in ("method", "preset", "executor", "address"):
         check_name(name, options.get(name))
-    check_seed(given("seed"), options.get("seed"))
     check_flags(**{k: options[k] for k in ("group", "progress") if k in options})
-    check_count(given("steps"), options.get("steps"))  # (as train names them, before the config does)
-    check_count(given("batch"), options.get("batch"))
-    check_count(given("min_triangles"), options.get("min_triangles"), minimum=0)
+    for name, check in (("seed", check_seed), ("steps", check_count), ("batch", check_count),  # (as train names them)
+                        ("min_triangles", lambda n, v: check_count(n, v, minimum=0))):
+        if options.get(name) is not None:
+            options[name] = check(given(name), options[name])
     select = options.get("select")
     if isinstance(select, str):  # as on the command line: comma-separated names
         options["select"] = [n.strip() for n in select.split(",") if n.strip()]

@@ -41,17 +41,19 @@ def spelled_as_flags():
         _AS_FLAGS.reset(token)
 
 
-def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> None:
-    """One-line `ConfigError` unless ``value`` is None or an integer in [``minimum``, ``maximum``]
-    (``name`` as the user wrote it)."""
+def check_count(name: str, value, minimum: int = 1, maximum: int | None = None) -> int | None:
+    """``value`` as a Python int (None stays None), or a one-line `ConfigError` unless it is an
+    integer in [``minimum``, ``maximum``] (``name`` as the user wrote it). Callers keep the int: a
+    numpy integer passed through ended in results (not JSON) and in torch's seeding (refused)."""
     if value is None:
-        return
+        return None
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # (numpy integers are integers)
         raise ConfigError(f"{name}: must be an integer, got {value!r}")
     if value < minimum:
         raise ConfigError(f"{name}: must be at least {minimum}, got {value}")
     if maximum is not None and value > maximum:
         raise ConfigError(f"{name}: must be at most {maximum}, got {value}")
+    return int(value)
 
 
 SEED_LIMIT = 1 << 63  # seeds feed torch's and numba's 64-bit generators
@@ -65,18 +67,16 @@ def check_flags(**flags) -> None:
             raise ConfigError(f"{given(name)}: expected True or False, got {type(flag).__name__} {flag!r}")
 
 
-def check_seed(name: str, value) -> None:
-    """One-line `ConfigError` unless ``value`` is None or an integer in [0, 2^63)."""
-    if value is not None:
-        check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
+def check_seed(name: str, value) -> int | None:
+    """``value`` as a Python int (None stays None), or a one-line `ConfigError` unless it is an
+    integer in [0, 2^63)."""
+    return check_count(name, value, minimum=0, maximum=SEED_LIMIT - 1)
 
 
 def seed_or_default(name: str, value, default: int = 0) -> int:
     """``value`` (``default`` when None) checked as `check_seed` does, as a Python int (a numpy
     integer's fixed-width arithmetic would overflow in seed mixing)."""
-    value = default if value is None else value
-    check_seed(name, value)
-    return int(value)
+    return check_seed(name, default if value is None else value)
 
 
 def check_name(name: str, value) -> None:

@@ -118,9 +118,9 @@ def _cmd_render(args) -> None:
     if args.list_builtins:
         rows = api.list_builtins()
         if args.json:
-            print(json.dumps([{"scene": f"builtin:{name}", "description": description} for name, description in rows]))
-        for name, description in [] if args.json else rows:
-            print(f"builtin:{name:<16} {description}")
+            print(json.dumps(rows))
+        for row in [] if args.json else rows:
+            print(f"{row['scene']:<24} {row['description']}")
         return
     if args.scene is None or args.output is None:
         raise NeuralRTError("render needs SCENE and -o OUTPUT.exr (or --list-builtins)")

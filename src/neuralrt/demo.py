@@ -56,11 +56,13 @@ class DemoSettings:
         from .scene.schema import MAX_DEPTH, MAX_SPP, check_resolution
 
         # Render's bounds too: a bad value fails here, not after the training (as `render` refuses it at once).
+        # (kept as Python ints: a numpy integer reached the report's JSON, after the whole run)
         for name, minimum, maximum in (("spp", 1, MAX_SPP), ("max_depth", 1, MAX_DEPTH), ("steps", 1, None),
                                        ("batch", 1, None), ("detail", 0, None), ("min_triangles", 0, None)):
-            check_count(given(name), getattr(self, name), minimum, maximum)  # (named as the caller spelled it: --spp, spp)
-        check_seed(given("seed"), self.seed)
-        check_resolution(self.resolution)
+            # (named as the caller spelled it: --spp, spp)
+            object.__setattr__(self, name, check_count(given(name), getattr(self, name), minimum, maximum))
+        object.__setattr__(self, "seed", check_seed(given("seed"), self.seed))
+        object.__setattr__(self, "resolution", check_resolution(self.resolution))
         if self.primary not in ("exact", "neural"):
             raise ConfigError(f"primary: must be exact or neural, got {self.primary!r}")
         # The training config too (unknown preset, batch below the method's minimum, ...).

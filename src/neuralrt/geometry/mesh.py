@@ -118,6 +118,14 @@ class Mesh:
     def num_triangles(self) -> int:
         return int(len(self.faces))
 
+    def __repr__(self) -> str:  # (the dataclass's printed every array: ~20 lines in a notebook)
+        extras = [name for name, value in (("normals", self.vertex_normals), ("UVs", self.uvs), ("colours", self.vertex_colors))
+                  if value is not None]
+        lo, hi = self.bounds if len(self.vertices) else (np.zeros(3), np.zeros(3))
+        return (f"Mesh({self.name!r}, {self.num_triangles:,} triangles, {len(self.vertices):,} vertices, "
+                f"{len(self.materials)} material(s){', ' + ', '.join(extras) if extras else ''}, "
+                f"bounds {np.round(lo, 4).tolist()}..{np.round(hi, 4).tolist()})")
+
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo [3], hi [3]) float32 numpy arrays. The geometry layer (`Mesh`) speaks numpy, the

@@ -63,8 +63,9 @@ def held_alone(path: str | os.PathLike):
 
 
 def _held_error(lock: Path, holder: str) -> NeuralRTError:
-    return NeuralRTError(f"{lock.with_suffix('')}: another process{f' (pid {holder})' if holder else ''} is training "
-                         "this model; wait for it to end, or write elsewhere")
+    who = ("another thread of this process" if holder == str(os.getpid())  # (two threads: the same pid)
+           else f"another process{f' (pid {holder})' if holder else ''}")
+    return NeuralRTError(f"{lock.with_suffix('')}: {who} is training this model; wait for it to end, or write elsewhere")
 
 
 def _acquired(lock: Path) -> int | None:

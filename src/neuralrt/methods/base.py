@@ -154,7 +154,7 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
     elif mesh_hash != expected:
         raise MeshMismatchError(
             f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: {mesh_hash[:12]}...; "
-            f"or the file reads differently since, as a newer neuralrt may read it); retrain, or pass "
+            f"or the same mesh read differently, as by a newer neuralrt or from another export); retrain, or pass "
             f"{given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} to use it anyway"
         )
 
@@ -166,6 +166,14 @@ def checked_inference(inference) -> dict:
         return {}
     if not isinstance(inference, dict) or not all(isinstance(k, str) for k in inference):
         raise ConfigError(f"inference: expected a dict of setting names (e.g. {{'lod': 2}}), got {type(inference).__name__}")
+    from .registry import methods_answering_with
+
+    unknown = [key for key in inference if not methods_answering_with(key)]
+    if unknown:  # (a setting of no method at all: said before any scene or model is read)
+        from .registry import changeable_inference_keys
+
+        raise ConfigError(f"inference.{unknown[0]}: not a setting of any method's models (theirs: "
+                          f"{', '.join(changeable_inference_keys())}; docs/config.md)")
     return inference
 
 

@@ -119,7 +119,7 @@ class MethodSpec:
                 others = [name for name in method_names() if name != self.name and key in get_method(name).config_class.model_fields]
                 if others:
                     raise ConfigError(f"{self.name} config: {key}: not a section of {self.name}'s config (it is of "
-                                      f"{', '.join(others)}'s: --method {others[0]})")
+                                      f"{', '.join(others)}'s: {given('method', others[0])})")
 
     def nearest_preset(self, config: MethodConfig) -> tuple[str, dict]:
         """(the preset ``config`` differs from in the fewest keys, those keys as ``--set`` spells them
@@ -229,6 +229,16 @@ def config_from_dict(data: dict) -> MethodConfig:
         return spec.config_class.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{spec.name} config: {validation_message(exc, spec.config_class)}") from None
+
+
+def changeable_inference_keys() -> list[str]:
+    """The ``inference`` settings a registered method's models may change when answering (not how
+    the parameters were stored), in the methods' order."""
+    keys: dict[str, None] = {}
+    for name in method_names():
+        section = get_method(name).config_class.model_fields["inference"].annotation
+        keys.update((k, None) for k in section.model_fields if k not in section.STORED_KEYS)
+    return list(keys)
 
 
 def methods_answering_with(key: str) -> list[str]:

@@ -121,6 +121,10 @@ class RenderResult:
     seconds: float
     stats: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:  # (the dataclass's printed every array)
+        h, w = self.image.shape[:2]
+        return f"RenderResult({w}x{h}, {self.spp} spp, {self.seconds:.3g} s)"
+
     def save(self, path: str | Path, exposure: float = 0.0) -> list[Path]:
         """Write ``<stem>.exr`` (linear HDR) and ``<stem>.png`` (sRGB), plus ``<stem>_albedo``,
         ``<stem>_normal``, ``<stem>_depth`` and ``<stem>_coverage`` as EXR (exact values) and PNG

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..arguments import check_count, seed_or_default
+from ..arguments import check_count, check_flags, seed_or_default
 from ..errors import ConfigError, DeviceError
 from ..fork_guard import check_not_forked
 from .film import Film, RenderResult
@@ -153,7 +153,8 @@ def render(
                           f"max_depth=, ...), got {type(settings).__name__}")
     overrides = {"max_depth": max_depth, "max_paths": max_paths, "primary": primary, "shading": shading}
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
-    check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
+    check_flags(progress=progress)
+    spp = check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
     check_count("max_depth", settings.max_depth, maximum=MAX_DEPTH)
     check_count("max_paths", settings.max_paths)
     seed = seed_or_default("seed", seed)

@@ -185,8 +185,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     if not isinstance(scene, Scene):
         raise ConfigError(f"render_nif: scene must be a loaded Scene (neuralrt.scene.load_scene), not {type(scene).__name__}")
     check_nif_names(nif)
-    check_count("spp", spp)
-    check_count("train_spp", train_spp)
+    spp = check_count("spp", spp)
+    train_spp = check_count("train_spp", train_spp)
     seed = seed_or_default("seed", seed)
     if answer not in ("answer", "exact"):
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")

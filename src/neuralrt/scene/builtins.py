@@ -7,13 +7,13 @@ millions of triangles at detail 4-5. `list_builtins` names them all.
 
 from __future__ import annotations
 
-from ..arguments import given
+from ..arguments import check_count, given
 import math
 from dataclasses import dataclass
 from typing import Callable
 from urllib.parse import parse_qs
 
-from ..errors import ConfigError, SceneError
+from ..errors import SceneError
 from ..geometry.procedural import MAX_DETAIL
 from .schema import (
     CameraSpec,
@@ -179,8 +179,7 @@ def builtin_spec(query: str, detail: int | None = None) -> SceneSpec:
         except ValueError:
             raise SceneError(f"builtin:{query}: detail must be an integer") from None
     if detail is not None:
-        if isinstance(detail, bool) or not isinstance(detail, int):
-            raise ConfigError(f"detail: must be an integer, got {detail!r}")
+        detail = check_count(given("detail"), detail, minimum=0)
         if "detail" in options and detail != level:
             raise SceneError(f"builtin:{query}: detail given twice ({level} in the name, {detail} as {given('detail')}): give it once")
         level = detail

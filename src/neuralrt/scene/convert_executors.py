@@ -40,7 +40,7 @@ from urllib.parse import urlparse
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from ..arguments import given
+from ..arguments import check_count, given
 from ..errors import ConfigError, NeuralRTError, validation_message
 from ..geometry.mesh import Mesh
 from ..io.files import write_atomically
@@ -544,7 +544,6 @@ def make_executor(name: str, *, device: str = "cpu", progress: bool = True, thre
         ray_only = [given(k) for k, v in ray_options.items() if v is not None]
         if ray_only:
             raise ConfigError(f"{', '.join(ray_only)}: only with {given('executor', 'ray')}")
-        if threads_per_model is not None and threads_per_model < 1:
-            raise ConfigError(f"{given('threads_per_model')}: must be >= 1, got {threads_per_model}")
+        threads_per_model = check_count(given("threads_per_model"), threads_per_model)
         return LocalExecutor(device=device, progress=progress, threads=threads_per_model)
     return RayExecutor(RayOptions.parse(threads_per_model=threads_per_model, **ray_options), device=device, progress=progress)

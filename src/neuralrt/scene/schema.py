@@ -117,7 +117,7 @@ def check_resolution(resolution) -> tuple[int, int]:
     on the command line) if bad."""
     name = given("resolution", flag="--res")
     try:
-        w, h = (int(v) if int(v) == v else None for v in resolution)
+        w, h = (int(v) if int(v) == v and not isinstance(v, bool) else None for v in resolution)
     except (TypeError, ValueError, OverflowError):
         w = h = None
     if w is None or h is None:
