@@ -390,8 +390,9 @@ def _edited_checkpoint(path, out, change):
 
 
 @pytest.mark.parametrize("change, message", [
-    (lambda h: h.pop("optimizer"), r"cannot resume from this checkpoint \(KeyError: 'optimizer'\); delete it or drop --resume"),
-    (lambda h: h.update(step=-1), r"corrupted checkpoint \(step -1\); delete it or drop --resume"),
+    # (as Python spells it: the API caller was told "--resume")
+    (lambda h: h.pop("optimizer"), r"cannot resume from this checkpoint \(KeyError: 'optimizer'\); delete it or drop resume=True"),
+    (lambda h: h.update(step=-1), r"corrupted checkpoint \(step -1\); delete it or drop resume=True"),
     (lambda h: h["record"].update(unknown=1), r"cannot resume from this checkpoint \(ValueError: its record: unknown: Unexpected keyword"),
     # the record was copied into the model as it stood
     (lambda h: h["record"].update(steps="many"), r"\(ValueError: its record: steps: Input should be a valid integer \(got 'many'\)\)"),

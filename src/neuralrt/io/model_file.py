@@ -289,10 +289,11 @@ def _read_arrays(path: Path, size: int) -> dict[str, Tensor]:
     if len(data) != size:
         raise ModelFileError(f"{path}: the model file changed while it was read ({size} bytes, then {len(data)})")
     try:
-        return load(data)
+        arrays = load(data)
     except Exception as exc:  # safetensors raises its own error types; report them as one line
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ModelFileError(f"{path}: corrupted array data ({msg})") from None
+    return {name: arrays[name] for name in sorted(arrays)}  # (in name order, as safe_open lists them: `load`'s varies)
 
 
 def _model_header(path: Path, raw: dict) -> ModelHeader:

@@ -156,10 +156,10 @@ def check_checkpoint(path: Path, identity: dict, header: dict | None = None) -> 
     header = header if header is not None else read_header(path, method=CHECKPOINT_METHOD)
     if header.get("identity") != identity:
         raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(header.get('identity'), identity)}); "
-                             f"give the checkpoint's settings to resume it, or drop {given('resume', flag='--resume')} to start afresh")
+                             f"give the checkpoint's settings to resume it, or drop {given('resume', True, flag='--resume')} to start afresh")
     step = header.get("step")
     if not isinstance(step, int) or isinstance(step, bool) or step < 0:
-        raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop {given('resume', flag='--resume')}")
+        raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop {given('resume', True, flag='--resume')}")
 
 
 def checkpoint_run(path: Path) -> tuple[str | None, int | None]:
@@ -194,7 +194,7 @@ def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) 
     except Exception as exc:  # well formed, checksums right, yet not this run's state (edited, or another version's)
         msg = " ".join(str(exc).split())
         raise ModelFileError(f"{path}: cannot resume from this checkpoint ({type(exc).__name__}: {msg[:200]}); "
-                             f"delete it or drop {given('resume', flag='--resume')}") from None
+                             f"delete it or drop {given('resume', True, flag='--resume')}") from None
     return f.header["step"], record
 
 
