@@ -196,3 +196,28 @@ def test_images_flip_has_no_memory_for_are_refused_in_one_line(tmp_path, capsys,
                           "available on cpu: compare crops") and err.count("\n") == 1
     monkeypatch.setattr(devices, "available_bytes", lambda device: 40 * 50 * FLIP_BYTES_PER_PIXEL)
     assert compare_images(img, img).flip == 0.0
+
+
+def test_a_grey_image_against_a_colour_one_is_a_warning(tmp_path):
+    # A grey EXR (one Y channel) is read as R = G = B: against a colour render every hue counts as error, silently.
+    import warnings
+
+    import OpenEXR
+    from PIL import Image
+
+    from neuralrt.eval.image_metrics import compare_files
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"Y": np.full((8, 8), 0.5, np.float32)}) as f:
+        f.write(str(tmp_path / "grey.exr"))
+    write_exr(tmp_path / "colour.exr", np.full((8, 8, 3), 0.5, np.float32))
+    Image.new("L", (8, 8), 128).save(tmp_path / "grey.png")
+    write_png(tmp_path / "colour.png", np.full((8, 8, 3), 0.5, np.float32))
+    with pytest.warns(UserWarning, match=r"grey.exr is a grey image \(one channel, read as R = G = B\) and .*colour.exr a colour one"):
+        compare_files(tmp_path / "colour.exr", tmp_path / "grey.exr")
+    with pytest.warns(UserWarning, match=r"grey.png is a grey image"):
+        compare_files(tmp_path / "grey.png", tmp_path / "colour.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert compare_files(tmp_path / "grey.exr", tmp_path / "grey.exr").flip == 0.0
+        compare_files(tmp_path / "colour.exr", tmp_path / "colour.exr")

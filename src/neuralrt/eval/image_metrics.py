@@ -20,7 +20,7 @@ import numpy as np
 from ..devices import memory_shortfall
 from ..errors import ImageError, outside_stacklevel
 from ..io.files import check_output_file
-from ..io.images import linear_to_srgb, nonfinite_problem, read_image, tone_map
+from ..io.images import is_grey_image, linear_to_srgb, nonfinite_problem, read_image, tone_map
 
 __all__ = ["ImageComparison", "compare_images", "compare_files", "relmse", "psnr", "nonfinite_problem", "check_heatmap_path"]
 
@@ -145,6 +145,11 @@ def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path |
         display, linear = (test, reference) if kinds[0] else (reference, test)
         warnings.warn(f"{display} is a display image (tone-mapped, [0, 1]) and {linear} linear radiance: the figures "
                       "compare unlike things (compare .exr with .exr, or .png with .png)", stacklevel=outside_stacklevel())
+    grey = [is_grey_image(p) for p in (reference, test)]
+    if grey[0] != grey[1]:  # (read as R = G = B: a colour image is judged against a grey one's replicated channel)
+        one, other = (reference, test) if grey[0] else (test, reference)
+        warnings.warn(f"{one} is a grey image (one channel, read as R = G = B) and {other} a colour one: the figures "
+                      "count every colour difference as error", stacklevel=outside_stacklevel())
     result = compare_images(read_image(reference), read_image(test), hdr=hdr, names=(str(reference), str(test)))
     if heatmap is not None:
         _write_heatmap(heatmap, result.flip_map)

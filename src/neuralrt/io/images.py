@@ -164,6 +164,29 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
 
 
+def is_grey_image(path: str | Path) -> bool:
+    """Whether the image file holds one channel (a grey EXR's ``Y``, a greyscale PNG), which
+    `read_image` replicates to R, G and B; False for colour, and where its header cannot be read
+    (`read_image` then names the problem)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".exr":
+            import OpenEXR
+
+            with OpenEXR.File(str(path), header_only=True) as f:
+                names = {c.name for c in f.header()["channels"]}
+            return "Y" in names and not names & {"R", "G", "B"}
+        if suffix in (".hdr", ".pic"):
+            return False  # (RGBE: always three channels)
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return im.mode in ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "F")
+    except Exception:
+        return False
+
+
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
