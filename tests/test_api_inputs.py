@@ -233,3 +233,13 @@ def test_numpy_integers_are_taken_as_python_ints():
     assert load_scene_spec("builtin:cornell-statue", detail=np.int64(0))[0].objects  # (it said "must be an integer")
     with pytest.raises(ConfigError, match=r"^resolution: expected two whole numbers \(width, height\), got \(True, 16\)$"):
         api.render("builtin:cornell", "x.exr", resolution=(True, 16), progress=False)  # (it rendered 1x16)
+
+
+def test_api_convert_names_every_option_it_takes():
+    # help(api.convert) showed only **options: a notebook user saw none of them.
+    import inspect
+
+    from neuralrt.scene.convert import convert_scene
+
+    options = [k for k in inspect.signature(convert_scene).parameters if k not in ("scene", "output")]
+    assert all(f"``{name}``" in api.convert.__doc__ for name in options), options

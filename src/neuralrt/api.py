@@ -561,9 +561,14 @@ def import_scene(gltf: str | Path, output: str | Path) -> dict:
 
 
 def convert(scene: str | Path, output: str | Path, **options) -> dict:
-    """Train models for a scene's complex objects and write a scene that uses them
-    (see `neuralrt.scene.convert.convert_scene` for the options; ``executor="ray"`` trains them
-    on a Ray cluster, `neuralrt.scene.convert_executors`)."""
+    """Train models for a scene's complex objects and write a scene that uses them.
+
+    ``options`` (keyword only; `neuralrt.scene.convert.convert_scene` tells each, and the CLI's
+    ``convert`` flags are the same): ``models_dir``, ``select``, ``min_triangles``, ``method``,
+    ``preset``, ``group``, ``steps``, ``batch``, ``seed``, ``detail``, ``device``, ``progress``,
+    ``executor`` (``"local"`` or ``"ray"``: `neuralrt.scene.convert_executors`), ``address``,
+    ``cpus_per_model``, ``gpus_per_model``, ``threads_per_model``, ``max_retries``, ``settings``.
+    Returns the conversion report (what ``convert --json`` prints)."""
     import inspect
 
     from .scene.convert import convert_scene
