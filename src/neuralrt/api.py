@@ -262,6 +262,10 @@ def render(
     nif_train_spp = check_count(given("nif_train_spp"), nif_train_spp)  # NIF hook (issue 10)
     if nif_train_spp is not None and nif is None:
         raise ConfigError(f"{given('nif_train_spp')} needs {given('nif', flag='--nif OBJECTS|auto')}")
+    if inference is not None:  # (a key of no method: said now, as eval says it, not after the scene loads)
+        from .methods.base import checked_inference
+
+        inference = checked_inference(inference)
     if nif_config is not None and nif is None:
         raise ConfigError(f"{given('nif_config', flag='--set nif.KEY=VALUE')} needs {given('nif', flag='--nif OBJECTS|auto')}")
     if nif is not None:
