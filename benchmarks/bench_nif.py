@@ -1,20 +1,21 @@
 """NIF shadow rays against exact shadow rays, in the paper's Table 2 form, plus image quality.
 
     python benchmarks/bench_nif.py [--resolution 128] [--spp 64] [--train-spp 32] [--passes 1] [--pair-fraction 0.5] [--repeats 3]
-                                   [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
+                                   [--shadow-rays first_hit|every_hit] [--scenes cornell-statue:2,cornell-statue:4] [--device cpu] [--name NAME]
 
 Scenes: ``NAME:D`` is ``builtin:NAME?detail=D`` with NIF on every statue (cornell-statue detail 2 =
 75,720 triangles, 4 = statue(4), 1.2M, 5 = statue(5), 4.8M; ``instances:D`` = 12 instances of
 statue(D-1) sharing one NIF object among 24 other objects). ``mesh:FILE@loopK`` is FILE from
 ../shared/meshes Loop-subdivided K times (subdivided once and cached as binary PLY under
 ``--mesh-cache``, default /tmp/neuralrt-nif-meshes), scaled to 1.6 units, on a floor under a square
-area light, with NIF on it. Per scene, one NIF render with ``audit=True``: every shadow-ray batch of the samples
-after training is answered by the NIF stand-in (exact objects + NIF stages 1 and 2) AND by the
-whole exact accelerator (Embree on the CPU, OptiX on CUDA), timed in the same run on the same
-rays. Columns:
+area light, with NIF on it. Per scene, one NIF render with ``audit=True``: every shadow-ray batch NIF
+takes (``--shadow-rays``: those of the camera rays' hits, the default and the paper's use, or of
+every bounce) in the samples after training is answered by the NIF stand-in (exact objects + NIF
+stages 1 and 2) AND by the whole exact accelerator (Embree on the CPU, OptiX on CUDA), timed in the
+same run on the same rays; ``exact_only_rays`` counts the other shadow rays. Columns:
 
 - ``tris``, ``shadow_rays``, ``outer``, ``inner`` (pairs each network answered), ``exact_ms`` /
-  ``nif_ms`` (all shadow rays of the NIF samples), ``speedup`` = exact / NIF (the paper's "x");
+  ``nif_ms`` (the shadow rays NIF takes, of the NIF samples), ``speedup`` = exact / NIF (the paper's "x");
 - ``disagree``: share of shadow rays whose answer differs from the exact one, and ``visible_err``
   the same for always answering "visible" for the statue (the baseline NIF must beat);
 - ``psnr_same`` / ``flip_same``: the NIF render against the same samples with exact shadow rays
@@ -179,7 +180,7 @@ def bench_scene(item: str, args) -> dict:
         scene, objects = builtin_scene(builtin, int(detail or 2), args)
     load_s = time.perf_counter() - t0
     cfg = nif_config(args)
-    render_nif(scene, objects, spp=2, train_spp=1, seed=0, progress=False, resolution=(16, 16))  # compile everything once
+    render_nif(scene, objects, spp=2, train_spp=1, seed=0, config=cfg, progress=False, resolution=(16, 16))  # compile everything once
     kw = dict(spp=args.spp, seed=0, config=cfg, progress=False)
     nif, report = render_nif(scene, objects, audit=True, **kw)
     same, _ = render_nif(scene, objects, answer="exact", **kw)

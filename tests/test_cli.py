@@ -274,6 +274,35 @@ def test_an_interrupt_python_swallows_still_ends_the_command_as_interrupted(tmp_
     assert main(["compare", "a.exr", "b.exr"]) == 0  # (the next command starts with no interrupt noted)
 
 
+def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
+    # (they went to Python's own hook, past pytest's, which records them)
+    import gc
+    import sys
+    import weakref
+
+    from neuralrt import api
+
+    class Figure:
+        pass
+
+    def compare_during_collection(*args, **kwargs):
+        def callback(ref):
+            raise ValueError("in a callback")
+
+        figure = Figure()
+        ref = weakref.ref(figure, callback)
+        del figure
+        gc.collect()
+        assert ref() is None
+        return {"flip": 0.0}
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda unraisable: seen.append(str(unraisable.exc_value)))
+    monkeypatch.setattr(api, "compare", compare_during_collection)
+    assert main(["compare", "a.exr", "b.exr"]) == 0
+    assert seen and set(seen) == {"in a callback"}
+
+
 def test_render_with_a_model_of_another_mesh_is_an_error_unless_allowed(plates, tmp_path, capsys):
     model = tmp_path / "plates.nrt"
     assert main(["train", str(plates), "-o", str(model), "--preset", "lq", "--steps", "2", "--batch", "256", "--quiet"]) == 0

@@ -272,7 +272,7 @@ def render(
         from .render.nif_render import check_nif_names, checked_nif_config
 
         check_nif_names(nif)
-        nif_config = checked_nif_config(nif_config)
+        nif_config = checked_nif_config(nif_config, given("nif_config", flag="--set nif.KEY=VALUE"))
     from .render.film import check_render_output, output_files
 
     output = check_render_output(output)

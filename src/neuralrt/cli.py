@@ -402,6 +402,7 @@ def main(argv: list[str] | None = None) -> int:
     on_term = _terminate_as_interrupt()
     unraisable, sys.unraisablehook = sys.unraisablehook, _note_swallowed_interrupt
     _SWALLOWED.clear()
+    _OTHER_UNRAISABLE[:] = [unraisable]
     args = None
     try:
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
@@ -438,14 +439,15 @@ def _note_swallowed_interrupt(unraisable) -> None:
     collection, as matplotlib's figures are freed) cannot propagate: Python printed "Exception
     ignored in ..." with its traceback, and the command ran on to exit 0. It is noted instead, and
     the command, once it returns, ends as interrupted (sending the signal again from here would
-    raise it inside this hook); other exceptions go to Python's own hook."""
+    raise it inside this hook); other exceptions go to the hook `main` found."""
     if isinstance(unraisable.exc_value, KeyboardInterrupt):
         _SWALLOWED.append(unraisable.exc_value)
         return
-    sys.__unraisablehook__(unraisable)
+    (_OTHER_UNRAISABLE or [sys.__unraisablehook__])[0](unraisable)
 
 
 _SWALLOWED: list[KeyboardInterrupt] = []  # interrupts raised where they could not propagate, this command
+_OTHER_UNRAISABLE: list = []  # the hook `main` found (pytest's, say): every other exception goes there
 
 
 class Terminated(KeyboardInterrupt):

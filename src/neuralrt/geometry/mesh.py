@@ -42,7 +42,9 @@ def import_trimesh():
     from ..interrupts import interrupts_held
 
     if "trimesh" in sys.modules:
-        return sys.modules["trimesh"]
+        import trimesh  # (waits for a first import another thread still runs)
+
+        return trimesh
     with interrupts_held():
         import trimesh
     return trimesh

@@ -85,9 +85,12 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
     try:
         write_to(str(tmp))
         os.chmod(tmp, mode)  # some writers (safetensors) replace the file with a 0600 one of their own
-        if fsync:
-            with open(tmp, "rb+") as f:
-                os.fsync(f.fileno())
+        if fsync:  # (read-only: the temporary may carry a rewritten file's read-only mode already)
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         if staged is not None:  # (`written_together`: renamed with the others, at the block's end)
             staged.append((tmp, path))
             return path

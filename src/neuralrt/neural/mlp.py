@@ -31,7 +31,7 @@ class MLP(nn.Module):
         widths = [in_features] + [hidden_width] * hidden_layers
         # skip_init: nn.Linear's own init would draw from the global RNG; ``generator`` sets every value below.
         # (skip_init ignores a default-device context: the meta device of a model file's check.)
-        device = torch.get_default_device()
+        device = torch.get_default_device() if hasattr(torch, "get_default_device") else None  # (torch >= 2.3)
         self.hidden = nn.ModuleList(nn.utils.skip_init(nn.Linear, a, b, device=device) for a, b in zip(widths[:-1], widths[1:]))
         self.output = nn.utils.skip_init(nn.Linear, widths[-1], out_features, device=device)
         self.slope = slope

@@ -2,8 +2,9 @@
 current view, then answer their shadow rays with the networks.
 
 `render_nif` renders the first ``train_spp`` samples per pixel with exact shadow rays while every
-(shadow ray, NIF object) pair is labelled and trained on (`NIFShadowAccel` in ``"collect"`` mode),
-then the remaining samples with the NIF objects' shadow rays answered by the networks. Camera and
+(shadow ray, NIF object) pair NIF takes (``config.shadow_rays``: those of the camera rays' hits by
+default) is labelled and trained on (`NIFShadowAccel` in ``"collect"`` mode), then the remaining
+samples with those shadow rays answered by the networks. Camera and
 bounce rays stay exact throughout. The two parts are separate `render` calls (the second with
 seed ``seed + SECOND_PART_SEED``, so its samples are new), merged by sample count. A new call
 trains afresh: the networks hold only what this view and these lights taught them.
@@ -56,15 +57,16 @@ def check_nif_names(nif) -> None:
         raise ConfigError(f"nif: expected 'auto' or object names (a str or a list of str), got {type(nif).__name__}")
 
 
-def checked_nif_config(config) -> NIFConfig:
+def checked_nif_config(config, name: str = "config") -> NIFConfig:
     """``config`` (None, a `NIFConfig`, or a dict of the keys to change from the defaults, at any
-    depth: ``{"outer": {"hidden_width": 32}}``) as a `NIFConfig`; a bad one is a one-line `ConfigError`."""
+    depth: ``{"outer": {"hidden_width": 32}}``) as a `NIFConfig`; a bad one is a one-line
+    `ConfigError` (naming ``name``, the argument as the caller spells it)."""
     if config is None:
         return NIFConfig()
     if isinstance(config, NIFConfig):
         return config
     if not isinstance(config, dict):
-        raise ConfigError(f"config: expected a NIFConfig or a dict, got {type(config).__name__}")
+        raise ConfigError(f"{name}: expected a NIFConfig or a dict, got {type(config).__name__}")
     try:
         return NIFConfig.model_validate(merged_settings(NIFConfig().model_dump(), config))
     except ValidationError as exc:
@@ -174,8 +176,8 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
     ``spp`` with a warning when that is not below ``spp``) samples per pixel train the networks;
     the other ``spp - train_spp`` use them. ``config``: a `NIFConfig` or a dict shaped like one. ``answer="exact"`` renders
     the same samples with exact shadow rays instead (the reference that differs only in who
-    answered); ``audit=True`` also runs every shadow ray exactly, timing it and counting
-    disagreements. ``render_kwargs`` go to `neuralrt.render.integrator.render` (``resolution``,
+    answered); ``audit=True`` also runs every shadow ray NIF answers exactly, timing it and
+    counting disagreements. ``render_kwargs`` go to `neuralrt.render.integrator.render` (``resolution``,
     ``max_depth``, ``progress``, ...).
 
     Returns the merged `RenderResult` and the NIF report (objects, memory, training time per spp,
