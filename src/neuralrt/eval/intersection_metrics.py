@@ -122,8 +122,16 @@ def axis_cameras(bounds: AABB, resolution: int = 256, fov_y_degrees: float = 40.
 def image_files(out_dir: Path, cameras: int = ORBIT_CAMERAS) -> list[Path]:
     """Every file `evaluate_model` writes into ``out_dir`` (checked before it starts)."""
     views = [*map(str, range(cameras)), *_AXES]
-    return [out_dir / f"{name}_{view}_{who}.png" for view in views for name in ("normal", "depth") for who in ("exact", "neural")] \
-        + [out_dir / "errors.png", out_dir / "overview.png"]
+    return [_view_image(out_dir, name, view, who) for view in views for name in ("normal", "depth") for who in ("exact", "neural")] \
+        + [out_dir / _ERRORS_FIGURE, out_dir / _OVERVIEW_FIGURE]
+
+
+_ERRORS_FIGURE, _OVERVIEW_FIGURE = "errors.png", "overview.png"
+
+
+def _view_image(out_dir: Path, name: str, view: str, who: str) -> Path:
+    """One view's image: ``normal_+x_exact.png`` (``name``: normal or depth; ``who``: exact or neural)."""
+    return out_dir / f"{name}_{view}_{who}.png"
 
 
 def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
@@ -196,8 +204,8 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
                 flips[name].append(compare_images(srgb_to_linear(ref), srgb_to_linear(test)).flip)
             if out_dir is not None:
                 out_dir.mkdir(parents=True, exist_ok=True)
-                write_png(out_dir / f"{name}_{view}_exact.png", srgb_to_linear(ref))
-                write_png(out_dir / f"{name}_{view}_neural.png", srgb_to_linear(test))
+                write_png(_view_image(out_dir, name, view, "exact"), srgb_to_linear(ref))
+                write_png(_view_image(out_dir, name, view, "neural"), srgb_to_linear(test))
         view_done(view)
     return {
         "cameras": len(cams),
@@ -280,8 +288,8 @@ def evaluate_model(
                 stage("figures")
                 errors = {name: ray_errors(pred[sel], batch.truth[sel], batch.rays[sel], diag)[:2] for name, sel in parts}
                 ious = result["images"]["silhouette_iou_per_view"]
-                result["images"]["figures"] = {"errors": str(write_eval_errors(out_dir / "errors.png", errors, ious)),
-                                               "overview": str(write_eval_overview(out_dir / "overview.png", shown, ious))}
+                result["images"]["figures"] = {"errors": str(write_eval_errors(out_dir / _ERRORS_FIGURE, errors, ious)),
+                                               "overview": str(write_eval_overview(out_dir / _OVERVIEW_FIGURE, shown, ious))}
                 bar.update(1)
     finally:
         bar.close()

@@ -155,11 +155,10 @@ def render(
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})  # never mutate the caller's
     check_flags(progress=progress)
     spp = check_count("spp", spp, maximum=MAX_SPP)  # a scene file's bounds
-    check_count("max_depth", settings.max_depth, maximum=MAX_DEPTH)
-    check_count("max_paths", settings.max_paths)
+    # (as Python ints, which the checks return: a numpy integer's fixed-width arithmetic would overflow)
+    settings = replace(settings, max_depth=check_count("max_depth", settings.max_depth, maximum=MAX_DEPTH),
+                       max_paths=check_count("max_paths", settings.max_paths))
     seed = seed_or_default("seed", seed)
-    # As Python ints: numpy integers are accepted, and their fixed-width arithmetic would overflow.
-    settings = replace(settings, max_depth=int(settings.max_depth), max_paths=int(settings.max_paths))
     if settings.primary not in ("exact", "neural"):
         raise ConfigError(f"primary must be 'exact' or 'neural', got {settings.primary!r}")
     if settings.shading not in SHADING_BACKENDS:
@@ -167,7 +166,7 @@ def render(
     if settings.primary == "exact" and scene.primary == "neural":
         raise ConfigError("the scene was loaded with primary='neural' (its neural objects kept no mesh for camera rays): "
                          "load it with primary='exact' to render that way")
-    spp = int(spp if spp is not None else scene.settings.spp)
+    spp = spp if spp is not None else scene.settings.spp
     camera = scene.camera.with_resolution(check_resolution(resolution)) if resolution is not None else scene.camera
     dev = check_device(device) if device is not None else scene.device
     if dev != scene.device:

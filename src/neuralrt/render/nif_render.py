@@ -194,9 +194,7 @@ def render_nif(scene, nif: str | list[str] = "auto", spp: int | None = None, tra
         raise ConfigError(f"answer: must be 'answer' or 'exact', got {answer!r}")
     config = checked_nif_config(config)
     chosen = select_nif_instances(scene, nif, config)
-    # As Python ints: numpy integers pass the checks, and their fixed-width arithmetic would overflow.
-    spp = int(spp if spp is not None else scene.settings.spp)
-    train_spp = None if train_spp is None else int(train_spp)
+    spp = spp if spp is not None else scene.settings.spp  # (Python ints: the checks return them, the scene's are)
     if train_spp is None and config.training.train_spp >= spp:  # the defaults clash (32 vs a scene's 16): train on half
         if spp < 2:
             raise ConfigError(f"{given('spp', spp)}: NIF needs at least 2 samples per pixel (some to train on, some to answer)")
