@@ -20,7 +20,7 @@ from neuralrt.methods.nbvh_config import NBVHConfig
 from neuralrt.methods.nif_config import NIFConfig
 from neuralrt.training import api as training_api
 from neuralrt.training.ray_distribution import BoxRayDistribution
-from neuralrt.training.trainer import identity_differences
+from neuralrt.training.trainer import checkpoint_run, identity_differences
 
 SMALL = {"steps": 4, "batch_size": 256, "surface_pool_size": 1024}
 
@@ -312,6 +312,24 @@ def test_cli_resume_takes_the_method_and_n_bvh_steps_from_the_checkpoint(tmp_pat
     model = neuralrt.load_model(out)
     assert model.config.method == "nbvh" and model.training_record["resumed_from"] == 4
     assert model.config.training.steps == 4 and not (tmp_path / "m.nrt.ckpt").exists()
+
+
+def test_cli_resume_keeps_the_runs_checkpoint_interval_unless_given(tmp_path, capsys):
+    """``checkpoint_every`` is not part of a run's identity (the model is the same), so a resumed run
+    took the preset's 200 and recorded it in its model file; it now keeps the run's."""
+    mesh = _obj(tmp_path / "ball.obj", sphere(1))
+    out = tmp_path / "m.nrt"
+    config = get_method("lsnif").config("lq", steps=4, batch_size=256, checkpoint_every=3)
+    neuralrt.train(load_mesh(mesh), config, progress=False, checkpoint=f"{out}.ckpt")
+    assert checkpoint_run(tmp_path / "m.nrt.ckpt") == ("lsnif", None, 3)  # (LSNIF's steps may change on resume)
+    kept = tmp_path / "kept.ckpt"
+    kept.write_bytes((tmp_path / "m.nrt.ckpt").read_bytes())
+    assert main(["train", mesh, "-o", str(out), "--steps", "4", "--resume", *TRAIN]) == 0
+    assert neuralrt.load_model(out).config.training.checkpoint_every == 3
+    out.unlink()
+    (tmp_path / "m.nrt.ckpt").write_bytes(kept.read_bytes())
+    assert main(["train", mesh, "-o", str(out), "--steps", "4", "--resume", "--set", "training.checkpoint_every=5", *TRAIN]) == 0
+    assert neuralrt.load_model(out).config.training.checkpoint_every == 5
 
 
 def test_train_validates_the_config_it_is_given_again():

@@ -284,11 +284,15 @@ def render(
                          allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
     _check_not_an_input(written, loaded, scene)
     primary = loaded.primary
-    if not loaded.lights:
-        import warnings
+    import warnings
 
+    from .render.enclosure import enclosure_notes
+
+    if not loaded.lights:
         warnings.warn(f"{getattr(loaded, 'name', '') or 'scene'}: the scene has no light (no point light with intensity, "
                       "no emissive object, no environment): it renders black", stacklevel=outside_stacklevel())
+    for note in enclosure_notes(loaded):  # (a camera or light inside an object: said before the render)
+        warnings.warn(note, stacklevel=outside_stacklevel())
     nif_report = None
     try:
         # (untimed: the process's one-time kernel loading is not the render's time per sample)
@@ -399,8 +403,8 @@ def train(
     (``{"voxel": {"resolution": 64}}``; the CLI's ``--set voxel.resolution=64``; keys: docs/config.md).
 
     A checkpoint ``<output>.ckpt`` is written as training goes; ``resume=True`` continues an
-    interrupted run from it (``method`` defaults to the run's, and, for N-BVH, whose cut schedule
-    spans the run, ``steps`` too). It is removed once the model file is written. ``plot`` (.png, .pdf or
+    interrupted run from it (``method`` and ``training.checkpoint_every`` default to the run's, and,
+    for N-BVH, whose cut schedule spans the run, ``steps`` too). It is removed once the model file is written. ``plot`` (.png, .pdf or
     .svg) draws the run's training curve (also kept in the model file: `info` draws it later).
     """
     from .geometry.mesh import Mesh, load_mesh
@@ -417,13 +421,16 @@ def train(
     seed = check_seed(given("seed"), seed)
     output = check_path("output", output)
     checkpoint = output.with_name(output.name + CHECKPOINT_SUFFIX)
+    run_every = None
     if resume:  # what is not given is the run's it continues (--resume alone resumes an N-BVH run)
-        run_method, run_steps = checkpoint_run(checkpoint)
+        run_method, run_steps, run_every = checkpoint_run(checkpoint)
         method = method or run_method
         steps = steps if steps is not None or method != run_method else run_steps
     spec = get_method(method or DEFAULT_METHOD)
     preset = preset or spec.default_preset(device)
     config = spec.config(preset, device=device, settings=settings, steps=steps, batch_size=batch, seed=seed)
+    if run_every is not None and "checkpoint_every" not in ((settings or {}).get("training") or {}):
+        config = config.with_training(checkpoint_every=run_every)  # (how often the run saves, unless given anew)
     if not isinstance(mesh, Mesh):
         mesh = check_path("mesh", mesh)
     check_model_path(output)

@@ -311,8 +311,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a neural model (LSNIF, ...) of a mesh")
     p.add_argument("mesh", nargs="?", help="mesh file (OBJ, PLY, OFF, STL, glTF/GLB) or a built-in mesh, procedural:NAME:DETAIL (statue:0..5, hairball:0..8, foliage:0..6)")
     p.add_argument("-o", "--output", help="model file to write (.nrt)")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt (its method, and "
-                   "N-BVH's --steps, are the run's unless given)")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted run from OUTPUT.ckpt (its method, "
+                   "training.checkpoint_every and N-BVH's --steps are the run's unless given)")
     p.add_argument("--plot", metavar="FILE", help="draw the training curve (loss, its terms, hit accuracy) here (.png, .pdf, .svg)")
     p.add_argument("--list-presets", action="store_true", help="list every method's presets (with --method: its own) and exit")
     _add_training(p)

@@ -74,6 +74,11 @@ class AreaLights:
         return self.area.numel()
 
     @property
+    def instance_ids(self) -> Tensor:
+        """[K] int64: the scene instances that hold emissive triangles, ascending."""
+        return torch.nonzero(self._holds).reshape(-1)
+
+    @property
     def power(self) -> float:
         """Emitted flux (one-sided Lambertian emitter: pi * L * area), summed, luminance."""
         return float(math.pi * (self.area * luminance(self.emission)).sum())

@@ -138,15 +138,18 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
                 raise ValueError(f"Adam's {name} holds NaN or infinite values")
 
 
-def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict) -> None:
-    """(``record.curve`` holds the open bin, if any: the resumed run fills it.)"""
+def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict,
+                    checkpoint_every: int) -> None:
+    """(``record.curve`` holds the open bin, if any: the resumed run fills it. ``checkpoint_every`` is
+    kept beside the identity, which leaves it out: a resumed run keeps the run's by default.)"""
     sampler_meta, sampler_arrays = sampler.state_dict()
     opt_meta, opt_arrays = _optimizer_arrays(opt)
     arrays = {f"model.{k}": v.detach().cpu().clone() for k, v in model.state_dict().items()}
     arrays.update({f"sampler.{k}": v for k, v in sampler_arrays.items()})
     arrays.update(opt_arrays)
     header = {"step": step, "identity": identity, "sampler": sampler_meta, "optimizer": opt_meta, "record": record.as_dict(),
-              "mesh_name": getattr(model, "mesh_name", None)}  # (shown by `info`; not part of the run's identity)
+              "mesh_name": getattr(model, "mesh_name", None),  # (shown by `info`; not part of the run's identity)
+              "checkpoint_every": checkpoint_every}
     write_model_file(path, CHECKPOINT_METHOD, header, arrays)
 
 
@@ -162,20 +165,27 @@ def check_checkpoint(path: Path, identity: dict, header: dict | None = None) -> 
         raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop {given('resume', True, flag='--resume')}")
 
 
-def checkpoint_run(path: Path) -> tuple[str | None, int | None]:
-    """(method, training.steps) of the run the checkpoint at ``path`` holds, where it records them
-    (the steps: where the method's schedule spans them); Nones where there is no readable
-    checkpoint (`check_checkpoint` then says what is wrong with it)."""
+def checkpoint_run(path: Path) -> tuple[str | None, int | None, int | None]:
+    """(method, training.steps, training.checkpoint_every) of the run the checkpoint at ``path``
+    holds, where it records them (the steps: where the method's schedule spans them; how often it
+    saves: since session 59); Nones where there is no readable checkpoint (`check_checkpoint` then
+    says what is wrong with it)."""
     try:
-        identity = read_header(path, method=CHECKPOINT_METHOD).get("identity")
+        header = read_header(path, method=CHECKPOINT_METHOD)
     except (OSError, ModelFileError):
-        return None, None
+        return None, None, None
+    identity = header.get("identity")
     config = identity.get("config") if isinstance(identity, dict) else None
     config = config if isinstance(config, dict) else {}
     method, training = config.get("method"), config.get("training")
     steps = training.get("steps") if isinstance(training, dict) else None
-    return (method if isinstance(method, str) else None,
-            steps if isinstance(steps, int) and not isinstance(steps, bool) else None)
+    every = header.get("checkpoint_every")
+    return (method if isinstance(method, str) else None, steps if _is_count(steps) else None,
+            every if _is_count(every) and every >= 1 else None)
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def load_checkpoint(path: Path, model: nn.Module, opt, sampler, identity: dict) -> tuple[int, TrainingRecord]:
@@ -329,7 +339,7 @@ def train_model(
             if checkpoint_after:
                 _finish(record, running, step + 1)
                 record.curve = curve.as_dict(checkpoint=True)
-                save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity)
+                save_checkpoint(ckpt, model, opt, sampler, step + 1, record, identity, checkpoint_every)
     finally:
         batches.close()
         bar.close()
@@ -340,7 +350,7 @@ def train_model(
     record.curve = curve.as_dict()
     if ckpt is not None:
         try:
-            save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity)
+            save_checkpoint(ckpt, model, opt, sampler, record.steps, record, identity, checkpoint_every)
         except OSError as exc:  # insurance only (~7x the model's bytes): a full disk must not cost the trained model
             warnings.warn(f"{ckpt}: the final checkpoint could not be written ({exc.strerror or exc}); training "
                           "goes on to write the model", stacklevel=outside_stacklevel())
