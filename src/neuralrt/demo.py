@@ -25,6 +25,12 @@ from .methods.registry import DEFAULT_METHOD
 
 __all__ = ["DemoSettings", "DEMO_DEFAULT", "DEMO_QUICK", "run_demo"]
 
+# The report's files, relative to its folder (the renders' PNGs and AOVs are written beside their
+# EXRs: `render.film.output_files`).
+EXACT_EXR, HYBRID_EXR = "exact.exr", "hybrid.exr"
+FLIP_PNG, SIDE_BY_SIDE = "flip.png", "side_by_side.png"
+REPORT_JSON, REPORT_MD = "report.json", "report.md"
+
 
 @dataclass(frozen=True)
 class DemoSettings:
@@ -124,7 +130,7 @@ def _markdown(report: dict) -> str:
         "|---|---|",
         *[f"| {k} | {v} |" for k, v in rows],
         "",
-        "![exact | hybrid | FLIP](side_by_side.png)",
+        f"![exact | hybrid | FLIP]({SIDE_BY_SIDE})",
         "",
     ]
     for name, image in report["images"].get("training", {}).items():
@@ -144,7 +150,7 @@ def _training_plots(models, out: Path) -> dict[str, str]:
     for k, m in enumerate(models):
         header = read_model_header(m.model_path)
         if plot_problem(header.training) is None:
-            name = f"training_{k}.png"
+            name = _training_plot(k)
             preset = get_method(header.method).preset_of(config_from_dict(header.config))  # (as `info` names it)
             title = training_plot_title(header.method, preset, m.mesh_name, header.training)
             write_training_plot(out / name, header.training["curve"], title)
@@ -156,13 +162,21 @@ def _write_text(path: Path, text: str) -> None:
     write_atomically(path, lambda tmp: Path(tmp).write_text(text))
 
 
+def _training_plot(k: int) -> str:
+    return f"training_{k}.png"
+
+
+def _png(exr_name: str) -> str:
+    return str(Path(exr_name).with_suffix(".png"))
+
+
 def report_files(out: Path, objects: int) -> list[Path]:
     """Every file of the report `run_demo` writes into ``out`` (the training plots: at most one per
     object of the scene), checked before any step starts."""
     from .render.film import output_files
 
-    return [*output_files(out / "exact.exr"), *output_files(out / "hybrid.exr"), out / "flip.png", out / "side_by_side.png",
-            *(out / f"training_{k}.png" for k in range(objects)), out / "report.json", out / "report.md"]
+    return [*output_files(out / EXACT_EXR), *output_files(out / HYBRID_EXR), out / FLIP_PNG, out / SIDE_BY_SIDE,
+            *(out / _training_plot(k) for k in range(objects)), out / REPORT_JSON, out / REPORT_MD]
 
 
 def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device: str = "cpu",
@@ -247,19 +261,19 @@ def run_demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, device:
         # (paths relative to the report's folder, as the images' are)
         "models": [{**m.__dict__, "model_path": os.path.relpath(m.model_path, out)} for m in conversion.models],
         "images": {
-            "exact": "exact.png", "exact_exr": "exact.exr", "hybrid": "hybrid.png", "hybrid_exr": "hybrid.exr",
-            "flip": "flip.png", "side_by_side": "side_by_side.png", "report_md": "report.md",
+            "exact": _png(EXACT_EXR), "exact_exr": EXACT_EXR, "hybrid": _png(HYBRID_EXR), "hybrid_exr": HYBRID_EXR,
+            "flip": FLIP_PNG, "side_by_side": SIDE_BY_SIDE, "report_md": REPORT_MD,
             "training": {},  # (filled as they are drawn, below)
         },
     }
     # The report's files appear together (an interrupt leaves an earlier report whole, or none).
     with written_together():
-        exact.save(out / "exact.exr")
-        hybrid.save(out / "hybrid.exr")
-        write_srgb_png(out / "flip.png", quality.flip_map)
+        exact.save(out / EXACT_EXR)
+        hybrid.save(out / HYBRID_EXR)
+        write_srgb_png(out / FLIP_PNG, quality.flip_map)
         _side_by_side([linear_to_srgb(tone_map(exact.image)), linear_to_srgb(tone_map(hybrid.image)), quality.flip_map],
-                      ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / "side_by_side.png")
+                      ["exact", f"hybrid ({s.preset})", f"FLIP {quality.flip:.3f}"], out / SIDE_BY_SIDE)
         report["images"]["training"] = _training_plots(conversion.models, out)
-        _write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
-        _write_text(out / "report.md", _markdown(report))
+        _write_text(out / REPORT_JSON, json.dumps(report, indent=2) + "\n")
+        _write_text(out / REPORT_MD, _markdown(report))
     return report
