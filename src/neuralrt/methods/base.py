@@ -295,7 +295,7 @@ class NeuralBLAS(nn.Module, ABC):
             others = [m for m in methods_answering_with(unknown[0]) if m != self.METHOD]
             where = f"; it is one of {', '.join(others)}'s" if others else ""
             raise ConfigError(f"inference.{unknown[0]}: not a setting of {self.METHOD} models{where} ({self.METHOD}'s: "
-                              f"{', '.join(k for k in fields if k not in type(self.config.inference).STORED_KEYS)})")
+                              f"{', '.join(type(self.config.inference).changeable_keys())})")
         stored = [key for key in type(self.config.inference).STORED_KEYS if key in changes]
         if stored:
             raise ConfigError(f"inference.{stored[0]} is how the model's parameters were stored, not a setting "

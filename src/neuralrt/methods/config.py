@@ -121,6 +121,11 @@ class InferenceConfig(ConfigSection):
     # them (`NeuralBLAS.with_inference`), and a cached model is reused only under the same ones.
     STORED_KEYS: ClassVar[tuple[str, ...]] = ("storage_precision",)
 
+    @classmethod
+    def changeable_keys(cls) -> list[str]:
+        """The keys a trained model may answer with other values of: all but `STORED_KEYS`."""
+        return [k for k in cls.model_fields if k not in cls.STORED_KEYS]
+
     occlusion_threshold: float = Field(0.5, gt=0.0, lt=1.0, description="hit if the occlusion probability exceeds this (paper: 0.5)")
     secondary_offset: float = Field(
         1e-2, ge=0.0,

@@ -236,8 +236,7 @@ def changeable_inference_keys() -> list[str]:
     the parameters were stored), in the methods' order."""
     keys: dict[str, None] = {}
     for name in method_names():
-        section = get_method(name).config_class.model_fields["inference"].annotation
-        keys.update((k, None) for k in section.model_fields if k not in section.STORED_KEYS)
+        keys.update((k, None) for k in get_method(name).config_class.model_fields["inference"].annotation.changeable_keys())
     return list(keys)
 
 
