@@ -86,3 +86,24 @@ def test_train_while_another_run_trains_the_same_output_is_one_line_before_any_w
     assert err == (f"neuralrt: error: {checkpoint}: another process (pid {process.pid}) is training this model; "
                    "wait for it to end, or write elsewhere")
     assert checkpoint.read_bytes() == b"the other run's" and not output.exists()
+
+
+def test_a_convert_into_a_scene_another_convert_holds_stops_before_any_model(tmp_path, capsys):
+    """Two converts into one scene started together could both stop (only each model's checkpoint
+    was held); the output scene is held first now, so the second stops before any model trains."""
+    output = tmp_path / "out" / "scene.toml"
+    output.parent.mkdir()
+    code = ("import sys, time\nfrom neuralrt.io.run_lock import held_alone\n"
+            f"with held_alone({str(output)!r}, 'converting into this scene file'):\n    print('held', flush=True)\n"
+            "    time.sleep(120)\n")
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout.readline().strip() == "held"
+        assert main(["convert", "builtin:cornell-statue?detail=0", "-o", str(output), "--min-triangles", "1000",
+                     "--preset", "lq", "--steps", "2", "--quiet"]) == 2
+    finally:
+        process.kill()
+        process.wait()
+    assert capsys.readouterr().err.strip() == (f"neuralrt: error: {output}: another process (pid {process.pid}) is "
+                                               "converting into this scene file; wait for it to end, or write elsewhere")
+    assert sorted(p.name for p in output.parent.iterdir()) == ["scene.toml.lock"]  # (the holder's; no models folder)

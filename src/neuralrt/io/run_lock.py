@@ -1,8 +1,10 @@
-"""`held_alone`: one process at a time works on a file (a training run on its checkpoint).
+"""`held_alone`: one process at a time works on a file (a training run on its checkpoint, a
+conversion on its output scene).
 
 Two ``neuralrt train`` (or ``convert``) commands with the same output would each overwrite the
 other's checkpoint (atomically, so neither file is torn) while both train the same model on the
-same cores. The second one is told instead, before its work starts.
+same cores. The second one is told instead, before its work starts. A conversion also holds its
+output scene file, so that of two converts into one scene the second stops before any model.
 
 The lock is ``flock`` on a sibling ``<file>.lock`` holding the owner's pid: the kernel releases it
 when its process ends, however it ends (SIGKILL, a power cut's reboot), so a leftover file never
@@ -40,9 +42,10 @@ def lock_path(path: Path) -> Path:
 
 
 @contextlib.contextmanager
-def held_alone(path: str | os.PathLike):
+def held_alone(path: str | os.PathLike, work: str = "training this model"):
     """Run the block while this process alone holds ``path``'s lock (``path``: a training run's
-    checkpoint); a one-line `NeuralRTError` naming the holder's pid if another process holds it.
+    checkpoint, or what ``work`` says); a one-line `NeuralRTError` naming the holder's pid and its
+    ``work`` if another process holds it.
     ``path``'s folder must exist. The lock file is removed at the end. Nested blocks on one path
     in one process share the outer block's lock."""
     lock = lock_path(Path(path))
@@ -50,7 +53,7 @@ def held_alone(path: str | os.PathLike):
     if key in held:
         yield
         return
-    fd = _acquired(lock) if fcntl is not None else None
+    fd = _acquired(lock, work) if fcntl is not None else None
     held.add(key)
     try:
         yield
@@ -62,13 +65,13 @@ def held_alone(path: str | os.PathLike):
             os.close(fd)
 
 
-def _held_error(lock: Path, holder: str) -> NeuralRTError:
+def _held_error(lock: Path, holder: str, work: str) -> NeuralRTError:
     who = ("another thread of this process" if holder == str(os.getpid())  # (two threads: the same pid)
            else f"another process{f' (pid {holder})' if holder else ''}")
-    return NeuralRTError(f"{lock.with_suffix('')}: {who} is training this model; wait for it to end, or write elsewhere")
+    return NeuralRTError(f"{lock.with_suffix('')}: {who} is {work}; wait for it to end, or write elsewhere")
 
 
-def _acquired(lock: Path) -> int | None:
+def _acquired(lock: Path, work: str) -> int | None:
     """An open, flocked descriptor of ``lock`` (the file at that name now, not one a finishing
     holder just unlinked), with this pid written in it; None where the file system has no locks."""
     while True:
@@ -81,7 +84,7 @@ def _acquired(lock: Path) -> int | None:
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            raise _held_error(lock, holder) from None
+            raise _held_error(lock, holder, work) from None
         except OSError as exc:
             os.close(fd)
             if exc.errno in _NO_LOCKS:

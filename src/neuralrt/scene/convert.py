@@ -31,6 +31,7 @@ from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial, check_float32_extent
 from ..io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_file, read_model_header
+from ..io.run_lock import held_alone
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from ..methods.base import memory_owner
 from .convert_executors import Executor, TrainingJob, make_executor
@@ -385,7 +386,6 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
     if not chosen:
         raise SceneError(f"{label}: no object to convert (none selected, or none with >= "
                          f"{DEFAULT_MIN_TRIANGLES if min_triangles is None else min_triangles} triangles)")
-    names = _object_names(spec)
     checked: set[int] = set()
     for i in chosen:  # what training would refuse, said before any model trains (on Ray: before the others finish)
         if id(meshes[i]) not in checked:
@@ -393,7 +393,18 @@ def _convert(scene, output: Path, runner: Executor, *, models_dir: Path, select,
             check_float32_extent(meshes[i], f"{label}: objects.{i}.mesh ({meshes[i].name})")
     # Folders are made only once the input is known to be good (a failed convert leaves none behind).
     output.parent.mkdir(parents=True, exist_ok=True)
-    models_dir.mkdir(parents=True, exist_ok=True)
+    # One conversion per output: a second one stops here, before any model. (Before, only each
+    # model's checkpoint was held, one at a time; in a trial, two converts started together both stopped.)
+    with held_alone(output, "converting into this scene file"):
+        models_dir.mkdir(parents=True, exist_ok=True)
+        return _converted(spec, meshes, chosen, output, runner, models_dir=models_dir, config=config,
+                          preset=preset, group=group, progress=progress)
+
+
+def _converted(spec: SceneSpec, meshes: list, chosen: list[int], output: Path, runner: Executor, *,
+               models_dir: Path, config: MethodConfig, preset: str, group: bool, progress: bool) -> ConversionReport:
+    """`_convert`'s work once its input is checked and its output held: train what is missing, write the scene."""
+    names = _object_names(spec)
     out_spec = spec.model_copy(deep=True)
     report = ConversionReport(scene_path=str(output))
 
