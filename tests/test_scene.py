@@ -218,6 +218,18 @@ def test_save_builtin_round_trip(tmp_path):
         save_scene(spec, tmp_path / "inst.yaml")
 
 
+def test_reference_generator_of_an_installed_copy_prints_the_page(tmp_path, monkeypatch, capsys):
+    """Installed in site-packages, the source tree's docs folder is not there: the page is printed
+    (writing it failed with a traceback); a path given is written."""
+    from neuralrt.scene import schemadoc
+
+    monkeypatch.setattr(schemadoc, "default_path", lambda: tmp_path / "no-docs" / "scenes.md")
+    schemadoc.main([])
+    assert capsys.readouterr().out == schemadoc.scene_reference() and not (tmp_path / "no-docs").exists()
+    schemadoc.main([str(tmp_path / "page.md")])
+    assert (tmp_path / "page.md").read_text(encoding="utf-8") == schemadoc.scene_reference()
+
+
 def test_reference_page_is_current_and_its_example_loads(tmp_path):
     """docs/scenes.md equals what `python -m neuralrt.scene.schemadoc` generates; its TOML example loads."""
     from neuralrt.io.images import write_hdr

@@ -23,6 +23,9 @@ if "OMP_WAIT_POLICY" not in os.environ:
     os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 from .errors import NeuralRTError
+from .kernel_cache import choose_kernel_cache
+
+choose_kernel_cache()  # (before any kernel compiles: a read-only install with no home cached nowhere, and failed)
 
 __version__ = "0.1.0"
 

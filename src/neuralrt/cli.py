@@ -251,7 +251,7 @@ def _add_training(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, help="rays per training step (default: the preset's)")
     p.add_argument("--seed", type=int, help="seed of weights, hash table and rays (default: 0)")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", dest="settings",
-                   help="change one config key of the preset, e.g. --set voxel.resolution=64 (repeatable; keys: docs/config.md)")
+                   help="change one config key of the preset, e.g. --set voxel.resolution=64 (repeatable; keys: python -m neuralrt.configdoc)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nif-train-spp", type=int, metavar="N", help="samples per pixel rendered exactly to train NIF (default: 32, or half of the spp when 32 is not below it)")
     p.add_argument("--set", dest="settings", action="append", metavar="inference.KEY=VALUE",
                    help="neural models answer with an inference setting changed, each model that has the key, e.g. "
-                        "inference.lod=2 (an N-BVH level of detail); over an object's own (repeatable; keys: docs/config.md); "
+                        "inference.lod=2 (an N-BVH level of detail); over an object's own (repeatable; keys: python -m neuralrt.configdoc); "
                         "with --nif, nif.KEY=VALUE changes a NIF setting, e.g. nif.shadow_rays=every_hit (docs/nif.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
@@ -334,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the speed figures (rays/s of the model and of exact tracing on the held-out rays)")
     p.add_argument("--set", dest="settings", action="append", metavar="inference.KEY=VALUE",
                    help="evaluate the model answering with an inference setting changed, e.g. inference.lod=2 (an "
-                        "N-BVH level of detail; repeatable; keys: docs/config.md)")
+                        "N-BVH level of detail; repeatable; keys: python -m neuralrt.configdoc)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_common(p)
     p.set_defaults(func=_cmd_evaluate)

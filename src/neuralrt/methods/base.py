@@ -173,7 +173,7 @@ def checked_inference(inference) -> dict:
         from .registry import changeable_inference_keys
 
         raise ConfigError(f"inference.{unknown[0]}: not a setting of any method's models (theirs: "
-                          f"{', '.join(changeable_inference_keys())}; docs/config.md)")
+                          f"{', '.join(changeable_inference_keys())}; python -m neuralrt.configdoc)")
     return inference
 
 

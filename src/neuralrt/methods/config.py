@@ -220,7 +220,7 @@ def parse_settings(items: list[str] | None) -> dict:
         key, eq, value = item.partition("=")
         section, dot, name = key.strip().partition(".")
         if not eq or not dot or not section or not name:
-            raise ConfigError(f"--set {item}: expected SECTION.KEY=VALUE, e.g. training.steps=100 (keys: docs/config.md)")
+            raise ConfigError(f"--set {item}: expected SECTION.KEY=VALUE, e.g. training.steps=100 (keys: python -m neuralrt.configdoc)")
         try:
             parsed = python_words[value.strip()] if value.strip() in python_words else json.loads(value)
         except json.JSONDecodeError:

@@ -480,7 +480,7 @@ def _check_applied(inference: dict, applied: set[str], models: dict, given: _InM
     methods = sorted({b.METHOD for b in [*models.values(), *given.models.values()] if is_neural(b)})
     held = (f"no neural model of the scene ({', '.join(methods)}) has this setting" if methods
             else "the scene has no neural model")
-    raise SceneError(f"{label}: inference.{missing[0]}: {held} (the keys of each method: docs/config.md)")
+    raise SceneError(f"{label}: inference.{missing[0]}: {held} (the keys of each method: python -m neuralrt.configdoc)")
 
 
 def _with_inference(blas, changes: dict, label: str, key: str):

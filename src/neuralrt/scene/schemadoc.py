@@ -1,6 +1,7 @@
 """Generates docs/scenes.md, the scene-file reference, from the pydantic schema and the built-ins.
 
     python -m neuralrt.scene.schemadoc [path]      # default: docs/scenes.md of the source tree
+                                                   # (an installed copy, with none: printed)
 
 A test compares the committed file with `scene_reference()`, so the page stays true to the code.
 """
@@ -261,8 +262,13 @@ def main(argv: list[str] | None = None) -> None:
 
     parser = argparse.ArgumentParser(prog="python -m neuralrt.scene.schemadoc",
                                      description="write the scene file reference (docs/scenes.md)")
-    parser.add_argument("output", nargs="?", type=Path, default=default_path(), help="default: %(default)s")
+    parser.add_argument("output", nargs="?", type=Path, help=f"default: {default_path()} in a source tree; "
+                        "printed where there is none (an installed copy)")
     path = parser.parse_args(argv).output
+    if path is None and not default_path().parent.is_dir():  # (site-packages: no docs folder beside it)
+        print(scene_reference(), end="")
+        return
+    path = path or default_path()
     path.write_text(scene_reference(), encoding="utf-8")
     print(f"wrote {path}")
 
