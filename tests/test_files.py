@@ -169,3 +169,28 @@ def test_a_set_written_inside_another_appears_with_the_outer_one(tmp_path):
         assert not (tmp_path / "inner.txt").exists()
         write_atomically(tmp_path / "outer.txt", lambda tmp: open(tmp, "w").write("b"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["inner.txt", "outer.txt"]
+
+
+def test_two_threads_writing_one_set_of_outputs_leave_one_whole_set(tmp_path):
+    """Two renders to one output from two threads of a process: each set of files is renamed into
+    place whole (before, their renames interleaved: 20 of 200 ten-file sets were left mixed)."""
+    import threading
+
+    from neuralrt.io.files import written_together
+
+    names = [tmp_path / f"f{k}.txt" for k in range(10)]
+
+    def writer(tag: str) -> None:
+        for i in range(3):
+            with written_together():
+                for path in names:
+                    write_atomically(path, lambda tmp, text=f"{tag}{i}": open(tmp, "w").write(text))
+
+    for _ in range(100):
+        threads = [threading.Thread(target=writer, args=(tag,)) for tag in "AB"]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert len({path.read_text() for path in names}) == 1
+    assert sorted(os.listdir(tmp_path)) == sorted(path.name for path in names)  # (no temporaries)
