@@ -79,6 +79,11 @@ def test_cli_truncated_exr_prints_one_line_and_no_library_noise(tmp_path, capfd)
     out, err = capfd.readouterr()  # fd-level: OpenEXR's own messages bypass sys.stderr
     assert out == ""
     assert "trunc.exr: truncated or corrupt EXR" in _one_error_line(err)
+    # A missing EXR: OpenEXR's "Unable to open file for read" line came first (the grey-image check
+    # read its header before the file was checked).
+    assert main(["compare", str(tmp_path / "missing.exr"), ref]) == 2
+    out, err = capfd.readouterr()
+    assert out == "" and "missing.exr: image file not found" in _one_error_line(err)
 
 
 @pytest.mark.parametrize("bad_value", [np.nan, np.inf, -np.inf])

@@ -145,12 +145,13 @@ def compare_files(reference: str | Path, test: str | Path, heatmap: str | Path |
         display, linear = (test, reference) if kinds[0] else (reference, test)
         warnings.warn(f"{display} is a display image (tone-mapped, [0, 1]) and {linear} linear radiance: the figures "
                       "compare unlike things (compare .exr with .exr, or .png with .png)", stacklevel=outside_stacklevel())
+    images = read_image(reference), read_image(test)  # (first: a missing EXR's header read printed OpenEXR's own line)
     grey = [is_grey_image(p) for p in (reference, test)]
     if grey[0] != grey[1]:  # (read as R = G = B: a colour image is judged against a grey one's replicated channel)
         one, other = (reference, test) if grey[0] else (test, reference)
         warnings.warn(f"{one} is a grey image (one channel, read as R = G = B) and {other} a colour one: the figures "
                       "count every colour difference as error", stacklevel=outside_stacklevel())
-    result = compare_images(read_image(reference), read_image(test), hdr=hdr, names=(str(reference), str(test)))
+    result = compare_images(*images, hdr=hdr, names=(str(reference), str(test)))
     if heatmap is not None:
         _write_heatmap(heatmap, result.flip_map)
     return result
