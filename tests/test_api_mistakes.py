@@ -97,6 +97,41 @@ def test_a_warning_points_at_the_callers_line_not_at_neuralrt():
     assert caught[0].filename == __file__
 
 
+def test_a_model_rendered_alone_leaves_the_warning_filters_and_other_threads_alone(tmp_path):
+    """Its "cannot check" note is left unsaid in its own thread only: `warnings.catch_warnings` there
+    changed every thread's filters, and leaving it made Python repeat warnings already shown."""
+    import threading
+    import warnings
+
+    from neuralrt.methods.base import check_mesh_match, mesh_mismatch_unsaid
+    from neuralrt.scene.loader import load_scene
+
+    path = tmp_path / "ball.nrt"
+    _model().save(path)
+    load_scene(str(path), resolution=(4, 4))  # (first imports may set filters of their own)
+
+    def probe():
+        warnings.warn("probe", UserWarning)
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")  # once per place, as Python shows warnings
+        probe()
+        load_scene(str(path), resolution=(4, 4))
+        probe()  # (shown again when the filters had changed meanwhile)
+        assert [str(w.message) for w in seen] == ["probe"]
+
+        warnings.simplefilter("always")
+        inside, said = threading.Event(), threading.Event()
+        other = threading.Thread(target=lambda: (inside.wait(60), check_mesh_match(_model(), None), said.set()))
+        other.start()
+        with mesh_mismatch_unsaid():
+            inside.set()
+            said.wait(60)
+            check_mesh_match(_model(), None)  # (unsaid: this thread's block)
+        other.join()
+    assert [str(w.message) for w in seen[1:]] == ["cannot check that the model belongs to this object (no mesh is given)"]
+
+
 def test_a_shape_without_detail_says_how_to_make_it():
     with pytest.raises(MeshError, match=r"sphere has no detail level: in Python, neuralrt.geometry.procedural.sphere\("
                                         r"subdivisions=4, radius=1.0\); in a scene file, generator = \{ name = \"sphere\" \}"):

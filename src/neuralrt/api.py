@@ -89,15 +89,11 @@ def _mesh_info(path) -> dict:
 
 
 def _scene_info(spec: str) -> dict:
-    import warnings
-
-    from .methods import MeshMismatchWarning
-    from .methods.base import is_neural
+    from .methods.base import is_neural, mesh_mismatch_unsaid
     from .scene.loader import load_scene
     from .scene.memory import scene_memory
 
-    with warnings.catch_warnings():  # info inspects: a mismatch matters when rendering (which says so)
-        warnings.simplefilter("ignore", MeshMismatchWarning)
+    with mesh_mismatch_unsaid():  # info inspects: a mismatch matters when rendering (which says so)
         scene = load_scene(spec, allow_mesh_mismatch=True)
     accel = scene.accel
     blases = accel.unique_blases

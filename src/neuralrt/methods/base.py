@@ -26,6 +26,8 @@ method through one typed model-file header (`neuralrt.io.model_file.ModelHeader`
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import json
 import os
@@ -50,13 +52,29 @@ from ..rays import AABB, Hits, Rays, check_rays
 from .config import MethodConfig
 
 __all__ = ["NeuralBLAS", "is_neural", "ray_views", "memory_owner", "check_mesh_match", "MeshMismatchWarning", "material_table",
-           "checked_inference"]
+           "checked_inference", "mesh_mismatch_unsaid"]
 
 DEFAULT_MATERIALS = [{"name": "default", "base_color": [1.0, 1.0, 1.0]}]
 
 
 class MeshMismatchWarning(UserWarning):
     """A model is used without its source mesh at hand, so nothing checks that they belong together."""
+
+
+# Set by `mesh_mismatch_unsaid` in this thread or task only: `warnings.catch_warnings` changed the
+# filters of every thread, and leaving it made Python repeat warnings it had already shown.
+_MISMATCH_UNSAID = contextvars.ContextVar("neuralrt_mesh_mismatch_unsaid", default=False)
+
+
+@contextlib.contextmanager
+def mesh_mismatch_unsaid():
+    """Within the block, `check_mesh_match` says no `MeshMismatchWarning` (a model rendered alone
+    has no object mesh to belong to; `info` inspects a scene, and rendering it says so)."""
+    token = _MISMATCH_UNSAID.set(True)
+    try:
+        yield
+    finally:
+        _MISMATCH_UNSAID.reset(token)
 
 
 def _stored_arrays_problem(found: dict[str, Tensor], expected: dict[str, Tensor]) -> str | None:
@@ -144,10 +162,13 @@ def check_mesh_match(model, mesh_hash: str | None, *, allow_mismatch: bool = Fal
         expected, name = own_mesh.content_hash(), own_mesh.name
     if mesh_hash is None or expected is None:
         what = "no mesh is given" if mesh_hash is None else "the model records no mesh hash"
-        warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning,
-                      stacklevel=outside_stacklevel())
+        if not _MISMATCH_UNSAID.get():
+            warnings.warn(f"{prefix}cannot check that the model belongs to this object ({what})", MeshMismatchWarning,
+                          stacklevel=outside_stacklevel())
         return
     if mesh_hash != expected and allow_mismatch:  # (used as asked, and said: the figures are of another mesh)
+        if _MISMATCH_UNSAID.get():
+            return
         warnings.warn(f"{prefix}the model was trained on another mesh ({name!r}, sha256 {expected[:12]}...; this mesh: "
                       f"{mesh_hash[:12]}...): used anyway, as {given('allow_mesh_mismatch', True, flag='--allow-mesh-mismatch')} "
                       "asks", MeshMismatchWarning, stacklevel=outside_stacklevel())

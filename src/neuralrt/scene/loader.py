@@ -34,7 +34,7 @@ from ..geometry.mesh import Mesh, load_mesh
 from ..io.files import input_file_problem
 from ..io.model_file import read_header
 from ..rays import AABB
-from ..methods.base import MeshMismatchWarning, check_mesh_match, checked_inference, is_neural, ray_views
+from ..methods.base import check_mesh_match, checked_inference, is_neural, mesh_mismatch_unsaid, ray_views
 from ..render.camera import Camera
 from ..render.lights import AreaLights, Environment, LightSet, PointLights
 from ..render.materials import MaterialKind, MaterialTable
@@ -114,9 +114,7 @@ def _lone_object_scene(name: str, device, size, detail, primary: str, allow_mesh
         for note in (unused_scene_note(name), unread_alpha_note(name)):
             if note:
                 warnings.warn(note, stacklevel=outside_stacklevel())
-    with warnings.catch_warnings():
-        # A model alone has no object mesh to belong to: "cannot check that the model belongs" says nothing here.
-        warnings.filterwarnings("ignore", category=MeshMismatchWarning)
+    with mesh_mismatch_unsaid():  # (a model alone has no object mesh to belong to: "cannot check" says nothing here)
         return load_dict(studio_dict(key, value, lo, hi, size), device=device, primary=primary, label=name,
                          allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
 
