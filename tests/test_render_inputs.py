@@ -241,6 +241,20 @@ def test_rendering_a_scene_without_light_warns_that_it_renders_black(tmp_path):
     assert result["spp"] == 1
 
 
+def test_each_dark_scene_dict_of_a_sweep_is_told(tmp_path):
+    """Every dict scene was "scene" in its warnings, so Python, which shows a warning of the same
+    text from the same line once, told only the first dark scene of a sweep."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("default")
+        for k in range(2):
+            api.render({"camera": {"resolution": [6, 4]}, "objects": [dict(SPHERE)]}, tmp_path / f"x{k}.exr", spp=1,
+                       progress=False)
+    assert [str(w.message).split(": the scene has no light")[0] for w in seen] == [
+        f"scene rendered to {tmp_path / 'x0.exr'}", f"scene rendered to {tmp_path / 'x1.exr'}"]
+
+
 def test_a_texture_with_a_negative_texel_is_refused_as_a_negative_albedo_is(tmp_path):
     texels = np.full((4, 4, 3), 0.5, np.float32)
     texels[0, 0] = -0.5

@@ -276,8 +276,10 @@ def render(
     nif_plot = output.with_name(f"{output.stem}_nif_training.png") if nif is not None else None
     written = output_files(output) + ([nif_plot] if nif_plot else [])  # the image, every AOV beside it, NIF's plot
     check_output_files(written, "render output")  # (before the scene loads)
+    # (a dict's warnings name the output: one sweep's scenes were all "scene", and Python shows a
+    # warning of the same text from the same line once)
     loaded = _scene_from(scene, device=device, resolution=resolution, detail=detail, primary=primary,
-                         allow_mesh_mismatch=allow_mesh_mismatch, inference=inference)
+                         allow_mesh_mismatch=allow_mesh_mismatch, inference=inference, label=f"scene rendered to {output}")
     _check_not_an_input(written, loaded, scene)
     primary = loaded.primary
     import warnings
@@ -352,8 +354,9 @@ def _file_identity(path: Path) -> tuple[int, int] | None:
     return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
 
 
-def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch, inference=None):
-    """A built `Scene` from a path / ``builtin:NAME``, a scene dict, or a `Scene` (returned as is)."""
+def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismatch, inference=None, label="scene"):
+    """A built `Scene` from a path / ``builtin:NAME``, a scene dict (named ``label`` in its errors
+    and warnings), or a `Scene` (returned as is)."""
     import torch
 
     from .scene.loader import load_dict, load_scene
@@ -371,7 +374,7 @@ def _scene_from(scene, *, device, resolution, detail, primary, allow_mesh_mismat
         if resolution is not None:
             scene = {**scene, "camera": {**scene.get("camera", {}), "resolution": list(resolution)}}
         return load_dict(scene, device=device, primary=primary, allow_mesh_mismatch=allow_mesh_mismatch,
-                         inference=inference)
+                         inference=inference, label=label)
     if not isinstance(scene, (str, Path)):
         raise NeuralRTError(f"scene must be a path, 'builtin:NAME', a dict or a Scene, not {type(scene).__name__}")
     return load_scene(str(scene), device=device, resolution=resolution, detail=detail, primary=primary,
