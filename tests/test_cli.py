@@ -8,6 +8,7 @@ import pytest
 import torch
 import trimesh
 
+from neuralrt import load_model
 from neuralrt.cli import main
 
 
@@ -94,6 +95,10 @@ def test_train_info_eval_round_trip(plates, tmp_path, capsys):
     info = _json(capsys)
     assert info["method"] == "lsnif" and info["memory_bytes"] == sum(info["memory_parts"].values())
     assert set(info["memory_parts"]) == {"voxels", "encoder", "mlp"}
+    # Held as float32 (the table: twice its fp16 bytes), the occupancy as one bool a voxel (8x its bits).
+    loaded = load_model(model)
+    assert info["held_bytes"] == 2 * info["memory_parts"]["encoder"] + 8 * info["memory_parts"]["voxels"] + sum(
+        t.numel() * 4 for t in loaded.network.parameters()) + 24  # (+ the box: 2 x 3 float32)
     assert info["config"]["method"] == "lsnif" and info["config"]["network"]["hidden_width"] == 64  # the full config
     assert info["config"]["training"]["steps"] == 30
 
