@@ -82,3 +82,27 @@ def test_render_warns_before_it_renders_a_camera_inside_an_object(tmp_path):
     with pytest.warns(UserWarning, match=r"inside.json: the camera at \(0, 0, 0\.3\) seems to be inside object 'ball'"):
         result = api.render(str(path), tmp_path / "x.exr", spp=1, progress=False)
     assert result["spp"] == 1
+
+
+def test_render_warns_of_a_lit_point_light_inside_an_object_and_not_of_a_dark_one(tmp_path):
+    path = tmp_path / "lamp.json"
+    path.write_text(json.dumps({"camera": {"position": [0.0, 0.0, 3.9], "resolution": [6, 4]}, "objects": [BALL],
+                                "lights": [{"position": [0.0, 0.0, 0.2], "intensity": [0.0, 0.0, 0.0]},
+                                           {"position": [0.0, 0.3, 0.0], "intensity": [5.0, 5.0, 5.0]}],
+                                "environment": {"color": [0.1, 0.1, 0.1]}}))
+    with pytest.warns(UserWarning) as caught:
+        api.render(str(path), tmp_path / "x.exr", spp=1, progress=False)
+    assert [str(w.message) for w in caught] == [
+        f"{path}: point light 1 at (0, 0.3, 0) seems to be inside object 'ball' (each of 26 rays from it, in all "
+        "directions, meets it first): little or none of its light leaves it"]
+
+
+def test_many_points_are_judged_in_one_query(monkeypatch):
+    from neuralrt.render.enclosure import enclosing_instances
+
+    s = scene()
+    calls = []
+    original = s.accel.intersect
+    monkeypatch.setattr(s.accel, "intersect", lambda rays, **kw: calls.append(len(rays)) or original(rays, **kw))
+    assert enclosing_instances(s.accel, [[0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [0.1, 0.2, 0.3]]) == [0, None, 0]
+    assert calls == [3 * 26] and enclosing_instances(s.accel, []) == []

@@ -62,10 +62,10 @@ def test_a_final_checkpoint_that_cannot_be_written_keeps_the_model(tmp_path, mon
 
     real = trainer.save_checkpoint
 
-    def full_at_the_end(path, model, opt, sampler, step, record, identity):
+    def full_at_the_end(path, model, opt, sampler, step, record, identity, checkpoint_every):
         if step == 4:
             raise OSError(28, "No space left on device", str(path))
-        real(path, model, opt, sampler, step, record, identity)
+        real(path, model, opt, sampler, step, record, identity, checkpoint_every)
 
     monkeypatch.setattr(trainer, "save_checkpoint", full_at_the_end)
     config = LSNIFConfig.preset("lq").with_training(steps=4, batch_size=256)

@@ -1,12 +1,14 @@
 """numba's kernel cache where an install is read-only and the user has no writable home: a
-private folder in the temporary directory (numba refused to compile: every command failed)."""
+private folder in the runtime or temporary folder (numba refused to compile: every command failed)."""
 
 import os
 import stat
 import sys
+from pathlib import Path
 
 import pytest
 
+import neuralrt
 import neuralrt.kernel_cache as kernel_cache
 from neuralrt.kernel_cache import choose_kernel_cache, fallback_cache_dir
 
@@ -20,43 +22,67 @@ def unwritable(tmp_path):
     return tmp_path / "a-file" / "numba"
 
 
-def test_no_fallback_where_numba_has_a_cache_folder(tmp_path, unwritable):
-    assert fallback_cache_dir(tmp_path / "tree", unwritable, tmp_path / "tmp") is None
-    assert fallback_cache_dir(unwritable, tmp_path / "home" / ".cache" / "numba", tmp_path / "tmp") is None
-    assert not (tmp_path / "tmp").exists()
+@pytest.fixture
+def temp(tmp_path):
+    folder = tmp_path / "tmp"
+    folder.mkdir(mode=0o700)
+    return folder
 
 
-def test_with_neither_a_private_folder_in_the_temporary_directory(tmp_path, unwritable):
-    folder = fallback_cache_dir(unwritable, unwritable, tmp_path)
-    assert folder == str(tmp_path / f"neuralrt-numba-cache-{os.getuid()}")
+def test_no_fallback_where_numba_has_a_cache_folder(tmp_path, unwritable, temp):
+    assert fallback_cache_dir(tmp_path / "tree", unwritable, temp) is None
+    assert fallback_cache_dir(unwritable, tmp_path / "home" / ".cache" / "numba", temp) is None
+    assert list(temp.iterdir()) == []
+
+
+def test_with_neither_a_private_folder_in_the_temporary_directory(unwritable, temp):
+    folder = fallback_cache_dir(unwritable, unwritable, temp)
+    assert folder == str(temp / f"neuralrt-numba-cache-{os.getuid()}")
     assert stat.S_IMODE(os.stat(folder).st_mode) == 0o700
-    assert fallback_cache_dir(unwritable, unwritable, tmp_path) == folder  # (the next process reuses it)
+    assert fallback_cache_dir(unwritable, unwritable, temp) == folder  # (the next process reuses it)
 
 
-def test_a_folder_others_may_write_is_not_used(tmp_path, unwritable):
+def test_a_folder_others_may_write_is_not_used_and_its_stand_in_goes_at_exit(unwritable, temp, monkeypatch):
     """numba loads its cache index with pickle: a folder another user could write is not trusted."""
-    shared = tmp_path / f"neuralrt-numba-cache-{os.getuid()}"
+    at_exit = []
+    monkeypatch.setattr(kernel_cache.atexit, "register", lambda *call, **kw: at_exit.append((call, kw)))
+    shared = temp / f"neuralrt-numba-cache-{os.getuid()}"
     shared.mkdir()
     shared.chmod(0o777)
-    folder = fallback_cache_dir(unwritable, unwritable, tmp_path)
-    assert folder != str(shared) and os.path.dirname(folder) == str(tmp_path)
+    folder = fallback_cache_dir(unwritable, unwritable, temp)
+    assert folder != str(shared) and os.path.dirname(folder) == str(temp)
     assert os.path.basename(folder).startswith("neuralrt-numba-cache-") and stat.S_IMODE(os.stat(folder).st_mode) == 0o700
+    assert at_exit == [((kernel_cache.shutil.rmtree, folder), {"ignore_errors": True})]  # (one per process: removed)
 
 
-def test_a_symlink_in_its_place_is_not_followed(tmp_path, unwritable):
+def test_a_symlink_in_its_place_is_not_followed(tmp_path, unwritable, temp, monkeypatch):
+    monkeypatch.setattr(kernel_cache.atexit, "register", lambda *call, **kw: None)
     (tmp_path / "elsewhere").mkdir(mode=0o700)
-    (tmp_path / f"neuralrt-numba-cache-{os.getuid()}").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
-    folder = fallback_cache_dir(unwritable, unwritable, tmp_path)
+    (temp / f"neuralrt-numba-cache-{os.getuid()}").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    folder = fallback_cache_dir(unwritable, unwritable, temp)
     assert os.path.realpath(folder) == folder and not folder.endswith(f"-{os.getuid()}")
+
+
+def test_a_temporary_folder_others_may_rename_in_is_not_used(unwritable, temp):
+    temp.chmod(0o777)  # (without the sticky bit another user could swap our folder for theirs)
+    assert fallback_cache_dir(unwritable, unwritable, temp) is None
+    temp.chmod(0o1777)  # as /tmp
+    assert fallback_cache_dir(unwritable, unwritable, temp) == str(temp / f"neuralrt-numba-cache-{os.getuid()}")
 
 
 def test_the_choice_reaches_numba_and_the_users_own_setting_stays(tmp_path, monkeypatch):
     import numba.core.config
 
-    monkeypatch.setattr(numba.core.config, "CACHE_DIR", numba.core.config.CACHE_DIR)
-    monkeypatch.setattr(kernel_cache, "fallback_cache_dir", lambda *folders: str(tmp_path))
+    asked = []
+    monkeypatch.setattr(numba.core.config, "CACHE_DIR", "")
+    monkeypatch.setattr(kernel_cache, "fallback_cache_dir", lambda *folders: asked.append(folders) or str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     monkeypatch.setenv("NUMBA_CACHE_DIR", "/their/choice")
     assert choose_kernel_cache() is None and os.environ["NUMBA_CACHE_DIR"] == "/their/choice"
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert choose_kernel_cache() == str(tmp_path)
+    assert asked == [(Path(neuralrt.__file__).parent / "__pycache__", tmp_path / "xdg" / "numba")]
     assert os.environ["NUMBA_CACHE_DIR"] == str(tmp_path) and numba.core.config.CACHE_DIR == str(tmp_path)
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setattr(numba.core.config, "CACHE_DIR", "/set/in/code")  # (numba imported first, set by hand)
+    assert choose_kernel_cache() is None and numba.core.config.CACHE_DIR == "/set/in/code"

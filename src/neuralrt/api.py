@@ -151,8 +151,8 @@ def _model_info(path: Path, plot: Path | None = None) -> dict:
         "reader_format_version": FORMAT_VERSION,
         "memory_bytes": report.total,
         "memory_parts": {k: int(v) for k, v in report.parts.items()},
-        # (the parameters as a loaded model holds them, float32 whatever the storage: memory_bytes
-        # counts them at the storage precision, the papers' convention)
+        # (the parameters as a loaded model holds them, float32 whatever the storage, and its
+        # buffers: memory_bytes counts them at the storage precision, the papers' convention)
         "held_bytes": sum(t.numel() * t.element_size() for t in (*model.parameters(), *model.buffers())),
         "bounds": [list(header.bounds[0]), list(header.bounds[1])],
         "materials": model.material_names,

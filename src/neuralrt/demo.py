@@ -167,7 +167,9 @@ def _training_plot(k: int) -> str:
 
 
 def _png(exr_name: str) -> str:
-    return str(Path(exr_name).with_suffix(".png"))
+    from .render.film import output_files
+
+    return str(output_files(exr_name)[1])  # (the render's PNG, written beside its EXR)
 
 
 def report_files(out: Path, objects: int) -> list[Path]:

@@ -6,15 +6,19 @@ Our kernels are compiled with ``cache=True``. numba keeps their cache beside the
 or a container user without a home), it refuses to compile: every command that loads a kernel
 failed with numba's "cannot cache function ...: no locator available" traceback.
 
-`choose_kernel_cache` then points ``NUMBA_CACHE_DIR`` at a private folder in the temporary
-directory. numba's cache index is a pickle that numba loads, so a folder another user could
-have made or written to is not used: one of this process's own is made instead (compiled again
-by each process, as without a cache). ``NUMBA_CACHE_DIR`` set by the user is never changed.
+`choose_kernel_cache` then points ``NUMBA_CACHE_DIR`` at a private folder in the user's runtime
+folder (``$XDG_RUNTIME_DIR``) or the temporary one. numba's cache index is a pickle that numba
+loads, so a folder another user could have made, written to or swapped is not used: one of this
+process's own is made instead, compiled again by each process as without a cache, and removed
+at exit. A cache folder the user chose (``NUMBA_CACHE_DIR``, or numba's ``config.CACHE_DIR`` set
+in code) is never changed.
 """
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import stat
 import sys
 import tempfile
@@ -25,38 +29,54 @@ __all__ = ["choose_kernel_cache", "fallback_cache_dir"]
 
 def choose_kernel_cache() -> str | None:
     """Set ``NUMBA_CACHE_DIR`` where numba would find no cache folder; return what it was set to."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
+    config = sys.modules.get("numba.core.config")  # (numba imported first: it read the environment already)
+    if os.environ.get("NUMBA_CACHE_DIR") or getattr(config, "CACHE_DIR", None):
         return None
     user_cache = Path(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")) / "numba"
-    folder = fallback_cache_dir(Path(__file__).parent / "__pycache__", user_cache, Path(tempfile.gettempdir()))
+    folder = fallback_cache_dir(Path(__file__).parent / "__pycache__", user_cache)
     if folder is None:
         return None
     os.environ["NUMBA_CACHE_DIR"] = folder
-    config = sys.modules.get("numba.core.config")
-    if config is not None:  # numba imported first: it read the environment already
+    if config is not None:
         config.CACHE_DIR = folder
     return folder
 
 
-def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path) -> str | None:
+def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path | None = None) -> str | None:
     """None where numba has a cache folder (``in_tree`` or ``user_cache`` writable); else a private
-    folder under ``temp``: ``neuralrt-numba-cache-UID`` (mode 0700) when this user owns it and no
-    one else may write it, or a fresh one of this process's own."""
+    folder under ``temp`` (default: ``$XDG_RUNTIME_DIR``, else the temporary folder):
+    ``neuralrt-numba-cache-UID`` (mode 0700) when this user owns it, no one else may write it and
+    no one else may rename it (``temp`` is ours or sticky), or a fresh one of this process's own."""
     if _writable(in_tree) or _writable(user_cache):
         return None
-    shared = temp / f"neuralrt-numba-cache-{os.getuid() if hasattr(os, 'getuid') else 0}"
     try:
+        temp = temp or Path(os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir())
+        if not _ours_alone(temp, sticky_will_do=True):
+            return None  # (another user could swap whatever we make there)
+        shared = temp / f"neuralrt-numba-cache-{_uid()}"
         shared.mkdir(mode=0o700, exist_ok=True)
-        info = os.lstat(shared)
-        if (stat.S_ISDIR(info.st_mode) and not stat.S_IMODE(info.st_mode) & 0o022
-                and (not hasattr(os, "getuid") or info.st_uid == os.getuid()) and _writable(shared)):
+        if _ours_alone(shared) and _writable(shared):
             return str(shared)
+        own = tempfile.mkdtemp(prefix="neuralrt-numba-cache-", dir=temp)
     except OSError:
-        pass
-    try:
-        return tempfile.mkdtemp(prefix="neuralrt-numba-cache-", dir=temp)
-    except OSError:
-        return None  # (no writable temporary folder either: numba says so itself)
+        return None  # (no usable temporary folder either: numba says so itself)
+    atexit.register(shutil.rmtree, own, ignore_errors=True)
+    return own
+
+
+def _uid() -> int:
+    return os.getuid() if hasattr(os, "getuid") else 0
+
+
+def _ours_alone(folder: Path, sticky_will_do: bool = False) -> bool:
+    """Is ``folder`` a real folder (not a link) that no other user may write, or, with
+    ``sticky_will_do``, a sticky one (``/tmp``: others may add files but not rename ours)?"""
+    info = os.lstat(folder)
+    if not stat.S_ISDIR(info.st_mode):
+        return False
+    if sticky_will_do and info.st_mode & stat.S_ISVTX:
+        return True
+    return info.st_uid == _uid() and not stat.S_IMODE(info.st_mode) & 0o022
 
 
 def _writable(folder: Path) -> bool:

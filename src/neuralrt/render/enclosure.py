@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..rays import Rays
 
-__all__ = ["ENCLOSURE_DIRECTIONS", "enclosing_instance", "enclosure_notes"]
+__all__ = ["ENCLOSURE_DIRECTIONS", "enclosing_instance", "enclosing_instances", "enclosure_notes"]
 
 # The 26 directions to a cube's faces, edges and corners from its centre.
 ENCLOSURE_DIRECTIONS = torch.nn.functional.normalize(
@@ -30,11 +30,20 @@ def enclosing_instance(accel, point: Tensor, camera_rays: bool = False) -> int |
     """The instance that each of `ENCLOSURE_DIRECTIONS` from ``point`` (world space) first meets,
     or None (one ray escapes, or two meet different instances). ``camera_rays``: ask whoever
     answers camera rays (a hybrid scene's exact view of a neural object)."""
+    return enclosing_instances(accel, torch.as_tensor(point, dtype=torch.float32).reshape(1, 3), camera_rays)[0]
+
+
+def enclosing_instances(accel, points, camera_rays: bool = False) -> list[int | None]:
+    """`enclosing_instance` of each of ``points`` ([P, 3]), in one query."""
     directions = ENCLOSURE_DIRECTIONS.to(accel.device)
-    origins = torch.as_tensor(point, dtype=torch.float32, device=accel.device).reshape(1, 3).expand_as(directions)
-    hits = accel.intersect(Rays(origins, directions), camera_rays=camera_rays)
-    first = int(hits.instance_id[0])
-    return first if bool(hits.hit.all()) and bool((hits.instance_id == first).all()) else None
+    points = torch.as_tensor(points, dtype=torch.float32, device=accel.device).reshape(-1, 3)
+    if len(points) == 0:
+        return []
+    origins = points[:, None, :].expand(-1, len(directions), 3)
+    hits = accel.intersect(Rays(origins, directions.expand_as(origins)), camera_rays=camera_rays)
+    met = hits.instance_id.reshape(len(points), len(directions))
+    alike = hits.hit.reshape(met.shape).all(1) & (met == met[:, :1]).all(1)
+    return [int(first) if ok else None for first, ok in zip(met[:, 0].tolist(), alike.tolist())]
 
 
 def enclosure_notes(scene) -> list[str]:
@@ -47,7 +56,9 @@ def enclosure_notes(scene) -> list[str]:
     label = scene.name or "scene"
     judged = f"each of {len(ENCLOSURE_DIRECTIONS)} rays from it, in all directions, meets it first"
     emitters = [] if lights.area is None else lights.area.instance_ids.tolist()
-    positions = [] if lights.points is None else lights.points.positions.tolist()
+    points = lights.points
+    lit = [] if points is None else (points.intensities > 0).any(1).tolist()  # (a dark one lights nothing)
+    positions = [] if points is None else [p for p, on in zip(points.positions.tolist(), lit) if on]
     camera_at = scene.camera.position.tolist()
     boxes = [inst.world_bounds for inst in accel.instances]
     notes = []
@@ -56,8 +67,8 @@ def enclosure_notes(scene) -> list[str]:
             and not any(_holds(boxes[inside], boxes[e].lo.tolist(), boxes[e].hi.tolist()) for e in emitters)):
         notes.append(f"{label}: the camera at {_point(camera_at)} seems to be inside object {_name(accel, inside)} "
                      f"({judged}) and no light is inside it: the image shows its inside, unlit")
-    for k, position in enumerate(positions):
-        around = enclosing_instance(accel, position)
+    numbers = [k for k, on in enumerate(lit) if on]  # (each light's index in the scene's list)
+    for k, position, around in zip(numbers, positions, enclosing_instances(accel, positions)):
         if around is not None and not _holds(boxes[around], camera_at, camera_at):
             notes.append(f"{label}: point light {k} at {_point(position)} seems to be inside object "
                          f"{_name(accel, around)} ({judged}): little or none of its light leaves it")

@@ -257,6 +257,13 @@ def default_path() -> Path:
     return Path(__file__).resolve().parents[3] / "docs" / "scenes.md"
 
 
+def _in_source_tree() -> bool:
+    """Is this module in a checkout's ``src/neuralrt/scene`` (so `default_path` is our docs page),
+    not in an install whose third parent is some other folder (``pip install --target ~/libs``)?"""
+    here = Path(__file__).resolve()
+    return here.parents[2].name == "src" and (here.parents[3] / "pyproject.toml").is_file() and default_path().parent.is_dir()
+
+
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
@@ -265,7 +272,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("output", nargs="?", type=Path, help=f"default: {default_path()} in a source tree; "
                         "printed where there is none (an installed copy)")
     path = parser.parse_args(argv).output
-    if path is None and not default_path().parent.is_dir():  # (site-packages: no docs folder beside it)
+    if path is None and not _in_source_tree():  # (site-packages: no docs folder of ours beside it)
         print(scene_reference(), end="")
         return
     path = path or default_path()
