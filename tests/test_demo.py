@@ -73,8 +73,8 @@ def test_demo_flags_reach_its_settings_and_json_prints_the_report(tmp_path, caps
                                    "primary": "neural"}
     assert printed["flip"] == json.loads((out / "report.json").read_text())["flip"]
     assert "step" not in captured.err  # (--quiet: no progress bars)
-    # Again in the same folder: the model is reused, and said so (not "train 0 s").
-    assert main(["demo", "--quick", "--out", str(out), "--quiet", "--seed", "3", "--max-depth", "1", "--batch", "1024",
+    # Again in the same folder (-o, as the other commands take it): the model is reused, and said so (not "train 0 s").
+    assert main(["demo", "--quick", "-o", str(out), "--quiet", "--seed", "3", "--max-depth", "1", "--batch", "1024",
                  "--min-triangles", "500", "--primary", "neural"]) == 0
     assert "models reused from the folder" in capsys.readouterr().out
     assert "none: the model was reused from the folder" in (out / "report.md").read_text()

@@ -371,7 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_convert)
 
     p = sub.add_parser("demo", help="convert a built-in scene, render exact and hybrid, compare, write a report")
-    p.add_argument("--out", default="neuralrt-demo", help="report folder (default: ./neuralrt-demo)")
+    p.add_argument("-o", "--out", "--output", dest="out", default="neuralrt-demo",  # (-o, as the other commands take)
+                   help="report folder (default: ./neuralrt-demo)")
     p.add_argument("--quick", action="store_true", help="a short run: the same model trained for 150 steps of 4,096 rays, a small image")
     p.add_argument("--scene", help="scene to convert (default: builtin:cornell-statue)")
     _add_method(p)
