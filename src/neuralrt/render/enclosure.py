@@ -57,8 +57,10 @@ def enclosure_notes(scene) -> list[str]:
     judged = f"each of {len(ENCLOSURE_DIRECTIONS)} rays from it, in all directions, meets it first"
     emitters = [] if lights.area is None else lights.area.instance_ids.tolist()
     points = lights.points
-    lit = [] if points is None else (points.intensities > 0).any(1).tolist()  # (a dark one lights nothing)
-    positions = [] if points is None else [p for p, on in zip(points.positions.tolist(), lit) if on]
+    # (index in the scene's list, position) of each point light that shines: a dark one lights nothing
+    lit = [] if points is None else [(k, p) for k, (p, on) in enumerate(zip(points.positions.tolist(),
+                                                                          (points.intensities > 0).any(1).tolist())) if on]
+    positions = [p for _, p in lit]
     camera_at = scene.camera.position.tolist()
     boxes = [inst.world_bounds for inst in accel.instances]
     notes = []
@@ -67,8 +69,7 @@ def enclosure_notes(scene) -> list[str]:
             and not any(_holds(boxes[inside], boxes[e].lo.tolist(), boxes[e].hi.tolist()) for e in emitters)):
         notes.append(f"{label}: the camera at {_point(camera_at)} seems to be inside object {_name(accel, inside)} "
                      f"({judged}) and no light is inside it: the image shows its inside, unlit")
-    numbers = [k for k, on in enumerate(lit) if on]  # (each light's index in the scene's list)
-    for k, position, around in zip(numbers, positions, enclosing_instances(accel, positions)):
+    for (k, position), around in zip(lit, enclosing_instances(accel, positions)):
         if around is not None and not _holds(boxes[around], camera_at, camera_at):
             notes.append(f"{label}: point light {k} at {_point(position)} seems to be inside object "
                          f"{_name(accel, around)} ({judged}): little or none of its light leaves it")
