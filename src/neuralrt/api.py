@@ -573,44 +573,61 @@ def import_scene(gltf: str | Path, output: str | Path) -> dict:
     return import_gltf_scene(gltf, output)
 
 
-def convert(scene: str | Path, output: str | Path, **options) -> dict:
-    """Train models for a scene's complex objects and write a scene that uses them.
+def convert(
+    scene: str | Path | dict,
+    output: str | Path,
+    *,
+    models_dir: str | Path | None = None,
+    select: str | list[str] | None = None,
+    min_triangles: int | None = None,
+    method: str | None = None,
+    preset: str | None = None,
+    group: bool = False,
+    steps: int | None = None,
+    batch: int | None = None,
+    seed: int | None = None,
+    detail: int | None = None,
+    device: str = "cpu",
+    progress: bool = True,
+    executor: str = "local",
+    address: str | None = None,
+    cpus_per_model: float | None = None,
+    gpus_per_model: float | None = None,
+    threads_per_model: int | None = None,
+    max_retries: int | None = None,
+    settings: dict | None = None,
+) -> dict:
+    """Train models for a scene's complex objects and write a scene that uses them (``neuralrt convert``).
 
-    ``options`` (keyword only; `neuralrt.scene.convert.convert_scene` tells each, and the CLI's
-    ``convert`` flags are the same): ``models_dir``, ``select``, ``min_triangles``, ``method``,
-    ``preset``, ``group``, ``steps``, ``batch``, ``seed``, ``detail``, ``device``, ``progress``,
-    ``executor`` (``"local"`` or ``"ray"``: `neuralrt.scene.convert_executors`), ``address``,
-    ``cpus_per_model``, ``gpus_per_model``, ``threads_per_model``, ``max_retries``, ``settings``.
+    The keywords are `neuralrt.scene.convert.convert_scene`'s, which tells each (the CLI's
+    ``convert`` flags are the same); ``select`` also takes comma-separated names, as on the command
+    line, and ``executor`` is ``"local"`` or ``"ray"`` (`neuralrt.scene.convert_executors`).
     Returns the conversion report (what ``convert --json`` prints)."""
-    import inspect
-
     from .scene.convert import convert_scene
 
-    known = [k for k in inspect.signature(convert_scene).parameters if k not in ("scene", "output")]
-    unknown = sorted(set(options) - set(known))
-    if unknown:
-        raise ConfigError(f"convert: unknown option(s) {', '.join(unknown)} (known: {', '.join(known)})")
     if not isinstance(scene, dict):
         scene = check_path("scene", scene)
     output = check_path("output", output)
-    options["models_dir"] = check_path("models_dir", options.get("models_dir"), optional=True)
-    for name in ("method", "preset", "executor", "address"):
-        check_name(name, options.get(name))
-    check_flags(**{k: options[k] for k in ("group", "progress") if k in options})
-    for name, check in (("seed", check_seed), ("steps", check_count), ("batch", check_count),  # (as train names them)
-                        ("min_triangles", lambda n, v: check_count(n, v, minimum=0))):
-        if options.get(name) is not None:
-            options[name] = check(given(name), options[name])
-    select = options.get("select")
+    models_dir = check_path("models_dir", models_dir, optional=True)
+    for name, value in (("method", method), ("preset", preset), ("executor", executor), ("address", address)):
+        check_name(name, value)
+    check_flags(group=group, progress=progress)
+    seed = check_seed(given("seed"), seed)  # (None stays None; names as train gives them)
+    steps, batch = check_count(given("steps"), steps), check_count(given("batch"), batch)
+    min_triangles = check_count(given("min_triangles"), min_triangles, minimum=0)
     if isinstance(select, str):  # as on the command line: comma-separated names
-        options["select"] = [n.strip() for n in select.split(",") if n.strip()]
+        select = [n.strip() for n in select.split(",") if n.strip()]
     elif select is not None and not (isinstance(select, (list, tuple)) and all(isinstance(n, str) for n in select)):
         raise ConfigError(f"select: expected object names (a str or a list of str), got {type(select).__name__}")
-    if options.get("executor", "local") != "ray":
-        check_device(options.get("device", "cpu"))
+    if executor != "ray":
+        check_device(device)
     else:  # Ray tasks train on the cluster's devices, whose presence is checked there; the name, here
-        check_device_name(options.get("device", "cpu"))
-    return convert_scene(scene, output, **options).as_dict()
+        check_device_name(device)
+    return convert_scene(scene, output, models_dir=models_dir, select=select, min_triangles=min_triangles,
+                         method=method, preset=preset, group=group, steps=steps, batch=batch, seed=seed,
+                         detail=detail, device=device, progress=progress, executor=executor, address=address,
+                         cpus_per_model=cpus_per_model, gpus_per_model=gpus_per_model,
+                         threads_per_model=threads_per_model, max_retries=max_retries, settings=settings).as_dict()
 
 
 def demo(out_dir: str | Path = "neuralrt-demo", quick: bool = False, *, device: str = "cpu", progress: bool = True,
