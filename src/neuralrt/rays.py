@@ -571,15 +571,6 @@ class Transform:
         return f"Transform({self._m64.tolist()})"
 
 
-def transform_hits_to_world(hits: Hits, transform: Transform) -> Hits:
-    """Object-space hits to world space: normals by the inverse transpose; t unchanged."""
-    return replace(
-        hits,
-        normal=transform.apply_normals(hits.normal) * hits.hit[:, None],
-        geometric_normal=transform.apply_normals(hits.geometric_normal) * hits.hit[:, None],
-    )
-
-
 def pinhole_rays(
     width: int,
     height: int,

@@ -57,10 +57,6 @@ class MaterialExtras:
     uv_transform: np.ndarray | None = None
     base_color: tuple[float, float, float] | None = None
 
-    @property
-    def moves_maps(self) -> bool:
-        return self.normal_scale != 1.0 or self.uv_transform is not None
-
     def transformed_uvs(self, uv: np.ndarray) -> np.ndarray:
         if self.uv_transform is None:
             return uv

@@ -140,7 +140,7 @@ class NIFNetworks(nn.Module):
     def inner_grids(self) -> list[nn.Parameter]:
         return [self.inner_position.table, self.inner_direction.table, self.inner_distance.table]
 
-    # -- the two networks (logits; sigmoid = visibility) ----------------------------------------
+    # -- the two networks' inputs (their logits: sigmoid = visibility) ------------------------------
     def outer_features(self, obj: Tensor, position: Tensor, direction: Tensor) -> Tensor:
         """[M, 6] outer MLP inputs: position grid then direction grid features."""
         return torch.cat([self.outer_position(obj, position), self.outer_direction(obj, direction)], dim=-1)
@@ -148,12 +148,6 @@ class NIFNetworks(nn.Module):
     def inner_features(self, obj: Tensor, position: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
         """[M, 13] inner MLP inputs: position, direction and distance grid features."""
         return torch.cat([self.inner_position(obj, position), self.inner_direction(obj, direction), self.inner_distance(obj, distance)], dim=-1)
-
-    def outer_logits(self, obj: Tensor, position: Tensor, direction: Tensor) -> Tensor:
-        return self.outer_mlp(self.outer_features(obj, position, direction))[:, 0]
-
-    def inner_logits(self, obj: Tensor, position: Tensor, direction: Tensor, distance: Tensor) -> Tensor:
-        return self.inner_mlp(self.inner_features(obj, position, direction, distance))[:, 0]
 
     def queries(self, pairs: NIFPairs) -> NIFQueries:
         return make_queries(pairs, self.box_lo, self.box_hi)
