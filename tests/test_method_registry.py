@@ -1,6 +1,7 @@
 """The method registry and what every method shares: lookup, presets per device, config dispatch,
 `is_neural`, the mesh check."""
 
+import re
 import warnings
 
 import pytest
@@ -66,3 +67,21 @@ def test_is_neural_and_the_mesh_check():
         warnings.simplefilter("always")
         check_mesh_match(model, None)
     assert [w.category for w in caught] == [MeshMismatchWarning] and "no mesh is given" in str(caught[0].message)
+
+
+@pytest.mark.parametrize("method", ["lsnif", "nbvh"])
+def test_a_config_prints_one_field_per_line_where_its_repr_is_too_long(method):
+    """print(config) and notebooks showed one ~900-character line: now each line fits in 100
+    columns and holds the same fields, values and order as the repr (which stays one line)."""
+    spec = get_method(method)
+    config = spec.config(spec.default_preset("cpu"))
+    shown = []
+    config._repr_pretty_(type("Printer", (), {"text": lambda self, text: shown.append(text)})(), False)
+    lines = shown[0].splitlines()
+    assert shown[0] == str(config) and len(lines) > 10 and max(map(len, lines)) <= 100
+    def bare(text):  # (no white space, no comma before a closing bracket)
+        return re.sub(r",\)", ")", "".join(text.split()))
+
+    assert bare(str(config)) == bare(repr(config))
+    assert "\n" not in repr(config) and lines[1] == f"    method='{method}',"
+    assert str(config.voxel if method == "lsnif" else config.query) == repr(config.voxel if method == "lsnif" else config.query)

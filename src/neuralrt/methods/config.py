@@ -79,6 +79,24 @@ class ConfigSection(BaseModel):
     def _label(cls) -> str:
         return cls.__name__
 
+    def __str__(self) -> str:
+        """``print(config)``, IPython and Jupyter show a config one field per line where its repr
+        (one line, ~900 characters for a whole method's) would not fit; sections that fit keep one."""
+        return self._laid_out("")
+
+    def _repr_pretty_(self, printer, cycle: bool) -> None:
+        printer.text(str(self))
+
+    def _laid_out(self, indent: str, used: int = 0, width: int = 100) -> str:
+        """(``used``: columns the line holds before this section)"""
+        one_line = repr(self)
+        if max(used, len(indent)) + len(one_line) <= width:
+            return one_line
+        inner = indent + "    "
+        fields = [f"{inner}{name}=" + (value._laid_out(inner, len(inner) + len(name) + 1, width)
+                                       if isinstance(value, ConfigSection) else repr(value)) for name, value in self]
+        return f"{type(self).__name__}(\n" + ",\n".join(fields) + f",\n{indent})"
+
 
 class TrainingConfig(ConfigSection):
     """What the shared training loop and the training ray distribution read."""
