@@ -285,6 +285,23 @@ def test_an_interrupt_python_swallows_still_ends_the_command_as_interrupted(caps
     assert main(["compare", "a.exr", "b.exr"]) == 0  # (the next command starts with no interrupt noted)
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_a_signal_during_shutdown_ends_the_process_without_a_traceback(tmp_path):
+    # After the result was printed, a Ctrl-C landing in an exit callback (tqdm's, numba's) printed
+    # "Exception ignored in atexit callback" and its traceback, and the process exited 0.
+    import signal
+
+    script = tmp_path / "run.py"
+    script.write_text("import atexit, os, signal, sys\n"
+                      "from neuralrt.launch import main\n"
+                      "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))  # (the first exit callback to run)\n"
+                      "sys.argv = ['neuralrt', 'info', 'builtin:cornell-statue', '--json']\n"
+                      "raise SystemExit(main())\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -signal.SIGINT and done.stderr == ""
+    assert json.loads(done.stdout)["kind"] == "scene"  # (printed whole before the signal, into a pipe)
+
+
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
     # (they went to Python's own hook, past pytest's, which records them)
     import sys

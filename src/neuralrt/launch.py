@@ -1,6 +1,7 @@
 """The `neuralrt` command's entry point: the CLI (and torch, ~1 s to import) is imported here, so a
 Ctrl-C during that import is the CLI's one line too, not a traceback from inside torch."""
 
+import signal
 import sys
 
 
@@ -10,4 +11,20 @@ def main() -> int:
     except KeyboardInterrupt:
         print("neuralrt: interrupted", file=sys.stderr)
         return 130
-    return cli_main()
+    code = cli_main()
+    _signals_end_the_process()
+    return code
+
+
+def _signals_end_the_process() -> None:
+    """After the command, its result printed: a Ctrl-C or SIGTERM during the interpreter's shutdown
+    ends the process as the signal does by default. Python's handler raised KeyboardInterrupt inside
+    whichever exit callback was running (tqdm's, numba's) and printed its traceback. Everything the
+    command wrote is already in place (outputs are renamed into place; Ray was shut down)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()  # (what the command printed is out before the process can end)
+        except (OSError, ValueError):  # (a closed pipe: the interpreter's own final flush says nothing either)
+            pass
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
