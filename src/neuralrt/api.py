@@ -288,11 +288,12 @@ def render(
     import warnings
 
     from .render.enclosure import enclosure_notes
+    from .render.far_objects import far_object_notes
 
     if not loaded.lights:
         warnings.warn(f"{getattr(loaded, 'name', '') or 'scene'}: the scene has no light (no point light with intensity, "
                       "no emissive object, no environment): it renders black", stacklevel=outside_stacklevel())
-    for note in enclosure_notes(loaded):  # (a camera or light inside an object: said before the render)
+    for note in [*enclosure_notes(loaded), *far_object_notes(loaded)]:  # (said before the render)
         warnings.warn(note, stacklevel=outside_stacklevel())
     nif_report = None
     try:
