@@ -57,6 +57,18 @@ def test_info_mesh_and_scene_json(tmp_path, capsys):
     assert scene["memory_by_role"]["total_bytes"] == scene["memory_bytes"] and scene["memory_by_role"]["neural_bytes"] == 0
 
 
+def test_info_prints_a_far_box_with_the_digits_that_tell_its_corners_apart(tmp_path, capsys):
+    # (at 6 digits a unit sphere at x = 1e7 printed "bounds: 1e+07 -1 -1, 1e+07 1 1": no width)
+    scene = tmp_path / "far.toml"
+    scene.write_text('[camera]\nposition = [1e7, 0, 5]\nlook_at = [1e7, 0, 0]\n\n[[objects]]\nname = "ball"\n'
+                     'generator = { name = "sphere" }\ntransform = { translate = [1e7, 0, 0] }\n')
+    assert main(["info", str(scene)]) == 0
+    bounds = next(line for line in capsys.readouterr().out.splitlines() if line.strip().startswith("bounds:"))
+    assert bounds.split(": ")[1] == "9.999999e+06 -1 -1, 1.0000001e+07 1 1"
+    assert main(["info", "builtin:cornell-statue"]) == 0
+    assert "bounds: -1 -1 -1, 1 1 1" in capsys.readouterr().out  # (short values stay short)
+
+
 def test_built_in_meshes_need_no_mesh_file(tmp_path, capsys):
     # procedural:NAME:DETAIL names a generated mesh wherever a mesh file goes (pip users have no meshes)
     from neuralrt.geometry.procedural import statue

@@ -15,6 +15,8 @@ import threading
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__, api
 from .arguments import spelled_as_flags
 from .errors import NeuralRTError
@@ -57,7 +59,8 @@ def _print_result(result: dict, as_json: bool) -> None:
                 print(f"{'':>{width}}  - {_printable(_flat_text(row))}")
             continue
         elif isinstance(value, list) and not any(isinstance(v, dict) for v in value):
-            value = _flat_text(value) if value else "none"  # (per-view figures, material names, bounds' corners)
+            # (per-view figures, material names, bounds' corners: float32's shortest, or a box at 1e7 read flat)
+            value = _flat_text(value, float32=key == "bounds") if value else "none"
         elif isinstance(value, dict) and any(isinstance(v, dict) for v in value.values()):
             value = json.dumps(value, default=float)  # nested (a config, a training record): compact JSON
         elif isinstance(value, dict):
@@ -65,11 +68,12 @@ def _print_result(result: dict, as_json: bool) -> None:
         print(f"{key:>{width}}: {_printable(str(value))}")
 
 
-def _flat_text(value) -> str:
-    """A flat dict as ``k=v, ...``, a list as ``a, b``: floats to 6 digits, lists inside joined."""
+def _flat_text(value, float32: bool = False) -> str:
+    """A flat dict as ``k=v, ...``, a list as ``a, b``: floats to 6 digits (``float32``: as many as
+    tell the float32 value from its neighbours), lists inside joined."""
     def one(v):
         if isinstance(v, float):
-            return f"{v:.6g}"
+            return str(np.float32(v)).removesuffix(".0") if float32 else f"{v:.6g}"
         return " ".join(map(one, v)) if isinstance(v, (list, tuple)) else str(v)
     if isinstance(value, dict):
         return ", ".join(f"{k}={one(v)}" for k, v in value.items())
