@@ -159,6 +159,10 @@ def test_uvs_without_a_material_are_white_not_trimesh_grey(tmp_path):
     ({"vertex_colors": np.ones((1, 3))}, r"vertex_colors must have shape \[12, 3\] \(one per vertex\), got \[1, 3\]"),
     ({"uvs": np.zeros((12, 3))}, r"uvs must have shape \[12, 2\]"),
     ({"vertex_normals": np.ones((5, 3))}, r"vertex_normals must have shape \[12, 3\]"),
+    # (NaN colours rendered black and stopped training as a diverged loss; NaN UVs and normals passed too)
+    ({"vertex_colors": np.where(np.arange(12)[:, None] < 2, np.nan, 0.5) * np.ones(3)}, r"^mesh: vertex_colors of 2 vertices are NaN or infinite$"),
+    ({"uvs": np.full((12, 2), np.inf)}, r"uvs of 12 vertices are NaN or infinite"),
+    ({"vertex_normals": np.full((12, 3), np.nan)}, r"vertex_normals of 12 vertices are NaN or infinite"),
 ])
 def test_per_vertex_arrays_must_match_the_vertices(kwargs, message):
     ball = sphere(0)

@@ -43,6 +43,23 @@ def test_lean_load_equals_trimesh_processing(tmp_path, tiny_chunks, ext):
     assert mesh.face_material_ids.dtype == np.int32 and not mesh.face_material_ids.any()
 
 
+def test_a_tiny_mesh_gets_the_normals_its_unit_size_copy_gets(tmp_path):
+    # trimesh skips faces whose cross product is under 1e-13: a mesh 1e-6 across had all-zero normals
+    # (binary PLY: trimesh writes OBJ and OFF coordinates to 8 decimals, 2 digits at this size)
+    vertices, faces = _bumpy_sphere()
+    vertices = vertices[:-1]  # (no unreferenced vertex: every normal is a unit one)
+    faces = faces[:-1]
+    normals = {}
+    for scale in (1.0, 2.0 ** -20, 1e-6):
+        path = tmp_path / f"bumpy{scale}.ply"
+        trimesh.Trimesh(vertices * scale, faces, process=False).export(
+            path)
+        normals[scale] = load_mesh(path).vertex_normals
+    np.testing.assert_array_equal(normals[2.0 ** -20], normals[1.0])  # (a power of two: bitwise)
+    np.testing.assert_allclose(normals[1e-6], normals[1.0], atol=1e-5)
+    assert np.allclose(np.linalg.norm(normals[1e-6], axis=1), 1.0, atol=1e-6)
+
+
 def test_file_normals_are_kept(tmp_path, tiny_chunks):
     vertices, faces = _bumpy_sphere()
     normals = np.tile(np.float32([0.0, 0.6, 0.8]), (len(vertices), 1))

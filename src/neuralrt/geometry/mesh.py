@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import math
 import warnings
 from collections.abc import Container
 from dataclasses import dataclass, field
@@ -221,6 +222,9 @@ def _per_vertex(values, width: int, what: str, mesh: "Mesh") -> np.ndarray | Non
         raise MeshError(f"{mesh.name}: {what} are not numbers ({exc})") from None
     if array.shape != (len(mesh.vertices), width):
         raise MeshError(f"{mesh.name}: {what} must have shape [{len(mesh.vertices)}, {width}] (one per vertex), got {list(array.shape)}")
+    if not np.isfinite(array).all():  # (NaN colours rendered black and stopped training as a "diverged" loss)
+        bad = int((~np.isfinite(array)).any(1).sum())
+        raise MeshError(f"{mesh.name}: {what} of {bad} vertices are NaN or infinite")
     return array
 
 
@@ -323,6 +327,9 @@ def _add_weighted_face_normals(summed, faces, weights, face_normals, use):
                     summed[v, c] += weights[f, k] * face_normals[f, c]
 
 
+SMALL_MESH_DIAGONAL = 2.0 ** -10  # (`angle_weighted_vertex_normals`: meshes smaller are scaled up first)
+
+
 def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """[V, 3] float32 vertex normals weighted by corner angle, as trimesh's ``vertex_normals``
     computes them for a file without normals (same per-face formulas, same summation order), in
@@ -330,10 +337,16 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
     Unreferenced vertices get zero."""
     from trimesh import triangles, util
 
+    # trimesh skips a face whose cross product is below 1e-13 long: every face of a mesh 1e-6 across,
+    # whose normals were all zero. A small mesh is scaled up by a power of two first, which leaves
+    # each unit normal and angle bitwise as it was.
+    lo, hi = (np.asarray(b, np.float64) for b in (vertices.min(0), vertices.max(0))) if len(vertices) else (0.0, 0.0)
+    diagonal = float(np.linalg.norm(np.subtract(hi, lo)))
+    scale = 2.0 ** -math.floor(math.log2(diagonal)) if 0 < diagonal < SMALL_MESH_DIAGONAL else 1.0
     summed = np.zeros((len(vertices), 3))
     for s in range(0, len(faces), _CHUNK):
         f = faces[s:s + _CHUNK]
-        tri = vertices[f].astype(np.float64)
+        tri = vertices[f].astype(np.float64) * scale
         unit, valid = triangles.normals(crosses=triangles.cross(tri))
         fn = np.zeros((len(f), 3))
         fn[valid] = unit
