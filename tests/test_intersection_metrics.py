@@ -101,6 +101,30 @@ def test_eval_figures_show_every_view_and_both_ray_sets(tmp_path):
     assert r["silhouette_iou"] == 0.0 and (tmp_path / "none" / "errors.png").stat().st_size > 0
 
 
+def test_a_mesh_no_held_out_ray_or_pixel_meets_is_said_to_measure_nothing(tmp_path):
+    # A needle thinner than a pixel: eval printed accuracy 1, FLIP 0 and IoU 1 from rays and
+    # views that all missed both the mesh and the model.
+    from neuralrt.geometry.mesh import Mesh
+    from neuralrt.geometry.procedural import box
+
+    unit = box()
+    needle = Mesh(unit.vertices * np.array([1e-4, 1e-4, 10.0], np.float32), unit.faces, name="needle")
+    with pytest.warns(UserWarning) as caught:
+        r = evaluate_model(MeshBLAS(needle), needle, rays=1024, cameras=2, resolution=16, image_dir=tmp_path,
+                           timing=False)
+    assert "surface points (the mesh covers little of its box)" in str(caught[0].message)  # (the held-out rays')
+    assert [str(w.message) for w in caught[1:]] == [
+        "needle: none of the 1,024 held-out rays meets the mesh (it covers little of its box): the ray figures count "
+        "misses only",
+        "needle: no pixel of any view at 16x16 shows the mesh or the model (thinner than a pixel): the image figures "
+        "compare empty images"]
+    assert r["outside"]["true_hit_fraction"] == r["surface"]["true_hit_fraction"] == 0.0
+    images = r["images"]
+    assert math.isnan(images["silhouette_iou"]) and math.isnan(images["silhouette_iou_min"])
+    assert all(math.isnan(v) for v in images["silhouette_iou_per_view"].values())
+    assert (tmp_path / "overview.png").stat().st_size > 0 and (tmp_path / "errors.png").stat().st_size > 0
+
+
 def test_speed_and_memory_are_measured_against_exact_tracing_in_the_same_run():
     from neuralrt.eval.costs import same_run_speed
     from neuralrt.methods.lsnif import LSNIFConfig, LSNIFModel

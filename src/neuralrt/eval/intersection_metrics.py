@@ -135,9 +135,11 @@ def _view_image(out_dir: Path, name: str, view: str, who: str) -> Path:
 
 
 def _silhouette_iou(exact_hits: Hits, test_hits: Hits) -> float:
-    """Intersection over union of the pixels each image's rays hit (1 where neither hits any)."""
+    """Intersection over union of the pixels each image's rays hit; NaN (JSON null) where neither
+    hits any, as for the ray metrics' empty denominators (it read 1.0: a perfect score for a view
+    that showed nothing)."""
     both, either = int((exact_hits.hit & test_hits.hit).sum()), int((exact_hits.hit | test_hits.hit).sum())
-    return both / either if either else 1.0
+    return both / either if either else float("nan")
 
 
 # Silhouettes compared, per pixel: neither hits, both hit, only exact (a hole in the model), only the model.
@@ -214,8 +216,8 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         "depth_flip": float(np.mean(flips["depth"])),
         "normal_flip_per_view": flips["normal"],
         "depth_flip_per_view": flips["depth"],
-        "silhouette_iou": float(np.mean(list(ious.values()))),
-        "silhouette_iou_min": float(min(ious.values())),
+        "silhouette_iou": float(np.mean(shown_ious)) if (shown_ious := [v for v in ious.values() if not math.isnan(v)]) else float("nan"),
+        "silhouette_iou_min": float(min(shown_ious, default=float("nan"))),
         "silhouette_iou_per_view": ious,
     }, shown
 
@@ -265,6 +267,9 @@ def evaluate_model(
         result: dict = {"rays": rays, "seed": seed}
         for name, sel in parts:
             result[name] = ray_metrics(pred[sel], batch.truth[sel], batch.rays[sel], diag)
+        if not bool(batch.truth.hit.any()):
+            _measured_nothing(f"none of the {rays:,} held-out rays meets the mesh (it covers little of its box): "
+                              "the ray figures count misses only", mesh)
         if neural and hasattr(model_blas, "feature_statistics"):
             result["features"] = {name: model_blas.feature_statistics(batch.rays[sel], batch.truth[sel]) for name, sel in parts}
         bar.update(1)
@@ -282,6 +287,9 @@ def evaluate_model(
             stage("orbit and axis views")
             result["images"], shown = _image_metrics(model_blas, exact, exact.bounds, cameras, resolution, out_dir,
                                                      lambda view: bar.update(1))
+            if all(math.isnan(v) for v in result["images"]["silhouette_iou_per_view"].values()):
+                _measured_nothing(f"no pixel of any view at {resolution}x{resolution} shows the mesh or the model (thinner "
+                                  "than a pixel): the image figures compare empty images", mesh)
             if out_dir is not None:
                 from ..io.plots import write_eval_errors, write_eval_overview
 
@@ -294,6 +302,16 @@ def evaluate_model(
     finally:
         bar.close()
     return result
+
+
+def _measured_nothing(what: str, mesh: Mesh) -> None:
+    """Warn that a figure measured nothing (a needle's held-out rays and views all missed it, and
+    eval printed a perfect score)."""
+    import warnings
+
+    from ..errors import outside_stacklevel
+
+    warnings.warn(f"{mesh.name}: {what}", stacklevel=outside_stacklevel())
 
 
 def _speed(model_blas, exact: MeshBLAS, distribution: BoxRayDistribution, batch) -> dict:

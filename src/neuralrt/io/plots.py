@@ -8,6 +8,7 @@ threads and leaves no window or global backend behind. Written atomically, like 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -147,7 +148,7 @@ def write_eval_errors(path, errors: dict, silhouette_iou: dict) -> Path:
     views = list(silhouette_iou)
     iou_ax.bar(range(len(views)), [silhouette_iou[v] for v in views], color="tab:blue")
     iou_ax.set_xticks(range(len(views)), [_view_label(v) for v in views], rotation=45, ha="right", fontsize=8)
-    low = min(silhouette_iou.values(), default=1.0)
+    low = min((v for v in silhouette_iou.values() if not math.isnan(v)), default=1.0)  # (NaN: a view neither hits)
     iou_ax.set_ylim(max(0.0, low - 0.1 * (1.0 - low) - 0.02), 1.0)
     iou_ax.set_ylabel("silhouette intersection over union")
     iou_ax.grid(alpha=0.3, axis="y")
@@ -172,7 +173,8 @@ def write_eval_overview(path, shown: dict, silhouette_iou: dict) -> Path:
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
-                ax.set_title(f"{_view_label(view)}\nIoU {silhouette_iou[view]:.3f}", fontsize=8)
+                iou = silhouette_iou[view]
+                ax.set_title(f"{_view_label(view)}\n{'no pixel hit' if math.isnan(iou) else f'IoU {iou:.3f}'}", fontsize=8)
             if c == 0:
                 ax.set_ylabel(rows[r], fontsize=8)
     return write_figure(fig, path)

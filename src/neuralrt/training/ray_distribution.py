@@ -156,8 +156,8 @@ class BoxRayDistribution:
                             "the surface-point pool (too small, too large or too far from the origin for float32?)")
         if len(self.pool_points) < self._pool_size:
             warnings.warn(f"{name}: {tries} x 65536 rays from its bounding sphere found {len(self.pool_points):,} of "
-                          f"{self._pool_size:,} surface points (the mesh covers little of its box); training starts with "
-                          "them and keeps adding hits", stacklevel=outside_stacklevel())
+                          f"{self._pool_size:,} surface points (the mesh covers little of its box); rays from its surface "
+                          "start at those (training adds hits as it finds them)", stacklevel=outside_stacklevel())
 
     # -- surface rays ----------------------------------------------------------------------
     def surface_rays(self, n: int) -> Rays:
