@@ -47,7 +47,8 @@ class Rays:
     - ``directions`` [N, 3]: need not be unit length: ``t`` is measured in units of the
       direction's length, which keeps ``t`` valid when rays are mapped through an affine transform.
       (Shorter than about 1e-14, Embree's answers degrade: it clamps tiny direction components;
-      normalise such directions. Long ones, to 1e18 at least, are answered as unit ones.)
+      normalise such directions. Long ones are answered as unit ones, to 1e18 at least; beyond
+      about 1e19 a neural BLAS's squared length overflows float32 and it misses.)
     - ``t_min``, ``t_max`` [N]: the interval, both ends included (as Embree's); default ``0`` and
       ``+inf``. A scalar or any tensor that broadcasts to the batch shape is accepted. A negative
       ``t_min`` is stored as 0: no BLAS answers hits behind the origin (a neural one cannot: it
