@@ -194,3 +194,47 @@ def test_two_threads_writing_one_set_of_outputs_leave_one_whole_set(tmp_path):
             t.join()
         assert len({path.read_text() for path in names}) == 1
     assert sorted(os.listdir(tmp_path)) == sorted(path.name for path in names)  # (no temporaries)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes: POSIX")
+def test_an_output_that_is_a_pipe_or_a_link_to_one_is_refused_before_the_work(tmp_path):
+    # A device or pipe (or a link to one: as root, `-o` through a link to /dev/null) became a regular file.
+    from neuralrt import api
+    from neuralrt.errors import NeuralRTError
+    from neuralrt.io.files import check_output_file
+
+    os.mkfifo(tmp_path / "pipe.exr")
+    (tmp_path / "link.exr").symlink_to(tmp_path / "pipe.exr")
+    with pytest.raises(NeuralRTError, match=r"pipe.exr: a named pipe, not a regular file: the render output would replace it"):
+        api.render("builtin:cornell-statue?detail=0", tmp_path / "pipe.exr", spp=1, resolution=(4, 4), progress=False)
+    with pytest.raises(NeuralRTError, match=r"link.exr: a link to .*pipe.exr, a named pipe, not a regular file"):
+        check_output_file(tmp_path / "link.exr", "render output")
+    with pytest.raises(NeuralRTError, match="a named pipe"):  # (the writer's own guard, for callers that did not check)
+        write_atomically(tmp_path / "link.exr", lambda tmp: open(tmp, "w").write("x"))
+    assert stat.S_ISFIFO(os.stat(tmp_path / "pipe.exr").st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["link.exr", "pipe.exr"]
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="file owners: POSIX")
+def test_another_users_file_in_a_sticky_folder_is_refused_and_no_file_of_the_set_is_replaced(tmp_path, monkeypatch):
+    # In a shared sticky folder (/tmp) the rename over another user's older r_depth.exr failed after
+    # the render, naming our temporary, with r.exr and two AOVs already replaced.
+    from neuralrt.errors import NeuralRTError
+    from neuralrt.io import files
+
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o1777)
+    for name in ("r.exr", "r_depth.exr"):
+        (shared / name).write_text("old")
+    monkeypatch.setattr(files.os, "geteuid", lambda: os.stat(shared).st_uid + 1)  # (we are another user)
+    with pytest.raises(NeuralRTError, match=r"r_depth.exr: another user's file in a folder where only its owner may "
+                                            r"replace it \(sticky, as /tmp\): give another name for the render output"):
+        files.check_output_files([shared / "r.png", shared / "r_depth.exr"], "render output")
+    with pytest.raises(NeuralRTError, match="r_depth.exr: another user's file"):
+        with files.written_together():  # (checked again before the first rename)
+            monkeypatch.setattr(files.os, "geteuid", lambda: os.stat(shared).st_uid)
+            write_atomically(shared / "r.png", lambda tmp: open(tmp, "w").write("new"))
+            write_atomically(shared / "r_depth.exr", lambda tmp: open(tmp, "w").write("new"))
+            monkeypatch.setattr(files.os, "geteuid", lambda: os.stat(shared).st_uid + 1)
+    assert sorted(p.name for p in shared.iterdir()) == ["r.exr", "r_depth.exr"]
+    assert {(shared / n).read_text() for n in ("r.exr", "r_depth.exr")} == {"old"}

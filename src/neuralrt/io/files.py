@@ -78,6 +78,9 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
     Whatever ``write_to`` raises propagates after the temporary file is removed.
     """
     path = _link_target(Path(path))
+    problem = _replace_problem(path, "file")
+    if problem:  # (callers check first, before their work: this is the last guard)
+        raise NeuralRTError(problem)
     tmp = _create_sibling(path)
     mode = _existing_mode(path)  # a file written again keeps its mode, as `cp` over it does
     if mode is None:
@@ -104,6 +107,33 @@ def write_atomically(path: str | os.PathLike, write_to: Callable[[str], None], f
         if tmp.exists() and (staged is None or (tmp, path) not in staged):
             tmp.unlink()
     return path
+
+
+def _replace_problem(target: Path, what: str, shown: Path | None = None) -> str | None:
+    """Why writing ``what`` over the existing ``target`` (a link's target: `_link_target`) would go
+    wrong, or None: anything but a regular file (a device, a FIFO: in a trial, `-o` through a link
+    to /dev/null made it a regular file), or another user's file in a sticky folder such as /tmp,
+    which only its owner may replace (the rename failed after the work, naming our temporary, and
+    left a render's set half new). ``shown``: the name the user gave."""
+    try:
+        st = os.stat(target)
+    except OSError:
+        return None  # (nothing there yet)
+    name = f"{shown}: a link to {target}," if shown is not None and shown != target else f"{target}:"
+    if not stat.S_ISREG(st.st_mode) and not stat.S_ISDIR(st.st_mode):
+        kind = ("a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
+                "a named pipe" if stat.S_ISFIFO(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "no file")
+        return f"{name} {kind}, not a regular file: the {what} would replace it; give a file name"
+    euid = os.geteuid() if hasattr(os, "geteuid") else None
+    if euid not in (None, 0, st.st_uid):
+        try:
+            folder = os.stat(target.parent)
+        except OSError:
+            return None
+        if folder.st_mode & stat.S_ISVTX and folder.st_uid != euid:
+            return (f"{name} another user's file in a folder where only its owner may replace it (sticky, as /tmp): "
+                    f"give another name for the {what}")
+    return None
 
 
 def _existing_mode(path: Path) -> int | None:
@@ -144,12 +174,18 @@ def written_together():
     finally:
         _STAGED.reset(token)
     with interrupts_held(), _RENAMING:  # (an interrupt between two renames left half the set new, and temporaries)
+        path = None
         try:
+            problem = next(filter(None, (_replace_problem(path, "file") for _, path in staged)), None)
+            if problem:  # (found before the first rename: none of the set is replaced)
+                raise NeuralRTError(problem)
             for tmp, path in staged:
                 os.replace(tmp, path)
-        except BaseException:
+        except BaseException as exc:
             for tmp, _ in staged:
                 tmp.unlink(missing_ok=True)
+            if isinstance(exc, OSError) and path is not None:  # (it named our temporary, not the output)
+                raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
             raise
 
 
@@ -213,6 +249,9 @@ def check_output_files(paths, what: str) -> None:
         target = _link_target(path)
         if target != path and not target.parent.is_dir():  # (commands make the link's folder, not its target's)
             raise NeuralRTError(f"{path}: a link to {target}, whose folder does not exist")
+        problem = _replace_problem(target, what, path)
+        if problem:
+            raise NeuralRTError(problem)
         targets.append(target)
     for folder in dict.fromkeys(target.parent for target in targets):
         problem = _writable_folder_problem(folder, what)
