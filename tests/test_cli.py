@@ -314,6 +314,26 @@ def test_a_signal_during_shutdown_ends_the_process_without_a_traceback(tmp_path)
     assert json.loads(done.stdout)["kind"] == "scene"  # (printed whole before the signal, into a pipe)
 
 
+def test_an_interrupt_python_wraps_in_another_exception_is_still_an_interrupt(capsys, monkeypatch):
+    # SIGTERM during matplotlib's first import landed in a class's __set_name__: Python raised a
+    # RuntimeError from it, and the command ended with that traceback and exit 1.
+    from neuralrt import api
+    from neuralrt.cli import Terminated
+
+    def wrapped(*args, **kwargs):
+        try:
+            raise Terminated()
+        except Terminated as exc:
+            raise RuntimeError("Error calling __set_name__ on '_deprecate_privatize_attribute' instance") from exc
+
+    monkeypatch.setattr(api, "compare", wrapped)
+    assert main(["compare", "a.exr", "b.exr"]) == 143
+    assert capsys.readouterr().err == "neuralrt: terminated\n"
+    monkeypatch.setattr(api, "compare", lambda *args, **kwargs: 1 / 0)  # (other errors are not turned into one)
+    with pytest.raises(ZeroDivisionError):
+        main(["compare", "a.exr", "b.exr"])
+
+
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
     # (they went to Python's own hook, past pytest's, which records them)
     import sys

@@ -425,18 +425,41 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"neuralrt: error: {_printable(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 - an interrupt inside another exception, or not ours
+        interrupt = _interrupt_within(exc)
+        if interrupt is None:
+            raise
+        return _interrupted(interrupt, args)
     except KeyboardInterrupt as exc:
-        hint = getattr(args, "interrupt_hint", None)
-        hint = hint() if callable(hint) else hint
-        terminated = isinstance(exc, Terminated) or Terminated.received  # (Ray's waits re-raise a plain KeyboardInterrupt)
-        print(f"neuralrt: {'terminated' if terminated else 'interrupted'}{f' ({hint})' if hint else ''}", file=sys.stderr)
-        return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
+        return _interrupted(exc, args)
     finally:
         warnings.showwarning = show
         sys.unraisablehook = unraisable
         if on_term is not None:
             signal.signal(signal.SIGTERM, on_term)
     return 0
+
+
+def _interrupt_within(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM an exception was raised from, if any: Python wraps one raised in a
+    class's ``__set_name__`` (as matplotlib's first import runs them) in a RuntimeError, which
+    printed a traceback and exit 1 instead of the interrupt's one line."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _interrupted(exc: KeyboardInterrupt, args) -> int:
+    """The interrupt's one line (with the command's hint), and its exit status: 130, or 143 for SIGTERM."""
+    hint = getattr(args, "interrupt_hint", None)
+    hint = hint() if callable(hint) else hint
+    terminated = isinstance(exc, Terminated) or Terminated.received  # (Ray's waits re-raise a plain KeyboardInterrupt)
+    print(f"neuralrt: {'terminated' if terminated else 'interrupted'}{f' ({hint})' if hint else ''}", file=sys.stderr)
+    return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
 
 
 def _note_swallowed_interrupt(unraisable) -> None:
