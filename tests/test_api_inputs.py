@@ -47,6 +47,20 @@ def test_paths_of_the_wrong_type_are_named(tmp_path, ball, call, message):
         call(tmp_path, ball)
 
 
+def test_a_path_whose_bytes_are_not_text_is_refused_before_the_work(tmp_path, ball):
+    # (train wrote a model no command could read back: safetensors and OpenEXR take text paths only;
+    # render failed after the work and left a new empty folder)
+    import os
+
+    bad = os.fsdecode(b"e\xff")  # (as Python decodes such a name from the command line or a listing)
+    message = r"/e\\xff/m.nrt: this path's bytes are not text in the locale's encoding"
+    with pytest.raises(ConfigError, match=message):
+        api.train(ball, tmp_path / bad / "m.nrt", steps=1, progress=False)
+    with pytest.raises(ConfigError, match=message.replace("m.nrt", "r.exr")):
+        api.render("builtin:cornell-statue", tmp_path / bad / "r.exr", progress=False)
+    assert not (tmp_path / bad).exists()
+
+
 def test_a_mesh_given_as_the_model_says_so(ball):
     from neuralrt import load_mesh
 

@@ -8,6 +8,7 @@ torch is imported inside the functions: ``neuralrt.api`` imports this module and
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from .arguments import given
@@ -106,6 +107,13 @@ def check_path(name: str, value, optional: bool = False) -> Path | None:
     if value is None and optional:
         return None
     if isinstance(value, (str, os.PathLike)) and str(value) != "":
+        try:
+            str(value).encode("utf-8")
+        except UnicodeEncodeError:  # (bytes the locale did not decode: safetensors and OpenEXR open no such path)
+            shown = os.fsencode(str(value)).decode("utf-8", "backslashreplace")
+            raise ConfigError(f"{shown}: this path's bytes are not text in the locale's encoding ({sys.getfilesystemencoding()}), "
+                              "and model, image and scene files open by text paths only: rename it, or run in a UTF-8 "
+                              "locale (PYTHONUTF8=1)") from None
         return Path(value)
     got = "an empty string" if isinstance(value, str) else type(value).__name__  # (no == on arrays)
     raise ConfigError(f"{name}: expected a path (str or os.PathLike), got {got}")
