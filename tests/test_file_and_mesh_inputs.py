@@ -341,8 +341,8 @@ def test_a_texture_larger_than_the_memory_left_is_a_warning_not_an_allocation(tm
     (tmp_path / "t.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd t.png\n")
     (tmp_path / "t.obj").write_text("mtllib t.mtl\n" + _TRIANGLE_OBJ)
     monkeypatch.setattr(neuralrt.devices, "available_bytes", lambda device: 1000)  # 8x8 pixels need 2,304 bytes
-    with pytest.warns(UserWarning, match=r"the 8x8 texture of material 'tex' could not be decoded \(decoding it needs 0\.0 GiB "
-                                          r"of memory, 0\.0 GiB is available on cpu\)"):
+    with pytest.warns(UserWarning, match=r"the 8x8 texture of material 'tex' could not be decoded \(decoding it needs 2 KiB "
+                                          r"of memory, 1 KiB is available on cpu\)"):
         assert load_mesh(tmp_path / "t.obj").materials[0].texture is None
 
 

@@ -68,13 +68,21 @@ def resolve_device(device):
 
 
 def available_bytes(device) -> int | None:
-    """Memory the process could still take on ``device`` (CPU: the kernel's MemAvailable; CUDA: free
-    device memory), or None where it cannot tell."""
+    """Memory the process could still take on ``device``, or None where it cannot tell. CUDA: free
+    device memory. CPU: the least of the kernel's MemAvailable, what a memory cgroup leaves (a
+    container's or a batch job's limit, which MemAvailable does not show) and what an address-space
+    limit leaves (``ulimit -v``, as SGE's h_vmem sets: in a trial, renders and trainings the
+    MemAvailable check let through ended in allocator tracebacks, and FLIP in a crash)."""
     import torch
 
     device = torch.device(device)
     if device.type == "cuda":
         return int(torch.cuda.mem_get_info(device)[0])
+    known = [n for n in (_mem_available(), _cgroup_headroom(), _address_space_headroom()) if n is not None]
+    return min(known, default=None)
+
+
+def _mem_available() -> int | None:
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -85,13 +93,72 @@ def available_bytes(device) -> int | None:
     return None
 
 
+def _cgroup_headroom(proc_cgroup: str = "/proc/self/cgroup", root: str = "/sys/fs/cgroup") -> int | None:
+    """The least, over this process's memory cgroup and its ancestors (a limit set above binds too),
+    of limit minus usage, inactive file cache counted as free (the kernel reclaims it); cgroup v2
+    (``memory.max``) or v1 (``memory.limit_in_bytes``). None where no limit is set or readable."""
+    try:
+        lines = Path(proc_cgroup).read_text().splitlines()
+    except OSError:
+        return None
+    least = None
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if controllers == "":  # v2's one hierarchy
+            base, files = Path(root), ("memory.max", "memory.current", "inactive_file")
+        elif "memory" in controllers.split(","):
+            base, files = Path(root) / "memory", ("memory.limit_in_bytes", "memory.usage_in_bytes", "total_inactive_file")
+        else:
+            continue
+        folder = base / path.strip().lstrip("/")
+        for level in (folder, *folder.parents):
+            if not level.is_relative_to(base):
+                break
+            headroom = _cgroup_level_headroom(level, *files)
+            if headroom is not None:
+                least = headroom if least is None else min(least, headroom)
+    return least
+
+
+def _cgroup_level_headroom(level: Path, limit_file: str, usage_file: str, cache_key: str) -> int | None:
+    try:
+        limit = (level / limit_file).read_text().strip()
+        if not limit.isdigit() or int(limit) >= 1 << 60:  # ("max", or v1's "no limit": 2^63 rounded to pages)
+            return None
+        usage = int((level / usage_file).read_text())
+        stats = dict(line.split(None, 1) for line in (level / "memory.stat").read_text().splitlines() if " " in line)
+        cache = int(stats.get(cache_key, 0))
+    except (OSError, ValueError):
+        return None
+    return max(int(limit) - usage + cache, 0)
+
+
+def _address_space_headroom() -> int | None:
+    """What is left of an address-space limit (``ulimit -v``), or None where none is set."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft == resource.RLIM_INFINITY:
+            return None
+        mapped = int(Path("/proc/self/statm").read_text().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (ImportError, OSError, ValueError, IndexError):
+        return None
+    return max(soft - mapped, 0)
+
+
 def memory_shortfall(needed: int, device) -> str | None:
-    """``"needs X GiB of memory, Y GiB is available on DEVICE"`` where ``needed`` bytes exceed what
+    """``"needs 9.2 GiB of memory, 4.3 GiB is available on DEVICE"`` where ``needed`` bytes exceed what
     ``device`` has left, else None (also where that cannot be told)."""
     have = available_bytes(device)
     if have is not None and needed > have:
-        return f"needs {needed / 2**30:.1f} GiB of memory, {have / 2**30:.1f} GiB is available on {device}"
+        return f"needs {_size(needed)} of memory, {_size(have)} is available on {device}"
     return None
+
+
+def _size(n: int) -> str:
+    """Bytes to read: GiB to one decimal, below that whole MiB ("0.4 GiB" and "0.4 GiB" told nothing)."""
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB" if n >= 2**20 else f"{n / 2**10:.0f} KiB"
 
 
 def check_memory(what: str, needed: int, device, advice: str) -> None:
