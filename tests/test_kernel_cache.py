@@ -86,3 +86,39 @@ def test_the_choice_reaches_numba_and_the_users_own_setting_stays(tmp_path, monk
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setattr(numba.core.config, "CACHE_DIR", "/set/in/code")  # (numba imported first, set by hand)
     assert choose_kernel_cache() is None and numba.core.config.CACHE_DIR == "/set/in/code"
+
+
+def test_a_cache_file_numba_cannot_write_is_a_warning_and_the_kernel_runs(tmp_path):
+    # A full disk under numba's cache made every command on a cold cache fail ("No space left on
+    # device", naming no file). In a child: numba loads after `import neuralrt`, as in a command.
+    import subprocess
+    import textwrap
+
+    (tmp_path / "kernel_mod.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n")
+    script = textwrap.dedent("""
+        import errno, sys, warnings
+        import neuralrt
+        from neuralrt.kernel_cache import _GuardOnImport
+        assert "numba" not in sys.modules and any(isinstance(f, _GuardOnImport) for f in sys.meta_path)
+        import numba.core.caching as caching
+        assert not any(isinstance(f, _GuardOnImport) for f in sys.meta_path)  # (it took itself out)
+
+        def full(self, key, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        caching.IndexDataCacheFile.save = full
+        sys.path.insert(0, sys.argv[1])
+        import kernel_mod
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            print(kernel_mod.f(41))
+        print(len(caught), caught[0].category.__name__, caught[0].message)
+    """)
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")})
+    assert done.returncode == 0, done.stderr
+    result, warned = done.stdout.splitlines()
+    assert result == "42"
+    assert warned.startswith(f"1 RuntimeWarning {tmp_path / 'cache'}") and warned.endswith(
+        ": numba cannot cache compiled kernels there (No space left on device): they run, and compile again in the "
+        "next process")

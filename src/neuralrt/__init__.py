@@ -23,9 +23,10 @@ if "OMP_WAIT_POLICY" not in os.environ:
     os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 from .errors import NeuralRTError
-from .kernel_cache import choose_kernel_cache
+from .kernel_cache import choose_kernel_cache, guard_cache_writes
 
 choose_kernel_cache()  # (before any kernel compiles: a read-only install with no home cached nowhere, and failed)
+guard_cache_writes()  # (a full disk under the cache made every command on a cold cache fail)
 
 __version__ = "0.1.0"
 

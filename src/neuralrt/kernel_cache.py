@@ -12,11 +12,17 @@ loads, so a folder another user could have made, written to or swapped is not us
 process's own is made instead, compiled again by each process as without a cache, and removed
 at exit. A cache folder the user chose (``NUMBA_CACHE_DIR``, or numba's ``config.CACHE_DIR`` set
 in code) is never changed.
+
+`guard_cache_writes` makes a cache file numba cannot write (a full disk, a quota) a warning: the
+kernel was compiled and runs; only the next process compiles it again. It was the command's end
+(``neuralrt: error: No space left on device``, naming no file).
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
+import importlib.machinery
 import os
 import shutil
 import stat
@@ -24,7 +30,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["choose_kernel_cache", "fallback_cache_dir"]
+__all__ = ["choose_kernel_cache", "fallback_cache_dir", "guard_cache_writes"]
 
 
 def choose_kernel_cache() -> str | None:
@@ -87,3 +93,61 @@ def _writable(folder: Path) -> bool:
         return True
     except OSError:
         return False
+
+
+def guard_cache_writes() -> None:
+    """Make numba's cache writes failing with an OSError a warning (once a process), now if numba's
+    caching module is loaded, else when it loads (``import neuralrt`` does not import numba)."""
+    module = sys.modules.get("numba.core.caching")
+    if module is not None:
+        _guard(module)
+    elif not any(isinstance(f, _GuardOnImport) for f in sys.meta_path):
+        sys.meta_path.insert(0, _GuardOnImport())
+
+
+class _GuardOnImport:
+    """A `sys.meta_path` finder that only wraps the loading of ``numba.core.caching`` (found as
+    usual) so that `_guard` runs once it is loaded; then it takes itself out."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "numba.core.caching":
+            return None
+        with contextlib.suppress(ValueError):  # (taken out already)
+            sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        load = spec.loader.exec_module
+
+        def exec_module(module):
+            load(module)
+            _guard(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+_WARNED: list[str] = []
+
+
+def _guard(caching) -> None:
+    cache = getattr(caching, "Cache", None)
+    save = getattr(cache, "save_overload", None)
+    if save is None or getattr(save, "neuralrt_guarded", False):
+        return
+
+    def save_overload(self, sig, data):
+        try:
+            save(self, sig, data)
+        except OSError as exc:
+            if not _WARNED:
+                import warnings
+
+                _WARNED.append(str(exc))
+                where = getattr(self, "_cache_path", None) or "numba's cache folder"
+                warnings.warn(f"{where}: numba cannot cache compiled kernels there ({exc.strerror or exc}): they run, "
+                              "and compile again in the next process", RuntimeWarning, stacklevel=2)
+
+    save_overload.neuralrt_guarded = True
+    cache.save_overload = save_overload
+
