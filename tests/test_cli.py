@@ -334,6 +334,15 @@ def test_an_interrupt_python_wraps_in_another_exception_is_still_an_interrupt(ca
         main(["compare", "a.exr", "b.exr"])
 
 
+@pytest.mark.parametrize("value", ["0", "abc", "-2"])
+def test_a_thread_count_numba_cannot_take_is_one_line(capsys, monkeypatch, value):
+    # (NUMBA_NUM_THREADS=0 ended in numba's ValueError traceback; "abc" printed a traceback inside a warning)
+    monkeypatch.setenv("NUMBA_NUM_THREADS", value)
+    assert main(["info", "procedural:statue:0"]) == 2
+    assert capsys.readouterr().err == (f"neuralrt: error: NUMBA_NUM_THREADS={value!r}: expected a whole number of "
+                                       "threads, 1 or more (unset, numba uses every core)\n")
+
+
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
     # (they went to Python's own hook, past pytest's, which records them)
     import sys

@@ -410,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
     _OTHER_UNRAISABLE[:] = [unraisable]
     args = None
     try:
+        _check_environment()
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
         with spelled_as_flags():  # errors name --flags, as the user typed them
             args.func(args)
@@ -438,6 +439,14 @@ def main(argv: list[str] | None = None) -> int:
         if on_term is not None:
             signal.signal(signal.SIGTERM, on_term)
     return 0
+
+
+def _check_environment() -> None:
+    """One line for an environment setting that a library would answer with a traceback, later."""
+    threads = os.environ.get("NUMBA_NUM_THREADS")
+    if threads is not None and not (threads.strip().isdigit() and int(threads) >= 1):
+        raise NeuralRTError(f"NUMBA_NUM_THREADS={threads!r}: expected a whole number of threads, 1 or more (unset, "
+                            "numba uses every core)")
 
 
 def _interrupt_within(exc: BaseException) -> KeyboardInterrupt | None:
