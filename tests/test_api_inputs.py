@@ -53,7 +53,7 @@ def test_a_path_whose_bytes_are_not_text_is_refused_before_the_work(tmp_path, ba
     import os
 
     bad = os.fsdecode(b"e\xff")  # (as Python decodes such a name from the command line or a listing)
-    message = r"/e\\xff/m.nrt: this path's bytes are not text in the locale's encoding"
+    message = r"/e\\xff/m.nrt: this path's bytes are not UTF-8 text, which the libraries that open model, image and scene"
     with pytest.raises(ConfigError, match=message):
         api.train(ball, tmp_path / bad / "m.nrt", steps=1, progress=False)
     with pytest.raises(ConfigError, match=message.replace("m.nrt", "r.exr")):

@@ -64,7 +64,7 @@ def test_info_prints_a_far_box_with_the_digits_that_tell_its_corners_apart(tmp_p
                      'generator = { name = "sphere" }\ntransform = { translate = [1e7, 0, 0] }\n')
     assert main(["info", str(scene)]) == 0
     bounds = next(line for line in capsys.readouterr().out.splitlines() if line.strip().startswith("bounds:"))
-    assert bounds.split(": ")[1] == "9.999999e+06 -1 -1, 1.0000001e+07 1 1"
+    assert bounds.split(": ")[1] == "9999999 -1 -1, 10000001 1 1"
     assert main(["info", "builtin:cornell-statue"]) == 0
     assert "bounds: -1 -1 -1, 1 1 1" in capsys.readouterr().out  # (short values stay short)
 
@@ -306,7 +306,7 @@ def test_a_signal_during_shutdown_ends_the_process_without_a_traceback(tmp_path)
     script = tmp_path / "run.py"
     script.write_text("import atexit, os, signal, sys\n"
                       "from neuralrt.launch import main\n"
-                      "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))  # (the first exit callback to run)\n"
+                      "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))  # (runs after those main registers)\n"
                       "sys.argv = ['neuralrt', 'info', 'builtin:cornell-statue', '--json']\n"
                       "raise SystemExit(main())\n")
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)

@@ -94,7 +94,9 @@ def test_a_cache_file_numba_cannot_write_is_a_warning_and_the_kernel_runs(tmp_pa
     import subprocess
     import textwrap
 
-    (tmp_path / "kernel_mod.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n")
+    kernel = "import numba\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n"
+    (tmp_path / "kernel_mod.py").write_text('__name__ = "neuralrt.kernel_under_test"  # (one of ours)\n' + kernel)
+    (tmp_path / "their_mod.py").write_text(kernel)  # (another package's: numba's own behaviour stays)
     script = textwrap.dedent("""
         import errno, sys, warnings
         import neuralrt
@@ -113,12 +115,17 @@ def test_a_cache_file_numba_cannot_write_is_a_warning_and_the_kernel_runs(tmp_pa
             warnings.simplefilter("always")
             print(kernel_mod.f(41))
         print(len(caught), caught[0].category.__name__, caught[0].message)
+        import their_mod
+        try:
+            their_mod.f(1)
+        except OSError as exc:
+            print("theirs:", exc.strerror)
     """)
     done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True, timeout=300,
                           env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")})
     assert done.returncode == 0, done.stderr
-    result, warned = done.stdout.splitlines()
-    assert result == "42"
+    result, warned, theirs = done.stdout.splitlines()
+    assert result == "42" and theirs == "theirs: No space left on device"
     assert warned.startswith(f"1 RuntimeWarning {tmp_path / 'cache'}") and warned.endswith(
         ": numba cannot cache compiled kernels there (No space left on device): they run, and compile again in the "
         "next process")

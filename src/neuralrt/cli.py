@@ -73,11 +73,20 @@ def _flat_text(value, float32: bool = False) -> str:
     tell the float32 value from its neighbours), lists inside joined."""
     def one(v):
         if isinstance(v, float):
-            return str(np.float32(v)).removesuffix(".0") if float32 else f"{v:.6g}"
+            return _float32_text(v) if float32 else f"{v:.6g}"
         return " ".join(map(one, v)) if isinstance(v, (list, tuple)) else str(v)
     if isinstance(value, dict):
         return ", ".join(f"{k}={one(v)}" for k, v in value.items())
     return ", ".join(map(one, value))
+
+
+def _float32_text(v: float) -> str:
+    """The fewest digits that tell the float32 nearest ``v`` from its neighbours (numpy's shortest
+    round trip), positional unless very large or small (``10000001``, ``0.999``, ``1e+20``)."""
+    x = np.float32(v)
+    if x != 0 and not 1e-4 <= abs(x) < 1e16:
+        return np.format_float_scientific(x, unique=True, trim="-")
+    return np.format_float_positional(x, unique=True, trim="-")
 
 
 def _printable(text: str) -> str:
@@ -410,8 +419,8 @@ def main(argv: list[str] | None = None) -> int:
     _OTHER_UNRAISABLE[:] = [unraisable]
     args = None
     try:
-        _check_environment()
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
+        _check_environment()  # (after --help and --version, which need none of it)
         with spelled_as_flags():  # errors name --flags, as the user typed them
             args.func(args)
         if _SWALLOWED:  # (it ran to its end: an interrupt is still an interrupt, exit 130 or 143)
@@ -444,7 +453,11 @@ def main(argv: list[str] | None = None) -> int:
 def _check_environment() -> None:
     """One line for an environment setting that a library would answer with a traceback, later."""
     threads = os.environ.get("NUMBA_NUM_THREADS")
-    if threads is not None and not (threads.strip().isdigit() and int(threads) >= 1):
+    try:
+        usable = threads is None or int(threads) >= 1  # (as numba parses it)
+    except ValueError:
+        usable = False
+    if not usable:
         raise NeuralRTError(f"NUMBA_NUM_THREADS={threads!r}: expected a whole number of threads, 1 or more (unset, "
                             "numba uses every core)")
 

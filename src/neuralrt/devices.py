@@ -152,12 +152,15 @@ def memory_shortfall(needed: int, device) -> str | None:
     ``device`` has left, else None (also where that cannot be told)."""
     have = available_bytes(device)
     if have is not None and needed > have:
-        return f"needs {_size(needed)} of memory, {_size(have)} is available on {device}"
+        need, left = _size(needed), _size(have)
+        if need == left:  # ("8 MiB" and "8 MiB" told nothing)
+            need, left = f"{needed:,} bytes", f"{have:,} bytes"
+        return f"needs {need} of memory, {left} is available on {device}"
     return None
 
 
 def _size(n: int) -> str:
-    """Bytes to read: GiB to one decimal, below that whole MiB ("0.4 GiB" and "0.4 GiB" told nothing)."""
+    """Bytes to read: GiB to one decimal, below that whole MiB or KiB."""
     return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB" if n >= 2**20 else f"{n / 2**10:.0f} KiB"
 
 
@@ -174,13 +177,20 @@ def check_path(name: str, value, optional: bool = False) -> Path | None:
     if value is None and optional:
         return None
     if isinstance(value, (str, os.PathLike)) and str(value) != "":
+        text = str(value)
         try:
-            str(value).encode("utf-8")
-        except UnicodeEncodeError:  # (bytes the locale did not decode: safetensors and OpenEXR open no such path)
-            shown = os.fsencode(str(value)).decode("utf-8", "backslashreplace")
-            raise ConfigError(f"{shown}: this path's bytes are not text in the locale's encoding ({sys.getfilesystemencoding()}), "
-                              "and model, image and scene files open by text paths only: rename it, or run in a UTF-8 "
-                              "locale (PYTHONUTF8=1)") from None
+            as_utf8 = text.encode("utf-8")
+        except UnicodeEncodeError:  # (bytes the locale did not decode)
+            as_utf8 = None
+        # safetensors and OpenEXR open a path by its UTF-8 bytes: where those are not the name's bytes
+        # (undecodable bytes; any non-ASCII name in another locale), they open another file, or none.
+        if as_utf8 != os.fsencode(text):
+            shown = os.fsencode(text).decode("utf-8", "backslashreplace")
+            encoding = sys.getfilesystemencoding()
+            advice = "rename it" if encoding.lower().replace("-", "") == "utf8" else \
+                f"rename it, or run in a UTF-8 locale (this one's encoding: {encoding}; PYTHONUTF8=1)"
+            raise ConfigError(f"{shown}: this path's bytes are not UTF-8 text, which the libraries that open model, "
+                              f"image and scene files take: {advice}")
         return Path(value)
     got = "an empty string" if isinstance(value, str) else type(value).__name__  # (no == on arrays)
     raise ConfigError(f"{name}: expected a path (str or os.PathLike), got {got}")

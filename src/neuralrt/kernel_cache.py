@@ -13,8 +13,9 @@ process's own is made instead, compiled again by each process as without a cache
 at exit. A cache folder the user chose (``NUMBA_CACHE_DIR``, or numba's ``config.CACHE_DIR`` set
 in code) is never changed.
 
-`guard_cache_writes` makes a cache file numba cannot write (a full disk, a quota) a warning: the
-kernel was compiled and runs; only the next process compiles it again. It was the command's end
+`guard_cache_writes` makes a cache file numba cannot write for one of neuralrt's kernels (a full
+disk, a quota) a warning: the kernel was compiled and runs; only the next process compiles it
+again. It was the command's end
 (``neuralrt: error: No space left on device``, naming no file).
 """
 
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import importlib.machinery
 import os
 import shutil
 import stat
@@ -106,15 +106,14 @@ def guard_cache_writes() -> None:
 
 
 class _GuardOnImport:
-    """A `sys.meta_path` finder that only wraps the loading of ``numba.core.caching`` (found as
-    usual) so that `_guard` runs once it is loaded; then it takes itself out."""
+    """A `sys.meta_path` finder that only wraps the loading of ``numba.core.caching`` (found by the
+    finders after it, as usual) so that `_guard` runs once it is loaded, and then takes itself out."""
 
     def find_spec(self, name, path=None, target=None):
         if name != "numba.core.caching":
             return None
-        with contextlib.suppress(ValueError):  # (taken out already)
-            sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        others = [f for f in sys.meta_path if f is not self and hasattr(f, "find_spec")]
+        spec = next((found for f in others if (found := f.find_spec(name, path, target)) is not None), None)
         if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
             return spec
         load = spec.loader.exec_module
@@ -122,6 +121,8 @@ class _GuardOnImport:
         def exec_module(module):
             load(module)
             _guard(module)
+            with contextlib.suppress(ValueError):  # (taken out already)
+                sys.meta_path.remove(self)
 
         spec.loader.exec_module = exec_module
         return spec
@@ -140,6 +141,9 @@ def _guard(caching) -> None:
         try:
             save(self, sig, data)
         except OSError as exc:
+            module = getattr(getattr(self, "_py_func", None), "__module__", None) or ""
+            if module.split(".")[0] != "neuralrt":  # (another package's kernels: numba's own behaviour)
+                raise
             if not _WARNED:
                 import warnings
 

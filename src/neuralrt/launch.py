@@ -11,20 +11,23 @@ def main() -> int:
     except KeyboardInterrupt:
         print("neuralrt: interrupted", file=sys.stderr)
         return 130
+    ignored = [s for s in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(s) is signal.SIG_IGN]  # (as inherited)
     code = cli_main()
-    _signals_end_the_process()
+    _signals_end_the_process(ignored)
     return code
 
 
-def _signals_end_the_process() -> None:
+def _signals_end_the_process(ignored: list) -> None:
     """After the command, its result printed: a Ctrl-C or SIGTERM during the interpreter's shutdown
     ends the process as the signal does by default. Python's handler raised KeyboardInterrupt inside
-    whichever exit callback was running (tqdm's, numba's) and printed its traceback. Everything the
-    command wrote is already in place (outputs are renamed into place; Ray was shut down)."""
+    whichever exit callback was running (tqdm's, numba's) and printed its traceback. The outputs are
+    in place by then (renamed into place; Ray shut down); exit callbacks not yet run are skipped (a
+    per-process numba cache folder in the temporary folder can stay). A signal the process was
+    started ignoring (``nohup``, a background job of a script) stays ignored."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()  # (what the command printed is out before the process can end)
         except (OSError, ValueError):  # (a closed pipe: the interpreter's own final flush says nothing either)
             pass
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_DFL)
+        signal.signal(sig, signal.SIG_IGN if sig in ignored else signal.SIG_DFL)

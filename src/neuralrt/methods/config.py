@@ -90,7 +90,7 @@ class ConfigSection(BaseModel):
     def _laid_out(self, indent: str, used: int = 0, width: int = 100) -> str:
         """(``used``: columns the line holds before this section)"""
         one_line = repr(self)
-        if max(used, len(indent)) + len(one_line) <= width:
+        if max(used, len(indent)) + len(one_line) + (used > 0) <= width:  # (a field's line ends in a comma)
             return one_line
         inner = indent + "    "
         fields = [f"{inner}{name}=" + (value._laid_out(inner, len(inner) + len(name) + 1, width)

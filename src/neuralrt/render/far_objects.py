@@ -32,7 +32,7 @@ def far_object_notes(scene) -> list[str]:
     size = (hi - lo).norm(dim=-1)
     farthest = torch.maximum(lo.abs(), hi.abs()).amax(-1)
     share = POSITION_OFFSET * farthest / size.clamp_min(1e-30)
-    far = (share > FAR_OFFSET_FRACTION).nonzero().flatten().tolist()
+    far = ((share > FAR_OFFSET_FRACTION) & (size > 0)).nonzero().flatten().tolist()  # (a point has no shadow to lose)
     if not far:
         return []
     worst = max(far, key=lambda k: float(share[k]))

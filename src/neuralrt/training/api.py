@@ -85,8 +85,9 @@ def train(
     spec = get_method(config.method if config is not None else DEFAULT_METHOD)
     config = config or spec.config(device=device.type)
     tc = config.training
-    check_memory(f"a training batch of {tc.batch_size:,} rays", tc.batch_size * TRAINING_BYTES_PER_RAY, device,
-                 f"give a smaller {given('batch')} (training.batch_size)")
+    if device.type == "cpu":  # (the figure is the CPU's; CUDA's torch caching allocator holds memory it would reuse)
+        check_memory(f"a training batch of {tc.batch_size:,} rays", tc.batch_size * TRAINING_BYTES_PER_RAY, device,
+                     f"give a smaller {given('batch')} (training.batch_size)")
     identity = run_identity(mesh.content_hash(), config)
     # (two runs on one checkpoint would each overwrite the other's: the second is told, here)
     with held_alone(checkpoint) if checkpoint is not None else contextlib.nullcontext():
