@@ -312,6 +312,10 @@ def test_a_signal_during_shutdown_ends_the_process_without_a_traceback(tmp_path)
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
     assert done.returncode == -signal.SIGINT and done.stderr == ""
     assert json.loads(done.stdout)["kind"] == "scene"  # (printed whole before the signal, into a pipe)
+    # Started ignoring SIGINT (a background job of a script, nohup), it still ignores it then.
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert done.returncode == 0 and done.stderr == "" and json.loads(done.stdout)["kind"] == "scene"
 
 
 def test_an_interrupt_python_wraps_in_another_exception_is_still_an_interrupt(capsys, monkeypatch):
