@@ -18,6 +18,7 @@ from neuralrt.scene.loader import load_dict, load_scene, load_scene_spec
 from neuralrt.scene.schema import DiffuseMaterialSpec, ObjectSpec, SceneSpec
 
 SPHERE = {"generator": {"name": "sphere", "params": {"subdivisions": 1}}}
+IDENTITY = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 ROW_ZERO = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]]
 BOTTOM_ZERO = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0]]
 TINY_AXIS = [[1e-30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
@@ -51,7 +52,14 @@ BAD_TRANSFORMS = [
     ({"scale": 1e300}, "objects.0.transform.scale: scale must be within 1e-12 to 1e+12"),
     ({"scale": [1, 1e-8, 1]}, "objects.0.transform: matrix is singular for float32"),
     ({"scale": [1, 0, 1]}, "objects.0.transform.scale: scale must be finite and non-zero"),
+    ({"matrix": IDENTITY, "scale": [1, 2, 1]}, "objects.0.transform: give either matrix or translate/rotate/scale, not both"),
 ]
+
+
+def test_a_matrix_beside_the_default_scale_spelled_per_axis_is_accepted():
+    # (translate [0, 0, 0] beside a matrix was accepted, scale [1, 1, 1] refused as "both given")
+    for defaults in ({"scale": [1, 1, 1]}, {"scale": 1.0}, {"translate": [0, 0, 0]}):
+        load_dict({"objects": [{**SPHERE, "transform": {"matrix": IDENTITY, **defaults}}]})
 
 
 @pytest.mark.parametrize("transform,message", BAD_TRANSFORMS)

@@ -190,7 +190,8 @@ class TransformSpec(_Strict):
 
     @model_validator(mode="after")
     def _matrix_alone(self) -> "TransformSpec":
-        if self.matrix is not None and (self.translate != (0, 0, 0) or self.rotate != (0, 0, 0) or self.scale != 1.0):
+        scaled = any(x != 1.0 for x in ((self.scale,) if isinstance(self.scale, (int, float)) else self.scale))
+        if self.matrix is not None and (self.translate != (0, 0, 0) or self.rotate != (0, 0, 0) or scaled):  # (scale [1, 1, 1] as 1)
             raise ValueError("give either matrix or translate/rotate/scale, not both")
         return self
 
