@@ -123,3 +123,5 @@ def test_a_normal_mapped_mesh_is_refused():
 def test_agreement_needs_two_seeds_a_side():
     with pytest.raises(ValueError, match="at least 2 images"):
         agreement([np.zeros((4, 4, 3))], [np.zeros((4, 4, 3))] * 2)
+    with pytest.raises(ValueError, match=r"images of at least 4x4 pixels \(block\), got 8x3"):  # (NaN statistics)
+        agreement([np.zeros((3, 8, 3))] * 2, [np.zeros((3, 8, 3))] * 2)

@@ -164,6 +164,8 @@ def agreement(ours: list[np.ndarray], reference: list[np.ndarray], block: int = 
         raise ValueError("agreement needs at least 2 images (seeds) from each renderer")
     n, h, w, _ = ours.shape
     hb, wb = h // block, w // block
+    if hb == 0 or wb == 0:  # (no whole block: the statistics would be NaN)
+        raise ValueError(f"agreement needs images of at least {block}x{block} pixels (block), got {w}x{h}")
 
     def blocks(images):
         return images[:, :hb * block, :wb * block].reshape(len(images), hb, block, wb, block, 3).mean(axis=(2, 4))
