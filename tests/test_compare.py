@@ -197,7 +197,7 @@ def test_images_flip_has_no_memory_for_are_refused_in_one_line(tmp_path, capsys,
     monkeypatch.setattr(devices, "available_bytes", lambda device: 40 * 50 * FLIP_BYTES_PER_PIXEL - 1)
     assert main(["compare", str(tmp_path / "a.exr"), str(tmp_path / "b.exr")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("neuralrt: error: comparing 50x40 images with FLIP needs 391 KiB of memory, 391 KiB is "
+    assert err.startswith("neuralrt: error: comparing 50x40 images with FLIP needs 400,000 bytes of memory, 399,999 bytes is "
                           "available on cpu: compare crops") and err.count("\n") == 1
     monkeypatch.setattr(devices, "available_bytes", lambda device: 40 * 50 * FLIP_BYTES_PER_PIXEL)
     assert compare_images(img, img).flip == 0.0
