@@ -167,3 +167,24 @@ def test_a_title_from_a_files_record_draws_whatever_it_holds(tmp_path):
     curve = {"step": [1, 2, 3], "loss": [3.0, 2.0, 1.0], "hit_accuracy": [0.5, 0.8, 0.9]}
     path = write_training_plot(tmp_path / "c.png", curve, title)
     assert Image.open(path).size[0] > 100
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="XDG folders: Linux")
+def test_a_user_without_a_writable_config_folder_plots_without_matplotlibs_warnings(tmp_path):
+    # (matplotlib made a temporary folder per process and logged two warning lines at each first plot)
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "a-file").write_text("")
+    run = tmp_path / "run"
+    run.mkdir(mode=0o700)
+    env = {k: v for k, v in os.environ.items() if k != "MPLCONFIGDIR"}
+    env.update(XDG_CONFIG_HOME=str(tmp_path / "a-file" / "config"), XDG_RUNTIME_DIR=str(run))  # (no one can make it)
+    script = ("import os; from neuralrt.io import plots; import matplotlib.figure; "  # (as the commands: plots first)
+              "plots.write_figure(matplotlib.figure.Figure(), os.path.join(os.environ['XDG_RUNTIME_DIR'], 'f.png')); "
+              "print(os.environ['MPLCONFIGDIR'], matplotlib.get_configdir(), matplotlib.get_cachedir())")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    private = str(run / f"neuralrt-matplotlib-{os.getuid()}")
+    assert done.stdout.split() == [private] * 3 and (run / "f.png").stat().st_size > 0

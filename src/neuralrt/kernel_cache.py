@@ -48,10 +48,10 @@ def choose_kernel_cache() -> str | None:
     return folder
 
 
-def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path | None = None) -> str | None:
+def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path | None = None, name: str = "numba-cache") -> str | None:
     """None where numba has a cache folder (``in_tree`` or ``user_cache`` writable); else a private
     folder under ``temp`` (default: ``$XDG_RUNTIME_DIR``, else the temporary folder):
-    ``neuralrt-numba-cache-UID`` (mode 0700) when this user owns it, no one else may write it and
+    ``neuralrt-NAME-UID`` (mode 0700; ``name``: numba-cache) when this user owns it, no one else may write it and
     no one else may rename it (``temp`` is ours or sticky), or a fresh one of this process's own."""
     if _writable(in_tree) or _writable(user_cache):
         return None
@@ -59,11 +59,11 @@ def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path | None = None
         temp = temp or Path(os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir())
         if not _ours_alone(temp, sticky_will_do=True):
             return None  # (another user could swap whatever we make there)
-        shared = temp / f"neuralrt-numba-cache-{_uid()}"
+        shared = temp / f"neuralrt-{name}-{_uid()}"
         shared.mkdir(mode=0o700, exist_ok=True)
         if _ours_alone(shared) and _writable(shared):
             return str(shared)
-        own = tempfile.mkdtemp(prefix="neuralrt-numba-cache-", dir=temp)
+        own = tempfile.mkdtemp(prefix=f"neuralrt-{name}-", dir=temp)
     except OSError:
         return None  # (no usable temporary folder either: numba says so itself)
     atexit.register(shutil.rmtree, own, ignore_errors=True)
