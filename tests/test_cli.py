@@ -348,6 +348,23 @@ def test_a_thread_count_numba_cannot_take_is_one_line(capsys, monkeypatch, value
                                        "threads, 1 or more (unset, numba uses every core)\n")
 
 
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["train", "--help"]])
+def test_help_that_cannot_be_written_is_an_error(monkeypatch, capsys, argv):
+    # (argparse dropped the failed write: `neuralrt --help > /dev/full` exited 0 having written nothing)
+    import errno
+
+    class Full:
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(sys, "stdout", Full())
+    assert main(argv) == 2
+    assert capsys.readouterr().err == "neuralrt: error: standard output: No space left on device\n"
+
+
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
     # (they went to Python's own hook, past pytest's, which records them)
     import sys

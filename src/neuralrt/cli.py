@@ -29,6 +29,19 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"neuralrt: error: {message} (see {self.prog} --help)\n")
 
+    def _print_message(self, message, file=None):
+        """``--help`` and ``--version`` as argparse prints them, but a failed write to standard output
+        is an error (argparse dropped it: ``--help > /dev/full`` exited 0 having written nothing)."""
+        if not message or file is not sys.stdout:
+            return super()._print_message(message, file)
+        try:
+            file.write(message)
+            file.flush()
+        except BrokenPipeError:  # (`neuralrt --help | head`: quiet, as for every command)
+            raise
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror or str(exc), "standard output") from None
+
 
 def _strict_json(value):
     """``value`` with every non-finite float as None: JSON has no NaN or Infinity (PSNR of two equal
