@@ -15,8 +15,7 @@ in code) is never changed.
 
 `guard_cache_writes` makes a cache file numba cannot write for one of neuralrt's kernels (a full
 disk, a quota) a warning: the kernel was compiled and runs; only the next process compiles it
-again. It was the command's end
-(``neuralrt: error: No space left on device``, naming no file).
+again. It was the command's end (``neuralrt: error: No space left on device``, naming no file).
 """
 
 from __future__ import annotations
@@ -48,12 +47,13 @@ def choose_kernel_cache() -> str | None:
     return folder
 
 
-def fallback_cache_dir(in_tree: Path, user_cache: Path, temp: Path | None = None, name: str = "numba-cache") -> str | None:
+def fallback_cache_dir(in_tree: Path, user_cache: Path | None = None, temp: Path | None = None,
+                       name: str = "numba-cache") -> str | None:
     """None where numba has a cache folder (``in_tree`` or ``user_cache`` writable); else a private
     folder under ``temp`` (default: ``$XDG_RUNTIME_DIR``, else the temporary folder):
     ``neuralrt-NAME-UID`` (mode 0700; ``name``: numba-cache) when this user owns it, no one else may write it and
     no one else may rename it (``temp`` is ours or sticky), or a fresh one of this process's own."""
-    if _writable(in_tree) or _writable(user_cache):
+    if _writable(in_tree) or (user_cache is not None and _writable(user_cache)):
         return None
     try:
         temp = temp or Path(os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir())
@@ -128,7 +128,7 @@ class _GuardOnImport:
         return spec
 
 
-_WARNED: list[str] = []
+_WARNED: list[bool] = []  # (one warning a process)
 
 
 def _guard(caching) -> None:
@@ -147,7 +147,7 @@ def _guard(caching) -> None:
             if not _WARNED:
                 import warnings
 
-                _WARNED.append(str(exc))
+                _WARNED.append(True)
                 where = getattr(self, "_cache_path", None) or "numba's cache folder"
                 warnings.warn(f"{where}: numba cannot cache compiled kernels there ({exc.strerror or exc}): they run, "
                               "and compile again in the next process", RuntimeWarning, stacklevel=2)

@@ -209,6 +209,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
                 write_png(_view_image(out_dir, name, view, "exact"), srgb_to_linear(ref))
                 write_png(_view_image(out_dir, name, view, "neural"), srgb_to_linear(test))
         view_done(view)
+    shown_ious = [v for v in ious.values() if not math.isnan(v)]  # (NaN: a view neither image shows)
     return {
         "cameras": len(cams),
         "resolution": resolution,
@@ -216,7 +217,7 @@ def _image_metrics(blas, exact: MeshBLAS, bounds: AABB, cameras: int, resolution
         "depth_flip": float(np.mean(flips["depth"])),
         "normal_flip_per_view": flips["normal"],
         "depth_flip_per_view": flips["depth"],
-        "silhouette_iou": float(np.mean(shown_ious)) if (shown_ious := [v for v in ious.values() if not math.isnan(v)]) else float("nan"),
+        "silhouette_iou": float(np.mean(shown_ious)) if shown_ious else float("nan"),
         "silhouette_iou_min": float(min(shown_ious, default=float("nan"))),
         "silhouette_iou_per_view": ious,
     }, shown

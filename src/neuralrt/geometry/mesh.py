@@ -340,8 +340,7 @@ def angle_weighted_vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np
     # trimesh skips a face whose cross product is below 1e-13 long: every face of a mesh 1e-6 across,
     # whose normals were all zero. A small mesh is scaled up by a power of two first, which leaves
     # each unit normal and angle bitwise as it was.
-    lo, hi = (np.asarray(b, np.float64) for b in (vertices.min(0), vertices.max(0))) if len(vertices) else (0.0, 0.0)
-    diagonal = float(np.linalg.norm(np.subtract(hi, lo)))
+    diagonal = float(np.linalg.norm(vertices.max(0).astype(np.float64) - vertices.min(0))) if len(vertices) else 0.0
     scale = 2.0 ** -math.floor(math.log2(diagonal)) if 0 < diagonal < SMALL_MESH_DIAGONAL else 1.0
     summed = np.zeros((len(vertices), 3))
     for s in range(0, len(faces), _CHUNK):

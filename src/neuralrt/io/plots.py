@@ -9,30 +9,29 @@ threads and leaves no window or global backend behind. Written atomically, like 
 from __future__ import annotations
 
 import math
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import NeuralRTError
+from ..kernel_cache import fallback_cache_dir
 from .files import check_output_file, write_atomically
+
 
 def _choose_matplotlib_folder() -> None:
     """Where matplotlib's config folder (``~/.config/matplotlib``: its font cache) cannot be made, a
     private one in the runtime or temporary folder, as for numba's kernels (`kernel_cache`):
     matplotlib made a temporary one per process and logged two warning lines at every first plot
     (a service account or container user with no home). A folder the user chose stays."""
-    import os
-    import sys
-
     if os.environ.get("MPLCONFIGDIR") or "matplotlib" in sys.modules or not sys.platform.startswith("linux"):
         return
-    from ..kernel_cache import fallback_cache_dir
-
     try:
         config = Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "matplotlib"
     except RuntimeError:  # (no home to resolve: a folder no one can make, root included)
         config = Path(os.devnull) / "matplotlib"
-    folder = fallback_cache_dir(config, config, name="matplotlib")
+    folder = fallback_cache_dir(config, name="matplotlib")
     if folder is not None:
         os.environ["MPLCONFIGDIR"] = folder
 
