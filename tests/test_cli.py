@@ -1,6 +1,7 @@
 """The CLI and the Python API mirror each other: every command on tiny inputs, JSON interfaces, errors."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -363,6 +364,21 @@ def test_help_that_cannot_be_written_is_an_error(monkeypatch, capsys, argv):
     monkeypatch.setattr(sys, "stdout", Full())
     assert main(argv) == 2
     assert capsys.readouterr().err == "neuralrt: error: standard output: No space left on device\n"
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("argv", [["info", "procedural:statue:0"], ["--version"]])
+@pytest.mark.parametrize("buffered", [True, False])
+def test_a_result_that_cannot_be_written_is_one_line_naming_standard_output(argv, buffered):
+    # Buffered (the default, stdout not a terminal), the write failed at the interpreter's final
+    # flush: "Exception ignored in: <stdout>" and exit 120; unbuffered, the error named no file.
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([sys.executable, "-m", "neuralrt", *argv], stdout=full, stderr=subprocess.PIPE,
+                              text=True, env=env, timeout=300)
+    assert (done.returncode, done.stderr) == (2, "neuralrt: error: standard output: No space left on device\n")
 
 
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):

@@ -34,13 +34,39 @@ class _Parser(argparse.ArgumentParser):
         is an error (argparse dropped it: ``--help > /dev/full`` exited 0 having written nothing)."""
         if not message or file is not sys.stdout:
             return super()._print_message(message, file)
+        file.write(message)
+        file.flush()
+
+
+def _flush_standard_output() -> None:
+    """What the command printed, written out before it returns: left to the interpreter's final
+    flush, a write that fails (``> /dev/full``) was "Exception ignored in: <stdout>" and exit 120."""
+    sys.stdout.flush()
+
+
+class _NamedStandardOutput:
+    """``sys.stdout`` during a command, whose write errors name it (a failed print names no file)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text):
+        return self._named(self._stream.write, text)
+
+    def flush(self):
+        return self._named(self._stream.flush)
+
+    @staticmethod
+    def _named(call, *args):
         try:
-            file.write(message)
-            file.flush()
-        except BrokenPipeError:  # (`neuralrt --help | head`: quiet, as for every command)
+            return call(*args)
+        except BrokenPipeError:  # (`neuralrt info X | head`: quiet, as for every command)
             raise
         except OSError as exc:
             raise OSError(exc.errno, exc.strerror or str(exc), "standard output") from None
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def _strict_json(value):
@@ -431,6 +457,7 @@ def main(argv: list[str] | None = None) -> int:
     _SWALLOWED.clear()
     _OTHER_UNRAISABLE[:] = [unraisable]
     args = None
+    stdout, sys.stdout = sys.stdout, _NamedStandardOutput(sys.stdout)
     try:
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
         _check_environment()  # (after --help and --version, which need none of it)
@@ -438,6 +465,7 @@ def main(argv: list[str] | None = None) -> int:
             args.func(args)
         if _SWALLOWED:  # (it ran to its end: an interrupt is still an interrupt, exit 130 or 143)
             raise _SWALLOWED[0]
+        _flush_standard_output()
     except NeuralRTError as exc:
         print(f"neuralrt: error: {_printable(str(exc))}", file=sys.stderr)
         return 2
@@ -456,6 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         return _interrupted(exc, args)
     finally:
+        sys.stdout = stdout
         warnings.showwarning = show
         sys.unraisablehook = unraisable
         if on_term is not None:

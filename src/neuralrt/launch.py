@@ -1,6 +1,7 @@
 """The `neuralrt` command's entry point: the CLI (and torch, ~1 s to import) is imported here, so a
 Ctrl-C during that import is the CLI's one line too, not a traceback from inside torch."""
 
+import os
 import signal
 import sys
 
@@ -27,7 +28,18 @@ def _signals_end_the_process(ignored: list) -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()  # (what the command printed is out before the process can end)
-        except (OSError, ValueError):  # (a closed pipe: the interpreter's own final flush says nothing either)
-            pass
+        except (OSError, ValueError):  # (already reported by the command, or a closed pipe)
+            _discard_the_rest(stream)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN if sig in ignored else signal.SIG_DFL)
+
+
+def _discard_the_rest(stream) -> None:
+    """What a stream that cannot be written still holds goes to /dev/null, so the interpreter's own
+    final flush cannot fail again ("Exception ignored in: <stdout>", exit 120, after the command's
+    one line said why)."""
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+        stream.flush()
+    except (OSError, ValueError):
+        pass
