@@ -381,6 +381,17 @@ def test_a_result_that_cannot_be_written_is_one_line_naming_standard_output(argv
     assert (done.returncode, done.stderr) == (2, "neuralrt: error: standard output: No space left on device\n")
 
 
+def test_a_very_long_error_keeps_its_ends_in_one_line(tmp_path, capsys):
+    # (a 100,000-character material name from a scene file was echoed whole)
+    scene = tmp_path / "s.toml"
+    scene.write_text(f'[[materials]]\nname = "{"x" * 100_000}"\n[[objects]]\nmesh = "procedural:statue:0"\n'
+                     'material = "white"\n')
+    assert main(["info", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert len(err) < 3100 and err.count("\n") == 1 and "characters left out" in err
+    assert err.startswith(f"neuralrt: error: {scene}: objects.0.material: unknown material 'white'")
+
+
 def test_other_exceptions_python_cannot_raise_go_to_the_hook_main_found(monkeypatch, capsys):
     # (they went to Python's own hook, past pytest's, which records them)
     import sys

@@ -19,6 +19,7 @@ from neuralrt.geometry.procedural import sphere
 from neuralrt.io.files import check_output_file, write_atomically
 from neuralrt.methods.lsnif import LSNIFModel
 from neuralrt.methods.lsnif_config import LSNIFConfig
+from neuralrt.scene.loader import load_scene
 
 
 # -- writing files --------------------------------------------------------------------------------
@@ -574,3 +575,43 @@ def test_rendering_a_mesh_too_large_for_float32_alone_names_the_mesh(tmp_path):
     (tmp_path / "huge.obj").write_text("v 0 0 0\nv 1e30 0 0\nv 0 1e30 0\nf 1 2 3\n")
     with pytest.raises(NeuralRTError, match=r"huge.obj: bounding-box diagonal 1.41e\+30 is outside"):
         load_scene(str(tmp_path / "huge.obj"))
+
+
+def test_a_loop_of_links_is_named_as_one(tmp_path):
+    # (a mesh path in a scene that is a loop of links: Path.resolve raised "RuntimeError: Symlink loop")
+    (tmp_path / "a.obj").symlink_to("b.obj")
+    (tmp_path / "b.obj").symlink_to("a.obj")
+    with pytest.raises(MeshError, match=r"a\.obj: a loop of symbolic links, not a mesh file"):
+        load_mesh(tmp_path / "a.obj")
+    scene = tmp_path / "s.toml"
+    scene.write_text('[[objects]]\nmesh = "a.obj"\n')
+    with pytest.raises(NeuralRTError, match=r"objects\.0\.mesh: .*a\.obj: a loop of symbolic links"):
+        load_scene(scene)
+
+
+def test_what_trimesh_logs_as_a_warning_is_one_line_not_a_traceback(tmp_path, capfd):
+    # (Python's last-resort handler printed trimesh's "failed to extract face_normals" with a traceback)
+    facet = "facet normal 0 0 {n}\nouter loop\nvertex 0 0 {z}\nvertex 1 0 {z}\nvertex 0 1 {z}\nendloop\nendfacet\n"
+    path = tmp_path / "odd.stl"
+    path.write_text("solid x\n" + facet.format(n=1, z=0) + facet.format(n="zz", z=1) + "endsolid x\n")
+    with pytest.warns(UserWarning, match=r"odd\.stl: trimesh: failed to extract face_normals \(ValueError: "):
+        mesh = load_mesh(path)
+    assert mesh.num_triangles == 2 and "Traceback" not in capfd.readouterr().err
+
+
+def test_a_file_a_mesh_names_outside_its_folder_is_refused_in_our_words(tmp_path):
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "mesh").mkdir()
+    (tmp_path / "elsewhere" / "m.mtl").write_text("newmtl red\nKd 1 0 0\n")
+    (tmp_path / "mesh" / "m.mtl").symlink_to(tmp_path / "elsewhere" / "m.mtl")
+    (tmp_path / "mesh" / "m.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n")
+    with pytest.warns(UserWarning, match=r"material file m\.mtl could not be read \(ValueError: 'm\.mtl' leads out of "
+                                         r"the folder of m\.obj \(a link elsewhere.*copy the file there\)"):
+        load_mesh(tmp_path / "mesh" / "m.obj")
+
+
+def test_a_scene_file_that_is_not_utf8_names_its_line(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_bytes(b'[camera]\n# caf\xe9\n')
+    with pytest.raises(NeuralRTError, match=r"s\.toml: not UTF-8 text \(byte 0xe9 on line 2\): scene files are UTF-8"):
+        load_scene(path)

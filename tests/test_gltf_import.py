@@ -187,6 +187,13 @@ def _cycle(header):
     (lambda h: h["scenes"][0].update(nodes=3), "scene 0's nodes must be a list of node indices, not int"),
     (lambda h: h["extensions"]["KHR_lights_punctual"].update(lights={"0": {}}), "KHR_lights_punctual's lights must be a list"),
     (lambda h: h.update(scene=5), "the default scene is 5, but the file has 1 scene"),
+    # (from a fuzzing trial: a KeyError, a MemoryError and TypeErrors before)
+    (lambda h: [h.pop(k, None) for k in ("nodes", "scenes", "scene")], "no node of its scene draws a mesh"),
+    (lambda h: h["accessors"][h["meshes"][0]["primitives"][0]["indices"]].update(bufferView=-1),
+     r"cannot read glTF mesh 0: accessor \d+ names buffer view -1, which the file does not have"),
+    (lambda h: h["bufferViews"][0].update(byteLength=2**40), "buffer view 0 reaches past the end of buffer 0"),
+    (lambda h: h["materials"][0].update(name=[[1, 2, 3]]), "material 0's name must be text, not list"),
+    (lambda h: h["nodes"][1].update(name={"a": 1}), "node 1's name must be text, not dict"),
 ])
 def test_a_malformed_scene_is_one_error(street, tmp_path, edit, message):
     path = tmp_path / "bad.glb"
@@ -372,3 +379,15 @@ def test_one_mesh_of_a_file_is_read_from_its_own_bytes_with_its_own_texture(tmp_
     assert load_mesh(gltf, "ball").num_triangles == 5120
     with pytest.raises(MeshError, match=rf"cannot read glTF mesh {box}: buffer 1's file box.bin is not in {tmp_path}"):
         load_mesh(gltf, "box")
+
+
+def test_numbers_that_are_not_finite_give_their_own_warning_not_numpys(street, tmp_path):
+    # (numpy's "invalid value encountered in det" came first, as a warning of its own)
+    path = tmp_path / "nan.glb"
+    path.write_bytes(street.read_bytes())
+    edited_glb(path, lambda h: h["nodes"][4].update(matrix=[float("nan"), 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_mesh(path, lit=("lamp",))
+    said = [f"{w.category.__name__}: {w.message}" for w in caught]
+    assert not [m for m in said if m.startswith("RuntimeWarning")] and any("is left out" in m for m in said), said

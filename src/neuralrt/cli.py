@@ -134,6 +134,19 @@ def _printable(text: str) -> str:
     return text if text.isprintable() else "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+def _message(text: str) -> str:
+    """An error or warning as one readable line: printable (`_printable`), its middle left out past
+    `MESSAGE_CHARACTERS` (a 100,000-character name from a file was echoed whole)."""
+    text = _printable(text)
+    if len(text) <= MESSAGE_CHARACTERS:
+        return text
+    head, tail = MESSAGE_CHARACTERS * 2 // 3, MESSAGE_CHARACTERS // 3
+    return f"{text[:head]} ... ({len(text) - head - tail:,} characters left out) ... {text[-tail:]}"
+
+
+MESSAGE_CHARACTERS = 3000  # (a path may be 4,096 bytes; messages name one or two of them at the most)
+
+
 def _curve_summary(curve: dict) -> str:
     """A training curve in one phrase: ``150 points, loss 2.95 -> 0.236 (--plot FILE.png draws them)``
     (its points are for --json and --plot)."""
@@ -446,7 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"neuralrt: warning: {_printable(str(message))}", file=sys.stderr)  # (names from files: escaped, one line)
+    print(f"neuralrt: warning: {_message(str(message))}", file=sys.stderr)  # (names from files: escaped, one line)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -467,14 +480,14 @@ def main(argv: list[str] | None = None) -> int:
             raise _SWALLOWED[0]
         _flush_standard_output()
     except NeuralRTError as exc:
-        print(f"neuralrt: error: {_printable(str(exc))}", file=sys.stderr)
+        print(f"neuralrt: error: {_message(str(exc))}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader went away (`neuralrt info X | head`): stop quietly, as other tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the interpreter's final flush cannot fail too
         return 141
     except OSError as exc:  # the system refused a read or write the checks above let through (disk full, ...)
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"neuralrt: error: {_printable(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
+        print(f"neuralrt: error: {_message(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 - an interrupt inside another exception, or not ours
         interrupt = _interrupt_within(exc)

@@ -7,10 +7,12 @@ GPU instances' accessors.
 from __future__ import annotations
 
 import base64
+import os
 import struct
 import urllib.parse
 from pathlib import Path
 
+from ..io.files import resolved
 from .unread_assets import regular_files_resolver
 
 __all__ = ["GltfBuffers", "GLB_MAGIC", "JSON_CHUNK", "BIN_CHUNK"]
@@ -52,8 +54,8 @@ class GltfBuffers:
         """The file ``name`` beside the glTF, or a ValueError where it leads out of that folder (an
         absolute path, ``..``, a link elsewhere): a file's data is read only from its own folder, as
         trimesh reads a whole file's buffers."""
-        folder = self.path.parent.resolve()
-        file = (folder / name).resolve()
+        folder = resolved(self.path.parent)
+        file = resolved(folder / name)
         if not file.is_relative_to(folder):
             raise ValueError(f"buffer {index}'s uri {name[:200]!r} leads out of the file's folder; buffers are read "
                              f"only beside it")
@@ -83,6 +85,8 @@ class GltfBuffers:
 
     @staticmethod
     def _from_file(file: Path, offset: int, length: int) -> bytes:
+        """At most what the file holds there (a view declaring 2**40 bytes was a MemoryError): a range
+        past the end comes back short, which `read` names."""
         with file.open("rb") as f:
             f.seek(offset)
-            return f.read(length)
+            return f.read(max(0, min(length, os.fstat(f.fileno()).st_size - offset)))

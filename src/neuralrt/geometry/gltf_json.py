@@ -131,6 +131,10 @@ def dequantized_uvs(uv: np.ndarray, component: int) -> np.ndarray:
                     axis=1).astype(np.float32)
 
 
+_NAMED = {"meshes": "mesh", "materials": "material", "nodes": "node", "images": "image", "textures": "texture",
+          "scenes": "scene"}
+
+
 def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None, list[str]]:
     """(why trimesh cannot read this glTF's geometry, or None; one line per thing it leaves out, but
     for the emission of the materials named in ``lit``, which a scene makes lights)."""
@@ -138,6 +142,10 @@ def gltf_file_notes(header: dict, lit: Container[str] = ()) -> tuple[str | None,
     if required:
         return (f"it needs the glTF extension {required[0]} ({_UNREADABLE_EXTENSIONS[required[0]]}), which trimesh "
                 f"does not read"), []
+    for kind, one in _NAMED.items():  # (trimesh hashes names: a list was "TypeError: unhashable type")
+        for i, item in enumerate(json_list(header.get(kind))):
+            if isinstance(item, dict) and "name" in item and not isinstance(item["name"], str):
+                return f"{one} {i}'s name must be text, not {type(item['name']).__name__}", []
     accessors = json_list(header.get("accessors"))
     notes: list[str] = []
     fans = morphs = strokes = 0

@@ -53,7 +53,7 @@ def packed_alone(header: dict, path: Path) -> bytes:
     chunk += b"\0" * (-len(chunk) % 4)
 
     packed = dict(header)
-    packed["accessors"] = [_renumbered_accessor(accessors[a], new_view) for a in kept_accessors]
+    packed["accessors"] = [_renumbered_accessor(accessors[a], a, new_view) for a in kept_accessors]
     packed["bufferViews"] = packed_views
     packed["buffers"] = [{"byteLength": len(chunk)}]
     packed["meshes"] = [_renumbered_mesh(m, new_accessor) for m in json_list(header.get("meshes"))]
@@ -63,13 +63,21 @@ def packed_alone(header: dict, path: Path) -> bytes:
     return _glb(packed, bytes(chunk))
 
 
-def _renumbered_accessor(accessor: dict, new_view: dict) -> dict:
+def _renumbered_accessor(accessor: dict, index: int, new_view: dict) -> dict:
+    """``accessor`` (the file's ``index``) with its buffer views renumbered; a ValueError for a view the
+    file does not have (`bufferView: -1` was a KeyError)."""
+
+    def renumber(view: int) -> int:
+        if view not in new_view:
+            raise ValueError(f"accessor {index} names buffer view {view}, which the file does not have")
+        return new_view[view]
+
     out = {**accessor}
     if isinstance(out.get("bufferView"), int):
-        out["bufferView"] = new_view[out["bufferView"]]
+        out["bufferView"] = renumber(out["bufferView"])
     sparse = out.get("sparse")
     if isinstance(sparse, dict):
-        out["sparse"] = {**sparse, **{part: {**sparse[part], "bufferView": new_view[sparse[part]["bufferView"]]}
+        out["sparse"] = {**sparse, **{part: {**sparse[part], "bufferView": renumber(sparse[part]["bufferView"])}
                                       for part in ("indices", "values") if isinstance(sparse.get(part), dict)
                                       and isinstance(sparse[part].get("bufferView"), int)}}
     return out

@@ -675,6 +675,11 @@ def load_mesh(path: str | Path, gltf_mesh: int | str | None = None, lit: Contain
         from .procedural import procedural_mesh
 
         return procedural_mesh(str(path))
+    with np.errstate(all="ignore"):  # (NaN in a file: its own error follows, not numpy's "invalid value" warnings)
+        return _load_mesh_file(path, gltf_mesh, lit)
+
+
+def _load_mesh_file(path: Path, gltf_mesh: int | str | None, lit: Container[str]) -> Mesh:
     trimesh = import_trimesh()
     problem = input_file_problem(path, "mesh file")
     if problem:

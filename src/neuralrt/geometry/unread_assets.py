@@ -2,7 +2,8 @@
 
 trimesh drops the ones it cannot read silently (a debug log line), so a mesh whose ``map_Kd``
 image or ``mtllib`` is missing rendered white with no word why. `unread_assets` collects those log
-lines for the calling thread, and only those: trimesh's other debug lines stay filtered as before.
+lines for the calling thread, and its warnings as one line each (Python printed them with their
+tracebacks): trimesh's other debug lines stay filtered as before.
 `regular_files_resolver` is what trimesh reads them through: regular files only, since opening a
 FIFO a mesh names blocked every command for ever; a name not found as written is looked for as
 the file most likely meant (percent-decoded, as glTF URIs are written; with Windows backslashes;
@@ -47,10 +48,18 @@ class _Collect(logging.Filter):
             what = _described(record)
             if what:
                 into.append(what)
+            elif record.levelno >= logging.WARNING:  # (Python's last-resort handler printed it with its traceback)
+                into.append(f"trimesh: {_one_line(record)}")
+                return False
         return record.levelno >= self.effective_level  # what the logger passed on before
 
 
 _installed: _Collect | None = None
+
+
+def _one_line(record: logging.LogRecord) -> str:
+    exc = record.exc_info[1] if record.exc_info else None
+    return record.getMessage() + (f" ({type(exc).__name__}: {exc})" if exc is not None else "")
 
 
 def _described(record: logging.LogRecord) -> str | None:
@@ -100,7 +109,12 @@ def regular_files_resolver(mesh_path: str):
 
     class RegularFiles(FilePathResolver):
         def absolute(self, name: str):  # where `get` resolves each spelling of a name before opening it
-            path = super().absolute(name)
+            try:
+                path = super().absolute(name)
+            except ValueError:  # (trimesh's words name its own API: "pass FilePathResolver(..., allow_anywhere=True)")
+                raise ValueError(f"{name.strip()[:200]!r} leads out of the folder of {Path(mesh_path).name} (a link "
+                                 "elsewhere, an absolute path or '..'): the files a mesh names are read only beside "
+                                 "it; copy the file there") from None
             if path.exists() and not path.is_file():
                 raise OSError(f"{name.strip()} is not a regular file")
             return path

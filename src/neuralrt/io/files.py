@@ -32,6 +32,15 @@ __all__ = ["write_atomically", "written_together", "input_file_problem", "check_
            "folders_removed_if_left_empty"]
 
 
+def resolved(path: str | os.PathLike) -> Path:
+    """``Path(path).resolve()``, except that a loop of links is left for its first read to name (Python
+    3.11 and 3.12 raised a RuntimeError there, "Symlink loop from ...", past every OSError check)."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError:
+        return Path(os.path.abspath(path))
+
+
 def _sibling_name(path: Path) -> Path:
     # The suffix stays last: some writers pick the format from the name.
     return path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
@@ -206,6 +215,11 @@ def input_file_problem(path: str | os.PathLike, what: str) -> str | None:
     if path.is_dir():
         return f"{path}: is a directory, not {_article(what)} {what}"
     if not path.exists():
+        try:
+            path.stat()
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:  # (exists() says False for a loop of links too)
+                return f"{path}: a loop of symbolic links, not {_article(what)} {what}"
         return f"{path}: {what} not found"
     if not path.is_file():
         return f"{path}: not a regular file (a {what} must be one)"

@@ -209,7 +209,7 @@ def _local_matrix(node: dict) -> np.ndarray:
 def _objects(header: dict, placed: list, path: Path, lit) -> tuple[list[dict], tuple[np.ndarray, np.ndarray]]:
     """One object per node that draws a mesh, and the world bounds of them all; each mesh is read
     once (``lit``: the material names the scene makes lights)."""
-    nodes, meshes = header["nodes"], json_list(header.get("meshes"))
+    nodes, meshes = json_list(header.get("nodes")), json_list(header.get("meshes"))  # (both optional in glTF)
     objects, corners, taken, first_alike, bounds_of = [], [], {}, {}, {}
     for index, world in placed:
         mesh = nodes[index].get("mesh")

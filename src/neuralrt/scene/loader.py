@@ -31,7 +31,7 @@ from ..accel.tlas import Instance, SceneAccel
 from ..devices import check_device, check_path
 from ..errors import ConfigError, NeuralRTError, SceneError, outside_stacklevel, validation_errors
 from ..geometry.mesh import Mesh, load_mesh
-from ..io.files import input_file_problem
+from ..io.files import input_file_problem, resolved
 from ..io.model_file import read_header
 from ..rays import AABB
 from ..methods.base import check_mesh_match, checked_inference, is_neural, mesh_mismatch_unsaid, ray_views
@@ -239,7 +239,11 @@ def load_scene_spec(path_or_builtin: str | os.PathLike, detail: int | None = Non
         raise SceneError(problem)
     try:
         raw = path.read_bytes().decode("utf-8").removeprefix("\ufeff")  # (a byte-order mark, as some editors write)
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        line = exc.object[:exc.start].count(b"\n") + 1
+        raise SceneError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} on line {line}): scene files "
+                         "are UTF-8") from None
+    except OSError as exc:
         raise SceneError(f"{path}: cannot read scene file ({exc})") from None
     suffix = path.suffix.lower()
     try:
@@ -313,7 +317,7 @@ def _absolute_in_place(spec: SceneSpec, base_dir: Path) -> None:
 
 
 def _absolute(base_dir: Path):
-    return lambda p: str((base_dir / os.path.expanduser(p)).resolve())
+    return lambda p: str(resolved(base_dir / os.path.expanduser(p)))
 
 
 # --- building --------------------------------------------------------------------------------------
