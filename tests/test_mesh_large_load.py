@@ -96,7 +96,7 @@ def test_degenerate_check_spans_chunks(tmp_path, tiny_chunks):
 
 
 @pytest.mark.parametrize("faces, vertex, message", [
-    ([[0, 1, 7]], [0.0, 1.0, 0.0], "cannot read mesh (ValueError: OFF file has a face index outside the range of its vertices)"),
+    ([[0, 1, 7]], [0.0, 1.0, 0.0], "cannot read mesh: not a valid OFF file, or damaged (ValueError: OFF file has a face index outside the range of its vertices)"),
     ([[0, 1, 2]], [float("nan"), 1.0, 0.0], "1 vertices have NaN or Inf coordinates (in float32, where beyond 3.4e38 is Inf)"),
 ])
 def test_bad_input_one_line_errors(tmp_path, tiny_chunks, faces, vertex, message):

@@ -453,6 +453,22 @@ def _rewritten_gltf(header: dict, path: Path) -> tuple[dict, bytes | None]:
     return rewritten, with_header(data, rewritten)
 
 
+def _unreadable_why(exc: Exception, suffix: str) -> str:
+    """What trimesh's error for a malformed file means, in words (its own text follows in brackets:
+    "string or file could not be read to its end due to unmatched data" said little)."""
+    text = str(exc)
+    if "unmatched data" in text or "invalid literal" in text or "could not convert string" in text:
+        why = "text where numbers were expected"
+    elif "unexpected length" in text or "expected length" in text or "cannot reshape" in text:
+        why = "its data is shorter or longer than its header says"
+    elif isinstance(exc, IndexError):
+        why = "an index past the end of its data"
+    else:
+        why = None
+    kind = {".gltf": "glTF", ".glb": "glTF"}.get(suffix, suffix[1:].upper() or "mesh")
+    return f"not a valid {kind} file: {why}" if why else f"not a valid {kind} file, or damaged"
+
+
 def _keep_obj_colours(loaded, data: bytes, path: Path) -> None:
     """An OBJ's ``v x y z r g b`` colours (`vertex_colours_of_parts`), which trimesh drops beside a
     material, put where a glTF's are found (`_kept_colours`): the visual's ``vertex_attributes``, linear.
@@ -731,7 +747,7 @@ def _load_mesh_file(path: Path, gltf_mesh: int | str | None, lit: Container[str]
             _keep_obj_colours(loaded, obj_bytes, path)
         source = obj_bytes = rewritten = None
     except Exception as exc:  # trimesh raises many types for malformed files
-        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+        raise MeshError(f"{path}: cannot read mesh: {_unreadable_why(exc, suffix)} ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=outside_stacklevel())
     extras_of, extras_notes = gltf_material_extras(header) if header else ({}, [])
