@@ -244,12 +244,12 @@ def evaluate_model(
     (rays/s of the model and of exact tracing on held-out rays, in this run). ``progress``: a bar
     over those stages (on stderr).
     """
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     neural = is_neural(model_blas)
     out_dir = Path(image_dir) if image_dir and images else None
     stages = 1 + neural + timing + (cameras + len(_AXES) if images else 0) + (out_dir is not None)
-    bar = tqdm(total=stages, desc="eval", unit="stage", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(total=stages, desc="eval", unit="stage", disable=not progress, dynamic_ncols=True)
 
     def stage(name: str) -> None:
         bar.set_postfix_str(name, refresh=True)

@@ -180,12 +180,12 @@ def render(
     tracer = PathTracer(_with_camera(scene, camera), settings)
     film = Film(camera.width, camera.height, dev)
 
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     start = time.perf_counter()
     done = 0
     wavefront = 0
-    with tqdm(total=spp, unit="spp", desc=progress_label, disable=not progress, leave=False) as bar:
+    with progress_bar(total=spp, unit="spp", desc=progress_label, disable=not progress, leave=False) as bar:
         while done < spp:
             k = min(per_pass, spp - done)
             samples = torch.arange(n_pixels, device=dev).repeat(k)  # pixel index of each path

@@ -45,6 +45,7 @@ from ..errors import ConfigError, NeuralRTError, validation_message
 from ..geometry.mesh import Mesh
 from ..io.files import write_atomically
 from ..methods import MethodConfig, MethodSpec
+from ..progress import progress_bar, redraw_due
 
 __all__ = [
     "TrainingJob", "TrainedModel", "Executor", "LocalExecutor", "RayExecutor", "RayOptions", "EXECUTORS",
@@ -484,10 +485,8 @@ class RayExecutor(Executor):
         yield from self._collect(ray, board, len(jobs))
 
     def _collect(self, ray, board, total: int) -> Iterator[TrainedModel]:
-        from tqdm.auto import tqdm
-
         running, failures, seen = self._running, [], {}
-        bar = tqdm(total=total, desc="models", unit="model", disable=not self.progress, dynamic_ncols=True)
+        bar = progress_bar(total=total, desc="models", unit="model", disable=not self.progress, dynamic_ncols=True)
         try:
             while running:
                 done, _ = ray.wait(list(running), num_returns=1, timeout=_PROGRESS_SECONDS)
@@ -532,7 +531,8 @@ class RayExecutor(Executor):
                 seen[key] = row["attempt"]
             total_rate += row["rays_per_second"]
             parts.append(f"{running_keys[key].mesh.name} {row['step']}/{row['steps']} {row['rays_per_second'] / 1e3:.0f}k")
-        bar.set_postfix_str(f"{total_rate / 1e3:.0f}k rays/s | " + ", ".join(parts) if parts else "starting", refresh=True)
+        bar.set_postfix_str(f"{total_rate / 1e3:.0f}k rays/s | " + ", ".join(parts) if parts else "starting",
+                            refresh=redraw_due(bar))
 
 
 def make_executor(name: str, *, device: str = "cpu", progress: bool = True, threads_per_model: int | None = None,

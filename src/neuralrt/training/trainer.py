@@ -274,7 +274,7 @@ def train_model(
     while step k runs (same batches, same order; `BatchSource`): always with ``overlap_sampling=True``,
     never with False, and with None where the run's own first steps measure it faster.
     """
-    from tqdm.auto import tqdm
+    from ..progress import progress_bar
 
     parameters = list(model.parameters())
     if not any(p.requires_grad for p in parameters):
@@ -297,7 +297,7 @@ def train_model(
     curve = TrainingCurve.from_dict(record.curve, start=start)
     curve.states = getattr(model, "curve_states", None)
     model.train()
-    bar = tqdm(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
+    bar = progress_bar(total=steps, initial=start, desc=description, disable=not progress, dynamic_ncols=True, unit="step")
     step = start
     prepare = getattr(model, "prepare_training_batch", None)
     batches = BatchSource(sampler, batch_size, overlap=overlap_sampling, prepare=prepare)
@@ -335,7 +335,8 @@ def train_model(
             bar.update(1)
             if progress and (step % 10 == 0 or step == steps - 1):
                 bar.set_postfix(loss=f"{running.mean('loss'):.4f}", hit_acc=f"{running.ratio('correct', 'count'):.4f}",
-                                rays_s=f"{result.count / max(dt, 1e-9):.3g}", **getattr(model, "progress_fields", dict)())
+                                rays_s=f"{result.count / max(dt, 1e-9):.3g}", **getattr(model, "progress_fields", dict)(),
+                                refresh=False)  # (shown at the bar's next redraw: a redraw here went into logs too)
             if checkpoint_after:
                 _finish(record, running, step + 1)
                 record.curve = curve.as_dict(checkpoint=True)
