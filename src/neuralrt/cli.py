@@ -38,12 +38,6 @@ class _Parser(argparse.ArgumentParser):
         file.flush()
 
 
-def _flush_standard_output() -> None:
-    """What the command printed, written out before it returns: left to the interpreter's final
-    flush, a write that fails (``> /dev/full``) was "Exception ignored in: <stdout>" and exit 120."""
-    sys.stdout.flush()
-
-
 class _NamedStandardOutput:
     """``sys.stdout`` during a command, whose write errors name it (a failed print names no file)."""
 
@@ -478,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
             args.func(args)
         if _SWALLOWED:  # (it ran to its end: an interrupt is still an interrupt, exit 130 or 143)
             raise _SWALLOWED[0]
-        _flush_standard_output()
+        sys.stdout.flush()  # (left to the interpreter's final flush, `> /dev/full` was "Exception ignored", exit 120)
     except NeuralRTError as exc:
         print(f"neuralrt: error: {_message(str(exc))}", file=sys.stderr)
         return 2
