@@ -77,8 +77,8 @@ def test_the_choice_reaches_numba_and_the_users_own_setting_stays(tmp_path, monk
     monkeypatch.setattr(numba.core.config, "CACHE_DIR", "")
     monkeypatch.setattr(kernel_cache, "fallback_cache_dir", lambda *folders: asked.append(folders) or str(tmp_path))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.setenv("NUMBA_CACHE_DIR", "/their/choice")
-    assert choose_kernel_cache() is None and os.environ["NUMBA_CACHE_DIR"] == "/their/choice"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "their-choice"))
+    assert choose_kernel_cache() is None and os.environ["NUMBA_CACHE_DIR"] == str(tmp_path / "their-choice")
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     assert choose_kernel_cache() == str(tmp_path)
     assert asked == [(Path(neuralrt.__file__).parent / "__pycache__", tmp_path / "xdg" / "numba")]
@@ -129,3 +129,24 @@ def test_a_cache_file_numba_cannot_write_is_a_warning_and_the_kernel_runs(tmp_pa
     assert warned.startswith(f"1 RuntimeWarning {tmp_path / 'cache'}") and warned.endswith(
         ": numba cannot cache compiled kernels there (No space left on device): they run, and compile again in the "
         "next process")
+
+
+def test_a_chosen_folder_numba_cannot_write_gives_way_where_numba_has_no_other(tmp_path, unwritable, monkeypatch):
+    # (a read-only shared cache in a read-only install without a home: numba used the folder for
+    # nothing, found no other, and every kernel failed with "no locator available")
+    import types
+
+    import numba.core.config
+
+    monkeypatch.setattr(numba.core.config, "CACHE_DIR", str(unwritable))
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(unwritable))
+    monkeypatch.setattr(kernel_cache, "_NOTES", [])
+    monkeypatch.setattr(kernel_cache, "fallback_cache_dir", lambda *folders: None)  # (numba has a folder of its own)
+    assert choose_kernel_cache() is None and os.environ["NUMBA_CACHE_DIR"] == str(unwritable) and not kernel_cache._NOTES
+    monkeypatch.setattr(kernel_cache, "fallback_cache_dir", lambda *folders: str(tmp_path))  # (it has none)
+    assert choose_kernel_cache() == str(tmp_path)
+    assert os.environ["NUMBA_CACHE_DIR"] == numba.core.config.CACHE_DIR == str(tmp_path)
+    with pytest.warns(RuntimeWarning, match=f"NUMBA_CACHE_DIR={unwritable}: numba cannot write there .* neuralrt's "
+                                            f"kernels are cached in {tmp_path}"):
+        kernel_cache._guard(types.SimpleNamespace())  # (said when numba's caching loads)
+    assert not kernel_cache._NOTES

@@ -11,7 +11,8 @@ folder (``$XDG_RUNTIME_DIR``) or the temporary one. numba's cache index is a pic
 loads, so a folder another user could have made, written to or swapped is not used: one of this
 process's own is made instead, compiled again by each process as without a cache, and removed
 at exit. A cache folder the user chose (``NUMBA_CACHE_DIR``, or numba's ``config.CACHE_DIR`` set
-in code) is never changed.
+in code) is kept, unless numba cannot write it and has no folder of its own either (a read-only
+shared cache: numba used it for nothing, and failed): then the private folder, with a warning.
 
 `guard_cache_writes` makes a cache file numba cannot write for one of neuralrt's kernels (a full
 disk, a quota) a warning: the kernel was compiled and runs; only the next process compiles it
@@ -35,12 +36,17 @@ __all__ = ["choose_kernel_cache", "fallback_cache_dir", "guard_cache_writes"]
 def choose_kernel_cache() -> str | None:
     """Set ``NUMBA_CACHE_DIR`` where numba would find no cache folder; return what it was set to."""
     config = sys.modules.get("numba.core.config")  # (numba imported first: it read the environment already)
-    if os.environ.get("NUMBA_CACHE_DIR") or getattr(config, "CACHE_DIR", None):
-        return None
+    chosen = os.environ.get("NUMBA_CACHE_DIR")
+    configured = getattr(config, "CACHE_DIR", None) or chosen  # (set in code, or the environment's)
+    if configured and (configured != chosen or _writable(Path(configured))):
+        return None  # (a folder numba can use, or one set in code: the user's choice either way)
     user_cache = Path(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")) / "numba"
     folder = fallback_cache_dir(Path(__file__).parent / "__pycache__", user_cache)
     if folder is None:
-        return None
+        return None  # (numba has a folder of its own; past a chosen one it cannot write, it uses that)
+    if chosen:  # numba could not use it, nor any other: every kernel failed, "no locator available"
+        _NOTES.append(f"NUMBA_CACHE_DIR={chosen}: numba cannot write there (it reads no cache from a folder it cannot "
+                      f"write either), nor beside neuralrt or in ~/.cache: neuralrt's kernels are cached in {folder}")
     os.environ["NUMBA_CACHE_DIR"] = folder
     if config is not None:
         config.CACHE_DIR = folder
@@ -131,7 +137,17 @@ class _GuardOnImport:
 _WARNED: list[bool] = []  # (one warning a process)
 
 
+_NOTES: list[str] = []  # (what `choose_kernel_cache` changed, said when numba's caching loads: in a
+#                          command, once its one-line warnings are set up)
+
+
 def _guard(caching) -> None:
+    if _NOTES:
+        import warnings
+
+        from .errors import outside_stacklevel
+
+        warnings.warn(_NOTES.pop(), RuntimeWarning, stacklevel=outside_stacklevel())
     cache = getattr(caching, "Cache", None)
     save = getattr(cache, "save_overload", None)
     if save is None or getattr(save, "neuralrt_guarded", False):
