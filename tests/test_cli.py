@@ -349,6 +349,20 @@ def test_a_thread_count_numba_cannot_take_is_one_line(capsys, monkeypatch, value
                                        "threads, 1 or more (unset, numba uses every core)\n")
 
 
+def test_a_threading_layer_numba_cannot_use_is_one_line(capsys, monkeypatch):
+    # (numba's ValueError traceback at the first kernel: "unknown to Numba", "No threading layer could be loaded")
+    monkeypatch.setenv("NUMBA_THREADING_LAYER", "bogus")
+    assert main(["info", "procedural:statue:0"]) == 2
+    assert capsys.readouterr().err == ("neuralrt: error: NUMBA_THREADING_LAYER='bogus': numba's threading layers are "
+                                       "default, safe, threadsafe, forksafe, omp, tbb, workqueue\n")
+    try:
+        from numba.np.ufunc import tbbpool  # noqa: F401
+    except ImportError:
+        monkeypatch.setenv("NUMBA_THREADING_LAYER", "tbb")
+        assert main(["info", "procedural:statue:0"]) == 2
+        assert capsys.readouterr().err.startswith("neuralrt: error: NUMBA_THREADING_LAYER=tbb: numba cannot load TBB here")
+
+
 @pytest.mark.parametrize("argv", [["--help"], ["--version"], ["train", "--help"]])
 def test_help_that_cannot_be_written_is_an_error(monkeypatch, capsys, argv):
     # (argparse dropped the failed write: `neuralrt --help > /dev/full` exited 0 having written nothing)

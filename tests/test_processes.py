@@ -64,8 +64,8 @@ def test_a_fork_after_importing_alone_answers(tmp_path):
 
 @pytest.mark.skipif(sys.platform != "linux", reason="fork with GNU OpenMP: Linux")
 def test_a_fork_after_torch_work_answers_on_a_fork_safe_numba_layer(tmp_path):
-    # What the refusal suggests: with NUMBA_THREADING_LAYER=workqueue the child answers (its
-    # torch on one thread: torch's own first parallel region hung there too).
+    # What the README says: with NUMBA_THREADING_LAYER=workqueue the child answers (its torch on
+    # one thread: torch's own first parallel region hung there too).
     import os
 
     (tmp_path / "pool.py").write_text(_SCRIPT)
@@ -73,3 +73,21 @@ def test_a_fork_after_torch_work_answers_on_a_fork_safe_numba_layer(tmp_path):
                           timeout=300, env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"})
     assert done.returncode == 0, done.stderr[-2000:]
     assert int(done.stdout.split()[1]) > 0
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="numba's threading layers as on Linux")
+def test_a_training_on_numbas_workqueue_layer_draws_its_batches_in_turn(tmp_path):
+    # workqueue aborts the process when two threads run parallel regions at once: a training that
+    # drew its next batch on a second thread died with SIGABRT ("Concurrent access has been detected").
+    import os
+
+    code = ("import sys\n"
+            "from neuralrt import api\n"
+            "from neuralrt.fork_guard import numba_regions_thread_safe\n"
+            "record = api.train('procedural:statue:0', sys.argv[1], preset='lq', steps=40, batch=1024, progress=False)\n"
+            "print(numba_regions_thread_safe(), record['training']['batches_drawn_ahead'])\n")
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "m.nrt")], capture_output=True, text=True,
+                          timeout=600, env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "False"]
+

@@ -509,6 +509,18 @@ def _check_environment() -> None:
     if not usable:
         raise NeuralRTError(f"NUMBA_NUM_THREADS={threads!r}: expected a whole number of threads, 1 or more (unset, "
                             "numba uses every core)")
+    layer = os.environ.get("NUMBA_THREADING_LAYER")
+    if layer is not None and layer.lower() not in _NUMBA_LAYERS:
+        raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer!r}: numba's threading layers are {', '.join(_NUMBA_LAYERS)}")
+    if layer is not None and layer.lower() in ("tbb", "safe"):  # (only TBB will do: numba's traceback at the first kernel)
+        try:
+            from numba.np.ufunc import tbbpool  # noqa: F401
+        except ImportError as exc:
+            raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer}: numba cannot load TBB here ({exc}): pip install tbb, "
+                                "or choose another layer") from None
+
+
+_NUMBA_LAYERS = ("default", "safe", "threadsafe", "forksafe", "omp", "tbb", "workqueue")
 
 
 def _interrupt_within(exc: BaseException) -> KeyboardInterrupt | None:

@@ -23,7 +23,7 @@ import threading
 
 from .errors import DeviceError
 
-__all__ = ["check_not_forked"]
+__all__ = ["check_not_forked", "numba_regions_thread_safe"]
 
 _unsafe_to_fork = False  # decided in the parent just before a fork: the child must refuse
 _openmp_threads_ran = False  # ... the child's torch must run on one thread
@@ -36,7 +36,7 @@ def check_not_forked(where: str) -> None:
         raise DeviceError(
             f"{where}: this process was forked (multiprocessing's default start method on Linux) from one whose OpenMP "
             "threads had already run (neuralrt's or torch's work), and OpenMP cannot run in such a child (it would hang): start "
-            "workers with multiprocessing.get_context('spawn') or 'forkserver' (or set NUMBA_THREADING_LAYER=workqueue)")
+            "workers with multiprocessing.get_context('spawn') or 'forkserver'")
 
 
 _FORK_SAFE_LAYERS = ("workqueue", "tbb")  # numba threading layers with no GNU OpenMP state to inherit
@@ -98,6 +98,14 @@ def _libgomp_code_ranges() -> list[tuple[int, int]]:
                 lo, hi = fields[0].split("-")
                 ranges.append((int(lo, 16), int(hi, 16)))
     return ranges
+
+
+def numba_regions_thread_safe() -> bool:
+    """Whether two threads may run numba parallel regions at once: not on numba's ``workqueue``
+    layer (chosen, or configured: ``forksafe`` falls back to it beside GNU OpenMP), which aborts the
+    process when they do ("Concurrent access has been detected")."""
+    layer = _numba_layer_chosen() or _configured_numba_layer()
+    return layer not in ("workqueue", "forksafe")
 
 
 def _configured_numba_layer() -> str:

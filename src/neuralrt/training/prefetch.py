@@ -47,6 +47,8 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
+from ..fork_guard import numba_regions_thread_safe
+
 __all__ = ["BatchSource"]
 
 IDLE_PRIORITY = hasattr(os, "SCHED_IDLE")  # Linux; elsewhere the thread keeps its normal priority
@@ -123,12 +125,14 @@ class BatchSource:
     ``prepare`` made of its rays (None without ``prepare``) as ``(batch, prepared)``; with
     ``ahead=True`` it may also start drawing the one after it on a background thread: always with
     ``overlap=True``, never with False, and with None (the default) as the trial of drawing in
-    turn against drawing ahead decides (module docstring; `draws_ahead` tells its choice)."""
+    turn against drawing ahead decides (module docstring; `draws_ahead` tells its choice); never
+    where numba's parallel regions may not run on two threads at once (its workqueue layer)."""
 
     def __init__(self, sampler, batch_size: int, *, overlap: bool | None = None, prepare: Callable | None = None,
                  idle_priority: bool | None = None):
         self.sampler, self.batch_size, self.prepare = sampler, batch_size, prepare
-        self.overlap = overlap is not False and bool(getattr(sampler, "model_independent", False))
+        self.overlap = (overlap is not False and bool(getattr(sampler, "model_independent", False))
+                        and numba_regions_thread_safe())  # (numba's workqueue layer aborted the process)
         self._trial = _OverlapTrial() if self.overlap and overlap is None else None
         self.idle_priority = IDLE_PRIORITY if idle_priority is None else idle_priority and IDLE_PRIORITY
         self._executor: ThreadPoolExecutor | None = None
