@@ -6,6 +6,7 @@ Bad input ends with one line on stderr (``neuralrt: error: ...``) and exit statu
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -514,7 +515,7 @@ def _check_environment() -> None:
         raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer!r}: numba's threading layers are {', '.join(_NUMBA_LAYERS)}")
     if layer is not None and layer.lower() in ("tbb", "safe"):  # (only TBB will do: numba's traceback at the first kernel)
         try:
-            from numba.np.ufunc import tbbpool  # noqa: F401
+            importlib.import_module("numba.np.ufunc.tbbpool")
         except ImportError as exc:
             raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer}: numba cannot load TBB here ({exc}): pip install tbb, "
                                 "or choose another layer") from None
