@@ -1,5 +1,6 @@
 """The CLI and the Python API mirror each other: every command on tiny inputs, JSON interfaces, errors."""
 
+import importlib
 import json
 import os
 import subprocess
