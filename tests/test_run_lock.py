@@ -107,3 +107,31 @@ def test_a_convert_into_a_scene_another_convert_holds_stops_before_any_model(tmp
     assert capsys.readouterr().err.strip() == (f"neuralrt: error: {output}: another process (pid {process.pid}) is "
                                                "converting into this scene file; wait for it to end, or write elsewhere")
     assert sorted(p.name for p in output.parent.iterdir()) == ["scene.toml.lock"]  # (the holder's; no models folder)
+
+
+def test_a_convert_waits_for_a_model_another_convert_trains_and_reuses_it(tmp_path, capsys):
+    """Two conversions of other scenes into one models folder: the second stopped with "another
+    process is training this model"; it waits for that process now, and reuses what it wrote."""
+    import json
+
+    models, scene = tmp_path / "models", "builtin:cornell-statue?detail=0"
+    common = ["--models-dir", str(models), "--min-triangles", "1000", "--preset", "lq", "--steps", "2", "--json"]
+    assert main(["convert", scene, "-o", str(tmp_path / "a" / "scene.toml"), *common]) == 0
+    (model,) = models.glob("*.nrt")
+    model.rename(tmp_path / "aside.nrt")  # (as if the first conversion were still training it)
+    checkpoint = model.with_suffix(".ckpt")
+    code = ("import os, sys, time\nfrom neuralrt.io.run_lock import held_alone\n"
+            f"with held_alone({str(checkpoint)!r}):\n    print('held', flush=True)\n    time.sleep(2)\n"
+            f"    os.rename({str(tmp_path / 'aside.nrt')!r}, {str(model)!r})\n")
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout.readline().strip() == "held"
+        capsys.readouterr()
+        assert main(["convert", scene, "-o", str(tmp_path / "b" / "scene.toml"), *common]) == 0
+    finally:
+        process.kill()
+        process.wait()
+    out, err = capsys.readouterr()
+    assert f"waiting for pid {process.pid}, which is training {model.name}" in err and f"reusing {model.name}" in err
+    result = json.loads(out)
+    assert (result["trained_models"], result["reused_models"]) == (0, 1)

@@ -18,6 +18,8 @@ import contextlib
 import errno
 import os
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import NeuralRTError
@@ -27,7 +29,7 @@ try:
 except ImportError:  # (Windows)
     fcntl = None
 
-__all__ = ["held_alone", "lock_path"]
+__all__ = ["held_alone", "lock_path", "wait_while_held"]
 
 # The locks this thread holds (absolute paths): taking one again is a no-op. (Per thread: another
 # thread's flock on its own descriptor conflicts, as another process's does.)
@@ -63,6 +65,32 @@ def held_alone(path: str | os.PathLike, work: str = "training this model"):
             with contextlib.suppress(OSError):  # (removed by hand meanwhile: nothing to clean)
                 lock.unlink()  # before the unlock: a waiter that opened this file then finds it gone and retries
             os.close(fd)
+
+
+def wait_while_held(path: str | os.PathLike, on_wait: Callable[[str], None]) -> bool:
+    """Wait until no process holds ``path``'s lock (`held_alone`), calling ``on_wait(pid)`` first
+    if one does; whether it waited. (A conversion whose model another conversion is training waits
+    for it and reuses the model, where it stopped with "another process is training this model".)"""
+    if fcntl is None:
+        return False
+    try:
+        fd = os.open(lock_path(Path(path)), os.O_RDONLY)
+    except OSError:  # (no lock file: no one holds it)
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            return False
+        except BlockingIOError:
+            on_wait(_holder(fd))
+            fcntl.flock(fd, fcntl.LOCK_SH)  # (released when its holder ends, however it ends)
+            return True
+        except OSError as exc:
+            if exc.errno in _NO_LOCKS:
+                return False
+            raise
+    finally:
+        os.close(fd)
 
 
 def _held_error(lock: Path, holder: str, work: str) -> NeuralRTError:
@@ -102,6 +130,10 @@ def _acquired(lock: Path, work: str) -> int | None:
 
 
 def _holder(fd: int) -> str:
-    with contextlib.suppress(OSError, ValueError):
-        return str(int(os.pread(fd, 32, 0).decode().strip()))
+    """The pid the holder wrote, "" if none. It writes it just after taking the lock: read at once,
+    the file was empty (1 refusal in 25 said "another process" of another thread of this one)."""
+    for _ in range(50):
+        with contextlib.suppress(OSError, ValueError):
+            return str(int(os.pread(fd, 32, 0).decode().strip()))
+        time.sleep(0.002)
     return ""

@@ -31,7 +31,7 @@ from ..errors import ConfigError, ModelFileError, SceneError
 from ..geometry.mesh import Mesh, MeshMaterial, check_float32_extent
 from ..io.files import check_output_file, check_output_files, check_output_folder, folders_removed_if_left_empty, write_atomically
 from ..io.model_file import read_model_file, read_model_header
-from ..io.run_lock import held_alone
+from ..io.run_lock import held_alone, wait_while_held
 from ..methods import DEFAULT_METHOD, MethodConfig, config_from_dict, get_method, is_neural
 from ..methods.base import memory_owner
 from .convert_executors import Executor, TrainingJob, make_executor
@@ -442,6 +442,7 @@ def _converted(spec: SceneSpec, meshes: list, chosen: list[int], output: Path, r
         to_train.append(TrainingJob(stem, mesh, config, method, models_dir.absolute() / f"{stem}.ckpt",
                                     f"{config.method} {preset} model of {mesh.name!r} ({mesh.num_triangles:,} triangles, "
                                     f"{len(users)} object(s))"))
+    to_train = [job for job in to_train if not _trained_meanwhile(job, models_dir, jobs, stems, config, progress)]
     # (a folder or unwritable file where a model goes: said now, not after its training)
     check_output_files([models_dir / f"{job.key}.nrt" for job in to_train], "model file")
     check_output_files([job.checkpoint for job in to_train], "training checkpoint")
@@ -472,6 +473,27 @@ def _converted(spec: SceneSpec, meshes: list, chosen: list[int], output: Path, r
     report.neural_objects = len(chosen)
     save_scene(out_spec, output)
     return report
+
+
+def _trained_meanwhile(job: TrainingJob, models_dir: Path, jobs: dict, stems: dict, config: MethodConfig,
+                       progress: bool) -> bool:
+    """Whether another process was training ``job``'s model (a conversion of another scene into the
+    same models folder): then this one waits for it to end and reuses the model it wrote."""
+    def say(pid: str) -> None:
+        if progress:
+            print(f"waiting for {f'pid {pid}' if pid else 'another process'}, which is training {job.key}.nrt",
+                  file=sys.stderr, flush=True)
+
+    if not wait_while_held(job.checkpoint, say):
+        return False
+    mesh_hash = next(h for h, stem in stems.items() if stem == job.key)
+    cached = cached_model_stem(models_dir, jobs[mesh_hash][0].name, mesh_hash, config)
+    if cached is None:
+        return False  # (it stopped short: this run resumes its checkpoint)
+    stems[mesh_hash] = cached
+    if progress:
+        print(f"reusing {cached}.nrt for {jobs[mesh_hash][0].name!r}", file=sys.stderr, flush=True)
+    return True
 
 
 def neural_bytes(scene) -> int:
