@@ -88,6 +88,16 @@ def test_train_while_another_run_trains_the_same_output_is_one_line_before_any_w
     assert checkpoint.read_bytes() == b"the other run's" and not output.exists()
 
 
+def test_train_into_a_link_to_a_model_another_run_trains_is_told_too(holder, capsys):
+    # (`-o link.nrt`, a link to m.nrt, took link.nrt.ckpt's lock: both trained, and the later write won)
+    checkpoint, process = holder
+    link = checkpoint.parent / "link.nrt"
+    link.symlink_to(checkpoint.with_suffix("").name)
+    assert main(["train", "procedural:statue:0", "-o", str(link), "--preset", "lq", "--steps", "2", "--quiet"]) == 2
+    assert capsys.readouterr().err.strip() == (f"neuralrt: error: {checkpoint}: another process (pid {process.pid}) is "
+                                               "training this model; wait for it to end, or write elsewhere")
+
+
 def test_a_convert_into_a_scene_another_convert_holds_stops_before_any_model(tmp_path, capsys):
     """Two converts into one scene started together could both stop (only each model's checkpoint
     was held); the output scene is held first now, so the second stops before any model trains."""

@@ -447,7 +447,9 @@ def train(
     with folders_removed_if_left_empty(output.parent):
         output.parent.mkdir(parents=True, exist_ok=True)
         # Another run on this checkpoint is told first: the checks below would call its checkpoint left over.
-        with held_alone(checkpoint):
+        # (Locked by the model file it writes: `-o link.nrt`, a link to m.nrt, ran beside `-o m.nrt`.)
+        written = Path(os.path.realpath(output))
+        with held_alone(written.with_name(written.name + CHECKPOINT_SUFFIX)), held_alone(checkpoint):
             if resume and not checkpoint.is_file():
                 raise NeuralRTError(f"{checkpoint}: no checkpoint to resume from")
             if not resume and checkpoint.is_file():  # the run below overwrites it at its first checkpoint

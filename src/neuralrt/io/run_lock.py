@@ -51,7 +51,7 @@ def held_alone(path: str | os.PathLike, work: str = "training this model"):
     ``path``'s folder must exist. The lock file is removed at the end. Nested blocks on one path
     in one process share the outer block's lock."""
     lock = lock_path(Path(path))
-    key, held = os.path.abspath(lock), _HELD.__dict__.setdefault("paths", set())
+    key, held = os.path.realpath(lock), _HELD.__dict__.setdefault("paths", set())  # (one lock however spelt)
     if key in held:
         yield
         return
