@@ -402,6 +402,11 @@ def _edited_checkpoint(path, out, change):
     # (a TypeError inside Adam's first step, after the set-up)
     (lambda h: h["optimizer"]["param_groups"][0].update(betas="ab"), r"\(ValueError: Adam's betas is 'ab', not a value like"),
     (lambda h: h["optimizer"]["param_groups"][0].update(lr=None), r"\(ValueError: Adam's lr is None, not a value like"),
+    # (from a fuzzing trial: a KeyError inside Adam's step, a RuntimeError, a run trained uphill; a step of 1e30)
+    (lambda h: h["optimizer"]["param_groups"][0].update(amsgrad=True), r"\(ValueError: Adam's amsgrad is True, this run's False\)"),
+    (lambda h: h["optimizer"]["param_groups"][0].update(maximize=True), r"\(ValueError: Adam's maximize is True, this run's False\)"),
+    (lambda h: h.update(step=10**30), r"corrupted checkpoint \(step 10{30}\)"),
+    (lambda h: h["sampler"].update(pool_cursor=-7), r"\(ValueError: its pool cursor -7 is not a slot of its pool of"),
 ])
 def test_a_checkpoint_that_cannot_be_resumed_is_one_line(checkpointed, tmp_path, change, message):
     # Each was a traceback (KeyError, TypeError, ...) from deep in the restore.
@@ -447,6 +452,26 @@ def test_a_checkpoint_whose_model_state_is_nan_is_refused(checkpointed, tmp_path
     mesh, config, path = checkpointed
     bad = _edited_checkpoint_arrays(path, tmp_path / "nan.ckpt", lambda a: a["model.network.output.bias"].fill_(float("nan")))
     with pytest.raises(ModelFileError, match=r"network\.output\.bias holds NaN or infinite values"):
+        train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
+
+
+@pytest.mark.parametrize("change, message", [
+    # (a pool of points longer than its normals: a segmentation fault in the pool's kernels)
+    (lambda a: a.update({"sampler.pool_points": a["sampler.pool_points"].repeat(4, 1)}), r"its surface pool is \[\d+, 3\] points and"),
+    (lambda a: a.update({"sampler.pool_normals": a["sampler.pool_normals"][:10].clone()}), r"its surface pool is .* and \[10, 3\] normals"),
+    (lambda a: a.update({"sampler.pool_points": a["sampler.pool_points"][:0].clone(),
+                         "sampler.pool_normals": a["sampler.pool_normals"][:0].clone()}), r"its surface pool is \[0, 3\] points"),
+    (lambda a: a["sampler.pool_points"].fill_(float("nan")), "its surface pool holds numbers that are not finite"),
+    (lambda a: a["sampler.pool_normals"].zero_(), "its surface pool holds .* or zero normals"),
+    (lambda a: a.update({k: -v for k, v in a.items() if k.endswith("exp_avg_sq")}), r"Adam's exp_avg_sq holds negative values"),
+])
+def test_a_checkpoint_whose_arrays_no_run_saves_is_refused(checkpointed, tmp_path, change, message):
+    from neuralrt.errors import ModelFileError
+    from neuralrt.training.api import train
+
+    mesh, config, path = checkpointed
+    bad = _edited_checkpoint_arrays(path, tmp_path / "bad.ckpt", change)
+    with pytest.raises(ModelFileError, match=r"cannot resume from this checkpoint \(ValueError: " + message):
         train(mesh, config.with_training(steps=4), progress=False, checkpoint=bad, resume=True)
 
 

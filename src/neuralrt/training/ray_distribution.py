@@ -215,7 +215,19 @@ class BoxRayDistribution:
         return meta, arrays
 
     def load_state_dict(self, meta: dict, arrays: dict[str, Tensor]) -> None:
+        """A ValueError for a state no run saves: the pool's kernels index it unchecked (a pool of
+        points longer than its normals wrote past their end: a segmentation fault)."""
+        points, normals, cursor = arrays["pool_points"], arrays["pool_normals"], meta["pool_cursor"]
+        if not (points.dtype == normals.dtype == torch.float32 and points.ndim == normals.ndim == 2
+                and points.shape == normals.shape and points.shape[1] == 3 and 0 < len(points) <= self._pool_size):
+            raise ValueError(f"its surface pool is {list(points.shape)} points and {list(normals.shape)} normals "
+                             f"({str(points.dtype)[6:]}, {str(normals.dtype)[6:]}); a run keeps [1..{self._pool_size}, 3] "
+                             "of each, float32")
+        if not (torch.isfinite(points).all() and torch.isfinite(normals).all() and (normals != 0).any(dim=1).all()):
+            raise ValueError("its surface pool holds numbers that are not finite, or zero normals")
+        if not isinstance(cursor, int) or isinstance(cursor, bool) or not 0 <= cursor < self._pool_size:
+            raise ValueError(f"its pool cursor {cursor!r} is not a slot of its pool of {self._pool_size}")
         self.generator.set_state(arrays["generator"])
-        self._pool_cursor = int(meta["pool_cursor"])
-        self.pool_points = arrays["pool_points"].to(self.device).clone()
-        self.pool_normals = arrays["pool_normals"].to(self.device).clone()
+        self._pool_cursor = cursor
+        self.pool_points = points.to(self.device).clone()
+        self.pool_normals = normals.to(self.device).clone()

@@ -28,7 +28,7 @@ from torch import nn
 from ..arguments import given
 from ..errors import ConfigError, ModelFileError, TrainingError, outside_stacklevel, validation_message
 from ..io.model_file import read_header, read_model_file, write_model_file
-from ..methods.config import ABSENT, differing_keys
+from ..methods.config import ABSENT, MAX_STEPS, differing_keys
 from .curve import TrainingCurve, curve_problem
 from .prefetch import BatchSource
 
@@ -103,9 +103,9 @@ def _optimizer_arrays(opt: torch.optim.Optimizer) -> tuple[dict, dict[str, torch
 
 def _same_kind(ours, theirs) -> bool:
     """Whether ``theirs`` (from a file) is a value of ``ours``'s kind: a finite number for a number,
-    as many such for a tuple, the same for anything else (a flag, None)."""
-    if isinstance(ours, bool) or ours is None:
-        return theirs is ours or (isinstance(theirs, bool) and isinstance(ours, bool))
+    as many such for a tuple, the same value for a flag or None, the same type for anything else."""
+    if isinstance(ours, bool) or ours is None:  # (a flag: this run's own, as Adam's step reads it: amsgrad
+        return theirs is ours                   # true wanted state no run saves, maximize trained uphill)
     if isinstance(ours, (int, float)):
         return isinstance(theirs, (int, float)) and not isinstance(theirs, bool) and math.isfinite(theirs)
     if isinstance(ours, (tuple, list)):
@@ -124,7 +124,9 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
     for ours, loaded in zip(fresh, opt.param_groups):
         for key, value in ours.items():
             if not _same_kind(value, loaded.get(key)):
-                raise ValueError(f"Adam's {key} is {loaded.get(key)!r}, not a value like {value!r}")
+                flag = isinstance(value, bool) or value is None
+                raise ValueError(f"Adam's {key} is {loaded.get(key)!r}, " + (f"this run's {value!r}" if flag else
+                                                                            f"not a value like {value!r}"))
     # torch takes moments of any shape, and the step after would fail inside Adam's kernel.
     for p in (p for group in opt.param_groups for p in group["params"]):
         held = opt.state.get(p, {})
@@ -136,6 +138,11 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
                 raise ValueError(f"Adam's {name} has shape {list(value.shape)}, its parameter {list(p.shape)}")
             if value.is_floating_point() and not torch.isfinite(value).all():
                 raise ValueError(f"Adam's {name} holds NaN or infinite values")
+            if name in ("step", "exp_avg_sq") and (value < 0).any():  # (a diverged loss was blamed on the learning rate)
+                raise ValueError(f"Adam's {name} holds negative values")
+            if name != "step" and value.dtype != p.dtype:
+                raise ValueError(f"Adam's {name} is {str(value.dtype).removeprefix('torch.')}, its parameter "
+                                 f"{str(p.dtype).removeprefix('torch.')}")
 
 
 def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict,
@@ -161,7 +168,7 @@ def check_checkpoint(path: Path, identity: dict, header: dict | None = None) -> 
         raise ModelFileError(f"{path}: checkpoint belongs to another run ({identity_differences(header.get('identity'), identity)}); "
                              f"give the checkpoint's settings to resume it, or drop {given('resume', True, flag='--resume')} to start afresh")
     step = header.get("step")
-    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+    if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step <= MAX_STEPS:
         raise ModelFileError(f"{path}: corrupted checkpoint (step {step!r}); delete it or drop {given('resume', True, flag='--resume')}")
 
 
