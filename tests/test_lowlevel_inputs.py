@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import neuralrt
-from neuralrt import devices
+from neuralrt import api, devices
 from neuralrt import rays as rays_module
 from neuralrt.accel.blas import MemoryReport
 from neuralrt.accel.mesh_blas import MeshBLAS
@@ -300,3 +300,29 @@ def test_an_exact_blas_and_a_scene_copy_and_pickle():
         assert torch.equal(other.intersect(rays).t, blas.intersect(rays).t)
     scene = copy.deepcopy(load_dict({"objects": [{"generator": {"name": "sphere"}}]}))
     assert bool(scene.accel.intersect(rays).hit[0])
+
+
+def _zero_size_hdr(path):
+    path.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 0 +X 0\n")
+    return path
+
+
+@pytest.mark.parametrize("call, error, message", [
+    # (from a second fuzzing trial: each was a raw exception from numpy, torch or the OS)
+    (lambda tmp: neuralrt.load_model(tmp / "m.nrt", device=10**30), DeviceError, "not a torch device"),
+    (lambda tmp: api.import_scene(tmp / "a.glb", tmp / "a\x00.toml"), ConfigError, "cannot hold a NUL character"),
+    (lambda tmp: api.render("procedural:statue:0", tmp / "o.exr", primary=np.array([1, 2])), SceneError,
+     "primary must be 'exact' or 'neural'"),
+    (lambda tmp: Rays(torch.zeros(5, 3), torch.ones(5, 3), batch_shape=torch.tensor(5)), ConfigError, "batch_shape: expected"),
+    (lambda tmp: neuralrt.get_method([]), ConfigError, "unknown method"),
+    (lambda tmp: neuralrt.Mesh(vertices="x", faces=[[0, 1, 2]]), neuralrt.errors.MeshError, "vertices are not numbers"),
+    (lambda tmp: neuralrt.Mesh(vertices=np.eye(3), faces=[[0, 1, 2]], face_material_ids=[2**31]),
+     neuralrt.errors.MeshError, "face_material_ids are not int32 indices"),
+    (lambda tmp: api.convert("builtin:cornell-statue?detail=0", tmp / "s.toml", threads_per_model=2**31),
+     ConfigError, "threads_per_model: must be at most 4096"),
+    (lambda tmp: neuralrt.io.images.read_image(_zero_size_hdr(tmp / "zero.hdr")), neuralrt.errors.ImageError,
+     r"the image has no pixels \(0 x 0\)"),
+])
+def test_raw_exceptions_a_fuzzer_found_are_ours(tmp_path, call, error, message):
+    with pytest.raises(error, match=message):
+        call(tmp_path)

@@ -26,7 +26,7 @@ def check_device_name(device):
 
     try:
         dev = torch.device(device)
-    except (RuntimeError, TypeError):
+    except (RuntimeError, TypeError, ValueError, OverflowError):  # (an index of 10**30: "Overflow when unpacking")
         raise DeviceError(f"{_given_device(device)}: not a torch device (use cpu or cuda)") from None
     if dev.type not in DEVICE_TYPES:
         raise DeviceError(f"{_given_device(device)}: unsupported device type {dev.type!r} (use cpu or cuda)")
@@ -178,6 +178,8 @@ def check_path(name: str, value, optional: bool = False) -> Path | None:
         return None
     if isinstance(value, (str, os.PathLike)) and str(value) != "":
         text = str(value)
+        if "\x00" in text:  # (the system's calls end a name there: Python's "embedded null byte" ValueError)
+            raise ConfigError(f"{name}: a path cannot hold a NUL character, got {text!r}")
         try:
             as_utf8 = text.encode("utf-8")
         except UnicodeEncodeError:  # (bytes the locale did not decode)

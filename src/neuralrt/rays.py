@@ -100,6 +100,9 @@ class Rays:
         shape = tuple(origins.shape[:-1])
         if self.batch_shape is None:
             self.batch_shape = shape
+        elif not (isinstance(self.batch_shape, (tuple, list, torch.Size))
+                  and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in self.batch_shape)):
+            raise ConfigError(f"batch_shape: expected a tuple of sizes, got {self.batch_shape!r}")
         n, dev = math.prod(shape), origins.device
         if math.prod(self.batch_shape) != n:
             raise ConfigError(f"batch_shape {self.batch_shape} does not hold {n} rays")

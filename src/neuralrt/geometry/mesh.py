@@ -93,12 +93,18 @@ class Mesh:
     name: str = "mesh"
 
     def __post_init__(self) -> None:
-        self.vertices = _as_float32(self.vertices)
+        try:
+            self.vertices = _as_float32(self.vertices)
+        except (TypeError, ValueError) as exc:
+            raise MeshError(f"{self.name}: vertices are not numbers ({exc})") from None
         self.faces = _as_indices(self.faces, self.name)
         validate_arrays(self.vertices, self.faces, self.name)
         if self.face_material_ids is None:
             self.face_material_ids = np.zeros(len(self.faces), np.int32)
-        self.face_material_ids = np.ascontiguousarray(self.face_material_ids, dtype=np.int32)
+        try:
+            self.face_material_ids = np.ascontiguousarray(self.face_material_ids, dtype=np.int32)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise MeshError(f"{self.name}: face_material_ids are not int32 indices ({exc})") from None
         if not self.materials:
             self.materials = [MeshMaterial()]
         if len(self.face_material_ids) != len(self.faces) or (

@@ -154,14 +154,18 @@ def read_image(path: str | Path) -> np.ndarray:
     suffix = path.suffix.lower()
     try:
         if suffix == ".exr":
-            return _read_exr(path)
-        if suffix in (".hdr", ".pic"):
-            return _read_hdr(path)
-        return _read_ldr(path)
+            pixels = _read_exr(path)
+        elif suffix in (".hdr", ".pic"):
+            pixels = _read_hdr(path)
+        else:
+            pixels = _read_ldr(path)
     except ImageError:
         raise
     except Exception as exc:
         raise ImageError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
+    if pixels.size == 0:  # (a 0 x 0 Radiance header: an environment map's traceback, a texture no lookup can read)
+        raise ImageError(f"{path}: the image has no pixels ({pixels.shape[1]} x {pixels.shape[0]})")
+    return pixels
 
 
 def is_grey_image(path: str | Path) -> bool:

@@ -216,7 +216,7 @@ def method_names() -> list[str]:
 
 def get_method(name: str) -> MethodSpec:
     """The registered method ``name``; an unknown name is a `ConfigError` listing the known ones."""
-    if name not in _with_plugins():
+    if not isinstance(name, str) or name not in _with_plugins():
         raise ConfigError(f"unknown method {name!r} (registered: {', '.join(_METHODS) or 'none'})")
     return _METHODS[name]
 

@@ -190,6 +190,7 @@ class LocalExecutor(Executor):
 # --- Ray ------------------------------------------------------------------------------------------
 
 
+MAX_THREADS = 4096  # threads per model, at most (torch's count is a C int: 2**31 was an OverflowError traceback)
 _RAY_OPTIONS = ("address", "cpus_per_model", "gpus_per_model", "threads_per_model", "max_retries")
 
 
@@ -203,7 +204,7 @@ class RayOptions(BaseModel):
     cpus_per_model: float = Field(1.0, gt=0, strict=True, description="Ray CPUs each training task asks for")
     gpus_per_model: float | None = Field(None, ge=0, strict=True, description="Ray GPUs each task asks for (default: 1 on cuda, 0 on cpu; "
                                                                  "a fraction shares a GPU)")
-    threads_per_model: int | None = Field(None, ge=1, strict=True, description="torch and numba threads of each task "
+    threads_per_model: int | None = Field(None, ge=1, le=MAX_THREADS, strict=True, description="torch and numba threads of each task "
                                                                   "(default: cpus_per_model, at least 1)")
     max_retries: int = Field(3, ge=0, le=1000, strict=True, description="times Ray reruns a task whose worker died (it resumes from its checkpoint)")
 
@@ -544,6 +545,6 @@ def make_executor(name: str, *, device: str = "cpu", progress: bool = True, thre
         ray_only = [given(k) for k, v in ray_options.items() if v is not None]
         if ray_only:
             raise ConfigError(f"{', '.join(ray_only)}: only with {given('executor', 'ray')}")
-        threads_per_model = check_count(given("threads_per_model"), threads_per_model)
+        threads_per_model = check_count(given("threads_per_model"), threads_per_model, maximum=MAX_THREADS)
         return LocalExecutor(device=device, progress=progress, threads=threads_per_model)
     return RayExecutor(RayOptions.parse(threads_per_model=threads_per_model, **ray_options), device=device, progress=progress)

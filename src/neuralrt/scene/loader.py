@@ -382,7 +382,7 @@ def build_scene(spec: SceneSpec, base_dir: Path | str = ".", device="cpu", label
 def _build(spec: SceneSpec, base_dir: Path | str, device, label: str, primary: str, given: _InMemory,
            allow_mesh_mismatch: bool = False, inference: dict | None = None) -> Scene:
     """The scene of ``spec``, which it keeps: one no one else holds, its paths absolute."""
-    if primary not in PRIMARY_CHOICES:
+    if not isinstance(primary, str) or primary not in PRIMARY_CHOICES:  # (an array: "truth value is ambiguous")
         raise SceneError(f"{label}: primary must be 'exact' or 'neural', got {primary!r}")
     dev = device  # (checked by the public callers: `check_device`)
     index = material_index(spec)
