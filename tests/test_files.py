@@ -238,3 +238,27 @@ def test_another_users_file_in_a_sticky_folder_is_refused_and_no_file_of_the_set
             monkeypatch.setattr(files.os, "geteuid", lambda: os.stat(shared).st_uid + 1)
     assert sorted(p.name for p in shared.iterdir()) == ["r.exr", "r_depth.exr"]
     assert {(shared / n).read_text() for n in ("r.exr", "r_depth.exr")} == {"old"}
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or os.name != "posix", reason="flock on a folder: POSIX")
+def test_another_processs_set_renamed_into_the_same_folder_waits_for_ours(tmp_path):
+    # (two renders of one -o in two processes, on a slow file system, left a set of both: the
+    # threads of one process waited for each other, processes did not)
+    import subprocess
+    import sys
+
+    from neuralrt.io import files
+
+    code = ("import fcntl, os, sys, time\nfd = os.open(sys.argv[1], os.O_RDONLY)\nfcntl.flock(fd, fcntl.LOCK_EX)\n"
+            "print('held', flush=True)\ntime.sleep(1.5)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        start = time.perf_counter()
+        with files.written_together():
+            write_atomically(tmp_path / "a.exr", lambda tmp: open(tmp, "w").write("new"))
+        waited = time.perf_counter() - start
+    finally:
+        holder.kill()
+        holder.wait()
+    assert waited > 0.5 and (tmp_path / "a.exr").read_text() == "new"

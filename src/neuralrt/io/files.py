@@ -28,6 +28,11 @@ from pathlib import Path
 from ..errors import NeuralRTError
 from ..interrupts import interrupts_held
 
+try:
+    import fcntl
+except ImportError:  # (Windows)
+    fcntl = None
+
 __all__ = ["write_atomically", "written_together", "input_file_problem", "check_output_file", "check_output_files", "check_output_folder",
            "folders_removed_if_left_empty"]
 
@@ -168,7 +173,7 @@ def written_together():
     ends they are all renamed into place, or, if it fails (an interrupt too), all removed: a set of
     outputs (a render's image and AOVs, eval's figures) is written whole or not at all, never half
     new and half as an earlier run left it. A block inside another joins the outer one. Two sets
-    renamed by two threads of a process are renamed one after the other, never interleaved."""
+    renamed by two threads or processes are renamed one after the other, never interleaved."""
     if _STAGED.get() is not None:  # (inside another such block: its files go with that block's)
         yield
         return
@@ -182,7 +187,9 @@ def written_together():
         raise
     finally:
         _STAGED.reset(token)
-    with interrupts_held(), _RENAMING:  # (an interrupt between two renames left half the set new, and temporaries)
+    # (an interrupt between two renames left half the set new, and temporaries; another thread's or
+    # process's set renamed in between mixed the two sets)
+    with interrupts_held(), _RENAMING, _folders_locked(path for _, path in staged):
         path = None
         try:
             problem = next(filter(None, (_replace_problem(path, "file") for _, path in staged)), None)
@@ -196,6 +203,31 @@ def written_together():
             if isinstance(exc, OSError) and path is not None:  # (it named our temporary, not the output)
                 raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
             raise
+
+
+@contextlib.contextmanager
+def _folders_locked(paths):
+    """The block runs while this process holds ``paths``' folders locked (``flock`` on each folder,
+    in one order: no deadlock), so another process's set renamed into them waits (no lock file is
+    left). Where a folder cannot be locked (no ``flock``: Windows, some network file systems), as
+    before: the renames are milliseconds apart."""
+    fds = []
+    try:
+        for folder in sorted({os.path.realpath(Path(p).parent) for p in paths}) if fcntl is not None else ():
+            try:
+                fd = os.open(folder, os.O_RDONLY)
+            except OSError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            except OSError:
+                os.close(fd)
+                continue
+            fds.append(fd)
+        yield
+    finally:
+        for fd in fds:
+            os.close(fd)
 
 
 def _link_target(path: Path) -> Path:
