@@ -201,3 +201,24 @@ def test_an_image_declaring_more_pixels_than_any_may_hold_is_refused_before_allo
     with pytest.raises(ImageError, match=r"bomb.hdr: declares 100000x100000 pixels, over the 178,956,970"):
         read_image(bomb)
     assert MAX_IMAGE_PIXELS == 2 * 89_478_485  # (PIL's Image.MAX_IMAGE_PIXELS, doubled: where PIL errors)
+
+
+@pytest.mark.parametrize("data_lo, data_hi", [((8, 4), (63, 31)), ((-4, -2), (67, 33))])
+def test_an_exr_is_read_as_its_display_window(tmp_path, data_lo, data_hi):
+    # (a cropped render, data window inside the display window, read as the crop alone: a texture or
+    # environment map made of it was stretched; an overscan one, larger, was squeezed)
+    import OpenEXR
+
+    height, width = 32, 64
+    rows, cols = np.meshgrid(np.arange(-10, height + 10), np.arange(-10, width + 10), indexing="ij")
+    world = np.stack([cols, rows, np.ones_like(cols)], -1).astype(np.float32) + 1  # (a pixel's own coordinates, + 1)
+    (x0, y0), (x1, y1) = data_lo, data_hi
+    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION,
+              "displayWindow": (np.array([0, 0], np.int32), np.array([width - 1, height - 1], np.int32)),
+              "dataWindow": (np.array(data_lo, np.int32), np.array(data_hi, np.int32))}
+    with OpenEXR.File(header, {"RGB": world[y0 + 10:y1 + 11, x0 + 10:x1 + 11].copy()}) as f:
+        f.write(str(tmp_path / "w.exr"))
+    pixels = read_image(tmp_path / "w.exr")
+    expected = world[10:10 + height, 10:10 + width].copy()
+    expected[:max(y0, 0)], expected[:, :max(x0, 0)] = 0, 0  # (outside the data window: black)
+    assert pixels.shape == (height, width, 3) and np.array_equal(pixels, expected)

@@ -229,19 +229,39 @@ def _read_exr_pixels(path: Path) -> np.ndarray:
     import OpenEXR
 
     with OpenEXR.File(str(path), header_only=True) as f:
-        lo, hi = (np.asarray(v, np.int64) for v in f.header()["dataWindow"])
+        header = f.header()
+        lo, hi = (np.asarray(v, np.int64) for v in header["dataWindow"])
+        shown = [np.asarray(v, np.int64) for v in header.get("displayWindow", (lo, hi))]
     _check_pixel_count(path, int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+    _check_pixel_count(path, int(shown[1][0] - shown[0][0] + 1), int(shown[1][1] - shown[0][1] + 1))
     with OpenEXR.File(str(path)) as f:
         channels = f.channels()
         if "RGB" in channels:
-            return np.asarray(channels["RGB"].pixels, np.float32)
-        if "RGBA" in channels:
-            return np.asarray(channels["RGBA"].pixels, np.float32)[..., :3]
-        if all(c in channels for c in "RGB"):
-            return np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], -1)
-        if "Y" in channels:
-            return np.asarray(channels["Y"].pixels, np.float32)
-        raise ImageError(f"{path}: EXR has no RGB or Y channels (found {sorted(channels)})")
+            pixels = np.asarray(channels["RGB"].pixels, np.float32)
+        elif "RGBA" in channels:
+            pixels = np.asarray(channels["RGBA"].pixels, np.float32)[..., :3]
+        elif all(c in channels for c in "RGB"):
+            pixels = np.stack([np.asarray(channels[c].pixels, np.float32) for c in "RGB"], -1)
+        elif "Y" in channels:
+            pixels = np.asarray(channels["Y"].pixels, np.float32)
+        else:
+            raise ImageError(f"{path}: EXR has no RGB or Y channels (found {sorted(channels)})")
+    return _in_display_window(pixels, lo, *shown)
+
+
+def _in_display_window(pixels: np.ndarray, data_lo, shown_lo, shown_hi) -> np.ndarray:
+    """An EXR's pixels placed in its display window, the image it stands for: a cropped render or
+    an overscan one (data window smaller or larger) was stretched over the whole image as a
+    texture or environment map. Outside the data window: 0; outside the display window: cut."""
+    height, width = int(shown_hi[1] - shown_lo[1] + 1), int(shown_hi[0] - shown_lo[0] + 1)
+    x0, y0 = int(data_lo[0] - shown_lo[0]), int(data_lo[1] - shown_lo[1])
+    if (x0, y0) == (0, 0) and pixels.shape[:2] == (height, width):
+        return pixels
+    placed = np.zeros((height, width, *pixels.shape[2:]), np.float32)
+    ys, xs = slice(max(y0, 0), min(y0 + pixels.shape[0], height)), slice(max(x0, 0), min(x0 + pixels.shape[1], width))
+    if ys.start < ys.stop and xs.start < xs.stop:
+        placed[ys, xs] = pixels[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0]
+    return placed
 
 
 def _read_ldr(path: Path) -> np.ndarray:
