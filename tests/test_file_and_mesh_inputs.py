@@ -605,9 +605,18 @@ def test_a_file_a_mesh_names_outside_its_folder_is_refused_in_our_words(tmp_path
     (tmp_path / "elsewhere" / "m.mtl").write_text("newmtl red\nKd 1 0 0\n")
     (tmp_path / "mesh" / "m.mtl").symlink_to(tmp_path / "elsewhere" / "m.mtl")
     (tmp_path / "mesh" / "m.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n")
-    with pytest.warns(UserWarning, match=r"material file m\.mtl could not be read \(ValueError: 'm\.mtl' leads out of "
-                                         r"the folder of m\.obj \(a link elsewhere.*copy the file there\)"):
+    with pytest.warns(UserWarning, match=r"material file m\.mtl could not be read \(OutsideFolderError: 'm\.mtl' leads "
+                                         r"out of the folder of m\.obj \(a link elsewhere.*copy the file there\)"):
         load_mesh(tmp_path / "mesh" / "m.obj")
+    import trimesh  # a .gltf whose .bin is a link out of its folder: said so, not "not a valid glTF file"
+
+    files = trimesh.exchange.gltf.export_gltf(trimesh.creation.box())
+    for name, data in files.items():
+        (tmp_path / ("elsewhere" if name.endswith(".bin") else "mesh") / name).write_bytes(data)
+    bin_name = next(name for name in files if name.endswith(".bin"))
+    (tmp_path / "mesh" / bin_name).symlink_to(tmp_path / "elsewhere" / bin_name)
+    with pytest.raises(MeshError, match=r"model\.gltf: cannot read mesh: '.*\.bin' leads out of the folder of model\.gltf"):
+        load_mesh(tmp_path / "mesh" / "model.gltf")
 
 
 def test_a_scene_file_that_is_not_utf8_names_its_line(tmp_path):

@@ -27,7 +27,7 @@ from .gltf_json import (dequantized_positions, dequantized_uvs, gltf_file_notes,
 from .gltf_pack import packed_alone
 from .obj_files import clean_obj_text, scaled_normal_texels, used_material_names, vertex_colours_of_parts
 from .off_colours import off_colours
-from .unread_assets import regular_files_resolver, unread_assets
+from .unread_assets import OutsideFolderError, regular_files_resolver, unread_assets
 
 
 __all__ = ["Mesh", "MeshMaterial", "load_mesh", "check_float32_extent", "import_trimesh"]
@@ -753,6 +753,8 @@ def _load_mesh_file(path: Path, gltf_mesh: int | str | None, lit: Container[str]
             _keep_obj_colours(loaded, obj_bytes, path)
         source = obj_bytes = rewritten = None
     except Exception as exc:  # trimesh raises many types for malformed files
+        if isinstance(exc, OutsideFolderError):  # (ours: it says why, and the file may be fine)
+            raise MeshError(f"{path}: cannot read mesh: {exc}") from None
         raise MeshError(f"{path}: cannot read mesh: {_unreadable_why(exc, suffix)} ({type(exc).__name__}: {exc})") from None
     for what in unread:
         warnings.warn(f"{path}: {what}", stacklevel=outside_stacklevel())

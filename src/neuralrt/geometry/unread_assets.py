@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..errors import outside_stacklevel
 
-__all__ = ["unread_assets", "regular_files_resolver"]
+__all__ = ["unread_assets", "regular_files_resolver", "OutsideFolderError"]
 
 _LOGGER = "trimesh.util"  # the logger trimesh's OBJ and glTF readers write to
 _MATERIALS = "unable to load materials from:"
@@ -98,6 +98,10 @@ def unread_assets():
                 _installed = None
 
 
+class OutsideFolderError(ValueError):
+    """A file a mesh names that lies outside the mesh's folder (read only beside it)."""
+
+
 def regular_files_resolver(mesh_path: str):
     """trimesh's resolver for the files beside ``mesh_path``, refusing any that is not a regular
     file (a FIFO, a device, a folder) with an OSError, which trimesh logs as unread."""
@@ -112,7 +116,7 @@ def regular_files_resolver(mesh_path: str):
             try:
                 path = super().absolute(name)
             except ValueError:  # (trimesh's words name its own API: "pass FilePathResolver(..., allow_anywhere=True)")
-                raise ValueError(f"{name.strip()[:200]!r} leads out of the folder of {Path(mesh_path).name} (a link "
+                raise OutsideFolderError(f"{name.strip()[:200]!r} leads out of the folder of {Path(mesh_path).name} (a link "
                                  "elsewhere, an absolute path or '..'): the files a mesh names are read only beside "
                                  "it; copy the file there") from None
             if path.exists() and not path.is_file():
