@@ -31,7 +31,7 @@ except ImportError:  # (Windows)
 
 __all__ = ["held_alone", "lock_path", "wait_while_held"]
 
-# The locks this thread holds (absolute paths): taking one again is a no-op. (Per thread: another
+# The locks this thread holds (real paths, links followed): taking one again is a no-op. (Per thread: another
 # thread's flock on its own descriptor conflicts, as another process's does.)
 _HELD = threading.local()
 
