@@ -222,3 +222,32 @@ def test_an_exr_is_read_as_its_display_window(tmp_path, data_lo, data_hi):
     expected = world[10:10 + height, 10:10 + width].copy()
     expected[:max(y0, 0)], expected[:, :max(x0, 0)] = 0, 0  # (outside the data window: black)
     assert pixels.shape == (height, width, 3) and np.array_equal(pixels, expected)
+
+
+def _png16_rgb(path, pixels):
+    """A 16-bit colour PNG (Pillow writes none): IHDR depth 16, colour type 2, rows unfiltered."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    height, width, _ = pixels.shape
+    rows = b"".join(b"\0" + pixels[y].astype(">u2").tobytes() for y in range(height))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 16, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+    return path
+
+
+def test_a_16_bit_colour_png_is_said_to_be_read_at_8_bits(tmp_path):
+    # (Pillow reads it as 8-bit RGB: a 16-bit texture or normal map lost its precision silently)
+    pixels = (np.arange(4 * 5 * 3).reshape(4, 5, 3) * 1000).astype(np.uint16)
+    with pytest.warns(UserWarning, match=r"a 16-bit colour PNG, read at 8 bits per channel .* save it as EXR"):
+        image = read_image(_png16_rgb(tmp_path / "deep.png", pixels))
+    assert image.shape == (4, 5, 3)
+    write_png(tmp_path / "plain.png", np.full((2, 2, 3), 0.5))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_image(tmp_path / "plain.png")  # (an 8-bit one: no word)

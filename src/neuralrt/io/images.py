@@ -275,7 +275,24 @@ def _read_ldr(path: Path) -> np.ndarray:
     except UnidentifiedImageError:
         raise ImageError(f"{path}: not a recognised image format") from None
     arr = arr / (65535.0 if bits16 else 255.0)
+    if not bits16 and _png_colour_depth(path) == 16:
+        import warnings
+
+        from ..errors import outside_stacklevel
+
+        warnings.warn(f"{path}: a 16-bit colour PNG, read at 8 bits per channel (Pillow reads colour PNGs no deeper; "
+                      "grey ones keep 16): save it as EXR to keep its precision", stacklevel=outside_stacklevel())
     return srgb_to_linear(_as_rgb(arr, path))
+
+
+def _png_colour_depth(path: Path) -> int | None:
+    """A colour PNG's bits per channel, from its header (IHDR: depth at byte 24, colour type 2 or 6 at
+    25); None for anything else."""
+    with path.open("rb") as f:
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR" or head[25] not in (2, 6):
+        return None
+    return head[24]
 
 
 _HDR_SIZE = re.compile(rb"^([-+])Y (\d+) ([-+])X (\d+)$")

@@ -70,7 +70,10 @@ builds no mesh BVH for objects with a model (camera rays go to the model too).
 Conventions: right-handed, +y up; the camera looks down its -z axis. Colours are linear RGB.
 Images (textures, environment maps) in PNG or JPEG are sRGB, decoded to linear (a texel of 128 is
 albedo 0.216); EXR and HDR are linear. Textures repeat outside [0, 1] and are filtered bilinearly,
-so an edge texel blends with the opposite edge's; an image's alpha is not read.
+so an edge texel blends with the opposite edge's; an image's alpha is not read. A colour PNG is read
+at 8 bits per channel (a 16-bit one with a warning: save it as EXR), a grey one at its depth; a
+JPEG's EXIF orientation is not applied; an EXR is read as its display window (outside its data
+window: black).
 A surface's colour is its scene material's `albedo` times the mesh's own colour at the hit (MTL
 `Kd` and `map_Kd`, glTF base colour, vertex colours; white where the mesh has none, as the
 generators' meshes): give one or the other. A neural object's own colour is what its model
