@@ -130,9 +130,11 @@ def test_a_convert_waits_for_a_model_another_convert_trains_and_reuses_it(tmp_pa
     (model,) = models.glob("*.nrt")
     model.rename(tmp_path / "aside.nrt")  # (as if the first conversion were still training it)
     checkpoint = model.with_suffix(".ckpt")
+    checkpoint.write_bytes(b"its run's")  # (a Ray driver saves the model just after its worker's lock ends)
     code = ("import os, sys, time\nfrom neuralrt.io.run_lock import held_alone\n"
-            f"with held_alone({str(checkpoint)!r}):\n    print('held', flush=True)\n    time.sleep(2)\n"
-            f"    os.rename({str(tmp_path / 'aside.nrt')!r}, {str(model)!r})\n")
+            f"with held_alone({str(checkpoint)!r}):\n    print('held', flush=True)\n    time.sleep(3)\n"
+            f"time.sleep(0.5)\nos.rename({str(tmp_path / 'aside.nrt')!r}, {str(model)!r})\n"
+            f"os.remove({str(checkpoint)!r})\n")
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert process.stdout.readline().strip() == "held"
@@ -145,3 +147,31 @@ def test_a_convert_waits_for_a_model_another_convert_trains_and_reuses_it(tmp_pa
     assert f"waiting for pid {process.pid}, which is training {model.name}" in err and f"reusing {model.name}" in err
     result = json.loads(out)
     assert (result["trained_models"], result["reused_models"]) == (0, 1)
+
+
+def test_a_local_conversion_holds_its_models_lock_until_the_model_is_saved(tmp_path):
+    # (released when training ended, before the model was written: a waiting conversion woke to no model)
+    from neuralrt.geometry.procedural import procedural_mesh
+    from neuralrt.methods import get_method
+    from neuralrt.methods.lsnif import LSNIFConfig
+    from neuralrt.scene.convert_executors import LocalExecutor, TrainingJob
+
+    config = LSNIFConfig.preset("lq").with_training(steps=2, batch_size=256)
+    job = TrainingJob("m", procedural_mesh("procedural:statue:0"), config, get_method("lsnif"), tmp_path / "m.ckpt", "m")
+    results = LocalExecutor(progress=False).run([job])
+    next(results)  # (the model, not yet saved by its caller)
+    errors = []
+
+    def hold():
+        try:
+            with held_alone(tmp_path / "m.ckpt"):
+                pass
+        except NeuralRTError as exc:
+            errors.append(str(exc))
+
+    other = threading.Thread(target=hold)
+    other.start()
+    other.join()
+    assert len(errors) == 1 and "another thread of this process is training this model" in errors[0]
+    results.close()  # (the caller is done with it)
+    assert not lock_path(tmp_path / "m.ckpt").exists()

@@ -475,6 +475,9 @@ def _converted(spec: SceneSpec, meshes: list, chosen: list[int], output: Path, r
     return report
 
 
+SAVED_WITHIN_SECONDS = 30.0  # how long a waiting conversion looks for the model another one trained
+
+
 def _trained_meanwhile(job: TrainingJob, models_dir: Path, jobs: dict, stems: dict, config: MethodConfig,
                        progress: bool) -> bool:
     """Whether another process was training ``job``'s model (a conversion of another scene into the
@@ -487,7 +490,10 @@ def _trained_meanwhile(job: TrainingJob, models_dir: Path, jobs: dict, stems: di
     if not wait_while_held(job.checkpoint, say):
         return False
     mesh_hash = next(h for h, stem in stems.items() if stem == job.key)
-    cached = cached_model_stem(models_dir, jobs[mesh_hash][0].name, mesh_hash, config)
+    deadline = time.monotonic() + SAVED_WITHIN_SECONDS  # (a Ray driver saves the model after its worker's lock ends)
+    while (cached := cached_model_stem(models_dir, jobs[mesh_hash][0].name, mesh_hash, config)) is None \
+            and Path(job.checkpoint).exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
     if cached is None:
         return False  # (it stopped short: this run resumes its checkpoint)
     stems[mesh_hash] = cached

@@ -23,6 +23,7 @@ default, `RayExecutor` uses ``cpus_per_model`` threads by default.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -44,6 +45,7 @@ from ..arguments import check_count, given
 from ..errors import ConfigError, NeuralRTError, validation_message
 from ..geometry.mesh import Mesh
 from ..io.files import write_atomically
+from ..io.run_lock import held_alone
 from ..methods import MethodConfig, MethodSpec
 from ..progress import progress_bar, redraw_due
 
@@ -181,10 +183,12 @@ class LocalExecutor(Executor):
         for k, job in enumerate(jobs):
             if self.progress:
                 print(f"[{k + 1}/{len(jobs)}] training {job.description}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
-            model, seconds, used = _train_job(job, job.mesh, self.device, threads=self.threads, progress=self.progress)
-            record = model.training_record
-            yield TrainedModel(job.key, seconds, record.get("rays_per_second", 0.0), record.get("resumed_from"),
-                               "local", used, model=model)
+            # (held until the caller has saved the model: a conversion waiting for this one then finds it)
+            with held_alone(job.checkpoint) if job.checkpoint is not None else contextlib.nullcontext():
+                model, seconds, used = _train_job(job, job.mesh, self.device, threads=self.threads, progress=self.progress)
+                record = model.training_record
+                yield TrainedModel(job.key, seconds, record.get("rays_per_second", 0.0), record.get("resumed_from"),
+                                   "local", used, model=model)
 
 
 # --- Ray ------------------------------------------------------------------------------------------
