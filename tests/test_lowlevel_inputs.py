@@ -326,3 +326,10 @@ def _zero_size_hdr(path):
 def test_raw_exceptions_a_fuzzer_found_are_ours(tmp_path, call, error, message):
     with pytest.raises(error, match=message):
         call(tmp_path)
+
+
+def test_numpy_sizes_are_sizes():
+    # (the batch_shape check first took Python ints only: pinhole_rays(np.int64(4), ...) was refused)
+    rays = neuralrt.pinhole_rays(np.int64(4), np.int64(3), 40.0, (0, 0, 3), (0, 0, 0), (0, 1, 0))
+    assert rays.batch_shape == (3, 4) and all(type(d) is int for d in rays.batch_shape)
+    assert Rays(torch.zeros(6, 3), torch.ones(6, 3), batch_shape=(np.int64(2), 3)).batch_shape == (2, 3)

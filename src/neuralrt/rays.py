@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Annotated
 
@@ -100,8 +101,10 @@ class Rays:
         shape = tuple(origins.shape[:-1])
         if self.batch_shape is None:
             self.batch_shape = shape
-        elif not (isinstance(self.batch_shape, (tuple, list, torch.Size))
-                  and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in self.batch_shape)):
+        elif isinstance(self.batch_shape, (tuple, list, torch.Size)) and all(
+                isinstance(d, numbers.Integral) and not isinstance(d, bool) and d >= 0 for d in self.batch_shape):
+            self.batch_shape = tuple(int(d) for d in self.batch_shape)  # (numpy sizes too, kept as Python ints)
+        else:
             raise ConfigError(f"batch_shape: expected a tuple of sizes, got {self.batch_shape!r}")
         n, dev = math.prod(shape), origins.device
         if math.prod(self.batch_shape) != n:
@@ -594,8 +597,7 @@ def pinhole_rays(
     """
     from .render.camera import Camera
 
-    check_count("pinhole_rays: width", width)
-    check_count("pinhole_rays: height", height)
+    width, height = check_count("pinhole_rays: width", width), check_count("pinhole_rays: height", height)
     if isinstance(fov_y_degrees, bool) or not isinstance(fov_y_degrees, (int, float, np.number)) or not 0 < fov_y_degrees < 180:
         raise ConfigError(f"pinhole_rays: need width, height >= 1 and 0 < fov < 180, got {width}x{height}, fov {fov_y_degrees!r}")
     origin, look_at, up = (_point(name, v) for name, v in (("origin", origin), ("look_at", look_at), ("up", up)))
