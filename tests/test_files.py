@@ -250,7 +250,7 @@ def test_another_processs_set_renamed_into_the_same_folder_waits_for_ours(tmp_pa
     from neuralrt.io import files
 
     code = ("import fcntl, os, sys, time\nfd = os.open(sys.argv[1], os.O_RDONLY)\nfcntl.flock(fd, fcntl.LOCK_EX)\n"
-            "print('held', flush=True)\ntime.sleep(1.5)\n")
+            "print('held', flush=True)\ntime.sleep(3)\n")
     holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
@@ -261,4 +261,35 @@ def test_another_processs_set_renamed_into_the_same_folder_waits_for_ours(tmp_pa
     finally:
         holder.kill()
         holder.wait()
-    assert waited > 0.5 and (tmp_path / "a.exr").read_text() == "new"
+    assert waited > 1 and (tmp_path / "a.exr").read_text() == "new"
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or os.name != "posix", reason="flock on a folder: POSIX")
+def test_ctrl_c_while_waiting_for_another_processs_set_stops_the_wait(tmp_path):
+    # (the wait ran with interrupts held: a holder stopped mid-rename could only be outwaited or SIGKILLed)
+    import signal
+    import subprocess
+    import sys
+
+    from neuralrt.io import files
+
+    code = ("import fcntl, os, sys, time\nfd = os.open(sys.argv[1], os.O_RDONLY)\nfcntl.flock(fd, fcntl.LOCK_EX)\n"
+            "print('held', flush=True)\ntime.sleep(30)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    before = signal.signal(signal.SIGALRM, lambda *_: signal.raise_signal(signal.SIGINT))
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        start = time.perf_counter()
+        signal.setitimer(signal.ITIMER_REAL, 0.5)
+        with pytest.raises(KeyboardInterrupt):
+            with files.written_together():
+                write_atomically(tmp_path / "a.exr", lambda tmp: open(tmp, "w").write("new"))
+        assert time.perf_counter() - start < 10
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)
+        signal.signal(signal.SIGINT, handler)
+        holder.kill()
+        holder.wait()
+    assert list(tmp_path.iterdir()) == []  # (its temporary removed, nothing renamed)

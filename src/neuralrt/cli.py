@@ -465,7 +465,9 @@ def main(argv: list[str] | None = None) -> int:
     _SWALLOWED.clear()
     _OTHER_UNRAISABLE[:] = [unraisable]
     args = None
-    stdout, sys.stdout = sys.stdout, _NamedStandardOutput(sys.stdout)
+    stdout = sys.stdout
+    if stdout is not None:  # (None: started with it closed, `>&-`; print then writes nothing, as Python's does)
+        sys.stdout = _NamedStandardOutput(stdout)
     try:
         args = build_parser().parse_args(argv)  # (loads method plugins: --method lists theirs)
         _check_environment()  # (after --help and --version, which need none of it)
@@ -473,7 +475,8 @@ def main(argv: list[str] | None = None) -> int:
             args.func(args)
         if _SWALLOWED:  # (it ran to its end: an interrupt is still an interrupt, exit 130 or 143)
             raise _SWALLOWED[0]
-        sys.stdout.flush()  # (left to the interpreter's final flush, `> /dev/full` was "Exception ignored", exit 120)
+        if sys.stdout is not None:  # (left to the interpreter's final flush, `> /dev/full` was "Exception ignored", exit 120)
+            sys.stdout.flush()
     except NeuralRTError as exc:
         print(f"neuralrt: error: {_message(str(exc))}", file=sys.stderr)
         return 2
@@ -515,8 +518,9 @@ def _check_environment() -> None:
         raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer!r}: numba's threading layers are {', '.join(_NUMBA_LAYERS)}")
     if layer is not None and layer.lower() in ("tbb", "safe"):  # (only TBB will do: numba's traceback at the first kernel)
         try:
+            importlib.import_module("numba.np.ufunc.parallel")._check_tbb_version_compatible()  # (as numba asks first)
             importlib.import_module("numba.np.ufunc.tbbpool")
-        except ImportError as exc:
+        except (ImportError, ValueError) as exc:
             raise NeuralRTError(f"NUMBA_THREADING_LAYER={layer}: numba cannot load TBB here ({exc}): pip install tbb, "
                                 "or choose another layer") from None
 

@@ -38,7 +38,7 @@ def choose_kernel_cache() -> str | None:
     config = sys.modules.get("numba.core.config")  # (numba imported first: it read the environment already)
     chosen = os.environ.get("NUMBA_CACHE_DIR")
     configured = getattr(config, "CACHE_DIR", None) or chosen  # (set in code, or the environment's)
-    if configured and (configured != chosen or _writable(Path(configured))):
+    if configured and (configured != chosen or _could_write(Path(configured))):
         return None  # (a folder numba can use, or one set in code: the user's choice either way)
     user_cache = Path(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")) / "numba"
     folder = fallback_cache_dir(Path(__file__).parent / "__pycache__", user_cache)
@@ -46,7 +46,7 @@ def choose_kernel_cache() -> str | None:
         return None  # (numba has a folder of its own; past a chosen one it cannot write, it uses that)
     if chosen:  # numba could not use it, nor any other: every kernel failed, "no locator available"
         _NOTES.append(f"NUMBA_CACHE_DIR={chosen}: numba cannot write there (it reads no cache from a folder it cannot "
-                      f"write either), nor beside neuralrt or in ~/.cache: neuralrt's kernels are cached in {folder}")
+                      f"write either), nor beside neuralrt or in {user_cache}: neuralrt's kernels are cached in {folder}")
     os.environ["NUMBA_CACHE_DIR"] = folder
     if config is not None:
         config.CACHE_DIR = folder
@@ -89,6 +89,14 @@ def _ours_alone(folder: Path, sticky_will_do: bool = False) -> bool:
     if sticky_will_do and info.st_mode & stat.S_ISVTX:
         return True
     return info.st_uid == _uid() and not stat.S_IMODE(info.st_mode) & 0o022
+
+
+def _could_write(folder: Path) -> bool:
+    """Could files be made in ``folder``, or in the nearest folder above it that exists (where
+    numba would make it)? Asked without making anything: ``import neuralrt`` made the user's
+    chosen folder, and a file in it, each time (``--version`` too)."""
+    existing = next((f for f in (folder, *folder.parents) if f.exists()), None)
+    return existing is not None and existing.is_dir() and os.access(existing, os.W_OK | os.X_OK)
 
 
 def _writable(folder: Path) -> bool:

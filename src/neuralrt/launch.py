@@ -26,6 +26,8 @@ def _signals_end_the_process(ignored: list) -> None:
     per-process numba cache folder in the temporary folder can stay). A signal the process was
     started ignoring (``nohup``, a background job of a script) stays ignored."""
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:  # (started with it closed: `>&-`)
+            continue
         try:
             stream.flush()  # (what the command printed is out before the process can end)
         except (OSError, ValueError):  # (already reported by the command, or a closed pipe)

@@ -22,6 +22,7 @@ def progress_bar(**kwargs):
     stream = kwargs.get("file") or sys.stderr
     if chosen is text_bar and "TQDM_MININTERVAL" not in os.environ and not _is_terminal(stream):
         kwargs.setdefault("mininterval", LOG_REDRAW_SECONDS)
+        kwargs.setdefault("maxinterval", LOG_REDRAW_SECONDS)  # (tqdm's monitor thread forced one every 10 s)
     return tqdm(**kwargs)
 
 

@@ -465,8 +465,10 @@ def _unreadable_why(exc: Exception, suffix: str) -> str:
     text = str(exc)
     if "unmatched data" in text or "invalid literal" in text or "could not convert string" in text:
         why = "text where numbers were expected"
-    elif "unexpected length" in text or "expected length" in text or "cannot reshape" in text:
+    elif "expected length" in text:  # (PLY, binary STL, GLB chunks)
         why = "its data is shorter or longer than its header says"
+    elif "cannot reshape" in text:
+        why = "numbers missing or left over"
     elif isinstance(exc, IndexError):
         why = "an index past the end of its data"
     else:

@@ -187,22 +187,24 @@ def written_together():
         raise
     finally:
         _STAGED.reset(token)
-    # (an interrupt between two renames left half the set new, and temporaries; another thread's or
-    # process's set renamed in between mixed the two sets)
-    with interrupts_held(), _RENAMING, _folders_locked(path for _, path in staged):
-        path = None
-        try:
+    # Another thread's or process's set renamed in between mixed the two sets: they wait for each
+    # other (an interrupt while waiting stops the wait); an interrupt between two renames left half
+    # the set new, and temporaries: held until the renames are done.
+    path = None
+    try:
+        with _RENAMING, _folders_locked(path for _, path in staged), interrupts_held():
             problem = next(filter(None, (_replace_problem(path, "file") for _, path in staged)), None)
             if problem:  # (found before the first rename: none of the set is replaced)
                 raise NeuralRTError(problem)
             for tmp, path in staged:
                 os.replace(tmp, path)
-        except BaseException as exc:
+    except BaseException as exc:
+        with interrupts_held():
             for tmp, _ in staged:
                 tmp.unlink(missing_ok=True)
-            if isinstance(exc, OSError) and path is not None:  # (it named our temporary, not the output)
-                raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
-            raise
+        if isinstance(exc, OSError) and path is not None:  # (it named our temporary, not the output)
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+        raise
 
 
 @contextlib.contextmanager

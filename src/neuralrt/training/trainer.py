@@ -140,9 +140,6 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
                 raise ValueError(f"Adam's {name} holds NaN or infinite values")
             if name in ("step", "exp_avg_sq") and (value < 0).any():  # (a diverged loss was blamed on the learning rate)
                 raise ValueError(f"Adam's {name} holds negative values")
-            if name != "step" and value.dtype != p.dtype:
-                raise ValueError(f"Adam's {name} is {str(value.dtype).removeprefix('torch.')}, its parameter "
-                                 f"{str(p.dtype).removeprefix('torch.')}")
 
 
 def save_checkpoint(path: Path, model: nn.Module, opt, sampler, step: int, record: TrainingRecord, identity: dict,
