@@ -175,3 +175,33 @@ def test_a_local_conversion_holds_its_models_lock_until_the_model_is_saved(tmp_p
     assert len(errors) == 1 and "another thread of this process is training this model" in errors[0]
     results.close()  # (the caller is done with it)
     assert not lock_path(tmp_path / "m.ckpt").exists()
+
+
+def test_a_conversion_asks_again_as_each_local_job_starts(tmp_path, capsys, monkeypatch):
+    """Two conversions started together both plan the model (no lock yet); the one whose job starts
+    second found the first's lock and stopped. It is asked again as the job starts, and waits."""
+    import json
+
+    from neuralrt.scene import convert as convert_module
+
+    models, scene = tmp_path / "models", "builtin:cornell-statue?detail=0"
+    common = ["--models-dir", str(models), "--min-triangles", "1000", "--preset", "lq", "--steps", "2", "--json"]
+    assert main(["convert", scene, "-o", str(tmp_path / "a" / "scene.toml"), *common]) == 0
+    (model,) = models.glob("*.nrt")
+    model.rename(tmp_path / "aside.nrt")
+    asked = []
+
+    def held_then_saved(path, on_wait):  # (planning: no one holds it; as the job starts: the other run has it)
+        asked.append(path)
+        if len(asked) == 1:
+            return False
+        on_wait("4242")
+        (tmp_path / "aside.nrt").rename(model)  # (what the other run saved while this one waited)
+        return True
+
+    monkeypatch.setattr(convert_module, "wait_while_held", held_then_saved)
+    capsys.readouterr()
+    assert main(["convert", scene, "-o", str(tmp_path / "b" / "scene.toml"), *common]) == 0
+    out, err = capsys.readouterr()
+    assert len(asked) == 2 and "waiting for pid 4242" in err and "training lsnif" not in err
+    assert (json.loads(out)["trained_models"], json.loads(out)["reused_models"]) == (0, 1)

@@ -447,7 +447,10 @@ def _converted(spec: SceneSpec, meshes: list, chosen: list[int], output: Path, r
     check_output_files([models_dir / f"{job.key}.nrt" for job in to_train], "model file")
     check_output_files([job.checkpoint for job in to_train], "training checkpoint")
     trained = {}
-    for result in runner.run(to_train):  # each model is written as soon as it exists
+    def trained_meanwhile(job: TrainingJob) -> bool:  # (asked again as each local job starts: a conversion
+        return _trained_meanwhile(job, models_dir, jobs, stems, config, progress)  # started beside this one may be training it)
+
+    for result in runner.run(to_train, skip=trained_meanwhile):  # each model is written as soon as it exists
         result.save(models_dir / f"{result.key}.nrt")
         (models_dir / f"{result.key}.ckpt").unlink(missing_ok=True)
         trained[result.key] = result

@@ -33,7 +33,7 @@ import threading
 import time
 import warnings
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -156,7 +156,9 @@ def _drop_unreadable_checkpoint(job: TrainingJob) -> None:
 class Executor(ABC):
     """Contract: ``with executor: for result in executor.run(jobs): ...`` trains every job and
     yields each `TrainedModel` as it finishes (any order). Entering checks that the executor can
-    run (before any long work); leaving stops whatever is still running."""
+    run (before any long work); leaving stops whatever is still running. ``skip(job)``, where given,
+    is asked just before a job starts where the executor starts them one at a time (local): True
+    leaves it out, with no result (another process trained that model meanwhile)."""
 
     name = "executor"
 
@@ -167,7 +169,7 @@ class Executor(ABC):
         pass
 
     @abstractmethod
-    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+    def run(self, jobs: list[TrainingJob], skip: Callable[[TrainingJob], bool] | None = None) -> Iterator[TrainedModel]:
         """Train every job; yield each result as it finishes."""
 
 
@@ -179,8 +181,10 @@ class LocalExecutor(Executor):
     def __init__(self, *, device: str = "cpu", progress: bool = True, threads: int | None = None):
         self.device, self.progress, self.threads = device, progress, threads
 
-    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+    def run(self, jobs: list[TrainingJob], skip: Callable[[TrainingJob], bool] | None = None) -> Iterator[TrainedModel]:
         for k, job in enumerate(jobs):
+            if skip is not None and skip(job):
+                continue
             if self.progress:
                 print(f"[{k + 1}/{len(jobs)}] training {job.description}", file=sys.stderr, flush=True)  # (stdout is the result: --json)
             # (held until the caller has saved the model: a conversion waiting for this one then finds it)
@@ -461,7 +465,8 @@ class RayExecutor(Executor):
             ray.shutdown()
             self._started = False
 
-    def run(self, jobs: list[TrainingJob]) -> Iterator[TrainedModel]:
+    def run(self, jobs: list[TrainingJob], skip: Callable[[TrainingJob], bool] | None = None) -> Iterator[TrainedModel]:
+        # (``skip`` is not asked: every task starts at once, as its caller planned them)
         if not jobs:
             return
         self._connect()
