@@ -481,7 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"neuralrt: error: {_message(str(exc))}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # the reader went away (`neuralrt info X | head`): stop quietly, as other tools do
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the interpreter's final flush cannot fail too
+        discard_the_rest(sys.stdout)
         return 141
     except OSError as exc:  # the system refused a read or write the checks above let through (disk full, ...)
         where = f"{exc.filename}: " if exc.filename else ""
@@ -501,6 +501,21 @@ def main(argv: list[str] | None = None) -> int:
         if on_term is not None:
             signal.signal(signal.SIGTERM, on_term)
     return 0
+
+
+def discard_the_rest(stream) -> None:
+    """What a stream that cannot be written still holds goes to /dev/null, so the interpreter's own
+    final flush cannot fail again (a closed pipe; "Exception ignored in: <stdout>", exit 120, after
+    the command's one line said why)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, stream.fileno())
+        finally:
+            os.close(devnull)
+        stream.flush()
+    except (OSError, ValueError):
+        pass
 
 
 def _check_environment() -> None:

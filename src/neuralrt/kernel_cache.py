@@ -28,6 +28,7 @@ import shutil
 import stat
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 __all__ = ["choose_kernel_cache", "fallback_cache_dir", "guard_cache_writes"]
@@ -151,8 +152,6 @@ _NOTES: list[str] = []  # (what `choose_kernel_cache` changed, said when numba's
 
 def _guard(caching) -> None:
     if _NOTES:
-        import warnings
-
         from .errors import outside_stacklevel
 
         warnings.warn(_NOTES.pop(), RuntimeWarning, stacklevel=outside_stacklevel())
@@ -169,8 +168,6 @@ def _guard(caching) -> None:
             if module.split(".")[0] != "neuralrt":  # (another package's kernels: numba's own behaviour)
                 raise
             if not _WARNED:
-                import warnings
-
                 _WARNED.append(True)
                 where = getattr(self, "_cache_path", None) or "numba's cache folder"
                 warnings.warn(f"{where}: numba cannot cache compiled kernels there ({exc.strerror or exc}): they run, "

@@ -1,7 +1,6 @@
 """The `neuralrt` command's entry point: the CLI (and torch, ~1 s to import) is imported here, so a
 Ctrl-C during that import is the CLI's one line too, not a traceback from inside torch."""
 
-import os
 import signal
 import sys
 
@@ -25,23 +24,14 @@ def _signals_end_the_process(ignored: list) -> None:
     in place by then (renamed into place; Ray shut down); exit callbacks not yet run are skipped (a
     per-process numba cache folder in the temporary folder can stay). A signal the process was
     started ignoring (``nohup``, a background job of a script) stays ignored."""
+    from .cli import discard_the_rest  # (imported already: main ran it)
+
     for stream in (sys.stdout, sys.stderr):
         if stream is None:  # (started with it closed: `>&-`)
             continue
         try:
             stream.flush()  # (what the command printed is out before the process can end)
         except (OSError, ValueError):  # (already reported by the command, or a closed pipe)
-            _discard_the_rest(stream)
+            discard_the_rest(stream)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN if sig in ignored else signal.SIG_DFL)
-
-
-def _discard_the_rest(stream) -> None:
-    """What a stream that cannot be written still holds goes to /dev/null, so the interpreter's own
-    final flush cannot fail again ("Exception ignored in: <stdout>", exit 120, after the command's
-    one line said why)."""
-    try:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
-        stream.flush()
-    except (OSError, ValueError):
-        pass

@@ -101,11 +101,15 @@ def _optimizer_arrays(opt: torch.optim.Optimizer) -> tuple[dict, dict[str, torch
     return meta, arrays
 
 
+def _is_flag(value) -> bool:
+    return isinstance(value, bool) or value is None
+
+
 def _same_kind(ours, theirs) -> bool:
     """Whether ``theirs`` (from a file) is a value of ``ours``'s kind: a finite number for a number,
     as many such for a tuple, the same value for a flag or None, the same type for anything else."""
-    if isinstance(ours, bool) or ours is None:  # (a flag: this run's own, as Adam's step reads it: amsgrad
-        return theirs is ours                   # true wanted state no run saves, maximize trained uphill)
+    if _is_flag(ours):  # (this run's own, as Adam's step reads it: amsgrad true wanted state no run saves,
+        return theirs is ours  # maximize trained uphill)
     if isinstance(ours, (int, float)):
         return isinstance(theirs, (int, float)) and not isinstance(theirs, bool) and math.isfinite(theirs)
     if isinstance(ours, (tuple, list)):
@@ -124,9 +128,8 @@ def _load_optimizer(opt: torch.optim.Optimizer, meta: dict, arrays: dict[str, to
     for ours, loaded in zip(fresh, opt.param_groups):
         for key, value in ours.items():
             if not _same_kind(value, loaded.get(key)):
-                flag = isinstance(value, bool) or value is None
-                raise ValueError(f"Adam's {key} is {loaded.get(key)!r}, " + (f"this run's {value!r}" if flag else
-                                                                            f"not a value like {value!r}"))
+                raise ValueError(f"Adam's {key} is {loaded.get(key)!r}, " + (f"this run's {value!r}" if _is_flag(value)
+                                                                            else f"not a value like {value!r}"))
     # torch takes moments of any shape, and the step after would fail inside Adam's kernel.
     for p in (p for group in opt.param_groups for p in group["params"]):
         held = opt.state.get(p, {})
